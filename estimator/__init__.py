@@ -1,0 +1,4 @@
+"""Pure estimation maths: ranging, measurement models, the SLAM solver, covariance, CRLB.
+
+No asyncio, sockets, files or clocks in here (DESIGN.md §2).
+"""

@@ -1,0 +1,74 @@
+"""Noise model shared by the estimator, the planner and the simulators (DESIGN.md §4, §5).
+
+    σ(d) = s0 + a · exp(b · d)          range standard deviation at slant distance d [m]
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from uavloc.errors import EstimatorError
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Measurement noise of GPS and ranges.
+
+    sigma_gps_m: per-axis standard deviation of a GPS fix [m] (paper: 1 m).
+    s0_m, a_m, b_per_m: range spread σ(d) = s0 + a·exp(b·d) [m]; defaults s0 = 3 m, a = 0.
+    """
+
+    sigma_gps_m: float = 1.0
+    s0_m: float = 3.0
+    a_m: float = 0.0
+    b_per_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_gps_m", "s0_m", "a_m", "b_per_m"):
+            value = getattr(self, name)
+            if not isinstance(value, int | float) or not math.isfinite(value):
+                raise EstimatorError(f"noise model {name} must be a finite number, got {value!r}")
+        if self.sigma_gps_m <= 0:
+            raise EstimatorError(f"sigma_gps_m must be positive, got {self.sigma_gps_m}")
+        if self.s0_m <= 0:
+            raise EstimatorError(f"s0_m must be positive, got {self.s0_m}")
+        if self.a_m < 0:
+            raise EstimatorError(f"a_m must be non-negative, got {self.a_m}")
+
+    def range_sigma_m(self, d_m: np.ndarray | float) -> np.ndarray:
+        """σ(d) = s0 + a·exp(b·d) [m]; `d_m` any shape, result the same shape."""
+        d = np.asarray(d_m, dtype=float)
+        # σ(d) = s0 + a·exp(b·d)
+        return self.s0_m + self.a_m * np.exp(self.b_per_m * d)
+
+    def range_sigma_dd(self, d_m: np.ndarray | float) -> np.ndarray:
+        """dσ/dd = a·b·exp(b·d) [m/m], same shape as `d_m`."""
+        d = np.asarray(d_m, dtype=float)
+        # dσ/dd = a·b·exp(b·d)
+        return self.a_m * self.b_per_m * np.exp(self.b_per_m * d)
+
+    @classmethod
+    def from_log_dict(cls, noise: dict | None) -> NoiseModel:
+        """Build from a mission-log header `noise` section (DESIGN.md §10); defaults when absent."""
+        if not noise:
+            return cls()
+        rs = noise.get("range_sigma_m", {}) or {}
+        try:
+            return cls(
+                sigma_gps_m=float(noise.get("sigma_gps_m", 1.0)),
+                s0_m=float(rs.get("s0", 3.0)),
+                a_m=float(rs.get("a", 0.0)),
+                b_per_m=float(rs.get("b", 0.0)),
+            )
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise EstimatorError(f"noise section is malformed: {noise!r}") from exc
+
+    def to_log_dict(self) -> dict:
+        """The mission-log header `noise` section."""
+        return {
+            "sigma_gps_m": self.sigma_gps_m,
+            "range_sigma_m": {"s0": self.s0_m, "a": self.a_m, "b": self.b_per_m},
+        }

@@ -1,0 +1,109 @@
+"""Data passed between the estimator, the planner, replay and the controller.
+
+These are the contract between the parts (DESIGN.md §1): plain frozen dataclasses on numpy arrays.
+Shapes use N keyframes, K users, M range measurements, d = 2 (east, north) or 3 user coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+#: χ²(2 dof) quantile for a 95 % ellipse: P(χ²₂ ≤ 5.991) = 0.95.
+CHI2_2DOF_95 = 5.991464547107979
+
+LossName = Literal["none", "huber", "cauchy"]
+
+
+@dataclass(frozen=True)
+class SolverParams:
+    """Settings of the SLAM solver (GTSAM-style params object).
+
+    loss: robust loss on range factors only ("none", "huber", "cauchy"); never on GPS priors.
+    loss_scale: loss threshold in whitened units (residual / σ(d)).
+    estimate_bias: add a range bias b_k per user, with a zero-mean prior of bias_prior_sigma_m.
+    user_dim: 2 (east, north; up fixed at the known ground height) or 3.
+    motion_sigma_m: per-axis σ of the relative-motion factor between consecutive keyframes
+        (None: no motion factors).
+    delta_m: keyframe spacing Δ [m] (paper: 2 m).
+    window: keyframes kept in the online estimator before the oldest are marginalized.
+    """
+
+    loss: LossName = "huber"
+    loss_scale: float = 1.5
+    estimate_bias: bool = False
+    bias_prior_sigma_m: float = 10.0
+    user_dim: int = 2
+    motion_sigma_m: float | None = None
+    delta_m: float = 2.0
+    max_iterations: int = 50
+    step_tol_m: float = 1e-6
+    window: int = 100
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """One keyframe: the UAV's GPS position and the ranges measured there.
+
+    gps_enu_m: (3,) GPS fix interpolated to the measurement time [m, ENU].
+    user_idx: (m,) int indices into the user list; range_m: (m,) measured ranges [m].
+    odom_enu_m: (3,) optional displacement from the previous keyframe measured by the autopilot's
+        local position [m, ENU] (None: no relative-motion factor).
+    t_s: seconds since mission start.
+    """
+
+    gps_enu_m: np.ndarray
+    user_idx: np.ndarray
+    range_m: np.ndarray
+    odom_enu_m: np.ndarray | None = None
+    t_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What the estimator knows about the users (and the UAV track it corrected).
+
+    users_enu_m: (K, 3) user positions [m, ENU]; in 2-D mode `up` is the known ground height.
+        Rows of users not yet initialised (no ranges) are NaN.
+    cov_users_m2: (K, d, d) marginal covariance of each user [m²] (exact S⁻¹ blocks).
+    info_users: (K·d, K·d) information matrix S of all users jointly (Schur complement over
+        keyframes plus any marginalization prior) [1/m²].
+    bias_m: (K,) estimated range bias per user [m], or None when biases are not estimated.
+    uav_enu_m: (N, 3) corrected UAV keyframe positions still in the estimator [m, ENU].
+    ambiguous: (K,) True where a mirror solution explains the ranges about as well.
+    mirror_enu_m: (K, 3) the reflected solution where ambiguous, NaN elsewhere.
+    n_ranges: (K,) number of range measurements used per user.
+    """
+
+    users_enu_m: np.ndarray
+    cov_users_m2: np.ndarray
+    info_users: np.ndarray
+    bias_m: np.ndarray | None
+    uav_enu_m: np.ndarray
+    ambiguous: np.ndarray
+    mirror_enu_m: np.ndarray
+    n_ranges: np.ndarray
+    cost: float = float("nan")
+    iterations: int = 0
+    converged: bool = False
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_users(self) -> int:
+        return int(self.users_enu_m.shape[0])
+
+    def cov_en_m2(self, k: int) -> np.ndarray:
+        """(2, 2) east-north covariance of user k [m²]."""
+        return np.asarray(self.cov_users_m2[k][:2, :2])
+
+    def error_bound_95_m(self) -> np.ndarray:
+        """(K,) semi-major axis of each user's 95 % east-north error ellipse [m]:
+        r95 = sqrt(χ²₂(0.95) · λ_max(Σ_en)); inf for users without a covariance."""
+        out = np.full(self.n_users, np.inf)
+        for k in range(self.n_users):
+            cov = self.cov_en_m2(k)
+            if np.all(np.isfinite(cov)):
+                out[k] = np.sqrt(CHI2_2DOF_95 * max(np.linalg.eigvalsh(cov)[-1], 0.0))
+        return out

@@ -1,0 +1,85 @@
+"""`uavloc` command line: a thin dispatcher (DESIGN.md §11).
+
+Each subcommand lives in `mission/commands/<name>.py` with `HELP`, `add_arguments(parser)` and
+`run(args) -> int`; heavy imports happen inside `run`. This is the one place where a
+:class:`UavlocError` becomes a message on stderr and an exit code, and the one place that
+configures logging.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from uavloc import __version__
+from uavloc.errors import UavlocError
+
+log = logging.getLogger("uavloc")
+
+#: subcommand -> module implementing it
+COMMANDS = {
+    "sim": "mission.commands.sim",
+    "fly": "mission.commands.fly",
+    "replay": "mission.commands.replay",
+    "calibrate": "mission.commands.calibrate",
+    "import": "mission.commands.importer",
+}
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="uavloc",
+        description="UAV-aided 5G NR user localization: fly, simulate and replay RTT ranging missions.",
+    )
+    parser.add_argument("--version", action="version", version=f"uavloc {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors on stderr")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, modname in COMMANDS.items():
+        try:
+            mod = importlib.import_module(modname)
+        except ModuleNotFoundError as exc:
+            if exc.name != modname:
+                raise
+            continue  # command not built yet
+        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
+        mod.add_arguments(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def configure_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s" if verbose else "%(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    if verbose < 2:
+        for noisy in ("matplotlib", "PIL", "asyncio"):
+            logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose, args.quiet)
+    try:
+        return int(args._run(args) or 0)
+    except UavlocError as exc:
+        log.error("uavloc %s: %s", args.command, exc)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        log.error("uavloc %s: interrupted", args.command)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,409 @@
+"""The mission log, `uavloc-mission/1`: JSON Lines, appended and flushed line by line (DESIGN.md §10).
+
+Writer: :class:`MissionLogWriter` appends one JSON object per line and flushes each, so a crash loses
+at most the line being written. Reader: :func:`read_mission_log` accepts any file that follows the
+table in DESIGN.md §10; a torn last line (no newline, not JSON) is skipped with a warning; anything
+else malformed raises :class:`MissionLogError` naming the line number and the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from estimator.geodesy import Origin
+from estimator.noise import NoiseModel
+from estimator.ranging import toa_s_from_raw
+from uavloc.errors import MissionLogError, UavlocError
+
+log = logging.getLogger(__name__)
+
+FORMAT = "uavloc-mission/1"
+RECORD_TYPES = ("header", "telemetry", "rtt", "estimate", "waypoint", "event", "truth")
+
+
+# ---------------------------------------------------------------------------------------------
+# writer
+
+
+class MissionLogWriter:
+    """Append-only writer of a mission log. Use as a context manager.
+
+    Every record is one line, written and flushed at once. NaN or infinite numbers are refused
+    (JSON has none) with a :class:`MissionLogError`, and nothing is written for that record.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._fh: TextIO | None = None
+
+    def __enter__(self) -> MissionLogWriter:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def open(self) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = self.path.open("a", encoding="utf-8")
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.flush()
+            self._fh.close()
+            self._fh = None
+
+    def write(self, record_type: str, t_s: float, **fields: Any) -> dict:
+        """Append one record `{"type": record_type, "t": t_s, **fields}` and flush it."""
+        if self._fh is None:
+            raise MissionLogError(f"mission log {self.path} is not open")
+        if record_type not in RECORD_TYPES:
+            raise MissionLogError(f"unknown record type {record_type!r}; known: {', '.join(RECORD_TYPES)}")
+        obj = {"type": record_type, "t": round(float(t_s), 6), **fields}
+        try:
+            line = json.dumps(_plain(obj), allow_nan=False, separators=(",", ":"))
+        except ValueError as exc:
+            raise MissionLogError(f"{record_type} record has a NaN or infinite number: {obj!r}") from exc
+        self._fh.write(line + "\n")
+        self._fh.flush()
+        return obj
+
+    def write_header(
+        self,
+        origin: Origin,
+        users: list[dict],
+        radio: dict,
+        noise: NoiseModel | None = None,
+        config: dict | None = None,
+        start_utc: str | None = None,
+    ) -> dict:
+        """Write the header line: users as [{"id", "rnti", "ground_alt_m"}], radio {"mu", "fs_hz"}."""
+        fields: dict[str, Any] = {
+            "format": FORMAT,
+            "start_utc": start_utc or datetime.now(UTC).isoformat(timespec="milliseconds"),
+            "origin": origin.to_dict(),
+            "users": users,
+            "radio": radio,
+        }
+        if noise is not None:
+            fields["noise"] = noise.to_log_dict()
+        if config is not None:
+            fields["config"] = config
+        return self.write("header", 0.0, **fields)
+
+
+def _plain(obj: Any) -> Any:
+    """numpy scalars and arrays -> plain JSON types."""
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+# ---------------------------------------------------------------------------------------------
+# reader
+
+
+@dataclass(frozen=True)
+class LogUser:
+    id: str
+    rnti: int
+    ground_alt_m: float
+
+
+@dataclass(frozen=True)
+class LogHeader:
+    start_utc: str
+    origin: Origin
+    users: list[LogUser]
+    mu: int | None
+    fs_hz: float | None
+    noise: NoiseModel
+    has_noise: bool
+    config: dict
+
+    def user_index(self) -> dict[str, int]:
+        return {u.id: i for i, u in enumerate(self.users)}
+
+
+@dataclass
+class MissionLog:
+    """A parsed mission log.
+
+    rtt_*: one entry per `rtt` record, in file order: rtt_t_s (M,), rtt_user (M,) user indices,
+    rtt_uav_lla (M, 3) lat_deg/lon_deg/alt_m, rtt_toa_s (M,), rtt_raw: list of the raw-field dicts.
+    tel_t_s (T,), tel_lla (T, 3): telemetry. truth_lla: (K, 3) or None (NaN rows for users absent).
+    """
+
+    path: Path
+    header: LogHeader
+    rtt_t_s: np.ndarray
+    rtt_user: np.ndarray
+    rtt_uav_lla: np.ndarray
+    rtt_toa_s: np.ndarray
+    rtt_raw: list[dict]
+    tel_t_s: np.ndarray
+    tel_lla: np.ndarray
+    truth_lla: np.ndarray | None
+    estimates: list[dict] = field(default_factory=list)
+    waypoints: list[dict] = field(default_factory=list)
+    events: list[dict] = field(default_factory=list)
+    skipped_torn_line: int | None = None
+
+    @property
+    def n_users(self) -> int:
+        return len(self.header.users)
+
+    def user_up_m(self) -> np.ndarray:
+        """(K,) ENU up of each user's ground [m] (ground_alt_m − origin altitude)."""
+        return np.array([u.ground_alt_m - self.header.origin.alt_m for u in self.header.users])
+
+
+class _LineError(Exception):
+    pass
+
+
+def _num(obj: dict, key: str, lo: float = -math.inf, hi: float = math.inf, required: bool = True):
+    if key not in obj:
+        if required:
+            raise _LineError(f"missing field {key!r}")
+        return None
+    v = obj[key]
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise _LineError(f"field {key!r} must be a number, got {v!r}")
+    if not math.isfinite(v):
+        raise _LineError(f"field {key!r} must be finite, got {v!r}")
+    if not lo <= v <= hi:
+        raise _LineError(f"field {key!r} = {v!r} is outside [{lo}, {hi}]")
+    return float(v)
+
+
+def _table(obj: dict, key: str) -> dict:
+    v = obj.get(key)
+    if not isinstance(v, dict):
+        raise _LineError(f"field {key!r} must be an object, got {v!r}")
+    return v
+
+
+def _lla(d: dict, what: str) -> tuple[float, float, float]:
+    try:
+        return (_num(d, "lat_deg", -90, 90), _num(d, "lon_deg", -180, 180), _num(d, "alt_m", -1000, 100_000))
+    except _LineError as exc:
+        raise _LineError(f"{what}: {exc}") from None
+
+
+def _parse_header(obj: dict) -> LogHeader:
+    fmt = obj.get("format")
+    if fmt != FORMAT:
+        raise _LineError(f"format is {fmt!r}, this reader reads {FORMAT!r}")
+    origin_d = _table(obj, "origin")
+    lat, lon, alt = _lla(origin_d, "origin")
+    users_d = obj.get("users")
+    if not isinstance(users_d, list) or not users_d:
+        raise _LineError(f"field 'users' must be a non-empty list, got {users_d!r}")
+    users: list[LogUser] = []
+    for i, u in enumerate(users_d):
+        if not isinstance(u, dict) or not isinstance(u.get("id"), str) or not u["id"]:
+            raise _LineError(f"users[{i}] needs a string 'id', got {u!r}")
+        rnti = u.get("rnti")
+        if isinstance(rnti, str):
+            try:
+                rnti = int(rnti, 16 if not rnti.lower().startswith("0x") else 0)
+            except ValueError:
+                raise _LineError(f"users[{i}].rnti is not a number: {u.get('rnti')!r}") from None
+        if isinstance(rnti, bool) or not isinstance(rnti, int) or not 0 <= rnti <= 0xFFFF:
+            raise _LineError(f"users[{i}].rnti must be an integer 0..0xFFFF, got {u.get('rnti')!r}")
+        try:
+            ground = _num(u, "ground_alt_m", -1000, 100_000)
+        except _LineError as exc:
+            raise _LineError(f"users[{i}]: {exc}") from None
+        users.append(LogUser(u["id"], rnti, ground))
+    if len({u.id for u in users}) != len(users):
+        raise _LineError("user ids in the header are not unique")
+    radio = obj.get("radio", {})
+    if not isinstance(radio, dict):
+        raise _LineError(f"field 'radio' must be an object, got {radio!r}")
+    mu = radio.get("mu")
+    if mu is not None and (isinstance(mu, bool) or mu not in (0, 1, 2, 3)):
+        raise _LineError(f"radio.mu must be 0..3, got {mu!r}")
+    fs = _num(radio, "fs_hz", 1.0, 1e12, required=False)
+    noise_d = obj.get("noise")
+    if noise_d is not None and not isinstance(noise_d, dict):
+        raise _LineError(f"field 'noise' must be an object, got {noise_d!r}")
+    try:
+        noise = NoiseModel.from_log_dict(noise_d)
+    except UavlocError as exc:
+        raise _LineError(str(exc)) from None
+    config = obj.get("config", {})
+    start = obj.get("start_utc", "")
+    if not isinstance(start, str):
+        raise _LineError(f"start_utc must be a string, got {start!r}")
+    return LogHeader(start, Origin(lat, lon, alt), users, mu, fs, noise, noise_d is not None,
+                     config if isinstance(config, dict) else {"value": config})
+
+
+def _rtt_toa(obj: dict, header: LogHeader) -> tuple[float, dict]:
+    raw = {k: obj[k] for k in ("ta", "mu", "srs_peak", "fs_hz", "snr_db") if k in obj}
+    if "toa_s" in obj:
+        return _num(obj, "toa_s", 0.0, 1e-3), raw
+    if "ta" not in obj:
+        raise _LineError("rtt record has neither 'toa_s' nor the raw 'ta' field")
+    mu = obj.get("mu", header.mu)
+    fs = obj.get("fs_hz", header.fs_hz)
+    peak = obj.get("srs_peak", 0.0)
+    if mu is None:
+        raise _LineError("rtt record has raw 'ta' but no 'mu' (neither in the record nor the header radio)")
+    if fs is None and peak:
+        raise _LineError("rtt record has 'srs_peak' but no 'fs_hz' (neither in the record nor the header)")
+    try:
+        return toa_s_from_raw(obj["ta"], mu, peak, fs if fs is not None else 1.0), raw
+    except UavlocError as exc:
+        raise _LineError(f"raw ranging fields are unusable: {exc}") from None
+
+
+def iter_log_objects(fh: TextIO, path: Path) -> Iterator[tuple[int, dict | None, str]]:
+    """Yield (line_number, object, line) for each non-empty line; object None for a torn last line."""
+    lines = fh.readlines()
+    last = len(lines)
+    while last > 0 and not lines[last - 1].strip():
+        last -= 1
+    for i, line in enumerate(lines[:last], start=1):
+        if not line.strip():
+            continue
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError as exc:
+            if i == last and not line.endswith("\n"):
+                yield i, None, line
+                continue
+            raise MissionLogError(f"{path}:{i}: not valid JSON ({exc.msg} at column {exc.colno})") from None
+        if not isinstance(obj, dict):
+            raise MissionLogError(f"{path}:{i}: a record must be a JSON object, got {type(obj).__name__}")
+        yield i, obj, line
+
+
+def read_mission_log(path: str | Path) -> MissionLog:
+    """Parse a `uavloc-mission/1` log strictly (see the module docstring)."""
+    path = Path(path)
+    try:
+        fh = path.open("r", encoding="utf-8")
+    except OSError as exc:
+        raise MissionLogError(f"cannot open mission log {path}: {exc}") from exc
+
+    header: LogHeader | None = None
+    user_ix: dict[str, int] = {}
+    rtt_t, rtt_user, rtt_lla, rtt_toa, rtt_raw = [], [], [], [], []
+    tel_t, tel_lla = [], []
+    truth: np.ndarray | None = None
+    estimates, waypoints, events = [], [], []
+    torn: int | None = None
+    with fh:
+        try:
+            for lineno, obj, _line in iter_log_objects(fh, path):
+                if obj is None:
+                    log.warning("%s:%d: skipping a torn last line (no newline, not JSON)", path, lineno)
+                    torn = lineno
+                    continue
+                try:
+                    rtype = obj.get("type")
+                    if rtype not in RECORD_TYPES:
+                        raise _LineError(f"unknown record type {rtype!r}; known: {', '.join(RECORD_TYPES)}")
+                    t = _num(obj, "t", 0.0, 1e9)
+                    if header is None:
+                        if rtype != "header":
+                            raise _LineError(f"the first record must be the header, got type {rtype!r}")
+                        header = _parse_header(obj)
+                        user_ix = header.user_index()
+                        continue
+                    if rtype == "header":
+                        raise _LineError("a second header")
+                    if rtype == "rtt":
+                        uid = obj.get("user")
+                        if uid not in user_ix:
+                            raise _LineError(f"rtt for unknown user {uid!r}; header users: {sorted(user_ix)}")
+                        uav = _lla(_table(obj, "uav"), "uav")
+                        toa, raw = _rtt_toa(obj, header)
+                        rtt_t.append(t)
+                        rtt_user.append(user_ix[uid])
+                        rtt_lla.append(uav)
+                        rtt_toa.append(toa)
+                        rtt_raw.append(raw)
+                    elif rtype == "telemetry":
+                        tel_t.append(t)
+                        tel_lla.append(_lla(obj, "telemetry"))
+                    elif rtype == "truth":
+                        truth = _parse_truth(obj, user_ix) if truth is None else truth
+                    elif rtype == "estimate":
+                        _check_estimate(obj, user_ix)
+                        estimates.append(obj)
+                    elif rtype == "waypoint":
+                        waypoints.append(obj)
+                    elif rtype == "event":
+                        if not isinstance(obj.get("message", ""), str):
+                            raise _LineError(f"event message must be a string, got {obj.get('message')!r}")
+                        events.append(obj)
+                except _LineError as exc:
+                    raise MissionLogError(f"{path}:{lineno}: {exc}") from None
+        except UnicodeDecodeError as exc:
+            raise MissionLogError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    if header is None:
+        raise MissionLogError(f"{path}: empty log, no header line")
+    return MissionLog(
+        path=path,
+        header=header,
+        rtt_t_s=np.asarray(rtt_t, float),
+        rtt_user=np.asarray(rtt_user, int),
+        rtt_uav_lla=np.asarray(rtt_lla, float).reshape(-1, 3),
+        rtt_toa_s=np.asarray(rtt_toa, float),
+        rtt_raw=rtt_raw,
+        tel_t_s=np.asarray(tel_t, float),
+        tel_lla=np.asarray(tel_lla, float).reshape(-1, 3),
+        truth_lla=truth,
+        estimates=estimates,
+        waypoints=waypoints,
+        events=events,
+        skipped_torn_line=torn,
+    )
+
+
+def _parse_truth(obj: dict, user_ix: dict[str, int]) -> np.ndarray:
+    users = obj.get("users")
+    if not isinstance(users, list):
+        raise _LineError(f"truth 'users' must be a list, got {users!r}")
+    out = np.full((len(user_ix), 3), np.nan)
+    for i, u in enumerate(users):
+        if not isinstance(u, dict) or u.get("id") not in user_ix:
+            raise _LineError(f"truth users[{i}] names an unknown user: {u!r}")
+        out[user_ix[u["id"]]] = _lla(u, f"truth users[{i}]")
+    return out
+
+
+def _check_estimate(obj: dict, user_ix: dict[str, int]) -> None:
+    users = obj.get("users")
+    if not isinstance(users, list):
+        raise _LineError(f"estimate 'users' must be a list, got {users!r}")
+    for i, u in enumerate(users):
+        if not isinstance(u, dict) or u.get("id") not in user_ix:
+            raise _LineError(f"estimate users[{i}] names an unknown user: {u!r}")
+        _lla(u, f"estimate users[{i}]")
+        cov = u.get("cov_en_m2")
+        ok = (isinstance(cov, list) and len(cov) == 2
+              and all(isinstance(r, list) and len(r) == 2 for r in cov)
+              and all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+                      for r in cov for x in r))
+        if not ok:
+            raise _LineError(f"estimate users[{i}].cov_en_m2 must be a 2x2 list of finite numbers, got {cov!r}")

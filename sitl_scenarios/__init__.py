@@ -1,0 +1,1 @@
+"""Scenarios (TOML), the built-in MAVLink vehicle simulator and the simulated OAI gNB."""
