@@ -1,0 +1,245 @@
+"""Radio model of the simulated gNB: from true geometry to the raw numbers a gNB reports.
+
+Pure and seeded (no sockets, no clocks, no files): the simulated gNB and the example-log generator
+both call it, with the time and the UAV position supplied by the caller. DESIGN.md §4 and §9.
+
+Chain for one measurement of user k from UAV position x at time t (one-way metres first):
+
+    d        = ||x − u_k||                                   true slant range [m]
+    n        ~ N(0, σ(d)²),  σ(d) = s0 + a·exp(b·d)          distance-dependent noise [m]
+    saw(t)   = A_k · frac(t / P_k + φ_k)                      UE clock sawtooth, 0 → A_k, then reset
+    e_nlos   ~ Exp(mean = nlos_excess_mean_m) if a building cuts the segment x → u_k, else 0
+    RTT      = 2 (d + n + saw(t) + e_nlos) / C               [s], clipped at 0
+    TA       = floor(RTT / TA step), clipped to 0..3846       TA step = 16·64·Tc / 2^μ
+    srs_peak = round((RTT − TA·step) · fs · os) / os          residual in samples at fs (1/os steps)
+
+so that `estimator.ranging.range_m_from_raw(ta, mu, srs_peak, fs)` gives back d + n + saw + e_nlos
+up to the SRS quantization (C / (2·fs·os) one-way). Beyond `coverage_m` there is no answer (None).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.ranging import C_MPS, TA_RAR_MAX, ta_step_s
+from sitl_scenarios.scenario import BuildingConfig, Scenario, UserConfig
+from uavloc.errors import SimulatorError
+
+_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class RawRtt:
+    """One simulated gNB RTT result: the raw fields the gNB prints plus truth diagnostics.
+
+    ta: absolute timing advance (0..3846); mu: numerology; srs_peak: SRS residual [samples at
+    fs_hz, multiple of 1/oversampling]; fs_hz: sampling rate [Hz]; snr_db: SRS SNR [dB].
+    Truth (never on the wire): true_range_m: slant distance [m]; noise_m: Gaussian part [m];
+    sawtooth_m: clock-drift part [m]; nlos: a building blocks the line of sight; nlos_excess_m:
+    NLoS excess [m]; error_m: total one-way error before quantization [m].
+    """
+
+    rnti: int
+    ta: int
+    mu: int
+    srs_peak: float
+    fs_hz: float
+    snr_db: float
+    true_range_m: float
+    noise_m: float
+    sawtooth_m: float
+    nlos: bool
+    nlos_excess_m: float
+
+    @property
+    def error_m(self) -> float:
+        """One-way range error before quantization [m]: n + saw(t) + e_nlos."""
+        return self.noise_m + self.sawtooth_m + self.nlos_excess_m
+
+
+# ---------------------------------------------------------------------------------------------
+# geometry
+
+
+def point_in_polygon(p_en_m: Sequence[float], polygon_en_m: Sequence[Sequence[float]]) -> bool:
+    """Even-odd rule: is the 2-D point (east, north) inside the polygon [[e, n], ...]?"""
+    x, y = float(p_en_m[0]), float(p_en_m[1])
+    inside = False
+    n = len(polygon_en_m)
+    for i in range(n):
+        x1, y1 = polygon_en_m[i]
+        x2, y2 = polygon_en_m[(i + 1) % n]
+        if (y1 > y) != (y2 > y):
+            # x coordinate where the edge crosses the horizontal line through p
+            x_cross = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
+            if x < x_cross:
+                inside = not inside
+    return inside
+
+
+def _edge_crossings(a: np.ndarray, b: np.ndarray, polygon: Sequence[Sequence[float]]) -> list[float]:
+    """Parameters s ∈ (0, 1) where the 2-D segment a + s(b − a) crosses a polygon edge."""
+    d = b - a
+    out = []
+    n = len(polygon)
+    for i in range(n):
+        p = np.asarray(polygon[i], float)
+        q = np.asarray(polygon[(i + 1) % n], float)
+        e = q - p
+        # a + s·d = p + t·e  →  [d, −e] [s, t]ᵀ = p − a
+        den = d[0] * (-e[1]) - d[1] * (-e[0])
+        if abs(den) < 1e-12:
+            continue  # parallel (collinear overlap is caught by the midpoint tests)
+        r = p - a
+        s = (r[0] * (-e[1]) - r[1] * (-e[0])) / den
+        t = (d[0] * r[1] - d[1] * r[0]) / den
+        if -_EPS <= t <= 1 + _EPS and 0.0 < s < 1.0:
+            out.append(float(s))
+    return out
+
+
+def segment_blocked_by(uav_enu_m, user_enu_m, building: BuildingConfig) -> bool:
+    """Does the 3-D segment UAV → user pass through the building prism (footprint × [0, height])?
+
+    uav_enu_m, user_enu_m: (3,) [m, ENU]. Touching the roof exactly counts as clear.
+    """
+    a3 = np.asarray(uav_enu_m, float)
+    b3 = np.asarray(user_enu_m, float)
+    a, b = a3[:2], b3[:2]
+    h = float(building.height_m)
+    poly = building.footprint_enu_m
+    if float(np.hypot(*(b - a))) < 1e-9:  # vertical segment
+        return point_in_polygon(a, poly) and min(a3[2], b3[2]) < h
+    cuts = sorted({0.0, 1.0, *_edge_crossings(a, b, poly)})
+    for s0, s1 in itertools.pairwise(cuts):
+        if s1 - s0 < 1e-12:
+            continue
+        mid = a + 0.5 * (s0 + s1) * (b - a)
+        if not point_in_polygon(mid, poly):
+            continue
+        # height along the segment is linear in s: the lowest point of the piece is at an end
+        z0 = a3[2] + s0 * (b3[2] - a3[2])
+        z1 = a3[2] + s1 * (b3[2] - a3[2])
+        if min(z0, z1) < h - 1e-9:
+            return True
+    return False
+
+
+def line_of_sight_blocked(uav_enu_m, user_enu_m, buildings: Sequence[BuildingConfig]) -> bool:
+    """True when any building prism cuts the 3-D segment UAV → user (both (3,) ENU [m])."""
+    return any(segment_blocked_by(uav_enu_m, user_enu_m, bld) for bld in buildings)
+
+
+# ---------------------------------------------------------------------------------------------
+# the model
+
+
+class RadioModel:
+    """Seeded radio model of a scenario (see the module docstring for the chain).
+
+    scenario: the scenario (users, buildings, radio section); rng: the only source of randomness.
+    Each user's sawtooth phase φ_k ∈ [0, 1) is drawn from `rng` at construction, in user order.
+    """
+
+    def __init__(self, scenario: Scenario, rng: np.random.Generator) -> None:
+        self.scenario = scenario
+        self.radio = scenario.radio
+        self.rng = rng
+        self.noise = scenario.noise_model()
+        self.ta_step_s = ta_step_s(self.radio.mu)
+        self.users: list[UserConfig] = list(scenario.users)
+        self.user_enu_m = np.array([[u.east_m, u.north_m, u.up_m] for u in self.users], float).reshape(-1, 3)
+        self.sawtooth_phase = rng.random(len(self.users))
+        self._by_rnti = {u.rnti: i for i, u in enumerate(self.users)}
+
+    # -- lookup -------------------------------------------------------------------------------
+    def user_index(self, user: int | UserConfig) -> int:
+        """Index of a user given as an index or a UserConfig of this scenario."""
+        if isinstance(user, UserConfig):
+            if user.rnti not in self._by_rnti:
+                raise SimulatorError(f"user {user.id!r} (RNTI {user.rnti:#06x}) is not in the scenario")
+            return self._by_rnti[user.rnti]
+        n = len(self.users)
+        if isinstance(user, bool) or not isinstance(user, int | np.integer) or not 0 <= user < n:
+            raise SimulatorError(f"user index must be 0..{len(self.users) - 1}, got {user!r}")
+        return int(user)
+
+    def index_of_rnti(self, rnti: int) -> int | None:
+        """Index of the user with this RNTI, or None."""
+        return self._by_rnti.get(rnti)
+
+    # -- deterministic parts ------------------------------------------------------------------
+    def sawtooth_m(self, user: int | UserConfig, t_s: float) -> float:
+        """saw(t) = A · frac(t / P + φ) [m, one-way]; mean A/2 over a period."""
+        k = self.user_index(user)
+        u = self.users[k]
+        if u.sawtooth_amplitude_m == 0.0:
+            return 0.0
+        # saw(t) = A · frac(t/P + φ)
+        phase = t_s / u.sawtooth_period_s + self.sawtooth_phase[k]
+        return u.sawtooth_amplitude_m * (phase - math.floor(phase))
+
+    def range_sigma_m(self, d_m: float) -> float:
+        """σ(d) = s0 + a·exp(b·d) [m]."""
+        return float(self.noise.range_sigma_m(d_m))
+
+    def snr_db(self, d_m: float) -> float:
+        """Free-space SNR: snr(100 m) − 20·log10(d / 100 m) [dB] (d floored at 1 m)."""
+        # snr(d) = snr_100 − 20 log10(d / 100)
+        return self.radio.snr_db_at_100m - 20.0 * math.log10(max(d_m, 1.0) / 100.0)
+
+    # -- one measurement ----------------------------------------------------------------------
+    def measure(self, user: int | UserConfig, uav_enu_m, t_s: float) -> RawRtt | None:
+        """Simulate one RTT measurement of `user` from `uav_enu_m` (3,) [m, ENU] at time `t_s` [s].
+
+        Returns None when the slant range exceeds the coverage range (no answer).
+        """
+        k = self.user_index(user)
+        uav = np.asarray(uav_enu_m, float).reshape(3)
+        if not np.all(np.isfinite(uav)):
+            raise SimulatorError(f"UAV position must be finite, got {uav!r}")
+        user_pos = self.user_enu_m[k]
+        # d = ||x − u_k||
+        d = float(np.linalg.norm(uav - user_pos))
+        if d > self.radio.coverage_m:
+            return None
+        # n ~ N(0, σ(d)²)
+        noise = float(self.rng.normal(0.0, self.range_sigma_m(d)))
+        saw = self.sawtooth_m(k, t_s)
+        nlos = line_of_sight_blocked(uav, user_pos, self.scenario.buildings)
+        # e_nlos ~ Exp(mean) only when blocked
+        excess = float(self.rng.exponential(self.radio.nlos_excess_mean_m)) if (
+            nlos and self.radio.nlos_excess_mean_m > 0) else 0.0
+        # RTT = 2 (d + n + saw + e_nlos) / C
+        rtt = max(0.0, 2.0 * (d + noise + saw + excess) / C_MPS)
+        # TA = floor(RTT / step), clipped to the RAR range
+        ta = min(TA_RAR_MAX, math.floor(rtt / self.ta_step_s))
+        # srs_peak = round((RTT − TA·step) · fs · os) / os
+        os_ = int(self.radio.oversampling)
+        residual_s = rtt - ta * self.ta_step_s
+        peak = round(residual_s * self.radio.fs_hz * os_) / os_
+        return RawRtt(
+            rnti=self.users[k].rnti,
+            ta=ta,
+            mu=self.radio.mu,
+            srs_peak=float(max(peak, 0.0)),
+            fs_hz=float(self.radio.fs_hz),
+            snr_db=round(self.snr_db(d), 2),
+            true_range_m=d,
+            noise_m=noise,
+            sawtooth_m=saw,
+            nlos=nlos,
+            nlos_excess_m=excess,
+        )
+
+    def measure_rnti(self, rnti: int, uav_enu_m, t_s: float) -> RawRtt | None:
+        """:meth:`measure` for the user with this RNTI (SimulatorError if unknown)."""
+        k = self.index_of_rnti(rnti)
+        if k is None:
+            raise SimulatorError(f"no user with RNTI {rnti:#06x} in scenario {self.scenario.name!r}")
+        return self.measure(k, uav_enu_m, t_s)
