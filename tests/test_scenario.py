@@ -1,0 +1,91 @@
+"""Scenario files: strict keys, types and values; every bundled scenario loads."""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+
+import pytest
+
+from sitl_scenarios.scenario import (
+    bundled_scenarios,
+    load_scenario,
+    resolve_scenario_path,
+    scenario_from_dict,
+)
+from uavloc.errors import ScenarioError
+
+BASE = {
+    "name": "t",
+    "users": [{"id": "a", "rnti": "0x4601", "east_m": 10.0, "north_m": 5.0}],
+    "radio": {"mu": 1},
+}
+
+
+def with_(path: list, value):
+    d = copy.deepcopy(BASE)
+    node = d
+    for key in path[:-1]:
+        node = node.setdefault(key, {}) if isinstance(key, str) else node[key]
+    node[path[-1]] = value
+    return d
+
+
+@pytest.mark.parametrize("path", sorted(p.stem for p in bundled_scenarios()))
+def test_every_bundled_scenario_loads(path):
+    sc = load_scenario(path)
+    assert sc.users and sc.name
+
+
+def test_hex_rnti_and_defaults():
+    sc = scenario_from_dict(BASE)
+    assert sc.users[0].rnti == 0x4601
+    assert sc.mission.delta_m == 2.0
+    assert sc.noise_model().s0_m == sc.radio.s0_m
+
+
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        (with_(["bogus"], 1), "unknown key.*'bogus'"),
+        (with_(["radio", "muu"], 1), r"radio: unknown key.*'muu'"),
+        (with_(["users", 0, "colour"], "red"), r"users\[0\]: unknown key"),
+        (with_(["radio", "mu"], 7), "radio.mu"),
+        (with_(["radio", "fs_hz"], "fast"), "radio.fs_hz: expected a number"),
+        (with_(["radio", "fs_hz"], float("nan")), "finite"),
+        (with_(["users", 0, "rnti"], "zz"), "expected an integer"),
+        (with_(["mission", "altitude_m"], 500.0), "alt_max_m"),
+        (with_(["users"], []), "at least one user"),
+        ({"name": "x"}, "missing required key 'users'"),
+        (with_(["buildings"], [{"footprint_enu_m": [[0, 0], [1, 1]], "height_m": 5.0}]), ">= 3"),
+    ],
+)
+def test_bad_scenarios_name_the_key(data, match):
+    with pytest.raises(ScenarioError, match=match):
+        scenario_from_dict(data)
+
+
+def test_duplicate_users_rejected():
+    d = copy.deepcopy(BASE)
+    d["users"].append(dict(d["users"][0]))
+    with pytest.raises(ScenarioError, match="duplicate"):
+        scenario_from_dict(d)
+
+
+def test_unknown_scenario_name_lists_bundled(tmp_path):
+    with pytest.raises(ScenarioError, match="bundled scenarios: .*paper"):
+        resolve_scenario_path(tmp_path / "nope.toml")
+
+
+def test_invalid_toml_is_a_scenario_error(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text("name = \n")
+    with pytest.raises(ScenarioError, match="not valid TOML"):
+        load_scenario(p)
+
+
+def test_file_round_trip(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text('name = "s"\n[[users]]\nid = "u"\nrnti = 17921\neast_m = 1\nnorth_m = 2\n')
+    assert tomllib.loads(p.read_text())["name"] == "s"
+    assert load_scenario(p).users[0].east_m == 1.0
