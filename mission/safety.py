@@ -1,0 +1,281 @@
+"""Safety gate: nothing reaches the vehicle that it did not pass (DESIGN.md §7).
+
+Pure geometry and checks in the local ENU frame whose origin is home (`up` = height above home):
+
+- geofence inclusion polygon (may be non-convex), no-fly exclusion polygons, maximum horizontal
+  distance from home, altitude band above home, battery threshold → RTL;
+- a goto is refused when its target or the straight leg from the current position leaves the fence
+  or enters a no-fly zone.
+
+:class:`SafetyGate` answers with reasons (strings) and raises :class:`SafetyError`; it does no I/O.
+The controller's :class:`GatedVehicle` (below) puts the gate in front of every command and logs
+every refusal as an event.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator.geodesy import Origin
+from uavloc.errors import SafetyError
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------
+# geometry (east, north) [m]
+
+
+def point_in_polygon(p_en_m: np.ndarray, poly_en_m: np.ndarray) -> bool:
+    """True when the point (2,) lies inside the polygon (P, 2) (even-odd rule; non-convex allowed).
+
+    Ray casting to +east: count edges (a, b) that straddle the point's north coordinate and cross
+    the ray east of it. Points exactly on an edge count as inside.
+    """
+    poly = np.asarray(poly_en_m, float)
+    x, y = float(p_en_m[0]), float(p_en_m[1])
+    if point_on_boundary(p_en_m, poly):
+        return True
+    inside = False
+    n = len(poly)
+    for i in range(n):
+        ax, ay = poly[i]
+        bx, by = poly[(i + 1) % n]
+        if (ay > y) != (by > y):
+            # east coordinate where the edge crosses the horizontal line north = y
+            x_cross = ax + (y - ay) * (bx - ax) / (by - ay)
+            if x_cross > x:
+                inside = not inside
+    return inside
+
+
+def point_on_boundary(p_en_m: np.ndarray, poly_en_m: np.ndarray, tol_m: float = 1e-9) -> bool:
+    """True when the point lies on one of the polygon's edges (within tol_m)."""
+    poly = np.asarray(poly_en_m, float)
+    p = np.asarray(p_en_m, float)[:2]
+    n = len(poly)
+    for i in range(n):
+        a, b = poly[i], poly[(i + 1) % n]
+        ab = b - a
+        L2 = float(ab @ ab)
+        s = 0.0 if L2 == 0 else float(np.clip((p - a) @ ab / L2, 0.0, 1.0))
+        if np.linalg.norm(a + s * ab - p) <= tol_m:
+            return True
+    return False
+
+
+def _orient(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+    # z of (b − a) × (c − a): > 0 when c is left of a→b
+    return float((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
+
+
+def segments_intersect(p1: np.ndarray, p2: np.ndarray, q1: np.ndarray, q2: np.ndarray) -> bool:
+    """True when the closed segments p1–p2 and q1–q2 (each (2,)) share a point."""
+    d1, d2 = _orient(q1, q2, p1), _orient(q1, q2, p2)
+    d3, d4 = _orient(p1, p2, q1), _orient(p1, p2, q2)
+    if ((d1 > 0) != (d2 > 0)) and d1 != 0 and d2 != 0 and ((d3 > 0) != (d4 > 0)) and d3 != 0 and d4 != 0:
+        return True
+
+    def on_seg(a, b, c) -> bool:  # c collinear with a–b and within its box
+        return (min(a[0], b[0]) - 1e-12 <= c[0] <= max(a[0], b[0]) + 1e-12
+                and min(a[1], b[1]) - 1e-12 <= c[1] <= max(a[1], b[1]) + 1e-12)
+
+    return ((d1 == 0 and on_seg(q1, q2, p1)) or (d2 == 0 and on_seg(q1, q2, p2))
+            or (d3 == 0 and on_seg(p1, p2, q1)) or (d4 == 0 and on_seg(p1, p2, q2)))
+
+
+def segment_crosses_boundary(a_en_m: np.ndarray, b_en_m: np.ndarray, poly_en_m: np.ndarray) -> bool:
+    """True when the open segment a–b crosses an edge of the polygon properly (a straight leg
+    between two inside points of a non-convex fence can still leave it)."""
+    poly = np.asarray(poly_en_m, float)
+    a = np.asarray(a_en_m, float)[:2]
+    b = np.asarray(b_en_m, float)[:2]
+    n = len(poly)
+    for i in range(n):
+        q1, q2 = poly[i], poly[(i + 1) % n]
+        d1, d2 = _orient(q1, q2, a), _orient(q1, q2, b)
+        d3, d4 = _orient(a, b, q1), _orient(a, b, q2)
+        if d1 * d2 < 0 and d3 * d4 < 0:
+            return True
+        # a polygon vertex touching the leg's interior: the leg grazes or leaves through a corner
+        if (d3 == 0 or d4 == 0) and segments_intersect(a, b, q1, q2):
+            v = q1 if d3 == 0 else q2
+            if not (np.allclose(v, a) or np.allclose(v, b)):
+                # does the leg go outside next to that vertex? test points just beside it
+                t = float((v - a) @ (b - a) / max((b - a) @ (b - a), 1e-12))
+                for dt in (-1e-6, 1e-6):
+                    s = min(max(t + dt, 0.0), 1.0)
+                    if not point_in_polygon(a + s * (b - a), poly):
+                        return True
+    return False
+
+
+def segment_enters_polygon(a_en_m: np.ndarray, b_en_m: np.ndarray, poly_en_m: np.ndarray) -> bool:
+    """True when any point of the closed segment a–b lies inside the polygon (a no-fly zone)."""
+    poly = np.asarray(poly_en_m, float)
+    a = np.asarray(a_en_m, float)[:2]
+    b = np.asarray(b_en_m, float)[:2]
+    if point_in_polygon(a, poly) or point_in_polygon(b, poly):
+        return True
+    n = len(poly)
+    return any(segments_intersect(a, b, poly[i], poly[(i + 1) % n]) for i in range(n))
+
+
+# ---------------------------------------------------------------------------------------------
+# limits and gate
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    """Limits in the home ENU frame.
+
+    fence_enu_m: (P, 2) inclusion polygon or None; no_fly_enu_m: tuple of (Q, 2) exclusion polygons;
+    max_distance_m: horizontal distance from home; alt_min_m/alt_max_m: band of height above home
+    while surveying; battery_rtl_pct: return home below this remaining charge [%].
+    """
+
+    fence_enu_m: np.ndarray | None = None
+    no_fly_enu_m: tuple[np.ndarray, ...] = field(default_factory=tuple)
+    max_distance_m: float = 500.0
+    alt_min_m: float = 10.0
+    alt_max_m: float = 120.0
+    battery_rtl_pct: float = 25.0
+
+    @classmethod
+    def from_scenario(cls, sc) -> SafetyLimits:
+        """From a :class:`sitl_scenarios.scenario.Scenario` (its geofence and mission sections)."""
+        g, m = sc.geofence, sc.mission
+        fence = np.asarray(g.polygon_enu_m, float) if g.polygon_enu_m else None
+        return cls(
+            fence_enu_m=fence,
+            no_fly_enu_m=tuple(np.asarray(p, float) for p in g.no_fly_enu_m),
+            max_distance_m=g.max_distance_m,
+            alt_min_m=m.alt_min_m,
+            alt_max_m=m.alt_max_m,
+            battery_rtl_pct=m.battery_rtl_pct,
+        )
+
+
+class SafetyGate:
+    """Checks commands and states against :class:`SafetyLimits`. Pure: no I/O, no clock."""
+
+    def __init__(self, limits: SafetyLimits):
+        self.limits = limits
+
+    def position_violations(self, pos_enu_m: np.ndarray, check_altitude: bool = True) -> list[str]:
+        """Every limit the position (3,) [m, ENU from home] breaks, as messages (empty: fine)."""
+        lim = self.limits
+        p = np.asarray(pos_enu_m, float)
+        out = []
+        d = float(np.hypot(p[0], p[1]))
+        if d > lim.max_distance_m:
+            out.append(f"{d:.1f} m from home exceeds max_distance_m {lim.max_distance_m:g}")
+        if lim.fence_enu_m is not None and not point_in_polygon(p[:2], lim.fence_enu_m):
+            out.append(f"position ({p[0]:.1f}, {p[1]:.1f}) m is outside the geofence polygon")
+        for i, zone in enumerate(lim.no_fly_enu_m):
+            if point_in_polygon(p[:2], zone):
+                out.append(f"position ({p[0]:.1f}, {p[1]:.1f}) m is inside no-fly zone {i}")
+        if check_altitude and len(p) > 2 and not lim.alt_min_m <= p[2] <= lim.alt_max_m:
+            out.append(f"height {p[2]:.1f} m above home is outside the band "
+                       f"[{lim.alt_min_m:g}, {lim.alt_max_m:g}] m")
+        return out
+
+    def check_goto(self, target_enu_m: np.ndarray, current_enu_m: np.ndarray | None) -> None:
+        """Raise :class:`SafetyError` unless the target (3,) and the straight leg from the current
+        position to it stay inside every limit."""
+        t = np.asarray(target_enu_m, float)
+        if t.shape != (3,) or not np.all(np.isfinite(t)):
+            raise SafetyError(f"waypoint must be 3 finite ENU numbers, got {target_enu_m!r}")
+        problems = self.position_violations(t)
+        if current_enu_m is not None and not problems:
+            c = np.asarray(current_enu_m, float)
+            lim = self.limits
+            if lim.fence_enu_m is not None and segment_crosses_boundary(c[:2], t[:2], lim.fence_enu_m):
+                problems.append("the leg from the current position leaves the geofence polygon")
+            for i, zone in enumerate(lim.no_fly_enu_m):
+                if segment_enters_polygon(c[:2], t[:2], zone):
+                    problems.append(f"the leg from the current position crosses no-fly zone {i}")
+        if problems:
+            raise SafetyError(
+                f"waypoint ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) m refused: " + "; ".join(problems)
+            )
+
+    def check_takeoff(self, height_m: float) -> None:
+        """Raise unless the takeoff height is inside the altitude band."""
+        lim = self.limits
+        if not lim.alt_min_m <= height_m <= lim.alt_max_m:
+            raise SafetyError(
+                f"takeoff height {height_m:g} m refused: outside the band [{lim.alt_min_m:g}, {lim.alt_max_m:g}] m"
+            )
+
+    def return_reason(self, pos_enu_m: np.ndarray | None, battery_pct: float | None,
+                      check_altitude: bool = False) -> str | None:
+        """Why the vehicle must return home now (battery low, out of the fence…), or None."""
+        if battery_pct is not None and np.isfinite(battery_pct) and battery_pct < self.limits.battery_rtl_pct:
+            return f"battery {battery_pct:.0f} % below battery_rtl_pct {self.limits.battery_rtl_pct:g} %"
+        if pos_enu_m is not None:
+            problems = self.position_violations(pos_enu_m, check_altitude=check_altitude)
+            if problems:
+                return "; ".join(problems)
+        return None
+
+
+# ---------------------------------------------------------------------------------------------
+# the gate in front of the vehicle
+
+EventSink = Callable[..., None]
+
+
+class GatedVehicle:
+    """The only path from the controller to the vehicle: every command passes the gate first.
+
+    Goto targets are ENU from home (`up` = height above home) and become
+    goto_location(lat, lon, alt AMSL = home AMSL + height). RTL and land are always allowed (they
+    are the safe commands). A refusal is logged as an `event` (kind "refused") through `event` and
+    raised as :class:`SafetyError`.
+    """
+
+    def __init__(self, vehicle, gate: SafetyGate, home: Origin, event: EventSink,
+                 position_enu: Callable[[], np.ndarray | None]):
+        self.vehicle = vehicle
+        self.gate = gate
+        self.home = home
+        self._event = event
+        self._position_enu = position_enu
+        self.refusals = 0
+
+    def _refuse(self, exc: SafetyError, **fields) -> None:
+        self.refusals += 1
+        log.warning("safety gate: %s", exc)
+        self._event(str(exc), kind="refused", **fields)
+
+    async def arm(self) -> None:
+        await self.vehicle.arm()
+
+    async def takeoff(self, height_m: float) -> None:
+        try:
+            self.gate.check_takeoff(height_m)
+        except SafetyError as exc:
+            self._refuse(exc, command="takeoff")
+            raise
+        await self.vehicle.takeoff(height_m)
+
+    async def goto_enu(self, target_enu_m: np.ndarray, yaw_deg: float = float("nan")) -> None:
+        try:
+            self.gate.check_goto(target_enu_m, self._position_enu())
+        except SafetyError as exc:
+            self._refuse(exc, command="goto", target_enu_m=[float(x) for x in np.ravel(target_enu_m)])
+            raise
+        lat, lon, alt = self.home.enu_to_lla(np.asarray(target_enu_m, float))
+        # alt AMSL = home AMSL + height above home (ENU up from the home origin, to first order)
+        await self.vehicle.goto_location(float(lat), float(lon), float(alt), yaw_deg)
+
+    async def return_to_launch(self) -> None:
+        await self.vehicle.return_to_launch()
+
+    async def land(self) -> None:
+        await self.vehicle.land()
