@@ -51,6 +51,14 @@ class GnbBusyError(GnbError):
     """The gNB's telnet server serves another client (OAI serves one at a time)."""
 
 
+class GnbUnknownCommandError(GnbProtocolError):
+    """The gNB answered `... is not a softmodem command` (telnet module not loaded or misnamed)."""
+
+
+class GnbNoMeasurementError(GnbError):
+    """The gNB answered, but without a measurement (an `error ...` line, UE unknown or out of coverage)."""
+
+
 class VehicleError(MissionError):
     """The vehicle refused a command, timed out or was lost."""
 
