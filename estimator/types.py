@@ -29,6 +29,9 @@ class SolverParams:
         (None: no motion factors).
     delta_m: keyframe spacing Δ [m] (paper: 2 m).
     window: keyframes kept in the online estimator before the oldest are marginalized.
+    ambiguity_chi2: a user is flagged ambiguous when its mirror solution costs less than this
+        much more, 2·(L(mirror) − L(estimate)) < ambiguity_chi2 (estimator.init).
+    online_check_every: the online estimator re-runs the mirror test every this many keyframes.
     """
 
     loss: LossName = "huber"
@@ -41,6 +44,8 @@ class SolverParams:
     max_iterations: int = 50
     step_tol_m: float = 1e-6
     window: int = 100
+    ambiguity_chi2: float = 9.0
+    online_check_every: int = 10
 
 
 @dataclass(frozen=True)

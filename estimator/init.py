@@ -1,0 +1,215 @@
+"""Initialization of users and the mirror-ambiguity test (DESIGN.md §5).
+
+Both work on one user at a time with the UAV held at its GPS fixes. The GPS error of a keyframe
+projects onto the range direction, so its variance is folded into the range variance (the UAV
+positions are marginalized to first order):
+
+    σ_eff(d)² = σ(d)² + σ_gps²,     e_i = (r̂_i − ||x̂_i − u|| − b) / σ_eff(d_i)
+
+Initialization (not by luck): the user lies within the horizontal range ρ_i = √(r̂_i² − Δz_i²) of
+every UAV fix, which bounds a search box; a G×G grid over it is scored with a Cauchy loss (so NLoS
+outliers cannot drag the start), the best few local minima of the grid are refined by a small
+robust Gauss–Newton, and the lowest cost wins.
+
+Mirror test: ranges from a straight flight line cannot tell a user from its reflection across the
+line. Fit the line to the user's UAV fixes (principal axis of the horizontal positions), reflect
+the estimate, refine from there and compare costs:
+
+    ambiguous  ⇔  2 (L(mirror) − L(u)) < χ²_amb     (and the refined mirror is not u itself)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.noise import NoiseModel
+from estimator.robust import loss_rho, loss_weight
+from estimator.types import SolverParams
+
+#: grid points per axis of the initialization search
+GRID_SIZE = 33
+#: at most this many ranges enter the grid scoring (evenly subsampled)
+GRID_MAX_RANGES = 96
+#: Cauchy threshold (whitened) used to score the grid
+GRID_CAUCHY_SCALE = 2.0
+
+
+@dataclass(frozen=True)
+class UserFit:
+    """One user's fit with the UAV at its GPS fixes: theta = [e, n, (up), (bias)], cost = Σρ + prior."""
+
+    theta: np.ndarray
+    cost: float
+
+
+def _sigma_eff(noise: NoiseModel, d: np.ndarray) -> np.ndarray:
+    # σ_eff = √(σ(d)² + σ_gps²)
+    return np.sqrt(noise.range_sigma_m(d) ** 2 + noise.sigma_gps_m**2)
+
+
+def _theta_to_user(theta: np.ndarray, user_dim: int, up_m: float) -> tuple[np.ndarray, float]:
+    u = np.array([theta[0], theta[1], theta[2] if user_dim == 3 else up_m])
+    b = float(theta[user_dim]) if theta.shape[0] > user_dim else 0.0
+    return u, b
+
+
+def user_cost(
+    uav_enu_m: np.ndarray, range_m: np.ndarray, theta: np.ndarray, up_m: float, noise: NoiseModel,
+    params: SolverParams, loss: str | None = None, scale: float | None = None,
+) -> float:
+    """Cost of one user: Σ ρ(e_i) (+ ½(b/σ_b)²). uav (M, 3) [m], range (M,) [m], theta (p,)."""
+    loss = params.loss if loss is None else loss
+    scale = params.loss_scale if scale is None else scale
+    u, b = _theta_to_user(theta, params.user_dim, up_m)
+    d = np.linalg.norm(uav_enu_m - u, axis=1)
+    e = (range_m - d - b) / _sigma_eff(noise, d)
+    cost = float(np.sum(loss_rho(e, loss, scale)))
+    if params.estimate_bias:
+        cost += 0.5 * (b / params.bias_prior_sigma_m) ** 2
+    return cost
+
+
+def refine_user(
+    uav_enu_m: np.ndarray, range_m: np.ndarray, theta0: np.ndarray, up_m: float, noise: NoiseModel,
+    params: SolverParams, iterations: int = 25, loss: str | None = None, scale: float | None = None,
+) -> UserFit:
+    """Robust Gauss–Newton (with step halving) on one user, UAV fixed. Shapes as in `user_cost`.
+
+    σ_eff is evaluated at the current distance and held fixed within an iteration (IRLS style).
+    """
+    loss = params.loss if loss is None else loss
+    scale = params.loss_scale if scale is None else scale
+    d_u = params.user_dim
+    theta = np.array(theta0, dtype=float)
+    cost = user_cost(uav_enu_m, range_m, theta, up_m, noise, params, loss, scale)
+    for _ in range(iterations):
+        u, b = _theta_to_user(theta, d_u, up_m)
+        diff = uav_enu_m - u
+        d = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
+        sig = _sigma_eff(noise, d)
+        e = (range_m - d - b) / sig
+        w = loss_weight(e, loss, scale)
+        # ∂e/∂u = û/σ, ∂e/∂b = −1/σ
+        cols = [diff[:, :d_u] / (d * sig)[:, None]]
+        if params.estimate_bias:
+            cols.append(-1.0 / sig[:, None])
+        j = np.hstack(cols)
+        h = (j * w[:, None]).T @ j
+        g = -(j * w[:, None]).T @ e
+        if params.estimate_bias:
+            h[-1, -1] += 1.0 / params.bias_prior_sigma_m**2
+            g[-1] -= b / params.bias_prior_sigma_m**2
+        h[np.diag_indices_from(h)] += 1e-9 * (1.0 + np.diag(h))
+        try:
+            step = np.linalg.solve(h, g)
+        except np.linalg.LinAlgError:
+            break
+        for _half in range(8):
+            trial = theta + step
+            c = user_cost(uav_enu_m, range_m, trial, up_m, noise, params, loss, scale)
+            if c <= cost:
+                break
+            step *= 0.5
+        else:
+            break
+        theta, cost = trial, c
+        if np.max(np.abs(step)) < 1e-4:
+            break
+    return UserFit(theta, cost)
+
+
+def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseModel, n_best: int) -> np.ndarray:
+    """(≤ n_best, 2) horizontal starts: best local minima of the Cauchy cost on a grid."""
+    dz = uav[:, 2] - up_m
+    rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
+    pad = 4.0 * _sigma_eff(noise, rng) + 2.0
+    # the user lies within ρ_i (+ noise) of every fix: intersect the boxes, fall back to their union
+    lo = np.max(uav[:, :2] - (rho + pad)[:, None], axis=0)
+    hi = np.min(uav[:, :2] + (rho + pad)[:, None], axis=0)
+    if np.any(hi <= lo):
+        lo = np.min(uav[:, :2] - (rho + pad)[:, None], axis=0)
+        hi = np.max(uav[:, :2] + (rho + pad)[:, None], axis=0)
+    ge = np.linspace(lo[0], hi[0], GRID_SIZE)
+    gn = np.linspace(lo[1], hi[1], GRID_SIZE)
+    ee, nn = np.meshgrid(ge, gn, indexing="ij")
+    cand = np.stack([ee.ravel(), nn.ravel()], axis=1)
+    # d_gi = ||x_i − (e_g, n_g, up)||
+    d = np.sqrt((cand[:, None, 0] - uav[None, :, 0]) ** 2 + (cand[:, None, 1] - uav[None, :, 1]) ** 2 + dz**2)
+    e = (rng[None, :] - d) / _sigma_eff(noise, d)
+    cost = loss_rho(e, "cauchy", GRID_CAUCHY_SCALE).sum(axis=1).reshape(GRID_SIZE, GRID_SIZE)
+    padded = np.pad(cost, 1, constant_values=np.inf)
+    is_min = np.ones_like(cost, dtype=bool)
+    for de in (-1, 0, 1):
+        for dn in (-1, 0, 1):
+            if de or dn:
+                is_min &= cost <= padded[1 + de : 1 + de + GRID_SIZE, 1 + dn : 1 + dn + GRID_SIZE]
+    idx = np.flatnonzero(is_min.ravel())
+    idx = idx[np.argsort(cost.ravel()[idx])][:n_best]
+    return cand[idx]
+
+
+def init_user(
+    uav_enu_m: np.ndarray, range_m: np.ndarray, up_m: float, noise: NoiseModel, params: SolverParams,
+    n_starts: int = 4,
+) -> UserFit:
+    """Initial θ of one user from its ranges: grid search + robust refinement of the best starts.
+
+    uav_enu_m: (M, 3) UAV fixes [m, ENU]; range_m: (M,) [m]; up_m: ground height [m].
+    """
+    m = range_m.shape[0]
+    sub = np.unique(np.linspace(0, m - 1, min(m, GRID_MAX_RANGES)).round().astype(int))
+    starts = _grid_starts(uav_enu_m[sub], range_m[sub], up_m, noise, n_starts)
+    best: UserFit | None = None
+    for s in starts:
+        theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))
+        theta0[:2] = s
+        if params.user_dim == 3:
+            theta0[2] = up_m
+        # robust (Cauchy) refinement on the subsample, then the configured loss on everything
+        fit = refine_user(uav_enu_m[sub], range_m[sub], theta0, up_m, noise, params, 15, "cauchy", 2.0)
+        fit = refine_user(uav_enu_m, range_m, fit.theta, up_m, noise, params, 10)
+        if best is None or fit.cost < best.cost:
+            best = fit
+    assert best is not None
+    return best
+
+
+@dataclass(frozen=True)
+class MirrorTest:
+    """Result of the mirror test for one user."""
+
+    ambiguous: bool
+    mirror_theta: np.ndarray | None  # refined mirror θ, None when the reflection coincides with u
+    delta_chi2: float  # 2 (L(mirror) − L(u)); negative: the mirror fits better
+    linearity: float  # s2/s1 of the horizontal fixes (0: a perfect line)
+
+
+def mirror_test(
+    uav_enu_m: np.ndarray, range_m: np.ndarray, theta: np.ndarray, up_m: float, noise: NoiseModel,
+    params: SolverParams, chi2_threshold: float, min_offset_m: float = 2.0,
+) -> MirrorTest:
+    """Reflect θ across the best-fit line of the fixes and compare costs (module docstring)."""
+    h = uav_enu_m[:, :2]
+    c = h.mean(axis=0)
+    _, s, vt = np.linalg.svd(h - c, full_matrices=False)
+    lin = float(s[1] / s[0]) if s[0] > 0 else 1.0
+    v = vt[0]
+    # u' = c + (2 v vᵀ − I)(u − c)
+    refl = 2.0 * np.outer(v, v) - np.eye(2)
+    u_h = theta[:2]
+    m_h = c + refl @ (u_h - c)
+    if np.linalg.norm(m_h - u_h) < min_offset_m:
+        return MirrorTest(False, None, np.inf, lin)
+    cost_u = user_cost(uav_enu_m, range_m, theta, up_m, noise, params)
+    t_m = np.array(theta, dtype=float)
+    t_m[:2] = m_h
+    cost_m = user_cost(uav_enu_m, range_m, t_m, up_m, noise, params)
+    if 2.0 * (cost_m - cost_u) > 100.0 * chi2_threshold and lin > 0.3:
+        return MirrorTest(False, None, 2.0 * (cost_m - cost_u), lin)
+    fit = refine_user(uav_enu_m, range_m, t_m, up_m, noise, params, 15)
+    if np.linalg.norm(fit.theta[:2] - u_h) < min_offset_m:
+        return MirrorTest(False, None, np.inf, lin)
+    delta = 2.0 * (fit.cost - cost_u)
+    return MirrorTest(bool(delta < chi2_threshold), fit.theta, float(delta), lin)

@@ -1,0 +1,176 @@
+"""Input checking and the array form of a SLAM problem (DESIGN.md §5).
+
+Keyframes arrive as a list of :class:`estimator.types.Keyframe`; the solver works on dense arrays:
+
+    gps_enu_m   (N, 3)  GPS fix per keyframe [m, ENU]
+    range_m     (N, K)  measured range keyframe n -> user k [m], NaN where none
+    mask        (N, K)  True where a range exists
+    odom_enu_m  (N, 3)  displacement from keyframe n−1 to n [m, ENU] (row 0 unused)
+    odom_mask   (N,)    True where a relative-motion factor links n−1 and n
+
+User parameters are packed per user as θ_k = [east, north, (up if 3-D), (bias if estimated)], an
+array Θ of shape (K, p) with p = d + (1 if bias). In 2-D mode `up` is the known ground height.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.noise import NoiseModel
+from estimator.robust import check_loss
+from estimator.types import Keyframe, SolverParams
+from uavloc.errors import EstimatorError
+
+
+def check_params(params: SolverParams) -> None:
+    """Raise EstimatorError naming the first invalid solver setting."""
+    if not isinstance(params, SolverParams):
+        raise EstimatorError(f"params must be SolverParams, got {type(params).__name__}")
+    check_loss(params.loss, params.loss_scale)
+    if params.user_dim not in (2, 3):
+        raise EstimatorError(f"user_dim must be 2 or 3, got {params.user_dim!r}")
+    if not (np.isfinite(params.bias_prior_sigma_m) and params.bias_prior_sigma_m > 0):
+        raise EstimatorError(f"bias_prior_sigma_m must be positive, got {params.bias_prior_sigma_m!r}")
+    if params.motion_sigma_m is not None and not (
+        np.isfinite(params.motion_sigma_m) and params.motion_sigma_m > 0
+    ):
+        raise EstimatorError(f"motion_sigma_m must be positive or None, got {params.motion_sigma_m!r}")
+    if not (np.isfinite(params.delta_m) and params.delta_m >= 0):
+        raise EstimatorError(f"delta_m must be a non-negative number, got {params.delta_m!r}")
+    if int(params.max_iterations) < 1:
+        raise EstimatorError(f"max_iterations must be >= 1, got {params.max_iterations!r}")
+    if not (np.isfinite(params.step_tol_m) and params.step_tol_m > 0):
+        raise EstimatorError(f"step_tol_m must be positive, got {params.step_tol_m!r}")
+    if int(params.window) < 2:
+        raise EstimatorError(f"window must be >= 2 keyframes, got {params.window!r}")
+
+
+def check_users(n_users: int, user_up_m: np.ndarray) -> np.ndarray:
+    """Validate the user count and (K,) ground heights; return them as a float array."""
+    if isinstance(n_users, bool) or not isinstance(n_users, int | np.integer) or n_users < 1:
+        raise EstimatorError(f"n_users must be a positive integer, got {n_users!r}")
+    up = np.asarray(user_up_m, dtype=float)
+    if up.shape != (n_users,):
+        raise EstimatorError(f"user_up_m must have shape ({n_users},), got {up.shape}")
+    if not np.all(np.isfinite(up)):
+        raise EstimatorError(f"user_up_m must be finite, got {up.tolist()}")
+    return up
+
+
+def check_keyframe(kf: Keyframe, n_users: int, index: int | None = None) -> tuple[np.ndarray, ...]:
+    """Validate one keyframe; return (gps (3,), user_idx (m,) int, range_m (m,), odom (3,) or None)."""
+    where = "keyframe" if index is None else f"keyframe {index}"
+    if not isinstance(kf, Keyframe):
+        raise EstimatorError(f"{where} must be a Keyframe, got {type(kf).__name__}")
+    gps = np.asarray(kf.gps_enu_m, dtype=float)
+    if gps.shape != (3,):
+        raise EstimatorError(f"{where}: gps_enu_m must have shape (3,), got {gps.shape}")
+    if not np.all(np.isfinite(gps)):
+        raise EstimatorError(f"{where}: gps_enu_m must be finite, got {gps.tolist()}")
+    idx_raw = np.asarray(kf.user_idx)
+    rng = np.asarray(kf.range_m, dtype=float)
+    if idx_raw.ndim != 1 or rng.ndim != 1 or idx_raw.shape != rng.shape:
+        raise EstimatorError(
+            f"{where}: user_idx and range_m must be 1-D of equal length, got {idx_raw.shape} and {rng.shape}"
+        )
+    if idx_raw.size and not np.issubdtype(idx_raw.dtype, np.integer):
+        raise EstimatorError(f"{where}: user_idx must be integers, got {idx_raw.tolist()}")
+    idx = idx_raw.astype(np.intp)
+    bad = (idx < 0) | (idx >= n_users)
+    if np.any(bad):
+        raise EstimatorError(f"{where}: user index {int(idx[bad][0])} outside [0, {n_users})")
+    if len(np.unique(idx)) != len(idx):
+        raise EstimatorError(f"{where}: a user appears twice in user_idx {idx.tolist()}")
+    bad = ~np.isfinite(rng) | (rng < 0)
+    if np.any(bad):
+        raise EstimatorError(
+            f"{where}: range_m must be finite and >= 0, got {float(rng[bad][0])!r} for user {int(idx[bad][0])}"
+        )
+    odom = None
+    if kf.odom_enu_m is not None:
+        odom = np.asarray(kf.odom_enu_m, dtype=float)
+        if odom.shape != (3,) or not np.all(np.isfinite(odom)):
+            raise EstimatorError(f"{where}: odom_enu_m must be 3 finite numbers, got {np.ravel(odom).tolist()}")
+    return gps, idx, rng, odom
+
+
+@dataclass
+class Problem:
+    """Array form of a SLAM problem; see the module docstring for shapes and units."""
+
+    gps_enu_m: np.ndarray
+    range_m: np.ndarray
+    mask: np.ndarray
+    odom_enu_m: np.ndarray
+    odom_mask: np.ndarray
+    user_up_m: np.ndarray
+    noise: NoiseModel
+    params: SolverParams
+
+    @property
+    def n_keyframes(self) -> int:
+        return int(self.gps_enu_m.shape[0])
+
+    @property
+    def n_users(self) -> int:
+        return int(self.range_m.shape[1])
+
+    @property
+    def user_dim(self) -> int:
+        return int(self.params.user_dim)
+
+    @property
+    def n_bias(self) -> int:
+        return 1 if self.params.estimate_bias else 0
+
+    @property
+    def p(self) -> int:
+        """Parameters per user: d (+1 with a bias)."""
+        return self.user_dim + self.n_bias
+
+    @property
+    def use_motion(self) -> bool:
+        return self.params.motion_sigma_m is not None and bool(np.any(self.odom_mask))
+
+    def min_ranges(self) -> int:
+        """Ranges a user needs before it is estimated: one more than its unknowns."""
+        return self.p + 1
+
+
+def pack_keyframes(
+    keyframes: Sequence[Keyframe], n_users: int, user_up_m: np.ndarray, noise: NoiseModel,
+    params: SolverParams,
+) -> Problem:
+    """Validate keyframes and build the dense :class:`Problem` arrays."""
+    if not isinstance(noise, NoiseModel):
+        raise EstimatorError(f"noise must be a NoiseModel, got {type(noise).__name__}")
+    check_params(params)
+    up = check_users(n_users, user_up_m)
+    n = len(keyframes)
+    if n < 1:
+        raise EstimatorError("need at least one keyframe, got 0")
+    gps = np.empty((n, 3))
+    rng = np.full((n, n_users), np.nan)
+    odom = np.zeros((n, 3))
+    odom_mask = np.zeros(n, dtype=bool)
+    for i, kf in enumerate(keyframes):
+        g, idx, r, o = check_keyframe(kf, n_users, i)
+        gps[i] = g
+        rng[i, idx] = r
+        if o is not None and i > 0:
+            odom[i] = o
+            odom_mask[i] = True
+    if params.motion_sigma_m is None:
+        odom_mask[:] = False
+    return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params)
+
+
+def users_from_theta(theta: np.ndarray, user_up_m: np.ndarray, user_dim: int) -> np.ndarray:
+    """(K, p) packed user parameters -> (K, 3) ENU positions [m] (up = ground height in 2-D)."""
+    users = np.empty((theta.shape[0], 3))
+    users[:, :2] = theta[:, :2]
+    users[:, 2] = theta[:, 2] if user_dim == 3 else user_up_m
+    return users

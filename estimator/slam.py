@@ -1,0 +1,575 @@
+"""The SLAM estimator: users and UAV keyframes jointly, batch and online (DESIGN.md §5).
+
+Cost (negative log-likelihood; factors in estimator.factors, losses in estimator.robust):
+
+    L = ½ Σ_n ||x_n − x̂_n||²/σ_gps² + Σ_(n,k) ρ(e_nk) + ½ Σ_k (b_k/σ_b)²
+        + ½ Σ_n ||x_n − x_(n−1) − ô_n||²/σ_m² + L_prior(users, x_first)
+    e_nk = (r̂_nk − ||x_n − u_k|| − b_k) / σ(d_nk)
+
+Levenberg–Marquardt on the IRLS-weighted normal equations, solved with the Schur complement over
+keyframes (estimator.schur), O(N·K²) per iteration. Damping starts at 0 (Gauss–Newton) and grows
+only when a step fails to lower L.
+
+Covariance: S⁻¹ of the IRLS-weighted information at the final linearization, S = Σ w JᵀJ over
+ranges (+ priors) Schur-complemented over keyframes. Under a robust loss this is the information
+the estimate actually uses: a range the loss discounts (an NLoS outlier) contributes with its
+weight w < 1 instead of full weight, so the reported covariance does not claim information from
+data the estimator has rejected (GTSAM's Marginals on a robust graph report the same matrix).
+
+Online (fixed-lag smoothing): keyframes are kept in a window; when it holds more than
+`params.window`, the oldest keyframe is marginalized at the current estimate into a Gaussian prior
+on the users (and biases, and the next keyframe when a motion factor links them):
+
+    L_prior(z) ≈ cᵀ(z − z₀) + ½ (z − z₀)ᵀ Λ (z − z₀),  Λ = H_rr − H_r0 H_00⁻¹ H_0r,
+                                                      c = ∇_r − H_r0 H_00⁻¹ ∇_0
+
+exact at the linearization point z₀; each update then costs O(window · K²), independent of N.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.init import init_user, mirror_test
+from estimator.noise import NoiseModel
+from estimator.problem import (
+    Problem,
+    check_keyframe,
+    check_params,
+    check_users,
+    pack_keyframes,
+    users_from_theta,
+)
+from estimator.robust import loss_rho, loss_weight
+from estimator.schur import schur_solve
+from estimator.types import Estimate, Keyframe, SolverParams
+from uavloc.errors import EstimatorError
+
+_LAM_START = 1e-4
+_LAM_MAX = 1e10
+
+
+@dataclass
+class Prior:
+    """Gaussian prior from marginalized keyframes over z = [x_first (3, if has_x), Θ.ravel() (K·p)].
+
+    L_prior(z) = cᵀ(z − z0) + ½ (z − z0)ᵀ Λ (z − z0).
+    """
+
+    has_x: bool
+    z0: np.ndarray
+    info: np.ndarray
+    grad: np.ndarray
+
+
+@dataclass
+class Linearization:
+    """IRLS-weighted normal equations at one point (shapes as in estimator.schur.schur_solve)."""
+
+    cost: float
+    hxx: np.ndarray
+    off: np.ndarray | None
+    hxu: np.ndarray
+    huu: np.ndarray
+    gx: np.ndarray
+    gu: np.ndarray
+    e: np.ndarray  # (N, K) whitened range residuals, 0 where none
+    w: np.ndarray  # (N, K) IRLS weights, 0 where none
+
+
+def _range_terms(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, mask: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """Whitened range residuals and Jacobians on (n, K) arrays (see estimator.factors.RangeFactor).
+
+    x: (n, 3); theta: (K, p); mask: (n, K) ranges to use; range rows are prob.range_m[:n].
+    Returns e, w, rho, jx (n, K, 3), jt (n, K, p); all zero where mask is False.
+    """
+    params, noise = prob.params, prob.noise
+    n = x.shape[0]
+    users = users_from_theta(theta, prob.user_up_m, prob.user_dim)
+    diff = x[:, None, :] - users[None, :, :]
+    d = np.sqrt(np.einsum("nki,nki->nk", diff, diff))
+    d = np.maximum(d, 1e-9)
+    uhat = diff / d[..., None]
+    sig = noise.range_sigma_m(d)
+    bias = theta[:, -1] if params.estimate_bias else 0.0
+    r = np.where(mask, prob.range_m[:n] - d - bias, 0.0)
+    # e = (r̂ − d − b) / σ(d)
+    e = r / sig
+    w = loss_weight(e, params.loss, params.loss_scale) * mask
+    rho = loss_rho(e, params.loss, params.loss_scale) * mask
+    # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −1/σ
+    if noise.a_m != 0.0 and noise.b_per_m != 0.0:
+        alpha = 1.0 / sig + r * noise.range_sigma_dd(d) / sig**2
+    else:
+        alpha = 1.0 / sig
+    alpha = alpha * mask
+    jx = -alpha[..., None] * uhat
+    if params.estimate_bias:
+        jt = np.concatenate([-jx[..., : prob.user_dim], (-mask / sig)[..., None]], axis=2)
+    else:
+        jt = -jx[..., : prob.user_dim]
+    return e, w, rho, jx, jt
+
+
+def linearize(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None
+) -> Linearization:
+    """IRLS-weighted normal equations H Δ = g (g = −∇L) at (x (N, 3), Θ (K, p)).
+
+    Users with active[k] False are held fixed (identity block, zero gradient).
+    """
+    params, noise = prob.params, prob.noise
+    n, k_all = prob.range_m.shape
+    p = prob.p
+    mask = prob.mask & active[None, :]
+    e, w, rho, jx, jt = _range_terms(prob, x, theta, mask)
+    wjx = w[..., None] * jx
+    inv_g2 = 1.0 / noise.sigma_gps_m**2
+    # GPS: H_nn = I/σ², g_n = −(x − x̂)/σ²
+    hxx = np.einsum("nki,nkj->nij", wjx, jx)
+    hxx[:, 0, 0] += inv_g2
+    hxx[:, 1, 1] += inv_g2
+    hxx[:, 2, 2] += inv_g2
+    dgps = x - prob.gps_enu_m
+    gx = -dgps * inv_g2 - np.einsum("nki,nk->ni", wjx, e)
+    cost = 0.5 * inv_g2 * float(np.einsum("ni,ni->", dgps, dgps)) + float(rho.sum())
+    hxu = np.einsum("nki,nkj->nikj", wjx, jt).reshape(n, 3, k_all * p)
+    huu_blocks = np.einsum("nki,nkj->kij", w[..., None] * jt, jt)
+    gu = -np.einsum("nki,nk->ki", w[..., None] * jt, e)
+    if params.estimate_bias:
+        inv_b2 = 1.0 / params.bias_prior_sigma_m**2
+        bias = theta[:, -1]
+        huu_blocks[:, -1, -1] += inv_b2
+        gu[:, -1] -= bias * inv_b2
+        cost += 0.5 * inv_b2 * float(np.sum(bias[active] ** 2))
+    inactive = ~active
+    if np.any(inactive):
+        huu_blocks[inactive] = np.eye(p)
+        gu[inactive] = 0.0
+    huu = np.zeros((k_all, p, k_all, p))
+    kk = np.arange(k_all)
+    huu[kk, :, kk, :] = huu_blocks
+    huu = huu.reshape(k_all * p, k_all * p)
+    gu = gu.ravel()
+    off = None
+    if prob.use_motion:
+        inv_m2 = 1.0 / params.motion_sigma_m**2
+        om = prob.odom_mask[1:]
+        # e_m = (x_n − x_(n−1) − ô_n)/σ_m for linked pairs
+        em = (x[1:] - x[:-1] - prob.odom_enu_m[1:]) * om[:, None]
+        cost += 0.5 * inv_m2 * float(np.einsum("ni,ni->", em, em))
+        add = inv_m2 * om
+        idx = np.arange(3)
+        hxx[1:, idx, idx] += add[:, None]
+        hxx[:-1, idx, idx] += add[:, None]
+        off = -add
+        gx[1:] -= inv_m2 * em
+        gx[:-1] += inv_m2 * em
+    if prior is not None:
+        z = theta.ravel()
+        if prior.has_x:
+            z = np.concatenate([x[0], z])
+        dz = z - prior.z0
+        grad = prior.grad + prior.info @ dz
+        cost += float(prior.grad @ dz + 0.5 * dz @ prior.info @ dz)
+        if prior.has_x:
+            hxx[0] += prior.info[:3, :3]
+            hxu[0] += prior.info[:3, 3:]
+            gx[0] -= grad[:3]
+            huu += prior.info[3:, 3:]
+            gu -= grad[3:]
+        else:
+            huu += prior.info
+            gu -= grad
+    return Linearization(cost, hxx, off, hxu, huu, gx, gu, e, w)
+
+
+@dataclass
+class _Result:
+    x: np.ndarray
+    theta: np.ndarray
+    lin: Linearization
+    s: np.ndarray | None
+    iterations: int
+    converged: bool
+
+
+def levenberg_marquardt(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
+    max_iterations: int | None = None,
+) -> _Result:
+    """Minimise L from (x, Θ); stop when the largest step component is below params.step_tol_m.
+
+    The returned S (undamped Schur complement) belongs to the last linearization point, which
+    differs from the returned estimate by less than step_tol_m.
+    """
+    params = prob.params
+    max_it = params.max_iterations if max_iterations is None else max_iterations
+    tol = params.step_tol_m
+    lin = linearize(prob, x, theta, active, prior)
+    lam = 0.0
+    s_final = None
+    converged = False
+    it = 0
+    while it < max_it:
+        it += 1
+        try:
+            dx, du, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, lam)
+        except (np.linalg.LinAlgError, EstimatorError):
+            lam = max(_LAM_START, 10.0 * lam)
+            if lam > _LAM_MAX:
+                break
+            continue
+        du = du.reshape(theta.shape)
+        step = max(float(np.max(np.abs(dx))), float(np.max(np.abs(du))))
+        if step < tol:
+            x = x + dx
+            theta = theta + du
+            s_final = s if lam == 0.0 else None
+            converged = True
+            break
+        x_t, th_t = x + dx, theta + du
+        lin_t = linearize(prob, x_t, th_t, active, prior)
+        if lin_t.cost <= lin.cost + 1e-12 * abs(lin.cost):
+            x, theta, lin = x_t, th_t, lin_t
+            lam = 0.0 if lam <= _LAM_START else lam / 10.0
+        else:
+            lam = max(_LAM_START, 10.0 * lam)
+            if lam > _LAM_MAX:
+                break
+    if s_final is None:
+        try:
+            _, _, s_final = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
+        except (np.linalg.LinAlgError, EstimatorError):
+            s_final = None
+    return _Result(x, theta, lin, s_final, it, converged)
+
+
+def _init_theta(
+    prob: Problem, uav: np.ndarray, mask: np.ndarray, k: int, theta_row: np.ndarray | None = None
+) -> np.ndarray:
+    """Initial θ_k: from a given position (refined) or by grid search, UAV at `uav` (n, 3)."""
+    rows = mask[:, k]
+    up = float(prob.user_up_m[k])
+    if theta_row is not None:
+        return theta_row
+    return init_user(uav[rows], prob.range_m[: uav.shape[0]][rows, k], up, prob.noise, prob.params).theta
+
+
+def _mirror_all(
+    prob: Problem, theta: np.ndarray, active: np.ndarray, n_rows: int | None = None
+) -> list:
+    """Mirror test per user on the first n_rows keyframes (UAV at GPS). None for inactive users."""
+    n = prob.n_keyframes if n_rows is None else n_rows
+    out = []
+    for k in range(prob.n_users):
+        if not active[k]:
+            out.append(None)
+            continue
+        rows = prob.mask[:n, k]
+        out.append(
+            mirror_test(
+                prob.gps_enu_m[:n][rows], prob.range_m[:n][rows, k], theta[k], float(prob.user_up_m[k]),
+                prob.noise, prob.params, prob.params.ambiguity_chi2,
+            )
+        )
+    return out
+
+
+def _covariances(
+    s: np.ndarray | None, active: np.ndarray, k_all: int, p: int, d: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """From S (K·p, K·p): per-user position covariance (K, d, d), position information (K·d, K·d)
+    with any bias marginalized out, and the full joint covariance of the active users' θ."""
+    cov = np.full((k_all, d, d), np.inf)
+    info = np.zeros((k_all * d, k_all * d))
+    if s is None or not np.any(active):
+        return cov, info, None
+    ia = np.flatnonzero(np.repeat(active, p))
+    try:
+        c = np.linalg.cholesky(s[np.ix_(ia, ia)])
+        c_inv = np.linalg.inv(c)
+        cov_a = c_inv.T @ c_inv
+    except np.linalg.LinAlgError:
+        return cov, info, None
+    ka = np.flatnonzero(active)
+    na = ka.size
+    cov_a4 = cov_a.reshape(na, p, na, p)
+    cov[ka] = cov_a4[np.arange(na), :d, np.arange(na), :d]
+    cov_pos = cov_a4[:, :d, :, :d].reshape(na * d, na * d)
+    info_pos = np.linalg.inv(cov_pos) if p != d else s[np.ix_(ia, ia)]
+    ip = (ka[:, None] * d + np.arange(d)[None, :]).ravel()
+    info[np.ix_(ip, ip)] = 0.5 * (info_pos + info_pos.T)
+    return cov, info, cov_a
+
+
+def _estimate(
+    prob: Problem, res: _Result, active: np.ndarray, mirrors: list, n_ranges: np.ndarray,
+) -> Estimate:
+    k_all, p, d = prob.n_users, prob.p, prob.user_dim
+    users = users_from_theta(res.theta, prob.user_up_m, d)
+    users[~active] = np.nan
+    cov, info, cov_joint = _covariances(res.s, active, k_all, p, d)
+    bias = None
+    if prob.params.estimate_bias:
+        bias = np.where(active, res.theta[:, -1], np.nan)
+    ambiguous = np.zeros(k_all, dtype=bool)
+    mirror = np.full((k_all, 3), np.nan)
+    for k, mt in enumerate(mirrors):
+        if mt is not None and mt.ambiguous:
+            ambiguous[k] = True
+            mirror[k] = users_from_theta(mt.mirror_theta[None, :], prob.user_up_m[k : k + 1], d)[0]
+    extra = {"active": active.copy(), "cov_theta_joint": cov_joint, "lin_cost": res.lin.cost}
+    return Estimate(
+        users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias, uav_enu_m=res.x.copy(),
+        ambiguous=ambiguous, mirror_enu_m=mirror, n_ranges=n_ranges.copy(), cost=res.lin.cost,
+        iterations=res.iterations, converged=res.converged, extra=extra,
+    )
+
+
+def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Prior | None = None):
+    """Mirror tests; a user whose mirror fits clearly better (Δχ² < −χ²_amb) jumps there and
+    the problem is re-solved once. Returns (result, mirror tests)."""
+    mirrors = _mirror_all(prob, res.theta, active)
+    flip = [
+        k for k, mt in enumerate(mirrors)
+        if mt is not None and mt.mirror_theta is not None and mt.delta_chi2 < -prob.params.ambiguity_chi2
+    ]
+    if flip:
+        theta = res.theta.copy()
+        for k in flip:
+            theta[k] = mirrors[k].mirror_theta
+        res2 = levenberg_marquardt(prob, res.x, theta, active, prior)
+        if res2.lin.cost < res.lin.cost:
+            res = res2
+            mirrors = _mirror_all(prob, res.theta, active)
+    return res, mirrors
+
+
+def solve_batch(
+    keyframes: Sequence[Keyframe], n_users: int, user_up_m: np.ndarray, noise: NoiseModel,
+    params: SolverParams = SolverParams(), init_users_enu_m: np.ndarray | None = None,  # noqa: B008
+) -> Estimate:
+    """Estimate users and UAV keyframes from all keyframes at once.
+
+    keyframes: N keyframes (GPS fix, ranges to users, optional odometry).
+    n_users: K; user_up_m: (K,) ground height of each user [m, ENU up] (fixed in 2-D mode,
+        the initial value in 3-D mode); init_users_enu_m: optional (K, 3) starts [m, ENU], rows
+        with NaN are initialised by grid search.
+    Users with fewer than p + 1 ranges (p unknowns) are not estimated: NaN rows, inf covariance.
+    Raises EstimatorError on malformed input, naming the offending value.
+    """
+    prob = pack_keyframes(keyframes, n_users, user_up_m, noise, params)
+    k_all, p = prob.n_users, prob.p
+    n_ranges = prob.mask.sum(axis=0)
+    active = n_ranges >= prob.min_ranges()
+    theta = np.zeros((k_all, p))
+    theta[:, :2] = np.nan
+    given = None
+    if init_users_enu_m is not None:
+        given = np.asarray(init_users_enu_m, dtype=float)
+        if given.shape != (k_all, 3):
+            raise EstimatorError(f"init_users_enu_m must have shape ({k_all}, 3), got {given.shape}")
+    x = prob.gps_enu_m.copy()
+    for k in np.flatnonzero(active):
+        row = None
+        if given is not None and np.all(np.isfinite(given[k])):
+            row = np.zeros(p)
+            row[: prob.user_dim] = given[k, : prob.user_dim]
+        theta[k] = _init_theta(prob, x, prob.mask, k, row)
+    theta[~active] = 0.0
+    res = levenberg_marquardt(prob, x, theta, active)
+    res, mirrors = _resolve_mirrors(prob, res, active)
+    return _estimate(prob, res, active, mirrors, n_ranges)
+
+
+class OnlineEstimator:
+    """Incremental estimator: one keyframe at a time, warm-started, fixed-lag (window) smoothing.
+
+    add_keyframe(kf) appends the keyframe (UAV initialised at its GPS fix), activates users that
+    now have enough ranges (grid initialization on the window), iterates Levenberg–Marquardt from
+    the previous solution and returns the new Estimate. Beyond params.window keyframes the oldest
+    is marginalized into a prior on the users (module docstring), so an update costs
+    O(window · K²) whatever the number of keyframes seen. Ranges to a user that is not yet active
+    when its keyframe leaves the window are dropped.
+    """
+
+    def __init__(
+        self, n_users: int, user_up_m: np.ndarray, noise: NoiseModel,
+        params: SolverParams = SolverParams(),  # noqa: B008
+    ):
+        if not isinstance(noise, NoiseModel):
+            raise EstimatorError(f"noise must be a NoiseModel, got {type(noise).__name__}")
+        check_params(params)
+        self._up = check_users(n_users, user_up_m)
+        self._noise = noise
+        self._params = params
+        self._k = int(n_users)
+        self._p = params.user_dim + (1 if params.estimate_bias else 0)
+        cap = int(params.window) + 1
+        self._gps = np.zeros((cap, 3))
+        self._rng = np.full((cap, self._k), np.nan)
+        self._odom = np.zeros((cap, 3))
+        self._odom_mask = np.zeros(cap, dtype=bool)
+        self._x = np.zeros((cap, 3))
+        self._n = 0
+        self._theta = np.zeros((self._k, self._p))
+        self._active = np.zeros(self._k, dtype=bool)
+        self._n_ranges = np.zeros(self._k, dtype=int)
+        self._prior: Prior | None = None
+        self._seen = 0
+        self._mirrors: list = [None] * self._k
+        self._estimate: Estimate | None = None
+
+    @property
+    def estimate(self) -> Estimate | None:
+        """The latest estimate, None before the first keyframe."""
+        return self._estimate
+
+    @property
+    def n_keyframes_seen(self) -> int:
+        return self._seen
+
+    def _problem(self) -> Problem:
+        n = self._n
+        rng = self._rng[:n]
+        return Problem(
+            self._gps[:n], rng, ~np.isnan(rng), self._odom[:n], self._odom_mask[:n], self._up,
+            self._noise, self._params,
+        )
+
+    def add_keyframe(self, kf: Keyframe) -> Estimate:
+        """Add one keyframe with its ranges; return the updated Estimate."""
+        gps, idx, rng, odom = check_keyframe(kf, self._k)
+        n = self._n
+        self._gps[n] = gps
+        self._rng[n] = np.nan
+        self._rng[n, idx] = rng
+        self._odom_mask[n] = odom is not None and n + self._seen > 0 and self._params.motion_sigma_m is not None
+        self._odom[n] = odom if odom is not None else 0.0
+        # a new keyframe starts at its GPS fix, or dead-reckoned from the previous one
+        self._x[n] = self._x[n - 1] + odom if (self._odom_mask[n] and n > 0) else gps
+        self._n = n + 1
+        self._seen += 1
+        self._n_ranges[idx] += 1
+        prob = self._problem()
+        newly = ~self._active & (prob.mask.sum(axis=0) >= prob.min_ranges())
+        for k in np.flatnonzero(newly):
+            self._theta[k] = _init_theta(prob, self._x[: self._n], prob.mask, k)
+            self._active[k] = True
+        res = levenberg_marquardt(prob, self._x[: self._n].copy(), self._theta, self._active, self._prior)
+        self._x[: self._n] = res.x
+        self._theta = res.theta
+        if np.any(newly) or self._seen % max(int(self._params.online_check_every), 1) == 0:
+            res = self._check_mirrors(prob, res)
+        est = _estimate(prob, res, self._active, self._mirrors, self._n_ranges)
+        if self._n > self._params.window:
+            self._marginalize_oldest()
+        self._estimate = est
+        return est
+
+    def _check_mirrors(self, prob: Problem, res: _Result) -> _Result:
+        """Mirror tests on the window; jump to a clearly better mirror (reflecting its prior)."""
+        mirrors = _mirror_all(prob, res.theta, self._active)
+        chi2 = self._params.ambiguity_chi2
+        flipped = False
+        for k, mt in enumerate(mirrors):
+            if mt is None or mt.mirror_theta is None or mt.delta_chi2 >= -chi2:
+                continue
+            theta = res.theta.copy()
+            theta[k] = mt.mirror_theta
+            prior = self._reflected_prior(k, res.theta[k, :2], mt.mirror_theta[:2])
+            trial = levenberg_marquardt(prob, res.x, theta, self._active, prior)
+            if trial.lin.cost < res.lin.cost:
+                res, self._prior, flipped = trial, prior, True
+        if flipped:
+            self._x[: self._n] = res.x
+            self._theta = res.theta
+            mirrors = _mirror_all(prob, res.theta, self._active)
+        self._mirrors = mirrors
+        return res
+
+    def _reflected_prior(self, k: int, u_h: np.ndarray, m_h: np.ndarray) -> Prior | None:
+        """The prior with user k's horizontal coordinates reflected across the bisector of u → m.
+
+        Reflection z' = c + R(z − c) with R = I − 2 n nᵀ, n = (m − u)/|m − u|, c = (u + m)/2:
+        L'(z) = L(reflect(z)) gives c' = Rᵀc, Λ' = RᵀΛR, z0' = reflect(z0).
+        """
+        pr = self._prior
+        if pr is None:
+            return None
+        nvec = (m_h - u_h) / max(float(np.linalg.norm(m_h - u_h)), 1e-12)
+        ctr = 0.5 * (u_h + m_h)
+        refl2 = np.eye(2) - 2.0 * np.outer(nvec, nvec)
+        off = (3 if pr.has_x else 0) + k * self._p
+        r = np.eye(pr.z0.size)
+        r[off : off + 2, off : off + 2] = refl2
+        z0 = pr.z0.copy()
+        z0[off : off + 2] = ctr + refl2 @ (z0[off : off + 2] - ctr)
+        return Prior(pr.has_x, z0, r.T @ pr.info @ r, r.T @ pr.grad)
+
+    def _marginalize_oldest(self) -> None:
+        """Fold keyframe 0 of the window into the prior at the current estimate, then drop it."""
+        prob = self._problem()
+        params, noise = self._params, self._noise
+        k_all, p = self._k, self._p
+        pu = k_all * p
+        x = self._x[: self._n]
+        theta = self._theta
+        link = bool(prob.use_motion and self._odom_mask[1])
+        # variables v = [x_0 (3), x_1 (3), Θ (K·p)]; H and ∇ of every factor touching x_0
+        dim = 6 + pu
+        h = np.zeros((dim, dim))
+        grad = np.zeros(dim)
+        mask0 = prob.mask[:1] & self._active[None, :]
+        e, w, _rho, jx, jt = _range_terms(prob, x[:1], theta, mask0)
+        jx0 = jx[0] * np.sqrt(w[0])[:, None]  # (K, 3)
+        jt0 = jt[0] * np.sqrt(w[0])[:, None]  # (K, p)
+        ew = e[0] * np.sqrt(w[0])
+        jfull = np.zeros((k_all, dim))
+        jfull[:, :3] = jx0
+        for k in range(k_all):
+            jfull[k, 6 + k * p : 6 + (k + 1) * p] = jt0[k]
+        h += jfull.T @ jfull
+        grad += jfull.T @ ew
+        inv_g2 = 1.0 / noise.sigma_gps_m**2
+        h[:3, :3] += np.eye(3) * inv_g2
+        grad[:3] += (x[0] - prob.gps_enu_m[0]) * inv_g2
+        if link:
+            inv_m2 = 1.0 / params.motion_sigma_m**2
+            em = x[1] - x[0] - prob.odom_enu_m[1]
+            h[:3, :3] += np.eye(3) * inv_m2
+            h[3:6, 3:6] += np.eye(3) * inv_m2
+            h[:3, 3:6] -= np.eye(3) * inv_m2
+            h[3:6, :3] -= np.eye(3) * inv_m2
+            grad[:3] -= em * inv_m2
+            grad[3:6] += em * inv_m2
+        pr = self._prior
+        if pr is not None:
+            z = theta.ravel()
+            if pr.has_x:
+                z = np.concatenate([x[0], z])
+            gz = pr.grad + pr.info @ (z - pr.z0)
+            sel = np.r_[0:3, 6:dim] if pr.has_x else np.r_[6:dim]
+            h[np.ix_(sel, sel)] += pr.info
+            grad[sel] += gz
+        # Λ = H_rr − H_r0 H_00⁻¹ H_0r,  c = ∇_r − H_r0 H_00⁻¹ ∇_0
+        h00_inv = np.linalg.inv(h[:3, :3])
+        h_r0 = h[3:, :3]
+        info = h[3:, 3:] - h_r0 @ h00_inv @ h_r0.T
+        cvec = grad[3:] - h_r0 @ h00_inv @ grad[:3]
+        z0 = np.concatenate([x[1], theta.ravel()])
+        if not link:
+            info, cvec, z0 = info[3:, 3:], cvec[3:], z0[3:]
+        self._prior = Prior(link, z0, 0.5 * (info + info.T), cvec)
+        # drop keyframe 0
+        n = self._n
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x):
+            arr[: n - 1] = arr[1:n]
+        self._odom_mask[0] = False
+        self._n = n - 1
