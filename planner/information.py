@@ -1,0 +1,255 @@
+"""Predicted information of a leg and the planner's objective, in numpy (DESIGN.md §6).
+
+This is the obvious reference: planner.active builds the same expression in CasADi and the tests
+check the two agree (values and gradients).
+
+Model. A leg (or a horizon of legs) x_0 → w_1 → … → w_H is flown with a range measurement every Δ
+metres. For user k at hypothesised position u, a measurement at m adds
+
+    g gᵀ / σ_eff²(d),   g = (m − u)[:d] / |m − u|,   d = |m − u|,   σ_eff² = σ(d)² + σ_gps²
+
+to its information (d = 2: the horizontal part of the unit vector; σ_gps folded into the range
+variance because a GPS error along the line of sight shifts the range one-for-one). The sum over a
+leg of length ℓ is replaced by the midpoint rule with Q points at fractions t_q = (q − ½)/Q, each
+standing for ℓ/(Δ·Q) measurements, so it is smooth in the waypoints:
+
+    I_k(u) = P_k + Σ_legs (ℓ/(Δ·Q)) Σ_q g_q g_qᵀ / σ_eff²(d_q)
+
+P_k is the prior information: the inverse of the estimator's marginal covariance of user k (the
+exact S⁻¹ block), plus ε·I. Objective (to minimise):
+
+    J = Σ_k w_k Σ_s c_ks · f(I_k(u_ks)) + λ · Σ_legs ℓ,   f = tr(I⁻¹) ("A") or −log det I ("D")
+
+over samples u_ks of each user's posterior (weights c_ks): sigma points of the estimate and, while
+the estimator reports a mirror ambiguity, the same around the mirror solution (half the weight each).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.noise import NoiseModel
+from estimator.types import Estimate
+
+#: ε of the prior information regulariser [1/m²] (a 1 km standard deviation).
+PRIOR_EPS_PER_M2 = 1e-6
+
+
+@dataclass(frozen=True)
+class Hypotheses:
+    """Posterior samples the objective averages over.
+
+    users_enu_m: (K, M, 3) sample positions [m]; sample_w: (K, M) weights (rows sum to 1);
+    prior_info: (K, M, d, d) prior information per sample [1/m²] (the mirror's is reflected);
+    user_w: (K,) per-user weights; index: (K,) rows of the Estimate these users are.
+    """
+
+    users_enu_m: np.ndarray
+    sample_w: np.ndarray
+    prior_info: np.ndarray
+    user_w: np.ndarray
+    index: np.ndarray
+
+    @property
+    def dim(self) -> int:
+        return int(self.prior_info.shape[-1])
+
+
+def users_initialised(estimate: Estimate) -> np.ndarray:
+    """(K,) bool: users with a finite position and a finite covariance."""
+    pos = np.all(np.isfinite(estimate.users_enu_m), axis=1)
+    cov = np.all(np.isfinite(estimate.cov_users_m2.reshape(estimate.n_users, -1)), axis=1)
+    return pos & cov
+
+
+def _info_from_cov(cov: np.ndarray) -> np.ndarray:
+    """(d, d) information inv(Σ) + ε·I of a covariance, symmetrised."""
+    d = cov.shape[0]
+    info = np.linalg.pinv(0.5 * (cov + cov.T), hermitian=True)
+    return 0.5 * (info + info.T) + PRIOR_EPS_PER_M2 * np.eye(d)
+
+
+def hypotheses_from_estimate(
+    estimate: Estimate,
+    user_weights: np.ndarray | None = None,
+    sigma_points: bool = True,
+    kappa: float = 1.0,
+    max_offset_m: float = 30.0,
+    users: np.ndarray | None = None,
+) -> Hypotheses:
+    """Samples of the initialised users' posterior (or of `users`, a (K,) bool mask).
+
+    Sigma points (unscented, d dims): u, u ± sqrt((d + κ) λ_i) v_i (Σ = Σ λ_i v_i v_iᵀ) with weights
+    κ/(d + κ) and 1/(2(d + κ)); offsets capped at `max_offset_m`. While user k is ambiguous, the
+    same set around the mirror solution with Σ reflected (R = I − 2nnᵀ, n along mirror − u), each set
+    weighted ½. Every user gets M = (2d + 1)·(2 if any ambiguity else 1) samples (unused ones
+    weight 0) so the sizes are fixed.
+    """
+    mask = users_initialised(estimate) if users is None else np.asarray(users, dtype=bool)
+    idx = np.flatnonzero(mask)
+    d = int(estimate.cov_users_m2.shape[1])
+    amb = np.asarray(estimate.ambiguous, dtype=bool) & np.all(np.isfinite(estimate.mirror_enu_m), axis=1)
+    n_set = 2 * d + 1 if sigma_points else 1
+    n_hyp = 2 if np.any(amb[idx]) else 1
+    M = n_set * n_hyp
+    K = len(idx)
+    U = np.zeros((K, M, 3))
+    W = np.zeros((K, M))
+    P = np.tile(np.eye(d) * PRIOR_EPS_PER_M2, (K, M, 1, 1))
+    for row, k in enumerate(idx):
+        cov = np.asarray(estimate.cov_users_m2[k], dtype=float)
+        centres = [(estimate.users_enu_m[k], np.eye(d))]
+        if amb[k]:
+            n = np.zeros(d)
+            n[:2] = (estimate.mirror_enu_m[k] - estimate.users_enu_m[k])[:2]
+            n /= max(np.linalg.norm(n), 1e-9)
+            centres.append((estimate.mirror_enu_m[k], np.eye(d) - 2 * np.outer(n, n)))
+        share = 1.0 / len(centres)
+        for h, (centre, R) in enumerate(centres):
+            cov_h = R @ cov @ R.T
+            info_h = _info_from_cov(cov_h)
+            s0 = h * n_set
+            U[row, s0] = centre
+            P[row, s0:s0 + n_set] = info_h
+            if not sigma_points:
+                W[row, s0] = share
+                continue
+            W[row, s0] = share * kappa / (d + kappa)
+            lam, vec = np.linalg.eigh(0.5 * (cov_h + cov_h.T))
+            for i in range(d):
+                offset = np.sqrt((d + kappa) * max(lam[i], 0.0)) * vec[:, i]
+                scale = min(1.0, max_offset_m / max(np.linalg.norm(offset), 1e-12))
+                for sgn, j in ((1.0, 1 + 2 * i), (-1.0, 2 + 2 * i)):
+                    U[row, s0 + j] = centre
+                    U[row, s0 + j, :d] += sgn * scale * offset
+                    W[row, s0 + j] = share / (2 * (d + kappa))
+    w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)[idx]
+    return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx)
+
+
+def hypotheses_from_truth(
+    users_enu_m: np.ndarray, estimate: Estimate | None, dim: int = 2, user_weights: np.ndarray | None = None
+) -> Hypotheses:
+    """The oracle's single hypothesis: the true positions (K, 3), with the estimator's information
+    (its marginal blocks; ε·I for users it has not initialised, or with no estimate yet)."""
+    U = np.asarray(users_enu_m, dtype=float).reshape(-1, 3)
+    K = len(U)
+    P = np.tile(np.eye(dim) * PRIOR_EPS_PER_M2, (K, 1, 1, 1))
+    if estimate is not None:
+        ok = users_initialised(estimate)
+        for k in np.flatnonzero(ok):
+            P[k, 0] = _info_from_cov(np.asarray(estimate.cov_users_m2[k], dtype=float))
+    w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)
+    return Hypotheses(users_enu_m=U[:, None, :], sample_w=np.ones((K, 1)), prior_info=P, user_w=w,
+                      index=np.arange(K))
+
+
+def quadrature_points(start_enu_m: np.ndarray, waypoints_enu_m: np.ndarray, n_quad: int):
+    """Midpoint-rule samples of a horizon of legs.
+
+    start_enu_m: (3,); waypoints_enu_m: (C, H, 3) → points (C, H·Q, 3) at m = a + t_q (b − a),
+    t_q = (q − ½)/Q for each leg a → b, and lengths (C, H) [m].
+    """
+    W = np.asarray(waypoints_enu_m, dtype=float)
+    C, H, _ = W.shape
+    a = np.concatenate([np.broadcast_to(start_enu_m, (C, 1, 3)), W[:, :-1]], axis=1)
+    lengths = np.linalg.norm(W - a, axis=2)
+    t = (np.arange(n_quad) + 0.5) / n_quad
+    pts = a[:, :, None, :] + t[None, None, :, None] * (W - a)[:, :, None, :]
+    return pts.reshape(C, H * n_quad, 3), lengths
+
+
+def predicted_information(
+    start_enu_m: np.ndarray,
+    waypoints_enu_m: np.ndarray,
+    hyp: Hypotheses,
+    noise: NoiseModel,
+    delta_m: float,
+    n_quad: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior information after flying each candidate horizon.
+
+    waypoints_enu_m: (C, H, 3) → info (C, K, M, d, d) [1/m²] and leg lengths (C, H) [m].
+    I = P + Σ_legs (ℓ/(ΔQ)) Σ_q g gᵀ / (σ(d)² + σ_gps²)
+    """
+    pts, lengths = quadrature_points(start_enu_m, waypoints_enu_m, n_quad)
+    d = hyp.dim
+    n_meas = np.repeat(lengths / (delta_m * n_quad), n_quad, axis=1)  # (C, H·Q)
+    diff = pts[:, None, None, :, :] - hyp.users_enu_m[None, :, :, None, :]  # (C, K, M, HQ, 3)
+    dist = np.sqrt(np.sum(diff**2, axis=-1) + 1e-9)
+    g = diff[..., :d] / dist[..., None]
+    # σ_eff² = σ(d)² + σ_gps²
+    var = noise.range_sigma_m(dist) ** 2 + noise.sigma_gps_m**2
+    wq = n_meas[:, None, None, :] / var
+    info = hyp.prior_info[None] + np.einsum("ckmq,ckmqi,ckmqj->ckmij", wq, g, g)
+    return info, lengths
+
+
+def uncertainty(info: np.ndarray, criterion: str) -> np.ndarray:
+    """f(I) over the last two axes: "A": tr(I⁻¹) [m²]; "D": −log det I."""
+    if criterion == "A":
+        if info.shape[-1] == 2:
+            # tr(I⁻¹) = (I₀₀ + I₁₁) / det I for 2×2
+            det = info[..., 0, 0] * info[..., 1, 1] - info[..., 0, 1] * info[..., 1, 0]
+            return (info[..., 0, 0] + info[..., 1, 1]) / det
+        return np.trace(np.linalg.inv(info), axis1=-2, axis2=-1)
+    if criterion == "D":
+        return -np.linalg.slogdet(info)[1]
+    raise ValueError(f"criterion must be 'A' or 'D', got {criterion!r}")
+
+
+def objective_values(
+    start_enu_m: np.ndarray,
+    waypoints_enu_m: np.ndarray,
+    hyp: Hypotheses,
+    noise: NoiseModel,
+    delta_m: float,
+    n_quad: int,
+    criterion: str = "A",
+    cost_per_m: float = 0.0,
+) -> np.ndarray:
+    """(C,) J = Σ_k w_k Σ_s c_ks f(I_ks) + λ Σ ℓ for candidate horizons (C, H, 3) (or (C, 3): H = 1)."""
+    W = np.asarray(waypoints_enu_m, dtype=float)
+    if W.ndim == 2:
+        W = W[:, None, :]
+    info, lengths = predicted_information(start_enu_m, W, hyp, noise, delta_m, n_quad)
+    f = uncertainty(info, criterion)  # (C, K, M)
+    return np.einsum("k,km,ckm->c", hyp.user_w, hyp.sample_w, f) + cost_per_m * lengths.sum(axis=1)
+
+
+def prior_value(hyp: Hypotheses, criterion: str = "A") -> float:
+    """Σ_k w_k Σ_s c_ks f(P_ks): the objective before flying (no cost)."""
+    return float(np.einsum("k,km,km->", hyp.user_w, hyp.sample_w, uncertainty(hyp.prior_info, criterion)))
+
+
+def explore_waypoint(planner, state, visited_enu_m: np.ndarray) -> np.ndarray:
+    """Where to fly while no user can be planned for: spread the track out.
+
+    Among the planner's feasible ring candidates, maximise the smallest eigenvalue of the
+    east-north scatter of the track (visited positions (V, 3), joined by straight legs, plus the
+    candidate leg), i.e. make the track as non-collinear and wide as possible — what
+    multilateration needs and what removes the mirror ambiguity of a straight line. Ties (the
+    first leg) go to the leg ending nearest the fence centroid (home without a fence). Returns the
+    current position when no candidate is feasible (the planner then reports "no feasible leg").
+    """
+    ring = planner.feasible_ring(state)
+    if len(ring) == 0:
+        return state.uav_enu_m.copy()
+    c = planner.constraints
+    t = np.linspace(0.0, 1.0, 9)[:, None]
+    track = [state.uav_enu_m[None, :2]]
+    for a, b in itertools.pairwise(visited_enu_m):
+        track.append(a[:2] + t * (b[:2] - a[:2]))
+    track = np.concatenate(track)  # (T, 2)
+    legs = state.uav_enu_m[None, None, :2] + t[None] * (ring[:, None, :2] - state.uav_enu_m[None, None, :2])
+    pts = np.concatenate([np.broadcast_to(track, (len(ring), *track.shape)), legs], axis=1)  # (C, T', 2)
+    centred = pts - pts.mean(axis=1, keepdims=True)
+    scatter = np.einsum("cti,ctj->cij", centred, centred) / pts.shape[1]
+    lam_min = np.linalg.eigvalsh(scatter)[:, 0]
+    centre = c.fence_enu_m.mean(axis=0) if len(c.fence_enu_m) else c.home_enu_m[:2]
+    tie = np.linalg.norm(ring[:, :2] - centre, axis=1)
+    score = lam_min - 1e-3 * tie
+    return ring[int(np.argmax(score))].copy()

@@ -1,0 +1,207 @@
+"""The planner's contract with the mission controller (DESIGN.md §6).
+
+Plain dataclasses on numpy arrays, all positions in the mission's local ENU frame [m]:
+
+- :class:`PlanningConstraints`: what may be flown (fence, no-fly zones, altitude band, leg length,
+  distance from home, survey budget); built once per mission, e.g. with
+  :meth:`PlanningConstraints.from_scenario`.
+- :class:`PlanningState`: where the UAV is and what the estimator knows, at one leg end.
+- :class:`PlanResult`: the next waypoint (or `done` with a reason), with diagnostics.
+- :class:`Planner`: anything with ``plan(state) -> PlanResult``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from estimator.types import Estimate
+from uavloc.errors import PlannerError
+
+if TYPE_CHECKING:  # the planner never imports the scenario package at run time
+    from sitl_scenarios.scenario import Scenario
+
+#: `PlanResult.reason` values when `done` is True.
+REASON_TARGET = "target reached"
+REASON_BUDGET = "budget spent"
+REASON_NO_LEG = "no feasible leg"
+
+
+def _polygon(points, name: str) -> np.ndarray:
+    """(P, 2) float array of a polygon's vertices, or (0, 2) for an empty one."""
+    arr = np.asarray(points, dtype=float).reshape(-1, 2) if len(points) else np.zeros((0, 2))
+    if arr.shape[0] and (arr.shape[0] < 3 or not np.all(np.isfinite(arr))):
+        raise PlannerError(f"{name} needs >= 3 finite [east, north] vertices, got {arr.tolist()!r}")
+    return arr
+
+
+@dataclass(frozen=True)
+class PlanningConstraints:
+    """Where and how far the UAV may fly, in ENU metres.
+
+    home_enu_m: (3,) home position (return point; centre of the distance limit).
+    fence_enu_m: (P, 2) inclusion polygon (east, north), may be non-convex; (0, 2): no polygon.
+    no_fly_enu_m: tuple of (Q_i, 2) exclusion polygons (any shape).
+    alt_min_m, alt_max_m: allowed band of the ENU `up` coordinate [m] (not above home: absolute).
+    cruise_alt_m: ENU `up` at which the fixed-pattern baselines fly [m].
+    leg_max_m: longest leg the planner may choose [m]; min_leg_m: shortest useful leg [m].
+    max_distance_m: maximum horizontal distance from home [m].
+    budget_m: metres the survey may fly in total (the state's `flown_m` counts against it).
+    delta_m: measurement spacing Δ along a leg [m].
+    target_radius_m: stop when every user's 95 % error ellipse is inside this radius [m].
+    margin_m: clearance kept from fence and no-fly edges [m].
+    return_factor: the energy check asks leg + return_factor·(straight distance home) ≤ energy.
+    """
+
+    home_enu_m: np.ndarray
+    fence_enu_m: np.ndarray
+    no_fly_enu_m: tuple[np.ndarray, ...]
+    alt_min_m: float
+    alt_max_m: float
+    cruise_alt_m: float
+    leg_max_m: float
+    max_distance_m: float
+    budget_m: float
+    delta_m: float = 2.0
+    target_radius_m: float = 2.0
+    margin_m: float = 2.0
+    min_leg_m: float = 10.0
+    return_factor: float = 1.2
+
+    def __post_init__(self) -> None:
+        home = np.asarray(self.home_enu_m, dtype=float).reshape(3)
+        object.__setattr__(self, "home_enu_m", home)
+        object.__setattr__(self, "fence_enu_m", _polygon(self.fence_enu_m, "fence_enu_m"))
+        object.__setattr__(
+            self,
+            "no_fly_enu_m",
+            tuple(_polygon(p, f"no_fly_enu_m[{i}]") for i, p in enumerate(self.no_fly_enu_m)),
+        )
+        if not np.all(np.isfinite(home)):
+            raise PlannerError(f"home_enu_m must be finite, got {home}")
+        if not self.alt_min_m <= self.cruise_alt_m <= self.alt_max_m:
+            raise PlannerError(
+                f"need alt_min_m <= cruise_alt_m <= alt_max_m, got {self.alt_min_m}, {self.cruise_alt_m}, "
+                f"{self.alt_max_m}"
+            )
+        for name in ("leg_max_m", "max_distance_m", "budget_m", "delta_m", "target_radius_m", "min_leg_m"):
+            if not getattr(self, name) > 0:
+                raise PlannerError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if self.min_leg_m > self.leg_max_m:
+            raise PlannerError(f"min_leg_m {self.min_leg_m} exceeds leg_max_m {self.leg_max_m}")
+        if self.margin_m < 0 or self.return_factor < 1:
+            raise PlannerError(f"need margin_m >= 0 and return_factor >= 1, got {self.margin_m}, {self.return_factor}")
+
+    @property
+    def edges_enu_m(self) -> tuple[np.ndarray, np.ndarray]:
+        """(E, 2) start and (E, 2) end points of every fence and no-fly edge [m]."""
+        polys = ([self.fence_enu_m] if len(self.fence_enu_m) else []) + list(self.no_fly_enu_m)
+        if not polys:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        e0 = np.concatenate(polys)
+        e1 = np.concatenate([np.roll(p, -1, axis=0) for p in polys])
+        return e0, e1
+
+    @classmethod
+    def from_scenario(
+        cls,
+        scenario: Scenario,
+        home_enu_m=(0.0, 0.0, 0.0),
+        building_clearance_m: float = 5.0,
+        **overrides,
+    ) -> PlanningConstraints:
+        """Constraints of a scenario's mission and geofence.
+
+        Altitudes in the scenario are above home; here they become ENU `up` (home up + value).
+        Buildings: the UAV overflies every building whose height + `building_clearance_m` fits in the
+        altitude band (the band's floor is raised to clear the tallest of them); a building too tall
+        for the band becomes a no-fly zone. `overrides` replace any field (e.g. margin_m=3.0).
+        """
+        m, g = scenario.mission, scenario.geofence
+        home = np.asarray(home_enu_m, dtype=float).reshape(3)
+        alt_min, alt_max = m.alt_min_m, m.alt_max_m
+        no_fly = [np.asarray(p, dtype=float) for p in g.no_fly_enu_m]
+        for b in scenario.buildings:
+            top = b.height_m + building_clearance_m
+            if top <= alt_max:
+                alt_min = max(alt_min, top)
+            else:
+                no_fly.append(np.asarray(b.footprint_enu_m, dtype=float))
+        kwargs = dict(
+            home_enu_m=home,
+            fence_enu_m=np.asarray(g.polygon_enu_m, dtype=float).reshape(-1, 2),
+            no_fly_enu_m=tuple(no_fly),
+            alt_min_m=home[2] + alt_min,
+            alt_max_m=home[2] + alt_max,
+            cruise_alt_m=home[2] + min(max(m.altitude_m, alt_min), alt_max),
+            leg_max_m=m.leg_max_m,
+            max_distance_m=g.max_distance_m,
+            budget_m=m.budget_m,
+            delta_m=m.delta_m,
+            target_radius_m=m.target_radius_m,
+            min_leg_m=min(10.0, m.leg_max_m),
+        )
+        kwargs.update(overrides)
+        return cls(**kwargs)
+
+
+@dataclass(frozen=True)
+class PlanningState:
+    """The situation at a leg end.
+
+    uav_enu_m: (3,) current UAV position [m, ENU].
+    estimate: the estimator's latest :class:`Estimate`, or None before the first range.
+    flown_m: metres flown in the survey so far (counts against `PlanningConstraints.budget_m`).
+    energy_remaining_m: metres the battery still allows, return home included (inf: not limited).
+    """
+
+    uav_enu_m: np.ndarray
+    estimate: Estimate | None = None
+    flown_m: float = 0.0
+    energy_remaining_m: float = float("inf")
+
+    def __post_init__(self) -> None:
+        x = np.asarray(self.uav_enu_m, dtype=float).reshape(3)
+        if not np.all(np.isfinite(x)):
+            raise PlannerError(f"uav_enu_m must be finite, got {x}")
+        object.__setattr__(self, "uav_enu_m", x)
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """The planner's answer.
+
+    waypoint_enu_m: (3,) next waypoint [m, ENU] (the current position when `done`).
+    horizon_enu_m: (H, 3) the planned waypoints, the first being `waypoint_enu_m` (H = 0 when done).
+    done: stop the survey and return home; reason: REASON_TARGET, REASON_BUDGET or REASON_NO_LEG.
+    objective: the planner's predicted objective for the chosen leg (nan for fixed patterns).
+    status: how the waypoint was found ("ipopt", "ring", "explore", "lawnmower", ...).
+    solve_time_s: compute time of the call [s] (diagnostic only; never used in a decision).
+    """
+
+    waypoint_enu_m: np.ndarray
+    horizon_enu_m: np.ndarray
+    done: bool
+    reason: str = ""
+    objective: float = float("nan")
+    status: str = ""
+    solve_time_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def leg_m(self) -> float:
+        """Length of the first leg [m] (nan when done)."""
+        return float(self.extra.get("leg_m", float("nan")))
+
+
+class Planner(Protocol):
+    """A planner: stateful per mission (warm start, pattern progress, seeded randomness)."""
+
+    name: str
+    constraints: PlanningConstraints
+
+    def plan(self, state: PlanningState) -> PlanResult:
+        """The next waypoint from `state`, or `done`; raises PlannerError on bad input."""
+        ...
