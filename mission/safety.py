@@ -166,8 +166,10 @@ class SafetyGate:
     def __init__(self, limits: SafetyLimits):
         self.limits = limits
 
-    def position_violations(self, pos_enu_m: np.ndarray, check_altitude: bool = True) -> list[str]:
-        """Every limit the position (3,) [m, ENU from home] breaks, as messages (empty: fine)."""
+    def position_violations(self, pos_enu_m: np.ndarray, check_altitude: bool = True,
+                            alt_margin_m: float = 0.0) -> list[str]:
+        """Every limit the position (3,) [m, ENU from home] breaks, as messages (empty: fine).
+        `alt_margin_m` widens the altitude band (for measured heights, which wander)."""
         lim = self.limits
         p = np.asarray(pos_enu_m, float)
         out = []
@@ -179,7 +181,7 @@ class SafetyGate:
         for i, zone in enumerate(lim.no_fly_enu_m):
             if point_in_polygon(p[:2], zone):
                 out.append(f"position ({p[0]:.1f}, {p[1]:.1f}) m is inside no-fly zone {i}")
-        if check_altitude and len(p) > 2 and not lim.alt_min_m <= p[2] <= lim.alt_max_m:
+        if check_altitude and len(p) > 2 and not lim.alt_min_m - alt_margin_m <= p[2] <= lim.alt_max_m + alt_margin_m:
             out.append(f"height {p[2]:.1f} m above home is outside the band "
                        f"[{lim.alt_min_m:g}, {lim.alt_max_m:g}] m")
         return out
@@ -213,12 +215,13 @@ class SafetyGate:
             )
 
     def return_reason(self, pos_enu_m: np.ndarray | None, battery_pct: float | None,
-                      check_altitude: bool = False) -> str | None:
+                      check_altitude: bool = False, alt_margin_m: float = 0.0) -> str | None:
         """Why the vehicle must return home now (battery low, out of the fence…), or None."""
         if battery_pct is not None and np.isfinite(battery_pct) and battery_pct < self.limits.battery_rtl_pct:
             return f"battery {battery_pct:.0f} % below battery_rtl_pct {self.limits.battery_rtl_pct:g} %"
         if pos_enu_m is not None:
-            problems = self.position_violations(pos_enu_m, check_altitude=check_altitude)
+            problems = self.position_violations(pos_enu_m, check_altitude=check_altitude,
+                                                alt_margin_m=alt_margin_m)
             if problems:
                 return "; ".join(problems)
         return None

@@ -1,0 +1,320 @@
+"""The vehicle side of the mission: a small :class:`Vehicle` protocol and its MAVSDK implementation.
+
+The controller depends only on :class:`Vehicle` (STYLE.md 11). :class:`MavsdkVehicle` implements it
+over the native `mavsdk.asyncio` binding, for PX4 (real or SITL) and for the built-in simulator
+alike. Every call has a timeout; every plugin error is turned into a :class:`VehicleCommandError`
+carrying MAVSDK's result code, right where the call is made (the MAVSDK-Python examples' style).
+
+Telemetry (position, home, battery, armed, flight mode, landed state, health, link) flows into one
+:class:`VehicleState` owned by the adapter, while :meth:`Vehicle.run_telemetry` runs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from uavloc.errors import VehicleError
+
+log = logging.getLogger(__name__)
+
+
+class VehicleCommandError(VehicleError):
+    """A vehicle command was refused or failed; `result` is MAVSDK's result-code name."""
+
+    def __init__(self, message: str, result: str = "UNKNOWN"):
+        super().__init__(message)
+        self.result = result
+
+
+class VehicleTimeoutError(VehicleError):
+    """The vehicle did not answer a request in time."""
+
+
+@dataclass(frozen=True)
+class GeoFix:
+    """A geodetic point: latitude, longitude [deg], altitude AMSL [m]."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+
+
+@dataclass(frozen=True)
+class PositionFix:
+    """A global position fix as received; t_mono_s: `time.monotonic()` at reception."""
+
+    t_mono_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    rel_alt_m: float
+    vel_ned_mps: tuple[float, float, float] | None = None
+
+
+@dataclass
+class VehicleState:
+    """Latest telemetry of the vehicle, updated in place by the adapter's telemetry task."""
+
+    position: PositionFix | None = None
+    home: GeoFix | None = None
+    battery_pct: float | None = None
+    armed: bool | None = None
+    flight_mode: str = "UNKNOWN"
+    landed_state: str = "UNKNOWN"
+    connected: bool = False
+    global_position_ok: bool = False
+    home_position_ok: bool = False
+    last_rx_mono_s: float = 0.0
+    vel_ned_mps: tuple[float, float, float] | None = None
+
+    def age_s(self, now_mono_s: float | None = None) -> float:
+        """Wall seconds since anything was last received (inf before the first message)."""
+        if not self.last_rx_mono_s:
+            return math.inf
+        return (time.monotonic() if now_mono_s is None else now_mono_s) - self.last_rx_mono_s
+
+
+class Vehicle(Protocol):
+    """What the mission controller needs from a vehicle."""
+
+    state: VehicleState
+
+    async def connect(self, timeout_s: float) -> None: ...
+
+    async def wait_ready(self, timeout_s: float) -> GeoFix:
+        """Wait until global position and home are ok; return home."""
+        ...
+
+    async def run_telemetry(self, on_position: Callable[[PositionFix], None]) -> None:
+        """Keep :attr:`state` up to date and call `on_position` on every fix, until cancelled."""
+        ...
+
+    async def arm(self) -> None: ...
+
+    async def takeoff(self, height_m: float) -> None: ...
+
+    async def goto_location(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, yaw_deg: float) -> None: ...
+
+    async def return_to_launch(self) -> None: ...
+
+    async def land(self) -> None: ...
+
+    async def close(self) -> None: ...
+
+
+def _enum_name(value: Any) -> str:
+    return getattr(value, "name", str(value))
+
+
+class MavsdkVehicle:
+    """:class:`Vehicle` over `mavsdk.asyncio` (one MAVSDK instance per vehicle).
+
+    url: a MAVSDK connection URL, e.g. `udpin://0.0.0.0:14540` (PX4 SITL) or `udpin://127.0.0.1:PORT`.
+    request_timeout_s: wall-time limit of every request to the vehicle.
+    """
+
+    def __init__(self, url: str, request_timeout_s: float = 10.0, position_rate_hz: float = 10.0):
+        self.url = url
+        self.request_timeout_s = float(request_timeout_s)
+        self.position_rate_hz = float(position_rate_hz)
+        self.state = VehicleState()
+        self._mavsdk = None
+        self._system = None
+        self._action = None
+        self._telemetry = None
+
+    async def __aenter__(self) -> MavsdkVehicle:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # -- connection -----------------------------------------------------------------------------
+
+    async def connect(self, timeout_s: float = 30.0) -> None:
+        """Open the MAVLink connection and wait for the first autopilot."""
+        from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkConnectionError
+        from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+        self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+        try:
+            async with asyncio.timeout(self.request_timeout_s):
+                await self._mavsdk.add_any_connection(self.url)
+        except MavsdkConnectionError as exc:
+            raise VehicleError(f"cannot open MAVLink connection {self.url!r}: {exc}") from exc
+        except TimeoutError as exc:
+            raise VehicleTimeoutError(f"opening MAVLink connection {self.url!r} timed out") from exc
+        log.info("waiting for an autopilot on %s", self.url)
+        system = await self._mavsdk.first_autopilot(timeout_s=timeout_s)
+        if system is None:
+            raise VehicleTimeoutError(f"no autopilot heartbeat on {self.url!r} within {timeout_s:g} s")
+        self._system = system
+        self._action = ActionAsync(system)
+        self._telemetry = TelemetryAsync(system)
+        self.state.connected = True
+        self.state.last_rx_mono_s = time.monotonic()
+        log.info("autopilot found on %s", self.url)
+
+    async def close(self) -> None:
+        if self._mavsdk is not None:
+            mav, self._mavsdk = self._mavsdk, None
+            mav.destroy()
+
+    def _need(self) -> None:
+        if self._system is None:
+            raise VehicleError("vehicle not connected: call connect() first")
+
+    async def wait_ready(self, timeout_s: float = 60.0) -> GeoFix:
+        """Wait until the autopilot reports global position ok and home ok, then return home."""
+        self._need()
+        try:
+            async with asyncio.timeout(timeout_s):
+                async with contextlib.aclosing(self._telemetry.subscribe_health()) as health:
+                    async for h in health:
+                        self.state.global_position_ok = bool(h.is_global_position_ok)
+                        self.state.home_position_ok = bool(h.is_home_position_ok)
+                        if h.is_global_position_ok and h.is_home_position_ok:
+                            break
+                async with contextlib.aclosing(self._telemetry.subscribe_home()) as homes:
+                    async for hp in homes:
+                        if all(math.isfinite(v) for v in (hp.latitude_deg, hp.longitude_deg,
+                                                          hp.absolute_altitude_m)):
+                            home = GeoFix(hp.latitude_deg, hp.longitude_deg, hp.absolute_altitude_m)
+                            break
+        except TimeoutError as exc:
+            s = self.state
+            raise VehicleTimeoutError(
+                f"vehicle not ready within {timeout_s:g} s (global position ok: {s.global_position_ok}, "
+                f"home ok: {s.home_position_ok})"
+            ) from exc
+        self.state.home = home
+        return home
+
+    # -- telemetry ------------------------------------------------------------------------------
+
+    async def run_telemetry(self, on_position: Callable[[PositionFix], None]) -> None:
+        """Subscribe to every stream the mission uses; runs until cancelled."""
+        self._need()
+        tel, st = self._telemetry, self.state
+        await self._request("set position rate", tel.set_rate_position(self.position_rate_hz), optional=True)
+
+        def touch() -> None:
+            st.last_rx_mono_s = time.monotonic()
+
+        async def follow(gen: AsyncIterator, handle: Callable[[Any], None]) -> None:
+            async with contextlib.aclosing(gen) as it:
+                async for item in it:
+                    touch()
+                    handle(item)
+
+        def on_pos(p) -> None:
+            fix = PositionFix(time.monotonic(), p.latitude_deg, p.longitude_deg, p.absolute_altitude_m,
+                              p.relative_altitude_m, st.vel_ned_mps)
+            if all(math.isfinite(v) for v in (fix.lat_deg, fix.lon_deg, fix.alt_amsl_m)):
+                st.position = fix
+                on_position(fix)
+
+        def on_home(h) -> None:
+            if all(math.isfinite(v) for v in (h.latitude_deg, h.longitude_deg, h.absolute_altitude_m)):
+                st.home = GeoFix(h.latitude_deg, h.longitude_deg, h.absolute_altitude_m)
+
+        def on_battery(b) -> None:
+            if math.isfinite(b.remaining_percent):
+                st.battery_pct = float(b.remaining_percent)
+
+        def on_health(h) -> None:
+            st.global_position_ok = bool(h.is_global_position_ok)
+            st.home_position_ok = bool(h.is_home_position_ok)
+
+        def on_vel(v) -> None:
+            st.vel_ned_mps = (float(v.north_m_s), float(v.east_m_s), float(v.down_m_s))
+
+        def on_armed(a) -> None:
+            st.armed = bool(a)
+
+        def on_mode(m) -> None:
+            st.flight_mode = _enum_name(m)
+
+        def on_landed(s) -> None:
+            st.landed_state = _enum_name(s)
+
+        async def follow_link() -> None:
+            async with contextlib.aclosing(self._system.is_connected_state()) as it:
+                async for connected in it:
+                    if connected != st.connected:
+                        log.warning("vehicle link %s", "restored" if connected else "lost")
+                    st.connected = bool(connected)
+                    if connected:
+                        touch()
+
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(follow(tel.subscribe_position(), on_pos))
+            tg.create_task(follow(tel.subscribe_home(), on_home))
+            tg.create_task(follow(tel.subscribe_battery(), on_battery))
+            tg.create_task(follow(tel.subscribe_health(), on_health))
+            tg.create_task(follow(tel.subscribe_velocity_ned(), on_vel))
+            tg.create_task(follow(tel.subscribe_armed(), on_armed))
+            tg.create_task(follow(tel.subscribe_flight_mode(), on_mode))
+            tg.create_task(follow(tel.subscribe_landed_state(), on_landed))
+            tg.create_task(follow_link())
+
+    # -- commands -------------------------------------------------------------------------------
+
+    async def _request(self, what: str, call: Awaitable, optional: bool = False, timeout_s: float | None = None):
+        """Await one MAVSDK request with a timeout; plugin errors become VehicleCommandError."""
+        from mavsdk.exceptions import MavsdkError
+
+        limit = self.request_timeout_s if timeout_s is None else timeout_s
+        try:
+            async with asyncio.timeout(limit):
+                return await call
+        except TimeoutError as exc:
+            if optional:
+                log.warning("vehicle: %s timed out after %g s (ignored)", what, limit)
+                return None
+            raise VehicleTimeoutError(f"vehicle: {what} timed out after {limit:g} s") from exc
+        except MavsdkError as exc:
+            result = _enum_name(getattr(exc, "result", "UNKNOWN"))
+            if optional:
+                log.warning("vehicle: %s failed: %s (ignored)", what, result)
+                return None
+            raise VehicleCommandError(f"vehicle: {what} failed: {result}", result) from exc
+
+    async def arm(self) -> None:
+        self._need()
+        await self._request("arm", self._action.arm())
+
+    async def takeoff(self, height_m: float) -> None:
+        """Set the takeoff height above home and take off."""
+        self._need()
+        await self._request(f"set takeoff altitude {height_m:g} m",
+                            self._action.set_takeoff_altitude(float(height_m)))
+        await self._request("takeoff", self._action.takeoff())
+
+    async def goto_location(self, lat_deg: float, lon_deg: float, alt_amsl_m: float,
+                            yaw_deg: float = float("nan")) -> None:
+        self._need()
+        await self._request(
+            f"goto ({lat_deg:.7f}, {lon_deg:.7f}, {alt_amsl_m:.1f} m AMSL)",
+            self._action.goto_location(lat_deg, lon_deg, alt_amsl_m, yaw_deg),
+        )
+
+    async def return_to_launch(self) -> None:
+        self._need()
+        await self._request("return to launch", self._action.return_to_launch())
+
+    async def land(self) -> None:
+        self._need()
+        await self._request("land", self._action.land())
+
+    async def disarm(self) -> None:
+        self._need()
+        await self._request("disarm", self._action.disarm())
