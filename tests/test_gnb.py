@@ -1,0 +1,481 @@
+"""Adapter <-> simulated gNB over real TCP on loopback: discovery, K users, both command sets,
+every fault ending in a clear error or a retry, never a hang (every test runs under a timeout)."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.ranging import C_MPS, one_way_m_per_ta_step
+from mission.gnb import GnbClient, GnbConfig, LogFollower, OaiGnbClient, parse_host_port
+from mission.oai import PROMPT_GNB, format_msg2_line
+from sitl_scenarios.gnb import GnbFaults, SimulatedGnb, static_position
+from sitl_scenarios.scenario import scenario_from_dict
+from uavloc.errors import (
+    GnbBusyError,
+    GnbError,
+    GnbNoMeasurementError,
+    GnbProtocolError,
+    GnbTimeoutError,
+    GnbUnknownCommandError,
+    ScenarioError,
+    SimulatorError,
+)
+
+USERS = [
+    {"id": "a", "rnti": "0x4601", "east_m": 60.0, "north_m": 45.0},
+    {"id": "b", "rnti": "0xb0b2", "east_m": -80.0, "north_m": 20.0},
+    {"id": "c", "rnti": "0x1234", "east_m": 10.0, "north_m": -120.0, "sawtooth_amplitude_m": 4.0},
+    {"id": "far", "rnti": "0x0777", "east_m": 5000.0, "north_m": 0.0},  # beyond coverage
+]
+IN_COVERAGE = [0x1234, 0x4601, 0xB0B2]
+
+
+def scenario(users=None, faults=None, **radio):
+    data = {"name": "gnb-test", "seed": 7, "users": users or USERS,
+            "radio": {"coverage_m": 1000.0, "s0_m": 1.0, **radio}}
+    if faults is not None:
+        data["faults"] = faults
+    return scenario_from_dict(data)
+
+
+def run(coro, timeout_s: float = 10.0):
+    """Run a test coroutine under a hard timeout: a hang is a failure, not a stuck test run."""
+
+    async def guarded():
+        async with asyncio.timeout(timeout_s):
+            return await coro
+
+    return asyncio.run(guarded())
+
+
+def client_config(gnb: SimulatedGnb, **kw) -> GnbConfig:
+    base = {"port": gnb.port, "request_timeout_s": 0.5, "connect_timeout_s": 0.5, "retries": 2,
+            "backoff_initial_s": 0.005, "backoff_max_s": 0.02}
+    base.update(kw)
+    return GnbConfig(**base)
+
+
+UAV = np.array([0.0, 0.0, 40.0])
+
+
+# ---------------------------------------------------------------------------------------------
+# discovery and measurement
+
+
+def test_client_satisfies_protocol():
+    assert isinstance(OaiGnbClient(GnbConfig()), GnbClient)
+
+
+def test_discovery_by_o1_stats_lists_users_in_coverage():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb, discovery="o1")) as c:
+            return await c.discover()
+
+    assert run(body()) == IN_COVERAGE
+
+
+def test_discovery_single_rnti_and_auto_fallback_when_o1_missing():
+    one = [USERS[0]]
+
+    async def body():
+        async with SimulatedGnb(scenario(one), static_position(UAV), port=0) as gnb:
+            async with OaiGnbClient(client_config(gnb, discovery="single")) as c:
+                single = await c.discover()
+            # a gNB without the o1 module: `o1 stats` is not a softmodem command
+            gnb.process = _without_module(gnb.process, "o1")
+            async with OaiGnbClient(client_config(gnb, discovery="auto")) as c:
+                auto = await c.discover()
+            async with OaiGnbClient(client_config(gnb, discovery="o1")) as c:
+                with pytest.raises(GnbUnknownCommandError, match="o1 stats"):
+                    await c.discover()
+            return single, auto
+
+    assert run(body()) == ([0x4601], [0x4601])
+
+
+def test_single_rnti_with_several_ues_is_a_clear_error():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb, discovery="single")) as c:
+            with pytest.raises(GnbNoMeasurementError, match="not exactly one UE"):
+                await c.discover()
+
+    run(body())
+
+
+def _without_module(process, module):
+    from mission.oai import unknown_command_text
+
+    def patched(line):
+        if line.split() and line.split()[0] == module:
+            return unknown_command_text(line)
+        return process(line)
+
+    return patched
+
+
+def test_rtt_measurements_of_k_users_match_the_true_geometry():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb)) as c:
+            rntis = await c.discover()
+            samples = {r: [] for r in rntis}
+            for _ in range(20):
+                for r, s in (await c.measure_many(rntis)).items():
+                    samples[r].append(s)
+            return gnb, samples
+
+    gnb, samples = run(body())
+    sc = gnb.scenario
+    for r, ss in samples.items():
+        u = sc.user_by_rnti(r)
+        d = float(np.linalg.norm(UAV - [u.east_m, u.north_m, u.up_m]))
+        assert len(ss) == 20
+        assert all(s.source == "rtt" and s.fs_hz == sc.radio.fs_hz and s.mu == sc.radio.mu for s in ss)
+        t = [s.t_mono_s for s in ss]
+        assert t == sorted(t)
+        # σ = 1 m noise, plus a sawtooth of at most 4 m for user c
+        err = np.array([s.range_m for s in ss]) - d
+        assert np.all(np.abs(err - (2.0 if r == 0x1234 else 0.0)) < 7.0)
+    # the simulator's truth log has one entry per answered measurement
+    assert len(gnb.truth) == 60
+
+
+def test_measure_unknown_or_out_of_coverage_user_is_no_measurement():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb)) as c:
+            with pytest.raises(GnbNoMeasurementError, match="out of coverage"):
+                await c.measure(0x0777)
+            with pytest.raises(GnbNoMeasurementError, match="not connected"):
+                await c.measure(0x0999)
+            with pytest.raises(GnbError):
+                await c.measure(0x10000)
+            got = await c.measure_many([0x0777, 0x4601])
+            return list(got)
+
+    assert run(body()) == [0x4601]
+
+
+def test_no_uav_position_yet_is_no_measurement():
+    async def body():
+        async with SimulatedGnb(scenario(), lambda: None, port=0) as gnb, OaiGnbClient(client_config(gnb)) as c:
+            assert await c.discover() == sorted([0x4601, 0xB0B2, 0x1234, 0x0777])
+            with pytest.raises(GnbNoMeasurementError, match="no UAV position"):
+                await c.measure(0x4601)
+
+    run(body())
+
+
+def test_configurable_rtt_command_names():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, rtt_module="ranging",
+                                rtt_command="trigger") as gnb:
+            async with OaiGnbClient(client_config(gnb, rtt_module="ranging", rtt_command="trigger")) as c:
+                s = await c.measure(0x4601)
+            async with OaiGnbClient(client_config(gnb)) as c:  # default names: not loaded there
+                with pytest.raises(GnbUnknownCommandError, match="rtt pdcch_order 4601"):
+                    await c.measure(0x4601)
+            return s
+
+    assert run(body()).rnti == 0x4601
+
+
+def test_stock_fallback_force_reestab_and_msg2_log(tmp_path: Path):
+    log_path = tmp_path / "gnb.log"
+    log_path.write_text("[NR_MAC]   old line, before the mark: timing_offset = 9 Msg2\n")
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
+                                msg2_delay_s=0.02) as gnb, \
+                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=1.0)) as c:
+            await c.discover()
+            return [await c.measure(r) for r in (0x4601, 0xB0B2, 0x4601)]
+
+    samples = run(body())
+    step_m = one_way_m_per_ta_step(1)
+    u = USERS[0]
+    d = float(np.linalg.norm(UAV - [u["east_m"], u["north_m"], 0.0]))
+    for s in (samples[0], samples[2]):
+        assert s.source == "msg2" and s.fs_hz is None and s.srs_peak == 0.0 and s.rnti == 0x4601
+        assert abs(s.range_m - d) <= step_m / 2 + 4 * 1.0  # nearest TA step, σ = 1 m noise
+    assert samples[1].rnti == 0xB0B2
+    assert log_path.read_text().count("Generating RA-Msg2") == 3
+
+
+def test_stock_fallback_without_msg2_times_out_clearly(tmp_path: Path):
+    log_path = tmp_path / "gnb.log"
+
+    async def body():
+        # the simulator writes no log: the client waits msg2_timeout_s and says so
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=None) as gnb, \
+                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=0.2)) as c:
+            with pytest.raises(GnbTimeoutError, match="Msg2"):
+                await c.measure(0x4601)
+            with pytest.raises(GnbNoMeasurementError, match="RNTI needs"):
+                await c.measure(0xFFFF)
+
+    run(body())
+
+
+def test_log_follower_partial_lines_rotation_and_new_rnti(tmp_path: Path):
+    p = tmp_path / "gnb.log"
+    f = LogFollower(p, poll_s=0.005)
+    f.mark()  # file does not exist yet
+    line = format_msg2_line(0x4601, 1, 2, 0x10B, 3, 5, 1)
+    p.write_text(line[:30])
+    assert f.read_lines() == []
+    with p.open("a") as fh:
+        fh.write(line[30:] + "\n")
+    assert f.read_lines() == [line]
+    p.write_text("")  # truncated (rotation)
+    assert f.read_lines() == []
+    new = format_msg2_line(0x5555, 1, 2, 0x10B, 3, 7, 1)
+
+    async def body():
+        async def writer():
+            await asyncio.sleep(0.02)
+            with p.open("a") as fh:
+                fh.write(new + "\n")
+
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(writer())
+            rec = await f.wait_msg2(lambda r: r.rnti in (0x5555,), 1.0)
+        return rec
+
+    assert run(body()).timing_offset == 7
+    with p.open("a") as fh:
+        fh.write("[NR_MAC]   UE 4601: 1.2 Generating RA-Msg2 DCI, timing_offset = banana\n")
+    with pytest.raises(GnbProtocolError, match="timing_offset"):
+        run(f.wait_msg2(lambda r: True, 0.5))
+
+
+# ---------------------------------------------------------------------------------------------
+# wire behaviour of the simulator, seen with a bare socket
+
+
+def test_simulator_wire_behaviour_matches_oai():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            r, w = await asyncio.open_connection("127.0.0.1", gnb.port)
+            # no prompt on connect
+            with pytest.raises(TimeoutError):
+                async with asyncio.timeout(0.1):
+                    await r.read(1)
+            w.write(b"\n")  # empty line: just the prompt
+            assert await r.readuntil(PROMPT_GNB.encode()) == PROMPT_GNB.encode()
+            w.write(b"foo bar\n")
+            ans = (await r.readuntil(PROMPT_GNB.encode())).decode()
+            assert ans == "Error: \n      foo bar\n is not a softmodem command\n" + PROMPT_GNB
+            w.write(b"ci get_single_rnti extra\n")
+            assert (await r.readuntil(PROMPT_GNB.encode())).decode().startswith("no parameter allowed")
+            w.write(b"exit\n")
+            assert await r.read() == b""  # closed
+            w.close()
+
+    run(body())
+
+
+# ---------------------------------------------------------------------------------------------
+# faults: each ends in a clear error or a retry, never a hang
+
+
+def test_fault_delay_beyond_timeout_is_timeout_then_recovers():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb, request_timeout_s=0.2)) as c:
+            await c.measure(0x4601)
+            gnb.inject("delay", delay_s=0.6)
+            with pytest.raises(GnbTimeoutError, match="within 0.2 s"):
+                await c.measure(0x4601)
+            assert not c.connected  # a late answer must not be read as the next one
+            gnb.inject("delay", delay_s=0.05)  # a short delay is just slow
+            return await c.measure(0x4601)
+
+    assert run(body()).rnti == 0x4601
+
+
+def test_fault_malformed_answers_are_protocol_errors_then_recover():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb)) as c:
+            errors = []
+            for _ in range(6):  # the simulator cycles through truncated, binary and bad-number answers
+                gnb.inject("malformed")
+                with pytest.raises(GnbProtocolError) as info:
+                    await c.measure(0x4601)
+                errors.append(str(info.value))
+            gnb.inject("malformed")
+            with pytest.raises(GnbProtocolError):
+                await c.discover()
+            return errors, await c.measure(0x4601)
+
+    errors, sample = run(body())
+    assert all(e for e in errors) and sample.rnti == 0x4601
+
+
+def test_fault_dropped_connection_is_retried_transparently():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb, retries=3)) as c:
+            await c.measure(0x4601)
+            gnb.inject("drop", count=2)
+            s = await c.measure(0x4601)
+            return s, c.reconnects, gnb.connections
+
+    s, reconnects, connections = run(body())
+    assert s.rnti == 0x4601 and reconnects == 2 and connections == 3
+
+
+def test_fault_drop_every_time_gives_up_with_clear_error():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb, retries=2)) as c:
+            await c.measure(0x4601)  # not fresh any more
+            gnb.inject("drop", count=1)
+            gnb.inject("refuse", count=2)
+            with pytest.raises(GnbError, match="after 3 attempts|one client at a time"):
+                await c.measure(0x4601)
+
+    run(body())
+
+
+def test_refused_connections_are_reported_busy():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            gnb.inject("refuse", count=10)
+            async with OaiGnbClient(client_config(gnb, retries=2)) as c:
+                with pytest.raises(GnbBusyError, match="one client at a time"):
+                    await c.discover()
+
+    run(body())
+
+
+@pytest.mark.parametrize("busy_mode", ["close", "silent"])
+def test_second_client_is_busy(busy_mode):
+    async def body():
+        faults = GnbFaults(busy_mode=busy_mode)
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, faults=faults) as gnb, \
+                OaiGnbClient(client_config(gnb)) as first:
+            await first.measure(0x4601)
+            async with OaiGnbClient(client_config(gnb, request_timeout_s=0.2, retries=1)) as second:
+                with pytest.raises(GnbBusyError, match="one client at a time"):
+                    await second.measure(0x4601)
+            return await first.measure(0x4601)  # the first client is unaffected
+
+    assert run(body()).rnti == 0x4601
+
+
+def test_server_not_running_is_a_clear_error():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            port = gnb.port
+        cfg = GnbConfig(port=port, retries=1, backoff_initial_s=0.001, connect_timeout_s=0.3)
+        with pytest.raises(GnbError, match="cannot connect"):
+            async with OaiGnbClient(cfg):
+                pass
+
+    run(body())
+
+
+def test_fault_rates_from_the_scenario_faults_table():
+    sc = scenario(faults={"gnb": {"malformed_rate": 0.3, "drop_rate": 0.2}, "vehicle": {"x": 1}})
+    assert GnbFaults.from_scenario(sc) == GnbFaults(malformed_rate=0.3, drop_rate=0.2)
+
+    async def body():
+        async with SimulatedGnb(sc, static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb, retries=4)) as c:
+            ok = bad = 0
+            for _ in range(60):
+                try:
+                    await c.measure(0x4601)
+                    ok += 1
+                except GnbProtocolError:
+                    bad += 1
+            return ok, bad, c.reconnects
+
+    ok, bad, reconnects = run(body(), timeout_s=20)
+    # 30 % malformed, 20 % dropped and retried: both must have happened, nothing else escaped
+    assert ok + bad == 60 and 8 <= bad <= 30 and reconnects >= 4
+
+
+@pytest.mark.parametrize(
+    "table",
+    [{"delay": 1.0}, {"drop_rate": 1.5}, {"delay_s": -1}, {"busy_mode": "queue"}, {"malformed_rate": True}],
+)
+def test_fault_table_is_strict(table):
+    with pytest.raises(ScenarioError):
+        GnbFaults.from_table(table)
+
+
+def test_inject_rejects_unknown_fault():
+    gnb = SimulatedGnb(scenario(), static_position(UAV), port=0)
+    with pytest.raises(SimulatorError):
+        gnb.inject("explode")  # type: ignore[arg-type]
+
+
+def test_jittered_backoff_is_seeded_and_bounded():
+    async def delays(seed):
+        c = OaiGnbClient(GnbConfig(backoff_initial_s=0.001, backoff_max_s=0.004), rng=random.Random(seed))
+        out = []
+        orig = asyncio.sleep
+
+        async def fake_sleep(d):
+            out.append(d)
+            await orig(0)
+
+        asyncio.sleep = fake_sleep  # type: ignore[assignment]
+        try:
+            for k in range(5):
+                await c._backoff(k)
+        finally:
+            asyncio.sleep = orig  # type: ignore[assignment]
+        return out
+
+    a, b = run(delays(1)), run(delays(1))
+    assert a == b
+    caps = [0.001, 0.002, 0.004, 0.004, 0.004]
+    assert all(cap / 2 <= d <= cap for d, cap in zip(a, caps, strict=True))
+
+
+def test_parse_host_port():
+    assert parse_host_port("10.0.0.2:9091") == ("10.0.0.2", 9091)
+    assert parse_host_port("gnb.local") == ("gnb.local", 9090)
+    with pytest.raises(GnbError):
+        parse_host_port("host:abc")
+
+
+def test_config_validation():
+    with pytest.raises(GnbError, match="log_path"):
+        GnbConfig(mode="stock")
+    with pytest.raises(GnbError):
+        GnbConfig(rtt_command="pdcch order")
+
+
+def test_request_refuses_multiline_input():
+    with pytest.raises(GnbError):
+        run(OaiGnbClient(GnbConfig()).request("o1 stats\nexit"))
+
+
+def test_range_error_via_tcp_equals_truth_diagnostics():
+    """The adapter's range equals the simulator's true range plus its recorded error, to the SRS
+    quantization: the whole chain (model -> wire -> parser -> ranging) loses nothing else."""
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb)) as c:
+            out = []
+            for _ in range(30):
+                s = await c.measure(0xB0B2)
+                out.append((s.range_m, gnb.truth[-1]))
+            return out
+
+    q = C_MPS / (2 * 46.08e6 * 8)
+    for r, truth in run(body()):
+        assert abs(r - (truth.true_range_m + truth.error_m)) <= q / 2 + 1e-3
