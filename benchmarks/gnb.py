@@ -1,0 +1,105 @@
+"""Benchmark: gNB measurement round trip over loopback (adapter <-> simulated OAI gNB).
+
+    python benchmarks/gnb.py [--n 400] [--triggers 100]
+
+Targets (issue 3): one UE ≤ 5 ms median round trip; 10 UEs ≤ 50 ms per trigger. A bare TCP echo
+round trip measured in the same run is the baseline, so the ratios say what the protocol, the
+parsing and the radio model cost on this machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import statistics
+import sys
+import time
+
+import numpy as np
+
+from mission.gnb import GnbConfig, OaiGnbClient
+from sitl_scenarios.gnb import SimulatedGnb, static_position
+from sitl_scenarios.scenario import scenario_from_dict
+
+TARGET_ONE_MS = 5.0
+TARGET_TEN_MS = 50.0
+
+
+def ten_user_scenario():
+    rng = np.random.default_rng(0)
+    users = [{"id": f"u{i}", "rnti": 0x4601 + i, "east_m": float(e), "north_m": float(n)}
+             for i, (e, n) in enumerate(rng.uniform(-300, 300, size=(10, 2)))]
+    buildings = [{"footprint_enu_m": [[20.0, 20.0], [60.0, 20.0], [60.0, 50.0], [20.0, 50.0]], "height_m": 25.0}]
+    return scenario_from_dict({"name": "bench", "seed": 1, "users": users, "buildings": buildings})
+
+
+async def echo_baseline_ms(n: int) -> list[float]:
+    async def echo(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        while line := await reader.readline():
+            writer.write(line)
+            await writer.drain()
+        writer.close()
+
+    server = await asyncio.start_server(echo, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    r, w = await asyncio.open_connection("127.0.0.1", port)
+    out = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        w.write(b"rtt pdcch_order 4601\n")
+        await w.drain()
+        await r.readline()
+        out.append((time.perf_counter() - t0) * 1e3)
+    w.close()
+    await w.wait_closed()
+    server.close()
+    await server.wait_closed()
+    return out
+
+
+async def gnb_ms(n: int, triggers: int) -> tuple[list[float], list[float], int]:
+    sc = ten_user_scenario()
+    async with SimulatedGnb(sc, static_position((0.0, 0.0, 40.0)), port=0) as gnb, \
+            OaiGnbClient(GnbConfig(port=gnb.port)) as client:
+        rntis = await client.discover()
+        one = []
+        for i in range(n):
+            t0 = time.perf_counter()
+            await client.measure(rntis[i % len(rntis)])
+            one.append((time.perf_counter() - t0) * 1e3)
+        ten = []
+        for _ in range(triggers):
+            t0 = time.perf_counter()
+            got = await client.measure_many(rntis)
+            ten.append((time.perf_counter() - t0) * 1e3)
+            assert len(got) == len(rntis)
+        return one, ten, len(rntis)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--n", type=int, default=400, help="single-UE round trips")
+    p.add_argument("--triggers", type=int, default=100, help="10-UE triggers")
+    args = p.parse_args(argv)
+
+    base = asyncio.run(echo_baseline_ms(args.n))
+    one, ten, k = asyncio.run(gnb_ms(args.n, args.triggers))
+
+    def q(xs: list[float], pct: float) -> float:
+        return float(np.percentile(xs, pct))
+
+    base_med, one_med, ten_med = statistics.median(base), statistics.median(one), statistics.median(ten)
+    print(f"{'what':34s} {'median ms':>10s} {'p95 ms':>8s} {'target':>8s} {'x echo':>8s}")
+    print(f"{'bare TCP echo round trip':34s} {base_med:10.3f} {q(base, 95):8.3f} {'':>8s} {1.0:8.1f}")
+    print(f"{'measure(rnti), 1 UE':34s} {one_med:10.3f} {q(one, 95):8.3f} {TARGET_ONE_MS:8.1f} "
+          f"{one_med / base_med:8.1f}")
+    print(f"{f'measure_many, {k} UEs per trigger':34s} {ten_med:10.3f} {q(ten, 95):8.3f} {TARGET_TEN_MS:8.1f} "
+          f"{ten_med / base_med:8.1f}")
+    ok = one_med <= TARGET_ONE_MS and ten_med <= TARGET_TEN_MS
+    print(f"{'PASS' if ok else 'FAIL'}: 1 UE {one_med:.2f} ms (<= {TARGET_ONE_MS} ms), {k} UEs {ten_med:.2f} ms "
+          f"(<= {TARGET_TEN_MS} ms); n = {args.n}, triggers = {args.triggers}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
