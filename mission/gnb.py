@@ -260,6 +260,12 @@ class OaiGnbClient:
                 async with asyncio.timeout(1.0):
                     await w.wait_closed()
 
+    def _drop(self) -> None:
+        """Close the connection at once (no awaiting: safe while being cancelled)."""
+        w, self._writer, self._reader = self._writer, None, None
+        if w is not None:
+            w.close()
+
     @property
     def connected(self) -> bool:
         return self._writer is not None
@@ -350,6 +356,11 @@ class OaiGnbClient:
                             f"{cfg.host}:{cfg.port}: the OAI telnet server serves one client at a time; is "
                             f"another client connected (or is the gNB hung)?") from None
                     raise GnbTimeoutError(f"no answer to {line!r} within {cfg.request_timeout_s:g} s") from None
+                except asyncio.CancelledError:
+                    # cancelled mid-exchange (e.g. the caller's own timeout): the answer may still
+                    # arrive, so this connection is out of step; drop it without awaiting
+                    self._drop()
+                    raise
                 except _ConnectionLost as exc:
                     await self._close()
                     last = str(exc)

@@ -114,7 +114,8 @@ class SimulatedGnb:
     UE clock sawtooth (default: monotonic seconds since the server started); faults: GnbFaults
     (default: the scenario's); seed: seeds the radio model and the fault draws (default: the
     scenario's seed); rtt_module / rtt_command: names of the RTT command; msg2_delay_s: time from
-    `ci force_reestab` to the Msg2 log line [s].
+    `ci force_reestab` to the Msg2 log line [s]; reestab_new_rnti: a UE comes back from
+    reestablishment with a new C-RNTI (as a real UE may), shown in its Msg2 line.
     """
 
     def __init__(
@@ -131,6 +132,7 @@ class SimulatedGnb:
         rtt_module: str = "rtt",
         rtt_command: str = "pdcch_order",
         msg2_delay_s: float = 0.03,
+        reestab_new_rnti: bool = False,
     ) -> None:
         self.scenario = scenario
         self.position = position
@@ -147,6 +149,9 @@ class SimulatedGnb:
         self.rtt_module = rtt_module
         self.rtt_command = rtt_command
         self.msg2_delay_s = msg2_delay_s
+        self.reestab_new_rnti = reestab_new_rnti
+        #: current C-RNTI of each user (changes on reestablishment when reestab_new_rnti)
+        self.current_rnti: list[int] = [u.rnti for u in scenario.users]
         #: recent RTT results with their truth, newest last (for tests and diagnostics)
         self.truth: collections.deque[RawRtt] = collections.deque(maxlen=100_000)
         self.requests = 0
@@ -328,10 +333,13 @@ class SimulatedGnb:
         """UEs in coverage of the UAV (all of them while the UAV position is unknown)."""
         uav = self._uav()
         out = []
-        for k, u in enumerate(self.radio.users):
+        for k in range(len(self.radio.users)):
             if uav is None or np.linalg.norm(uav - self.radio.user_enu_m[k]) <= self.scenario.radio.coverage_m:
-                out.append(u.rnti)
+                out.append(self.current_rnti[k])
         return out
+
+    def _user_of(self, rnti: int) -> int | None:
+        return self.current_rnti.index(rnti) if rnti in self.current_rnti else None
 
     def _get_single_rnti(self, args: str) -> str:
         if args:
@@ -368,7 +376,7 @@ class SimulatedGnb:
 
     def _measure(self, rnti: int) -> RawRtt | str:
         """A RawRtt, or the reason there is none."""
-        k = self.radio.index_of_rnti(rnti)
+        k = self._user_of(rnti)
         if k is None:
             return "not connected"
         uav = self._uav()
@@ -395,7 +403,7 @@ class SimulatedGnb:
             if isinstance(res, str):
                 out.append(f"error rnti {rnti:04x} {res}")
             else:
-                out.append(format_rtt_line(res.rnti, res.ta, res.mu, res.srs_peak, res.fs_hz, res.snr_db))
+                out.append(format_rtt_line(rnti, res.ta, res.mu, res.srs_peak, res.fs_hz, res.snr_db))
         return "\n".join(out) + "\n"
 
     def _force_reestab(self, args: str) -> str:
@@ -426,6 +434,13 @@ class SimulatedGnb:
         step_s = self.radio.ta_step_s
         ta = res.ta + (1 if res.srs_peak / res.fs_hz >= step_s / 2 else 0)
         ta = min(ta, 3846)
+        k = self._user_of(rnti)
+        if self.reestab_new_rnti and k is not None:
+            new = rnti
+            while new in self.current_rnti:  # next free C-RNTI
+                new = new % 0xFFEF + 1
+            self.current_rnti[k] = new
+            rnti = new
         t = float(self.clock())
         frame = int(t / 0.01) % 1024
         slot = int((t % 0.01) / (0.001 / (1 << res.mu)))

@@ -479,3 +479,45 @@ def test_range_error_via_tcp_equals_truth_diagnostics():
     q = C_MPS / (2 * 46.08e6 * 8)
     for r, truth in run(body()):
         assert abs(r - (truth.true_range_m + truth.error_m)) <= q / 2 + 1e-3
+
+
+def test_caller_cancellation_mid_request_does_not_desync_the_stream():
+    """The controller wraps measure() in its own timeout: a late answer must not be taken as the
+    answer to the next request."""
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb, request_timeout_s=2.0)) as c:
+            gnb.inject("delay", delay_s=0.3)
+            with pytest.raises(TimeoutError):
+                async with asyncio.timeout(0.1):
+                    await c.measure(0x4601)
+            assert not c.connected
+            await asyncio.sleep(0.1)  # the simulator notices the client left (within ~10 ms)
+            s = await c.measure(0xB0B2)
+            stats = await c.discover()
+            return s, stats
+
+    s, stats = run(body())
+    assert s.rnti == 0xB0B2 and stats == IN_COVERAGE
+
+
+def test_stock_fallback_follows_a_new_rnti_after_reestablishment(tmp_path: Path):
+    log_path = tmp_path / "gnb.log"
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path, msg2_delay_s=0.01,
+                                reestab_new_rnti=True) as gnb, \
+                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=1.0)) as c:
+            await c.discover()
+            first = await c.measure(0x4601)
+            alias = dict(c.rnti_alias)
+            second = await c.measure(0x4601)  # triggers the UE under its new RNTI
+            return first, second, alias, dict(c.rnti_alias), list(gnb.current_rnti)
+
+    first, second, alias1, alias2, current = run(body())
+    assert first.rnti == second.rnti == 0x4601
+    assert alias1 == {0x4601: 0x4602} and alias2 == {0x4601: 0x4603}
+    assert current[0] == 0x4603
+    text = log_path.read_text()
+    assert "ci" not in text and "UE 4602: " in text and "UE 4603: " in text
