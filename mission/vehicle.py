@@ -109,6 +109,29 @@ class Vehicle(Protocol):
     async def close(self) -> None: ...
 
 
+_mavsdk_log = logging.getLogger(__name__ + ".mavsdk")
+_mavsdk_log_routed = False
+
+
+def _route_mavsdk_log() -> None:
+    """Send MAVSDK's own log lines (printed on stdout by default) to Python logging instead, so
+    that stdout stays clean for `--json`. Called from MAVSDK's threads; logging is thread-safe."""
+    global _mavsdk_log_routed
+    if _mavsdk_log_routed:
+        return
+    from mavsdk.logging import LogLevel, log_subscribe
+
+    levels = {LogLevel.DEBUG: logging.DEBUG, LogLevel.INFO: logging.DEBUG,
+              LogLevel.WARN: logging.INFO, LogLevel.ERROR: logging.WARNING}
+
+    def handler(level, message, file, line) -> bool:
+        _mavsdk_log.log(levels.get(level, logging.INFO), "%s", message)
+        return True  # suppress MAVSDK's default printing
+
+    log_subscribe(handler)
+    _mavsdk_log_routed = True
+
+
 def _enum_name(value: Any) -> str:
     return getattr(value, "name", str(value))
 
@@ -144,6 +167,7 @@ class MavsdkVehicle:
         from mavsdk.asyncio.plugins.action import ActionAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
+        _route_mavsdk_log()
         self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
         try:
             async with asyncio.timeout(self.request_timeout_s):

@@ -1,0 +1,872 @@
+"""The mission controller (DESIGN.md §1, §7): fly, measure every Δ, estimate, replan, stay safe.
+
+States CONNECT → PREFLIGHT → TAKEOFF → SURVEY → RETURN → LANDED, and ABORT from anywhere. One
+`asyncio.TaskGroup` owns the concurrent parts:
+
+- telemetry: the vehicle's streams; each position fix goes into a :class:`TelemetryBuffer` (mission
+  time, ENU from home) and, rate-limited, into the mission log;
+- Δ-trigger: when the UAV has moved Δ since the last keyframe (`KeyframeSelector`), measure every
+  user through the gNB; the UAV position of a trigger is the telemetry interpolated to the mean
+  time of its measurements (DESIGN.md §3) and is shared by the trigger's `rtt` records, which is
+  how replay groups them back into the same keyframe;
+- estimator worker: `OnlineEstimator.add_keyframe` in a thread (`asyncio.to_thread`), so the event
+  loop never waits on numpy;
+- safety monitor: battery, geofence, altitude band, vehicle link (lost → wait, then RTL), gNB
+  (lost → keep flying without measurements for a while, then RTL), mission time limit;
+- status: a progress line on stderr through `logging`.
+
+The main flow (in the TaskGroup's body) asks the planner for a waypoint at each leg end, passes it
+through the safety gate (:class:`GatedVehicle`: nothing reaches the vehicle that the gate did not
+pass) and flies it until arrival within the acceptance radius or the leg timeout. The stop rule
+(every user's 95 % ellipse within the target radius, or the budget spent) leads to RETURN. An
+exception, a cancellation (Ctrl-C) or a safety condition ends in RTL and a flushed log.
+
+Time: control uses the monotonic clock; the log's `t` is mission seconds since start, i.e.
+`(monotonic − start) · time_scale` (time_scale = the simulator's speedup; 1 for real flights).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimator.geodesy import Origin
+from estimator.keyframes import KeyframeSelector
+from estimator.noise import NoiseModel
+from estimator.ranging import C_MPS
+from estimator.slam import OnlineEstimator, solve_batch
+from estimator.types import Estimate, Keyframe, SolverParams
+from mission.gnb import GnbClient
+from mission.log import MissionLogWriter
+from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
+from mission.telemetry import TelemetryBuffer
+from mission.vehicle import PositionFix, Vehicle
+from planner.stop import targets_reached
+from planner.types import Planner, PlanningState, PlanResult
+from uavloc.errors import (
+    EstimatorError,
+    GnbError,
+    GnbNoMeasurementError,
+    GnbProtocolError,
+    MissionError,
+    PlannerError,
+    SafetyError,
+    UavlocError,
+    VehicleError,
+)
+
+log = logging.getLogger(__name__)
+
+CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
+    "CONNECT", "PREFLIGHT", "TAKEOFF", "SURVEY", "RETURN", "LANDED", "ABORT")
+
+#: MissionResult.status values
+STATUS_TARGET = "target_reached"
+STATUS_BUDGET = "budget_spent"
+STATUS_NO_LEG = "no_feasible_leg"
+STATUS_RETURNED = "returned"  # a safety condition ended the survey early
+STATUS_ABORTED = "aborted"  # an error ended the mission (RTL sent when airborne)
+STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne)
+
+#: wall seconds the safe end may spend getting RTL accepted after an error or Ctrl-C
+SAFE_END_TIMEOUT_S = 60.0
+
+
+@dataclass(frozen=True)
+class MissionUser:
+    """A user to locate: id, RNTI and ground height `up_m` in the home ENU frame [m]."""
+
+    id: str
+    rnti: int
+    up_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Mission settings. Times marked (mission) are mission seconds; (wall) are real seconds.
+
+    delta_m: keyframe spacing Δ; altitude_m: survey height above home; target_radius_m: stop rule;
+    budget_m: survey metres; time_limit_s (mission); acceptance_m: arrival radius; speed_mps,
+    climb_mps, descent_mps: vehicle speeds used for leg and landing timeouts.
+    time_scale: mission seconds per wall second (simulator speedup).
+    link_timeout_s (wall): no vehicle data for this long counts as a lost link;
+    link_lost_wait_s (mission): wait this long for the link before returning home;
+    gnb_lost_wait_s (mission): keep flying without measurements this long before returning home;
+    gnb_timeout_s (wall): per measurement request; telemetry_log_hz (mission): telemetry records;
+    status_interval_s (wall): progress lines; max_refusals: consecutive refused waypoints before
+    returning home; alt_margin_m: tolerance of the altitude-band check while surveying.
+    """
+
+    delta_m: float = 2.0
+    altitude_m: float = 30.0
+    target_radius_m: float = 2.0
+    budget_m: float = 2000.0
+    time_limit_s: float = 1200.0
+    acceptance_m: float = 2.0
+    speed_mps: float = 10.0
+    climb_mps: float = 3.0
+    descent_mps: float = 1.5
+    time_scale: float = 1.0
+    connect_timeout_s: float = 30.0
+    ready_timeout_s: float = 60.0
+    link_timeout_s: float = 3.0
+    link_lost_wait_s: float = 10.0
+    gnb_lost_wait_s: float = 20.0
+    gnb_timeout_s: float = 2.0
+    telemetry_log_hz: float = 5.0
+    status_interval_s: float = 2.0
+    max_refusals: int = 3
+    alt_margin_m: float = 5.0
+    rtl_attempts: int = 5
+
+    @classmethod
+    def from_scenario(cls, sc, **overrides) -> ControllerConfig:
+        m, v = sc.mission, sc.vehicle
+        kw = dict(delta_m=m.delta_m, altitude_m=m.altitude_m, target_radius_m=m.target_radius_m,
+                  budget_m=m.budget_m, time_limit_s=m.time_limit_s, acceptance_m=m.acceptance_m,
+                  speed_mps=v.speed_mps, climb_mps=v.climb_mps, descent_mps=v.descent_mps)
+        kw.update(overrides)
+        return cls(**kw)
+
+
+@dataclass
+class MissionResult:
+    """How a mission ended, and what it found.
+
+    status: one of the STATUS_* values; reason: why; estimate: final (batch) estimate or None;
+    origin: home (the log's ENU origin) or None if never known; truth_enu_m (K, 3) when known;
+    flown_m: survey metres flown; measurements: rtt records logged; keyframes: keyframes used.
+    """
+
+    status: str
+    reason: str
+    user_ids: list[str]
+    estimate: Estimate | None = None
+    origin: Origin | None = None
+    truth_enu_m: np.ndarray | None = None
+    flown_m: float = 0.0
+    measurements: int = 0
+    keyframes: int = 0
+    log_path: Path | None = None
+    mission_s: float = 0.0
+    wall_s: float = 0.0
+    rtl_sent: bool = False
+    landed: bool = False
+    refusals: int = 0
+    events: list[str] = field(default_factory=list)
+    loop_lag: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status in (STATUS_TARGET, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED)
+
+    def error_m(self) -> np.ndarray | None:
+        """(K,) horizontal error of each user [m] when truth is known."""
+        if self.estimate is None or self.truth_enu_m is None:
+            return None
+        return np.linalg.norm(self.estimate.users_enu_m[:, :2] - self.truth_enu_m[:, :2], axis=1)
+
+    def to_document(self) -> dict:
+        """The DESIGN.md §11 JSON document (plus `reason`)."""
+        users: list[dict] = []
+        if self.estimate is not None and self.origin is not None:
+            from mission.replay import users_document
+
+            users = users_document(self.estimate, self.origin, self.user_ids, self.error_m())
+        else:
+            users = [{"id": u, "lat_deg": None, "lon_deg": None, "alt_m": None, "enu_m": None,
+                      "cov_en_m2": None} for u in self.user_ids]
+        return {"status": self.status, "reason": self.reason, "users": users,
+                "flown_m": round(self.flown_m, 3), "measurements": self.measurements}
+
+
+class _Pulse:
+    """Wake every waiter on the next `pulse()` (a new Event per generation)."""
+
+    def __init__(self) -> None:
+        self._event = asyncio.Event()
+
+    def pulse(self) -> None:
+        self._event.set()
+        self._event = asyncio.Event()
+
+    async def wait(self, timeout_s: float) -> bool:
+        try:
+            async with asyncio.timeout(timeout_s):
+                await self._event.wait()
+            return True
+        except TimeoutError:
+            return False
+
+
+class LoopLagMonitor:
+    """Measures event-loop lag: how late a `sleep(period)` wakes up [s]. Kept as a sample list."""
+
+    def __init__(self, period_s: float = 0.01):
+        self.period_s = period_s
+        self.lags_s: list[float] = []
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            t = loop.time()
+            await asyncio.sleep(self.period_s)
+            self.lags_s.append(max(0.0, loop.time() - t - self.period_s))
+
+    def summary(self) -> dict:
+        """{"samples", "max_s", "p99_s", "median_s"} (zeros before the first sample)."""
+        if not self.lags_s:
+            return {"samples": 0, "max_s": 0.0, "p99_s": 0.0, "median_s": 0.0}
+        a = np.asarray(self.lags_s)
+        return {"samples": len(a), "max_s": float(a.max()), "p99_s": float(np.percentile(a, 99)),
+                "median_s": float(np.median(a))}
+
+
+class MissionController:
+    """Runs one mission. See the module docstring.
+
+    vehicle: a :class:`Vehicle` (connected by the controller); gnb: a connected :class:`GnbClient`;
+    planner: a :class:`planner.types.Planner` whose constraints are in the home ENU frame;
+    users: the users to locate; noise/params: the estimator's model and settings; limits: the
+    safety gate's limits (home ENU frame); log_path: where the mission log goes;
+    truth: simulation only: home Origin -> (K, 3) true user positions in the home ENU frame [m]
+    (written as the `truth` record once home is known);
+    header_config: the header's `config` section (scenario, planner, …).
+    """
+
+    def __init__(self, vehicle: Vehicle, gnb: GnbClient, planner: Planner, users: list[MissionUser],
+                 noise: NoiseModel, limits: SafetyLimits, config: ControllerConfig, log_path: str | Path,
+                 params: SolverParams | None = None, truth: Callable[[Origin], np.ndarray] | None = None,
+                 header_config: dict | None = None, radio: dict | None = None):
+        if not users:
+            raise MissionError("a mission needs at least one user")
+        self.vehicle = vehicle
+        self.gnb = gnb
+        self.planner = planner
+        self.users = list(users)
+        self.noise = noise
+        self.config = config
+        self.params = params or SolverParams(delta_m=config.delta_m)
+        self.gate = SafetyGate(limits)
+        self._truth = truth
+        self.truth_enu_m: np.ndarray | None = None
+        self.header_config = header_config or {}
+        self.radio = radio or {}
+        self.log_path = Path(log_path)
+        self._writer = MissionLogWriter(self.log_path)
+        self._pending_events: list[tuple[float, dict]] = []
+        self.state = CONNECT
+        self.origin: Origin | None = None
+        self.estimate: Estimate | None = None
+        self.keyframes: list[Keyframe] = []
+        self.flown_m = 0.0
+        self.measurements = 0
+        self.event_messages: list[str] = []
+        self._t0_mono = time.monotonic()
+        self._start_utc = datetime.now(UTC).isoformat(timespec="milliseconds")
+        self._buffer = TelemetryBuffer(4096)
+        self._fix_pulse: _Pulse | None = None
+        self._last_tel_log_t = -math.inf
+        self._kf_queue: asyncio.Queue[Keyframe] | None = None
+        self._return_reason: str | None = None
+        self._stop_status: tuple[str, str] | None = None
+        self._link_lost_since: float | None = None
+        self._gnb_down_since: float | None = None
+        self._gnb_failures = 0
+        self._rtl_sent = False
+        self._landed = False
+        self._gated: GatedVehicle | None = None
+        self._connected = False
+        self._user_misses = np.zeros(len(self.users), int)
+        self._battery_start_pct: float | None = None
+        self.loop_lag = LoopLagMonitor()
+
+    # -- clock ----------------------------------------------------------------------------------
+
+    def now(self) -> float:
+        """Mission seconds since start."""
+        return (time.monotonic() - self._t0_mono) * self.config.time_scale
+
+    def mission_t(self, t_mono_s: float) -> float:
+        return (t_mono_s - self._t0_mono) * self.config.time_scale
+
+    def wall(self, mission_s: float) -> float:
+        """Mission seconds → wall seconds."""
+        return mission_s / self.config.time_scale
+
+    # -- log ------------------------------------------------------------------------------------
+
+    def _event(self, message: str, **fields: Any) -> None:
+        """An `event` record (buffered until the header is written)."""
+        t = self.now()
+        rec = {"message": message, "state": self.state, **fields}
+        self.event_messages.append(message)
+        log.debug("event: %s", message)
+        if self._writer._fh is None:
+            self._pending_events.append((t, rec))
+        else:
+            self._writer.write("event", t, **rec)
+
+    def _open_log(self) -> None:
+        users = [{"id": u.id, "rnti": u.rnti, "ground_alt_m": self.origin.alt_m + u.up_m} for u in self.users]
+        cfg = dict(self.header_config)
+        cfg.setdefault("controller", asdict(self.config))
+        cfg.setdefault("solver", asdict(self.params))
+        self._writer.open()
+        self._writer.write_header(self.origin, users, self.radio, noise=self.noise, config=cfg,
+                                  start_utc=self._start_utc)
+        for t, rec in self._pending_events:
+            self._writer.write("event", t, **rec)
+        self._pending_events.clear()
+        if self._truth is not None:
+            self.truth_enu_m = np.asarray(self._truth(self.origin), float).reshape(len(self.users), 3)
+            lat, lon, alt = self.origin.enu_to_lla(self.truth_enu_m)
+            self._writer.write("truth", self.now(), users=[
+                {"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]), "alt_m": float(alt[k])}
+                for k, u in enumerate(self.users)])
+
+    def _log_estimate(self, est: Estimate, final: bool = False) -> None:
+        if self._writer._fh is None:
+            return
+        lat, lon, alt = self.origin.enu_to_lla(est.users_enu_m)
+        users = []
+        for k, u in enumerate(self.users):
+            cov = est.cov_en_m2(k)
+            if not (np.all(np.isfinite(est.users_enu_m[k])) and np.all(np.isfinite(cov))):
+                continue
+            users.append({"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]),
+                          "alt_m": float(alt[k]), "cov_en_m2": cov.tolist()})
+        extra = {"final": True} if final else {}
+        self._writer.write("estimate", self.now(), users=users, keyframes=len(self.keyframes), **extra)
+
+    # -- state ----------------------------------------------------------------------------------
+
+    def _set_state(self, state: str) -> None:
+        if state != self.state:
+            log.info("mission state %s -> %s", self.state, state)
+            self.state = state
+
+    def _pos_enu(self) -> np.ndarray | None:
+        latest = self._buffer.latest()
+        return None if latest is None else latest[1]
+
+    def request_return(self, reason: str) -> None:
+        """Ask the main flow to end the survey and return home (first reason wins)."""
+        if self._return_reason is None:
+            self._return_reason = reason
+            log.warning("returning home: %s", reason)
+            self._event(f"return requested: {reason}", kind="return")
+            if self._fix_pulse is not None:
+                self._fix_pulse.pulse()
+
+    def _finish_survey(self, status: str, reason: str) -> None:
+        """A normal end of the survey (stop rule); the main flow returns home."""
+        if self._stop_status is None and self._return_reason is None:
+            self._stop_status = (status, reason)
+            self._event(f"survey done: {reason}", kind="stop")
+            if self._fix_pulse is not None:
+                self._fix_pulse.pulse()
+
+    # -- telemetry ------------------------------------------------------------------------------
+
+    def _on_fix(self, fix: PositionFix) -> None:
+        if self.origin is None:
+            return
+        t = self.mission_t(fix.t_mono_s)
+        pos = self.origin.lla_to_enu(fix.lat_deg, fix.lon_deg, fix.alt_amsl_m)
+        self._buffer.append(t, pos)
+        if t - self._last_tel_log_t >= 1.0 / self.config.telemetry_log_hz and self._writer._fh is not None:
+            self._last_tel_log_t = t
+            extra = {"vel_ned_mps": list(fix.vel_ned_mps)} if fix.vel_ned_mps is not None else {}
+            self._writer.write("telemetry", t, lat_deg=fix.lat_deg, lon_deg=fix.lon_deg,
+                               alt_m=fix.alt_amsl_m, **extra)
+        if self._fix_pulse is not None:
+            self._fix_pulse.pulse()
+
+    async def _position_at(self, t_s: float) -> np.ndarray:
+        """UAV position at mission time t_s: waits briefly for the fix after it, then interpolates."""
+        deadline = time.monotonic() + 1.0
+        while not self._buffer.covers(t_s) and time.monotonic() < deadline:
+            await self._fix_pulse.wait(0.2)
+        return self._buffer.at(t_s, max_extrapolate_s=0.5)
+
+    # -- tasks ----------------------------------------------------------------------------------
+
+    async def _trigger_task(self) -> None:
+        selector = KeyframeSelector(self.config.delta_m)
+        while True:
+            await self._fix_pulse.wait(1.0)
+            if self.state != SURVEY or self._return_reason or self._stop_status:
+                continue
+            pos = self._pos_enu()
+            if pos is None or not selector.accept(pos):
+                continue
+            await self._measure_all()
+
+    async def _measure_all(self) -> None:
+        """One trigger: measure every user, log the rtt records, queue one keyframe."""
+        samples = []
+        gnb_failed: str | None = None
+        for k, u in enumerate(self.users):
+            t_req = time.monotonic()
+            try:
+                async with asyncio.timeout(self.config.gnb_timeout_s):
+                    s = await self.gnb.measure(u.rnti)
+            except (GnbNoMeasurementError, GnbProtocolError) as exc:
+                self._user_misses[k] += 1
+                log.debug("no measurement for %s: %s", u.id, exc)
+                continue
+            except TimeoutError:
+                gnb_failed = f"gNB did not answer within {self.config.gnb_timeout_s:g} s"
+                break
+            except GnbError as exc:
+                gnb_failed = str(exc)
+                break
+            t_mono = s.t_mono_s if (s.t_mono_s and math.isfinite(s.t_mono_s)) else 0.5 * (t_req + time.monotonic())
+            samples.append((k, s, t_mono))
+        now = self.now()
+        if gnb_failed is not None:
+            self._gnb_failures += 1
+            if self._gnb_down_since is None:
+                self._gnb_down_since = now
+                log.warning("gNB lost: %s", gnb_failed)
+                self._event(f"gNB lost: {gnb_failed}", kind="gnb_lost")
+        elif self._gnb_down_since is not None:
+            self._event(f"gNB restored after {now - self._gnb_down_since:.1f} s", kind="gnb_restored")
+            log.info("gNB restored")
+            self._gnb_down_since = None
+        if not samples:
+            return
+        t_meas = float(np.mean([self.mission_t(tm) for _, _, tm in samples]))
+        try:
+            pos = await self._position_at(t_meas)
+        except MissionError as exc:
+            self._event(f"measurements dropped: {exc}", kind="dropped")
+            return
+        lat, lon, alt = (float(x) for x in self.origin.enu_to_lla(pos))
+        uav = {"lat_deg": lat, "lon_deg": lon, "alt_m": alt}
+        for k, s, tm in samples:
+            self._writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
+        self.measurements += len(samples)
+        # the keyframe from the logged numbers, exactly as replay rebuilds it
+        gps = self.origin.lla_to_enu(lat, lon, alt)
+        kf = Keyframe(gps_enu_m=np.asarray(gps, float), user_idx=np.array([k for k, _, _ in samples]),
+                      range_m=np.array([C_MPS * s.toa_s for _, s, _ in samples]),
+                      t_s=self.mission_t(samples[0][2]))
+        self.keyframes.append(kf)
+        self._kf_queue.put_nowait(kf)
+
+    async def _estimator_task(self) -> None:
+        up = np.array([u.up_m for u in self.users])
+        online = OnlineEstimator(len(self.users), up, self.noise, self.params)
+        while True:
+            kf = await self._kf_queue.get()
+            try:
+                # the solver runs in a worker thread: the event loop keeps flying
+                est = await asyncio.to_thread(online.add_keyframe, kf)
+            except EstimatorError as exc:
+                self._event(f"estimator: {exc}", kind="estimator_error")
+                continue
+            finally:
+                self._kf_queue.task_done()
+            self.estimate = est
+            self._log_estimate(est)
+            if self.state == SURVEY and targets_reached(est, self.config.target_radius_m):
+                self._finish_survey(STATUS_TARGET, "target reached")
+
+    async def _safety_task(self) -> None:
+        cfg = self.config
+        st = self.vehicle.state
+        while True:
+            await asyncio.sleep(0.05)
+            now = self.now()
+            lost = (not st.connected) or st.age_s() > cfg.link_timeout_s
+            if lost and self._link_lost_since is None:
+                self._link_lost_since = now
+                self._event("vehicle link lost", kind="link_lost")
+            elif not lost and self._link_lost_since is not None:
+                self._event(f"vehicle link restored after {now - self._link_lost_since:.1f} s",
+                            kind="link_restored")
+                self._link_lost_since = None
+            if self.state not in (TAKEOFF, SURVEY):
+                continue
+            if self._link_lost_since is not None and now - self._link_lost_since > cfg.link_lost_wait_s:
+                self.request_return(f"vehicle link lost for more than {cfg.link_lost_wait_s:g} s")
+            reason = self.gate.return_reason(
+                None if lost else self._pos_enu(), st.battery_pct,
+                check_altitude=self.state == SURVEY, alt_margin_m=cfg.alt_margin_m)
+            if reason:
+                self.request_return(reason)
+            if self._gnb_down_since is not None and now - self._gnb_down_since > cfg.gnb_lost_wait_s:
+                self.request_return(f"gNB lost for more than {cfg.gnb_lost_wait_s:g} s")
+            if now > cfg.time_limit_s:
+                self.request_return(f"mission time limit {cfg.time_limit_s:g} s reached")
+
+    async def _status_task(self) -> None:
+        while True:
+            await asyncio.sleep(self.config.status_interval_s)
+            log.info("%s", self.status_line())
+
+    def status_line(self) -> str:
+        """State, metres flown, measurements and each user's estimate and 95 % bound."""
+        parts = [f"{self.state:<9} t={self.now():6.1f} s  flown {self.flown_m:6.1f} m  {self.measurements} meas"]
+        est = self.estimate
+        if est is not None:
+            bound = est.error_bound_95_m()
+            for k, u in enumerate(self.users):
+                p = est.users_enu_m[k]
+                if np.all(np.isfinite(p)):
+                    parts.append(f"{u.id} ({p[0]:.1f}, {p[1]:.1f}) r95 {bound[k]:.2f} m")
+                else:
+                    parts.append(f"{u.id} -")
+        return " | ".join(parts)
+
+    # -- vehicle helpers ------------------------------------------------------------------------
+
+    async def _send_rtl(self, reason: str) -> bool:
+        """Send RTL, retrying while the link is down; True when the vehicle accepted it."""
+        cfg = self.config
+        for attempt in range(1, cfg.rtl_attempts + 1):
+            try:
+                await self._gated.return_to_launch()
+            except VehicleError as exc:
+                log.warning("RTL attempt %d failed: %s", attempt, exc)
+                self._event(f"RTL attempt {attempt} failed: {exc}", kind="rtl_failed")
+                await asyncio.sleep(min(2.0, cfg.link_timeout_s))
+                continue
+            self._rtl_sent = True
+            self._event(f"RTL: {reason}", kind="rtl")
+            return True
+        return False
+
+    async def _wait_landed(self, timeout_s: float) -> bool:
+        st = self.vehicle.state
+        deadline = time.monotonic() + self.wall(timeout_s)
+        while time.monotonic() < deadline:
+            if st.landed_state == "ON_GROUND" and st.armed is False:
+                return True
+            await self._fix_pulse.wait(0.2)
+        return False
+
+    def _return_timeout_s(self) -> float:
+        pos = self._pos_enu()
+        dist = 0.0 if pos is None else float(np.hypot(pos[0], pos[1]))
+        height = self.config.altitude_m if pos is None else max(float(pos[2]), 0.0)
+        cfg = self.config
+        return 2.0 * (dist / cfg.speed_mps + height / cfg.descent_mps) + 60.0
+
+    # -- main flow ------------------------------------------------------------------------------
+
+    async def run(self) -> MissionResult:
+        """Fly the mission and return its result. Cancellation (Ctrl-C) sends RTL, then re-raises."""
+        t_wall = time.monotonic()
+        status, reason = STATUS_ABORTED, ""
+        try:
+            try:
+                async with asyncio.TaskGroup() as tg:
+                    status, reason = await self._flow(tg)
+            except BaseExceptionGroup as eg:
+                raise _first_error(eg) from eg
+        except asyncio.CancelledError:
+            self._set_state(ABORT)
+            self._event("mission interrupted (cancelled): returning home", kind="interrupted")
+            await self._safe_end("interrupted")
+            self._close(STATUS_INTERRUPTED, "interrupted", t_wall)
+            raise
+        except KeyboardInterrupt:
+            self._set_state(ABORT)
+            self._event("mission interrupted (Ctrl-C): returning home", kind="interrupted")
+            await self._safe_end("interrupted")
+            self._close(STATUS_INTERRUPTED, "interrupted", t_wall)
+            raise
+        except UavlocError as exc:
+            self._set_state(ABORT)
+            log.error("mission aborted: %s", exc)
+            self._event(f"mission aborted: {exc}", kind="abort", error=type(exc).__name__)
+            await self._safe_end(str(exc))
+            return self._close(STATUS_ABORTED, str(exc), t_wall)
+        except Exception as exc:
+            self._set_state(ABORT)
+            log.exception("mission aborted by an unexpected error")
+            self._event(f"mission aborted: unexpected {type(exc).__name__}: {exc}", kind="abort",
+                        error=type(exc).__name__)
+            await self._safe_end(str(exc))
+            self._close(STATUS_ABORTED, str(exc), t_wall)
+            raise
+        return self._close(status, reason, t_wall)
+
+    async def _safe_end(self, reason: str) -> None:
+        """Never leave the vehicle without a safe command: RTL when it may be airborne."""
+        if not self._connected or self._gated is None or self._rtl_sent:
+            return
+        st = self.vehicle.state
+        if st.armed is False and st.landed_state in ("ON_GROUND", "UNKNOWN"):
+            return
+        try:
+            async with asyncio.timeout(SAFE_END_TIMEOUT_S):
+                sent = await self._send_rtl(reason)
+        except TimeoutError:
+            sent = False
+        if not sent:
+            log.error("RTL could not be sent: the vehicle is left to its own failsafe")
+            self._event("RTL could not be sent: the vehicle is left to its own failsafe", kind="rtl_failed")
+
+    def _close(self, status: str, reason: str, t_wall: float) -> MissionResult:
+        est = self.estimate
+        if self.keyframes:
+            # the final answer is the batch solution over every keyframe (what replay computes)
+            try:
+                est = self._final_estimate_sync()
+            except EstimatorError as exc:
+                self._event(f"final batch estimate failed: {exc}", kind="estimator_error")
+        if est is not None and self._writer._fh is not None:
+            self.estimate = est
+            self._log_estimate(est, final=True)
+        self._event(f"mission end: {status} ({reason})", kind="end", status=status)
+        self._writer.close()
+        return MissionResult(
+            status=status, reason=reason, user_ids=[u.id for u in self.users], estimate=est,
+            origin=self.origin, truth_enu_m=self.truth_enu_m, flown_m=self.flown_m,
+            measurements=self.measurements, keyframes=len(self.keyframes),
+            log_path=self.log_path if self.origin is not None else None, mission_s=self.now(),
+            wall_s=time.monotonic() - t_wall, rtl_sent=self._rtl_sent, landed=self._landed,
+            refusals=self._gated.refusals if self._gated else 0, events=list(self.event_messages),
+            loop_lag=self.loop_lag.summary())
+
+    def _final_estimate_sync(self) -> Estimate:
+        up = np.array([u.up_m for u in self.users])
+        return solve_batch(self.keyframes, len(self.users), up, self.noise, self.params)
+
+    async def _flow(self, tg: asyncio.TaskGroup) -> tuple[str, str]:
+        cfg = self.config
+        self._fix_pulse = _Pulse()
+        self._kf_queue = asyncio.Queue()
+        background: list[asyncio.Task] = []
+
+        # CONNECT
+        self._set_state(CONNECT)
+        await self.vehicle.connect(cfg.connect_timeout_s)
+        self._connected = True
+        background.append(tg.create_task(self.vehicle.run_telemetry(self._on_fix), name="telemetry"))
+        # PREFLIGHT: global position and home ok; home is the ENU origin
+        self._set_state(PREFLIGHT)
+        home = await self.vehicle.wait_ready(cfg.ready_timeout_s)
+        self.origin = Origin(home.lat_deg, home.lon_deg, home.alt_amsl_m)
+        self._gated = GatedVehicle(self.vehicle, self.gate, self.origin, self._event, self._pos_enu)
+        self._open_log()
+        self._event(f"home {home.lat_deg:.7f}, {home.lon_deg:.7f}, {home.alt_amsl_m:.1f} m AMSL", kind="home")
+        try:
+            async with asyncio.timeout(cfg.gnb_timeout_s * 5):
+                rntis = await self.gnb.discover()
+        except TimeoutError as exc:
+            raise GnbError("gNB UE discovery timed out") from exc
+        missing = [u.id for u in self.users if u.rnti not in set(rntis)]
+        self._event(f"gNB reports {len(rntis)} UE(s)" + (f"; not connected: {', '.join(missing)}" if missing else ""),
+                    kind="discover", rntis=[f"{r:04x}" for r in rntis])
+        for coro, name in ((self._estimator_task(), "estimator"), (self._trigger_task(), "trigger"),
+                           (self._safety_task(), "safety"), (self._status_task(), "status"),
+                           (self.loop_lag.run(), "loop-lag")):
+            background.append(tg.create_task(coro, name=name))
+        try:
+            await self._takeoff()
+            if self._return_reason is None:
+                self._set_state(SURVEY)
+                await self._survey()
+            self._set_state(RETURN)
+            if not await self._send_rtl(self._return_reason or (self._stop_status or ("", "survey done"))[1]):
+                raise VehicleError("the vehicle did not accept RTL")
+            self._landed = await self._wait_landed(self._return_timeout_s())
+            if not self._landed:
+                self._event("landing not confirmed before the timeout", kind="landing_timeout")
+            else:
+                self._event("landed and disarmed", kind="landed")
+            self._set_state(LANDED)
+            # let the estimator finish the last keyframes before the final batch solve
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(30.0):
+                    await self._kf_queue.join()
+        finally:
+            for task in background:
+                task.cancel()
+        if self._return_reason is not None:
+            return STATUS_RETURNED, self._return_reason
+        if self._stop_status is not None:
+            return self._stop_status
+        return STATUS_RETURNED, "survey ended"
+
+    async def _takeoff(self) -> None:
+        cfg = self.config
+        self._set_state(TAKEOFF)
+        await self._gated.arm()
+        self._event("armed", kind="arm")
+        await self._gated.takeoff(cfg.altitude_m)
+        self._event(f"takeoff to {cfg.altitude_m:g} m above home", kind="takeoff")
+        deadline = time.monotonic() + self.wall(2.0 * cfg.altitude_m / cfg.climb_mps + 30.0)
+        while self._return_reason is None:
+            pos = self._pos_enu()
+            if pos is not None and pos[2] >= cfg.altitude_m - max(1.5, cfg.acceptance_m):
+                return
+            if time.monotonic() > deadline:
+                raise VehicleError(f"takeoff to {cfg.altitude_m:g} m not reached in time (at "
+                                   f"{'?' if pos is None else f'{pos[2]:.1f}'} m)")
+            await self._fix_pulse.wait(0.2)
+
+    def _energy_remaining_m(self) -> float:
+        """Metres the battery still allows (down to the RTL threshold), from the drain so far."""
+        st = self.vehicle.state
+        if st.battery_pct is None or self._battery_start_pct is None or self.flown_m < 50.0:
+            return math.inf
+        used = self._battery_start_pct - st.battery_pct
+        if used < 1.0:
+            return math.inf
+        per_pct = self.flown_m / used
+        return max(0.0, (st.battery_pct - self.gate.limits.battery_rtl_pct) * per_pct)
+
+    async def _plan(self, pos: np.ndarray) -> PlanResult:
+        # plan with the estimate of every keyframe measured so far
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(10.0):
+                await self._kf_queue.join()
+        state = PlanningState(uav_enu_m=pos, estimate=self.estimate, flown_m=self.flown_m,
+                              energy_remaining_m=self._energy_remaining_m())
+        return await asyncio.to_thread(self.planner.plan, state)
+
+    async def _survey(self) -> None:
+        cfg = self.config
+        self._battery_start_pct = self.vehicle.state.battery_pct
+        refusals = 0
+        leg = 0
+        while self._return_reason is None and self._stop_status is None:
+            pos = self._pos_enu()
+            try:
+                plan = await self._plan(pos)
+            except PlannerError as exc:
+                self.request_return(f"planner failed: {exc}")
+                break
+            if plan.done:
+                status = {"target reached": STATUS_TARGET, "budget spent": STATUS_BUDGET}.get(
+                    plan.reason, STATUS_NO_LEG)
+                self._finish_survey(status, plan.reason or "planner done")
+                break
+            if self._return_reason is not None or self._stop_status is not None:
+                break
+            wp = np.asarray(plan.waypoint_enu_m, float)
+            lat, lon, alt = (float(x) for x in self.origin.enu_to_lla(wp))
+            leg += 1
+            self._writer.write("waypoint", self.now(), leg=leg, lat_deg=lat, lon_deg=lon, alt_m=alt,
+                               enu_m=wp.tolist(), planner=getattr(self.planner, "name", "?"),
+                               status=plan.status, objective=plan.objective if math.isfinite(plan.objective)
+                               else None, solve_time_s=plan.solve_time_s)
+            try:
+                await self._gated.goto_enu(wp)
+            except SafetyError:
+                refusals += 1
+                if refusals >= cfg.max_refusals:
+                    self.request_return(f"{refusals} waypoints in a row refused by the safety gate")
+                continue
+            refusals = 0
+            await self._fly_leg(pos, wp)
+        if self._budget_spent():
+            self._finish_survey(STATUS_BUDGET, "budget spent")
+
+    def _budget_spent(self) -> bool:
+        return self.flown_m >= self.config.budget_m
+
+    async def _fly_leg(self, start: np.ndarray, wp: np.ndarray) -> None:
+        """Wait for arrival within the acceptance radius, a stop/return request, or the leg timeout."""
+        cfg = self.config
+        dist = float(np.linalg.norm(wp - start))
+        deadline = time.monotonic() + self.wall(2.0 * dist / cfg.speed_mps + 20.0)
+        counted = start.copy()
+        while True:
+            pos = self._pos_enu()
+            # metres flown: an odometer with a 2 m dead band, so GPS noise while hovering adds nothing
+            step = float(np.linalg.norm(pos - counted))
+            if step >= 2.0:
+                self.flown_m += step
+                counted = pos.copy()
+            if np.linalg.norm(pos - wp) <= cfg.acceptance_m:
+                self.flown_m += step
+                return
+            if self._return_reason is not None or self._stop_status is not None:
+                return
+            if self._budget_spent():
+                self._finish_survey(STATUS_BUDGET, "budget spent")
+                return
+            if time.monotonic() > deadline:
+                self._event(f"leg to ({wp[0]:.1f}, {wp[1]:.1f}, {wp[2]:.1f}) m timed out", kind="leg_timeout")
+                return
+            await self._fix_pulse.wait(0.2)
+
+
+def _first_error(eg: BaseExceptionGroup) -> BaseException:
+    """The exception to act on from a TaskGroup's group: a cancellation/interrupt first, then a
+    project error, then anything else."""
+    flat: list[BaseException] = []
+
+    def walk(e: BaseException) -> None:
+        if isinstance(e, BaseExceptionGroup):
+            for sub in e.exceptions:
+                walk(sub)
+        else:
+            flat.append(e)
+
+    walk(eg)
+    for kind in (KeyboardInterrupt, asyncio.CancelledError, UavlocError):
+        for e in flat:
+            if isinstance(e, kind):
+                return e
+    return flat[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# building a controller from a scenario file
+
+
+def resolve_planner_name(name: str) -> str:
+    """The planner to use: `name`, except "casadi" falls back to "lawnmower" when CasADi's planner
+    is not available."""
+    from planner import planner_names
+
+    names = planner_names()
+    if name == "casadi" and name not in names:
+        log.warning("the casadi planner is not available; planning with the lawnmower baseline")
+        return "lawnmower"
+    if name not in names:
+        raise PlannerError(f"unknown planner {name!r}; choose one of {', '.join(names)}")
+    return name
+
+
+def controller_from_scenario(scenario, vehicle: Vehicle, gnb: GnbClient, log_path: str | Path, *,
+                             planner: str | None = None, seed: int | None = None, time_scale: float = 1.0,
+                             truth: Callable[[Origin], np.ndarray] | None = None,
+                             header_config: dict | None = None, params: SolverParams | None = None,
+                             **overrides: Any) -> MissionController:
+    """A :class:`MissionController` for a scenario (positions are offsets from the vehicle's home).
+
+    planner: planner name (default: the scenario's `mission.planner`); seed: planner seed (default
+    the scenario's); time_scale: simulator speedup; overrides: ControllerConfig fields.
+    """
+    from planner import PlanningConstraints, make_planner
+
+    name = resolve_planner_name(planner or scenario.mission.planner)
+    seed = scenario.seed if seed is None else seed
+    noise = scenario.noise_model()
+    constraints = PlanningConstraints.from_scenario(scenario)
+    planner_obj = make_planner(name, constraints, noise, rng_seed=seed)
+    config = ControllerConfig.from_scenario(scenario, time_scale=time_scale, **overrides)
+    users = [MissionUser(u.id, u.rnti, u.up_m) for u in scenario.users]
+    cfg = {"scenario": scenario.name, "planner": name, "seed": seed, **(header_config or {})}
+    radio = {"mu": scenario.radio.mu, "fs_hz": scenario.radio.fs_hz}
+    return MissionController(vehicle, gnb, planner_obj, users, noise, SafetyLimits.from_scenario(scenario),
+                             config, log_path, params=params, truth=truth, header_config=cfg, radio=radio)
