@@ -215,7 +215,7 @@ class Autopilot:
         self.params = ParamStore(
             px4_params(vehicle.speed_mps, vehicle.climb_mps, vehicle.descent_mps, vehicle.accel_mps2)
         )
-        self.gps_error = GpsError(vehicle.gps_sigma_m, getattr(vehicle, "gps_tau_s", 0.0), rng)
+        self.gps_error = GpsError(vehicle.gps_sigma_m, vehicle.gps_tau_s, rng)
         self.t_s = 0.0
         self.pos = [0.0, 0.0, 0.0]
         self.vel = [0.0, 0.0, 0.0]

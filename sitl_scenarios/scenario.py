@@ -92,13 +92,17 @@ class RadioConfig:
 
 @dataclass(frozen=True)
 class VehicleConfig:
-    """Built-in vehicle: speeds [m/s], acceleration [m/s²], GPS noise [m], battery."""
+    """Built-in vehicle: speeds [m/s], acceleration [m/s²], GPS noise [m], battery.
+
+    gps_tau_s: correlation time of the GPS error (0: independent per fix; > 0: Gauss-Markov).
+    """
 
     speed_mps: float = 10.0
     climb_mps: float = 3.0
     descent_mps: float = 1.5
     accel_mps2: float = 3.0
     gps_sigma_m: float = 1.0
+    gps_tau_s: float = 0.0
     battery_capacity_s: float = 1800.0
     battery_start_pct: float = 100.0
 
@@ -283,6 +287,8 @@ def _check(sc: Scenario, where: str) -> None:
         positive(f"vehicle.{path}", getattr(v, path))
     if v.gps_sigma_m < 0 or not 0 < v.battery_start_pct <= 100:
         raise ScenarioError(f"{where}: vehicle.gps_sigma_m must be >= 0 and battery_start_pct in (0, 100]")
+    if v.gps_tau_s < 0:
+        raise ScenarioError(f"{where}: vehicle.gps_tau_s must be >= 0, got {v.gps_tau_s!r}")
     m = sc.mission
     for path in ("delta_m", "altitude_m", "target_radius_m", "budget_m", "time_limit_s", "leg_max_m",
                  "acceptance_m", "sigma_gps_m"):

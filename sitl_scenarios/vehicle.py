@@ -249,8 +249,10 @@ class VehicleSimulator:
     @classmethod
     def from_scenario(cls, scenario: Scenario, **kwargs: Any) -> VehicleSimulator:
         """A simulator at the scenario's origin with its vehicle, seed and `[[faults.vehicle]]`."""
-        kwargs.setdefault("seed", scenario.seed)
-        kwargs.setdefault("faults", faults_from_scenario(scenario.faults))
+        if kwargs.get("seed") is None:
+            kwargs["seed"] = scenario.seed
+        if kwargs.get("faults") is None:
+            kwargs["faults"] = faults_from_scenario(scenario.faults)
         return cls(scenario.origin_geo, scenario.vehicle, **kwargs)
 
     # --- lifecycle ----------------------------------------------------------------------------
