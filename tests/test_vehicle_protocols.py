@@ -1,0 +1,172 @@
+"""Mission, offboard, parameter and message-interval protocols of the built-in vehicle, driven by
+MAVSDK's own plugins (mission, mission_raw, offboard, param, telemetry)."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import pytest
+from mavsdk.asyncio.plugins.mission import MissionAsync
+from mavsdk.asyncio.plugins.mission_raw import MissionRawAsync
+from mavsdk.asyncio.plugins.offboard import OffboardAsync
+from mavsdk.asyncio.plugins.param import ParamAsync
+from mavsdk.plugins.mission import MissionItem, MissionPlan
+from mavsdk.plugins.mission_raw import MissionItem as RawItem
+from mavsdk.plugins.mission_raw import MissionRawError
+from mavsdk.plugins.offboard import PositionNedYaw
+from mavsdk.plugins.telemetry import FlightMode, LandedState
+
+from tests.test_vehicle_mavsdk import ORIGIN, first, horizontal_m, vehicle_link
+
+
+def _item(north_m: float, east_m: float, alt_m: float, **kw) -> MissionItem:
+    lat, lon, _ = ORIGIN.enu_to_lla([east_m, north_m, 0.0])
+    args = dict(latitude_deg=float(lat), longitude_deg=float(lon), relative_altitude_m=alt_m,
+                speed_m_s=float("nan"), is_fly_through=True, gimbal_pitch_deg=float("nan"),
+                gimbal_yaw_deg=float("nan"), camera_action=MissionItem.CameraAction.NONE,
+                loiter_time_s=float("nan"), camera_photo_interval_s=float("nan"),
+                acceptance_radius_m=float("nan"), yaw_deg=float("nan"),
+                camera_photo_distance_m=float("nan"), vehicle_action=MissionItem.VehicleAction.NONE)
+    args.update(kw)
+    return MissionItem(**args)
+
+
+def test_mission_upload_download_fly_and_rtl() -> None:
+    """Upload 3 waypoints (the second with a speed change), download them back, start on the
+    ground (PX4 inserts the takeoff), visit every waypoint in order, return and land."""
+    async def run() -> None:
+        async with vehicle_link("builtin", speedup=10.0) as link:
+            mission = MissionAsync(link.system)
+            await link.action.set_return_to_launch_altitude(30.0)
+            plan = MissionPlan([
+                _item(40.0, 0.0, 15.0),
+                _item(40.0, 40.0, 15.0, speed_m_s=5.0),
+                _item(0.0, 40.0, 25.0),
+            ])
+            await mission.set_return_to_launch_after_mission(True)
+            await mission.upload_mission(plan)
+            back = await mission.download_mission()
+            assert len(back.mission_items) == 3
+            for a, b in zip(back.mission_items, plan.mission_items, strict=True):
+                assert a.latitude_deg == pytest.approx(b.latitude_deg, abs=1e-7)
+                assert a.longitude_deg == pytest.approx(b.longitude_deg, abs=1e-7)
+                assert a.relative_altitude_m == pytest.approx(b.relative_altitude_m)
+            await first(link.telemetry.subscribe_health(), lambda h: h.is_global_position_ok
+                        and h.is_home_position_ok, 5.0)
+            await link.action.arm()
+            await mission.start_mission()
+            await first(link.telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.MISSION, 5.0)
+            wps = [(0.0, 40.0, 15.0), (40.0, 40.0, 15.0), (40.0, 0.0, 25.0)]  # ENU
+            seen: list[int] = []
+
+            async def track() -> None:  # the true track, polled every few simulated centimetres
+                while True:
+                    pos = link.sim.state().pos_enu_m
+                    for k, wp in enumerate(wps):
+                        if k not in seen and horizontal_m(pos[:2], wp[:2]) < 2.0 and abs(pos[2] - wp[2]) < 1.0:
+                            seen.append(k)
+                    await asyncio.sleep(0.002)
+
+            tracker = asyncio.create_task(track())
+            try:
+                await first(mission.subscribe_mission_progress(), lambda p: p.current == 3, 60.0)
+                await first(link.telemetry.subscribe_flight_mode(),
+                            lambda m: m == FlightMode.RETURN_TO_LAUNCH, 10.0)
+                await first(link.telemetry.subscribe_landed_state(), lambda s: s == LandedState.ON_GROUND,
+                            30.0)
+            finally:
+                tracker.cancel()
+                await asyncio.gather(tracker, return_exceptions=True)
+            assert seen == [0, 1, 2]
+            assert await mission.is_mission_finished()
+            await first(link.telemetry.subscribe_armed(), lambda a: not a, 10.0)
+            st = link.sim.state()
+            assert horizontal_m(st.pos_enu_m[:2], (0.0, 0.0)) < 0.5
+
+            await mission.clear_mission()
+            assert len((await mission.download_mission()).mission_items) == 0
+
+    asyncio.run(run())
+
+
+def test_mission_raw_rejects_unsupported_command() -> None:
+    async def run() -> None:
+        async with vehicle_link("builtin", speedup=10.0) as link:
+            raw = MissionRawAsync(link.system)
+            bad = RawItem(seq=0, frame=6, command=31000, current=1, autocontinue=1, param1=0.0,
+                          param2=0.0, param3=0.0, param4=0.0, x=0, y=0, z=10.0, mission_type=0)
+            with pytest.raises(MissionRawError):
+                await raw.upload_mission([bad])
+            assert link.sim.state().mode == "hold"
+
+    asyncio.run(run())
+
+
+def test_offboard_position_setpoints() -> None:
+    """MAVSDK offboard: stream a NED position, start offboard, the vehicle flies there; when the
+    setpoints stop (offboard.stop), PX4 leaves offboard for Hold."""
+    async def run() -> None:
+        async with vehicle_link("builtin", speedup=10.0) as link:
+            off = OffboardAsync(link.system)
+            await first(link.telemetry.subscribe_health(), lambda h: h.is_global_position_ok
+                        and h.is_home_position_ok, 5.0)
+            await link.action.arm()
+            await off.set_position_ned(PositionNedYaw(10.0, -20.0, -15.0, 0.0))
+            await off.start()
+            await first(link.telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 5.0)
+            await link.sim.wait_for(lambda s: math.dist(s.pos_enu_m, (-20.0, 10.0, 15.0)) < 0.3, 20.0)
+            await off.stop()
+            await first(link.telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.HOLD, 5.0)
+            st = link.sim.state()
+            assert st.in_air and math.dist(st.pos_enu_m, (-20.0, 10.0, 15.0)) < 1.0
+
+    asyncio.run(run())
+
+
+def test_params_list_read_set() -> None:
+    async def run() -> None:
+        async with vehicle_link("builtin", speedup=5.0) as link:
+            param = ParamAsync(link.system)
+            every = await param.get_all_params()
+            names = {p.name for p in every.float_params} | {p.name for p in every.int_params}
+            assert {"MIS_TAKEOFF_ALT", "RTL_RETURN_ALT", "MPC_XY_CRUISE", "NAV_ACC_RAD",
+                    "COM_DISARM_LAND", "SYS_AUTOSTART"} <= names
+            ints = {p.name: p.value for p in every.int_params}
+            assert ints["MAV_SYS_ID"] == 1 and ints["SYS_AUTOSTART"] == 4001
+            await param.set_param_float("MPC_XY_CRUISE", 7.5)
+            assert await param.get_param_float("MPC_XY_CRUISE") == pytest.approx(7.5)
+            assert link.sim.param("MPC_XY_CRUISE") == pytest.approx(7.5)
+            assert await link.action.get_return_to_launch_altitude() == pytest.approx(60.0)
+
+    asyncio.run(run())
+
+
+def test_set_message_interval_changes_the_stream_rate() -> None:
+    """Telemetry.set_rate_battery → MAV_CMD_SET_MESSAGE_INTERVAL; rates are in vehicle time."""
+    async def count(agen, wall_s: float) -> int:
+        n = 0
+
+        async def consume() -> None:
+            nonlocal n
+            async for _ in agen:
+                n += 1
+
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(consume(), wall_s)
+        return n
+
+    async def run() -> tuple[int, int]:
+        async with vehicle_link("builtin", speedup=1.0) as link:
+            await first(link.telemetry.subscribe_battery(), lambda b: True, 5.0)
+            await link.telemetry.set_rate_battery(10.0)
+            fast = await count(link.telemetry.subscribe_battery(), 1.0)
+            await link.telemetry.set_rate_battery(1.0)
+            await asyncio.sleep(0.2)
+            slow = await count(link.telemetry.subscribe_battery(), 1.0)
+            return fast, slow
+
+    fast, slow = asyncio.run(run())
+    # SYS_STATUS also feeds MAVSDK's battery only until BATTERY_STATUS arrives; then it is BATTERY_STATUS
+    assert 7 <= fast <= 13
+    assert slow <= 2
