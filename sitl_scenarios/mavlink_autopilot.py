@@ -792,7 +792,8 @@ class Autopilot:
             s = min(v_h, math.sqrt(2 * a_h * d), d / dt) if d > 1e-6 else 0.0
             des = [dx / d * s if d > 1e-6 else 0.0, dy / d * s if d > 1e-6 else 0.0, 0.0]
             dz = target[2] - self.pos[2]
-            a_z = p["MPC_ACC_UP_MAX"] if dz > 0 else p["MPC_ACC_DOWN_MAX"]
+            # braking a climb needs downward acceleration and vice versa
+            a_z = p["MPC_ACC_DOWN_MAX"] if dz > 0 else p["MPC_ACC_UP_MAX"]
             sz = min(math.sqrt(2 * a_z * abs(dz)), abs(dz) / dt)
             des[2] = min(sz, v_up) if dz > 0 else -min(sz, v_dn)
         # v += clip(v_des − v, |Δv| ≤ a dt)
