@@ -197,8 +197,11 @@ class SimulatedGnb:
         return self
 
     async def __aexit__(self, *exc_info) -> None:
-        assert self._server is not None and self._tg is not None
-        self._server.close()
+        """Stop listening, close the connections and wait for the tasks; a second call is a no-op."""
+        if self._server is None or self._tg is None:
+            return
+        server, tg, self._server, self._tg = self._server, self._tg, None, None
+        server.close()
         for w in list(self._writers):
             w.close()  # handlers see EOF and return; waiting (silent busy) ones too once served
         if self._handlers:
@@ -207,8 +210,8 @@ class SimulatedGnb:
                 t.cancel()
             if pending:
                 await asyncio.wait(pending)
-        await self._server.wait_closed()
-        await self._tg.__aexit__(*exc_info)
+        await server.wait_closed()
+        await tg.__aexit__(*exc_info)
 
     async def serve_forever(self) -> None:
         """Serve until cancelled (standalone use)."""
@@ -419,8 +422,7 @@ class SimulatedGnb:
             if len(rntis) != 1:
                 return "no UE found\n"
             rnti = rntis[0]
-        assert self._tg is not None
-        if self.log_path is not None:
+        if self.log_path is not None and self._tg is not None:
             self._tg.create_task(self._msg2_later(rnti))
         return f"Reset RLC counters of UE RNTI {rnti:04x} to trigger reestablishment\n"
 

@@ -521,3 +521,17 @@ def test_stock_fallback_follows_a_new_rnti_after_reestablishment(tmp_path: Path)
     assert current[0] == 0x4603
     text = log_path.read_text()
     assert "ci" not in text and "UE 4602: " in text and "UE 4603: " in text
+
+
+def test_killed_gnb_is_a_clear_error_and_double_exit_is_harmless():
+    async def body():
+        gnb = SimulatedGnb(scenario(), static_position(UAV), port=0)
+        await gnb.__aenter__()
+        async with OaiGnbClient(client_config(gnb, retries=1)) as c:
+            await c.measure(0x4601)
+            await gnb.__aexit__(None, None, None)  # the gNB dies under the client
+            await gnb.__aexit__(None, None, None)
+            with pytest.raises(GnbError, match="cannot connect|closed every new connection|after 2 attempts"):
+                await c.measure(0x4601)
+
+    run(body())
