@@ -36,6 +36,7 @@ import json
 import logging
 import math
 import random
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -551,7 +552,13 @@ async def _run(args: argparse.Namespace) -> None:
             scenario, position, host=args.host, port=args.port, log_path=args.log, seed=args.seed,
             rtt_module=args.rtt_module, rtt_command=args.rtt_command))
         print(f"simulated gNB for scenario {scenario.name!r} on {args.host}:{gnb.port}", file=sys.stderr)
-        await gnb.serve_forever()
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError):
+                loop.add_signal_handler(sig, stop.set)
+        await stop.wait()
+        log.info("simulated gNB stopping (%d connections, %d requests)", gnb.connections, gnb.requests)
 
 
 def main(argv: list[str] | None = None) -> int:
