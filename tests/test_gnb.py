@@ -14,7 +14,7 @@ from estimator.ranging import C_MPS, one_way_m_per_ta_step
 from mission.gnb import GnbClient, GnbConfig, LogFollower, OaiGnbClient, parse_host_port
 from mission.oai import PROMPT_GNB, format_msg2_line
 from sitl_scenarios.gnb import GnbFaults, SimulatedGnb, static_position
-from sitl_scenarios.scenario import scenario_from_dict
+from sitl_scenarios.scenario import bundled_scenarios, load_scenario, scenario_from_dict
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
@@ -535,3 +535,18 @@ def test_killed_gnb_is_a_clear_error_and_double_exit_is_harmless():
                 await c.measure(0x4601)
 
     run(body())
+
+
+@pytest.mark.parametrize("path", bundled_scenarios(), ids=lambda p: p.stem)
+def test_every_bundled_scenario_serves_its_users(path):
+    sc = load_scenario(path)
+
+    async def body():
+        async with SimulatedGnb(sc, static_position((0.0, 0.0, sc.mission.altitude_m)), port=0,
+                                faults=GnbFaults()) as gnb, OaiGnbClient(client_config(gnb)) as c:
+            rntis = await c.discover()
+            return rntis, await c.measure_many(rntis)
+
+    rntis, got = run(body())
+    assert rntis and set(got) <= set(rntis)
+    assert GnbFaults.from_scenario(sc) is not None  # its [faults.gnb] table (if any) is valid
