@@ -127,7 +127,6 @@ class ControllerConfig:
     status_interval_s: float = 2.0
     max_refusals: int = 3
     alt_margin_m: float = 5.0
-    rtl_attempts: int = 5
 
     @classmethod
     def from_scenario(cls, sc, **overrides) -> ControllerConfig:
@@ -533,21 +532,26 @@ class MissionController:
 
     # -- vehicle helpers ------------------------------------------------------------------------
 
-    async def _send_rtl(self, reason: str) -> bool:
-        """Send RTL, retrying while the link is down; True when the vehicle accepted it."""
-        cfg = self.config
-        for attempt in range(1, cfg.rtl_attempts + 1):
+    async def _send_rtl(self, reason: str, retry_s: float = 60.0) -> bool:
+        """Send RTL, retrying (e.g. while the link is down) for up to `retry_s` wall seconds;
+        True when the vehicle accepted it."""
+        t_end = time.monotonic() + retry_s
+        attempt = 0
+        while True:
+            attempt += 1
             try:
                 await self._gated.return_to_launch()
             except VehicleError as exc:
-                log.warning("RTL attempt %d failed: %s", attempt, exc)
-                self._event(f"RTL attempt {attempt} failed: {exc}", kind="rtl_failed")
-                await asyncio.sleep(min(2.0, cfg.link_timeout_s))
+                if attempt == 1 or attempt % 10 == 0:
+                    log.warning("RTL attempt %d failed: %s", attempt, exc)
+                    self._event(f"RTL attempt {attempt} failed: {exc}", kind="rtl_failed")
+                if time.monotonic() >= t_end:
+                    return False
+                await asyncio.sleep(0.5)
                 continue
             self._rtl_sent = True
-            self._event(f"RTL: {reason}", kind="rtl")
+            self._event(f"RTL: {reason}", kind="rtl", attempts=attempt)
             return True
-        return False
 
     async def _wait_landed(self, timeout_s: float) -> bool:
         st = self.vehicle.state
@@ -774,10 +778,25 @@ class MissionController:
                 if refusals >= cfg.max_refusals:
                     self.request_return(f"{refusals} waypoints in a row refused by the safety gate")
                 continue
+            except VehicleError as exc:
+                # a lost link or a refusal: the safety monitor decides about the link; here wait for
+                # it and replan from wherever the vehicle is then
+                refusals += 1
+                self._event(f"goto failed: {exc}", kind="goto_failed")
+                if refusals >= cfg.max_refusals:
+                    self.request_return(f"{refusals} gotos in a row failed: {exc}")
+                await self._wait_link()
+                continue
             refusals = 0
             await self._fly_leg(pos, wp)
         if self._budget_spent():
             self._finish_survey(STATUS_BUDGET, "budget spent")
+
+    async def _wait_link(self) -> None:
+        """While the vehicle link is lost (and no return is requested), wait."""
+        while (self._link_lost_since is not None and self._return_reason is None
+               and self._stop_status is None):
+            await asyncio.sleep(0.05)
 
     def _budget_spent(self) -> bool:
         return self.flown_m >= self.config.budget_m

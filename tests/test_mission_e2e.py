@@ -1,0 +1,254 @@
+"""End to end: whole simulated missions (built-in MAVLink vehicle over UDP + MAVSDK, simulated OAI
+gNB over TCP, real estimator and planner) at speedup, and the faults the controller must survive.
+
+Each test flies a full mission in a few wall seconds; ports are picked free per test.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mission.controller import STATUS_RETURNED, STATUS_TARGET
+from mission.log import read_mission_log
+from mission.safety import point_in_polygon
+from mission.sim_runner import SimulatedMission
+from planner.types import PlanResult
+from sitl_scenarios.scenario import load_scenario
+
+SPEEDUP = 20.0
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run(coro, timeout_s: float = 120.0):
+    async def guarded():
+        async with asyncio.timeout(timeout_s):
+            return await coro
+
+    return asyncio.run(guarded())
+
+
+async def _wait(predicate, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.02)
+
+
+def _events(path: Path) -> list[dict]:
+    return [e for e in read_mission_log(path).events]
+
+
+def _kinds(path: Path) -> list[str]:
+    return [e.get("kind", "") for e in _events(path)]
+
+
+@pytest.mark.slow
+def test_simulated_mission_localizes_every_user_and_replays_to_the_same_estimates(tmp_path):
+    sc = load_scenario("paper")
+    log_path = tmp_path / "mission.jsonl"
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP) as sim:
+            result = await sim.run()
+            return result, sim.vehicle_sim.state()
+
+    result, final = _run(fly())
+    assert result.status == STATUS_TARGET, result.reason
+    assert result.rtl_sent and result.landed
+    assert not final.armed and not final.in_air
+    assert result.measurements >= 20 and result.keyframes >= 20
+    err = result.error_m()
+    assert err is not None and np.all(err <= sc.mission.target_radius_m), err
+    assert np.all(result.estimate.error_bound_95_m() <= sc.mission.target_radius_m)
+    kinds = _kinds(log_path)
+    for kind in ("home", "arm", "takeoff", "stop", "rtl", "landed", "end"):
+        assert kind in kinds, kind
+
+    # the log replays to the same estimates with `uavloc replay`
+    from mission.cli import main
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["-q", "replay", str(log_path), "--json", "--no-history"]) == 0
+    doc = json.loads(out.getvalue())
+    mine = result.to_document()
+    assert [u["id"] for u in doc["users"]] == [u["id"] for u in mine["users"]]
+    for a, b in zip(doc["users"], mine["users"], strict=True):
+        assert a["enu_m"] == pytest.approx(b["enu_m"], abs=1e-6)
+        assert np.asarray(a["cov_en_m2"]) == pytest.approx(np.asarray(b["cov_en_m2"]), abs=1e-9)
+    assert doc["measurements"] == result.measurements
+
+
+@pytest.mark.slow
+def test_gnb_killed_mid_mission_keeps_flying_then_returns_with_an_intact_log(tmp_path):
+    sc = load_scenario("clock_sawtooth")
+    log_path = tmp_path / "mission.jsonl"
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower",
+                                    controller_overrides={"gnb_lost_wait_s": 20.0}) as sim:
+            task = asyncio.create_task(sim.run())
+            await _wait(lambda: sim.controller.measurements >= 10, 60, "10 measurements")
+            await sim.kill_gnb()
+            n_at_kill = sim.controller.measurements
+            t_kill = sim.controller.now()
+            result = await task
+            return result, n_at_kill, t_kill
+
+    result, n_at_kill, t_kill = _run(fly())
+    assert result.status == STATUS_RETURNED and "gNB lost" in result.reason, (result.status, result.reason)
+    assert result.landed and result.rtl_sent
+    # at most the trigger in flight when the gNB died completes afterwards
+    assert result.measurements <= n_at_kill + len(sc.users)
+    mlog = read_mission_log(log_path)  # the whole log parses: nothing torn, nothing invalid
+    assert mlog.skipped_torn_line is None
+    assert len(mlog.rtt_t_s) == result.measurements
+    ev = {e.get("kind"): e for e in mlog.events}
+    assert "gnb_lost" in ev and "rtl" in ev
+    # it kept flying the plan without measurements for gnb_lost_wait_s before returning
+    assert ev["rtl"]["t"] - ev["gnb_lost"]["t"] >= 20.0
+    assert mlog.tel_t_s.max() > t_kill + 20.0
+
+
+@pytest.mark.slow
+def test_vehicle_link_paused_waits_then_returns_home_once_the_link_is_back(tmp_path):
+    sc = load_scenario("paper")
+    log_path = tmp_path / "mission.jsonl"
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower",
+                                    controller_overrides={"link_lost_wait_s": 20.0}) as sim:
+            task = asyncio.create_task(sim.run())
+            await _wait(lambda: sim.controller.measurements >= 5, 60, "5 measurements")
+            sim.vehicle_sim.pause_link(6.0 * SPEEDUP)  # 6 wall seconds: MAVSDK and the monitor notice
+            result = await task
+            return result
+
+    result = _run(fly())
+    assert result.status == STATUS_RETURNED and "link lost" in result.reason, (result.status, result.reason)
+    assert result.rtl_sent and result.landed
+    kinds = _kinds(log_path)
+    assert kinds.index("link_lost") < kinds.index("return") < kinds.index("rtl")
+    assert "link_restored" in kinds
+
+
+@pytest.mark.slow
+def test_cancelled_mission_sends_rtl_and_flushes_the_log(tmp_path):
+    sc = load_scenario("paper")
+    log_path = tmp_path / "mission.jsonl"
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower") as sim:
+            task = asyncio.create_task(sim.run())
+            await _wait(lambda: sim.controller.measurements >= 5, 60, "5 measurements")
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            # the vehicle flies home on its own now
+            return await sim.vehicle_sim.wait_for(lambda s: s.mode == "RTL" or not s.in_air, 5.0)
+
+    state = _run(fly())
+    assert state.mode == "RTL" or not state.in_air
+    mlog = read_mission_log(log_path)
+    kinds = [e.get("kind") for e in mlog.events]
+    assert kinds[-3:] == ["interrupted", "rtl", "end"]
+    assert mlog.skipped_torn_line is None and len(mlog.rtt_t_s) >= 5
+
+
+class OutsideFirstPlanner:
+    """A planner that goes wrong once: its first waypoint lies outside the geofence; afterwards it
+    is the real lawnmower planner it wraps."""
+
+    def __init__(self, inner, bad_enu_m):
+        self.inner = inner
+        self.name = "outside-first"
+        self.constraints = inner.constraints
+        self.bad = np.asarray(bad_enu_m, float)
+        self.calls = 0
+
+    def plan(self, state):
+        self.calls += 1
+        if self.calls == 1:
+            return PlanResult(waypoint_enu_m=self.bad, horizon_enu_m=self.bad[None], done=False, status="bad")
+        return self.inner.plan(state)
+
+
+@pytest.mark.slow
+def test_planner_waypoint_outside_the_geofence_is_refused_and_logged(tmp_path):
+    sc = load_scenario("paper")
+    log_path = tmp_path / "mission.jsonl"
+    fence = np.asarray(sc.geofence.polygon_enu_m)
+    bad = np.array([fence[:, 0].max() + 50.0, 0.0, sc.mission.altitude_m])
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower") as sim:
+            sim.controller.planner = OutsideFirstPlanner(sim.controller.planner, bad)
+            return await sim.run()
+
+    result = _run(fly())
+    assert result.ok and result.refusals == 1 and result.landed
+    mlog = read_mission_log(log_path)
+    refused = [e for e in mlog.events if e.get("kind") == "refused"]
+    assert len(refused) == 1 and "outside the geofence" in refused[0]["message"]
+    assert refused[0]["target_enu_m"] == pytest.approx(bad.tolist())
+    # the vehicle never went there: every telemetry fix stays inside the fence
+    enu = mlog.header.origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
+    assert all(point_in_polygon(p[:2], fence) for p in enu)
+
+
+@pytest.mark.slow
+def test_low_battery_returns_home(tmp_path):
+    sc = load_scenario("paper")
+    sc = replace(sc, mission=replace(sc.mission, battery_rtl_pct=30.0))
+    log_path = tmp_path / "mission.jsonl"
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower") as sim:
+            task = asyncio.create_task(sim.run())
+            await _wait(lambda: sim.controller.measurements >= 5, 60, "5 measurements")
+            sim.vehicle_sim.set_battery_pct(25.0)
+            return await task
+
+    result = _run(fly())
+    assert result.status == STATUS_RETURNED and "battery" in result.reason
+    assert result.rtl_sent and result.landed
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_uavloc_sim_sends_rtl(tmp_path):
+    """The real Ctrl-C path: SIGINT to `uavloc sim` → RTL, the log flushed, exit code 130."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mission", "-v", "sim", "paper", "--planner", "lawnmower", "--out", str(tmp_path)],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log_path = tmp_path / "mission.jsonl"
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            if log_path.exists() and log_path.read_text().count('"type":"rtt"') >= 5:
+                break
+            time.sleep(0.05)
+        else:
+            raise AssertionError("no measurements within 60 s")
+        proc.send_signal(signal.SIGINT)
+        _out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err[-2000:]
+    kinds = _kinds(log_path)
+    assert kinds[-3:] == ["interrupted", "rtl", "end"], kinds[-5:]
