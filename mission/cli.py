@@ -60,7 +60,11 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s" if verbose else "%(message)s"))
     root = logging.getLogger()
-    root.handlers[:] = [handler]
+    # replace only the handler a previous call installed (main() may run several times in one process)
+    for old in [h for h in root.handlers if getattr(h, "_uavloc", False)]:
+        root.removeHandler(old)
+    handler._uavloc = True  # type: ignore[attr-defined]
+    root.addHandler(handler)
     root.setLevel(level)
     if verbose < 2:
         for noisy in ("matplotlib", "PIL", "asyncio"):

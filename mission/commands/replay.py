@@ -1,0 +1,69 @@
+"""`uavloc replay LOG [--json] [--out DIR]`: re-run the estimator over a recorded mission."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+HELP = "re-run the estimator over a recorded mission log and print where the users are"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("log", type=Path, help="mission log (uavloc-mission/1, JSON Lines)")
+    p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    p.add_argument("--out", type=Path, metavar="DIR", help="write a report (figures, report.json/html) here")
+    p.add_argument("--loss", choices=("none", "huber", "cauchy"), default="huber",
+                   help="robust loss on range factors (default: huber)")
+    p.add_argument("--loss-scale", type=float, default=1.5, help="robust loss threshold in sigmas (default 1.5)")
+    p.add_argument("--delta", type=float, metavar="M",
+                   help="re-select keyframes every M metres (default: every trigger in the log)")
+    p.add_argument("--bias", action="store_true", help="estimate a range bias per user")
+    p.add_argument("--sigma-gps", type=float, metavar="M", help="override the header's GPS sigma [m]")
+    p.add_argument("--no-history", action="store_true", help="skip the online pass (faster; no history figure)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from estimator.types import SolverParams
+    from mission.log import read_mission_log
+    from mission.progress import Progress
+    from mission.replay import ReplayOptions, format_users_table, replay, result_document
+    from uavloc.errors import MissionLogError
+
+    for name in ("loss_scale", "delta", "sigma_gps"):
+        v = getattr(args, name)
+        if v is not None and not (v > 0 and v < float("inf")):
+            raise MissionLogError(f"--{name.replace('_', '-')} must be a positive number, got {v}")
+    mlog = read_mission_log(args.log)
+    noise = mlog.header.noise
+    if args.sigma_gps is not None:
+        noise = replace(noise, sigma_gps_m=args.sigma_gps)
+    params = SolverParams(loss=args.loss, loss_scale=args.loss_scale, estimate_bias=args.bias)
+    options = ReplayOptions(params=params, delta_m=args.delta, noise=noise, history=not args.no_history)
+    log.info("replaying %s: %d users, %d rtt records", args.log, mlog.n_users, len(mlog.rtt_t_s))
+    bar = Progress("replay", len(mlog.rtt_t_s) // max(mlog.n_users, 1) + 1)
+    try:
+        result = replay(mlog, options, progress=lambda done, total: (setattr(bar, "total", total), bar.update(done)))
+    finally:
+        bar.close()
+    doc = result_document(result)
+    if args.out is not None:
+        from mission.report import write_report
+
+        paths = write_report(result, args.out)
+        doc["report"] = {k: str(v) for k, v in paths.items()} if isinstance(paths, dict) else str(args.out)
+        log.info("report written to %s", args.out)
+    if args.json:
+        json.dump(doc, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(f"{args.log}: {doc['status']}, {doc['measurements']} ranges at {doc['keyframes']} keyframes, "
+              f"{doc['flown_m']:.0f} m flown")
+        print(format_users_table(doc))
+    return 0

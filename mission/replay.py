@@ -1,0 +1,247 @@
+"""Replay: re-run the estimator over a recorded mission log (DESIGN.md §1, §10, §11).
+
+Replay needs only the `header` and the `rtt` records. Consecutive `rtt` records taken at the same
+UAV position (one trigger, all users) form one keyframe; its GPS prior is that position in the
+mission's ENU frame. By default every trigger in the log is a keyframe (the controller already
+spaced them Δ apart); `delta_m` re-selects keyframes at a spacing of Δ metres.
+
+The final estimate is the batch solution over all keyframes; the history (error bound, and error
+when the log holds `truth`, against metres flown) comes from the online estimator, as it would
+have evolved during the flight.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from estimator.keyframes import KeyframeSelector
+from estimator.noise import NoiseModel
+from estimator.ranging import C_MPS
+from estimator.slam import OnlineEstimator, solve_batch
+from estimator.types import Estimate, Keyframe, SolverParams
+from mission.log import MissionLog
+from uavloc.errors import MissionLogError
+
+log = logging.getLogger(__name__)
+
+#: rtt records within this distance [m] and time [s] of a trigger's first record belong to it.
+GROUP_RADIUS_M = 0.5
+GROUP_WINDOW_S = 1.0
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    """How to replay. `delta_m` None: keep every trigger of the log as a keyframe.
+    `noise` None: the header's noise model (defaults when absent). `history`: also run the
+    online estimator to record how the error bound fell with metres flown."""
+
+    params: SolverParams = field(default_factory=SolverParams)
+    delta_m: float | None = None
+    noise: NoiseModel | None = None
+    history: bool = True
+
+
+@dataclass(frozen=True)
+class ReplayHistory:
+    """Online estimate after each keyframe: flown_m (H,), t_s (H,), bound_95_m (H, K),
+    error_m (H, K) when truth is known (else None), users_enu_m (H, K, 3)."""
+
+    flown_m: np.ndarray
+    t_s: np.ndarray
+    bound_95_m: np.ndarray
+    error_m: np.ndarray | None
+    users_enu_m: np.ndarray
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    """Outcome of a replay.
+
+    keyframes: the N keyframes used (GPS prior in ENU, user indices, ranges [m]).
+    kf_gps_enu_m (N, 3), kf_t_s (N,). estimate: the batch estimate over all keyframes.
+    truth_enu_m (K, 3) or None; error_m (K,) horizontal error per user when truth is known.
+    flown_m: path length of the telemetry track (or of the keyframes without telemetry) [m].
+    """
+
+    log: MissionLog
+    noise: NoiseModel
+    params: SolverParams
+    keyframes: list[Keyframe]
+    kf_gps_enu_m: np.ndarray
+    kf_t_s: np.ndarray
+    estimate: Estimate
+    truth_enu_m: np.ndarray | None
+    error_m: np.ndarray | None
+    flown_m: float
+    n_measurements: int
+    history: ReplayHistory | None
+
+
+def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyframe]:
+    """Group the log's rtt records into keyframes, optionally re-selected at Δ spacing.
+
+    range = C · toa_s for every record; a group is consecutive records within GROUP_RADIUS_M and
+    GROUP_WINDOW_S of its first record, with no user twice.
+    """
+    if len(mlog.rtt_t_s) == 0:
+        return []
+    origin = mlog.header.origin
+    pos = origin.lla_to_enu(mlog.rtt_uav_lla[:, 0], mlog.rtt_uav_lla[:, 1], mlog.rtt_uav_lla[:, 2])
+    range_m = C_MPS * mlog.rtt_toa_s
+    groups: list[list[int]] = []
+    for i in range(len(range_m)):
+        if groups:
+            g = groups[-1]
+            first = g[0]
+            if (np.linalg.norm(pos[i] - pos[first]) <= GROUP_RADIUS_M
+                    and abs(mlog.rtt_t_s[i] - mlog.rtt_t_s[first]) <= GROUP_WINDOW_S
+                    and mlog.rtt_user[i] not in mlog.rtt_user[g]):
+                g.append(i)
+                continue
+        groups.append([i])
+    selector = KeyframeSelector(delta_m) if delta_m else None
+    keyframes = []
+    for g in groups:
+        idx = np.asarray(g)
+        gps = pos[idx].mean(axis=0)
+        if selector is not None and not selector.accept(gps):
+            continue
+        keyframes.append(Keyframe(gps_enu_m=gps, user_idx=mlog.rtt_user[idx].copy(),
+                                  range_m=range_m[idx].copy(), t_s=float(mlog.rtt_t_s[idx[0]])))
+    return keyframes
+
+
+def path_length_m(pos_enu_m: np.ndarray) -> float:
+    """Σ ||p_{i+1} − p_i|| over a (T, 3) track [m]."""
+    if len(pos_enu_m) < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(pos_enu_m, axis=0), axis=1).sum())
+
+
+def horizontal_error_m(users_enu_m: np.ndarray, truth_enu_m: np.ndarray) -> np.ndarray:
+    """(K,) ||(e, n) estimate − (e, n) truth|| [m]; NaN where either is unknown."""
+    return np.linalg.norm(users_enu_m[..., :2] - truth_enu_m[..., :2], axis=-1)
+
+
+def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
+           progress: Callable[[int, int], None] | None = None) -> ReplayResult:
+    """Re-run the estimator over a parsed log. `progress(done, total)` is called per keyframe."""
+    noise = options.noise or mlog.header.noise
+    params = options.params
+    if options.delta_m is not None:
+        params = replace(params, delta_m=options.delta_m)
+    keyframes = build_keyframes(mlog, options.delta_m)
+    if not keyframes:
+        raise MissionLogError(f"{mlog.path}: no rtt records to replay")
+    n_users = mlog.n_users
+    user_up_m = mlog.user_up_m()
+    origin = mlog.header.origin
+    kf_gps = np.array([kf.gps_enu_m for kf in keyframes])
+    kf_t = np.array([kf.t_s for kf in keyframes])
+    truth_enu = None
+    if mlog.truth_lla is not None:
+        truth_enu = origin.lla_to_enu(mlog.truth_lla[:, 0], mlog.truth_lla[:, 1], mlog.truth_lla[:, 2])
+
+    if len(mlog.tel_t_s) >= 2:
+        tel_enu = origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
+        flown_m = path_length_m(tel_enu)
+        # metres flown at each keyframe: the telemetry path length up to its time
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(tel_enu, axis=0), axis=1))])
+        kf_flown = np.interp(kf_t, mlog.tel_t_s, cum)
+    else:
+        kf_flown = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(kf_gps, axis=0), axis=1))])
+        flown_m = float(kf_flown[-1])
+
+    history = None
+    total = len(keyframes) + 1
+    if options.history:
+        online = OnlineEstimator(n_users, user_up_m, noise, params)
+        bounds = np.full((len(keyframes), n_users), np.inf)
+        users_hist = np.full((len(keyframes), n_users, 3), np.nan)
+        for i, kf in enumerate(keyframes):
+            est = online.add_keyframe(kf)
+            bounds[i] = est.error_bound_95_m()
+            users_hist[i] = est.users_enu_m
+            if progress is not None:
+                progress(i + 1, total)
+        errors = horizontal_error_m(users_hist, truth_enu[None]) if truth_enu is not None else None
+        history = ReplayHistory(kf_flown, kf_t, bounds, errors, users_hist)
+
+    estimate = solve_batch(keyframes, n_users, user_up_m, noise, params)
+    if progress is not None:
+        progress(total, total)
+    error_m = horizontal_error_m(estimate.users_enu_m, truth_enu) if truth_enu is not None else None
+    return ReplayResult(
+        log=mlog, noise=noise, params=params, keyframes=keyframes, kf_gps_enu_m=kf_gps, kf_t_s=kf_t,
+        estimate=estimate, truth_enu_m=truth_enu, error_m=error_m, flown_m=flown_m,
+        n_measurements=int(sum(len(kf.range_m) for kf in keyframes)), history=history,
+    )
+
+
+def users_document(estimate: Estimate, origin, user_ids: list[str],
+                   error_m: np.ndarray | None = None) -> list[dict]:
+    """Per-user entries of the DESIGN.md §11 JSON document (None where a user is not located)."""
+    users = []
+    lat, lon, alt = origin.enu_to_lla(estimate.users_enu_m)
+    bound = estimate.error_bound_95_m()
+    for k, uid in enumerate(user_ids):
+        located = bool(np.all(np.isfinite(estimate.users_enu_m[k])))
+        cov = estimate.cov_en_m2(k)
+        entry = {
+            "id": uid,
+            "lat_deg": float(lat[k]) if located else None,
+            "lon_deg": float(lon[k]) if located else None,
+            "alt_m": float(alt[k]) if located else None,
+            "enu_m": [float(x) for x in estimate.users_enu_m[k]] if located else None,
+            "cov_en_m2": cov.tolist() if np.all(np.isfinite(cov)) else None,
+            "error_bound_95_m": float(bound[k]) if np.isfinite(bound[k]) else None,
+            "ambiguous": bool(estimate.ambiguous[k]),
+            "measurements": int(estimate.n_ranges[k]),
+        }
+        if error_m is not None:
+            entry["error_m"] = float(error_m[k]) if np.isfinite(error_m[k]) else None
+        users.append(entry)
+    return users
+
+
+def result_status(estimate: Estimate) -> str:
+    """"ok" when every user is located without ambiguity; "ambiguous" or "incomplete" otherwise."""
+    if not np.all(np.isfinite(estimate.users_enu_m)):
+        return "incomplete"
+    if np.any(estimate.ambiguous):
+        return "ambiguous"
+    return "ok"
+
+
+def result_document(result: ReplayResult) -> dict:
+    """The JSON document of DESIGN.md §11 for a replay."""
+    return {
+        "status": result_status(result.estimate),
+        "users": users_document(result.estimate, result.log.header.origin,
+                                [u.id for u in result.log.header.users], result.error_m),
+        "flown_m": result.flown_m,
+        "measurements": result.n_measurements,
+        "keyframes": len(result.keyframes),
+    }
+
+
+def format_users_table(doc: dict) -> str:
+    """Human-readable lines: where each user is."""
+    lines = []
+    for u in doc["users"]:
+        if u["lat_deg"] is None:
+            lines.append(f"  {u['id']}: not located ({u['measurements']} ranges)")
+            continue
+        e, n, _ = u["enu_m"]
+        s = (f"  {u['id']}: lat {u['lat_deg']:.7f}  lon {u['lon_deg']:.7f}  alt {u['alt_m']:.1f} m  "
+             f"(E {e:+.1f} m, N {n:+.1f} m)  95% bound {u['error_bound_95_m'] or float('nan'):.2f} m")
+        if u.get("error_m") is not None:
+            s += f"  error {u['error_m']:.2f} m"
+        if u["ambiguous"]:
+            s += "  [mirror ambiguity unresolved]"
+        lines.append(s)
+    return "\n".join(lines)

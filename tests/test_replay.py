@@ -1,0 +1,129 @@
+"""`uavloc replay`: keyframes from a log, the estimate, the JSON document, and the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mission.cli import main
+from mission.log import read_mission_log
+from mission.replay import ReplayOptions, build_keyframes, replay, result_document
+from sitl_scenarios.example_log import generate
+from sitl_scenarios.scenario import load_scenario, scenario_from_dict
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "sitl_scenarios" / "data" / "example_paper.jsonl"
+
+THREE_USERS = {
+    "name": "three",
+    "seed": 7,
+    "users": [
+        {"id": "a", "rnti": 0x4601, "east_m": 40.0, "north_m": 10.0},
+        {"id": "b", "rnti": 0x4602, "east_m": -20.0, "north_m": 50.0},
+        {"id": "c", "rnti": 0x4603, "east_m": 10.0, "north_m": -45.0, "up_m": 2.0},
+    ],
+    "mission": {"altitude_m": 35.0},
+}
+
+
+def test_bundled_example_is_what_the_generator_writes(tmp_path):
+    out = tmp_path / "ex.jsonl"
+    generate(load_scenario("paper"), out)
+    assert out.read_bytes() == EXAMPLE.read_bytes()
+
+
+def test_one_keyframe_per_trigger_and_delta_thins_them():
+    mlog = read_mission_log(EXAMPLE)
+    kfs = build_keyframes(mlog)
+    assert len(kfs) == len(mlog.rtt_t_s)  # one user: one record per trigger
+    thinned = build_keyframes(mlog, delta_m=10.0)
+    assert len(kfs) / 6 < len(thinned) < len(kfs) / 4
+    gaps = np.linalg.norm(np.diff([k.gps_enu_m for k in thinned], axis=0), axis=1)
+    assert np.all(gaps >= 10.0)
+
+
+def test_triggers_group_all_users_at_one_position(tmp_path):
+    sc = scenario_from_dict(THREE_USERS)
+    out = tmp_path / "three.jsonl"
+    counts = generate(sc, out, radius_m=40.0)
+    mlog = read_mission_log(out)
+    kfs = build_keyframes(mlog)
+    assert sum(len(k.range_m) for k in kfs) == counts["rtt"]
+    assert max(len(k.user_idx) for k in kfs) == 3
+    assert all(len(set(k.user_idx.tolist())) == len(k.user_idx) for k in kfs)
+
+
+def test_replay_localizes_every_user_near_truth(tmp_path):
+    sc = scenario_from_dict(THREE_USERS)
+    out = tmp_path / "three.jsonl"
+    generate(sc, out, radius_m=40.0)
+    result = replay(read_mission_log(out))
+    assert result.error_m is not None
+    assert np.all(result.error_m < 3.0), result.error_m
+    doc = result_document(result)
+    assert doc["status"] == "ok"
+    assert [u["id"] for u in doc["users"]] == ["a", "b", "c"]
+    for u, k in zip(doc["users"], range(3), strict=True):
+        assert np.allclose(u["enu_m"][:2], [sc.users[k].east_m, sc.users[k].north_m], atol=3.0)
+        assert np.asarray(u["cov_en_m2"]).shape == (2, 2)
+    # the online history ends near the batch answer and its bound shrinks as the UAV flies
+    h = result.history
+    assert h is not None and h.bound_95_m.shape == (len(result.keyframes), 3)
+    assert np.all(h.bound_95_m[-1] < h.bound_95_m[len(h.bound_95_m) // 4])
+    assert np.all(np.diff(h.flown_m) >= 0)
+
+
+def test_cli_json_document(capsys):
+    assert main(["replay", str(EXAMPLE), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc) >= {"status", "users", "flown_m", "measurements"}
+    (u,) = doc["users"]
+    assert set(u) >= {"id", "lat_deg", "lon_deg", "alt_m", "enu_m", "cov_en_m2", "error_m"}
+    assert u["error_m"] < 3.0
+    assert doc["measurements"] == 295
+
+
+def test_cli_human_output(capsys):
+    assert main(["replay", str(EXAMPLE), "--loss", "cauchy", "--delta", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "ue1: lat 43.61" in out
+
+
+def test_cli_torn_log_still_replays(tmp_path, capsys):
+    p = tmp_path / "torn.jsonl"
+    text = EXAMPLE.read_text()
+    p.write_text(text[: len(text) - 40])  # cut the last line in half
+    assert main(["replay", str(p), "--json", "--no-history"]) == 0
+    assert json.loads(capsys.readouterr().out)["status"] == "ok"
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--delta", "-1"], "--delta must be a positive number"),
+        (["--sigma-gps", "nan"], "--sigma-gps must be a positive number"),
+    ],
+)
+def test_cli_bad_flags_are_errors(args, message, caplog):
+    assert main(["replay", str(EXAMPLE), *args]) == 1
+    assert message in caplog.text
+
+
+def test_cli_bad_log_names_the_line(tmp_path, caplog):
+    p = tmp_path / "bad.jsonl"
+    lines = EXAMPLE.read_text().splitlines(keepends=True)
+    lines[5] = lines[5].replace('"user":"ue1"', '"user":"ue7"')
+    p.write_text("".join(lines))
+    assert main(["replay", str(p)]) == 1
+    assert "bad.jsonl:6: rtt for unknown user 'ue7'" in caplog.text
+
+
+def test_replay_without_rtt_is_an_error(tmp_path):
+    p = tmp_path / "h.jsonl"
+    p.write_text(EXAMPLE.read_text().splitlines(keepends=True)[0])
+    from uavloc.errors import MissionLogError
+
+    with pytest.raises(MissionLogError, match="no rtt records"):
+        replay(read_mission_log(p), ReplayOptions())
