@@ -29,6 +29,7 @@ import logging
 import math
 import select
 import socket
+import struct
 import sys
 import threading
 import time
@@ -190,9 +191,12 @@ class VehicleSimulator:
 
     origin: home and ENU origin (the vehicle starts there, on the ground); vehicle: speeds, GPS
     noise, battery; seed: GPS noise generator seed; speedup: simulated seconds per wall second;
-    target: (host, port) the vehicle sends to before anyone talks to it (None: only answer), like
-    PX4's API link to 127.0.0.1:14540; bind: local (host, port), port 0 picks a free one;
-    faults: scheduled fault events; gps_fix_delay_s: simulated time until the first GPS fix.
+    target: (host, port), or a list of them, the vehicle sends to before anyone talks to it (None:
+    only answer), like PX4's API link to 127.0.0.1:14540 (and its GCS link to 14550); whoever sends
+    to the vehicle is answered too; bind: local (host, port), port 0 picks a free one; faults:
+    scheduled fault events; gps_fix_delay_s: simulated time until the first GPS fix;
+    tick_wall_s: simulation step in wall seconds; max_stream_wall_hz: cap of each stream's rate
+    on the wire.
 
     Start/stop: `async with` (the caller's loop is never blocked: the simulation runs in a
     thread), `with`, or :meth:`start` / :meth:`stop`. An error inside the simulation thread is
@@ -206,7 +210,7 @@ class VehicleSimulator:
         *,
         seed: int = 0,
         speedup: float = 1.0,
-        target: tuple[str, int] | None = DEFAULT_TARGET,
+        target: tuple[str, int] | list[tuple[str, int]] | None = DEFAULT_TARGET,
         bind: tuple[str, int] = ("0.0.0.0", 0),
         faults: list[FaultEvent] | tuple[FaultEvent, ...] = (),
         gps_fix_delay_s: float = 2.0,
@@ -220,7 +224,12 @@ class VehicleSimulator:
         self.origin = origin
         self.vehicle = vehicle or VehicleConfig()
         self.speedup = float(speedup)
-        self.target = target
+        if target is None:
+            self.targets: list[tuple[str, int]] = []
+        elif isinstance(target, tuple):
+            self.targets = [target]
+        else:
+            self.targets = [tuple(t) for t in target]
         self.bind = bind
         self.tick_wall_s = tick_wall_s
         self.max_stream_wall_hz = max_stream_wall_hz
@@ -271,7 +280,7 @@ class VehicleSimulator:
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="uavloc-vehicle-sim", daemon=True)
         self._thread.start()
-        log.info("vehicle simulator on udp %s:%d -> %s, speedup %g", *self.local_address, self.target, self.speedup)
+        log.info("vehicle simulator on udp %s:%d -> %s, speedup %g", *self.local_address, self.targets, self.speedup)
 
     def stop(self) -> None:
         """Stop the thread, close the socket; raises SimulatorError if the simulation had failed."""
@@ -451,8 +460,8 @@ class VehicleSimulator:
 
     def _peers_now(self) -> list[tuple[str, int]]:
         peers = dict(self._peers)
-        if self.target is not None:
-            peers.setdefault(self.target, None)
+        for t in self.targets:
+            peers.setdefault(t, None)
         return list(peers)
 
     def _send(self, msg: Any) -> None:
@@ -472,7 +481,7 @@ class VehicleSimulator:
                 if self._link_down():
                     continue
                 self.packets_in += 1
-                if addr not in self._peers and addr != self.target:
+                if addr not in self._peers and addr not in self.targets:
                     log.info("vehicle: ground station at %s:%d", *addr)
                 self._peers[addr] = None
                 try:
@@ -498,7 +507,13 @@ class VehicleSimulator:
             if kind not in ("HEARTBEAT", "SYSTEM_TIME", "PING"):
                 log.debug("vehicle: ignored %s", kind)
             return
-        handler(msg)
+        try:
+            handler(msg)
+        except (ValueError, OverflowError, struct.error, SimulatorError) as exc:
+            # a malformed request must not take the vehicle down; PX4 would refuse it too
+            log.warning("vehicle: %s from %d/%d refused: %s", kind, msg.get_srcSystem(), msg.get_srcComponent(), exc)
+            if kind in ("COMMAND_LONG", "COMMAND_INT"):
+                self._ack(msg, DENIED)
 
     def _ack(self, msg: Any, result: int) -> None:
         self._send(mavlink.MAVLink_command_ack_message(
@@ -916,8 +931,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m sitl_scenarios.vehicle", description=__doc__.split("\n")[0])
     ap.add_argument("--scenario", default="paper", help="scenario file or bundled name (default: paper)")
     ap.add_argument("--speedup", type=float, default=1.0, help="simulated seconds per wall second")
-    ap.add_argument("--target", nargs="+", default=["127.0.0.1:14540"],
-                    help="where to send before a ground station talks: [udp] HOST:PORT, or none")
+    ap.add_argument("--target", nargs="+", action="append", default=None,
+                    help="where to send before a ground station talks: [udp] HOST:PORT (repeatable; "
+                         "default 127.0.0.1:14540), or none")
     ap.add_argument("--bind", default="0.0.0.0:0", help="local HOST:PORT (port 0: any)")
     ap.add_argument("--seed", type=int, default=None, help="GPS noise seed (default: the scenario's)")
     ap.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
@@ -928,7 +944,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scenario = load_scenario(args.scenario)
         bind_host, _, bind_port = args.bind.rpartition(":")
-        kwargs: dict[str, Any] = {"speedup": args.speedup, "target": _parse_target(args.target),
+        targets = [_parse_target(t) for t in (args.target or [["127.0.0.1:14540"]])]
+        kwargs: dict[str, Any] = {"speedup": args.speedup, "target": [t for t in targets if t is not None],
                                   "bind": (bind_host or "0.0.0.0", int(bind_port))}
         if args.seed is not None:
             kwargs["seed"] = args.seed

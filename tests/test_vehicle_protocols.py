@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import math
+import socket
+import time
 
 import pytest
 from mavsdk.asyncio.plugins.mission import MissionAsync
@@ -170,3 +172,58 @@ def test_set_message_interval_changes_the_stream_rate() -> None:
     # SYS_STATUS also feeds MAVSDK's battery only until BATTERY_STATUS arrives; then it is BATTERY_STATUS
     assert 7 <= fast <= 13
     assert slow <= 2
+
+
+def test_raw_link_two_targets_and_malformed_command() -> None:
+    """Both targets get the streams before anyone talks; a command with a NaN message id is
+    refused (DENIED) instead of taking the vehicle down; REQUEST_MESSAGE answers AUTOPILOT_VERSION
+    with PX4's capability bits; an unknown command is UNSUPPORTED."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from sitl_scenarios import mavlink_px4 as px4
+    from sitl_scenarios.vehicle import VehicleSimulator
+
+    def recv_until(sock, parser, kind: str, timeout_s: float = 5.0):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            sock.settimeout(max(deadline - time.monotonic(), 0.01))
+            data, addr = sock.recvfrom(65535)
+            for m in parser.parse_buffer(data) or []:
+                if m.get_type() == kind:
+                    return m, addr
+        raise AssertionError(f"no {kind} within {timeout_s} s")
+
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        targets = [s.getsockname() for s in socks]
+        with VehicleSimulator(ORIGIN, speedup=5.0, target=targets, bind=("127.0.0.1", 0)) as sim:
+            parsers = [mavlink.MAVLink(None, 245, 190) for _ in socks]
+            for p in parsers:
+                p.robust_parsing = True
+            for s, p in zip(socks, parsers, strict=True):
+                hb, addr = recv_until(s, p, "HEARTBEAT")
+                assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4 and addr == sim.local_address
+            gcs, parser = socks[0], parsers[0]
+            out = mavlink.MAVLink(None, 245, 190)
+
+            def command(cmd: int, *params: float) -> int:
+                msg = mavlink.MAVLink_command_long_message(1, 1, cmd, 0, *params)
+                gcs.sendto(msg.pack(out), sim.local_address)
+                while True:
+                    ack, _ = recv_until(gcs, parser, "COMMAND_ACK")
+                    if ack.command == cmd:
+                        return ack.result
+
+            nan = float("nan")
+            assert command(511, nan, 1e5, 0, 0, 0, 0, 0) == mavlink.MAV_RESULT_DENIED
+            assert command(31337, 0, 0, 0, 0, 0, 0, 0) == mavlink.MAV_RESULT_UNSUPPORTED
+            assert command(512, 148, 0, 0, 0, 0, 0, 0) == mavlink.MAV_RESULT_ACCEPTED
+            version, _ = recv_until(gcs, parser, "AUTOPILOT_VERSION")
+            assert version.capabilities == px4.PX4_CAPABILITIES
+            assert version.flight_sw_version >> 24 == 1
+            assert sim.state().t_s > 0  # still running
+    finally:
+        for s in socks:
+            s.close()
