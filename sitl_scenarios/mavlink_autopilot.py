@@ -219,6 +219,7 @@ class Autopilot:
         self.t_s = 0.0
         self.pos = [0.0, 0.0, 0.0]
         self.vel = [0.0, 0.0, 0.0]
+        self.acc = [0.0, 0.0, 0.0]  # last commanded acceleration, ENU [m/s²]
         self.yaw_rad = 0.0
         self.armed = False
         self.in_air = False
@@ -296,6 +297,15 @@ class Autopilot:
             armed=self.armed, in_air=self.in_air, landed_state=self.landed_state,
             mode=self.mode.value, battery_pct=self.battery_pct, gps_ok=self.gps_ok, link_up=link_up,
         )
+
+    def tilt_rad(self) -> tuple[float, float]:
+        """(roll, pitch) [rad] a multicopter needs for its horizontal acceleration (no wind):
+        pitch = −atan(a_forward / g), roll = atan(a_right / g), forward along the heading."""
+        g = 9.81
+        s, c = math.sin(self.yaw_rad), math.cos(self.yaw_rad)
+        a_fwd = self.acc[1] * c + self.acc[0] * s
+        a_right = -self.acc[1] * s + self.acc[0] * c
+        return math.atan2(a_right, g), -math.atan2(a_fwd, g)
 
     def _say(self, severity: int, text: str) -> None:
         log.info("vehicle: %s", text)
@@ -806,7 +816,9 @@ class Autopilot:
         self.vel[1] += dvy
         dvz = des[2] - self.vel[2]
         lim_z = (p["MPC_ACC_UP_MAX"] if dvz > 0 else p["MPC_ACC_DOWN_MAX"]) * dt
-        self.vel[2] += min(max(dvz, -lim_z), lim_z)
+        dvz = min(max(dvz, -lim_z), lim_z)
+        self.vel[2] += dvz
+        self.acc = [dvx / dt, dvy / dt, dvz / dt]
         for k in range(3):
             self.pos[k] += self.vel[k] * dt
         if math.hypot(self.vel[0], self.vel[1]) > 0.3:

@@ -821,16 +821,18 @@ class VehicleSimulator:
                 _SENSORS_PRESENT, _SENSORS_PRESENT, health, 250, v_mv, i_ca, int(ap.battery_pct),
                 0, 0, 0, 0, 0, 0))
         elif msg_id == M.MAVLINK_MSG_ID_GPS_RAW_INT:
+            if not ap.gps_ok:  # a receiver without a fix: no position, unknown accuracy
+                self._send(M.MAVLink_gps_raw_int_message(
+                    t_us, 1, 0, 0, 0, 65535, 65535, 65535, 65535, 0, 0, 0, 0, 0, 0, 0))
+                return
             est = ap.estimated_position()
             lat, lon, alt = ap.enu_to_lla(est)
-            fix = 3 if ap.gps_ok else 1
-            sats = 12 if ap.gps_ok else 0
             vh = math.hypot(ap.vel[0], ap.vel[1])
             cog = int((math.degrees(math.atan2(ap.vel[0], ap.vel[1])) % 360) * 100) if vh > 0.3 else 65535
             sigma_mm = int(max(self.vehicle.gps_sigma_m, 0.01) * 1000)
             self._send(M.MAVLink_gps_raw_int_message(
-                t_us, fix, round(lat * 1e7), round(lon * 1e7), int(alt * 1000), 80, 120,
-                int(vh * 100), cog, sats, int(alt * 1000), sigma_mm, int(sigma_mm * 1.5), 100, 0, 0))
+                t_us, 3, round(lat * 1e7), round(lon * 1e7), int(alt * 1000), 80, 120,
+                int(vh * 100), cog, 12, int(alt * 1000), sigma_mm, int(sigma_mm * 1.5), 100, 0, 0))
         elif msg_id == M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
             if not ap.gps_ok:
                 return  # no global position estimate: PX4 stops publishing it
@@ -847,16 +849,17 @@ class VehicleSimulator:
             self._send(M.MAVLink_local_position_ned_message(
                 t_ms, est[1], est[0], -est[2], ap.vel[1], ap.vel[0], -ap.vel[2]))
         elif msg_id == M.MAVLINK_MSG_ID_ATTITUDE:
-            self._send(M.MAVLink_attitude_message(t_ms, 0.0, 0.0, _wrap_pi(ap.yaw_rad), 0.0, 0.0, 0.0))
+            roll, pitch = ap.tilt_rad()
+            self._send(M.MAVLink_attitude_message(t_ms, roll, pitch, _wrap_pi(ap.yaw_rad), 0.0, 0.0, 0.0))
         elif msg_id == M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
-            half = _wrap_pi(ap.yaw_rad) / 2
-            self._send(M.MAVLink_attitude_quaternion_message(
-                t_ms, math.cos(half), 0.0, 0.0, math.sin(half), 0.0, 0.0, 0.0, [0.0, 0.0, 0.0, 0.0]))
+            roll, pitch = ap.tilt_rad()
+            q = _quaternion(roll, pitch, _wrap_pi(ap.yaw_rad))
+            self._send(M.MAVLink_attitude_quaternion_message(t_ms, *q, 0.0, 0.0, 0.0, [0.0, 0.0, 0.0, 0.0]))
         elif msg_id == M.MAVLINK_MSG_ID_ALTITUDE:
             est_up = float(ap.estimated_position()[2]) if ap.gps_ok else ap.pos[2]
             amsl = self.origin.alt_m + est_up
             self._send(M.MAVLink_altitude_message(
-                t_us, amsl, amsl, est_up, est_up - ap.home[2], math.nan, ap.pos[2]))
+                t_us, amsl, amsl, est_up, est_up - ap.home[2], math.nan, math.nan))  # no range finder
         elif msg_id == M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             self._send(M.MAVLink_extended_sys_state_message(0, ap.landed_state))
         elif msg_id == M.MAVLINK_MSG_ID_VFR_HUD:
@@ -905,6 +908,15 @@ def _param_name(raw: Any) -> str:
     if isinstance(raw, bytes):
         raw = raw.decode("ascii", errors="replace")
     return str(raw).split("\x00", 1)[0]
+
+
+def _quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of the ZYX Euler angles (aerospace convention, body FRD in NED)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
 
 
 def _wrap_pi(a: float) -> float:

@@ -280,3 +280,29 @@ def test_standalone_module_sends_px4_heartbeats() -> None:
         finally:
             _, err = proc.communicate(timeout=20)
         assert proc.returncode == 0, err
+
+
+def test_attitude_tilts_into_the_acceleration() -> None:
+    ap = make()
+    fly_to_altitude(ap, 10.0)
+    lat, lon, alt = ORIGIN.enu_to_lla([0.0, 80.0, 10.0])
+    ap.reposition(float(lat), float(lon), float(alt))
+    run(ap, 0.5)
+    roll, pitch = ap.tilt_rad()
+    # accelerating north while heading north: nose down by atan(a/g), no roll
+    assert pitch == pytest.approx(-math.atan2(ap.params["MPC_ACC_HOR"], 9.81), abs=1e-6)
+    assert roll == pytest.approx(0.0, abs=1e-9)
+    run(ap, 30.0)
+    assert ap.tilt_rad() == pytest.approx((0.0, 0.0), abs=1e-9)
+
+
+@pytest.mark.parametrize(("rpy", "q"), [
+    ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)),
+    ((0.0, 0.0, math.pi / 2), (math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))),
+    ((math.pi / 2, 0.0, 0.0), (math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0)),
+    ((0.0, -math.pi / 2, 0.0), (math.sqrt(0.5), 0.0, -math.sqrt(0.5), 0.0)),
+])
+def test_euler_to_quaternion_table(rpy: tuple, q: tuple) -> None:
+    from sitl_scenarios.vehicle import _quaternion
+
+    assert _quaternion(*rpy) == pytest.approx(q, abs=1e-12)
