@@ -13,9 +13,21 @@ robust Gauss–Newton, and the lowest cost wins.
 
 Mirror test: ranges from a straight flight line cannot tell a user from its reflection across the
 line. Fit the line to the user's UAV fixes (principal axis of the horizontal positions), reflect
-the estimate, refine from there and compare costs:
+the estimate and refine from there to the mirror solution m. Two numbers:
 
-    ambiguous  ⇔  2 (L(mirror) − L(u)) < χ²_amb     (and the refined mirror is not u itself)
+    separation  χ²_sep = Σ_i ((||x̃_i − u|| − ||x̃_i − m||) / σ_eff)²   on the fixes smoothed along
+                the track (moving average of 2·SMOOTH_HALF + 1), i.e. how far apart the two
+                hypotheses' noise-free ranges are for the path flown;
+    likelihood  Δχ² = 2 (L(m) − L(u)) on the measured ranges.
+
+    ambiguous  ⇔  χ²_sep < χ²_amb   (and m is not u itself)
+
+The likelihood ratio alone is not a usable test: on an exactly straight line the range noise
+correlates with the GPS noise across the line, so Δχ² fluctuates around zero with a spread that
+grows like √N (±15 at N = 100) although the geometry cannot tell the two apart. The smoothed-
+track separation stays below ~8 for a straight line of 1000 fixes and is in the hundreds or more
+for a circle or a lawnmower. The solver jumps to the mirror when the geometry separates the two
+(χ²_sep ≥ χ²_amb) and the mirror fits better by more than χ²_amb.
 """
 
 from __future__ import annotations
@@ -34,6 +46,8 @@ GRID_SIZE = 33
 GRID_MAX_RANGES = 96
 #: Cauchy threshold (whitened) used to score the grid
 GRID_CAUCHY_SCALE = 2.0
+#: half-width (in fixes) of the moving average that smooths GPS noise out of the track
+SMOOTH_HALF = 4
 
 
 @dataclass(frozen=True)
@@ -178,38 +192,68 @@ def init_user(
 
 @dataclass(frozen=True)
 class MirrorTest:
-    """Result of the mirror test for one user."""
+    """Result of the mirror test for one user (see the module docstring)."""
 
     ambiguous: bool
     mirror_theta: np.ndarray | None  # refined mirror θ, None when the reflection coincides with u
     delta_chi2: float  # 2 (L(mirror) − L(u)); negative: the mirror fits better
+    separation_chi2: float  # χ²_sep of the two hypotheses on the smoothed track
     linearity: float  # s2/s1 of the horizontal fixes (0: a perfect line)
+
+    def mirror_is_better(self, chi2_threshold: float) -> bool:
+        """The geometry separates the two and the mirror fits clearly better."""
+        return (
+            self.mirror_theta is not None
+            and self.separation_chi2 >= chi2_threshold
+            and self.delta_chi2 < -chi2_threshold
+        )
+
+
+def smooth_track(pos_enu_m: np.ndarray, half: int = SMOOTH_HALF) -> np.ndarray:
+    """(M, 3) moving average over ±half fixes in time order (shrinking at the ends)."""
+    m = pos_enu_m.shape[0]
+    c = np.vstack([np.zeros((1, 3)), np.cumsum(pos_enu_m, axis=0)])
+    i = np.arange(m)
+    lo, hi = np.maximum(i - half, 0), np.minimum(i + half + 1, m)
+    return (c[hi] - c[lo]) / (hi - lo)[:, None]
 
 
 def mirror_test(
     uav_enu_m: np.ndarray, range_m: np.ndarray, theta: np.ndarray, up_m: float, noise: NoiseModel,
     params: SolverParams, chi2_threshold: float, min_offset_m: float = 2.0,
 ) -> MirrorTest:
-    """Reflect θ across the best-fit line of the fixes and compare costs (module docstring)."""
+    """Reflect θ across the best-fit line of the fixes (in time order, (M, 3)) and compare."""
     h = uav_enu_m[:, :2]
     c = h.mean(axis=0)
     _, s, vt = np.linalg.svd(h - c, full_matrices=False)
-    lin = float(s[1] / s[0]) if s[0] > 0 else 1.0
+    lin = float(s[1] / s[0]) if s.size > 1 and s[0] > 0 else 1.0
     v = vt[0]
     # u' = c + (2 v vᵀ − I)(u − c)
     refl = 2.0 * np.outer(v, v) - np.eye(2)
     u_h = theta[:2]
     m_h = c + refl @ (u_h - c)
     if np.linalg.norm(m_h - u_h) < min_offset_m:
-        return MirrorTest(False, None, np.inf, lin)
-    cost_u = user_cost(uav_enu_m, range_m, theta, up_m, noise, params)
+        return MirrorTest(False, None, np.inf, 0.0, lin)
     t_m = np.array(theta, dtype=float)
     t_m[:2] = m_h
-    cost_m = user_cost(uav_enu_m, range_m, t_m, up_m, noise, params)
-    if 2.0 * (cost_m - cost_u) > 100.0 * chi2_threshold and lin > 0.3:
-        return MirrorTest(False, None, 2.0 * (cost_m - cost_u), lin)
+    # χ²_sep on the smoothed track, first for the plain reflection: a curved path is done here
+    track = smooth_track(uav_enu_m)
+    u, _ = _theta_to_user(theta, params.user_dim, up_m)
+
+    def separation(tm: np.ndarray) -> float:
+        mu, _ = _theta_to_user(tm, params.user_dim, up_m)
+        d1 = np.linalg.norm(track - u, axis=1)
+        d2 = np.linalg.norm(track - mu, axis=1)
+        return float(np.sum(((d1 - d2) / _sigma_eff(noise, d1)) ** 2))
+
+    cost_u = user_cost(uav_enu_m, range_m, theta, up_m, noise, params)
+    if separation(t_m) > 100.0 * chi2_threshold:
+        cost_m = user_cost(uav_enu_m, range_m, t_m, up_m, noise, params)
+        if cost_m - cost_u > 50.0 * chi2_threshold:
+            return MirrorTest(False, None, 2.0 * (cost_m - cost_u), np.inf, lin)
     fit = refine_user(uav_enu_m, range_m, t_m, up_m, noise, params, 15)
     if np.linalg.norm(fit.theta[:2] - u_h) < min_offset_m:
-        return MirrorTest(False, None, np.inf, lin)
+        return MirrorTest(False, None, np.inf, 0.0, lin)
+    sep = separation(fit.theta)
     delta = 2.0 * (fit.cost - cost_u)
-    return MirrorTest(bool(delta < chi2_threshold), fit.theta, float(delta), lin)
+    return MirrorTest(bool(sep < chi2_threshold), fit.theta, float(delta), sep, lin)

@@ -21,7 +21,7 @@ S⁻¹ is the exact marginal covariance of θ at the linearization point.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, solveh_banded
+from scipy.linalg import solveh_banded
 
 from uavloc.errors import EstimatorError
 
@@ -56,7 +56,7 @@ def _banded(hxx: np.ndarray, off: np.ndarray) -> np.ndarray:
     """Upper banded form (4, 3N) of the block-tridiagonal H_xx (scipy's ab[u + i − j, j] = a[i, j])."""
     n = hxx.shape[0]
     ab = np.zeros((4, 3 * n))
-    ab[3] = np.einsum("nii->ni", hxx).ravel()
+    ab[3] = hxx.reshape(n, 9)[:, ::4].ravel()
     ab[2].reshape(n, 3)[:, 1] = hxx[:, 0, 1]
     ab[2].reshape(n, 3)[:, 2] = hxx[:, 1, 2]
     ab[1].reshape(n, 3)[:, 2] = hxx[:, 0, 2]
@@ -71,8 +71,8 @@ def schur_solve(
     """Solve the (damped) normal equations by eliminating the keyframes.
 
     hxx: (N, 3, 3) diagonal blocks; off: (N−1,) scalar s_n of the off-diagonal block s_n·I between
-    keyframes n and n+1, or None; hxu: (N, 3, P); huu: (P, P); gx: (N, 3); gu: (P,);
-    lam: Levenberg–Marquardt damping, H + λ·diag(H).
+    keyframes n and n+1, or None; hxu: (3, N, P) coupling, hxu[i, n, :] = row i of block H_(n,θ);
+    huu: (P, P); gx: (N, 3); gu: (P,); lam: Levenberg–Marquardt damping, H + λ·diag(H).
     Returns (Δx (N, 3), Δθ (P,), S (P, P)) where S is the Schur complement of the damped system.
     Raises numpy.linalg.LinAlgError when S is not positive definite.
     """
@@ -80,27 +80,35 @@ def schur_solve(
     p = huu.shape[0]
     if lam > 0.0:
         hxx = hxx.copy()
-        idx = np.arange(3)
-        hxx[:, idx, idx] *= 1.0 + lam
+        hxx.reshape(n, 9)[:, ::4] *= 1.0 + lam
         huu = huu.copy()
         huu[np.diag_indices(p)] += lam * np.maximum(np.diag(huu), 1e-12)
-    b = hxu.reshape(n * 3, p)
     if off is None:
         hinv = inv3_sym_batched(hxx)
         if not np.all(np.isfinite(hinv)):
             raise EstimatorError("keyframe block of the normal matrix is singular")
-        # A = H_xx⁻¹ H_xu,  y = H_xx⁻¹ g_x
-        a = np.matmul(hinv, hxu).reshape(n * 3, p)
-        y = np.einsum("nij,nj->ni", hinv, gx).ravel()
+        # A_i = Σ_j (H_nn⁻¹)_ij H_(n,θ)_j  (rows i of A = H_xx⁻¹ H_xu),  y = H_xx⁻¹ g_x
+        hi = hinv.transpose(1, 2, 0)  # (3, 3, n)
+        a = np.empty((3, n, p))
+        for i in range(3):
+            a[i] = hi[i, 0][:, None] * hxu[0] + hi[i, 1][:, None] * hxu[1] + hi[i, 2][:, None] * hxu[2]
+        y = np.einsum("nij,nj->in", hinv, gx)  # (3, n)
+        b2 = hxu.reshape(3 * n, p)
+        a2 = a.reshape(3 * n, p)
+        y2 = y.reshape(3 * n)
     else:
-        sol = solveh_banded(_banded(hxx, off), np.column_stack([b, gx.reshape(-1)]), lower=False)
-        a, y = sol[:, :p], sol[:, p]
+        # banded solve in keyframe-major order (row 3n + i)
+        b_nm = hxu.transpose(1, 0, 2).reshape(3 * n, p)
+        sol = solveh_banded(_banded(hxx, off), np.column_stack([b_nm, gx.reshape(-1)]), lower=False)
+        b2, a2, y2 = b_nm, sol[:, :p], sol[:, p]
     # S = H_uu − H_ux H_xx⁻¹ H_xu
-    s = huu - b.T @ a
+    s = huu - b2.T @ a2
     s = 0.5 * (s + s.T)
     # S Δθ = g_u − H_ux H_xx⁻¹ g_x
-    rhs = gu - b.T @ y
-    du = cho_solve(cho_factor(s, check_finite=False), rhs, check_finite=False)
+    rhs = gu - b2.T @ y2
+    np.linalg.cholesky(s)  # raises LinAlgError unless S is positive definite
+    du = np.linalg.solve(s, rhs)
     # Δx = H_xx⁻¹ (g_x − H_xu Δθ) = y − A Δθ
-    dx = (y - a @ du).reshape(n, 3)
+    dx = y2 - a2 @ du
+    dx = dx.reshape(3, n).T if off is None else dx.reshape(n, 3)
     return dx, du, s

@@ -70,50 +70,57 @@ class Linearization:
     """IRLS-weighted normal equations at one point (shapes as in estimator.schur.schur_solve)."""
 
     cost: float
-    hxx: np.ndarray
-    off: np.ndarray | None
-    hxu: np.ndarray
-    huu: np.ndarray
-    gx: np.ndarray
-    gu: np.ndarray
-    e: np.ndarray  # (N, K) whitened range residuals, 0 where none
-    w: np.ndarray  # (N, K) IRLS weights, 0 where none
+    hxx: np.ndarray  # (N, 3, 3)
+    off: np.ndarray | None  # (N − 1,)
+    hxu: np.ndarray  # (3, N, K·p)
+    huu: np.ndarray  # (K·p, K·p)
+    gx: np.ndarray  # (N, 3)
+    gu: np.ndarray  # (K·p,)
+    e: np.ndarray  # (K, N) whitened range residuals, 0 where none
+    w: np.ndarray  # (K, N) IRLS weights, 0 where none
 
 
 def _range_terms(
-    prob: Problem, x: np.ndarray, theta: np.ndarray, mask: np.ndarray
+    prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray
 ) -> tuple[np.ndarray, ...]:
-    """Whitened range residuals and Jacobians on (n, K) arrays (see estimator.factors.RangeFactor).
+    """Whitened range residuals and Jacobians (see estimator.factors.RangeFactor), user-major.
 
-    x: (n, 3); theta: (K, p); mask: (n, K) ranges to use; range rows are prob.range_m[:n].
-    Returns e, w, rho, jx (n, K, 3), jt (n, K, p); all zero where mask is False.
+    x: (n, 3); theta: (K, p); mask_kn: (K, n) ranges to use; ranges are prob.range_m[:n].
+    Arrays are laid out (K, n) so that numpy's inner loops run over keyframes (long), not over
+    3 coordinates. Returns e, w, rho (K, n) and J (3 + p, K, n) = [∂e/∂x; ∂e/∂θ_k], zero where
+    mask_kn is False.
     """
     params, noise = prob.params, prob.noise
     n = x.shape[0]
-    users = users_from_theta(theta, prob.user_up_m, prob.user_dim)
-    diff = x[:, None, :] - users[None, :, :]
-    d = np.sqrt(np.einsum("nki,nki->nk", diff, diff))
-    d = np.maximum(d, 1e-9)
-    uhat = diff / d[..., None]
+    d_u = prob.user_dim
+    users = users_from_theta(theta, prob.user_up_m, d_u)
+    # diff_i = x_i − u_i, (3, K, n)
+    diff = np.ascontiguousarray(x.T)[:, None, :] - users.T[:, :, None]
+    d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+    np.maximum(d, 1e-9, out=d)
     sig = noise.range_sigma_m(d)
-    bias = theta[:, -1] if params.estimate_bias else 0.0
-    r = np.where(mask, prob.range_m[:n] - d - bias, 0.0)
+    r = prob.range_m[:n].T - d
+    if params.estimate_bias:
+        r -= theta[:, -1:]
+    r[~mask_kn] = 0.0
     # e = (r̂ − d − b) / σ(d)
     e = r / sig
-    w = loss_weight(e, params.loss, params.loss_scale) * mask
-    rho = loss_rho(e, params.loss, params.loss_scale) * mask
+    w = loss_weight(e, params.loss, params.loss_scale)
+    w *= mask_kn
+    rho = loss_rho(e, params.loss, params.loss_scale)
+    rho *= mask_kn
     # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −1/σ
     if noise.a_m != 0.0 and noise.b_per_m != 0.0:
-        alpha = 1.0 / sig + r * noise.range_sigma_dd(d) / sig**2
+        alpha = (1.0 / sig + r * noise.range_sigma_dd(d) / sig**2) * mask_kn
     else:
-        alpha = 1.0 / sig
-    alpha = alpha * mask
-    jx = -alpha[..., None] * uhat
+        alpha = mask_kn / sig
+    jac = np.empty((3 + prob.p, prob.n_users, n))
+    np.multiply(diff, -alpha / d, out=jac[:3])
+    np.negative(jac[:d_u], out=jac[3 : 3 + d_u])
     if params.estimate_bias:
-        jt = np.concatenate([-jx[..., : prob.user_dim], (-mask / sig)[..., None]], axis=2)
-    else:
-        jt = -jx[..., : prob.user_dim]
-    return e, w, rho, jx, jt
+        np.divide(-1.0, sig, out=jac[-1])
+        jac[-1] *= mask_kn
+    return e, w, rho, jac
 
 
 def linearize(
@@ -121,52 +128,62 @@ def linearize(
 ) -> Linearization:
     """IRLS-weighted normal equations H Δ = g (g = −∇L) at (x (N, 3), Θ (K, p)).
 
+    Per range, with J = [∂e/∂x | ∂e/∂θ_k] (1 × (3 + p)):
+        H_nn = I/σ_gps² + Σ_k w J_xᵀ J_x,   H_(n,k) = w J_xᵀ J_θ,   H_kk = Σ_n w J_θᵀ J_θ
+        g_n = −(x_n − x̂_n)/σ_gps² − Σ_k w e J_x,   g_k = −Σ_n w e J_θ      (+ bias, motion, prior)
     Users with active[k] False are held fixed (identity block, zero gradient).
     """
     params, noise = prob.params, prob.noise
     n, k_all = prob.range_m.shape
     p = prob.p
-    mask = prob.mask & active[None, :]
-    e, w, rho, jx, jt = _range_terms(prob, x, theta, mask)
-    wjx = w[..., None] * jx
+    mask_kn = prob.mask[:n].T & active[:, None]
+    e, w, rho, jac = _range_terms(prob, x, theta, mask_kn)
+    wj = jac * w
     inv_g2 = 1.0 / noise.sigma_gps_m**2
-    # GPS: H_nn = I/σ², g_n = −(x − x̂)/σ²
-    hxx = np.einsum("nki,nkj->nij", wjx, jx)
-    hxx[:, 0, 0] += inv_g2
-    hxx[:, 1, 1] += inv_g2
-    hxx[:, 2, 2] += inv_g2
+    # O = w J_xᵀ J_x per range, (3, 3, K, n); H_nn = Σ_k O (+ I/σ_gps²)
+    o_xx = wj[:3, None] * jac[None, :3]
+    hxx = np.ascontiguousarray(o_xx.sum(axis=2).transpose(2, 0, 1))
+    hxx.reshape(n, 9)[:, ::4] += inv_g2
     dgps = x - prob.gps_enu_m
-    gx = -dgps * inv_g2 - np.einsum("nki,nk->ni", wjx, e)
-    cost = 0.5 * inv_g2 * float(np.einsum("ni,ni->", dgps, dgps)) + float(rho.sum())
-    hxu = np.einsum("nki,nkj->nikj", wjx, jt).reshape(n, 3, k_all * p)
-    huu_blocks = np.einsum("nki,nkj->kij", w[..., None] * jt, jt)
-    gu = -np.einsum("nki,nk->ki", w[..., None] * jt, e)
+    wje = wj * e
+    gx = -dgps * inv_g2 - wje[:3].sum(axis=1).T
+    cost = 0.5 * inv_g2 * float(np.vdot(dgps, dgps)) + float(rho.sum())
+    if params.estimate_bias:
+        o_xt = wj[:3, None] * jac[None, 3:]
+        o_tt = wj[3:, None] * jac[None, 3:]
+    else:
+        # J_θ = −J_x[:d]: the coupling and user blocks are slices of O
+        o_xt = -o_xx[:, : prob.user_dim]
+        o_tt = o_xx[: prob.user_dim, : prob.user_dim]
+    # H_(n,k) = w J_xᵀ J_θ: (3, p, K, n) -> (3, n, K·p)
+    hxu = o_xt.transpose(0, 3, 2, 1).reshape(3, n, k_all * p)
+    # H_kk = Σ_n w J_θᵀ J_θ: (p, p, K) -> (K, p, p)
+    huu_blocks = o_tt.sum(axis=3).transpose(2, 0, 1)
+    gu = -wje[3:].sum(axis=2).T
     if params.estimate_bias:
         inv_b2 = 1.0 / params.bias_prior_sigma_m**2
         bias = theta[:, -1]
         huu_blocks[:, -1, -1] += inv_b2
         gu[:, -1] -= bias * inv_b2
         cost += 0.5 * inv_b2 * float(np.sum(bias[active] ** 2))
-    inactive = ~active
-    if np.any(inactive):
+    if not active.all():
+        inactive = ~active
         huu_blocks[inactive] = np.eye(p)
         gu[inactive] = 0.0
     huu = np.zeros((k_all, p, k_all, p))
-    kk = np.arange(k_all)
-    huu[kk, :, kk, :] = huu_blocks
+    np.einsum("kikj->kij", huu)[...] = huu_blocks  # block diagonal (a writable diagonal view)
     huu = huu.reshape(k_all * p, k_all * p)
     gu = gu.ravel()
     off = None
     if prob.use_motion:
         inv_m2 = 1.0 / params.motion_sigma_m**2
-        om = prob.odom_mask[1:]
+        om = prob.odom_mask[1:n]
         # e_m = (x_n − x_(n−1) − ô_n)/σ_m for linked pairs
-        em = (x[1:] - x[:-1] - prob.odom_enu_m[1:]) * om[:, None]
-        cost += 0.5 * inv_m2 * float(np.einsum("ni,ni->", em, em))
+        em = (x[1:] - x[:-1] - prob.odom_enu_m[1:n]) * om[:, None]
+        cost += 0.5 * inv_m2 * float(np.vdot(em, em))
         add = inv_m2 * om
-        idx = np.arange(3)
-        hxx[1:, idx, idx] += add[:, None]
-        hxx[:-1, idx, idx] += add[:, None]
+        hxx.reshape(n, 9)[1:, ::4] += add[:, None]
+        hxx.reshape(n, 9)[:-1, ::4] += add[:, None]
         off = -add
         gx[1:] -= inv_m2 * em
         gx[:-1] += inv_m2 * em
@@ -179,7 +196,7 @@ def linearize(
         cost += float(prior.grad @ dz + 0.5 * dz @ prior.info @ dz)
         if prior.has_x:
             hxx[0] += prior.info[:3, :3]
-            hxu[0] += prior.info[:3, 3:]
+            hxu[:, 0, :] += prior.info[:3, 3:]
             gx[0] -= grad[:3]
             huu += prior.info[3:, 3:]
             gu -= grad[3:]
@@ -201,7 +218,7 @@ class _Result:
 
 def levenberg_marquardt(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
-    max_iterations: int | None = None,
+    max_iterations: int | None = None, step_tol_m: float | None = None,
 ) -> _Result:
     """Minimise L from (x, Θ); stop when the largest step component is below params.step_tol_m.
 
@@ -210,7 +227,7 @@ def levenberg_marquardt(
     """
     params = prob.params
     max_it = params.max_iterations if max_iterations is None else max_iterations
-    tol = params.step_tol_m
+    tol = params.step_tol_m if step_tol_m is None else step_tol_m
     lin = linearize(prob, x, theta, active, prior)
     lam = 0.0
     s_final = None
@@ -290,21 +307,30 @@ def _covariances(
     info = np.zeros((k_all * d, k_all * d))
     if s is None or not np.any(active):
         return cov, info, None
-    ia = np.flatnonzero(np.repeat(active, p))
+    all_active = bool(active.all())
+    s_a = s if all_active else s[np.ix_(np.repeat(active, p), np.repeat(active, p))]
     try:
-        c = np.linalg.cholesky(s[np.ix_(ia, ia)])
-        c_inv = np.linalg.inv(c)
-        cov_a = c_inv.T @ c_inv
+        np.linalg.cholesky(s_a)
+        cov_a = np.linalg.inv(s_a)
     except np.linalg.LinAlgError:
         return cov, info, None
-    ka = np.flatnonzero(active)
-    na = ka.size
+    cov_a = 0.5 * (cov_a + cov_a.T)
+    na = s_a.shape[0] // p
     cov_a4 = cov_a.reshape(na, p, na, p)
-    cov[ka] = cov_a4[np.arange(na), :d, np.arange(na), :d]
-    cov_pos = cov_a4[:, :d, :, :d].reshape(na * d, na * d)
-    info_pos = np.linalg.inv(cov_pos) if p != d else s[np.ix_(ia, ia)]
-    ip = (ka[:, None] * d + np.arange(d)[None, :]).ravel()
-    info[np.ix_(ip, ip)] = 0.5 * (info_pos + info_pos.T)
+    blocks = np.einsum("kikj->kij", cov_a4)[:, :d, :d]
+    if p == d:
+        info_pos = s_a
+    else:
+        info_pos = np.linalg.inv(cov_a4[:, :d, :, :d].reshape(na * d, na * d))
+        info_pos = 0.5 * (info_pos + info_pos.T)
+    if all_active:
+        cov[:] = blocks
+        info[:] = info_pos
+    else:
+        ka = np.flatnonzero(active)
+        cov[ka] = blocks
+        ip = (ka[:, None] * d + np.arange(d)[None, :]).ravel()
+        info[np.ix_(ip, ip)] = info_pos
     return cov, info, cov_a
 
 
@@ -336,10 +362,7 @@ def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Pri
     """Mirror tests; a user whose mirror fits clearly better (Δχ² < −χ²_amb) jumps there and
     the problem is re-solved once. Returns (result, mirror tests)."""
     mirrors = _mirror_all(prob, res.theta, active)
-    flip = [
-        k for k, mt in enumerate(mirrors)
-        if mt is not None and mt.mirror_theta is not None and mt.delta_chi2 < -prob.params.ambiguity_chi2
-    ]
+    flip = [k for k, mt in enumerate(mirrors) if mt is not None and mt.mirror_is_better(prob.params.ambiguity_chi2)]
     if flip:
         theta = res.theta.copy()
         for k in flip:
@@ -462,7 +485,10 @@ class OnlineEstimator:
         for k in np.flatnonzero(newly):
             self._theta[k] = _init_theta(prob, self._x[: self._n], prob.mask, k)
             self._active[k] = True
-        res = levenberg_marquardt(prob, self._x[: self._n].copy(), self._theta, self._active, self._prior)
+        res = levenberg_marquardt(
+            prob, self._x[: self._n].copy(), self._theta, self._active, self._prior,
+            step_tol_m=self._params.online_step_tol_m,
+        )
         self._x[: self._n] = res.x
         self._theta = res.theta
         if np.any(newly) or self._seen % max(int(self._params.online_check_every), 1) == 0:
@@ -479,7 +505,7 @@ class OnlineEstimator:
         chi2 = self._params.ambiguity_chi2
         flipped = False
         for k, mt in enumerate(mirrors):
-            if mt is None or mt.mirror_theta is None or mt.delta_chi2 >= -chi2:
+            if mt is None or not mt.mirror_is_better(chi2):
                 continue
             theta = res.theta.copy()
             theta[k] = mt.mirror_theta
@@ -526,11 +552,12 @@ class OnlineEstimator:
         dim = 6 + pu
         h = np.zeros((dim, dim))
         grad = np.zeros(dim)
-        mask0 = prob.mask[:1] & self._active[None, :]
-        e, w, _rho, jx, jt = _range_terms(prob, x[:1], theta, mask0)
-        jx0 = jx[0] * np.sqrt(w[0])[:, None]  # (K, 3)
-        jt0 = jt[0] * np.sqrt(w[0])[:, None]  # (K, p)
-        ew = e[0] * np.sqrt(w[0])
+        mask0 = prob.mask[:1].T & self._active[:, None]
+        e, w, _rho, jac = _range_terms(prob, x[:1], theta, mask0)
+        sw = np.sqrt(w[:, 0])[:, None]
+        jx0 = jac[:3, :, 0].T * sw  # (K, 3)
+        jt0 = jac[3:, :, 0].T * sw  # (K, p)
+        ew = e[:, 0] * sw[:, 0]
         jfull = np.zeros((k_all, dim))
         jfull[:, :3] = jx0
         for k in range(k_all):

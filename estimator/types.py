@@ -32,6 +32,9 @@ class SolverParams:
     ambiguity_chi2: a user is flagged ambiguous when its mirror solution costs less than this
         much more, 2·(L(mirror) − L(estimate)) < ambiguity_chi2 (estimator.init).
     online_check_every: the online estimator re-runs the mirror test every this many keyframes.
+    online_step_tol_m: step size at which an online update stops iterating (the batch solver
+        uses step_tol_m). Iterations shrink the step about 10× each, so the error left is about
+        a tenth of this; set it to step_tol_m to make online and batch agree to that level.
     """
 
     loss: LossName = "huber"
@@ -46,6 +49,7 @@ class SolverParams:
     window: int = 100
     ambiguity_chi2: float = 9.0
     online_check_every: int = 10
+    online_step_tol_m: float = 0.01
 
 
 @dataclass(frozen=True)

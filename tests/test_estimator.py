@@ -1,0 +1,304 @@
+"""SLAM estimator: Schur solve vs dense reference, online vs batch, statistics vs CRLB, robustness,
+mirror ambiguity, bad input. All problems are simulated with fixed seeds (estimator.simulate)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.crlb import crlb_users
+from estimator.factors import dense_normal_equations
+from estimator.noise import NoiseModel
+from estimator.problem import pack_keyframes
+from estimator.schur import schur_solve
+from estimator.simulate import simulate
+from estimator.slam import OnlineEstimator, linearize, solve_batch
+from estimator.types import Keyframe, SolverParams
+from uavloc.errors import EstimatorError
+
+NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
+NOISE_DD = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.5, b_per_m=0.01)
+
+
+def _user_errors(est, sc):
+    return np.linalg.norm(est.users_enu_m[:, :2] - sc.users_enu_m[:, :2], axis=1)
+
+
+def _nees(est, sc):
+    err = est.users_enu_m[:, :2] - sc.users_enu_m[:, :2]
+    return np.array([e @ np.linalg.solve(c, e) for e, c in zip(err, est.cov_users_m2, strict=True)])
+
+
+# --- Schur complement against the dense normal equations ---------------------------------------
+
+
+def _dense_from_blocks(lin, n, pu):
+    """Assemble the full normal matrix from the solver's blocks (to check linearize itself)."""
+    h = np.zeros((3 * n + pu, 3 * n + pu))
+    for i in range(n):
+        h[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = lin.hxx[i]
+        h[3 * i : 3 * i + 3, 3 * n :] = lin.hxu[:, i, :]
+        if lin.off is not None and i + 1 < n:
+            h[3 * i : 3 * i + 3, 3 * i + 3 : 3 * i + 6] = np.eye(3) * lin.off[i]
+    h[3 * n :, : 3 * n] = h[: 3 * n, 3 * n :].T
+    h[3 * n + 3 * 0 :, 3 * n :] = lin.huu
+    h[: 3 * n, : 3 * n] = np.triu(h[: 3 * n, : 3 * n]) + np.triu(h[: 3 * n, : 3 * n], 1).T
+    g = np.concatenate([lin.gx.ravel(), lin.gu])
+    return h, g
+
+
+@pytest.mark.parametrize(
+    "params,noise",
+    [
+        (SolverParams(loss="none"), NOISE),
+        (SolverParams(loss="huber"), NOISE_DD),
+        (SolverParams(loss="cauchy", estimate_bias=True), NOISE),
+        (SolverParams(loss="huber", motion_sigma_m=0.2), NOISE),
+        (SolverParams(loss="huber", user_dim=3, estimate_bias=True, motion_sigma_m=0.3), NOISE_DD),
+    ],
+    ids=["plain", "huber-sigma-of-d", "cauchy-bias", "huber-motion", "3d-bias-motion"],
+)
+@pytest.mark.parametrize("lam", [0.0, 1e-2])
+def test_schur_solve_and_covariance_match_dense_reference(params, noise, lam):
+    sc = simulate(np.random.default_rng(11), n_users=3, n_keyframes=25, p_visible=0.8, p_nlos=0.2,
+                  noise=noise, odom_sigma_m=0.1)
+    prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, noise, params)
+    rng = np.random.default_rng(12)
+    x = sc.uav_enu_m + rng.normal(size=sc.uav_enu_m.shape)
+    theta = np.zeros((3, prob.p))
+    theta[:, : prob.user_dim] = sc.users_enu_m[:, : prob.user_dim] + rng.normal(size=(3, prob.user_dim)) * 3
+    if params.estimate_bias:
+        theta[:, -1] = rng.normal(size=3)
+    active = np.ones(3, dtype=bool)
+    lin = linearize(prob, x, theta, active)
+    h_ref, g_ref, cost_ref = dense_normal_equations(prob, x, theta, active)
+    n, pu = prob.n_keyframes, 3 * prob.p
+    h_blk, g_blk = _dense_from_blocks(lin, n, pu)
+    scale = np.max(np.abs(h_ref))
+    np.testing.assert_allclose(h_blk, h_ref, rtol=1e-9, atol=1e-12 * scale)
+    np.testing.assert_allclose(g_blk, g_ref, rtol=1e-9, atol=1e-12 * np.max(np.abs(g_ref)))
+    assert lin.cost == pytest.approx(cost_ref, rel=1e-12)
+
+    dx, du, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, lam)
+    h_damped = h_ref.copy()
+    h_damped[np.diag_indices(3 * n + pu)] *= 1.0 + lam
+    step_ref = np.linalg.solve(h_damped, g_ref)
+    np.testing.assert_allclose(np.concatenate([dx.ravel(), du]), step_ref, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.inv(s), np.linalg.inv(h_damped)[3 * n :, 3 * n :], rtol=1e-9, atol=1e-12)
+
+
+def test_reported_covariance_is_inverse_of_dense_normal_matrix_at_solution():
+    sc = simulate(np.random.default_rng(5), n_users=3, n_keyframes=40)
+    params = SolverParams(step_tol_m=1e-10)
+    est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, params)
+    prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, NOISE, params)
+    theta = est.users_enu_m[:, :2]
+    h, _, _ = dense_normal_equations(prob, est.uav_enu_m, theta, np.ones(3, dtype=bool))
+    cov_ref = np.linalg.inv(h)[3 * 40 :, 3 * 40 :]
+    for k in range(3):
+        np.testing.assert_allclose(est.cov_users_m2[k], cov_ref[2 * k : 2 * k + 2, 2 * k : 2 * k + 2], rtol=1e-6)
+    np.testing.assert_allclose(est.info_users, np.linalg.inv(cov_ref), rtol=1e-6, atol=1e-9)
+
+
+# --- online against batch -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "params",
+    [SolverParams(), SolverParams(estimate_bias=True, motion_sigma_m=0.2)],
+    ids=["default", "bias-motion"],
+)
+def test_online_equals_batch_without_marginalization(params):
+    sc = simulate(np.random.default_rng(21), n_users=4, n_keyframes=80, odom_sigma_m=0.1, p_visible=0.9)
+    tight = SolverParams(**{**params.__dict__, "window": 1000, "step_tol_m": 1e-10, "online_step_tol_m": 1e-10})
+    batch = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, tight)
+    on = OnlineEstimator(4, sc.user_up_m, NOISE, tight)
+    for kf in sc.keyframes:
+        est = on.add_keyframe(kf)
+    assert on.estimate is est
+    np.testing.assert_allclose(est.users_enu_m, batch.users_enu_m, atol=1e-6)
+    np.testing.assert_allclose(est.uav_enu_m, batch.uav_enu_m, atol=1e-6)
+    np.testing.assert_allclose(est.cov_users_m2, batch.cov_users_m2, rtol=1e-5)
+    np.testing.assert_array_equal(est.n_ranges, batch.n_ranges)
+
+
+def test_online_with_marginalization_stays_close_to_batch_with_bounded_window():
+    sc = simulate(np.random.default_rng(22), n_users=4, n_keyframes=300)
+    params = SolverParams(window=40)
+    batch = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, params)
+    on = OnlineEstimator(4, sc.user_up_m, NOISE, params)
+    for kf in sc.keyframes:
+        est = on.add_keyframe(kf)
+        assert est.uav_enu_m.shape[0] <= params.window + 1
+    sigma = np.sqrt(np.trace(batch.cov_users_m2, axis1=1, axis2=2))
+    assert np.all(np.linalg.norm(est.users_enu_m - batch.users_enu_m, axis=1) < 0.2 * sigma)
+    np.testing.assert_allclose(est.cov_users_m2, batch.cov_users_m2, rtol=0.1)
+    assert est.n_ranges.sum() == sum(len(kf.range_m) for kf in sc.keyframes)
+
+
+# --- statistics ---------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_monte_carlo_rmse_close_to_crlb_on_los():
+    sq_err, trace_crlb, nees = [], [], []
+    for seed in range(20):
+        sc = simulate(np.random.default_rng(100 + seed), n_users=5, n_keyframes=120)
+        est = solve_batch(sc.keyframes, 5, sc.user_up_m, NOISE)
+        crlb = crlb_users(sc.uav_enu_m, sc.users_enu_m, sc.visible, NOISE)
+        sq_err.extend(_user_errors(est, sc) ** 2)
+        trace_crlb.extend(np.trace(crlb[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]) for k in range(5))
+        nees.extend(_nees(est, sc))
+    ratio = np.sqrt(np.mean(sq_err) / np.mean(trace_crlb))
+    assert 0.85 < ratio < 1.12, ratio
+    assert 1.5 < np.mean(nees) < 2.6, np.mean(nees)
+
+
+@pytest.mark.slow
+def test_robust_loss_resists_twenty_percent_nlos():
+    err = {"none": [], "huber": [], "cauchy": []}
+    nees = []
+    for seed in range(8):
+        sc = simulate(np.random.default_rng(200 + seed), n_users=5, n_keyframes=150, pattern="lawnmower",
+                      p_nlos=0.2, nlos_mean_m=20.0)
+        for loss in err:
+            est = solve_batch(sc.keyframes, 5, sc.user_up_m, NOISE, SolverParams(loss=loss))
+            err[loss].extend(_user_errors(est, sc))
+            if loss == "huber":
+                nees.extend(_nees(est, sc))
+    mean = {k: float(np.mean(v)) for k, v in err.items()}
+    assert mean["none"] > 2.0, mean
+    assert mean["huber"] < 0.5 * mean["none"], mean
+    assert mean["cauchy"] < 0.5 * mean["none"], mean
+
+
+# --- mirror ambiguity ---------------------------------------------------------------------------
+
+
+def test_straight_line_flagged_ambiguous_with_mirror_across_the_line():
+    sc = simulate(np.random.default_rng(31), n_users=4, n_keyframes=100, pattern="line")
+    est = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE)
+    assert est.ambiguous.all()
+    # the line is the east axis: the mirror is the estimate with north negated, and one of the two
+    # is the truth
+    np.testing.assert_allclose(est.mirror_enu_m[:, 1], -est.users_enu_m[:, 1], atol=2.0)
+    near = np.minimum(
+        np.linalg.norm(est.users_enu_m[:, :2] - sc.users_enu_m[:, :2], axis=1),
+        np.linalg.norm(est.mirror_enu_m[:, :2] - sc.users_enu_m[:, :2], axis=1),
+    )
+    assert np.all(near < 3.0), near
+
+
+@pytest.mark.parametrize("pattern", ["circle", "lawnmower"])
+def test_curved_flight_not_ambiguous(pattern):
+    sc = simulate(np.random.default_rng(32), n_users=4, n_keyframes=150, pattern=pattern)
+    est = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE)
+    assert not est.ambiguous.any()
+    assert np.all(np.isnan(est.mirror_enu_m))
+    assert np.all(_user_errors(est, sc) < 3.0)
+
+
+def test_online_reports_ambiguity_on_a_straight_line():
+    sc = simulate(np.random.default_rng(33), n_users=3, n_keyframes=60, pattern="line")
+    on = OnlineEstimator(3, sc.user_up_m, NOISE)
+    for kf in sc.keyframes:
+        est = on.add_keyframe(kf)
+    assert est.ambiguous.all()
+
+
+# --- other states -------------------------------------------------------------------------------
+
+
+def test_range_bias_is_estimated():
+    sc = simulate(np.random.default_rng(41), n_users=3, n_keyframes=200, bias_m=np.array([4.0, 6.0, 2.0]))
+    est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, SolverParams(estimate_bias=True))
+    # within 3σ of the reported bias uncertainty (joint covariance of θ_k = [e, n, b])
+    sigma_b = np.sqrt(np.diag(est.extra["cov_theta_joint"])[2::3])
+    assert np.all(np.abs(est.bias_m - [4.0, 6.0, 2.0]) < 3 * sigma_b), (est.bias_m, sigma_b)
+    assert np.all(sigma_b < 2.5)
+    assert np.all(_user_errors(est, sc) < 2.0)
+    assert est.info_users.shape == (6, 6)
+
+
+def test_motion_factors_tighten_the_track():
+    sc = simulate(np.random.default_rng(42), n_users=3, n_keyframes=150, odom_sigma_m=0.05)
+    plain = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE)
+    moto = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, SolverParams(motion_sigma_m=0.05))
+    err_plain = np.sqrt(np.mean((plain.uav_enu_m - sc.uav_enu_m) ** 2))
+    err_moto = np.sqrt(np.mean((moto.uav_enu_m - sc.uav_enu_m) ** 2))
+    assert err_moto < 0.5 * err_plain, (err_moto, err_plain)
+
+
+def test_user_without_ranges_gives_nan_row_and_infinite_covariance():
+    sc = simulate(np.random.default_rng(43), n_users=3, n_keyframes=60)
+    kfs = [Keyframe(kf.gps_enu_m, kf.user_idx[kf.user_idx != 2], kf.range_m[kf.user_idx != 2]) for kf in sc.keyframes]
+    est = solve_batch(kfs, 3, sc.user_up_m, NOISE)
+    assert np.all(np.isnan(est.users_enu_m[2])) and np.all(np.isfinite(est.users_enu_m[:2]))
+    assert np.all(np.isinf(est.cov_users_m2[2])) and np.all(np.isfinite(est.cov_users_m2[:2]))
+    assert est.n_ranges[2] == 0 and not est.ambiguous[2]
+    on = OnlineEstimator(3, sc.user_up_m, NOISE)
+    first = on.add_keyframe(kfs[0])
+    assert np.all(np.isnan(first.users_enu_m))
+    for kf in kfs[1:]:
+        est = on.add_keyframe(kf)
+    assert np.all(np.isnan(est.users_enu_m[2])) and np.all(np.isinf(est.error_bound_95_m()[2]))
+
+
+# --- bad input ----------------------------------------------------------------------------------
+
+
+def _kf(**kw):
+    base = {"gps_enu_m": np.array([0.0, 0.0, 30.0]), "user_idx": np.array([0, 1]), "range_m": np.array([50.0, 60.0])}
+    base.update(kw)
+    return Keyframe(**base)
+
+
+@pytest.mark.parametrize(
+    "kf,match",
+    [
+        (_kf(range_m=np.array([np.nan, 60.0])), "nan"),
+        (_kf(range_m=np.array([50.0, np.inf])), "inf"),
+        (_kf(range_m=np.array([-3.0, 60.0])), "-3.0"),
+        (_kf(gps_enu_m=np.array([0.0, 0.0])), r"\(2,\)"),
+        (_kf(gps_enu_m=np.array([0.0, np.nan, 1.0])), "nan"),
+        (_kf(user_idx=np.array([0, 5])), "user index 5"),
+        (_kf(user_idx=np.array([1, 1])), "twice"),
+        (_kf(user_idx=np.array([0]), range_m=np.array([1.0, 2.0])), "equal length"),
+        (_kf(odom_enu_m=np.array([1.0, np.inf, 0.0])), "odom"),
+    ],
+    ids=["nan-range", "inf-range", "negative-range", "gps-shape", "gps-nan", "user-index", "duplicate", "length",
+         "odom"],
+)
+def test_bad_keyframe_rejected_with_offending_value(kf, match):
+    with pytest.raises(EstimatorError, match=match):
+        solve_batch([_kf(), kf], 2, np.zeros(2), NOISE)
+    on = OnlineEstimator(2, np.zeros(2), NOISE)
+    with pytest.raises(EstimatorError, match=match):
+        on.add_keyframe(kf)
+
+
+@pytest.mark.parametrize(
+    "call,match",
+    [
+        (lambda: solve_batch([], 2, np.zeros(2), NOISE), "at least one keyframe"),
+        (lambda: solve_batch([_kf()], 2, np.zeros(3), NOISE), r"shape \(2,\)"),
+        (lambda: solve_batch([_kf()], 0, np.zeros(0), NOISE), "n_users"),
+        (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, SolverParams(loss="tukey")), "tukey"),
+        (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, SolverParams(user_dim=4)), "user_dim"),
+        (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, init_users_enu_m=np.zeros((3, 3))), r"\(3, 3\)"),
+        (lambda: OnlineEstimator(2, np.array([0.0, np.nan]), NOISE), "nan"),
+        (lambda: OnlineEstimator(2, np.zeros(2), NOISE, SolverParams(window=1)), "window"),
+        (lambda: crlb_users(np.zeros((4, 2)), np.zeros((2, 3)), np.ones((4, 2), bool), NOISE), r"\(N, 3\)"),
+    ],
+    ids=["empty", "up-shape", "no-users", "loss", "user-dim", "init-shape", "online-up", "window", "crlb-shape"],
+)
+def test_bad_arguments_rejected(call, match):
+    with pytest.raises(EstimatorError, match=match):
+        call()
+
+
+def test_given_initial_users_are_used():
+    sc = simulate(np.random.default_rng(44), n_users=2, n_keyframes=80)
+    init = sc.users_enu_m + np.array([3.0, -2.0, 0.0])
+    est = solve_batch(sc.keyframes, 2, sc.user_up_m, NOISE, init_users_enu_m=init)
+    assert np.all(_user_errors(est, sc) < 2.0)

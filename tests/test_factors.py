@@ -1,0 +1,105 @@
+"""Factors: zero error at consistent values, analytic Jacobians against central differences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.factors import BiasPriorFactor, GpsPriorFactor, MotionFactor, RangeFactor
+from estimator.noise import NoiseModel
+from estimator.numdiff import numerical_jacobian
+from estimator.problem import pack_keyframes
+from estimator.simulate import simulate
+from estimator.slam import _range_terms
+from estimator.types import SolverParams
+
+# a distance-dependent spread so that ∂σ/∂d enters the range Jacobian
+NOISE_DD = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.5, b_per_m=0.01)
+
+
+def test_gps_prior_zero_error_at_consistent_values():
+    f = GpsPriorFactor(np.array([1.0, 2.0, 30.0]), 1.5)
+    np.testing.assert_array_equal(f.error(np.array([1.0, 2.0, 30.0])), np.zeros(3))
+
+
+def test_gps_prior_jacobian_matches_central_differences():
+    f = GpsPriorFactor(np.array([1.0, 2.0, 30.0]), 1.5)
+    x = np.array([2.0, -1.0, 33.0])
+    np.testing.assert_allclose(f.jacobian(x), numerical_jacobian(f.error, x), atol=1e-8)
+
+
+@pytest.mark.parametrize("user_dim", [2, 3])
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_range_zero_error_at_consistent_values(user_dim, with_bias):
+    x = np.array([10.0, -20.0, 35.0])
+    u = np.array([60.0, 40.0, 1.5])
+    b = 2.5 if with_bias else 0.0
+    theta = np.r_[u[:user_dim], [b] if with_bias else []]
+    f = RangeFactor(float(np.linalg.norm(x - u)) + b, NOISE_DD, user_dim, u[2], with_bias)
+    assert abs(f.error(x, theta)) < 1e-12
+
+
+@pytest.mark.parametrize("noise", [NoiseModel(), NOISE_DD], ids=["const-sigma", "sigma-of-d"])
+@pytest.mark.parametrize("user_dim", [2, 3])
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_range_jacobian_matches_central_differences(noise, user_dim, with_bias):
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        x = rng.normal(size=3) * 40 + np.array([0, 0, 35])
+        theta = np.r_[rng.normal(size=user_dim) * 60, rng.normal(size=1) * 3 if with_bias else []]
+        # a residual far from zero, so the r·σ'(d) term of α matters
+        f = RangeFactor(100.0 + rng.uniform(0, 40), noise, user_dim, 1.0, with_bias)
+        jx, jt = f.jacobian(x, theta)
+        num_x = numerical_jacobian(lambda v, f=f, t=theta: f.error(v, t), x)[0]
+        num_t = numerical_jacobian(lambda v, f=f, xx=x: f.error(xx, v), theta)[0]
+        np.testing.assert_allclose(jx, num_x, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(jt, num_t, rtol=1e-6, atol=1e-9)
+
+
+def test_bias_prior_jacobian_matches_central_differences():
+    f = BiasPriorFactor(10.0)
+    assert f.error(0.0) == 0.0
+    num = numerical_jacobian(lambda v: f.error(v[0]), np.array([3.0]))[0, 0]
+    np.testing.assert_allclose(f.jacobian(3.0), num, rtol=1e-8)
+
+
+def test_motion_zero_error_and_jacobian_matches_central_differences():
+    f = MotionFactor(np.array([2.0, 0.5, -0.1]), 0.1)
+    x0 = np.array([1.0, 1.0, 30.0])
+    np.testing.assert_allclose(f.error(x0, x0 + f.odom_enu_m), np.zeros(3), atol=1e-12)
+    x1 = x0 + np.array([2.3, 0.2, 0.4])
+    j0, j1 = f.jacobian(x0, x1)
+    np.testing.assert_allclose(j0, numerical_jacobian(lambda v: f.error(v, x1), x0), atol=1e-7)
+    np.testing.assert_allclose(j1, numerical_jacobian(lambda v: f.error(x0, v), x1), atol=1e-7)
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+@pytest.mark.parametrize("user_dim", [2, 3])
+def test_vectorised_range_jacobian_matches_central_differences(estimate_bias, user_dim):
+    """The solver's batched (K, N) residuals and Jacobians, not only the factor objects."""
+    sc = simulate(np.random.default_rng(3), n_users=3, n_keyframes=12, p_visible=0.7)
+    params = SolverParams(user_dim=user_dim, estimate_bias=estimate_bias)
+    prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, NOISE_DD, params)
+    rng = np.random.default_rng(4)
+    x = sc.uav_enu_m + rng.normal(size=sc.uav_enu_m.shape)
+    theta = np.zeros((3, prob.p))
+    theta[:, :user_dim] = sc.users_enu_m[:, :user_dim] + rng.normal(size=(3, user_dim)) * 5
+    if estimate_bias:
+        theta[:, -1] = rng.normal(size=3)
+    mask = prob.mask.T.copy()
+    e, _w, _rho, jac = _range_terms(prob, x, theta, mask)
+    for k in range(3):
+        for n in np.flatnonzero(mask[k])[:4]:
+            def e_of_x(v, n=n, k=k):
+                xx = x.copy()
+                xx[n] = v
+                return _range_terms(prob, xx, theta, mask)[0][k, n]
+
+            def e_of_t(v, k=k, n=n):
+                tt = theta.copy()
+                tt[k] = v
+                return _range_terms(prob, x, tt, mask)[0][k, n]
+
+            np.testing.assert_allclose(jac[:3, k, n], numerical_jacobian(e_of_x, x[n])[0], rtol=1e-6, atol=1e-9)
+            np.testing.assert_allclose(jac[3:, k, n], numerical_jacobian(e_of_t, theta[k])[0], rtol=1e-6, atol=1e-9)
+    assert np.all(e[~mask] == 0) and np.all(jac[:, ~mask] == 0)
