@@ -227,3 +227,69 @@ def test_raw_link_two_targets_and_malformed_command() -> None:
     finally:
         for s in socks:
             s.close()
+
+
+def test_timestamps_run_at_speedup_while_heartbeats_keep_wall_rate() -> None:
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from sitl_scenarios.vehicle import VehicleSimulator
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as gcs:
+        gcs.bind(("127.0.0.1", 0))
+        gcs.settimeout(0.2)
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        stamps: list[tuple[float, int]] = []
+        heartbeats = 0
+        with VehicleSimulator(ORIGIN, speedup=8.0, target=gcs.getsockname(), bind=("127.0.0.1", 0)):
+            t_end = time.monotonic() + 2.0
+            while time.monotonic() < t_end:
+                try:
+                    data, _ = gcs.recvfrom(65535)
+                except TimeoutError:
+                    continue
+                for m in parser.parse_buffer(data) or []:
+                    if m.get_type() == "ATTITUDE":
+                        stamps.append((time.monotonic(), m.time_boot_ms))
+                    elif m.get_type() == "HEARTBEAT":
+                        heartbeats += 1
+    (w0, b0), (w1, b1) = stamps[0], stamps[-1]
+    assert (b1 - b0) / 1000.0 / (w1 - w0) == pytest.approx(8.0, rel=0.15)
+    # 1 Hz of vehicle time is 8 Hz on the wire; the cap (25 Hz) does not bind
+    assert 12 <= heartbeats <= 20
+    # ATTITUDE at 10 Hz vehicle time would be 80 Hz: capped at 25 Hz on the wire
+    assert len(stamps) / 2.0 <= 27
+
+
+def test_failure_in_the_simulation_thread_surfaces_on_stop_and_state() -> None:
+    from sitl_scenarios.vehicle import VehicleSimulator
+    from uavloc.errors import SimulatorError
+
+    sim = VehicleSimulator(ORIGIN, target=None, bind=("127.0.0.1", 0))
+
+    def broken(now: float) -> None:
+        raise RuntimeError("physics exploded")
+
+    sim._tick = broken  # type: ignore[method-assign]
+    sim.start()
+    with pytest.raises(SimulatorError):
+        sim.start()  # already started
+    deadline = time.monotonic() + 5.0
+    while sim._error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    with pytest.raises(SimulatorError, match="physics exploded"):
+        sim.state()
+    with pytest.raises(SimulatorError, match="physics exploded"):
+        sim.stop()
+    sim.stop()  # once reported, stopping again is quiet
+
+
+def test_bind_failure_is_a_simulator_error() -> None:
+    from sitl_scenarios.vehicle import VehicleSimulator
+    from uavloc.errors import SimulatorError
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        sim = VehicleSimulator(ORIGIN, target=None, bind=taken.getsockname())
+        with pytest.raises(SimulatorError, match="cannot bind"):
+            sim.start()
