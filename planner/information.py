@@ -75,24 +75,28 @@ def _info_from_cov(cov: np.ndarray) -> np.ndarray:
 def hypotheses_from_estimate(
     estimate: Estimate,
     user_weights: np.ndarray | None = None,
-    sigma_points: bool = True,
-    kappa: float = 1.0,
+    sigma_points: str = "major",
+    kappa: float = 2.0,
     max_offset_m: float = 30.0,
     users: np.ndarray | None = None,
 ) -> Hypotheses:
     """Samples of the initialised users' posterior (or of `users`, a (K,) bool mask).
 
-    Sigma points (unscented, d dims): u, u ± sqrt((d + κ) λ_i) v_i (Σ = Σ λ_i v_i v_iᵀ) with weights
-    κ/(d + κ) and 1/(2(d + κ)); offsets capped at `max_offset_m`. While user k is ambiguous, the
-    same set around the mirror solution with Σ reflected (R = I − 2nnᵀ, n along mirror − u), each set
-    weighted ½. Every user gets M = (2d + 1)·(2 if any ambiguity else 1) samples (unused ones
-    weight 0) so the sizes are fixed.
+    Sigma points (unscented along r axes): u, u ± sqrt((r + κ) λ_i) v_i for the r eigen-axes used
+    (Σ = Σ λ_i v_i v_iᵀ; "major": the largest only, r = 1; "all": r = d; "none": the mean only),
+    weights κ/(r + κ) and 1/(2(r + κ)); offsets capped at `max_offset_m`. While user k is ambiguous,
+    the same set around the mirror solution with Σ reflected (R = I − 2nnᵀ, n along mirror − u),
+    each set weighted ½. Every user gets M = (2r + 1)·(2 if any user is ambiguous else 1) samples
+    (unused ones weight 0) so the sizes are fixed.
     """
+    if sigma_points not in ("major", "all", "none"):
+        raise ValueError(f"sigma_points must be 'major', 'all' or 'none', got {sigma_points!r}")
     mask = users_initialised(estimate) if users is None else np.asarray(users, dtype=bool)
     idx = np.flatnonzero(mask)
     d = int(estimate.cov_users_m2.shape[1])
+    r = {"major": 1, "all": d, "none": 0}[sigma_points]
     amb = np.asarray(estimate.ambiguous, dtype=bool) & np.all(np.isfinite(estimate.mirror_enu_m), axis=1)
-    n_set = 2 * d + 1 if sigma_points else 1
+    n_set = 2 * r + 1
     n_hyp = 2 if np.any(amb[idx]) else 1
     M = n_set * n_hyp
     K = len(idx)
@@ -110,22 +114,18 @@ def hypotheses_from_estimate(
         share = 1.0 / len(centres)
         for h, (centre, R) in enumerate(centres):
             cov_h = R @ cov @ R.T
-            info_h = _info_from_cov(cov_h)
             s0 = h * n_set
-            U[row, s0] = centre
-            P[row, s0:s0 + n_set] = info_h
-            if not sigma_points:
-                W[row, s0] = share
-                continue
-            W[row, s0] = share * kappa / (d + kappa)
+            U[row, s0:s0 + n_set] = centre
+            P[row, s0:s0 + n_set] = _info_from_cov(cov_h)
+            W[row, s0] = share * (kappa / (r + kappa) if r else 1.0)
             lam, vec = np.linalg.eigh(0.5 * (cov_h + cov_h.T))
-            for i in range(d):
-                offset = np.sqrt((d + kappa) * max(lam[i], 0.0)) * vec[:, i]
+            for i in range(r):
+                axis = d - 1 - i  # largest eigenvalues first
+                offset = np.sqrt((r + kappa) * max(lam[axis], 0.0)) * vec[:, axis]
                 scale = min(1.0, max_offset_m / max(np.linalg.norm(offset), 1e-12))
                 for sgn, j in ((1.0, 1 + 2 * i), (-1.0, 2 + 2 * i)):
-                    U[row, s0 + j] = centre
                     U[row, s0 + j, :d] += sgn * scale * offset
-                    W[row, s0 + j] = share / (2 * (d + kappa))
+                    W[row, s0 + j] = share / (2 * (r + kappa))
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)[idx]
     return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx)
 

@@ -1,0 +1,378 @@
+"""The active planner: the next waypoint from the information objective, by CasADi + IPOPT (DESIGN.md §6).
+
+Objective (planner.information; normalised by its value before the leg, J₀, so IPOPT sees O(1)):
+
+    min_p  Σ_k w_k Σ_s c_ks f(I_ks(p)) / J₀  +  cost_rel · ℓ(p) / leg_max,     ℓ(p) = |p − x_c|
+
+    s.t.   min_leg² ≤ |p − x_c|² ≤ cap²,  cap = min(leg_max, budget left)       (leg length)
+           alt_min ≤ p_up ≤ alt_max                                             (altitude band)
+           |p_en − home_en|² ≤ R_max²                                           (distance from home)
+           ℓ(p) + return_factor · |p − home| ≤ energy                            (return home)
+           A p_en ≤ c                                                            (convex free cell)
+
+The fence may be non-convex and no-fly zones cut holes, so each IPOPT start gets its own convex
+cell around its seed leg (planner.geometry.convex_cell): any p in the cell has a straight leg from
+x_c inside the free space. Starts: the best few feasible candidates of a coarse ring (24 headings
+× 3 lengths × 3 altitudes, evaluated in numpy) with distinct headings, plus the previous plan's
+heading (warm start). The answer is the best, by the numpy objective, of the IPOPT solutions that
+pass the exact check and the best ring candidate — so it is never worse than the ring, and it is
+never infeasible (the base class re-checks it).
+
+Users the estimator has not initialised: while none can be planned for, or all planned-for users
+already meet the target, the planner explores (planner.information.explore_waypoint).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from estimator.noise import NoiseModel
+from planner.base import BasePlanner
+from planner.geometry import convex_cell, legs_feasible
+from planner.information import (
+    Hypotheses,
+    explore_waypoint,
+    hypotheses_from_estimate,
+    hypotheses_from_truth,
+    objective_values,
+    prior_value,
+    users_initialised,
+)
+from planner.types import PlanningConstraints, PlanningState
+from uavloc.errors import PlannerError
+
+log = logging.getLogger(__name__)
+
+_IPOPT_OPTS = {
+    "ipopt.print_level": 0,
+    "ipopt.sb": "yes",
+    "print_time": False,
+    "ipopt.max_iter": 60,
+    "ipopt.tol": 1e-4,
+    "ipopt.acceptable_tol": 1e-3,
+    "ipopt.acceptable_iter": 5,
+    # the starts are feasible and near an optimum: a small barrier start saves most iterations
+    "ipopt.mu_init": 1e-4,
+    "ipopt.bound_push": 1e-6,
+    "ipopt.bound_frac": 1e-6,
+    "error_on_fail": False,
+}
+#: ε added under square roots [m²] (numpy and CasADi use the same value).
+_SQRT_EPS_M2 = 1e-9
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Sizes that fix the structure of one CasADi problem (one cached solver per layout)."""
+
+    n_users: int
+    n_samples: int
+    dim: int
+    n_quad: int
+    n_planes: int
+    criterion: str
+
+
+def objective_expr(p, x_c, U, wts, P, noise_par, delta, lay: _Layout):
+    """CasADi expression of Σ_km wts_km f(I_km(p)) for one leg x_c → p (see planner.information).
+
+    p, x_c: 3×1; U: (K·M)×3 sample positions; wts: (K·M)×1; P: (K·M)×(d·d) prior information
+    (row-major); noise_par: [s0, a, b, σ_gps²]; returns (objective, leg length ℓ).
+    """
+    n_q, d = lay.n_quad, lay.dim
+    km = lay.n_users * lay.n_samples
+    diff = p - x_c
+    length = ca.sqrt(ca.sumsqr(diff) + _SQRT_EPS_M2)
+    t = (np.arange(n_q) + 0.5) / n_q
+    # quadrature points m_q = x_c + t_q (p − x_c), one row per q: Q×3
+    pts = ca.repmat(x_c.T, n_q, 1) + ca.DM(t) @ diff.T
+    comps = [ca.repmat(pts[:, i].T, km, 1) - ca.repmat(U[:, i], 1, n_q) for i in range(3)]  # (KM)×Q each
+    dist = ca.sqrt(comps[0] ** 2 + comps[1] ** 2 + comps[2] ** 2 + _SQRT_EPS_M2)
+    s0, a, b, sgps2 = noise_par[0], noise_par[1], noise_par[2], noise_par[3]
+    # σ_eff² = (s0 + a e^{b d})² + σ_gps²;  g gᵀ/σ_eff² = diff diffᵀ / (d² σ_eff²)
+    w = 1.0 / (((s0 + a * ca.exp(b * dist)) ** 2 + sgps2) * dist**2)
+    scale = length / (delta * n_q)
+    info = {}
+    for i in range(d):
+        for j in range(i, d):
+            info[i, j] = P[:, i * d + j] + scale * ca.sum2(comps[i] * comps[j] * w)
+    if lay.criterion == "A":
+        if d == 2:
+            # tr(I⁻¹) = (I₀₀ + I₁₁) / (I₀₀ I₁₁ − I₀₁²)
+            f = (info[0, 0] + info[1, 1]) / (info[0, 0] * info[1, 1] - info[0, 1] ** 2)
+        else:
+            i00, i01, i02, i11, i12, i22 = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
+            c00, c11, c22 = i11 * i22 - i12**2, i00 * i22 - i02**2, i00 * i11 - i01**2
+            det = i00 * c00 - i01 * (i01 * i22 - i12 * i02) + i02 * (i01 * i12 - i11 * i02)
+            f = (c00 + c11 + c22) / det
+    else:
+        if d == 2:
+            f = -ca.log(info[0, 0] * info[1, 1] - info[0, 1] ** 2)
+        else:
+            i00, i01, i02, i11, i12, i22 = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
+            det = i00 * (i11 * i22 - i12**2) - i01 * (i01 * i22 - i12 * i02) + i02 * (i01 * i12 - i11 * i02)
+            f = -ca.log(det)
+    return ca.dot(wts, f), length
+
+
+_SOLVERS: dict[_Layout, tuple[ca.Function, ca.Function]] = {}
+
+
+def _solver(lay: _Layout) -> tuple[ca.Function, ca.Function]:
+    """(nlpsol, objective Function) for a layout, built once per process and cached."""
+    if lay in _SOLVERS:
+        return _SOLVERS[lay]
+    km, d, h = lay.n_users * lay.n_samples, lay.dim, lay.n_planes
+    p = ca.SX.sym("p", 3)
+    x_c = ca.SX.sym("x_c", 3)
+    U = ca.SX.sym("U", km, 3)
+    wts = ca.SX.sym("wts", km)
+    P = ca.SX.sym("P", km, d * d)
+    noise_par = ca.SX.sym("noise", 4)
+    delta, lam = ca.SX.sym("delta"), ca.SX.sym("lam")
+    A = ca.SX.sym("A", h, 2)
+    c = ca.SX.sym("c", h)
+    home = ca.SX.sym("home", 3)
+    ret = ca.SX.sym("ret")
+    unc, length = objective_expr(p, x_c, U, wts, P, noise_par, delta, lay)
+    obj = unc + lam * length
+    dhome = p - home
+    g = ca.vertcat(
+        ca.sumsqr(p - x_c),  # leg length²
+        ca.sumsqr(dhome[:2]),  # horizontal distance from home²
+        length + ret * ca.sqrt(ca.sumsqr(dhome) + _SQRT_EPS_M2),  # energy
+        A @ p[:2] - c,  # convex cell
+    )
+    par = ca.vertcat(x_c, ca.vec(U), wts, ca.vec(P), noise_par, delta, lam, ca.vec(A), c, home, ret)
+    nlp = {"x": p, "p": par, "f": obj, "g": g}
+    solver = ca.nlpsol("leg", "ipopt", nlp, _IPOPT_OPTS)
+    fun = ca.Function("objective", [p, par], [obj, ca.gradient(obj, p)])
+    _SOLVERS[lay] = (solver, fun)
+    log.debug("built CasADi solver for %s", lay)
+    return solver, fun
+
+
+def pack_params(
+    lay: _Layout,
+    x_c: np.ndarray,
+    hyp: Hypotheses,
+    noise: NoiseModel,
+    delta_m: float,
+    norm: float,
+    lam: float,
+    A: np.ndarray,
+    c: np.ndarray,
+    home: np.ndarray,
+    return_factor: float,
+) -> np.ndarray:
+    """The parameter vector of :func:`_solver`'s problem (column-major as CasADi's vec)."""
+    km, d = lay.n_users * lay.n_samples, lay.dim
+    U = hyp.users_enu_m.reshape(km, 3)
+    wts = (hyp.user_w[:, None] * hyp.sample_w).reshape(km) / norm
+    P = hyp.prior_info.reshape(km, d * d)
+    A_pad = np.zeros((lay.n_planes, 2))
+    c_pad = np.ones(lay.n_planes)  # 0·p ≤ 1: inactive rows
+    A_pad[: len(A)], c_pad[: len(c)] = A, c
+    return np.concatenate([
+        x_c, U.ravel(order="F"), wts, P.ravel(order="F"),
+        [noise.s0_m, noise.a_m, noise.b_per_m, noise.sigma_gps_m**2], [delta_m, lam],
+        A_pad.ravel(order="F"), c_pad, home, [return_factor],
+    ])
+
+
+class ActivePlanner(BasePlanner):
+    """CasADi/IPOPT next-waypoint planner ("casadi").
+
+    criterion: "A" (trace) or "D" (log-det); cost_rel: λ as the fraction of the current objective
+    a full-length leg must buy back; n_starts: IPOPT starts from the ring (the warm start adds one);
+    n_quad: quadrature points per leg; sigma_points: average over posterior sigma points (and the
+    mirror while ambiguous) rather than the mean only; user_weights: (K,) w_k; max_planes: cap on
+    the convex cell's half-planes.
+    """
+
+    name = "casadi"
+
+    def __init__(
+        self,
+        constraints: PlanningConstraints,
+        noise: NoiseModel,
+        rng_seed: int = 0,
+        criterion: str = "A",
+        cost_rel: float = 0.05,
+        n_starts: int = 1,
+        n_quad: int = 8,
+        sigma_points: str = "major",
+        user_weights: np.ndarray | None = None,
+        max_planes: int = 24,
+    ) -> None:
+        super().__init__(constraints, noise, rng_seed)
+        if criterion not in ("A", "D"):
+            raise PlannerError(f"criterion must be 'A' or 'D', got {criterion!r}")
+        if n_starts < 1 or n_quad < 2 or cost_rel < 0:
+            raise PlannerError(f"need n_starts >= 1, n_quad >= 2, cost_rel >= 0; got {n_starts}, {n_quad}, {cost_rel}")
+        self.criterion = criterion
+        self.cost_rel = float(cost_rel)
+        self.n_starts = int(n_starts)
+        self.n_quad = int(n_quad)
+        self.sigma_points = sigma_points
+        self.user_weights = None if user_weights is None else np.asarray(user_weights, dtype=float)
+        self.max_planes = int(max_planes)
+        self._visited: list[np.ndarray] = []
+        self._prev_dir: np.ndarray | None = None
+
+    # -- hypotheses ------------------------------------------------------------------------------
+    def hypotheses(self, state: PlanningState) -> Hypotheses | None:
+        """Posterior samples to plan for, or None to explore (see the module docstring)."""
+        est = state.estimate
+        if est is None:
+            return None
+        ok = users_initialised(est)
+        if not ok.any():
+            return None
+        if not ok.all():
+            bound = est.error_bound_95_m()
+            if np.all(bound[ok] <= self.constraints.target_radius_m):
+                return None
+        return hypotheses_from_estimate(est, self.user_weights, sigma_points=self.sigma_points, users=ok)
+
+    def _lambda(self) -> float:
+        return self.cost_rel / self.constraints.leg_max_m
+
+    def evaluate(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
+        """(C,) the normalised objective J/J₀ + λ·ℓ of legs to ends (C, 3) — what IPOPT minimises."""
+        norm = prior_value(hyp, self.criterion)
+        unc = objective_values(state.uav_enu_m, ends_enu_m, hyp, self.noise, self.constraints.delta_m,
+                               self.n_quad, self.criterion)
+        return unc / norm + self._lambda() * np.linalg.norm(ends_enu_m - state.uav_enu_m, axis=1)
+
+    # -- planning --------------------------------------------------------------------------------
+    def _starts(self, state: PlanningState, ring: np.ndarray, values: np.ndarray) -> list[np.ndarray]:
+        """Up to n_starts seeds: best ring candidates with headings ≥ 40° apart, and the warm start."""
+        x = state.uav_enu_m
+        heading = np.arctan2(ring[:, 1] - x[1], ring[:, 0] - x[0])
+        chosen: list[int] = []
+        for i in np.argsort(values):
+            if all(abs(np.angle(np.exp(1j * (heading[i] - heading[j])))) >= np.radians(40) for j in chosen):
+                chosen.append(int(i))
+            if len(chosen) >= self.n_starts:
+                break
+        starts = [ring[i] for i in chosen]
+        if self._prev_dir is not None:
+            cap = self.leg_cap_m(state)
+            warm = x + self._prev_dir * cap
+            warm[2] = np.clip(warm[2], self.constraints.alt_min_m, self.constraints.alt_max_m)
+            if legs_feasible(self.constraints, x, warm[None], cap, state.energy_remaining_m)[0]:
+                starts.append(warm)
+        return starts
+
+    def _ipopt(self, state: PlanningState, hyp: Hypotheses, seed: np.ndarray, norm: float) -> tuple[np.ndarray, str]:
+        c, x = self.constraints, state.uav_enu_m
+        lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, self.n_quad, self.max_planes,
+                      self.criterion)
+        solver, _ = _solver(lay)
+        A, off = convex_cell(c, x[:2], seed[:2], self.max_planes)
+        par = pack_params(lay, x, hyp, self.noise, c.delta_m, norm, self._lambda(), A, off, c.home_enu_m,
+                          c.return_factor)
+        cap = self.leg_cap_m(state)
+        energy = state.energy_remaining_m if np.isfinite(state.energy_remaining_m) else 1e12
+        n_g = 3 + self.max_planes
+        lbg = np.full(n_g, -np.inf)
+        ubg = np.zeros(n_g)
+        lbg[0], ubg[0] = min(c.min_leg_m, cap) ** 2, cap**2
+        ubg[1] = c.max_distance_m**2
+        ubg[2] = energy
+        sol = solver(x0=seed, p=par, lbx=[-np.inf, -np.inf, c.alt_min_m], ubx=[np.inf, np.inf, c.alt_max_m],
+                     lbg=lbg, ubg=ubg)
+        status = solver.stats().get("return_status", "?")
+        return np.asarray(sol["x"]).ravel(), status
+
+    def _propose(self, state: PlanningState, leg_cap_m: float) -> tuple[np.ndarray, str, float]:
+        x = state.uav_enu_m
+        self._visited.append(x.copy())
+        hyp = self.hypotheses(state)
+        if hyp is None:
+            wp = explore_waypoint(self, state, np.array(self._visited))
+            self._remember(x, wp)
+            return wp, "explore", float("nan")
+        ring = self.feasible_ring(state)
+        if len(ring) == 0:
+            return x.copy(), "no ring", float("nan")
+        values = self.evaluate(state, ring, hyp)
+        best_i = int(np.argmin(values))
+        best, best_val, best_status = ring[best_i], float(values[best_i]), "ring"
+        norm = prior_value(hyp, self.criterion)
+        for seed in self._starts(state, ring, values):
+            try:
+                p, status = self._ipopt(state, hyp, seed, norm)
+            except RuntimeError as exc:  # CasADi evaluation errors: keep the ring answer
+                log.warning("IPOPT failed from %s: %s", seed, exc)
+                continue
+            if not np.all(np.isfinite(p)):
+                continue
+            if not legs_feasible(self.constraints, x, p[None], leg_cap_m, state.energy_remaining_m)[0]:
+                log.debug("IPOPT answer %s (%s) fails the exact check", p, status)
+                continue
+            if np.linalg.norm(p - x) < min(self.constraints.min_leg_m, leg_cap_m) - 1e-6:
+                continue
+            val = float(self.evaluate(state, p[None], hyp)[0])
+            if val < best_val:
+                ok = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+                best, best_val, best_status = p, val, "ipopt" if ok else f"ipopt:{status}"
+        self._remember(x, best)
+        return best.copy(), best_status, best_val
+
+    def _remember(self, x: np.ndarray, wp: np.ndarray) -> None:
+        step = wp - x
+        n = float(np.linalg.norm(step))
+        self._prev_dir = step / n if n > 0 else None
+
+
+class OraclePlanner(ActivePlanner):
+    """The active planner given the true user positions (`true_users_enu_m`, (K, 3)): it plans with
+    the estimator's information but at the truth, with no posterior samples and no exploration."""
+
+    name = "oracle"
+
+    def __init__(self, constraints, noise, rng_seed=0, true_users_enu_m=None, **opts) -> None:
+        if true_users_enu_m is None:
+            raise PlannerError("the oracle planner needs true_users_enu_m=(K, 3)")
+        super().__init__(constraints, noise, rng_seed, **opts)
+        self.true_users_enu_m = np.asarray(true_users_enu_m, dtype=float).reshape(-1, 3)
+
+    def hypotheses(self, state: PlanningState) -> Hypotheses | None:
+        est = state.estimate
+        dim = int(est.cov_users_m2.shape[1]) if est is not None else 2
+        return hypotheses_from_truth(self.true_users_enu_m, est, dim, self.user_weights)
+
+
+class GreedyPlanner(ActivePlanner):
+    """Greedy heading search: the best of 24 full-length legs at the cruise altitude on the
+    A-optimal objective at the estimate (and its mirror while ambiguous; no sigma points, no IPOPT)."""
+
+    name = "greedy"
+
+    def __init__(self, constraints, noise, rng_seed=0, **opts) -> None:
+        opts.setdefault("sigma_points", "none")
+        super().__init__(constraints, noise, rng_seed, **opts)
+
+    def _propose(self, state: PlanningState, leg_cap_m: float) -> tuple[np.ndarray, str, float]:
+        x = state.uav_enu_m
+        self._visited.append(x.copy())
+        hyp = self.hypotheses(state)
+        if hyp is None:
+            return explore_waypoint(self, state, np.array(self._visited)), "explore", float("nan")
+        from planner.base import ring_candidates
+
+        ring = ring_candidates(x, leg_cap_m, np.array([self.constraints.cruise_alt_m]), 24, (1.0,))
+        ring = ring[legs_feasible(self.constraints, x, ring, leg_cap_m, state.energy_remaining_m)]
+        if len(ring) == 0:
+            ring = self.feasible_ring(state)
+        if len(ring) == 0:
+            return x.copy(), "no ring", float("nan")
+        values = self.evaluate(state, ring, hyp)
+        i = int(np.argmin(values))
+        return ring[i].copy(), self.name, float(values[i])
