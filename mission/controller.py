@@ -29,8 +29,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -104,7 +106,8 @@ class ControllerConfig:
     gnb_lost_wait_s (mission): keep flying without measurements this long before returning home;
     gnb_timeout_s (wall): per measurement request; telemetry_log_hz (mission): telemetry records;
     status_interval_s (wall): progress lines; max_refusals: consecutive refused waypoints before
-    returning home; alt_margin_m: tolerance of the altitude-band check while surveying.
+    returning home; alt_margin_m: tolerance of the altitude-band check while surveying;
+    estimator_mode: "process" (estimator in a child process) or "thread" (see EstimatorWorker).
     """
 
     delta_m: float = 2.0
@@ -127,6 +130,7 @@ class ControllerConfig:
     status_interval_s: float = 2.0
     max_refusals: int = 3
     alt_margin_m: float = 5.0
+    estimator_mode: str = "process"
 
     @classmethod
     def from_scenario(cls, sc, **overrides) -> ControllerConfig:
@@ -229,6 +233,81 @@ class LoopLagMonitor:
         a = np.asarray(self.lags_s)
         return {"samples": len(a), "max_s": float(a.max()), "p99_s": float(np.percentile(a, 99)),
                 "median_s": float(np.median(a))}
+
+
+#: the child process's estimator (EstimatorWorker in process mode)
+_CHILD_ONLINE: OnlineEstimator | None = None
+
+
+def _child_init(n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams) -> None:
+    global _CHILD_ONLINE
+    _CHILD_ONLINE = OnlineEstimator(n_users, user_up_m, noise, params)
+
+
+def _child_ping() -> int:
+    return os.getpid()
+
+
+def _child_add(kf: Keyframe) -> Estimate:
+    return _CHILD_ONLINE.add_keyframe(kf)
+
+
+class EstimatorWorker:
+    """Feeds keyframes from a queue to an online estimator that runs off the event loop.
+
+    `OnlineEstimator.add_keyframe` is numpy work of milliseconds (up to a few hundred when it
+    (re)initializes users). mode "process" (default) runs the estimator in a child process (spawn),
+    so the event loop neither waits on it nor competes with it for the GIL; mode "thread" runs it
+    through `asyncio.to_thread`. Keyframes are solved one at a time in arrival order.
+    """
+
+    def __init__(self, n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams,
+                 queue: asyncio.Queue | None = None, mode: str = "process"):
+        if mode not in ("process", "thread"):
+            raise MissionError(f"estimator worker mode must be 'process' or 'thread', got {mode!r}")
+        self.args = (int(n_users), np.asarray(user_up_m, float), noise, params)
+        self.mode = mode
+        self.queue: asyncio.Queue[Keyframe] = queue if queue is not None else asyncio.Queue()
+        self.solve_s: list[float] = []
+        self.ready = asyncio.Event()
+
+    async def run(self, on_estimate: Callable[[Estimate], None],
+                  on_error: Callable[[EstimatorError], None] | None = None) -> None:
+        """Until cancelled: take a keyframe, solve it off the loop, hand the estimate over."""
+        loop = asyncio.get_running_loop()
+        pool = None
+        if self.mode == "process":
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                       initializer=_child_init, initargs=self.args)
+            solve = functools.partial(loop.run_in_executor, pool, _child_add)
+        else:
+            online = OnlineEstimator(*self.args)
+            solve = functools.partial(asyncio.to_thread, online.add_keyframe)
+        try:
+            if pool is not None:
+                await loop.run_in_executor(pool, _child_ping)  # start the child now, not at the 1st keyframe
+            self.ready.set()
+            while True:
+                kf = await self.queue.get()
+                try:
+                    t0 = time.perf_counter()
+                    est = await solve(kf)
+                    self.solve_s.append(time.perf_counter() - t0)
+                except EstimatorError as exc:
+                    if on_error is None:
+                        raise
+                    on_error(exc)
+                    continue
+                finally:
+                    self.queue.task_done()
+                on_estimate(est)
+        finally:
+            if pool is not None:
+                # never block the loop on the child: it finishes its keyframe and exits by itself
+                pool.shutdown(wait=False, cancel_futures=True)
 
 
 class MissionController:
@@ -467,21 +546,19 @@ class MissionController:
 
     async def _estimator_task(self) -> None:
         up = np.array([u.up_m for u in self.users])
-        online = OnlineEstimator(len(self.users), up, self.noise, self.params)
-        while True:
-            kf = await self._kf_queue.get()
-            try:
-                # the solver runs in a worker thread: the event loop keeps flying
-                est = await asyncio.to_thread(online.add_keyframe, kf)
-            except EstimatorError as exc:
-                self._event(f"estimator: {exc}", kind="estimator_error")
-                continue
-            finally:
-                self._kf_queue.task_done()
+        worker = EstimatorWorker(len(self.users), up, self.noise, self.params, self._kf_queue,
+                                 mode=self.config.estimator_mode)
+
+        def on_estimate(est: Estimate) -> None:
             self.estimate = est
             self._log_estimate(est)
             if self.state == SURVEY and targets_reached(est, self.config.target_radius_m):
                 self._finish_survey(STATUS_TARGET, "target reached")
+
+        def on_error(exc: EstimatorError) -> None:
+            self._event(f"estimator: {exc}", kind="estimator_error")
+
+        await worker.run(on_estimate, on_error)
 
     async def _safety_task(self) -> None:
         cfg = self.config
