@@ -41,10 +41,12 @@ def test_mission_upload_download_fly_and_rtl() -> None:
         async with vehicle_link("builtin", speedup=10.0) as link:
             mission = MissionAsync(link.system)
             await link.action.set_return_to_launch_altitude(30.0)
+            # a tight acceptance radius: the vehicle brakes into each waypoint, which the polled
+            # track below then cannot miss even on a loaded machine
             plan = MissionPlan([
-                _item(40.0, 0.0, 15.0),
-                _item(40.0, 40.0, 15.0, speed_m_s=5.0),
-                _item(0.0, 40.0, 25.0),
+                _item(40.0, 0.0, 15.0, acceptance_radius_m=0.5),
+                _item(40.0, 40.0, 15.0, speed_m_s=5.0, acceptance_radius_m=0.5),
+                _item(0.0, 40.0, 25.0, acceptance_radius_m=0.5),
             ])
             await mission.set_return_to_launch_after_mission(True)
             await mission.upload_mission(plan)
