@@ -16,7 +16,7 @@ from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.plugins.mission import MissionItem, MissionPlan
 from mavsdk.plugins.mission_raw import MissionItem as RawItem
 from mavsdk.plugins.mission_raw import MissionRawError
-from mavsdk.plugins.offboard import PositionNedYaw
+from mavsdk.plugins.offboard import PositionGlobalYaw, PositionNedYaw, VelocityNedYaw
 from mavsdk.plugins.telemetry import FlightMode, LandedState
 
 from tests.test_vehicle_mavsdk import ORIGIN, first, horizontal_m, vehicle_link
@@ -119,6 +119,17 @@ def test_offboard_position_setpoints() -> None:
             await off.set_position_ned(PositionNedYaw(10.0, -20.0, -15.0, 0.0))
             await off.start()
             await first(link.telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 5.0)
+            await link.sim.wait_for(lambda s: math.dist(s.pos_enu_m, (-20.0, 10.0, 15.0)) < 0.3, 20.0)
+            # global setpoints, altitude above home (SET_POSITION_TARGET_GLOBAL_INT, relative frame)
+            lat, lon, _ = ORIGIN.enu_to_lla([15.0, -5.0, 0.0])
+            await off.set_position_global(PositionGlobalYaw(
+                float(lat), float(lon), 12.0, 0.0, PositionGlobalYaw.AltitudeType.REL_HOME))
+            await link.sim.wait_for(lambda s: math.dist(s.pos_enu_m, (15.0, -5.0, 12.0)) < 0.3, 20.0)
+            # velocity setpoints (NED): 2 m/s east
+            await off.set_velocity_ned(VelocityNedYaw(0.0, 2.0, 0.0, 0.0))
+            await link.sim.wait_for(lambda s: s.pos_enu_m[0] > 25.0, 20.0)
+            assert link.sim.state().vel_enu_mps == pytest.approx([2.0, 0.0, 0.0], abs=1e-6)
+            await off.set_position_ned(PositionNedYaw(10.0, -20.0, -15.0, 0.0))
             await link.sim.wait_for(lambda s: math.dist(s.pos_enu_m, (-20.0, 10.0, 15.0)) < 0.3, 20.0)
             await off.stop()
             await first(link.telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.HOLD, 5.0)
