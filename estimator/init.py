@@ -7,8 +7,8 @@ positions are marginalized to first order):
     σ_eff(d)² = σ(d)² + σ_gps²,     e_i = (r̂_i − ||x̂_i − u|| − b) / σ_eff(d_i)
 
 Initialization (not by luck): the user lies within the horizontal range ρ_i = √(r̂_i² − Δz_i²) of
-every UAV fix, which bounds a search box; a G×G grid over it is scored with a Cauchy loss (so NLoS
-outliers cannot drag the start), the best few local minima of the grid are refined by a small
+every UAV fix, which bounds a search box; a G×G grid over it is scored with a truncated quadratic (so
+NLoS outliers cannot drag the start), the best few local minima of the grid are refined by a small
 robust Gauss–Newton, and the lowest cost wins.
 
 Mirror test: ranges from a straight flight line cannot tell a user from its reflection across the
@@ -41,10 +41,10 @@ from estimator.robust import loss_rho, loss_weight
 from estimator.types import SolverParams
 
 #: grid points per axis of the initialization search
-GRID_SIZE = 33
+GRID_SIZE = 25
 #: at most this many ranges enter the grid scoring (evenly subsampled)
-GRID_MAX_RANGES = 96
-#: Cauchy threshold (whitened) used to score the grid
+GRID_MAX_RANGES = 48
+#: robust threshold (whitened) used to score the grid and the first refinement
 GRID_CAUCHY_SCALE = 2.0
 #: half-width (in fixes) of the moving average that smooths GPS noise out of the track
 SMOOTH_HALF = 4
@@ -58,8 +58,10 @@ class UserFit:
     cost: float
 
 
-def _sigma_eff(noise: NoiseModel, d: np.ndarray) -> np.ndarray:
+def _sigma_eff(noise: NoiseModel, d: np.ndarray) -> np.ndarray | float:
     # σ_eff = √(σ(d)² + σ_gps²)
+    if noise.a_m == 0.0:
+        return float(np.sqrt(noise.s0_m**2 + noise.sigma_gps_m**2))
     return np.sqrt(noise.range_sigma_m(d) ** 2 + noise.sigma_gps_m**2)
 
 
@@ -102,7 +104,7 @@ def refine_user(
         u, b = _theta_to_user(theta, d_u, up_m)
         diff = uav_enu_m - u
         d = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
-        sig = _sigma_eff(noise, d)
+        sig = np.broadcast_to(_sigma_eff(noise, d), d.shape)
         e = (range_m - d - b) / sig
         w = loss_weight(e, loss, scale)
         # ∂e/∂u = û/σ, ∂e/∂b = −1/σ
@@ -129,7 +131,7 @@ def refine_user(
         else:
             break
         theta, cost = trial, c
-        if np.max(np.abs(step)) < 1e-4:
+        if np.max(np.abs(step)) < 1e-3:
             break
     return UserFit(theta, cost)
 
@@ -138,7 +140,7 @@ def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseMode
     """(≤ n_best, 2) horizontal starts: best local minima of the Cauchy cost on a grid."""
     dz = uav[:, 2] - up_m
     rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
-    pad = 4.0 * _sigma_eff(noise, rng) + 2.0
+    pad = 4.0 * np.broadcast_to(_sigma_eff(noise, rng), rng.shape) + 2.0
     # the user lies within ρ_i (+ noise) of every fix: intersect the boxes, fall back to their union
     lo = np.max(uav[:, :2] - (rho + pad)[:, None], axis=0)
     hi = np.min(uav[:, :2] + (rho + pad)[:, None], axis=0)
@@ -152,7 +154,8 @@ def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseMode
     # d_gi = ||x_i − (e_g, n_g, up)||
     d = np.sqrt((cand[:, None, 0] - uav[None, :, 0]) ** 2 + (cand[:, None, 1] - uav[None, :, 1]) ** 2 + dz**2)
     e = (rng[None, :] - d) / _sigma_eff(noise, d)
-    cost = loss_rho(e, "cauchy", GRID_CAUCHY_SCALE).sum(axis=1).reshape(GRID_SIZE, GRID_SIZE)
+    # truncated quadratic min(e², c²): robust to NLoS and cheap on the whole grid
+    cost = np.minimum(e * e, GRID_CAUCHY_SCALE**2).sum(axis=1).reshape(GRID_SIZE, GRID_SIZE)
     padded = np.pad(cost, 1, constant_values=np.inf)
     is_min = np.ones_like(cost, dtype=bool)
     for de in (-1, 0, 1):
@@ -166,7 +169,7 @@ def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseMode
 
 def init_user(
     uav_enu_m: np.ndarray, range_m: np.ndarray, up_m: float, noise: NoiseModel, params: SolverParams,
-    n_starts: int = 4,
+    n_starts: int = 3,
 ) -> UserFit:
     """Initial θ of one user from its ranges: grid search + robust refinement of the best starts.
 
@@ -181,9 +184,8 @@ def init_user(
         theta0[:2] = s
         if params.user_dim == 3:
             theta0[2] = up_m
-        # robust (Cauchy) refinement on the subsample, then the configured loss on everything
-        fit = refine_user(uav_enu_m[sub], range_m[sub], theta0, up_m, noise, params, 15, "cauchy", 2.0)
-        fit = refine_user(uav_enu_m, range_m, fit.theta, up_m, noise, params, 10)
+        # robust (Cauchy) refinement on the subsample; the joint solver polishes the winner
+        fit = refine_user(uav_enu_m[sub], range_m[sub], theta0, up_m, noise, params, 10, "cauchy", 2.0)
         if best is None or fit.cost < best.cost:
             best = fit
     assert best is not None

@@ -68,31 +68,36 @@ def check_keyframe(kf: Keyframe, n_users: int, index: int | None = None) -> tupl
     gps = np.asarray(kf.gps_enu_m, dtype=float)
     if gps.shape != (3,):
         raise EstimatorError(f"{where}: gps_enu_m must have shape (3,), got {gps.shape}")
-    if not np.all(np.isfinite(gps)):
+    if not np.isfinite(gps).all():
         raise EstimatorError(f"{where}: gps_enu_m must be finite, got {gps.tolist()}")
-    idx_raw = np.asarray(kf.user_idx)
+    idx = np.asarray(kf.user_idx)
     rng = np.asarray(kf.range_m, dtype=float)
-    if idx_raw.ndim != 1 or rng.ndim != 1 or idx_raw.shape != rng.shape:
+    if idx.ndim != 1 or rng.ndim != 1 or idx.shape != rng.shape:
         raise EstimatorError(
-            f"{where}: user_idx and range_m must be 1-D of equal length, got {idx_raw.shape} and {rng.shape}"
+            f"{where}: user_idx and range_m must be 1-D of equal length, got {idx.shape} and {rng.shape}"
         )
-    if idx_raw.size and not np.issubdtype(idx_raw.dtype, np.integer):
-        raise EstimatorError(f"{where}: user_idx must be integers, got {idx_raw.tolist()}")
-    idx = idx_raw.astype(np.intp)
-    bad = (idx < 0) | (idx >= n_users)
-    if np.any(bad):
-        raise EstimatorError(f"{where}: user index {int(idx[bad][0])} outside [0, {n_users})")
-    if len(np.unique(idx)) != len(idx):
-        raise EstimatorError(f"{where}: a user appears twice in user_idx {idx.tolist()}")
-    bad = ~np.isfinite(rng) | (rng < 0)
-    if np.any(bad):
-        raise EstimatorError(
-            f"{where}: range_m must be finite and >= 0, got {float(rng[bad][0])!r} for user {int(idx[bad][0])}"
-        )
+    if idx.size:
+        if idx.dtype.kind not in "iu":
+            raise EstimatorError(f"{where}: user_idx must be integers, got {idx.tolist()}")
+        if idx.min() < 0 or idx.max() >= n_users:
+            bad = idx[(idx < 0) | (idx >= n_users)]
+            raise EstimatorError(f"{where}: user index {int(bad[0])} outside [0, {n_users})")
+        if idx.size > 1:
+            srt = np.sort(idx)
+            if (srt[1:] == srt[:-1]).any():
+                raise EstimatorError(f"{where}: a user appears twice in user_idx {idx.tolist()}")
+        if not (np.isfinite(rng).all() and rng.min() >= 0):
+            bad = ~np.isfinite(rng) | (rng < 0)
+            raise EstimatorError(
+                f"{where}: range_m must be finite and >= 0, got {float(rng[bad][0])!r} for user {int(idx[bad][0])}"
+            )
+        idx = idx.astype(np.intp, copy=False)
+    else:
+        idx = idx.astype(np.intp)
     odom = None
     if kf.odom_enu_m is not None:
         odom = np.asarray(kf.odom_enu_m, dtype=float)
-        if odom.shape != (3,) or not np.all(np.isfinite(odom)):
+        if odom.shape != (3,) or not np.isfinite(odom).all():
             raise EstimatorError(f"{where}: odom_enu_m must be 3 finite numbers, got {np.ravel(odom).tolist()}")
     return gps, idx, rng, odom
 
@@ -152,14 +157,43 @@ def pack_keyframes(
     n = len(keyframes)
     if n < 1:
         raise EstimatorError("need at least one keyframe, got 0")
-    gps = np.empty((n, 3))
-    rng = np.full((n, n_users), np.nan)
+    # vectorised checks of the whole batch; on any failure the per-keyframe check names the culprit
+    try:
+        if not all(isinstance(kf, Keyframe) for kf in keyframes):
+            raise ValueError
+        gps = np.array([kf.gps_enu_m for kf in keyframes], dtype=float)
+        lengths = np.array([np.size(kf.user_idx) for kf in keyframes])
+        if np.any(lengths != [np.size(kf.range_m) for kf in keyframes]):
+            raise ValueError
+        idx = np.concatenate([np.ravel(kf.user_idx) for kf in keyframes])
+        r = np.concatenate([np.ravel(kf.range_m) for kf in keyframes]).astype(float)
+        kf_of = np.repeat(np.arange(n), lengths)
+        ok = (
+            gps.shape == (n, 3) and np.isfinite(gps).all()
+            and all(np.ndim(kf.user_idx) == 1 and np.ndim(kf.range_m) == 1 for kf in keyframes)
+            and (idx.size == 0 or (idx.dtype.kind in "iu" and idx.min() >= 0 and idx.max() < n_users))
+            and np.isfinite(r).all() and (r.size == 0 or r.min() >= 0)
+        )
+        if ok and idx.size:
+            flat = kf_of * n_users + idx
+            ok = np.unique(flat).size == flat.size
+        odoms = [kf.odom_enu_m for kf in keyframes]
+        if ok and any(o is not None for o in odoms):
+            for o in odoms:
+                if o is not None and (np.shape(o) != (3,) or not np.isfinite(np.asarray(o, float)).all()):
+                    ok = False
+                    break
+    except (ValueError, TypeError):
+        ok = False
+    if not ok:
+        for i, kf in enumerate(keyframes):
+            check_keyframe(kf, n_users, i)
+        raise EstimatorError("keyframes are malformed")  # pragma: no cover (the loop raises)
+    rng = np.full((n, n_users), np.nan, order="F")
+    rng[kf_of, idx.astype(np.intp)] = r
     odom = np.zeros((n, 3))
     odom_mask = np.zeros(n, dtype=bool)
-    for i, kf in enumerate(keyframes):
-        g, idx, r, o = check_keyframe(kf, n_users, i)
-        gps[i] = g
-        rng[i, idx] = r
+    for i, o in enumerate(odoms):
         if o is not None and i > 0:
             odom[i] = o
             odom_mask[i] = True
