@@ -255,8 +255,33 @@ def _fig_top_view(plt, inp: ReportInputs):
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
     ax.set_title(f"{inp.title}: top view (ellipses: 95 %)")
-    ax.legend(fontsize=7, loc="best", ncol=2)
+    ax.legend(fontsize=7, loc="upper left", ncol=2)
+    _zoom_insets(ax, inp, colors)
     return fig
+
+
+def _zoom_insets(ax, inp: ReportInputs, colors: list) -> None:
+    """Up to 3 zoomed insets (bottom row) around users whose 95 % ellipse is too small to see."""
+    span = max(np.ptp(inp.track_enu_m()[:, 0]), np.ptp(inp.track_enu_m()[:, 1]), 1.0)
+    bound = inp.error_bound_95_m()
+    small = [k for k in range(inp.n_users)
+             if np.all(np.isfinite(inp.users_enu_m[k, :2])) and np.isfinite(bound[k]) and bound[k] < 0.03 * span]
+    for slot, k in enumerate(small[:3]):
+        ins = ax.inset_axes([0.01 + 0.33 * slot, 0.01, 0.25, 0.25])
+        u = inp.users_enu_m[k]
+        ring = ellipse_en_m(u, inp.cov_en_m2[k])
+        ins.plot(ring[:, 0], ring[:, 1], "-", color=colors[k], lw=1.2)
+        ins.plot(u[0], u[1], "o", color=colors[k], mec="k", ms=5)
+        half = 1.3 * bound[k]
+        if inp.truth_enu_m is not None and np.all(np.isfinite(inp.truth_enu_m[k, :2])):
+            t = inp.truth_enu_m[k]
+            ins.plot(t[0], t[1], "*", color=colors[k], mec="k", ms=9)
+            half = max(half, 1.2 * float(np.hypot(*(t[:2] - u[:2]))))
+        ins.set_xlim(u[0] - half, u[0] + half)
+        ins.set_ylim(u[1] - half, u[1] + half)
+        ins.set_aspect("equal")
+        ins.tick_params(labelsize=6)
+        ins.set_title(f"{inp.user_ids[k]} (±{half:.1f} m)", fontsize=7)
 
 
 def _fig_side_view(plt, inp: ReportInputs):
@@ -427,8 +452,8 @@ def report_document(inp: ReportInputs, figures: dict[str, str] | None = None) ->
             "sigma_north_m": _f(math.sqrt(cov[1, 1])) if np.isfinite(cov[1, 1]) and cov[1, 1] >= 0 else None,
             "error_bound_95_m": _f(bound[k]),
             "measurements": int(sel.sum()),
-            f"range_error_mean_m ({which} user)": _f(np.mean(e[sel])) if sel.any() else None,
-            f"range_error_std_m ({which} user)": _f(np.std(e[sel])) if sel.sum() > 1 else None,
+            "range_error_mean_m": _f(np.mean(e[sel])) if sel.any() else None,
+            "range_error_std_m": _f(np.std(e[sel])) if sel.sum() > 1 else None,
         }
         if inp.bias_m is not None:
             entry["bias_m"] = _f(inp.bias_m[k])
@@ -450,6 +475,7 @@ def report_document(inp: ReportInputs, figures: dict[str, str] | None = None) ->
         "measurements": len(inp.meas_range_m),
         "duration_s": _f(inp.kf_t_s[-1] - inp.kf_t_s[0]) if len(inp.kf_t_s) else None,
         "noise": inp.noise.to_log_dict(),
+        "range_error_reference": which,
         "users": users,
         "figures": figures or {},
         **({"extra": inp.extra} if inp.extra else {}),

@@ -81,6 +81,8 @@ def test_report_json_has_users_noise_and_figures(tmp_path):
     assert u1["sigma_east_m"] == pytest.approx(1.0)
     assert u1["error_bound_95_m"] == pytest.approx(np.sqrt(CHI2_2DOF_95 * np.linalg.eigvalsh(inp.cov_en_m2[0])[-1]))
     assert u1["bias_m"] == 2.0
+    assert doc["range_error_reference"] == "true"
+    assert u1["range_error_mean_m"] == pytest.approx(2.0, abs=0.5)  # the 4 m sawtooth's mean
 
 
 def test_html_is_self_contained_and_embeds_the_pngs(tmp_path):
@@ -99,7 +101,7 @@ def test_report_without_truth_or_history_uses_estimates(tmp_path):
     paths = write_report(inp, tmp_path, exports=False)
     doc = json.loads(paths["report.json"].read_text())
     assert "error_m" not in doc["users"][0]
-    assert any("estimated user" in k for k in doc["users"][0])
+    assert doc["range_error_reference"] == "estimated"
     _d, _e, which = range_errors(inp)
     assert which == "estimated"
     assert "geojson" not in paths

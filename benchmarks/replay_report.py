@@ -1,0 +1,63 @@
+"""Replay + report of a long mission: a 5 000-keyframe log through `uavloc replay LOG --out DIR`.
+
+    python benchmarks/replay_report.py                  # 5 000 keyframes, three users among buildings
+    python benchmarks/replay_report.py --keyframes 1000 --scenario paper
+
+The log comes from sitl_scenarios.example_log (radio model along survey circles, Δ = 2 m); it is
+generated once into --work (default /tmp/uavloc-bench) and reused. The command runs as a
+subprocess, as a user would run it, with its stderr (progress bar / progress lines) passed
+through; the wall time of the whole command and the report's own time (from its log line) are
+printed at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from sitl_scenarios.example_log import generate
+from sitl_scenarios.scenario import load_scenario
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--keyframes", type=int, default=5000)
+    ap.add_argument("--scenario", default="three_users_nlos")
+    ap.add_argument("--radius", type=float, default=150.0, help="survey circle radius [m]")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/uavloc-bench"))
+    args = ap.parse_args()
+    sc = load_scenario(args.scenario)
+    # keyframes ≈ (climb + out + turns·2πr + back) / Δ
+    turns = max(args.keyframes * sc.mission.delta_m / (2 * math.pi * args.radius) - 0.3, 0.2)
+    args.work.mkdir(parents=True, exist_ok=True)
+    log_path = args.work / f"{sc.name}_{args.keyframes}.jsonl"
+    if not log_path.exists():
+        t0 = time.perf_counter()
+        counts = generate(sc, log_path, radius_m=args.radius, n_turns=turns)
+        print(f"generated {log_path}: {counts['rtt']} rtt records, {counts['flown_m']:.0f} m "
+              f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+    out = args.work / f"report_{sc.name}_{args.keyframes}"
+    cmd = [sys.executable, "-m", "mission.cli", "replay", str(log_path), "--out", str(out)]
+    print("$", " ".join(cmd), file=sys.stderr)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], stderr=subprocess.PIPE, text=True)
+    wall = time.perf_counter() - t0
+    sys.stderr.write(proc.stderr)
+    if proc.returncode != 0:
+        print(f"replay failed with exit code {proc.returncode}", file=sys.stderr)
+        return proc.returncode
+    m = re.search(r"report: .* \(([0-9.]+) s\)", proc.stderr)
+    print(f"replay + report: {wall:.1f} s wall; report alone: {m.group(1) if m else '?'} s; "
+          f"files in {out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
