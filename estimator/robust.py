@@ -11,6 +11,7 @@ so that the gradient of the weighted problem equals the gradient of the robust c
     none:    ρ(e) = ½ e²                                          w = 1
     huber:   ρ(e) = ½ e²            (|e| ≤ c),  c|e| − ½c² (else)  w = min(1, c/|e|)
     cauchy:  ρ(e) = ½ c² log(1 + (e/c)²)                          w = 1 / (1 + (e/c)²)
+    tukey:   ρ(e) = c²/6 (1 − (1 − (e/c)²)³) (|e| ≤ c), c²/6 (else)  w = (1 − (e/c)²)² or 0
 
 GPS priors, motion factors and bias priors are never robustified.
 """
@@ -21,7 +22,9 @@ import numpy as np
 
 from uavloc.errors import EstimatorError
 
-LOSSES = ("none", "huber", "cauchy")
+LOSSES = ("none", "huber", "cauchy", "tukey")
+#: losses whose influence goes back to zero: need a start from a convex loss
+REDESCENDING = ("tukey",)
 
 
 def check_loss(loss: str, scale: float) -> None:
@@ -45,6 +48,10 @@ def loss_rho(e: np.ndarray, loss: str, c: float) -> np.ndarray:
     if loss == "cauchy":
         # ρ = ½ c² log(1 + (e/c)²)
         return 0.5 * c * c * np.log1p((e / c) ** 2)
+    if loss == "tukey":
+        # ρ = c²/6 (1 − (1 − (e/c)²)³), flat beyond c
+        t = np.minimum((e / c) ** 2, 1.0)
+        return c * c / 6.0 * (1.0 - (1.0 - t) ** 3)
     raise EstimatorError(f"unknown robust loss {loss!r}; expected one of {LOSSES}")
 
 
@@ -60,4 +67,8 @@ def loss_weight(e: np.ndarray, loss: str, c: float) -> np.ndarray:
     if loss == "cauchy":
         # w = 1 / (1 + (e/c)²)
         return 1.0 / (1.0 + (e / c) ** 2)
+    if loss == "tukey":
+        # w = (1 − (e/c)²)² inside, 0 outside
+        t = np.maximum(1.0 - (e / c) ** 2, 0.0)
+        return t * t
     raise EstimatorError(f"unknown robust loss {loss!r}; expected one of {LOSSES}")

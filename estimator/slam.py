@@ -29,7 +29,7 @@ exact at the linearization point z₀; each update then costs O(window · K²), 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -43,13 +43,15 @@ from estimator.problem import (
     pack_keyframes,
     users_from_theta,
 )
-from estimator.robust import loss_rho, loss_weight
+from estimator.robust import REDESCENDING, loss_rho, loss_weight
 from estimator.schur import schur_solve
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
 _LAM_START = 1e-4
 _LAM_MAX = 1e10
+#: Huber threshold of the warm start before a redescending loss
+HUBER_WARM_SCALE = 1.5
 
 
 @dataclass
@@ -406,6 +408,11 @@ def solve_batch(
             row[: prob.user_dim] = given[k, : prob.user_dim]
         theta[k] = _init_theta(prob, x, prob.mask, k, row)
     theta[~active] = 0.0
+    if params.loss in REDESCENDING:
+        # a redescending loss ignores what it deems outliers: start it from the Huber solution
+        warm = replace(prob, params=replace(params, loss="huber", loss_scale=HUBER_WARM_SCALE))
+        pre = levenberg_marquardt(warm, x, theta, active)
+        x, theta = pre.x, pre.theta
     res = levenberg_marquardt(prob, x, theta, active)
     res, mirrors = _resolve_mirrors(prob, res, active)
     return _estimate(prob, res, active, mirrors, n_ranges)

@@ -14,14 +14,16 @@ import numpy as np
 #: χ²(2 dof) quantile for a 95 % ellipse: P(χ²₂ ≤ 5.991) = 0.95.
 CHI2_2DOF_95 = 5.991464547107979
 
-LossName = Literal["none", "huber", "cauchy"]
+LossName = Literal["none", "huber", "cauchy", "tukey"]
 
 
 @dataclass(frozen=True)
 class SolverParams:
     """Settings of the SLAM solver (GTSAM-style params object).
 
-    loss: robust loss on range factors only ("none", "huber", "cauchy"); never on GPS priors.
+    loss: robust loss on range factors only ("none", "huber", "cauchy", "tukey"); never on GPS
+        priors. "tukey" (redescending, use loss_scale ≈ 3) rejects NLoS outliers outright; the
+        batch solver starts it from a Huber solution.
     loss_scale: loss threshold in whitened units (residual / σ(d)).
     estimate_bias: add a range bias b_k per user, with a zero-mean prior of bias_prior_sigma_m.
     user_dim: 2 (east, north; up fixed at the known ground height) or 3.

@@ -156,20 +156,24 @@ def test_monte_carlo_rmse_close_to_crlb_on_los():
 
 @pytest.mark.slow
 def test_robust_loss_resists_twenty_percent_nlos():
-    err = {"none": [], "huber": [], "cauchy": []}
+    err = {"none": [], "huber": [], "cauchy": [], "tukey": []}
     nees = []
     for seed in range(8):
         sc = simulate(np.random.default_rng(200 + seed), n_users=5, n_keyframes=150, pattern="lawnmower",
                       p_nlos=0.2, nlos_mean_m=20.0)
         for loss in err:
-            est = solve_batch(sc.keyframes, 5, sc.user_up_m, NOISE, SolverParams(loss=loss))
+            params = SolverParams(loss=loss, loss_scale=3.0 if loss == "tukey" else 1.5)
+            est = solve_batch(sc.keyframes, 5, sc.user_up_m, NOISE, params)
             err[loss].extend(_user_errors(est, sc))
-            if loss == "huber":
+            if loss == "tukey":
                 nees.extend(_nees(est, sc))
     mean = {k: float(np.mean(v)) for k, v in err.items()}
     assert mean["none"] > 2.0, mean
     assert mean["huber"] < 0.5 * mean["none"], mean
     assert mean["cauchy"] < 0.5 * mean["none"], mean
+    # the redescending loss rejects outliers outright: smaller error, and an honest covariance
+    assert mean["tukey"] < mean["huber"], mean
+    assert 1.4 < np.mean(nees) < 3.5, np.mean(nees)
 
 
 # --- mirror ambiguity ---------------------------------------------------------------------------
@@ -283,7 +287,7 @@ def test_bad_keyframe_rejected_with_offending_value(kf, match):
         (lambda: solve_batch([], 2, np.zeros(2), NOISE), "at least one keyframe"),
         (lambda: solve_batch([_kf()], 2, np.zeros(3), NOISE), r"shape \(2,\)"),
         (lambda: solve_batch([_kf()], 0, np.zeros(0), NOISE), "n_users"),
-        (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, SolverParams(loss="tukey")), "tukey"),
+        (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, SolverParams(loss="bisquare")), "bisquare"),
         (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, SolverParams(user_dim=4)), "user_dim"),
         (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, init_users_enu_m=np.zeros((3, 3))), r"\(3, 3\)"),
         (lambda: OnlineEstimator(2, np.array([0.0, np.nan]), NOISE), "nan"),

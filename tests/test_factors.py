@@ -9,6 +9,7 @@ from estimator.factors import BiasPriorFactor, GpsPriorFactor, MotionFactor, Ran
 from estimator.noise import NoiseModel
 from estimator.numdiff import numerical_jacobian
 from estimator.problem import pack_keyframes
+from estimator.robust import LOSSES, loss_rho, loss_weight
 from estimator.simulate import simulate
 from estimator.slam import _range_terms
 from estimator.types import SolverParams
@@ -103,3 +104,11 @@ def test_vectorised_range_jacobian_matches_central_differences(estimate_bias, us
             np.testing.assert_allclose(jac[:3, k, n], numerical_jacobian(e_of_x, x[n])[0], rtol=1e-6, atol=1e-9)
             np.testing.assert_allclose(jac[3:, k, n], numerical_jacobian(e_of_t, theta[k])[0], rtol=1e-6, atol=1e-9)
     assert np.all(e[~mask] == 0) and np.all(jac[:, ~mask] == 0)
+
+
+@pytest.mark.parametrize("loss", LOSSES)
+def test_irls_weight_is_rho_derivative_over_residual(loss):
+    e = np.array([-7.0, -2.0, -0.4, 0.3, 1.2, 2.9, 5.0])
+    drho = np.array([numerical_jacobian(lambda v: loss_rho(v, loss, 2.5)[0], np.array([ei]))[0, 0] for ei in e])
+    np.testing.assert_allclose(loss_weight(e, loss, 2.5) * e, drho, rtol=1e-6, atol=1e-8)
+    assert loss_rho(np.array([0.0]), loss, 2.5)[0] == 0.0
