@@ -22,10 +22,10 @@ must *start* with its time of measurement in UTC on the gNB host's clock, in one
     [2018-08-08T14:06:10.125Z] rnti 4601 ta 12 mu 1 srs_peak 3.2500 fs 46080000 snr_db 28.1
 
 i.e. UNIX seconds with a fraction, or ISO 8601 (a time without a zone is UTC). That is what
-`ts '%.s'` / `ts '%Y-%m-%dT%H:%M:%.SZ'` (moreutils) print when the gNB's output is piped through
-them, and what the simulated gNB writes. `--gnb-time-offset` is added to every stamp (to correct a
-known clock offset). Recognised payloads, parsed by `mission.oai` (the same parsers as the live
-adapter):
+`ts '%.s'` or `TZ=UTC ts '%Y-%m-%dT%H:%M:%.SZ'` (moreutils) print when the gNB's output is piped
+through them. (The simulated gNB's own Msg2 log runs on simulation time and carries no stamp.)
+`--gnb-time-offset` is added to every stamp (to correct a known clock offset). Recognised
+payloads, parsed by `mission.oai` (the same parsers as the live adapter):
 
 - `rtt` reply lines of DESIGN.md §8 (`rnti <hex> ta <int> mu <int> srs_peak <float> fs <hz> ...`):
   a complete measurement; `error ...` lines are counted and skipped;
