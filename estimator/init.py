@@ -136,8 +136,17 @@ def refine_user(
     return UserFit(theta, cost)
 
 
+def _grid_cost(uav: np.ndarray, rng: np.ndarray, dz: np.ndarray, cand: np.ndarray, noise: NoiseModel) -> np.ndarray:
+    """(G,) truncated-quadratic cost Σ min(e², c²) of horizontal candidates cand (G, 2)."""
+    # d_gi = ||x_i − (e_g, n_g, up)||
+    d = np.sqrt((cand[:, None, 0] - uav[None, :, 0]) ** 2 + (cand[:, None, 1] - uav[None, :, 1]) ** 2 + dz**2)
+    e = (rng[None, :] - d) / _sigma_eff(noise, d)
+    return np.minimum(e * e, GRID_CAUCHY_SCALE**2).sum(axis=1)
+
+
 def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseModel, n_best: int) -> np.ndarray:
-    """(≤ n_best, 2) horizontal starts: best local minima of the Cauchy cost on a grid."""
+    """(≤ n_best, 2) horizontal starts: best local minima of a coarse grid, each refined on a
+    finer grid around it (cell/4 resolution)."""
     dz = uav[:, 2] - up_m
     rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
     pad = 4.0 * np.broadcast_to(_sigma_eff(noise, rng), rng.shape) + 2.0
@@ -151,11 +160,7 @@ def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseMode
     gn = np.linspace(lo[1], hi[1], GRID_SIZE)
     ee, nn = np.meshgrid(ge, gn, indexing="ij")
     cand = np.stack([ee.ravel(), nn.ravel()], axis=1)
-    # d_gi = ||x_i − (e_g, n_g, up)||
-    d = np.sqrt((cand[:, None, 0] - uav[None, :, 0]) ** 2 + (cand[:, None, 1] - uav[None, :, 1]) ** 2 + dz**2)
-    e = (rng[None, :] - d) / _sigma_eff(noise, d)
-    # truncated quadratic min(e², c²): robust to NLoS and cheap on the whole grid
-    cost = np.minimum(e * e, GRID_CAUCHY_SCALE**2).sum(axis=1).reshape(GRID_SIZE, GRID_SIZE)
+    cost = _grid_cost(uav, rng, dz, cand, noise).reshape(GRID_SIZE, GRID_SIZE)
     padded = np.pad(cost, 1, constant_values=np.inf)
     is_min = np.ones_like(cost, dtype=bool)
     for de in (-1, 0, 1):
@@ -164,32 +169,35 @@ def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseMode
                 is_min &= cost <= padded[1 + de : 1 + de + GRID_SIZE, 1 + dn : 1 + dn + GRID_SIZE]
     idx = np.flatnonzero(is_min.ravel())
     idx = idx[np.argsort(cost.ravel()[idx])][:n_best]
-    return cand[idx]
+    # zoom: a 9×9 grid spanning ±1 coarse cell around each start
+    cell = np.array([ge[1] - ge[0], gn[1] - gn[0]])
+    off = np.linspace(-1.0, 1.0, 9)
+    oe, on = np.meshgrid(off * cell[0], off * cell[1], indexing="ij")
+    zoom = np.stack([oe.ravel(), on.ravel()], axis=1)
+    fine = (cand[idx][:, None, :] + zoom[None, :, :]).reshape(-1, 2)
+    fcost = _grid_cost(uav, rng, dz, fine, noise).reshape(idx.size, -1)
+    return fine.reshape(idx.size, -1, 2)[np.arange(idx.size), np.argmin(fcost, axis=1)]
 
 
 def init_user(
     uav_enu_m: np.ndarray, range_m: np.ndarray, up_m: float, noise: NoiseModel, params: SolverParams,
     n_starts: int = 3,
 ) -> UserFit:
-    """Initial θ of one user from its ranges: grid search + robust refinement of the best starts.
+    """Initial θ of one user from its ranges: coarse-to-fine grid search (the joint solver
+    polishes the best grid point; its cell is a quarter of the coarse one, a few metres).
 
     uav_enu_m: (M, 3) UAV fixes [m, ENU]; range_m: (M,) [m]; up_m: ground height [m].
     """
     m = range_m.shape[0]
     sub = np.unique(np.linspace(0, m - 1, min(m, GRID_MAX_RANGES)).round().astype(int))
     starts = _grid_starts(uav_enu_m[sub], range_m[sub], up_m, noise, n_starts)
-    best: UserFit | None = None
-    for s in starts:
-        theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))
-        theta0[:2] = s
-        if params.user_dim == 3:
-            theta0[2] = up_m
-        # robust (Cauchy) refinement on the subsample; the joint solver polishes the winner
-        fit = refine_user(uav_enu_m[sub], range_m[sub], theta0, up_m, noise, params, 10, "cauchy", 2.0)
-        if best is None or fit.cost < best.cost:
-            best = fit
-    assert best is not None
-    return best
+    dz = uav_enu_m[sub, 2] - up_m
+    costs = _grid_cost(uav_enu_m[sub], range_m[sub], dz, starts, noise)
+    theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))
+    theta0[:2] = starts[int(np.argmin(costs))]
+    if params.user_dim == 3:
+        theta0[2] = up_m
+    return UserFit(theta0, 0.5 * float(np.min(costs)))
 
 
 @dataclass(frozen=True)
