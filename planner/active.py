@@ -2,7 +2,9 @@
 
 Objective (planner.information; normalised by its value before the leg, J₀, so IPOPT sees O(1)):
 
-    min_p  Σ_k w_k Σ_s c_ks f(I_ks(p)) / J₀  +  cost_rel · ℓ(p) / leg_max,     ℓ(p) = |p − x_c|
+    min_p  Σ_k w_k Σ_s c_ks f(I_ks(p)) / J₀  +  λ · ℓ(p),     ℓ(p) = |p − x_c|,
+           λ = cost_rel · (1 − min_ring J/J₀) / leg_max  (a full leg must buy back cost_rel of the
+           best ring leg's gain, so the trade-off does not fade as the uncertainty shrinks)
 
     s.t.   min_leg² ≤ |p − x_c|² ≤ cap²,  cap = min(leg_max, budget left)       (leg length)
            alt_min ≤ p_up ≤ alt_max                                             (altitude band)
@@ -187,10 +189,11 @@ def pack_params(
 class ActivePlanner(BasePlanner):
     """CasADi/IPOPT next-waypoint planner ("casadi").
 
-    criterion: "A" (trace) or "D" (log-det); cost_rel: λ as the fraction of the current objective
-    a full-length leg must buy back; n_starts: IPOPT starts from the ring (the warm start adds one);
-    n_quad: quadrature points per leg; sigma_points: average over posterior sigma points (and the
-    mirror while ambiguous) rather than the mean only; user_weights: (K,) w_k; max_planes: cap on
+    criterion: "A" (trace) or "D" (log-det); cost_rel: the cost of a full-length leg as a fraction
+    of the best ring leg's predicted gain (see `cost_per_m`); n_starts: IPOPT starts from the ring
+    (the warm start adds one); n_quad: quadrature points per leg; sigma_points: "major", "all" or
+    "none" (planner.information.hypotheses_from_estimate; the mirror is always included while
+    ambiguous); user_weights: (K,) w_k; max_planes: cap on
     the convex cell's half-planes.
     """
 
@@ -202,7 +205,7 @@ class ActivePlanner(BasePlanner):
         noise: NoiseModel,
         rng_seed: int = 0,
         criterion: str = "A",
-        cost_rel: float = 0.05,
+        cost_rel: float = 0.2,
         n_starts: int = 1,
         n_quad: int = 8,
         sigma_points: str = "major",
@@ -239,15 +242,21 @@ class ActivePlanner(BasePlanner):
                 return None
         return hypotheses_from_estimate(est, self.user_weights, sigma_points=self.sigma_points, users=ok)
 
-    def _lambda(self) -> float:
-        return self.cost_rel / self.constraints.leg_max_m
-
-    def evaluate(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
-        """(C,) the normalised objective J/J₀ + λ·ℓ of legs to ends (C, 3) — what IPOPT minimises."""
+    def uncertainty(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
+        """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after legs to ends (C, 3) (no cost term)."""
         norm = prior_value(hyp, self.criterion)
-        unc = objective_values(state.uav_enu_m, ends_enu_m, hyp, self.noise, self.constraints.delta_m,
-                               self.n_quad, self.criterion)
-        return unc / norm + self._lambda() * np.linalg.norm(ends_enu_m - state.uav_enu_m, axis=1)
+        return objective_values(state.uav_enu_m, ends_enu_m, hyp, self.noise, self.constraints.delta_m,
+                                self.n_quad, self.criterion) / norm
+
+    def cost_per_m(self, ring_uncertainty: np.ndarray) -> float:
+        """λ (normalised units per metre) = cost_rel · (best gain of a ring leg) / leg_max:
+        a full-length leg must buy back at least cost_rel of what the best ring leg gains."""
+        gain = max(1.0 - float(np.min(ring_uncertainty)), 0.0)
+        return self.cost_rel * gain / self.constraints.leg_max_m
+
+    def evaluate(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses, lam: float) -> np.ndarray:
+        """(C,) the normalised objective J/J₀ + λ·ℓ of legs to ends (C, 3) — what IPOPT minimises."""
+        return self.uncertainty(state, ends_enu_m, hyp) + lam * np.linalg.norm(ends_enu_m - state.uav_enu_m, axis=1)
 
     # -- planning --------------------------------------------------------------------------------
     def _starts(self, state: PlanningState, ring: np.ndarray, values: np.ndarray) -> list[np.ndarray]:
@@ -269,13 +278,15 @@ class ActivePlanner(BasePlanner):
                 starts.append(warm)
         return starts
 
-    def _ipopt(self, state: PlanningState, hyp: Hypotheses, seed: np.ndarray, norm: float) -> tuple[np.ndarray, str]:
+    def _ipopt(
+        self, state: PlanningState, hyp: Hypotheses, seed: np.ndarray, norm: float, lam: float
+    ) -> tuple[np.ndarray, str]:
         c, x = self.constraints, state.uav_enu_m
         lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, self.n_quad, self.max_planes,
                       self.criterion)
         solver, _ = _solver(lay)
         A, off = convex_cell(c, x[:2], seed[:2], self.max_planes)
-        par = pack_params(lay, x, hyp, self.noise, c.delta_m, norm, self._lambda(), A, off, c.home_enu_m,
+        par = pack_params(lay, x, hyp, self.noise, c.delta_m, norm, lam, A, off, c.home_enu_m,
                           c.return_factor)
         cap = self.leg_cap_m(state)
         energy = state.energy_remaining_m if np.isfinite(state.energy_remaining_m) else 1e12
@@ -301,13 +312,15 @@ class ActivePlanner(BasePlanner):
         ring = self.feasible_ring(state)
         if len(ring) == 0:
             return x.copy(), "no ring", float("nan")
-        values = self.evaluate(state, ring, hyp)
+        unc = self.uncertainty(state, ring, hyp)
+        lam = self.cost_per_m(unc)
+        values = unc + lam * np.linalg.norm(ring - x, axis=1)
         best_i = int(np.argmin(values))
         best, best_val, best_status = ring[best_i], float(values[best_i]), "ring"
         norm = prior_value(hyp, self.criterion)
         for seed in self._starts(state, ring, values):
             try:
-                p, status = self._ipopt(state, hyp, seed, norm)
+                p, status = self._ipopt(state, hyp, seed, norm, lam)
             except RuntimeError as exc:  # CasADi evaluation errors: keep the ring answer
                 log.warning("IPOPT failed from %s: %s", seed, exc)
                 continue
@@ -318,7 +331,7 @@ class ActivePlanner(BasePlanner):
                 continue
             if np.linalg.norm(p - x) < min(self.constraints.min_leg_m, leg_cap_m) - 1e-6:
                 continue
-            val = float(self.evaluate(state, p[None], hyp)[0])
+            val = float(self.evaluate(state, p[None], hyp, lam)[0])
             if val < best_val:
                 ok = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
                 best, best_val, best_status = p, val, "ipopt" if ok else f"ipopt:{status}"
@@ -373,6 +386,6 @@ class GreedyPlanner(ActivePlanner):
             ring = self.feasible_ring(state)
         if len(ring) == 0:
             return x.copy(), "no ring", float("nan")
-        values = self.evaluate(state, ring, hyp)
+        values = self.uncertainty(state, ring, hyp)
         i = int(np.argmin(values))
         return ring[i].copy(), self.name, float(values[i])

@@ -1,0 +1,283 @@
+"""The information objective, the CasADi/IPOPT planner, greedy and oracle."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.noise import NoiseModel
+from planner import REASON_TARGET, PlanningConstraints, PlanningState, make_planner
+from planner import active as active_mod
+from planner.active import _Layout, _solver, pack_params
+from planner.geometry import convex_cell, in_free_space, leg_violations, point_in_polygon
+from planner.information import (
+    hypotheses_from_estimate,
+    objective_values,
+    predicted_information,
+    prior_value,
+)
+from tests.test_planner import fake_estimate, u_constraints
+from uavloc.errors import PlannerError
+
+NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.4, b_per_m=0.008)
+
+
+def _estimate_two_users(ambiguous: bool = True):
+    return fake_estimate(
+        [[-70, 60, 0], [70, 40, 0]],
+        np.array([[[30.0, 8.0], [8.0, 6.0]], [[4.0, 0.0], [0.0, 9.0]]]),
+        ambiguous=[ambiguous, False],
+        mirror=[[-50, 75, 0], [np.nan] * 3],
+    )
+
+
+def _casadi_objective(planner, state, hyp, lam, n_planes=0):
+    lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, planner.n_quad, planner.max_planes,
+                  planner.criterion)
+    _, fun = _solver(lay)
+    c = planner.constraints
+    par = pack_params(lay, state.uav_enu_m, hyp, planner.noise, c.delta_m, prior_value(hyp, planner.criterion), lam,
+                      np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor)
+    return lambda p: tuple(np.asarray(v, dtype=float).ravel() for v in fun(p, par))
+
+
+@pytest.mark.parametrize("criterion", ["A", "D"])
+@pytest.mark.parametrize("ambiguous", [True, False])
+def test_casadi_objective_and_gradient_match_the_numpy_reference(criterion, ambiguous):
+    planner = make_planner("casadi", u_constraints(), NOISE, criterion=criterion)
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users(ambiguous))
+    hyp = planner.hypotheses(state)
+    lam = 0.003
+    f = _casadi_objective(planner, state, hyp, lam)
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        p = state.uav_enu_m + rng.uniform([-50, -30, -15], [50, 50, 25])
+        value, grad = f(p)
+        ref = planner.evaluate(state, p[None], hyp, lam)[0]
+        assert value[0] == pytest.approx(ref, rel=1e-9)
+        # central differences of the numpy reference
+        h = 1e-4
+        ev = lambda q: planner.evaluate(state, q[None], hyp, lam)[0]  # noqa: E731
+        fd = [(ev(p + e) - ev(p - e)) / (2 * h) for e in np.eye(3) * h]
+        np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-9)
+
+
+def test_three_dimensional_users_objective_matches_reference():
+    est = fake_estimate([[10, 40, 0]], np.eye(2))
+    cov3 = np.diag([4.0, 2.0, 9.0])[None]
+    from dataclasses import replace
+
+    est3 = replace(est, cov_users_m2=cov3, info_users=np.linalg.inv(cov3[0]))
+    planner = make_planner("casadi", u_constraints(), NOISE)
+    state = PlanningState([0.0, -60.0, 30.0], est3)
+    hyp = planner.hypotheses(state)
+    assert hyp.dim == 3
+    f = _casadi_objective(planner, state, hyp, 0.0)
+    p = np.array([30.0, -20.0, 20.0])
+    assert f(p)[0][0] == pytest.approx(planner.evaluate(state, p[None], hyp, 0.0)[0], rel=1e-9)
+
+
+def test_quadrature_matches_a_dense_sum_of_measurements():
+    """Q = 8 quadrature points are within 1 % of summing ℓ/Δ = 30 evenly spread measurements (at
+    (i − ½)Δ; where along the leg the Δ-trigger fires depends on the previous leg)."""
+    est = fake_estimate([[20, 30, 0]], np.eye(2) * 1e6)
+    hyp = hypotheses_from_estimate(est, sigma_points="none")
+    start, end = np.array([-30.0, 0.0, 25.0]), np.array([30.0, 0.0, 25.0])
+    info, _ = predicted_information(start, end[None, None], hyp, NOISE, 2.0, n_quad=8)
+    length = np.linalg.norm(end - start)
+    s = (np.arange(1, int(length / 2.0) + 1) - 0.5) * 2.0
+    pts = start + (end - start) * (s / length)[:, None]
+    diff = pts - hyp.users_enu_m[0, 0]
+    d = np.linalg.norm(diff, axis=1)
+    g = diff[:, :2] / d[:, None]
+    dense = hyp.prior_info[0, 0] + np.einsum("n,ni,nj->ij", 1 / (NOISE.range_sigma_m(d) ** 2 + 1.0), g, g)
+    np.testing.assert_allclose(info[0, 0, 0], dense, rtol=0.01)
+
+
+def test_mirror_hypotheses_share_the_weight():
+    hyp = hypotheses_from_estimate(_estimate_two_users(True))
+    np.testing.assert_allclose(hyp.sample_w.sum(axis=1), 1.0)
+    # user 0: its mean and its mirror each carry half; user 1 (not ambiguous) has no second set
+    assert hyp.users_enu_m.shape[1] == 6
+    assert hyp.sample_w[0, :3].sum() == pytest.approx(0.5) and hyp.sample_w[0, 3:].sum() == pytest.approx(0.5)
+    np.testing.assert_allclose(hyp.users_enu_m[0, 3], [-50, 75, 0])
+    assert hyp.sample_w[1, 3:].sum() == 0.0
+
+
+def _random_setting(seed: int):
+    """A random non-convex fence (U or L) with 0–2 no-fly squares, a free start and an estimate."""
+    rng = np.random.default_rng(seed)
+    w, h = rng.uniform(120, 200, 2)
+    a, notch_w = rng.uniform(-0.3, 0.1) * w, rng.uniform(30, 60)
+    fence = np.array([[-w / 2, -h / 2], [w / 2, -h / 2], [w / 2, h / 2], [a + notch_w, h / 2],
+                      [a + notch_w, rng.uniform(-0.2, 0.2) * h], [a, rng.uniform(-0.2, 0.2) * h], [a, h / 2],
+                      [-w / 2, h / 2]])
+    zones = []
+    for _ in range(rng.integers(0, 3)):
+        centre, side = rng.uniform(-0.4, 0.4, 2) * [w, h], rng.uniform(10, 30)
+        zones.append(centre + side / 2 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]))
+    c = PlanningConstraints(home_enu_m=np.zeros(3), fence_enu_m=fence, no_fly_enu_m=tuple(zones), alt_min_m=10.0,
+                            alt_max_m=60.0, cruise_alt_m=30.0, leg_max_m=rng.uniform(30, 70),
+                            max_distance_m=rng.uniform(80, 150), budget_m=5000.0)
+    while True:
+        x = np.array([*rng.uniform(-0.5, 0.5, 2) * [w, h], rng.uniform(10, 60)])
+        if in_free_space(x[:2], c) and np.linalg.norm(x[:2]) < c.max_distance_m:
+            break
+    users = np.column_stack([rng.uniform(-0.5, 0.5, (3, 2)) * [w, h], np.zeros(3)])
+    est = fake_estimate(users, np.diag(rng.uniform(1, 40, 2)), ambiguous=[True, False, False],
+                        mirror=[users[0] + [15, -10, 0], [np.nan] * 3, [np.nan] * 3])
+    return c, x, est
+
+
+def _free_along(c: PlanningConstraints, a: np.ndarray, b: np.ndarray) -> bool:
+    """Independent dense check: every 0.2 m of the leg inside the fence and outside the zones."""
+    t = np.linspace(0, 1, int(np.linalg.norm(b - a) / 0.2) + 2)[:, None]
+    pts = a[:2] + t * (b[:2] - a[:2])
+    ok = point_in_polygon(pts, c.fence_enu_m).all()
+    return bool(ok and not any(point_in_polygon(pts, z).any() for z in c.no_fly_enu_m))
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_constraints_hold_on_randomized_non_convex_scenarios(seed):
+    c, x, est = _random_setting(seed)
+    planner = make_planner("casadi", c, NOISE, rng_seed=seed)
+    flown = 0.0
+    for _ in range(3):
+        r = planner.plan(PlanningState(x, est, flown, energy_remaining_m=4000.0))
+        if r.done:
+            break
+        wp = r.waypoint_enu_m
+        assert leg_violations(c, x, wp, c.budget_m - flown, 4000.0) == []
+        assert _free_along(c, x, wp)
+        assert np.linalg.norm(wp - x) <= c.leg_max_m + 1e-6
+        assert c.alt_min_m - 1e-9 <= wp[2] <= c.alt_max_m + 1e-9
+        assert np.linalg.norm(wp[:2] - c.home_enu_m[:2]) <= c.max_distance_m + 1e-6
+        flown += float(np.linalg.norm(wp - x))
+        x = wp
+
+
+def test_convex_cells_of_random_scenarios_stay_free():
+    for seed in range(6):
+        c, x, _ = _random_setting(seed)
+        rng = np.random.default_rng(seed)
+        seed_end = x[:2] + rng.normal(size=2) * 3
+        if not _free_along(c, np.array([*x[:2], 0]), np.array([*seed_end, 0])):
+            continue
+        A, off = convex_cell(c, x[:2], seed_end, max_planes=64)
+        pts = x[:2] + rng.uniform(-80, 80, size=(400, 2))
+        for p in pts[np.all(pts @ A.T <= off, axis=1)][:40]:
+            assert _free_along(c, np.array([*x[:2], 0]), np.array([*p, 0]))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_choice_is_at_least_as_good_as_the_best_ring_candidate(seed):
+    c, x, est = _random_setting(100 + seed)
+    planner = make_planner("casadi", c, NOISE)
+    state = PlanningState(x, est, 0.0)
+    hyp = planner.hypotheses(state)
+    ring = planner.feasible_ring(state)
+    unc = planner.uncertainty(state, ring, hyp)
+    lam = planner.cost_per_m(unc)
+    ring_best = float(np.min(unc + lam * np.linalg.norm(ring - x, axis=1)))
+    r = planner.plan(state)
+    chosen = planner.evaluate(state, r.waypoint_enu_m[None], hyp, lam)[0]
+    assert chosen <= ring_best + 1e-12
+    assert r.objective == pytest.approx(chosen)
+
+
+def test_ipopt_improves_on_the_ring_somewhere():
+    """The continuous solve must beat the coarse ring strictly in most random settings."""
+    better = 0
+    for seed in range(6):
+        c, x, est = _random_setting(200 + seed)
+        planner = make_planner("casadi", c, NOISE)
+        state = PlanningState(x, est, 0.0)
+        hyp = planner.hypotheses(state)
+        ring = planner.feasible_ring(state)
+        unc = planner.uncertainty(state, ring, hyp)
+        lam = planner.cost_per_m(unc)
+        ring_best = float(np.min(unc + lam * np.linalg.norm(ring - x, axis=1)))
+        r = planner.plan(state)
+        better += r.status == "ipopt" and r.objective < ring_best - 1e-6
+    assert better >= 4
+
+
+def test_ipopt_failure_falls_back_to_the_best_feasible_ring_candidate(monkeypatch):
+    c = u_constraints()
+    planner = make_planner("casadi", c, NOISE)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("simulated IPOPT crash")
+
+    monkeypatch.setattr(planner, "_ipopt", broken)
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users())
+    r = planner.plan(state)
+    assert r.status == "ring" and not r.done
+    assert leg_violations(c, state.uav_enu_m, r.waypoint_enu_m, c.budget_m) == []
+    hyp = planner.hypotheses(state)
+    ring = planner.feasible_ring(state)
+    unc = planner.uncertainty(state, ring, hyp)
+    lam = planner.cost_per_m(unc)
+    assert r.objective == pytest.approx(np.min(unc + lam * np.linalg.norm(ring - state.uav_enu_m, axis=1)))
+
+
+def test_an_infeasible_ipopt_answer_is_never_returned(monkeypatch):
+    c = u_constraints()
+    planner = make_planner("casadi", c, NOISE)
+    monkeypatch.setattr(planner, "_ipopt", lambda *a, **k: (np.array([0.0, 0.0, 30.0]), "Solve_Succeeded"))
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users())
+    r = planner.plan(state)
+    assert not np.allclose(r.waypoint_enu_m, [0.0, 0.0, 30.0])  # (0, 0) is in the notch of the U
+    assert leg_violations(c, state.uav_enu_m, r.waypoint_enu_m, c.budget_m) == []
+
+
+def test_explores_with_turning_legs_before_any_user_is_initialised():
+    c = u_constraints()
+    planner = make_planner("casadi", c, NOISE)
+    x0 = np.array([0.0, -60.0, 30.0])
+    r1 = planner.plan(PlanningState(x0, None))
+    r2 = planner.plan(PlanningState(r1.waypoint_enu_m, None, 60.0))
+    assert r1.status == r2.status == "explore"
+    d1, d2 = (r1.waypoint_enu_m - x0)[:2], (r2.waypoint_enu_m - r1.waypoint_enu_m)[:2]
+    cos = d1 @ d2 / np.linalg.norm(d1) / np.linalg.norm(d2)
+    assert cos < np.cos(np.radians(45))  # the second leg turns: no collinear track, no mirror
+
+
+def test_done_when_every_user_meets_the_target():
+    c = u_constraints(target_radius_m=1.0)
+    est = fake_estimate([[-70, 60, 0]], np.eye(2) * 0.01)
+    r = make_planner("casadi", c, NOISE).plan(PlanningState([0.0, -60.0, 30.0], est))
+    assert r.done and r.reason == REASON_TARGET
+
+
+def test_oracle_needs_truth_and_plans_at_it():
+    c = u_constraints()
+    with pytest.raises(PlannerError, match="true_users_enu_m"):
+        make_planner("oracle", c, NOISE)
+    oracle = make_planner("oracle", c, NOISE, true_users_enu_m=[[-70, 60, 0], [70, 40, 0]])
+    r = oracle.plan(PlanningState([0.0, -60.0, 30.0], None))
+    assert r.status in ("ipopt", "ring") and not r.done
+
+
+def test_greedy_picks_the_best_full_leg_heading():
+    c = u_constraints()
+    greedy = make_planner("greedy", c, NOISE)
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users(False))
+    r = greedy.plan(state)
+    assert np.linalg.norm(r.waypoint_enu_m - state.uav_enu_m) == pytest.approx(c.leg_max_m, rel=1e-6)
+    hyp = greedy.hypotheses(state)
+    theta = np.radians(np.arange(0, 360, 5))
+    ends = state.uav_enu_m + c.leg_max_m * np.column_stack([np.cos(theta), np.sin(theta), 0 * theta])
+    ok = np.array([not leg_violations(c, state.uav_enu_m, e, c.budget_m) for e in ends])
+    fine = objective_values(state.uav_enu_m, ends[ok], hyp, NOISE, c.delta_m, greedy.n_quad)
+    # the 15° ring is within a few percent of a 5° search
+    assert r.objective <= 1.05 * fine.min() / prior_value(hyp)
+
+
+def test_solver_cache_is_reused():
+    planner = make_planner("casadi", u_constraints(), NOISE)
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users())
+    planner.plan(state)
+    n = len(active_mod._SOLVERS)
+    planner.plan(state)
+    assert len(active_mod._SOLVERS) == n
