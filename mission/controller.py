@@ -5,8 +5,9 @@ States CONNECT → PREFLIGHT → TAKEOFF → SURVEY → RETURN → LANDED, and A
 
 - telemetry: the vehicle's streams; each position fix goes into a :class:`TelemetryBuffer` (mission
   time, ENU from home) and, rate-limited, into the mission log;
-- Δ-trigger: when the UAV has moved Δ since the last keyframe (`KeyframeSelector`), measure every
-  user through the gNB; the UAV position of a trigger is the telemetry interpolated to the mean
+- Δ-trigger: while a survey leg is flown, when the UAV has moved Δ since the last keyframe
+  (`KeyframeSelector`), measure every user through the gNB (not while hovering to replan, where
+  GPS noise alone would move the fix by Δ); the UAV position of a trigger is the telemetry interpolated to the mean
   time of its measurements (DESIGN.md §3) and is shared by the trigger's `rtt` records, which is
   how replay groups them back into the same keyframe;
 - estimator worker: `OnlineEstimator.add_keyframe` in a thread (`asyncio.to_thread`), so the event
@@ -273,9 +274,26 @@ class EstimatorWorker:
 
     async def run(self, on_estimate: Callable[[Estimate], None],
                   on_error: Callable[[EstimatorError], None] | None = None) -> None:
-        """Until cancelled: take a keyframe, solve it off the loop, hand the estimate over."""
+        """Until cancelled: take a keyframe, solve it off the loop, hand the estimate over.
+
+        If the child process cannot start or dies (e.g. a caller's unguarded `__main__` under
+        spawn), the worker falls back to thread mode and re-feeds the keyframes seen so far."""
+        from concurrent.futures.process import BrokenProcessPool
+
         loop = asyncio.get_running_loop()
         pool = None
+        fed: list[Keyframe] = []
+
+        def thread_solver(history: list[Keyframe]):
+            online = OnlineEstimator(*self.args)
+
+            def replay_then_add(kf: Keyframe) -> Estimate:
+                while history:
+                    online.add_keyframe(history.pop(0))
+                return online.add_keyframe(kf)
+
+            return functools.partial(asyncio.to_thread, replay_then_add)
+
         if self.mode == "process":
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
@@ -284,17 +302,28 @@ class EstimatorWorker:
                                        initializer=_child_init, initargs=self.args)
             solve = functools.partial(loop.run_in_executor, pool, _child_add)
         else:
-            online = OnlineEstimator(*self.args)
-            solve = functools.partial(asyncio.to_thread, online.add_keyframe)
+            solve = thread_solver([])
         try:
             if pool is not None:
-                await loop.run_in_executor(pool, _child_ping)  # start the child now, not at the 1st keyframe
+                try:
+                    await loop.run_in_executor(pool, _child_ping)  # start the child now, not at the 1st keyframe
+                except BrokenProcessPool:
+                    log.warning("estimator child process did not start; solving in a thread instead")
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    pool, solve, self.mode = None, thread_solver([]), "thread"
             self.ready.set()
             while True:
                 kf = await self.queue.get()
                 try:
                     t0 = time.perf_counter()
-                    est = await solve(kf)
+                    try:
+                        est = await solve(kf)
+                    except BrokenProcessPool:
+                        log.warning("estimator child process died; solving in a thread from now on")
+                        pool.shutdown(wait=False, cancel_futures=True)
+                        pool, solve, self.mode = None, thread_solver(list(fed)), "thread"
+                        est = await solve(kf)
+                    fed.append(kf)
                     self.solve_s.append(time.perf_counter() - t0)
                 except EstimatorError as exc:
                     if on_error is None:
@@ -356,6 +385,7 @@ class MissionController:
         self._fix_pulse: _Pulse | None = None
         self._last_tel_log_t = -math.inf
         self._kf_queue: asyncio.Queue[Keyframe] | None = None
+        self._place_queue: asyncio.Queue[list] | None = None
         self._return_reason: str | None = None
         self._stop_status: tuple[str, str] | None = None
         self._link_lost_since: float | None = None
@@ -368,6 +398,7 @@ class MissionController:
         self._user_misses = np.zeros(len(self.users), int)
         self._battery_start_pct: float | None = None
         self.loop_lag = LoopLagMonitor()
+        self._on_leg = False  # flying a survey leg: the Δ-trigger is armed (not while hovering to plan)
 
     # -- clock ----------------------------------------------------------------------------------
 
@@ -483,13 +514,12 @@ class MissionController:
     async def _trigger_task(self) -> None:
         selector = KeyframeSelector(self.config.delta_m)
         while True:
-            await self._fix_pulse.wait(1.0)
-            if self.state != SURVEY or self._return_reason or self._stop_status:
-                continue
             pos = self._pos_enu()
-            if pos is None or not selector.accept(pos):
-                continue
-            await self._measure_all()
+            if (self._on_leg and not self._return_reason and not self._stop_status and pos is not None
+                    and selector.accept(pos)):
+                await self._measure_all()
+                continue  # check the newest fix at once: fixes arrived while measuring
+            await self._fix_pulse.wait(1.0)
 
     async def _measure_all(self) -> None:
         """One trigger: measure every user, log the rtt records, queue one keyframe."""
@@ -525,6 +555,21 @@ class MissionController:
             self._gnb_down_since = None
         if not samples:
             return
+        # placing the trigger on the track waits for the next fix: hand it to the placer task so
+        # the trigger is ready for the next Δ at once
+        self._place_queue.put_nowait(samples)
+
+    async def _placer_task(self) -> None:
+        """Place each trigger at the telemetry interpolated to its mean measurement time, log its
+        rtt records and queue its keyframe (in trigger order)."""
+        while True:
+            samples = await self._place_queue.get()
+            try:
+                await self._place(samples)
+            finally:
+                self._place_queue.task_done()
+
+    async def _place(self, samples: list) -> None:
         t_meas = float(np.mean([self.mission_t(tm) for _, _, tm in samples]))
         try:
             pos = await self._position_at(t_meas)
@@ -732,6 +777,7 @@ class MissionController:
         cfg = self.config
         self._fix_pulse = _Pulse()
         self._kf_queue = asyncio.Queue()
+        self._place_queue = asyncio.Queue()
         background: list[asyncio.Task] = []
 
         # CONNECT
@@ -755,6 +801,7 @@ class MissionController:
         self._event(f"gNB reports {len(rntis)} UE(s)" + (f"; not connected: {', '.join(missing)}" if missing else ""),
                     kind="discover", rntis=[f"{r:04x}" for r in rntis])
         for coro, name in ((self._estimator_task(), "estimator"), (self._trigger_task(), "trigger"),
+                           (self._placer_task(), "placer"),
                            (self._safety_task(), "safety"), (self._status_task(), "status"),
                            (self.loop_lag.run(), "loop-lag")):
             background.append(tg.create_task(coro, name=name))
@@ -773,9 +820,7 @@ class MissionController:
                 self._event("landed and disarmed", kind="landed")
             self._set_state(LANDED)
             # let the estimator finish the last keyframes before the final batch solve
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(30.0):
-                    await self._kf_queue.join()
+            await self._drain(30.0)
         finally:
             for task in background:
                 task.cancel()
@@ -813,11 +858,16 @@ class MissionController:
         per_pct = self.flown_m / used
         return max(0.0, (st.battery_pct - self.gate.limits.battery_rtl_pct) * per_pct)
 
+    async def _drain(self, timeout_s: float) -> None:
+        """Wait until every trigger so far is placed and solved (bounded)."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                await self._place_queue.join()
+                await self._kf_queue.join()
+
     async def _plan(self, pos: np.ndarray) -> PlanResult:
         # plan with the estimate of every keyframe measured so far
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(10.0):
-                await self._kf_queue.join()
+        await self._drain(10.0)
         state = PlanningState(uav_enu_m=pos, estimate=self.estimate, flown_m=self.flown_m,
                               energy_remaining_m=self._energy_remaining_m())
         return await asyncio.to_thread(self.planner.plan, state)
@@ -879,7 +929,15 @@ class MissionController:
         return self.flown_m >= self.config.budget_m
 
     async def _fly_leg(self, start: np.ndarray, wp: np.ndarray) -> None:
-        """Wait for arrival within the acceptance radius, a stop/return request, or the leg timeout."""
+        """Wait for arrival within the acceptance radius, a stop/return request, or the leg timeout;
+        the Δ-trigger measures while the leg is flown."""
+        self._on_leg = True
+        try:
+            await self._fly_leg_until_done(start, wp)
+        finally:
+            self._on_leg = False
+
+    async def _fly_leg_until_done(self, start: np.ndarray, wp: np.ndarray) -> None:
         cfg = self.config
         dist = float(np.linalg.norm(wp - start))
         deadline = time.monotonic() + self.wall(2.0 * dist / cfg.speed_mps + 20.0)

@@ -58,7 +58,7 @@ class SimulatedMission:
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
                  speedup: float = 20.0, planner: str | None = None, connect: str | None = None,
-                 max_stream_wall_hz: float = 60.0, gnb_request_timeout_s: float = 1.0,
+                 max_stream_wall_hz: float = 100.0, gnb_request_timeout_s: float = 1.0,
                  controller_overrides: dict | None = None):
         if not (math.isfinite(speedup) and speedup > 0):
             raise MissionError(f"speedup must be a positive number, got {speedup!r}")

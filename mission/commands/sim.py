@@ -16,8 +16,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", metavar="SCENARIO",
                    help="scenario file, or the name of a bundled one (paper, three_users_nlos, ...)")
     p.add_argument("--seed", type=int, help="seed of the simulators and the planner (default: the scenario's)")
-    p.add_argument("--speedup", type=float, default=20.0,
-                   help="simulated seconds per wall second of the built-in vehicle (default 20)")
+    p.add_argument("--speedup", type=float, default=10.0,
+                   help="simulated seconds per wall second of the built-in vehicle (default 10)")
     p.add_argument("--planner", metavar="NAME",
                    help="casadi, greedy, lawnmower, circle, random, oracle (default: the scenario's, casadi "
                         "when available)")
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     if not (args.speedup > 0 and args.speedup < 1e4):
         raise MissionError(f"--speedup must be in (0, 10000), got {args.speedup}")
-    if args.connect is not None and args.speedup != 20.0:
+    if args.connect is not None and args.speedup != 10.0:
         log.warning("--speedup is ignored with --connect (PX4 SITL sets its own speed)")
     tmp = None
     if args.out is not None:
