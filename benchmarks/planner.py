@@ -13,10 +13,12 @@ straight leg; every Δ metres along it (spacing carried across legs) a keyframe 
 fix = truth + N(0, σ_gps² I), ranges to every user = |x − u_k| + N(0, σ(d)²) (line of sight) — and
 fed to the REAL estimator (estimator.slam.OnlineEstimator, window 40); the planner is called again
 at the leg end with the latest Estimate. Recorded: metres flown when the mean over users of the
-95 % error bound (Estimate.error_bound_95_m) first reaches 1.0 m and 0.6 m with no user ambiguous
-(runs that never do count the 3000 m cap), each plan() call's compute time, and constraint
-violations found by an independent check here (legs sampled every 0.25 m against the fence,
-no-fly zones, altitude band, distance from home, leg length).
+95 % error bound (Estimate.error_bound_95_m) first reaches 1.0 m and 0.6 m (runs that never do
+count the 3000 m cap; the estimator's ambiguity flag is not required to be clear — it flickers
+with a 40-keyframe window — so the table also gives the mean true error at the 1.0 m crossing),
+each plan() call's compute time, and constraint violations found by an independent check here
+(legs sampled every 0.25 m against the fence, no-fly zones, altitude band, distance from home,
+leg length).
 
 --distance-noise adds σ(d) = 3 + 0.3·e^(0.01 d) m to half of the scenarios. It is off by default
 because the online estimator (as of 380dfa5) can diverge with it: users initialised from the first
@@ -196,7 +198,7 @@ def run(sc: Scenario, planner_name: str) -> Run:
             estimate = est.add_keyframe(Keyframe(gps, np.arange(len(users)), ranges))
             bound = float(np.mean(estimate.error_bound_95_m()))
             at = flown + s
-            while pending and bound <= pending[0] and not np.any(estimate.ambiguous):
+            while pending and bound <= pending[0]:
                 tgt = pending.pop(0)
                 out.metres_to[tgt], out.reached[tgt] = at, True
                 out.error_at[tgt] = float(np.mean(np.linalg.norm(estimate.users_enu_m - users, axis=1)))
