@@ -11,6 +11,12 @@ UAV at 35 m flying a circle of radius 60 m over users 40–110 m from its centre
 
 from __future__ import annotations
 
+import os
+
+# one BLAS thread: the machine is shared and the problems are small (threads only contend)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import argparse
 import statistics
 import sys

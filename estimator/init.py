@@ -41,9 +41,9 @@ from estimator.robust import loss_rho, loss_weight
 from estimator.types import SolverParams
 
 #: grid points per axis of the initialization search
-GRID_SIZE = 25
+GRID_SIZE = 19
 #: at most this many ranges enter the grid scoring (evenly subsampled)
-GRID_MAX_RANGES = 48
+GRID_MAX_RANGES = 40
 #: robust threshold (whitened) used to score the grid and the first refinement
 GRID_CAUCHY_SCALE = 2.0
 #: half-width (in fixes) of the moving average that smooths GPS noise out of the track
@@ -146,7 +146,7 @@ def _grid_cost(uav: np.ndarray, rng: np.ndarray, dz: np.ndarray, cand: np.ndarra
 
 def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseModel, n_best: int) -> np.ndarray:
     """(≤ n_best, 2) horizontal starts: best local minima of a coarse grid, each refined on a
-    finer grid around it (cell/4 resolution)."""
+    finer grid around it (cell/3 resolution)."""
     dz = uav[:, 2] - up_m
     rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
     pad = 4.0 * np.broadcast_to(_sigma_eff(noise, rng), rng.shape) + 2.0
@@ -169,9 +169,9 @@ def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseMode
                 is_min &= cost <= padded[1 + de : 1 + de + GRID_SIZE, 1 + dn : 1 + dn + GRID_SIZE]
     idx = np.flatnonzero(is_min.ravel())
     idx = idx[np.argsort(cost.ravel()[idx])][:n_best]
-    # zoom: a 9×9 grid spanning ±1 coarse cell around each start
+    # zoom: a 7×7 grid spanning ±1 coarse cell around each start
     cell = np.array([ge[1] - ge[0], gn[1] - gn[0]])
-    off = np.linspace(-1.0, 1.0, 9)
+    off = np.linspace(-1.0, 1.0, 7)
     oe, on = np.meshgrid(off * cell[0], off * cell[1], indexing="ij")
     zoom = np.stack([oe.ravel(), on.ravel()], axis=1)
     fine = (cand[idx][:, None, :] + zoom[None, :, :]).reshape(-1, 2)
@@ -184,7 +184,7 @@ def init_user(
     n_starts: int = 3,
 ) -> UserFit:
     """Initial θ of one user from its ranges: coarse-to-fine grid search (the joint solver
-    polishes the best grid point; its cell is a quarter of the coarse one, a few metres).
+    polishes the best grid point; its cell is a third of the coarse one, a few metres).
 
     uav_enu_m: (M, 3) UAV fixes [m, ENU]; range_m: (M,) [m]; up_m: ground height [m].
     """

@@ -482,8 +482,11 @@ class OnlineEstimator:
         self._rng[n, idx] = rng
         self._odom_mask[n] = odom is not None and n + self._seen > 0 and self._params.motion_sigma_m is not None
         self._odom[n] = odom if odom is not None else 0.0
-        # a new keyframe starts at its GPS fix, or dead-reckoned from the previous one
+        # a new keyframe starts at its GPS fix, or dead-reckoned from the previous one, moved to
+        # where the ranges to the users already estimated put it
         self._x[n] = self._x[n - 1] + odom if (self._odom_mask[n] and n > 0) else gps
+        if idx.size and self._active.any():
+            self._x[n] = self._place_keyframe(self._x[n], gps, idx, rng)
         self._n = n + 1
         self._seen += 1
         self._n_ranges[idx] += 1
@@ -505,6 +508,33 @@ class OnlineEstimator:
             self._marginalize_oldest()
         self._estimate = est
         return est
+
+    def _place_keyframe(self, x0: np.ndarray, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> np.ndarray:
+        """One Gauss–Newton step on the new keyframe alone (users fixed): a warm start that
+        leaves the joint iterations only the users' small shift to absorb.
+
+            min_x ||x − x̂||²/σ_gps² + Σ_k w (r̂_k − ||x − u_k|| − b_k)²/σ²
+        """
+        use = self._active[idx]
+        if not use.any():
+            return x0
+        k = idx[use]
+        users = users_from_theta(self._theta[k], self._up[k], self._params.user_dim)
+        bias = self._theta[k, -1] if self._params.estimate_bias else 0.0
+        r_meas = rng[use]
+        inv_g2 = 1.0 / self._noise.sigma_gps_m**2
+        x = x0.copy()
+        for _ in range(1):
+            diff = x - users
+            d = np.maximum(np.sqrt((diff * diff).sum(axis=1)), 1e-9)
+            sig = self._noise.range_sigma_m(d)
+            e = (r_meas - d - bias) / sig
+            w = loss_weight(e, self._params.loss, self._params.loss_scale)
+            j = -diff / (d * sig)[:, None]
+            h = (j * w[:, None]).T @ j + np.eye(3) * inv_g2
+            g = -(x - gps) * inv_g2 - (j * (w * e)[:, None]).sum(axis=0)
+            x = x + np.linalg.solve(h, g)
+        return x
 
     def _check_mirrors(self, prob: Problem, res: _Result) -> _Result:
         """Mirror tests on the window; jump to a clearly better mirror (reflecting its prior)."""
@@ -567,8 +597,8 @@ class OnlineEstimator:
         ew = e[:, 0] * sw[:, 0]
         jfull = np.zeros((k_all, dim))
         jfull[:, :3] = jx0
-        for k in range(k_all):
-            jfull[k, 6 + k * p : 6 + (k + 1) * p] = jt0[k]
+        kk = np.arange(k_all)[:, None]
+        jfull[kk, 6 + kk * p + np.arange(p)[None, :]] = jt0
         h += jfull.T @ jfull
         grad += jfull.T @ ew
         inv_g2 = 1.0 / noise.sigma_gps_m**2

@@ -51,7 +51,7 @@ class SolverParams:
     window: int = 100
     ambiguity_chi2: float = 9.0
     online_check_every: int = 10
-    online_step_tol_m: float = 0.01
+    online_step_tol_m: float = 0.05
 
 
 @dataclass(frozen=True)
