@@ -175,8 +175,8 @@ def pack_keyframes(
             and np.isfinite(r).all() and (r.size == 0 or r.min() >= 0)
         )
         if ok and idx.size:
-            flat = kf_of * n_users + idx
-            ok = np.unique(flat).size == flat.size
+            # a user twice in one keyframe: some (keyframe, user) cell counted more than once
+            ok = int(np.bincount(kf_of * n_users + idx, minlength=n * n_users).max()) <= 1
         odoms = [kf.odom_enu_m for kf in keyframes]
         if ok and any(o is not None for o in odoms):
             for o in odoms:
