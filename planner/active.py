@@ -63,6 +63,8 @@ _IPOPT_OPTS = {
     "ipopt.bound_frac": 1e-6,
     "error_on_fail": False,
 }
+#: users (and mirrors) estimated farther than this from home are treated as not initialised [m].
+MAX_USER_RANGE_M = 5000.0
 #: ε added under square roots [m²] (numpy and CasADi use the same value).
 _SQRT_EPS_M2 = 1e-9
 
@@ -234,13 +236,17 @@ class ActivePlanner(BasePlanner):
         if est is None:
             return None
         ok = users_initialised(est)
+        home = self.constraints.home_enu_m
+        # a user estimated absurdly far away is a diverged solve, not something to fly toward
+        ok &= np.linalg.norm(np.nan_to_num(est.users_enu_m[:, :2] - home[:2], nan=np.inf), axis=1) <= MAX_USER_RANGE_M
         if not ok.any():
             return None
         if not ok.all():
             bound = est.error_bound_95_m()
             if np.all(bound[ok] <= self.constraints.target_radius_m):
                 return None
-        return hypotheses_from_estimate(est, self.user_weights, sigma_points=self.sigma_points, users=ok)
+        return hypotheses_from_estimate(est, self.user_weights, sigma_points=self.sigma_points, users=ok,
+                                        home_enu_m=home, max_range_m=MAX_USER_RANGE_M)
 
     def uncertainty(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
         """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after legs to ends (C, 3) (no cost term)."""
@@ -251,7 +257,8 @@ class ActivePlanner(BasePlanner):
     def cost_per_m(self, ring_uncertainty: np.ndarray) -> float:
         """λ (normalised units per metre) = cost_rel · (best gain of a ring leg) / leg_max:
         a full-length leg must buy back at least cost_rel of what the best ring leg gains."""
-        gain = max(1.0 - float(np.min(ring_uncertainty)), 0.0)
+        finite = ring_uncertainty[np.isfinite(ring_uncertainty)]
+        gain = max(1.0 - float(np.min(finite)), 0.0) if len(finite) else 0.0
         return self.cost_rel * gain / self.constraints.leg_max_m
 
     def evaluate(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses, lam: float) -> np.ndarray:
@@ -315,6 +322,12 @@ class ActivePlanner(BasePlanner):
         unc = self.uncertainty(state, ring, hyp)
         lam = self.cost_per_m(unc)
         values = unc + lam * np.linalg.norm(ring - x, axis=1)
+        values = np.where(np.isfinite(values), values, np.inf)
+        if not np.isfinite(values).any():
+            log.warning("objective not finite on any ring candidate; exploring instead")
+            wp = explore_waypoint(self, state, np.array(self._visited))
+            self._remember(x, wp)
+            return wp, "explore", float("nan")
         best_i = int(np.argmin(values))
         best, best_val, best_status = ring[best_i], float(values[best_i]), "ring"
         norm = prior_value(hyp, self.criterion)

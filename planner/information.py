@@ -79,6 +79,8 @@ def hypotheses_from_estimate(
     kappa: float = 2.0,
     max_offset_m: float = 30.0,
     users: np.ndarray | None = None,
+    home_enu_m: np.ndarray | None = None,
+    max_range_m: float = np.inf,
 ) -> Hypotheses:
     """Samples of the initialised users' posterior (or of `users`, a (K,) bool mask).
 
@@ -87,7 +89,8 @@ def hypotheses_from_estimate(
     weights κ/(r + κ) and 1/(2(r + κ)); offsets capped at `max_offset_m`. While user k is ambiguous,
     the same set around the mirror solution with Σ reflected (R = I − 2nnᵀ, n along mirror − u),
     each set weighted ½. Every user gets M = (2r + 1)·(2 if any user is ambiguous else 1) samples
-    (unused ones weight 0) so the sizes are fixed.
+    (unused ones weight 0) so the sizes are fixed. A mirror farther than `max_range_m` horizontally
+    from `home_enu_m` is implausible (a diverged solve) and left out.
     """
     if sigma_points not in ("major", "all", "none"):
         raise ValueError(f"sigma_points must be 'major', 'all' or 'none', got {sigma_points!r}")
@@ -96,6 +99,9 @@ def hypotheses_from_estimate(
     d = int(estimate.cov_users_m2.shape[1])
     r = {"major": 1, "all": d, "none": 0}[sigma_points]
     amb = np.asarray(estimate.ambiguous, dtype=bool) & np.all(np.isfinite(estimate.mirror_enu_m), axis=1)
+    if home_enu_m is not None and np.isfinite(max_range_m):
+        with np.errstate(invalid="ignore"):
+            amb &= np.linalg.norm(estimate.mirror_enu_m[:, :2] - home_enu_m[:2], axis=1) <= max_range_m
     n_set = 2 * r + 1
     n_hyp = 2 if np.any(amb[idx]) else 1
     M = n_set * n_hyp

@@ -281,3 +281,17 @@ def test_solver_cache_is_reused():
     n = len(active_mod._SOLVERS)
     planner.plan(state)
     assert len(active_mod._SOLVERS) == n
+
+
+def test_a_diverged_user_estimate_is_ignored_and_the_leg_stays_feasible():
+    c = u_constraints()
+    noise = NoiseModel(s0_m=3.0, a_m=0.3, b_per_m=0.01)  # exp(b·d) overflows at the diverged user
+    est = fake_estimate([[-70, 60, 0], [33772.8, 98530.2, 0]], np.eye(2) * 50.0, ambiguous=[True, False],
+                        mirror=[[28915.1, -3836.9, 0], [np.nan] * 3])
+    planner = make_planner("casadi", c, noise)
+    state = PlanningState([0.0, -60.0, 30.0], est)
+    hyp = planner.hypotheses(state)
+    assert hyp.index.tolist() == [0] and hyp.users_enu_m.shape[1] == 3  # no far user, no far mirror
+    r = planner.plan(state)
+    assert not r.done and np.isfinite(r.objective)
+    assert leg_violations(c, state.uav_enu_m, r.waypoint_enu_m, c.budget_m) == []
