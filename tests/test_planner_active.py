@@ -295,3 +295,15 @@ def test_a_diverged_user_estimate_is_ignored_and_the_leg_stays_feasible():
     r = planner.plan(state)
     assert not r.done and np.isfinite(r.objective)
     assert leg_violations(c, state.uav_enu_m, r.waypoint_enu_m, c.budget_m) == []
+
+
+@pytest.mark.parametrize("name", ["casadi", "greedy", "lawnmower", "circle", "random"])
+def test_no_fence_and_little_energy_left(name):
+    c = u_constraints(fence_enu_m=np.zeros((0, 2)), no_fly_enu_m=())
+    x = np.array([80.0, 40.0, 30.0])
+    energy = 1.2 * np.linalg.norm(x - c.home_enu_m) + 40.0  # 40 m to spare beyond the way home
+    r = make_planner(name, c, NOISE).plan(PlanningState(x, _estimate_two_users(), 0.0, energy_remaining_m=energy))
+    assert not r.done
+    wp = r.waypoint_enu_m
+    assert leg_violations(c, x, wp, c.budget_m, energy) == []
+    assert np.linalg.norm(wp - x) + c.return_factor * np.linalg.norm(wp - c.home_enu_m) <= energy + 1e-6
