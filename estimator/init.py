@@ -15,7 +15,8 @@ Mirror test: ranges from a straight flight line cannot tell a user from its refl
 line. Fit the line to the user's UAV fixes (principal axis of the horizontal positions), reflect
 the estimate and refine from there to the mirror solution m. Two numbers:
 
-    separation  χ²_sep = Σ_i ((||x̃_i − u|| − ||x̃_i − m||) / σ_eff)²   on the fixes smoothed along
+    separation  χ²_sep = Σ_i ((||x̃_i − u|| − ||x̃_i − u'||) / σ_eff)²  (u' the exact reflection
+                of u) on the fixes smoothed along
                 the track (moving average of 2·SMOOTH_HALF + 1), i.e. how far apart the two
                 hypotheses' noise-free ranges are for the path flown;
     likelihood  Δχ² = 2 (L(m) − L(u)) on the measured ranges.
@@ -25,8 +26,8 @@ the estimate and refine from there to the mirror solution m. Two numbers:
 The likelihood ratio alone is not a usable test: on an exactly straight line the range noise
 correlates with the GPS noise across the line, so Δχ² fluctuates around zero with a spread that
 grows like √N (±15 at N = 100) although the geometry cannot tell the two apart. The smoothed-
-track separation stays below ~8 for a straight line of 1000 fixes and is in the hundreds or more
-for a circle or a lawnmower. The solver jumps to the mirror when the geometry separates the two
+track separation of the exact reflection stays around 1 for a straight line and is in the
+hundreds or more for a circle or a lawnmower. The solver jumps to the mirror when the geometry separates the two
 (χ²_sep ≥ χ²_amb) and the mirror fits better by more than χ²_amb.
 """
 
@@ -47,7 +48,7 @@ GRID_MAX_RANGES = 40
 #: robust threshold (whitened) used to score the grid and the first refinement
 GRID_CAUCHY_SCALE = 2.0
 #: half-width (in fixes) of the moving average that smooths GPS noise out of the track
-SMOOTH_HALF = 4
+SMOOTH_HALF = 10
 
 
 @dataclass(frozen=True)
@@ -257,13 +258,15 @@ def mirror_test(
         return float(np.sum(((d1 - d2) / _sigma_eff(noise, d1)) ** 2))
 
     cost_u = user_cost(uav_enu_m, range_m, theta, up_m, noise, params)
-    if separation(t_m) > 100.0 * chi2_threshold:
+    # geometric separation of u and its exact reflection: the refined mirror would add its own
+    # estimation noise to the statistic
+    sep = separation(t_m)
+    if sep > 100.0 * chi2_threshold:
         cost_m = user_cost(uav_enu_m, range_m, t_m, up_m, noise, params)
         if cost_m - cost_u > 50.0 * chi2_threshold:
             return MirrorTest(False, None, 2.0 * (cost_m - cost_u), np.inf, lin)
     fit = refine_user(uav_enu_m, range_m, t_m, up_m, noise, params, 15)
     if np.linalg.norm(fit.theta[:2] - u_h) < min_offset_m:
         return MirrorTest(False, None, np.inf, 0.0, lin)
-    sep = separation(fit.theta)
     delta = 2.0 * (fit.cost - cost_u)
     return MirrorTest(bool(sep < chi2_threshold), fit.theta, float(delta), sep, lin)

@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from estimator.init import init_user, mirror_test
+from estimator.init import init_user, mirror_test, user_cost
 from estimator.noise import NoiseModel
 from estimator.problem import (
     Problem,
@@ -50,6 +50,10 @@ from uavloc.errors import EstimatorError
 
 _LAM_START = 1e-4
 _LAM_MAX = 1e10
+#: the online estimator starts a user once the window holds this many of its ranges ...
+ONLINE_MIN_RANGES = 8
+#: ... taken from fixes spread over at least this much ground [m]
+ONLINE_MIN_EXTENT_M = 10.0
 #: Huber threshold of the warm start before a redescending loss
 HUBER_WARM_SCALE = 1.5
 
@@ -425,8 +429,11 @@ class OnlineEstimator:
     now have enough ranges (grid initialization on the window), iterates Levenberg–Marquardt from
     the previous solution and returns the new Estimate. Beyond params.window keyframes the oldest
     is marginalized into a prior on the users (module docstring), so an update costs
-    O(window · K²) whatever the number of keyframes seen. Ranges to a user that is not yet active
-    when its keyframe leaves the window are dropped.
+    O(window · K²) whatever the number of keyframes seen. A user starts once the window holds
+    ONLINE_MIN_RANGES of its ranges spread over ONLINE_MIN_EXTENT_M of ground; ranges to a user
+    that is not yet active when its keyframe leaves the window are dropped. Every
+    params.online_check_every keyframes each user is re-initialised when a fresh grid search
+    on the window fits clearly better, and tested for its mirror (see _check_mirrors).
     """
 
     def __init__(
@@ -491,10 +498,14 @@ class OnlineEstimator:
         self._seen += 1
         self._n_ranges[idx] += 1
         prob = self._problem()
-        newly = ~self._active & (prob.mask.sum(axis=0) >= prob.min_ranges())
-        for k in np.flatnonzero(newly):
+        newly = np.zeros(self._k, dtype=bool)
+        ready = ~self._active & (prob.mask.sum(axis=0) >= max(prob.min_ranges(), ONLINE_MIN_RANGES))
+        for k in np.flatnonzero(ready):
+            fixes = self._x[: self._n][prob.mask[:, k], :2]
+            if float(np.max(np.ptp(fixes, axis=0))) < ONLINE_MIN_EXTENT_M:
+                continue
             self._theta[k] = _init_theta(prob, self._x[: self._n], prob.mask, k)
-            self._active[k] = True
+            self._active[k] = newly[k] = True
         res = levenberg_marquardt(
             prob, self._x[: self._n].copy(), self._theta, self._active, self._prior,
             step_tol_m=self._params.online_step_tol_m,
@@ -537,10 +548,37 @@ class OnlineEstimator:
         return x
 
     def _check_mirrors(self, prob: Problem, res: _Result) -> _Result:
-        """Mirror tests on the window; jump to a clearly better mirror (reflecting its prior)."""
-        mirrors = _mirror_all(prob, res.theta, self._active)
+        """Re-initialization and mirror tests on the window.
+
+        A user whose grid initialization on the window's ranges fits clearly better than its
+        estimate (an early start from few ranges that went to a wrong basin) is restarted there
+        and its part of the prior, linearized in the wrong basin, is dropped. A user whose mirror
+        fits clearly better jumps to it with its prior reflected.
+        """
         chi2 = self._params.ambiguity_chi2
         flipped = False
+        x_win = res.x
+        for k in np.flatnonzero(self._active):
+            rows = prob.mask[:, k]
+            up = float(self._up[k])
+            fit = init_user(x_win[rows], prob.range_m[rows, k], up, self._noise, self._params)
+            cur = user_cost(x_win[rows], prob.range_m[rows, k], res.theta[k], up, self._noise, self._params)
+            new = user_cost(x_win[rows], prob.range_m[rows, k], fit.theta, up, self._noise, self._params)
+            # not when the fresh start is the current estimate's mirror: that is the mirror test's call
+            mt = (self._mirrors[k] if k < len(self._mirrors) else None)
+            near_mirror = (
+                mt is not None and mt.mirror_theta is not None
+                and np.linalg.norm(fit.theta[:2] - mt.mirror_theta[:2]) < 0.1 * np.linalg.norm(
+                    mt.mirror_theta[:2] - res.theta[k, :2])
+            )
+            if (2.0 * (cur - new) > chi2 and not near_mirror
+                    and np.linalg.norm(fit.theta[:2] - res.theta[k, :2]) > 2.0):
+                theta = res.theta.copy()
+                theta[k] = fit.theta
+                prior = self._dropped_prior(k)
+                trial = levenberg_marquardt(prob, res.x, theta, self._active, prior)
+                res, self._prior, flipped = trial, prior, True
+        mirrors = _mirror_all(prob, res.theta, self._active)
         for k, mt in enumerate(mirrors):
             if mt is None or not mt.mirror_is_better(chi2):
                 continue
@@ -556,6 +594,19 @@ class OnlineEstimator:
             mirrors = _mirror_all(prob, res.theta, self._active)
         self._mirrors = mirrors
         return res
+
+    def _dropped_prior(self, k: int) -> Prior | None:
+        """The prior without any information on user k (its rows and columns zeroed)."""
+        pr = self._prior
+        if pr is None:
+            return None
+        off = (3 if pr.has_x else 0) + k * self._p
+        sl = slice(off, off + self._p)
+        info, grad = pr.info.copy(), pr.grad.copy()
+        info[sl, :] = 0.0
+        info[:, sl] = 0.0
+        grad[sl] = 0.0
+        return Prior(pr.has_x, pr.z0.copy(), info, grad)
 
     def _reflected_prior(self, k: int, u_h: np.ndarray, m_h: np.ndarray) -> Prior | None:
         """The prior with user k's horizontal coordinates reflected across the bisector of u → m.
