@@ -306,3 +306,17 @@ def test_given_initial_users_are_used():
     init = sc.users_enu_m + np.array([3.0, -2.0, 0.0])
     est = solve_batch(sc.keyframes, 2, sc.user_up_m, NOISE, init_users_enu_m=init)
     assert np.all(_user_errors(est, sc) < 2.0)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_online_on_a_line_with_nlos_and_gaps_stays_on_truth_or_flagged_mirror(seed):
+    """Regression: an early start from few ranges must not lock a user in a wrong basin, and the
+    online mirror test must not flip between the two sides on likelihood noise."""
+    sc = simulate(np.random.default_rng(seed), n_users=4, n_keyframes=300, pattern="line", p_nlos=0.2,
+                  p_visible=0.6)
+    on = OnlineEstimator(4, sc.user_up_m, NOISE)
+    for kf in sc.keyframes:
+        est = on.add_keyframe(kf)
+    assert est.ambiguous.all()
+    err = np.minimum(_user_errors(est, sc), np.linalg.norm(est.mirror_enu_m[:, :2] - sc.users_enu_m[:, :2], axis=1))
+    assert np.all(err < 10.0), err
