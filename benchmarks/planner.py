@@ -165,11 +165,11 @@ class Run:
     end: str = ""
 
 
-def run(sc: Scenario, planner_name: str) -> Run:
+def run(sc: Scenario, planner_name: str, **planner_opts) -> Run:
     users = np.array([[u.east_m, u.north_m, u.up_m] for u in sc.users])
     noise = sc.noise_model()
     c = PlanningConstraints.from_scenario(sc)
-    opts = {"true_users_enu_m": users} if planner_name == "oracle" else {}
+    opts = {"true_users_enu_m": users, **planner_opts} if planner_name == "oracle" else dict(planner_opts)
     planner = make_planner(planner_name, c, noise, rng_seed=sc.seed, **opts)
     est = OnlineEstimator(len(users), users[:, 2], noise, SolverParams(delta_m=sc.mission.delta_m, window=40))
     rng = np.random.default_rng([sc.seed, PLANNERS.index(planner_name)])

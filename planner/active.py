@@ -36,6 +36,7 @@ from estimator.noise import NoiseModel
 from planner.base import BasePlanner
 from planner.geometry import convex_cell, legs_feasible
 from planner.information import (
+    E_GAP_EPS,
     Hypotheses,
     explore_waypoint,
     hypotheses_from_estimate,
@@ -113,6 +114,11 @@ def objective_expr(p, x_c, U, wts, P, noise_par, delta, lay: _Layout):
             c00, c11, c22 = i11 * i22 - i12**2, i00 * i22 - i02**2, i00 * i11 - i01**2
             det = i00 * c00 - i01 * (i01 * i22 - i12 * i02) + i02 * (i01 * i12 - i11 * i02)
             f = (c00 + c11 + c22) / det
+    elif lay.criterion == "E":
+        # 1/sqrt(λ_min(I)), λ_min = (tr − sqrt((I₀₀ − I₁₁)² + 4 I₀₁² + ε tr²)) / 2   (d = 2)
+        tr = info[0, 0] + info[1, 1]
+        gap = ca.sqrt((info[0, 0] - info[1, 1]) ** 2 + 4 * info[0, 1] ** 2 + E_GAP_EPS * tr**2)
+        f = 1.0 / ca.sqrt(0.5 * (tr - gap))
     else:
         if d == 2:
             f = -ca.log(info[0, 0] * info[1, 1] - info[0, 1] ** 2)
@@ -191,7 +197,8 @@ def pack_params(
 class ActivePlanner(BasePlanner):
     """CasADi/IPOPT next-waypoint planner ("casadi").
 
-    criterion: "A" (trace) or "D" (log-det); cost_rel: the cost of a full-length leg as a fraction
+    criterion: "A" (trace), "D" (log-det) or "E" (sqrt of the covariance's largest eigenvalue: the
+    error-ellipse semi-major axis, 2-D users); cost_rel: the cost of a full-length leg as a fraction
     of the best ring leg's predicted gain (see `cost_per_m`); n_starts: IPOPT starts from the ring
     (the warm start adds one); n_quad: quadrature points per leg; sigma_points: "major", "all" or
     "none" (planner.information.hypotheses_from_estimate; the mirror is always included while
@@ -213,10 +220,14 @@ class ActivePlanner(BasePlanner):
         sigma_points: str = "major",
         user_weights: np.ndarray | None = None,
         max_planes: int = 24,
+        weighting: str = "none",
     ) -> None:
         super().__init__(constraints, noise, rng_seed)
-        if criterion not in ("A", "D"):
-            raise PlannerError(f"criterion must be 'A' or 'D', got {criterion!r}")
+        if weighting not in ("none", "sqrt"):
+            raise PlannerError(f"weighting must be 'none' or 'sqrt', got {weighting!r}")
+        self.weighting = weighting
+        if criterion not in ("A", "D", "E"):
+            raise PlannerError(f"criterion must be 'A', 'D' or 'E', got {criterion!r}")
         if n_starts < 1 or n_quad < 2 or cost_rel < 0:
             raise PlannerError(f"need n_starts >= 1, n_quad >= 2, cost_rel >= 0; got {n_starts}, {n_quad}, {cost_rel}")
         self.criterion = criterion
@@ -245,8 +256,21 @@ class ActivePlanner(BasePlanner):
             bound = est.error_bound_95_m()
             if np.all(bound[ok] <= self.constraints.target_radius_m):
                 return None
-        return hypotheses_from_estimate(est, self.user_weights, sigma_points=self.sigma_points, users=ok,
+        return hypotheses_from_estimate(est, self.weights(est), sigma_points=self.sigma_points, users=ok,
                                         home_enu_m=home, max_range_m=MAX_USER_RANGE_M)
+
+    def weights(self, est) -> np.ndarray:
+        """(K,) w_k: `user_weights` (default 1), times 1/sqrt(tr Σ_k) with weighting="sqrt".
+
+        Σ_k sqrt(tr Σ_k) is (up to a constant) the mean error bound over users; its gradient is
+        Σ_k ∇tr Σ_k / (2 sqrt(tr Σ_k)), so A-optimal with these weights is its first-order version.
+        """
+        w = np.ones(est.n_users) if self.user_weights is None else self.user_weights.copy()
+        if self.weighting == "sqrt":
+            tr = np.trace(np.asarray(est.cov_users_m2, dtype=float), axis1=1, axis2=2)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w = w / np.sqrt(np.where(np.isfinite(tr) & (tr > 0), tr, 1.0))
+        return w
 
     def uncertainty(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
         """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after legs to ends (C, 3) (no cost term)."""
@@ -316,6 +340,8 @@ class ActivePlanner(BasePlanner):
             wp = explore_waypoint(self, state, np.array(self._visited))
             self._remember(x, wp)
             return wp, "explore", float("nan")
+        if self.criterion == "E" and hyp.dim != 2:
+            raise PlannerError("criterion 'E' needs 2-D users (SolverParams.user_dim = 2); use 'A' or 'D'")
         ring = self.feasible_ring(state)
         if len(ring) == 0:
             return x.copy(), "no ring", float("nan")

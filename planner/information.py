@@ -18,7 +18,11 @@ standing for ℓ/(Δ·Q) measurements, so it is smooth in the waypoints:
 P_k is the prior information: the inverse of the estimator's marginal covariance of user k (the
 exact S⁻¹ block), plus ε·I. Objective (to minimise):
 
-    J = Σ_k w_k Σ_s c_ks · f(I_k(u_ks)) + λ · Σ_legs ℓ,   f = tr(I⁻¹) ("A") or −log det I ("D")
+    J = Σ_k w_k Σ_s c_ks · f(I_k(u_ks)) + λ · Σ_legs ℓ,   f = tr(I⁻¹) ("A"), −log det I ("D"),
+                                                          or 1/sqrt(λ_min(I)) ("E", d = 2)
+
+"E" is the square root of the largest eigenvalue of the covariance, i.e. the 95 % error-ellipse
+semi-major axis up to the factor sqrt(χ²₂(0.95)) — the stop rule's and the benchmark's measure.
 
 over samples u_ks of each user's posterior (weights c_ks): sigma points of the estimate and, while
 the estimator reports a mirror ambiguity, the same around the mirror solution (half the weight each).
@@ -194,8 +198,12 @@ def predicted_information(
     return info, lengths
 
 
+#: relative ε under the eigenvalue-gap square root of the "E" criterion (smooth at isotropy).
+E_GAP_EPS = 1e-6
+
+
 def uncertainty(info: np.ndarray, criterion: str) -> np.ndarray:
-    """f(I) over the last two axes: "A": tr(I⁻¹) [m²]; "D": −log det I."""
+    """f(I) over the last two axes: "A": tr(I⁻¹) [m²]; "D": −log det I; "E": 1/sqrt(λ_min(I)) [m]."""
     if criterion == "A":
         if info.shape[-1] == 2:
             # tr(I⁻¹) = (I₀₀ + I₁₁) / det I for 2×2
@@ -204,7 +212,14 @@ def uncertainty(info: np.ndarray, criterion: str) -> np.ndarray:
         return np.trace(np.linalg.inv(info), axis1=-2, axis2=-1)
     if criterion == "D":
         return -np.linalg.slogdet(info)[1]
-    raise ValueError(f"criterion must be 'A' or 'D', got {criterion!r}")
+    if criterion == "E":
+        if info.shape[-1] != 2:
+            raise ValueError("criterion 'E' is implemented for 2-D users only")
+        # λ_min = (tr − sqrt((I₀₀ − I₁₁)² + 4 I₀₁² + ε tr²)) / 2
+        tr = info[..., 0, 0] + info[..., 1, 1]
+        gap = np.sqrt((info[..., 0, 0] - info[..., 1, 1]) ** 2 + 4 * info[..., 0, 1] ** 2 + E_GAP_EPS * tr**2)
+        return 1.0 / np.sqrt(0.5 * (tr - gap))
+    raise ValueError(f"criterion must be 'A', 'D' or 'E', got {criterion!r}")
 
 
 def objective_values(

@@ -41,7 +41,7 @@ def _casadi_objective(planner, state, hyp, lam, n_planes=0):
     return lambda p: tuple(np.asarray(v, dtype=float).ravel() for v in fun(p, par))
 
 
-@pytest.mark.parametrize("criterion", ["A", "D"])
+@pytest.mark.parametrize("criterion", ["A", "D", "E"])
 @pytest.mark.parametrize("ambiguous", [True, False])
 def test_casadi_objective_and_gradient_match_the_numpy_reference(criterion, ambiguous):
     planner = make_planner("casadi", u_constraints(), NOISE, criterion=criterion)
