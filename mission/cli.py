@@ -11,10 +11,16 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from uavloc import __version__
 from uavloc.errors import UavlocError
+
+# The estimator's matrices are small (3×3 blocks, K×K user blocks): a multithreaded BLAS only adds
+# overhead and fights the event loop for the cores. Must be set before numpy is first imported.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 log = logging.getLogger("uavloc")
 

@@ -1022,5 +1022,7 @@ def controller_from_scenario(scenario, vehicle: Vehicle, gnb: GnbClient, log_pat
     users = [MissionUser(u.id, u.rnti, u.up_m) for u in scenario.users]
     cfg = {"scenario": scenario.name, "planner": name, "seed": seed, **(header_config or {})}
     radio = {"mu": scenario.radio.mu, "fs_hz": scenario.radio.fs_hz}
+    if params is None:
+        params = SolverParams(delta_m=scenario.mission.delta_m, estimate_bias=scenario.mission.estimate_bias)
     return MissionController(vehicle, gnb, planner_obj, users, noise, SafetyLimits.from_scenario(scenario),
                              config, log_path, params=params, truth=truth, header_config=cfg, radio=radio)

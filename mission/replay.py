@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -35,11 +35,12 @@ GROUP_WINDOW_S = 1.0
 
 @dataclass(frozen=True)
 class ReplayOptions:
-    """How to replay. `delta_m` None: keep every trigger of the log as a keyframe.
+    """How to replay. `params` None: the solver settings logged in the header (see
+    :func:`solver_params_from_header`). `delta_m` None: keep every trigger of the log as a keyframe.
     `noise` None: the header's noise model (defaults when absent). `history`: also run the
     online estimator to record how the error bound fell with metres flown."""
 
-    params: SolverParams = field(default_factory=SolverParams)
+    params: SolverParams | None = None
     delta_m: float | None = None
     noise: NoiseModel | None = None
     history: bool = True
@@ -79,6 +80,36 @@ class ReplayResult:
     flown_m: float
     n_measurements: int
     history: ReplayHistory | None
+
+
+def solver_params_from_header(mlog: MissionLog) -> SolverParams:
+    """The solver settings the mission ran with (header `config.solver`, as the controller logs
+    them), so that a replay reproduces the mission's estimates; SolverParams() when absent.
+    Unknown fields are ignored with a warning (a log from a newer or another tool)."""
+    solver = mlog.header.config.get("solver")
+    if solver is None:
+        return SolverParams()
+    if not isinstance(solver, dict):
+        raise MissionLogError(f"{mlog.path}: header config.solver must be an object, got {solver!r}")
+    known = {f.name for f in fields(SolverParams)}
+    unknown = sorted(set(solver) - known)
+    if unknown:
+        log.warning("%s: ignoring unknown solver settings in the header: %s", mlog.path, ", ".join(unknown))
+    defaults = SolverParams()
+    kwargs = {}
+    for name in sorted(set(solver) & known):
+        value, default = solver[name], getattr(defaults, name)
+        expected = type(default) if default is not None else (int, float)
+        if isinstance(default, bool):
+            ok = isinstance(value, bool)
+        elif isinstance(default, int | float) and not isinstance(default, bool):
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+        else:
+            ok = value is None or isinstance(value, expected)
+        if not ok:
+            raise MissionLogError(f"{mlog.path}: header config.solver.{name} has the wrong type: {value!r}")
+        kwargs[name] = value
+    return replace(defaults, **kwargs)
 
 
 def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyframe]:
@@ -131,7 +162,7 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
            progress: Callable[[int, int], None] | None = None) -> ReplayResult:
     """Re-run the estimator over a parsed log. `progress(done, total)` is called per keyframe."""
     noise = options.noise or mlog.header.noise
-    params = options.params
+    params = options.params if options.params is not None else solver_params_from_header(mlog)
     if options.delta_m is not None:
         params = replace(params, delta_m=options.delta_m)
     keyframes = build_keyframes(mlog, options.delta_m)

@@ -116,7 +116,8 @@ class MissionConfig:
     budget_m: maximum metres flown in SURVEY; time_limit_s: maximum mission time;
     leg_max_m: maximum leg length the planner may choose; acceptance_m: arrival radius;
     battery_rtl_pct: battery below which the safety monitor returns home;
-    sigma_gps_m: σ_gps the estimator assumes; planner: default planner name.
+    sigma_gps_m: σ_gps the estimator assumes; planner: default planner name;
+    estimate_bias: estimate a range bias per user (a UE clock sawtooth has a positive mean).
     """
 
     delta_m: float = 2.0
@@ -131,6 +132,7 @@ class MissionConfig:
     battery_rtl_pct: float = 25.0
     sigma_gps_m: float = 1.0
     planner: str = "casadi"
+    estimate_bias: bool = False
 
 
 @dataclass(frozen=True)

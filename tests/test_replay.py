@@ -127,3 +127,43 @@ def test_replay_without_rtt_is_an_error(tmp_path):
 
     with pytest.raises(MissionLogError, match="no rtt records"):
         replay(read_mission_log(p), ReplayOptions())
+
+
+def _with_solver_config(tmp_path, solver) -> Path:
+    lines = EXAMPLE.read_text().splitlines(keepends=True)
+    head = json.loads(lines[0])
+    head["config"]["solver"] = solver
+    p = tmp_path / "solver.jsonl"
+    p.write_text(json.dumps(head) + "\n" + "".join(lines[1:]))
+    return p
+
+
+def test_replay_uses_the_solver_settings_logged_in_the_header(tmp_path, caplog):
+    from mission.replay import solver_params_from_header
+
+    p = _with_solver_config(tmp_path, {"loss": "cauchy", "estimate_bias": True, "from_the_future": 1})
+    params = solver_params_from_header(read_mission_log(p))
+    assert params.loss == "cauchy" and params.estimate_bias
+    assert "from_the_future" in caplog.text
+    result = replay(read_mission_log(p), ReplayOptions(history=False))
+    assert result.params.estimate_bias and result.estimate.bias_m is not None
+
+
+def test_cli_flags_override_the_logged_solver_settings(tmp_path, capsys):
+    p = _with_solver_config(tmp_path, {"estimate_bias": True})
+    assert main(["replay", str(p), "--json", "--no-bias", "--no-history"]) == 0
+    assert json.loads(capsys.readouterr().out)["status"] == "ok"
+
+
+@pytest.mark.parametrize(("solver", "match"), [("fast", "must be an object"), ({"estimate_bias": "yes"}, "wrong type")])
+def test_malformed_logged_solver_settings_are_errors(tmp_path, solver, match):
+    from mission.replay import solver_params_from_header
+    from uavloc.errors import MissionLogError
+
+    with pytest.raises(MissionLogError, match=match):
+        solver_params_from_header(read_mission_log(_with_solver_config(tmp_path, solver)))
+
+
+def test_cli_unknown_loss_is_an_error(caplog):
+    assert main(["replay", str(EXAMPLE), "--loss", "bogus"]) == 1
+    assert "unknown robust loss 'bogus'" in caplog.text

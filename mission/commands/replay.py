@@ -17,12 +17,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("log", type=Path, help="mission log (uavloc-mission/1, JSON Lines)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     p.add_argument("--out", type=Path, metavar="DIR", help="write a report (figures, report.json/html) here")
-    p.add_argument("--loss", choices=("none", "huber", "cauchy"), default="huber",
-                   help="robust loss on range factors (default: huber)")
-    p.add_argument("--loss-scale", type=float, default=1.5, help="robust loss threshold in sigmas (default 1.5)")
+    p.add_argument("--loss", metavar="NAME",
+                   help="robust loss on range factors: none, huber, cauchy, ... (default: the mission's, as "
+                        "logged in the header, else the estimator's default)")
+    p.add_argument("--loss-scale", type=float, metavar="C", help="robust loss threshold in sigmas")
     p.add_argument("--delta", type=float, metavar="M",
                    help="re-select keyframes every M metres (default: every trigger in the log)")
-    p.add_argument("--bias", action="store_true", help="estimate a range bias per user")
+    p.add_argument("--bias", action=argparse.BooleanOptionalAction, default=None,
+                   help="estimate a range bias per user (default: as the mission did)")
     p.add_argument("--sigma-gps", type=float, metavar="M", help="override the header's GPS sigma [m]")
     p.add_argument("--no-history", action="store_true", help="skip the online pass (faster; no history figure)")
 
@@ -30,10 +32,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from estimator.types import SolverParams
+    from estimator.robust import check_loss
     from mission.log import read_mission_log
     from mission.progress import Progress
-    from mission.replay import ReplayOptions, format_users_table, replay, result_document
+    from mission.replay import (
+        ReplayOptions,
+        format_users_table,
+        replay,
+        result_document,
+        solver_params_from_header,
+    )
     from uavloc.errors import MissionLogError
 
     for name in ("loss_scale", "delta", "sigma_gps"):
@@ -44,10 +52,13 @@ def run(args: argparse.Namespace) -> int:
     noise = mlog.header.noise
     if args.sigma_gps is not None:
         noise = replace(noise, sigma_gps_m=args.sigma_gps)
-    params = SolverParams(loss=args.loss, loss_scale=args.loss_scale, estimate_bias=args.bias)
+    params = solver_params_from_header(mlog)
+    overrides = {"loss": args.loss, "loss_scale": args.loss_scale, "estimate_bias": args.bias}
+    params = replace(params, **{k: v for k, v in overrides.items() if v is not None})
+    check_loss(params.loss, params.loss_scale)
     options = ReplayOptions(params=params, delta_m=args.delta, noise=noise, history=not args.no_history)
     log.info("replaying %s: %d users, %d rtt records", args.log, mlog.n_users, len(mlog.rtt_t_s))
-    bar = Progress("replay", len(mlog.rtt_t_s) // max(mlog.n_users, 1) + 1)
+    bar = Progress("replay", len(mlog.rtt_t_s) // max(mlog.n_users, 1) + 1, min_total=1000)
     try:
         result = replay(mlog, options, progress=lambda done, total: (setattr(bar, "total", total), bar.update(done)))
     finally:
