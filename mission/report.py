@@ -230,7 +230,15 @@ def _user_colors(k: int) -> list:
 
 
 def _fig_top_view(plt, inp: ReportInputs):
-    fig, ax = plt.subplots(figsize=FIG_SIZE_IN, dpi=FIG_DPI)
+    fig = plt.figure(figsize=FIG_SIZE_IN, dpi=FIG_DPI)
+    small = _users_to_zoom(inp)
+    if small:  # zoom panels in a column of their own, so they never cover the map
+        grid = fig.add_gridspec(3, 4, wspace=0.35, hspace=0.45)
+        ax = fig.add_subplot(grid[:, :3])
+        zoom_axes = [fig.add_subplot(grid[i, 3]) for i in range(len(small))]
+    else:
+        ax = fig.add_subplot(1, 1, 1)
+        zoom_axes = []
     track = inp.track_enu_m()
     ax.plot(track[:, 0], track[:, 1], "-", color="0.6", lw=1.0, label="GPS track")
     if inp.uav_enu_m is not None and len(inp.uav_enu_m):
@@ -255,19 +263,23 @@ def _fig_top_view(plt, inp: ReportInputs):
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
     ax.set_title(f"{inp.title}: top view (ellipses: 95 %)")
-    ax.legend(fontsize=7, loc="upper left", ncol=2)
-    _zoom_insets(ax, inp, colors)
+    ax.legend(fontsize=7, loc="best", ncol=2)
+    _zoom_panels(zoom_axes, small, inp, colors)
     return fig
 
 
-def _zoom_insets(ax, inp: ReportInputs, colors: list) -> None:
-    """Up to 3 zoomed insets (bottom row) around users whose 95 % ellipse is too small to see."""
+def _users_to_zoom(inp: ReportInputs) -> list[int]:
+    """Up to 3 users whose 95 % ellipse is too small to see on the whole map (< 3 % of its span)."""
     span = max(np.ptp(inp.track_enu_m()[:, 0]), np.ptp(inp.track_enu_m()[:, 1]), 1.0)
     bound = inp.error_bound_95_m()
-    small = [k for k in range(inp.n_users)
-             if np.all(np.isfinite(inp.users_enu_m[k, :2])) and np.isfinite(bound[k]) and bound[k] < 0.03 * span]
-    for slot, k in enumerate(small[:3]):
-        ins = ax.inset_axes([0.01 + 0.33 * slot, 0.01, 0.25, 0.25])
+    return [k for k in range(inp.n_users)
+            if np.all(np.isfinite(inp.users_enu_m[k, :2])) and np.isfinite(bound[k]) and bound[k] < 0.03 * span][:3]
+
+
+def _zoom_panels(axes: list, small: list[int], inp: ReportInputs, colors: list) -> None:
+    """One zoomed panel per user in `small`: its estimate, 95 % ellipse and (when known) truth."""
+    bound = inp.error_bound_95_m()
+    for ins, k in zip(axes, small, strict=True):
         u = inp.users_enu_m[k]
         ring = ellipse_en_m(u, inp.cov_en_m2[k])
         ins.plot(ring[:, 0], ring[:, 1], "-", color=colors[k], lw=1.2)
