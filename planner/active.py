@@ -80,31 +80,42 @@ class _Layout:
     n_quad: int
     n_planes: int
     criterion: str
+    horizon: int = 1
 
 
-def objective_expr(p, x_c, U, wts, P, noise_par, delta, lay: _Layout):
-    """CasADi expression of Σ_km wts_km f(I_km(p)) for one leg x_c → p (see planner.information).
+def objective_expr(z, x_c, U, wts, P, noise_par, delta, lay: _Layout):
+    """CasADi expression of Σ_km wts_km f(I_km) after the legs x_c → w_1 → … → w_H (planner.information).
 
-    p, x_c: 3×1; U: (K·M)×3 sample positions; wts: (K·M)×1; P: (K·M)×(d·d) prior information
-    (row-major); noise_par: [s0, a, b, σ_gps²]; returns (objective, leg length ℓ).
+    z: 3H×1 waypoints stacked; x_c: 3×1; U: (K·M)×3 sample positions; wts: (K·M)×1;
+    P: (K·M)×(d·d) prior information (row-major); noise_par: [s0, a, b, σ_gps²];
+    returns (objective, lengths: list of the H leg lengths ℓ_h).
     """
-    n_q, d = lay.n_quad, lay.dim
+    n_q, d, n_h = lay.n_quad, lay.dim, lay.horizon
     km = lay.n_users * lay.n_samples
-    diff = p - x_c
-    length = ca.sqrt(ca.sumsqr(diff) + _SQRT_EPS_M2)
-    t = (np.arange(n_q) + 0.5) / n_q
-    # quadrature points m_q = x_c + t_q (p − x_c), one row per q: Q×3
-    pts = ca.repmat(x_c.T, n_q, 1) + ca.DM(t) @ diff.T
-    comps = [ca.repmat(pts[:, i].T, km, 1) - ca.repmat(U[:, i], 1, n_q) for i in range(3)]  # (KM)×Q each
+    t = ca.DM((np.arange(n_q) + 0.5) / n_q)
+    pts, scales, lengths = [], [], []
+    prev = x_c
+    for h in range(n_h):
+        wp = z[3 * h:3 * h + 3]
+        diff = wp - prev
+        length = ca.sqrt(ca.sumsqr(diff) + _SQRT_EPS_M2)
+        # quadrature points m_q = a + t_q (b − a), one row per q: Q×3; each stands for ℓ/(ΔQ) ranges
+        pts.append(ca.repmat(prev.T, n_q, 1) + t @ diff.T)
+        scales.append(ca.repmat(length / (delta * n_q), 1, n_q))
+        lengths.append(length)
+        prev = wp
+    pts = ca.vertcat(*pts)  # (HQ)×3
+    scale = ca.horzcat(*scales)  # 1×(HQ)
+    n_pts = n_h * n_q
+    comps = [ca.repmat(pts[:, i].T, km, 1) - ca.repmat(U[:, i], 1, n_pts) for i in range(3)]  # (KM)×(HQ)
     dist = ca.sqrt(comps[0] ** 2 + comps[1] ** 2 + comps[2] ** 2 + _SQRT_EPS_M2)
     s0, a, b, sgps2 = noise_par[0], noise_par[1], noise_par[2], noise_par[3]
     # σ_eff² = (s0 + a e^{b d})² + σ_gps²;  g gᵀ/σ_eff² = diff diffᵀ / (d² σ_eff²)
-    w = 1.0 / (((s0 + a * ca.exp(b * dist)) ** 2 + sgps2) * dist**2)
-    scale = length / (delta * n_q)
+    w = ca.repmat(scale, km, 1) / (((s0 + a * ca.exp(b * dist)) ** 2 + sgps2) * dist**2)
     info = {}
     for i in range(d):
         for j in range(i, d):
-            info[i, j] = P[:, i * d + j] + scale * ca.sum2(comps[i] * comps[j] * w)
+            info[i, j] = P[:, i * d + j] + ca.sum2(comps[i] * comps[j] * w)
     if lay.criterion == "A":
         if d == 2:
             # tr(I⁻¹) = (I₀₀ + I₁₁) / (I₀₀ I₁₁ − I₀₁²)
@@ -126,41 +137,47 @@ def objective_expr(p, x_c, U, wts, P, noise_par, delta, lay: _Layout):
             i00, i01, i02, i11, i12, i22 = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
             det = i00 * (i11 * i22 - i12**2) - i01 * (i01 * i22 - i12 * i02) + i02 * (i01 * i12 - i11 * i02)
             f = -ca.log(det)
-    return ca.dot(wts, f), length
+    return ca.dot(wts, f), lengths
 
 
 _SOLVERS: dict[_Layout, tuple[ca.Function, ca.Function]] = {}
 
 
 def _solver(lay: _Layout) -> tuple[ca.Function, ca.Function]:
-    """(nlpsol, objective Function) for a layout, built once per process and cached."""
+    """(nlpsol, objective Function) for a layout, built once per process and cached.
+
+    Variables z = [w_1; …; w_H] (3H); constraints, in order: |w_1 − x_c|² (leg), |w_h − w_(h−1)|²
+    for h ≥ 2, |w_h,en − home_en|² for every h, the energy of the first leg, A w_h,en − c ≤ 0 for
+    every h (rows of h consecutive).
+    """
     if lay in _SOLVERS:
         return _SOLVERS[lay]
-    km, d, h = lay.n_users * lay.n_samples, lay.dim, lay.n_planes
-    p = ca.SX.sym("p", 3)
+    km, d, n_pl, n_h = lay.n_users * lay.n_samples, lay.dim, lay.n_planes, lay.horizon
+    z = ca.SX.sym("z", 3 * n_h)
     x_c = ca.SX.sym("x_c", 3)
     U = ca.SX.sym("U", km, 3)
     wts = ca.SX.sym("wts", km)
     P = ca.SX.sym("P", km, d * d)
     noise_par = ca.SX.sym("noise", 4)
     delta, lam = ca.SX.sym("delta"), ca.SX.sym("lam")
-    A = ca.SX.sym("A", h, 2)
-    c = ca.SX.sym("c", h)
+    A = ca.SX.sym("A", n_pl, 2)
+    c = ca.SX.sym("c", n_pl)
     home = ca.SX.sym("home", 3)
     ret = ca.SX.sym("ret")
-    unc, length = objective_expr(p, x_c, U, wts, P, noise_par, delta, lay)
-    obj = unc + lam * length
-    dhome = p - home
+    unc, lengths = objective_expr(z, x_c, U, wts, P, noise_par, delta, lay)
+    obj = unc + lam * sum(lengths)
+    wps = [z[3 * h:3 * h + 3] for h in range(n_h)]
     g = ca.vertcat(
-        ca.sumsqr(p - x_c),  # leg length²
-        ca.sumsqr(dhome[:2]),  # horizontal distance from home²
-        length + ret * ca.sqrt(ca.sumsqr(dhome) + _SQRT_EPS_M2),  # energy
-        A @ p[:2] - c,  # convex cell
+        ca.sumsqr(wps[0] - x_c),  # first leg length²
+        *[ca.sumsqr(wps[h] - wps[h - 1]) for h in range(1, n_h)],  # later legs²
+        *[ca.sumsqr((wp - home)[:2]) for wp in wps],  # horizontal distance from home²
+        lengths[0] + ret * ca.sqrt(ca.sumsqr(wps[0] - home) + _SQRT_EPS_M2),  # energy of the first leg
+        *[A @ wp[:2] - c for wp in wps],  # convex cell
     )
     par = ca.vertcat(x_c, ca.vec(U), wts, ca.vec(P), noise_par, delta, lam, ca.vec(A), c, home, ret)
-    nlp = {"x": p, "p": par, "f": obj, "g": g}
+    nlp = {"x": z, "p": par, "f": obj, "g": g}
     solver = ca.nlpsol("leg", "ipopt", nlp, _IPOPT_OPTS)
-    fun = ca.Function("objective", [p, par], [obj, ca.gradient(obj, p)])
+    fun = ca.Function("objective", [z, par], [obj, ca.gradient(obj, z)])
     _SOLVERS[lay] = (solver, fun)
     log.debug("built CasADi solver for %s", lay)
     return solver, fun
@@ -202,8 +219,9 @@ class ActivePlanner(BasePlanner):
     of the best ring leg's predicted gain (see `cost_per_m`); n_starts: IPOPT starts from the ring
     (the warm start adds one); n_quad: quadrature points per leg; sigma_points: "major", "all" or
     "none" (planner.information.hypotheses_from_estimate; the mirror is always included while
-    ambiguous); user_weights: (K,) w_k; max_planes: cap on
-    the convex cell's half-planes.
+    ambiguous); user_weights: (K,) w_k; max_planes: cap on the convex cell's half-planes;
+    weighting: "sqrt" multiplies w_k by 1/sqrt(tr Σ_k); horizon: waypoints planned ahead (only the
+    first is flown; all lie in the first leg's convex cell; `last_horizon_enu_m` holds them).
     """
 
     name = "casadi"
@@ -221,6 +239,7 @@ class ActivePlanner(BasePlanner):
         user_weights: np.ndarray | None = None,
         max_planes: int = 24,
         weighting: str = "none",
+        horizon: int = 1,
     ) -> None:
         super().__init__(constraints, noise, rng_seed)
         if weighting not in ("none", "sqrt"):
@@ -237,8 +256,13 @@ class ActivePlanner(BasePlanner):
         self.sigma_points = sigma_points
         self.user_weights = None if user_weights is None else np.asarray(user_weights, dtype=float)
         self.max_planes = int(max_planes)
+        self.horizon = int(horizon)
+        if self.horizon < 1:
+            raise PlannerError(f"horizon must be >= 1, got {horizon}")
         self._visited: list[np.ndarray] = []
-        self._prev_dir: np.ndarray | None = None
+        self._prev_dir = np.zeros(3)
+        self._prev_path: np.ndarray | None = None
+        self.last_horizon_enu_m: np.ndarray | None = None
 
     # -- hypotheses ------------------------------------------------------------------------------
     def hypotheses(self, state: PlanningState) -> Hypotheses | None:
@@ -272,10 +296,11 @@ class ActivePlanner(BasePlanner):
                 w = w / np.sqrt(np.where(np.isfinite(tr) & (tr > 0), tr, 1.0))
         return w
 
-    def uncertainty(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
-        """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after legs to ends (C, 3) (no cost term)."""
+    def uncertainty(self, state: PlanningState, paths_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
+        """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after flying candidate leg ends (C, 3) or
+        horizons (C, H, 3) from the UAV (no cost term)."""
         norm = prior_value(hyp, self.criterion)
-        return objective_values(state.uav_enu_m, ends_enu_m, hyp, self.noise, self.constraints.delta_m,
+        return objective_values(state.uav_enu_m, paths_enu_m, hyp, self.noise, self.constraints.delta_m,
                                 self.n_quad, self.criterion) / norm
 
     def cost_per_m(self, ring_uncertainty: np.ndarray) -> float:
@@ -285,60 +310,102 @@ class ActivePlanner(BasePlanner):
         gain = max(1.0 - float(np.min(finite)), 0.0) if len(finite) else 0.0
         return self.cost_rel * gain / self.constraints.leg_max_m
 
-    def evaluate(self, state: PlanningState, ends_enu_m: np.ndarray, hyp: Hypotheses, lam: float) -> np.ndarray:
-        """(C,) the normalised objective J/J₀ + λ·ℓ of legs to ends (C, 3) — what IPOPT minimises."""
-        return self.uncertainty(state, ends_enu_m, hyp) + lam * np.linalg.norm(ends_enu_m - state.uav_enu_m, axis=1)
+    def evaluate(self, state: PlanningState, paths_enu_m: np.ndarray, hyp: Hypotheses, lam: float) -> np.ndarray:
+        """(C,) the normalised objective J/J₀ + λ·Σℓ of leg ends (C, 3) or horizons (C, H, 3) —
+        what IPOPT minimises."""
+        W = np.asarray(paths_enu_m, dtype=float)
+        W3 = W[:, None, :] if W.ndim == 2 else W
+        prev = np.concatenate([np.broadcast_to(state.uav_enu_m, (len(W3), 1, 3)), W3[:, :-1]], axis=1)
+        total = np.linalg.norm(W3 - prev, axis=2).sum(axis=1)
+        return self.uncertainty(state, W, hyp) + lam * total
 
     # -- planning --------------------------------------------------------------------------------
-    def _starts(self, state: PlanningState, ring: np.ndarray, values: np.ndarray) -> list[np.ndarray]:
-        """Up to n_starts seeds: best ring candidates with headings ≥ 40° apart, and the warm start."""
+    def _seed_ends(self, state: PlanningState, ring: np.ndarray, values: np.ndarray) -> list[np.ndarray]:
+        """Up to n_starts first-leg ends: best ring candidates with headings ≥ 40° apart."""
         x = state.uav_enu_m
         heading = np.arctan2(ring[:, 1] - x[1], ring[:, 0] - x[0])
         chosen: list[int] = []
         for i in np.argsort(values):
+            if not np.isfinite(values[i]):
+                break
             if all(abs(np.angle(np.exp(1j * (heading[i] - heading[j])))) >= np.radians(40) for j in chosen):
                 chosen.append(int(i))
             if len(chosen) >= self.n_starts:
                 break
-        starts = [ring[i] for i in chosen]
-        if self._prev_dir is not None:
-            cap = self.leg_cap_m(state)
-            warm = x + self._prev_dir * cap
-            warm[2] = np.clip(warm[2], self.constraints.alt_min_m, self.constraints.alt_max_m)
-            if legs_feasible(self.constraints, x, warm[None], cap, state.energy_remaining_m)[0]:
-                starts.append(warm)
-        return starts
+        return [ring[i] for i in chosen]
+
+    def _extend(self, state: PlanningState, first: np.ndarray, hyp: Hypotheses, lam: float) -> np.ndarray:
+        """(H, 3) horizon from a first waypoint: each further waypoint the best of 24 full-length
+        feasible legs at the same altitude (greedy on the H-leg objective; a repeated waypoint when
+        no leg is feasible)."""
+        c = self.constraints
+        path = np.repeat(first[None], self.horizon, axis=0)
+        for h in range(1, self.horizon):
+            prev = path[h - 1]
+            theta = 2 * np.pi * np.arange(24) / 24
+            ends = np.column_stack([prev[0] + c.leg_max_m * np.cos(theta), prev[1] + c.leg_max_m * np.sin(theta),
+                                    np.full(24, prev[2])])
+            ends = ends[legs_feasible(c, prev, ends, c.leg_max_m)]
+            if len(ends) == 0:
+                break
+            cand = np.repeat(path[None], len(ends), axis=0)
+            cand[:, h:] = ends[:, None, :]
+            vals = self.evaluate(state, cand, hyp, lam)
+            if np.isfinite(vals).any():
+                path = cand[int(np.nanargmin(np.where(np.isfinite(vals), vals, np.nan)))]
+        return path
+
+    def _path_feasible(self, state: PlanningState, path: np.ndarray, leg_cap_m: float) -> bool:
+        """Exact check of every leg of a horizon (the first with the budget and energy)."""
+        c, x = self.constraints, state.uav_enu_m
+        if not legs_feasible(c, x, path[:1], leg_cap_m, state.energy_remaining_m)[0]:
+            return False
+        if np.linalg.norm(path[0] - x) < min(c.min_leg_m, leg_cap_m) - 1e-6:
+            return False
+        return all(
+            np.linalg.norm(path[h] - path[h - 1]) < 1e-6 or legs_feasible(c, path[h - 1], path[h:h + 1], c.leg_max_m)[0]
+            for h in range(1, len(path))
+        )
 
     def _ipopt(
         self, state: PlanningState, hyp: Hypotheses, seed: np.ndarray, norm: float, lam: float
     ) -> tuple[np.ndarray, str]:
+        """IPOPT from a seed horizon (H, 3) (or first waypoint (3,) when H = 1) → ((H, 3), status)."""
         c, x = self.constraints, state.uav_enu_m
+        n_h = self.horizon
+        seed = np.asarray(seed, dtype=float).reshape(n_h, 3)
         lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, self.n_quad, self.max_planes,
-                      self.criterion)
+                      self.criterion, n_h)
         solver, _ = _solver(lay)
-        A, off = convex_cell(c, x[:2], seed[:2], self.max_planes)
+        # the cell around the first seed leg holds every waypoint, so every leg (convex) stays free
+        A, off = convex_cell(c, x[:2], seed[0, :2], self.max_planes)
         par = pack_params(lay, x, hyp, self.noise, c.delta_m, norm, lam, A, off, c.home_enu_m,
                           c.return_factor)
         cap = self.leg_cap_m(state)
         energy = state.energy_remaining_m if np.isfinite(state.energy_remaining_m) else 1e12
-        n_g = 3 + self.max_planes
-        lbg = np.full(n_g, -np.inf)
-        ubg = np.zeros(n_g)
-        lbg[0], ubg[0] = min(c.min_leg_m, cap) ** 2, cap**2
-        ubg[1] = c.max_distance_m**2
-        ubg[2] = energy
-        sol = solver(x0=seed, p=par, lbx=[-np.inf, -np.inf, c.alt_min_m], ubx=[np.inf, np.inf, c.alt_max_m],
-                     lbg=lbg, ubg=ubg)
+        lbg, ubg = [min(c.min_leg_m, cap) ** 2], [cap**2]
+        lbg += [0.0] * (n_h - 1)
+        ubg += [c.leg_max_m**2] * (n_h - 1)
+        lbg += [-np.inf] * n_h
+        ubg += [c.max_distance_m**2] * n_h
+        lbg += [-np.inf]
+        ubg += [energy]
+        lbg += [-np.inf] * (self.max_planes * n_h)
+        ubg += [0.0] * (self.max_planes * n_h)
+        lbx = np.tile([-np.inf, -np.inf, c.alt_min_m], n_h)
+        ubx = np.tile([np.inf, np.inf, c.alt_max_m], n_h)
+        sol = solver(x0=seed.ravel(), p=par, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         status = solver.stats().get("return_status", "?")
-        return np.asarray(sol["x"]).ravel(), status
+        return np.asarray(sol["x"]).ravel().reshape(n_h, 3), status
 
     def _propose(self, state: PlanningState, leg_cap_m: float) -> tuple[np.ndarray, str, float]:
         x = state.uav_enu_m
         self._visited.append(x.copy())
+        self.last_horizon_enu_m = None
         hyp = self.hypotheses(state)
         if hyp is None:
             wp = explore_waypoint(self, state, np.array(self._visited))
-            self._remember(x, wp)
+            self._remember(x, wp[None])
             return wp, "explore", float("nan")
         if self.criterion == "E" and hyp.dim != 2:
             raise PlannerError("criterion 'E' needs 2-D users (SolverParams.user_dim = 2); use 'A' or 'D'")
@@ -352,35 +419,63 @@ class ActivePlanner(BasePlanner):
         if not np.isfinite(values).any():
             log.warning("objective not finite on any ring candidate; exploring instead")
             wp = explore_waypoint(self, state, np.array(self._visited))
-            self._remember(x, wp)
+            self._remember(x, wp[None])
             return wp, "explore", float("nan")
-        best_i = int(np.argmin(values))
-        best, best_val, best_status = ring[best_i], float(values[best_i]), "ring"
+        # seeds: the best ring ends (extended greedily to the horizon) and the previous plan's tail
+        seeds = [self._extend(state, end, hyp, lam) for end in self._seed_ends(state, ring, values)]
+        if self.horizon == 1:
+            best_i = int(np.argmin(values))
+            best, best_val = ring[best_i][None], float(values[best_i])
+        else:
+            seed_vals = self.evaluate(state, np.array(seeds), hyp, lam)
+            best_i = int(np.argmin(seed_vals))
+            best, best_val = seeds[best_i], float(seed_vals[best_i])
+        best_status = "ring"
+        warm = self._warm_start(state)
+        if warm is not None:
+            seeds.append(warm)
         norm = prior_value(hyp, self.criterion)
-        for seed in self._starts(state, ring, values):
+        for seed in seeds:
             try:
-                p, status = self._ipopt(state, hyp, seed, norm, lam)
+                path, status = self._ipopt(state, hyp, seed, norm, lam)
             except RuntimeError as exc:  # CasADi evaluation errors: keep the ring answer
                 log.warning("IPOPT failed from %s: %s", seed, exc)
                 continue
-            if not np.all(np.isfinite(p)):
+            if not np.all(np.isfinite(path)) or not self._path_feasible(state, path, leg_cap_m):
+                log.debug("IPOPT answer %s (%s) fails the exact check", path, status)
                 continue
-            if not legs_feasible(self.constraints, x, p[None], leg_cap_m, state.energy_remaining_m)[0]:
-                log.debug("IPOPT answer %s (%s) fails the exact check", p, status)
-                continue
-            if np.linalg.norm(p - x) < min(self.constraints.min_leg_m, leg_cap_m) - 1e-6:
-                continue
-            val = float(self.evaluate(state, p[None], hyp, lam)[0])
+            val = float(self.evaluate(state, path[None], hyp, lam)[0])
             if val < best_val:
                 ok = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-                best, best_val, best_status = p, val, "ipopt" if ok else f"ipopt:{status}"
+                best, best_val, best_status = path, val, "ipopt" if ok else f"ipopt:{status}"
         self._remember(x, best)
-        return best.copy(), best_status, best_val
+        return best[0].copy(), best_status, best_val
 
-    def _remember(self, x: np.ndarray, wp: np.ndarray) -> None:
-        step = wp - x
+    def _warm_start(self, state: PlanningState) -> np.ndarray | None:
+        """The previous plan shifted by one leg (its heading continued when H = 1), if its first leg
+        is feasible from here."""
+        if self._prev_path is None:
+            return None
+        c, x = self.constraints, state.uav_enu_m
+        cap = self.leg_cap_m(state)
+        if self.horizon > 1 and len(self._prev_path) > 1:
+            warm = np.concatenate([self._prev_path[1:], self._prev_path[-1:]])
+        else:
+            warm = (x + self._prev_dir * cap)[None]
+            warm[0, 2] = np.clip(warm[0, 2], c.alt_min_m, c.alt_max_m)
+            warm = np.repeat(warm, self.horizon, axis=0)
+        if np.linalg.norm(warm[0] - x) < 1e-3:
+            return None
+        if not legs_feasible(c, x, warm[:1], cap, state.energy_remaining_m)[0]:
+            return None
+        return warm
+
+    def _remember(self, x: np.ndarray, path: np.ndarray) -> None:
+        self.last_horizon_enu_m = np.asarray(path, dtype=float).copy()
+        self._prev_path = self.last_horizon_enu_m
+        step = path[0] - x
         n = float(np.linalg.norm(step))
-        self._prev_dir = step / n if n > 0 else None
+        self._prev_dir = step / n if n > 0 else np.zeros(3)
 
 
 class OraclePlanner(ActivePlanner):

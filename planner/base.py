@@ -137,9 +137,12 @@ class BasePlanner:
             wp = ring[int(np.argmin(np.linalg.norm(ring - wp, axis=1)))]
             status, objective = f"{status}+fallback", float("nan")
             length = float(np.linalg.norm(wp - state.uav_enu_m))
+        horizon = getattr(self, "last_horizon_enu_m", None)
+        if horizon is None or not np.allclose(horizon[0], wp):
+            horizon = wp[None, :].copy()
         return PlanResult(
             waypoint_enu_m=wp,
-            horizon_enu_m=wp[None, :].copy(),
+            horizon_enu_m=np.asarray(horizon, dtype=float).copy(),
             done=False,
             objective=float(objective),
             status=status,

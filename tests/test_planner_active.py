@@ -224,7 +224,7 @@ def test_ipopt_failure_falls_back_to_the_best_feasible_ring_candidate(monkeypatc
 def test_an_infeasible_ipopt_answer_is_never_returned(monkeypatch):
     c = u_constraints()
     planner = make_planner("casadi", c, NOISE)
-    monkeypatch.setattr(planner, "_ipopt", lambda *a, **k: (np.array([0.0, 0.0, 30.0]), "Solve_Succeeded"))
+    monkeypatch.setattr(planner, "_ipopt", lambda *a, **k: (np.array([[0.0, 0.0, 30.0]]), "Solve_Succeeded"))
     state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users())
     r = planner.plan(state)
     assert not np.allclose(r.waypoint_enu_m, [0.0, 0.0, 30.0])  # (0, 0) is in the notch of the U
@@ -307,3 +307,33 @@ def test_no_fence_and_little_energy_left(name):
     wp = r.waypoint_enu_m
     assert leg_violations(c, x, wp, c.budget_m, energy) == []
     assert np.linalg.norm(wp - x) + c.return_factor * np.linalg.norm(wp - c.home_enu_m) <= energy + 1e-6
+
+
+def test_horizon_objective_gradient_and_feasibility():
+    c = u_constraints()
+    planner = make_planner("casadi", c, NOISE, horizon=3, criterion="E")
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users())
+    hyp = planner.hypotheses(state)
+    lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, planner.n_quad, planner.max_planes, "E", 3)
+    _, fun = _solver(lay)
+    par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, prior_value(hyp, "E"), 0.002,
+                      np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor)
+    path = np.array([[-30.0, -70.0, 20.0], [-70.0, -40.0, 25.0], [-70.0, 10.0, 15.0]])
+    value, grad = (np.asarray(v, dtype=float).ravel() for v in fun(path.ravel(), par))
+    ev = lambda z: planner.evaluate(state, z.reshape(1, 3, 3), hyp, 0.002)[0]  # noqa: E731
+    assert value[0] == pytest.approx(ev(path.ravel()), rel=1e-9)
+    fd = [(ev(path.ravel() + e) - ev(path.ravel() - e)) / 2e-4 for e in np.eye(9) * 1e-4]
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-9)
+    r = planner.plan(state)
+    assert r.horizon_enu_m.shape == (3, 3) and np.allclose(r.horizon_enu_m[0], r.waypoint_enu_m)
+    prev = state.uav_enu_m
+    for wp in r.horizon_enu_m:
+        assert _free_along(c, prev, wp) and np.linalg.norm(wp - prev) <= c.leg_max_m + 1e-6
+        prev = wp
+    # never worse than its own greedy ring-seeded horizon
+    unc = planner.uncertainty(state, planner.feasible_ring(state), hyp)
+    lam = planner.cost_per_m(unc)
+    ring = planner.feasible_ring(state)
+    vals = unc + lam * np.linalg.norm(ring - state.uav_enu_m, axis=1)
+    seed = planner._extend(state, planner._seed_ends(state, ring, vals)[0], hyp, lam)
+    assert r.objective <= planner.evaluate(state, seed[None], hyp, lam)[0] + 1e-12
