@@ -52,7 +52,7 @@ from estimator.types import Estimate, Keyframe, SolverParams
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
-from mission.telemetry import TelemetryBuffer
+from mission.telemetry import Odometer, TelemetryBuffer, odometer_dead_band_m
 from mission.vehicle import PositionFix, Vehicle
 from planner.stop import targets_reached
 from planner.types import Planner, PlanningState, PlanResult
@@ -377,6 +377,7 @@ class MissionController:
         self.estimate: Estimate | None = None
         self.keyframes: list[Keyframe] = []
         self.flown_m = 0.0
+        self._odometer = Odometer(odometer_dead_band_m(noise.sigma_gps_m))
         self.measurements = 0
         self.event_messages: list[str] = []
         self._t0_mono = time.monotonic()
@@ -941,16 +942,13 @@ class MissionController:
         cfg = self.config
         dist = float(np.linalg.norm(wp - start))
         deadline = time.monotonic() + self.wall(2.0 * dist / cfg.speed_mps + 20.0)
-        counted = start.copy()
+        # metres flown: an odometer whose dead band (max(5 m, 8 σ_gps)) GPS noise does not cross
+        self._odometer.start(start)
         while True:
             pos = self._pos_enu()
-            # metres flown: an odometer with a 2 m dead band, so GPS noise while hovering adds nothing
-            step = float(np.linalg.norm(pos - counted))
-            if step >= 2.0:
-                self.flown_m += step
-                counted = pos.copy()
+            self.flown_m = self._odometer.update(pos)
             if np.linalg.norm(pos - wp) <= cfg.acceptance_m:
-                self.flown_m += step
+                self.flown_m = self._odometer.finish(pos)
                 return
             if self._return_reason is not None or self._stop_status is not None:
                 return

@@ -24,6 +24,7 @@ from estimator.ranging import C_MPS
 from estimator.slam import OnlineEstimator, solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.log import MissionLog
+from mission.telemetry import odometer_dead_band_m, odometer_m
 from uavloc.errors import MissionLogError
 
 log = logging.getLogger(__name__)
@@ -65,7 +66,8 @@ class ReplayResult:
     keyframes: the N keyframes used (GPS prior in ENU, user indices, ranges [m]).
     kf_gps_enu_m (N, 3), kf_t_s (N,). estimate: the batch estimate over all keyframes.
     truth_enu_m (K, 3) or None; error_m (K,) horizontal error per user when truth is known.
-    flown_m: path length of the telemetry track (or of the keyframes without telemetry) [m].
+    flown_m: survey metres: odometer (dead band max(5 m, 8 σ_gps)) over the telemetry between the first and the
+        last range (over the keyframes without telemetry) [m].
     """
 
     log: MissionLog
@@ -146,13 +148,6 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyf
     return keyframes
 
 
-def path_length_m(pos_enu_m: np.ndarray) -> float:
-    """Σ ||p_{i+1} − p_i|| over a (T, 3) track [m]."""
-    if len(pos_enu_m) < 2:
-        return 0.0
-    return float(np.linalg.norm(np.diff(pos_enu_m, axis=0), axis=1).sum())
-
-
 def horizontal_error_m(users_enu_m: np.ndarray, truth_enu_m: np.ndarray) -> np.ndarray:
     """(K,) ||(e, n) estimate − (e, n) truth|| [m]; NaN where either is unknown."""
     return np.linalg.norm(users_enu_m[..., :2] - truth_enu_m[..., :2], axis=-1)
@@ -177,15 +172,17 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
     if mlog.truth_lla is not None:
         truth_enu = origin.lla_to_enu(mlog.truth_lla[:, 0], mlog.truth_lla[:, 1], mlog.truth_lla[:, 2])
 
-    if len(mlog.tel_t_s) >= 2:
-        tel_enu = origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
-        flown_m = path_length_m(tel_enu)
-        # metres flown at each keyframe: the telemetry path length up to its time
-        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(tel_enu, axis=0), axis=1))])
-        kf_flown = np.interp(kf_t, mlog.tel_t_s, cum)
+    # metres flown, as the controller counts them: an odometer with a dead band of max(5 m, 8 σ_gps)
+    # over the telemetry while ranges were measured (the survey), else over the keyframes
+    band_m = odometer_dead_band_m(noise.sigma_gps_m)
+    in_survey = (mlog.tel_t_s >= kf_t[0]) & (mlog.tel_t_s <= kf_t[-1])
+    if np.count_nonzero(in_survey) >= 2:
+        tel = mlog.tel_lla[in_survey]
+        cum = odometer_m(origin.lla_to_enu(tel[:, 0], tel[:, 1], tel[:, 2]), band_m)
+        kf_flown = np.interp(kf_t, mlog.tel_t_s[in_survey], cum)
     else:
-        kf_flown = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(kf_gps, axis=0), axis=1))])
-        flown_m = float(kf_flown[-1])
+        kf_flown = odometer_m(kf_gps, band_m)
+    flown_m = float(kf_flown[-1])
 
     history = None
     total = len(keyframes) + 1

@@ -106,3 +106,59 @@ class TelemetryBuffer:
         # p(t) = p_n + (t − t_n) · v,  v = (p_n − p_{n−1}) / (t_n − t_{n−1})
         v = (p[-1] - p[-2]) / (t[-1] - t[-2])
         return p[-1] + ahead * v
+
+
+
+def odometer_dead_band_m(sigma_gps_m: float) -> float:
+    """Dead band of the survey odometer [m]: max(5 m, 8 σ_gps).
+
+    The difference of two GPS fixes has per-axis σ·√2, so its 3-D norm averages 2.26 σ and
+    exceeds 5.7 σ once in a thousand: a band of 8 σ is crossed by flight, not by noise, and the
+    noise it adds per counted step is O(σ²/band)."""
+    return max(5.0, 8.0 * float(sigma_gps_m))
+
+
+class Odometer:
+    """Metres flown from noisy fixes: a step counts once the UAV is `dead_band_m` from the last
+    counted point; :meth:`finish` counts the remainder (at a leg's end)."""
+
+    def __init__(self, dead_band_m: float):
+        if not dead_band_m > 0:
+            raise MissionError(f"odometer dead band must be positive, got {dead_band_m!r}")
+        self.dead_band_m = float(dead_band_m)
+        self.total_m = 0.0
+        self._counted: np.ndarray | None = None
+
+    def start(self, pos_enu_m: np.ndarray) -> None:
+        """Start counting from here (e.g. at the start of a leg), keeping the total."""
+        self._counted = np.array(pos_enu_m, float)
+
+    def update(self, pos_enu_m: np.ndarray) -> float:
+        """Feed one fix; returns the total [m]."""
+        p = np.asarray(pos_enu_m, float)
+        if self._counted is None:
+            self._counted = p.copy()
+            return self.total_m
+        step = float(np.linalg.norm(p - self._counted))
+        if step >= self.dead_band_m:
+            self.total_m += step
+            self._counted = p.copy()
+        return self.total_m
+
+    def finish(self, pos_enu_m: np.ndarray) -> float:
+        """Count the remainder up to this fix, whatever its length; returns the total [m]."""
+        if self._counted is not None:
+            self.total_m += float(np.linalg.norm(np.asarray(pos_enu_m, float) - self._counted))
+        self._counted = np.array(pos_enu_m, float)
+        return self.total_m
+
+
+def odometer_m(track_enu_m: np.ndarray, dead_band_m: float) -> np.ndarray:
+    """Cumulative metres flown along a (T, 3) track [m, ENU] by an :class:`Odometer`, the last
+    point always counted. Returns (T,) [m], starting at 0."""
+    track = np.asarray(track_enu_m, float)
+    out = np.zeros(len(track))
+    odo = Odometer(dead_band_m)
+    for i, p in enumerate(track):
+        out[i] = odo.finish(p) if i == len(track) - 1 else odo.update(p)
+    return out

@@ -59,3 +59,26 @@ def test_empty_and_bad_input():
         buf.append(0.0, np.array([np.nan, 0.0, 0.0]))
     with pytest.raises(MissionError):
         TelemetryBuffer(1)
+
+
+
+def test_odometer_ignores_gps_noise_while_hovering_and_counts_flight():
+    from mission.telemetry import odometer_dead_band_m, odometer_m
+
+    rng = np.random.default_rng(3)
+    band = odometer_dead_band_m(1.0)
+    hover = rng.normal(0.0, 1.0, (5000, 3))  # 1 m GPS noise, UAV still
+    assert odometer_m(hover, band)[-2] == 0.0  # only the forced last point may count
+    # a 2 m band (the old one) counts metres of noise on every few fixes
+    assert odometer_m(hover, 2.0)[-1] > 1000.0
+    # flight at 10 m/s with 1 m noise at 5 Hz: within 5 % of the true 500 m
+    truth = np.c_[np.linspace(0.0, 500.0, 251), np.zeros(251), np.full(251, 30.0)]
+    assert odometer_m(truth + rng.normal(0.0, 1.0, truth.shape), band)[-1] == pytest.approx(500.0, rel=0.05)
+    assert odometer_m(np.zeros((0, 3)), band).shape == (0,)
+
+
+def test_odometer_rejects_a_non_positive_band():
+    from mission.telemetry import Odometer
+
+    with pytest.raises(MissionError, match="dead band"):
+        Odometer(0.0)
