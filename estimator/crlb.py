@@ -13,6 +13,8 @@ estimator does not use and this bound leaves out. With a = 0 (the default) they 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from estimator.noise import NoiseModel
@@ -56,7 +58,9 @@ def crlb_users(
     odom_mask = np.zeros(n, dtype=bool)
     if params.motion_sigma_m is not None:
         odom_mask[1:] = True
-    prob = Problem(uav, rng, vis, odom, odom_mask, users[:, 2].copy(), noise, params)
+    # Fisher information of the Gaussian range model: unit weights whatever the solver's loss
+    # (the "nlos" loss weighs even a zero residual by γ(0) < 1)
+    prob = Problem(uav, rng, vis, odom, odom_mask, users[:, 2].copy(), noise, replace(params, loss="none"))
     theta = np.zeros((k_all, p))
     theta[:, :d_u] = users[:, :d_u]
     active = vis.sum(axis=0) > 0

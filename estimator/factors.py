@@ -29,7 +29,7 @@ import numpy as np
 
 from estimator.noise import NoiseModel
 from estimator.problem import Problem
-from estimator.robust import loss_rho, loss_weight
+from estimator.robust import loss_psi_weight
 
 
 @dataclass(frozen=True)
@@ -164,9 +164,14 @@ def dense_normal_equations(
             f = RangeFactor(prob.range_m[i, k], noise, prob.user_dim, prob.user_up_m[k], params.estimate_bias)
             e = f.error(uav_enu_m[i], theta[k])
             jx, jt = f.jacobian(uav_enu_m[i], theta[k])
-            w = float(loss_weight(e, params.loss, params.loss_scale))
-            cost += float(loss_rho(e, params.loss, params.loss_scale))
-            add([(3 * i, jx[None, :]), (col[k], jt[None, :])], np.array([e]), w)
+            sig = float(noise.range_sigma_m(np.linalg.norm(uav_enu_m[i] - f._user(theta[k])[0])))
+            pi = params.nlos_prob if prob.nlos_prob_k is None else float(prob.nlos_prob_k[k])
+            rho, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi, params.nlos_mean_m / sig))
+            cost += float(rho[0])
+            # H += w JᵀJ, g −= ψ J: pass e' = ψ/w so that add's w·e' = ψ (w > 0 for every loss
+            # except Tukey beyond c, where ψ = 0 too)
+            add([(3 * i, jx[None, :]), (col[k], jt[None, :])], np.array([psi[0] / w[0] if w[0] > 0 else 0.0]),
+                float(w[0]))
     if params.estimate_bias:
         for k in users:
             f = BiasPriorFactor(params.bias_prior_sigma_m)

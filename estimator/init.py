@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator.noise import NoiseModel
-from estimator.robust import loss_rho, loss_weight
+from estimator.robust import loss_psi_weight, loss_rho, nlos_args
 from estimator.types import SolverParams
 
 #: grid points per axis of the initialization search
@@ -81,8 +81,9 @@ def user_cost(
     scale = params.loss_scale if scale is None else scale
     u, b = _theta_to_user(theta, params.user_dim, up_m)
     d = np.linalg.norm(uav_enu_m - u, axis=1)
-    e = (range_m - d - b) / _sigma_eff(noise, d)
-    cost = float(np.sum(loss_rho(e, loss, scale)))
+    sig = _sigma_eff(noise, d)
+    e = (range_m - d - b) / sig
+    cost = float(np.sum(loss_rho(e, loss, scale, nlos_args(params, sig))))
     if params.estimate_bias:
         cost += 0.5 * (b / params.bias_prior_sigma_m) ** 2
     return cost
@@ -107,14 +108,14 @@ def refine_user(
         d = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
         sig = np.broadcast_to(_sigma_eff(noise, d), d.shape)
         e = (range_m - d - b) / sig
-        w = loss_weight(e, loss, scale)
+        _, psi, w = loss_psi_weight(e, loss, scale, nlos_args(params, sig), need_rho=False)
         # ∂e/∂u = û/σ, ∂e/∂b = −1/σ
         cols = [diff[:, :d_u] / (d * sig)[:, None]]
         if params.estimate_bias:
             cols.append(-1.0 / sig[:, None])
         j = np.hstack(cols)
         h = (j * w[:, None]).T @ j
-        g = -(j * w[:, None]).T @ e
+        g = -j.T @ psi
         if params.estimate_bias:
             h[-1, -1] += 1.0 / params.bias_prior_sigma_m**2
             g[-1] -= b / params.bias_prior_sigma_m**2

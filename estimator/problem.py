@@ -30,6 +30,10 @@ def check_params(params: SolverParams) -> None:
     if not isinstance(params, SolverParams):
         raise EstimatorError(f"params must be SolverParams, got {type(params).__name__}")
     check_loss(params.loss, params.loss_scale)
+    if not (0.0 < params.nlos_prob < 1.0):
+        raise EstimatorError(f"nlos_prob must be in (0, 1), got {params.nlos_prob!r}")
+    if not (np.isfinite(params.nlos_mean_m) and params.nlos_mean_m > 0):
+        raise EstimatorError(f"nlos_mean_m must be positive, got {params.nlos_mean_m!r}")
     if params.user_dim not in (2, 3):
         raise EstimatorError(f"user_dim must be 2 or 3, got {params.user_dim!r}")
     if not (np.isfinite(params.bias_prior_sigma_m) and params.bias_prior_sigma_m > 0):
@@ -44,6 +48,10 @@ def check_params(params: SolverParams) -> None:
         raise EstimatorError(f"max_iterations must be >= 1, got {params.max_iterations!r}")
     if not (np.isfinite(params.step_tol_m) and params.step_tol_m > 0):
         raise EstimatorError(f"step_tol_m must be positive, got {params.step_tol_m!r}")
+    if int(params.online_resolve_every) < 1:
+        raise EstimatorError(f"online_resolve_every must be >= 1, got {params.online_resolve_every!r}")
+    if not (np.isfinite(params.online_max_step_m) and params.online_max_step_m > 0):
+        raise EstimatorError(f"online_max_step_m must be positive, got {params.online_max_step_m!r}")
     if int(params.window) < 2:
         raise EstimatorError(f"window must be >= 2 keyframes, got {params.window!r}")
 
@@ -114,6 +122,8 @@ class Problem:
     user_up_m: np.ndarray
     noise: NoiseModel
     params: SolverParams
+    #: (K,) per-user NLoS probability π_k of the "nlos" loss (None: params.nlos_prob for all)
+    nlos_prob_k: np.ndarray | None = None
 
     @property
     def n_keyframes(self) -> int:

@@ -13,18 +13,51 @@ so that the gradient of the weighted problem equals the gradient of the robust c
     cauchy:  ρ(e) = ½ c² log(1 + (e/c)²)                          w = 1 / (1 + (e/c)²)
     tukey:   ρ(e) = c²/6 (1 − (1 − (e/c)²)³) (|e| ≤ c), c²/6 (else)  w = (1 − (e/c)²)² or 0
 
-GPS priors, motion factors and bias priors are never robustified.
+nlos (LoS/NLoS mixture; c unused): a range is LoS with probability 1 − π, e ~ N(0, 1), or NLoS
+with probability π, e = LoS noise + an excess ~ Exp(mean m) (m = μ_nlos/σ(d), whitened), always
+positive. The NLoS density is the convolution
+
+    f(e) = (1/m) exp(1/(2m²) − e/m) Φ(e − 1/m) = φ(e) M(t)/m,   t = e − 1/m,  M(t) = Φ(t)/φ(t)
+
+so the mixture density is p(e) = φ(e) [(1 − π) + (π/m) M(t)] and its negative log, with ρ(0) = 0:
+
+    ρ(e) = ½e² − log((1 − π) + (π/m) M(t)) + log((1 − π) + (π/m) M(−1/m))
+    ψ(e) = ρ'(e) = e − (1 − γ)(t + 1/M(t))                       (M' = 1 + t M)
+    γ(e) = (1 − π) / ((1 − π) + (π/m) M(t))                       posterior P(LoS | e)
+
+It is quadratic for e < 0 (no NLoS explains a short range), grows only like e/m for large
+positive e, and is not symmetric, so one-sided NLoS excess does not bias it the way a symmetric
+loss is biased. Its IRLS weight is the EM weight w = γ (the Hessian of the EM surrogate
+Σ γ ½e² + (1 − γ)(−log f)), while the gradient uses the exact ψ (ψ ≠ w e: the NLoS part keeps
+a slope 1/m), so Levenberg–Marquardt minimises the mixture likelihood itself.
+
+For every other loss ψ = w e. GPS priors, motion factors and bias priors are never robustified.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from scipy.special import erfcx
 
 from uavloc.errors import EstimatorError
 
-LOSSES = ("none", "huber", "cauchy", "tukey")
+LOSSES = ("none", "huber", "cauchy", "tukey", "nlos")
+#: default NLoS probability π and whitened NLoS mean m of the "nlos" loss when none are given
+NLOS_PROB = 0.1
+NLOS_MEAN_WHITENED = 20.0 / 3.0
+#: M(t) = Φ(t)/φ(t) is evaluated up to this t (finite there; Φ(t) = 1 in double precision)
+_MILLS_T_MAX = 37.0
+_SQRT_HALF_PI = math.sqrt(0.5 * math.pi)
+_SQRT_HALF = math.sqrt(0.5)
 #: losses whose influence goes back to zero: need a start from a convex loss
 REDESCENDING = ("tukey",)
+
+
+def nlos_args(params, sigma_m: np.ndarray | float) -> tuple:
+    """(π, m) of the "nlos" loss for ranges of standard deviation sigma_m [m] (m = μ/σ)."""
+    return (params.nlos_prob, params.nlos_mean_m / sigma_m)
 
 
 def check_loss(loss: str, scale: float) -> None:
@@ -35,9 +68,55 @@ def check_loss(loss: str, scale: float) -> None:
         raise EstimatorError(f"loss_scale must be a positive finite number, got {scale!r}")
 
 
-def loss_rho(e: np.ndarray, loss: str, c: float) -> np.ndarray:
-    """ρ(e) of whitened residuals `e` (any shape), same shape."""
+def _mills(t: np.ndarray) -> np.ndarray:
+    """M(t) = Φ(t)/φ(t) = √(π/2) erfcx(−t/√2) for t ≤ _MILLS_T_MAX (finite there), any shape."""
+    return _SQRT_HALF_PI * erfcx(np.minimum(t, _MILLS_T_MAX) * -_SQRT_HALF)
+
+
+def nlos_terms(
+    e: np.ndarray, prob: np.ndarray | float = NLOS_PROB, mean_w: np.ndarray | float = NLOS_MEAN_WHITENED,
+    need_rho: bool = True,
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """ρ, ψ = ρ', γ of the LoS/NLoS mixture loss (module docstring) at whitened residuals e.
+
+    prob: π in (0, 1) and mean_w: whitened NLoS mean m > 0, each scalar or broadcastable to e.
+    Returns (ρ or None when need_rho is False, ψ, γ), each the shape of e.
+
+    With q = (π/m) M(t) and g = (1 − π) + q:  γ = (1 − π)/g,  ψ = e − (q/g)(t + 1/M(t)),
+    ρ = ½e² − log g + log g(0). M is evaluated at min(t, T) (T = 37, where Φ(T) = 1 in double
+    precision and M(T) ≈ 1e297 is still finite); beyond T, γ ≈ 0 and 1/M ≈ 0 already, and
+    log g(t) = log g(T) + (t² − T²)/2 (log M grows like t²/2 there).
+    """
     e = np.asarray(e, dtype=float)
+    inv_m = 1.0 / mean_w
+    t = e - inv_m
+    mills = _mills(t)
+    one_m_pi = 1.0 - prob
+    q = (prob * inv_m) * mills
+    g = one_m_pi + q
+    gamma = one_m_pi / g
+    # ψ = e − (1 − γ)(t + 1/M(t)),  1 − γ = q/g
+    psi = e - (q / g) * (t + 1.0 / mills)
+    rho = None
+    if need_rho:
+        log_g = np.log(g)
+        over = t > _MILLS_T_MAX
+        if over.any():
+            log_g = log_g + np.where(over, 0.5 * (t * t - _MILLS_T_MAX**2), 0.0)
+        g0 = one_m_pi + (prob * inv_m) * _mills(-inv_m)
+        rho = 0.5 * e * e - log_g + np.log(g0)
+    return rho, psi, gamma
+
+
+def loss_rho(e: np.ndarray, loss: str, c: float, nlos: tuple | None = None) -> np.ndarray:
+    """ρ(e) of whitened residuals `e` (any shape), same shape.
+
+    nlos: (π, m) of the "nlos" loss (m scalar or broadcastable to e); defaults NLOS_PROB,
+    NLOS_MEAN_WHITENED. Ignored by the other losses.
+    """
+    e = np.asarray(e, dtype=float)
+    if loss == "nlos":
+        return nlos_terms(e, *(nlos or ()))[0]
     if loss == "none":
         # ρ = ½ e²
         return 0.5 * e * e
@@ -55,9 +134,12 @@ def loss_rho(e: np.ndarray, loss: str, c: float) -> np.ndarray:
     raise EstimatorError(f"unknown robust loss {loss!r}; expected one of {LOSSES}")
 
 
-def loss_weight(e: np.ndarray, loss: str, c: float) -> np.ndarray:
-    """IRLS weight w(e) = ρ'(e)/e of whitened residuals `e` (any shape), in [0, 1]."""
+def loss_weight(e: np.ndarray, loss: str, c: float, nlos: tuple | None = None) -> np.ndarray:
+    """IRLS weight w(e) of whitened residuals `e` (any shape), in [0, 1]: ρ'(e)/e, or for "nlos"
+    the posterior LoS probability γ(e) (module docstring)."""
     e = np.asarray(e, dtype=float)
+    if loss == "nlos":
+        return nlos_terms(e, *(nlos or ()), need_rho=False)[2]
     if loss == "none":
         return np.ones_like(e)
     if loss == "huber":
@@ -72,3 +154,14 @@ def loss_weight(e: np.ndarray, loss: str, c: float) -> np.ndarray:
         t = np.maximum(1.0 - (e / c) ** 2, 0.0)
         return t * t
     raise EstimatorError(f"unknown robust loss {loss!r}; expected one of {LOSSES}")
+
+
+def loss_psi_weight(
+    e: np.ndarray, loss: str, c: float, nlos: tuple | None = None, need_rho: bool = True,
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """(ρ(e) or None, ψ(e) = ρ'(e), w(e)) in one pass; ψ = w e except for "nlos"."""
+    e = np.asarray(e, dtype=float)
+    if loss == "nlos":
+        return nlos_terms(e, *(nlos or ()), need_rho=need_rho)
+    w = loss_weight(e, loss, c)
+    return (loss_rho(e, loss, c) if need_rho else None), w * e, w

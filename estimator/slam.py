@@ -43,8 +43,8 @@ from estimator.problem import (
     pack_keyframes,
     users_from_theta,
 )
-from estimator.robust import REDESCENDING, loss_rho, loss_weight
-from estimator.schur import schur_solve
+from estimator.robust import REDESCENDING, loss_psi_weight, nlos_args
+from estimator.schur import inv3_sym_batched, schur_solve
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
@@ -56,6 +56,12 @@ ONLINE_MIN_RANGES = 8
 ONLINE_MIN_EXTENT_M = 10.0
 #: Huber threshold of the warm start before a redescending loss
 HUBER_WARM_SCALE = 1.5
+#: "nlos" loss with nlos_adapt: bounds of the per-user NLoS probability π_k, the most rounds of
+#: (solve, re-estimate π_k), and the change of π_k below which the rounds stop
+NLOS_PROB_MIN = 0.005
+NLOS_PROB_MAX = 0.5
+NLOS_EM_ROUNDS = 10
+NLOS_EM_TOL = 1e-9
 
 
 @dataclass
@@ -93,8 +99,8 @@ def _range_terms(
 
     x: (n, 3); theta: (K, p); mask_kn: (K, n) ranges to use; ranges are prob.range_m[:n].
     Arrays are laid out (K, n) so that numpy's inner loops run over keyframes (long), not over
-    3 coordinates. Returns e, w, rho (K, n) and J (3 + p, K, n) = [∂e/∂x; ∂e/∂θ_k], zero where
-    mask_kn is False.
+    3 coordinates. Returns e, w, rho (K, n), J (3 + p, K, n) = [∂e/∂x; ∂e/∂θ_k] and ψ = ρ'(e)
+    (K, n), zero where mask_kn is False.
     """
     params, noise = prob.params, prob.noise
     n = x.shape[0]
@@ -111,10 +117,14 @@ def _range_terms(
     r[~mask_kn] = 0.0
     # e = (r̂ − d − b) / σ(d)
     e = r / sig
-    w = loss_weight(e, params.loss, params.loss_scale)
-    w *= mask_kn
-    rho = loss_rho(e, params.loss, params.loss_scale)
-    rho *= mask_kn
+    nl = None
+    if params.loss == "nlos":
+        pi = params.nlos_prob if prob.nlos_prob_k is None else prob.nlos_prob_k[:, None]
+        nl = (pi, params.nlos_mean_m / sig)
+    rho, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl)
+    w = w * mask_kn
+    psi = psi * mask_kn
+    rho = rho * mask_kn
     # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −1/σ
     if noise.a_m != 0.0 and noise.b_per_m != 0.0:
         alpha = (1.0 / sig + r * noise.range_sigma_dd(d) / sig**2) * mask_kn
@@ -126,7 +136,7 @@ def _range_terms(
     if params.estimate_bias:
         np.divide(-1.0, sig, out=jac[-1])
         jac[-1] *= mask_kn
-    return e, w, rho, jac
+    return e, w, rho, jac, psi
 
 
 def linearize(
@@ -136,14 +146,15 @@ def linearize(
 
     Per range, with J = [∂e/∂x | ∂e/∂θ_k] (1 × (3 + p)):
         H_nn = I/σ_gps² + Σ_k w J_xᵀ J_x,   H_(n,k) = w J_xᵀ J_θ,   H_kk = Σ_n w J_θᵀ J_θ
-        g_n = −(x_n − x̂_n)/σ_gps² − Σ_k w e J_x,   g_k = −Σ_n w e J_θ      (+ bias, motion, prior)
+        g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,   g_k = −Σ_n ψ J_θ      (+ bias, motion, prior)
+    with ψ = ρ'(e) (= w e except for the "nlos" loss, estimator.robust).
     Users with active[k] False are held fixed (identity block, zero gradient).
     """
     params, noise = prob.params, prob.noise
     n, k_all = prob.range_m.shape
     p = prob.p
     mask_kn = prob.mask[:n].T & active[:, None]
-    e, w, rho, jac = _range_terms(prob, x, theta, mask_kn)
+    e, w, rho, jac, psi = _range_terms(prob, x, theta, mask_kn)
     wj = jac * w
     inv_g2 = 1.0 / noise.sigma_gps_m**2
     # O = w J_xᵀ J_x per range, (3, 3, K, n); H_nn = Σ_k O (+ I/σ_gps²)
@@ -151,7 +162,7 @@ def linearize(
     hxx = np.ascontiguousarray(o_xx.sum(axis=2).transpose(2, 0, 1))
     hxx.reshape(n, 9)[:, ::4] += inv_g2
     dgps = x - prob.gps_enu_m
-    wje = wj * e
+    wje = jac * psi
     gx = -dgps * inv_g2 - wje[:3].sum(axis=1).T
     cost = 0.5 * inv_g2 * float(np.vdot(dgps, dgps)) + float(rho.sum())
     if params.estimate_bias:
@@ -273,6 +284,71 @@ def levenberg_marquardt(
     return _Result(x, theta, lin, s_final, it, converged)
 
 
+def nlos_prob_update(prob: Problem, lin: Linearization, active: np.ndarray) -> np.ndarray:
+    """(K,) maximum-likelihood NLoS probability of each user at the residuals of `lin`.
+
+    With q_i = f(e_i)/φ(e_i) the NLoS/LoS density ratio of range i, the log-likelihood of user
+    k's ranges in π is Σ_i log(1 + π (q_i − 1)) (+ const), concave, with derivative
+
+        D(π) = Σ_i a_i / (1 + π a_i),   D'(π) = −Σ_i (a_i / (1 + π a_i))²,   a_i = q_i − 1,
+
+    solved by Newton's method within [NLOS_PROB_MIN, NLOS_PROB_MAX] (the root, or the bound
+    where D keeps its sign). q is recovered from the posterior LoS probability γ = lin.w at the
+    current π: γ = (1 − π)/((1 − π) + π q)  ⇒  q = (1 − π)(1 − γ)/(π γ)  (inf where γ
+    underflowed to 0, where the term a/(1 + πa) is 1/π). Inactive users keep their π.
+    """
+    n = lin.w.shape[1]
+    use = prob.mask[:n].T & active[:, None]
+    pi0 = prob.nlos_prob_k.copy()
+    gam = lin.w
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        q = (1.0 - pi0)[:, None] * (1.0 - gam) / (pi0[:, None] * gam)
+    huge = use & ~np.isfinite(q)
+    a = np.where(use & ~huge, q - 1.0, 0.0)
+    n_huge = huge.sum(axis=1)
+    pi = pi0.copy()
+    for _ in range(40):
+        t = a / (1.0 + pi[:, None] * a)
+        d = t.sum(axis=1) + n_huge / pi
+        dp = -(t * t).sum(axis=1) - n_huge / (pi * pi)
+        new = np.clip(pi - d / np.minimum(dp, -1e-300), NLOS_PROB_MIN, NLOS_PROB_MAX)
+        done = float(np.max(np.abs(new - pi))) < 1e-13
+        pi = new
+        if done:
+            break
+    pi[~active] = pi0[~active]
+    return pi
+
+
+def solve_robust(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
+    step_tol_m: float | None = None,
+) -> _Result:
+    """Levenberg–Marquardt with the loss's schedule: a redescending loss starts from a Huber
+    solution; "nlos" with params.nlos_adapt alternates solves with the maximum-likelihood π_k at
+    the solution's residuals (nlos_prob_update, stored in prob.nlos_prob_k) until no π_k moves
+    by more than NLOS_EM_TOL: a joint maximum of the likelihood in (x, θ, π)."""
+    params = prob.params
+    if params.loss in REDESCENDING:
+        # a redescending loss ignores what it deems outliers: start it from the Huber solution
+        warm = replace(prob, params=replace(params, loss="huber", loss_scale=HUBER_WARM_SCALE))
+        pre = levenberg_marquardt(warm, x, theta, active, prior, step_tol_m=step_tol_m)
+        x, theta = pre.x, pre.theta
+    if params.loss != "nlos" or not params.nlos_adapt:
+        return levenberg_marquardt(prob, x, theta, active, prior, step_tol_m=step_tol_m)
+    if prob.nlos_prob_k is None:
+        prob.nlos_prob_k = np.full(prob.n_users, float(params.nlos_prob))
+    for _ in range(NLOS_EM_ROUNDS):
+        res = levenberg_marquardt(prob, x, theta, active, prior, step_tol_m=step_tol_m)
+        pi = nlos_prob_update(prob, res.lin, active)
+        moved = float(np.max(np.abs(pi - prob.nlos_prob_k)))
+        if moved <= NLOS_EM_TOL:
+            break
+        prob.nlos_prob_k = pi
+        x, theta = res.x, res.theta
+    return res
+
+
 def _init_theta(
     prob: Problem, uav: np.ndarray, mask: np.ndarray, k: int, theta_row: np.ndarray | None = None
 ) -> np.ndarray:
@@ -357,6 +433,8 @@ def _estimate(
             ambiguous[k] = True
             mirror[k] = users_from_theta(mt.mirror_theta[None, :], prob.user_up_m[k : k + 1], d)[0]
     extra = {"active": active.copy(), "cov_theta_joint": cov_joint, "lin_cost": res.lin.cost}
+    if prob.nlos_prob_k is not None:
+        extra["nlos_prob_k"] = prob.nlos_prob_k.copy()  # (K,) π_k the "nlos" loss ended with
     return Estimate(
         users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias, uav_enu_m=res.x.copy(),
         ambiguous=ambiguous, mirror_enu_m=mirror, n_ranges=n_ranges.copy(), cost=res.lin.cost,
@@ -412,12 +490,7 @@ def solve_batch(
             row[: prob.user_dim] = given[k, : prob.user_dim]
         theta[k] = _init_theta(prob, x, prob.mask, k, row)
     theta[~active] = 0.0
-    if params.loss in REDESCENDING:
-        # a redescending loss ignores what it deems outliers: start it from the Huber solution
-        warm = replace(prob, params=replace(params, loss="huber", loss_scale=HUBER_WARM_SCALE))
-        pre = levenberg_marquardt(warm, x, theta, active)
-        x, theta = pre.x, pre.theta
-    res = levenberg_marquardt(prob, x, theta, active)
+    res = solve_robust(prob, x, theta, active)
     res, mirrors = _resolve_mirrors(prob, res, active)
     return _estimate(prob, res, active, mirrors, n_ranges)
 
@@ -448,7 +521,10 @@ class OnlineEstimator:
         self._params = params
         self._k = int(n_users)
         self._p = params.user_dim + (1 if params.estimate_bias else 0)
-        cap = int(params.window) + 1
+        # a full solve marginalizes down to `window` keyframes; the filter steps in between add
+        # up to online_resolve_every − 1 more
+        cap = int(params.window) + max(int(params.online_resolve_every), 1)
+        self._cap = cap
         self._gps = np.zeros((cap, 3))
         self._rng = np.full((cap, self._k), np.nan)
         self._odom = np.zeros((cap, 3))
@@ -462,6 +538,17 @@ class OnlineEstimator:
         self._seen = 0
         self._mirrors: list = [None] * self._k
         self._estimate: Estimate | None = None
+        # per-user NLoS probability of the "nlos" loss, re-estimated by each full solve
+        self._nlos_pi = np.full(self._k, float(params.nlos_prob))
+        self._win_count = np.zeros(self._k, dtype=int)  # ranges per user in the window
+        self._min_start = max(self._p + 1, ONLINE_MIN_RANGES)
+        self._s: np.ndarray | None = None  # users' information S at the last solution
+        self._cost = float("nan")
+        self._last_check = 0
+        self._inv_g2 = 1.0 / noise.sigma_gps_m**2
+        self._diag3 = np.diag_indices(3)
+        self._arange_p = np.arange(self._p)[None, :]
+        self._arange_k = np.arange(self._k)
 
     @property
     def estimate(self) -> Estimate | None:
@@ -477,11 +564,16 @@ class OnlineEstimator:
         rng = self._rng[:n]
         return Problem(
             self._gps[:n], rng, ~np.isnan(rng), self._odom[:n], self._odom_mask[:n], self._up,
-            self._noise, self._params,
+            self._noise, self._params, self._nlos_pi,
         )
 
     def add_keyframe(self, kf: Keyframe) -> Estimate:
-        """Add one keyframe with its ranges; return the updated Estimate."""
+        """Add one keyframe with its ranges; return the updated Estimate.
+
+        Between full window solves (every params.online_resolve_every keyframes, or whenever a
+        user starts, a motion factor links the keyframe, the window is full or the filter step
+        is large) the keyframe is folded in by one information-filter step (_filter_step).
+        """
         gps, idx, rng, odom = check_keyframe(kf, self._k)
         n = self._n
         self._gps[n] = gps
@@ -489,36 +581,164 @@ class OnlineEstimator:
         self._rng[n, idx] = rng
         self._odom_mask[n] = odom is not None and n + self._seen > 0 and self._params.motion_sigma_m is not None
         self._odom[n] = odom if odom is not None else 0.0
+        self._win_count[idx] += 1
+        self._n_ranges[idx] += 1
+        self._seen += 1
+        self._n = n + 1
+        every = int(self._params.online_resolve_every)
+        if (
+            every > 1 and self._s is not None and not self._odom_mask[n] and self._n < self._cap
+            and self._seen % every != 0
+            and not np.any(~self._active[idx] & (self._win_count[idx] >= self._min_start))
+        ):
+            est = self._filter_step(n, gps, idx, rng)
+            if est is not None:
+                self._estimate = est
+                return est
+        est = self._full_update(n, gps, idx, rng, odom)
+        self._estimate = est
+        return est
+
+    def _full_update(
+        self, n: int, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray, odom: np.ndarray | None,
+    ) -> Estimate:
+        """Start users that are ready, re-solve the window (Levenberg–Marquardt from the previous
+        solution, with the prior), re-check mirrors, marginalize down to params.window."""
         # a new keyframe starts at its GPS fix, or dead-reckoned from the previous one, moved to
         # where the ranges to the users already estimated put it
         self._x[n] = self._x[n - 1] + odom if (self._odom_mask[n] and n > 0) else gps
         if idx.size and self._active.any():
             self._x[n] = self._place_keyframe(self._x[n], gps, idx, rng)
-        self._n = n + 1
-        self._seen += 1
-        self._n_ranges[idx] += 1
         prob = self._problem()
         newly = np.zeros(self._k, dtype=bool)
-        ready = ~self._active & (prob.mask.sum(axis=0) >= max(prob.min_ranges(), ONLINE_MIN_RANGES))
+        ready = ~self._active & (prob.mask.sum(axis=0) >= self._min_start)
         for k in np.flatnonzero(ready):
             fixes = self._x[: self._n][prob.mask[:, k], :2]
             if float(np.max(np.ptp(fixes, axis=0))) < ONLINE_MIN_EXTENT_M:
                 continue
             self._theta[k] = _init_theta(prob, self._x[: self._n], prob.mask, k)
             self._active[k] = newly[k] = True
-        res = levenberg_marquardt(
+        res = solve_robust(
             prob, self._x[: self._n].copy(), self._theta, self._active, self._prior,
             step_tol_m=self._params.online_step_tol_m,
         )
         self._x[: self._n] = res.x
         self._theta = res.theta
-        if np.any(newly) or self._seen % max(int(self._params.online_check_every), 1) == 0:
+        if prob.nlos_prob_k is not None:
+            self._nlos_pi = prob.nlos_prob_k
+        check_every = max(int(self._params.online_check_every), 1)
+        if np.any(newly) or self._seen // check_every > self._last_check // check_every:
             res = self._check_mirrors(prob, res)
+            self._last_check = self._seen
         est = _estimate(prob, res, self._active, self._mirrors, self._n_ranges)
-        if self._n > self._params.window:
+        self._s = res.s
+        self._cost = res.lin.cost
+        while self._n > self._params.window:
             self._marginalize_oldest()
-        self._estimate = est
         return est
+
+    def _filter_step(self, n: int, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> Estimate | None:
+        """Fold keyframe n into the users by one information-filter step; None when the step is
+        larger than params.online_max_step_m (the caller then re-solves the window).
+
+        The window and prior are summarized by S (users' information at the last solution θ̂,
+        where their gradient is zero). The new keyframe's factors (GPS prior, ranges to active
+        users, weights w and ψ = ρ'(e) of the loss) are linearized at (x̂_n = GPS fix, θ̂):
+
+            H_nn = I/σ_gps² + Σ_k w J_xᵀJ_x,  H_nk = w J_xᵀJ_θ,  H_kk = w J_θᵀJ_θ
+            g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −ψ J_θ
+
+        and the keyframe is eliminated at once (Schur), the same algebra as estimator.schur:
+
+            S ← S + H_θθ − H_θn H_nn⁻¹ H_nθ,   S Δθ = g_θ − H_θn H_nn⁻¹ g_n,
+            Δx_n = H_nn⁻¹ (g_n − H_nθ Δθ)
+
+        Older window keyframes keep their positions until the next full solve. Cost O(K²·p²)
+        for the update plus O((K·p)³) for S⁻¹ (the covariance), independent of N and window.
+        """
+        params, noise = self._params, self._noise
+        self._x[n] = gps
+        use = self._active[idx]
+        if not use.any():
+            return self._filter_estimate(self._s, None)
+        ka = idx[use]
+        r_meas = rng[use]
+        p, d_u, m = self._p, params.user_dim, ka.size
+        theta = self._theta
+        users = users_from_theta(theta[ka], self._up[ka], d_u)
+        diff = gps - users  # (m, 3)
+        d = np.sqrt((diff * diff).sum(axis=1))
+        np.maximum(d, 1e-9, out=d)
+        sig = noise.range_sigma_m(d)
+        res = r_meas - d
+        if params.estimate_bias:
+            res -= theta[ka, -1]
+        e = res / sig
+        nl = (self._nlos_pi[ka], params.nlos_mean_m / sig) if params.loss == "nlos" else None
+        _, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl, need_rho=False)
+        # α = 1/σ + r σ'/σ²;  J_x = −α û,  J_u = α û,  J_b = −1/σ
+        if noise.a_m != 0.0 and noise.b_per_m != 0.0:
+            alpha = 1.0 / sig + res * noise.range_sigma_dd(d) / sig**2
+        else:
+            alpha = 1.0 / sig
+        jt = np.empty((m, p))
+        jt[:, :d_u] = diff[:, :d_u] * (alpha / d)[:, None]
+        if params.estimate_bias:
+            jt[:, -1] = -1.0 / sig
+        jx = diff * (-alpha / d)[:, None]  # (m, 3)
+        wjx = jx * w[:, None]
+        hnn = wjx.T @ jx
+        hnn[self._diag3] += self._inv_g2
+        gn = -(jx.T @ psi)  # the GPS residual is zero at x̂_n = GPS fix
+        # B = H_nθ over the ranged users' columns, (3, m·p); blocks w J_xᵀ J_θ
+        b = (wjx.T[:, :, None] * jt[None, :, :]).reshape(3, m * p)
+        hinv = inv3_sym_batched(hnn[None])[0]
+        hb = hinv @ b  # H_nn⁻¹ H_nθ, (3, m·p)
+        hg = hinv @ gn
+        # S_add = blockdiag(w J_θᵀ J_θ) − Bᵀ H_nn⁻¹ B;  g_add = −ψ J_θ − Bᵀ H_nn⁻¹ g_n
+        s_add = b.T @ hb
+        np.negative(s_add, out=s_add)
+        s_add.reshape(m, p, m, p)[self._arange_k[:m], :, self._arange_k[:m], :] += (
+            (jt * w[:, None])[:, :, None] * jt[:, None, :])
+        g_add = -(jt * psi[:, None]).ravel() - b.T @ hg
+        cols = (ka[:, None] * p + self._arange_p).ravel()
+        s_new = self._s.copy()
+        s_new[cols[:, None], cols] += s_add
+        # P = S⁻¹ (the users' covariance), Δθ = P g
+        try:
+            cov = np.linalg.inv(s_new)
+        except np.linalg.LinAlgError:
+            return None
+        dth_c = cov[:, cols] @ g_add
+        if not (np.abs(dth_c).max() <= params.online_max_step_m):
+            return None
+        # Δx_n = H_nn⁻¹ (g_n − H_nθ Δθ)
+        self._x[n] = gps + hg - hb @ dth_c[cols]
+        self._theta = theta + dth_c.reshape(self._k, p)
+        self._s = s_new
+        return self._filter_estimate(s_new, cov)
+
+    def _filter_estimate(self, s: np.ndarray, cov_all: np.ndarray | None) -> Estimate:
+        """Estimate after a filter step from S (K·p, K·p) and its inverse when known; mirrors
+        and ambiguity flags from the last full solve."""
+        k_all, p, d = self._k, self._p, self._params.user_dim
+        users = users_from_theta(self._theta, self._up, d)
+        prev = self._estimate
+        if cov_all is not None and p == d and self._active.all():
+            # S⁻¹ blocks; the position information is S itself
+            cov = cov_all.reshape(k_all, p, k_all, p)[self._arange_k, :, self._arange_k, :]
+            info, cov_joint = s, cov_all
+        else:
+            users[~self._active] = np.nan
+            cov, info, cov_joint = _covariances(s, self._active, k_all, p, d)
+        bias = np.where(self._active, self._theta[:, -1], np.nan) if self._params.estimate_bias else None
+        return Estimate(
+            users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias,
+            uav_enu_m=self._x[: self._n].copy(), ambiguous=prev.ambiguous.copy(),
+            mirror_enu_m=prev.mirror_enu_m.copy(), n_ranges=self._n_ranges.copy(), cost=float("nan"),
+            iterations=0, converged=True,
+            extra={"active": self._active.copy(), "cov_theta_joint": cov_joint, "filter_step": True},
+        )
 
     def _place_keyframe(self, x0: np.ndarray, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> np.ndarray:
         """One Gauss–Newton step on the new keyframe alone (users fixed): a warm start that
@@ -540,10 +760,11 @@ class OnlineEstimator:
             d = np.maximum(np.sqrt((diff * diff).sum(axis=1)), 1e-9)
             sig = self._noise.range_sigma_m(d)
             e = (r_meas - d - bias) / sig
-            w = loss_weight(e, self._params.loss, self._params.loss_scale)
+            _, psi, w = loss_psi_weight(
+                e, self._params.loss, self._params.loss_scale, nlos_args(self._params, sig), need_rho=False)
             j = -diff / (d * sig)[:, None]
             h = (j * w[:, None]).T @ j + np.eye(3) * inv_g2
-            g = -(x - gps) * inv_g2 - (j * (w * e)[:, None]).sum(axis=0)
+            g = -(x - gps) * inv_g2 - (j * psi[:, None]).sum(axis=0)
             x = x + np.linalg.solve(h, g)
         return x
 
@@ -641,17 +862,14 @@ class OnlineEstimator:
         h = np.zeros((dim, dim))
         grad = np.zeros(dim)
         mask0 = prob.mask[:1].T & self._active[:, None]
-        e, w, _rho, jac = _range_terms(prob, x[:1], theta, mask0)
-        sw = np.sqrt(w[:, 0])[:, None]
-        jx0 = jac[:3, :, 0].T * sw  # (K, 3)
-        jt0 = jac[3:, :, 0].T * sw  # (K, p)
-        ew = e[:, 0] * sw[:, 0]
+        _e, w, _rho, jac, psi = _range_terms(prob, x[:1], theta, mask0)
+        # H += Σ w JᵀJ,  ∇ += Σ ψ J
         jfull = np.zeros((k_all, dim))
-        jfull[:, :3] = jx0
+        jfull[:, :3] = jac[:3, :, 0].T  # (K, 3)
         kk = np.arange(k_all)[:, None]
-        jfull[kk, 6 + kk * p + np.arange(p)[None, :]] = jt0
-        h += jfull.T @ jfull
-        grad += jfull.T @ ew
+        jfull[kk, 6 + kk * p + np.arange(p)[None, :]] = jac[3:, :, 0].T  # (K, p)
+        h += (jfull * w[:, :1]).T @ jfull
+        grad += jfull.T @ psi[:, 0]
         inv_g2 = 1.0 / noise.sigma_gps_m**2
         h[:3, :3] += np.eye(3) * inv_g2
         grad[:3] += (x[0] - prob.gps_enu_m[0]) * inv_g2
@@ -684,6 +902,7 @@ class OnlineEstimator:
         self._prior = Prior(link, z0, 0.5 * (info + info.T), cvec)
         # drop keyframe 0
         n = self._n
+        self._win_count -= prob.mask[0]
         for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x):
             arr[: n - 1] = arr[1:n]
         self._odom_mask[0] = False

@@ -9,7 +9,7 @@ from estimator.factors import BiasPriorFactor, GpsPriorFactor, MotionFactor, Ran
 from estimator.noise import NoiseModel
 from estimator.numdiff import numerical_jacobian
 from estimator.problem import pack_keyframes
-from estimator.robust import LOSSES, loss_rho, loss_weight
+from estimator.robust import LOSSES, loss_psi_weight, loss_rho, loss_weight, nlos_terms
 from estimator.simulate import simulate
 from estimator.slam import _range_terms
 from estimator.types import SolverParams
@@ -88,7 +88,7 @@ def test_vectorised_range_jacobian_matches_central_differences(estimate_bias, us
     if estimate_bias:
         theta[:, -1] = rng.normal(size=3)
     mask = prob.mask.T.copy()
-    e, _w, _rho, jac = _range_terms(prob, x, theta, mask)
+    e, _w, _rho, jac, _psi = _range_terms(prob, x, theta, mask)
     for k in range(3):
         for n in np.flatnonzero(mask[k])[:4]:
             def e_of_x(v, n=n, k=k):
@@ -110,5 +110,32 @@ def test_vectorised_range_jacobian_matches_central_differences(estimate_bias, us
 def test_irls_weight_is_rho_derivative_over_residual(loss):
     e = np.array([-7.0, -2.0, -0.4, 0.3, 1.2, 2.9, 5.0])
     drho = np.array([numerical_jacobian(lambda v: loss_rho(v, loss, 2.5)[0], np.array([ei]))[0, 0] for ei in e])
-    np.testing.assert_allclose(loss_weight(e, loss, 2.5) * e, drho, rtol=1e-6, atol=1e-8)
+    rho, psi, w = loss_psi_weight(e, loss, 2.5)
+    np.testing.assert_allclose(psi, drho, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(rho, loss_rho(e, loss, 2.5), rtol=1e-14)
+    np.testing.assert_allclose(w, loss_weight(e, loss, 2.5), rtol=1e-14)
+    assert np.all((w >= 0) & (w <= 1))
+    if loss != "nlos":
+        np.testing.assert_allclose(w * e, drho, rtol=1e-6, atol=1e-8)
     assert loss_rho(np.array([0.0]), loss, 2.5)[0] == 0.0
+
+
+@pytest.mark.parametrize("prob, mean_w", [(0.1, 20.0 / 3.0), (0.3, 2.0), (0.02, np.array([1.5, 4.0, 30.0]))])
+def test_nlos_loss_is_negative_log_of_the_mixture_density(prob, mean_w):
+    """ρ(e) − ρ(0) = −log p(e)/p(0) with p = (1 − π) φ + π (φ ⊛ Exp(m)) by quadrature; ψ = ρ' by
+    central differences (also far out, where M(t) is extrapolated); γ = (1 − π) φ / p."""
+    from scipy.integrate import quad
+    from scipy.stats import norm
+
+    m = np.broadcast_to(mean_w, (3,))
+    for e in (-6.0, -1.0, 0.7, 2.5, 4.5, 9.0):
+        e3 = np.full(3, e)
+        rho, psi, gam = nlos_terms(e3, prob, mean_w)
+        for j in range(3):
+            def dens(v, mj=m[j]):
+                nl = quad(lambda s: norm.pdf(v - s) * np.exp(-s / mj) / mj, 0, np.inf, epsabs=1e-14)[0]
+                return (1 - prob) * norm.pdf(v) + prob * nl
+            assert rho[j] == pytest.approx(-np.log(dens(e) / dens(0.0)), rel=1e-6, abs=1e-9)
+            assert gam[j] == pytest.approx((1 - prob) * norm.pdf(e) / dens(e), rel=1e-6, abs=1e-12)
+        fd = (nlos_terms(e3 + 1e-6, prob, mean_w)[0] - nlos_terms(e3 - 1e-6, prob, mean_w)[0]) / 2e-6
+        np.testing.assert_allclose(psi, fd, rtol=1e-6, atol=1e-7)
