@@ -91,10 +91,10 @@ def check_keyframe(kf: Keyframe, n_users: int, index: int | None = None) -> tupl
             bad = idx[(idx < 0) | (idx >= n_users)]
             raise EstimatorError(f"{where}: user index {int(bad[0])} outside [0, {n_users})")
         if idx.size > 1:
-            srt = np.sort(idx)
-            if (srt[1:] == srt[:-1]).any():
-                raise EstimatorError(f"{where}: a user appears twice in user_idx {idx.tolist()}")
-        if not (np.isfinite(rng).all() and rng.min() >= 0):
+            lst = idx.tolist()
+            if len(set(lst)) != len(lst):
+                raise EstimatorError(f"{where}: a user appears twice in user_idx {lst}")
+        if not rng.min() >= 0 or not np.isfinite(rng.max()):
             bad = ~np.isfinite(rng) | (rng < 0)
             raise EstimatorError(
                 f"{where}: range_m must be finite and >= 0, got {float(rng[bad][0])!r} for user {int(idx[bad][0])}"

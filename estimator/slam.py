@@ -28,6 +28,7 @@ exact at the linearization point z₀; each update then costs O(window · K²), 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -44,7 +45,7 @@ from estimator.problem import (
     users_from_theta,
 )
 from estimator.robust import REDESCENDING, loss_psi_weight, nlos_args
-from estimator.schur import inv3_sym_batched, schur_solve
+from estimator.schur import schur_solve
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
@@ -495,6 +496,20 @@ def solve_batch(
     return _estimate(prob, res, active, mirrors, n_ranges)
 
 
+def _inv3(a: np.ndarray) -> np.ndarray:
+    """Inverse of one symmetric 3×3 matrix by cofactors, A⁻¹ = adj(A)/det(A), in Python floats
+    (for one small matrix, cheaper than numpy's batched machinery)."""
+    (a00, a01, a02), (_, a11, a12), (_, _, a22) = a.tolist()
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    r = 1.0 / (a00 * c00 + a01 * c01 + a02 * c02)
+    return np.array([[c00 * r, c01 * r, c02 * r], [c01 * r, c11 * r, c12 * r], [c02 * r, c12 * r, c22 * r]])
+
+
 class OnlineEstimator:
     """Incremental estimator: one keyframe at a time, warm-started, fixed-lag (window) smoothing.
 
@@ -549,6 +564,8 @@ class OnlineEstimator:
         self._diag3 = np.diag_indices(3)
         self._arange_p = np.arange(self._p)[None, :]
         self._arange_k = np.arange(self._k)
+        self._bd_cache: dict[int, np.ndarray] = {}
+        self._users = np.zeros((self._k, 3))  # (K, 3) users_from_theta(θ), kept in step with θ
 
     @property
     def estimate(self) -> Estimate | None:
@@ -589,7 +606,7 @@ class OnlineEstimator:
         if (
             every > 1 and self._s is not None and not self._odom_mask[n] and self._n < self._cap
             and self._seen % every != 0
-            and not np.any(~self._active[idx] & (self._win_count[idx] >= self._min_start))
+            and not (~self._active[idx] & (self._win_count[idx] >= self._min_start)).any()
         ):
             est = self._filter_step(n, gps, idx, rng)
             if est is not None:
@@ -631,6 +648,7 @@ class OnlineEstimator:
             res = self._check_mirrors(prob, res)
             self._last_check = self._seen
         est = _estimate(prob, res, self._active, self._mirrors, self._n_ranges)
+        self._users = users_from_theta(self._theta, self._up, self._params.user_dim)
         self._s = res.s
         self._cost = res.lin.cost
         while self._n > self._params.window:
@@ -662,45 +680,72 @@ class OnlineEstimator:
         if not use.any():
             return self._filter_estimate(self._s, None)
         ka = idx[use]
-        r_meas = rng[use]
-        p, d_u, m = self._p, params.user_dim, ka.size
-        theta = self._theta
-        users = users_from_theta(theta[ka], self._up[ka], d_u)
-        diff = gps - users  # (m, 3)
-        d = np.sqrt((diff * diff).sum(axis=1))
-        np.maximum(d, 1e-9, out=d)
-        sig = noise.range_sigma_m(d)
-        res = r_meas - d
-        if params.estimate_bias:
-            res -= theta[ka, -1]
-        e = res / sig
-        nl = (self._nlos_pi[ka], params.nlos_mean_m / sig) if params.loss == "nlos" else None
-        _, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl, need_rho=False)
-        # α = 1/σ + r σ'/σ²;  J_x = −α û,  J_u = α û,  J_b = −1/σ
-        if noise.a_m != 0.0 and noise.b_per_m != 0.0:
-            alpha = 1.0 / sig + res * noise.range_sigma_dd(d) / sig**2
-        else:
-            alpha = 1.0 / sig
-        jt = np.empty((m, p))
-        jt[:, :d_u] = diff[:, :d_u] * (alpha / d)[:, None]
-        if params.estimate_bias:
-            jt[:, -1] = -1.0 / sig
-        jx = diff * (-alpha / d)[:, None]  # (m, 3)
-        wjx = jx * w[:, None]
-        hnn = wjx.T @ jx
-        hnn[self._diag3] += self._inv_g2
-        gn = -(jx.T @ psi)  # the GPS residual is zero at x̂_n = GPS fix
-        # B = H_nθ over the ranged users' columns, (3, m·p); blocks w J_xᵀ J_θ
-        b = (wjx.T[:, :, None] * jt[None, :, :]).reshape(3, m * p)
-        hinv = inv3_sym_batched(hnn[None])[0]
-        hb = hinv @ b  # H_nn⁻¹ H_nθ, (3, m·p)
+        p, d_u = self._p, params.user_dim
+        with_bias = params.estimate_bias
+        # per range, in Python floats (m ≤ K small): geometry, residual, Jacobian factors
+        gx, gy, gz = gps.tolist()
+        users = self._users[ka].tolist()
+        biases = self._theta[ka, -1].tolist() if with_bias else None
+        sig_dd = noise.a_m != 0.0 and noise.b_per_m != 0.0
+        s0, a_m, b_m = noise.s0_m, noise.a_m, noise.b_per_m
+        us, sigs, es, res_l = [], [], [], []
+        for j, (r_j, (ux, uy, uz)) in enumerate(zip(rng[use].tolist(), users, strict=True)):
+            dx, dy, dz = gx - ux, gy - uy, gz - uz
+            d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
+            # σ(d) = s0 + a·exp(b·d)
+            sig = s0 + a_m * math.exp(b_m * d) if a_m != 0.0 else s0
+            res = r_j - d - (biases[j] if with_bias else 0.0)
+            # α = 1/σ + r σ'/σ²
+            alpha = 1.0 / sig + (res * a_m * b_m * math.exp(b_m * d) / (sig * sig) if sig_dd else 0.0)
+            f = alpha / d
+            us.append((dx * f, dy * f, dz * f))  # α û = ∂e/∂u = −∂e/∂x
+            sigs.append(sig)
+            es.append(res / sig)
+            res_l.append(res)
+        sig_a = np.array(sigs)
+        nl = (self._nlos_pi[ka], params.nlos_mean_m / sig_a) if params.loss == "nlos" else None
+        _, psi_a, w_a = loss_psi_weight(np.array(es), params.loss, params.loss_scale, nl, need_rho=False)
+        psi, w = psi_a.tolist(), w_a.tolist()
+        # J_x = −α û, J_θ = [α û_(:d), (−1/σ)]: H_nn = I/σ_gps² + Σ w J_xᵀJ_x, g_n = −Σ ψ J_x,
+        # B = H_nθ (3, m·p) with blocks w J_xᵀ J_θ, blockdiag H_θθ = w J_θᵀ J_θ, g_θ = −ψ J_θ
+        ig = self._inv_g2
+        h00 = h11 = h22 = ig
+        h01 = h02 = h12 = 0.0
+        g0 = g1 = g2 = 0.0
+        b_rows: tuple[list, list, list] = ([], [], [])
+        blk: list[float] = []
+        g_t: list[float] = []
+        for j, (vx, vy, vz) in enumerate(us):
+            wj, pj = w[j], psi[j]
+            h00 += wj * vx * vx
+            h01 += wj * vx * vy
+            h02 += wj * vx * vz
+            h11 += wj * vy * vy
+            h12 += wj * vy * vz
+            h22 += wj * vz * vz
+            g0 += pj * vx
+            g1 += pj * vy
+            g2 += pj * vz
+            jt = [vx, vy, vz][:d_u]
+            if with_bias:
+                jt.append(-1.0 / sigs[j])
+            for row, xi in zip(b_rows, (vx, vy, vz), strict=True):
+                # w J_x,iᵀ J_θ = −w α û_i J_θ
+                row.extend(-wj * xi * c for c in jt)
+            blk.extend(wj * ci * cj for ci in jt for cj in jt)
+            g_t.extend(-pj * c for c in jt)
+        hinv = _inv3(np.array([[h00, h01, h02], [h01, h11, h12], [h02, h12, h22]]))
+        m = ka.size
+        b = np.array(b_rows)  # (3, m·p)
+        hb = hinv @ b  # H_nn⁻¹ H_nθ
+        gn = np.array([g0, g1, g2])
         hg = hinv @ gn
-        # S_add = blockdiag(w J_θᵀ J_θ) − Bᵀ H_nn⁻¹ B;  g_add = −ψ J_θ − Bᵀ H_nn⁻¹ g_n
+        # S_add = blockdiag(H_θθ) − Bᵀ H_nn⁻¹ B;  g_add = g_θ − Bᵀ H_nn⁻¹ g_n
         s_add = b.T @ hb
         np.negative(s_add, out=s_add)
-        s_add.reshape(m, p, m, p)[self._arange_k[:m], :, self._arange_k[:m], :] += (
-            (jt * w[:, None])[:, :, None] * jt[:, None, :])
-        g_add = -(jt * psi[:, None]).ravel() - b.T @ hg
+        s_add.ravel()[self._blockdiag_index(m)] += blk
+        g_add = np.array(g_t)
+        g_add -= b.T @ hg
         cols = (ka[:, None] * p + self._arange_p).ravel()
         s_new = self._s.copy()
         s_new[cols[:, None], cols] += s_add
@@ -709,20 +754,32 @@ class OnlineEstimator:
             cov = np.linalg.inv(s_new)
         except np.linalg.LinAlgError:
             return None
-        dth_c = cov[:, cols] @ g_add
-        if not (np.abs(dth_c).max() <= params.online_max_step_m):
+        dth = cov[:, cols] @ g_add
+        if not (np.abs(dth).max() <= params.online_max_step_m):
             return None
         # Δx_n = H_nn⁻¹ (g_n − H_nθ Δθ)
-        self._x[n] = gps + hg - hb @ dth_c[cols]
-        self._theta = theta + dth_c.reshape(self._k, p)
+        self._x[n] = gps + hg - hb @ dth[cols]
+        self._theta = self._theta + dth.reshape(self._k, p)
+        self._users[:, :d_u] = self._theta[:, :d_u]
         self._s = s_new
         return self._filter_estimate(s_new, cov)
+
+    def _blockdiag_index(self, m: int) -> np.ndarray:
+        """Flat indices of the m diagonal p×p blocks of an (m·p, m·p) matrix, block-row-major."""
+        out = self._bd_cache.get(m)
+        if out is None:
+            p = self._p
+            i = np.arange(m)[:, None, None] * p + np.arange(p)[None, :, None]
+            j = np.arange(m)[:, None, None] * p + np.arange(p)[None, None, :]
+            out = (i * (m * p) + j).ravel()
+            self._bd_cache[m] = out
+        return out
 
     def _filter_estimate(self, s: np.ndarray, cov_all: np.ndarray | None) -> Estimate:
         """Estimate after a filter step from S (K·p, K·p) and its inverse when known; mirrors
         and ambiguity flags from the last full solve."""
         k_all, p, d = self._k, self._p, self._params.user_dim
-        users = users_from_theta(self._theta, self._up, d)
+        users = self._users.copy()
         prev = self._estimate
         if cov_all is not None and p == d and self._active.all():
             # S⁻¹ blocks; the position information is S itself

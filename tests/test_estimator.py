@@ -125,6 +125,85 @@ def test_online_equals_batch_without_marginalization(params):
     np.testing.assert_array_equal(est.n_ranges, batch.n_ranges)
 
 
+@pytest.mark.parametrize(
+    "params, noise",
+    [
+        (SolverParams(), NOISE),
+        (SolverParams(loss="huber", estimate_bias=True), NOISE_DD),
+        (SolverParams(loss="cauchy", user_dim=3), NOISE),
+        (SolverParams(nlos_adapt=False, nlos_prob=0.2), NOISE_DD),
+    ],
+    ids=["nlos", "huber-bias-dd", "cauchy-3d", "nlos-fixed-dd"],
+)
+def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params, noise):
+    """One information-filter step against the dense reference: variables z = [x_n (3), θ (K·p)],
+    H = blockdiag(I/σ_gps², S) + Σ w JᵀJ, g = −Σ ψ J over the new keyframe's ranges (RangeFactor
+    objects, linearized at the GPS fix and the previous θ), Δz = H⁻¹ g; the new S is the Schur
+    complement of H over x_n and the reported covariance its inverse."""
+    from estimator.factors import RangeFactor
+    from estimator.robust import loss_psi_weight
+
+    sc = simulate(np.random.default_rng(31), n_users=3, n_keyframes=60, noise=noise, p_nlos=0.1)
+    params = SolverParams(**{**params.__dict__, "online_resolve_every": 1000, "window": 1000,
+                             "online_max_step_m": 100.0})
+    on = OnlineEstimator(3, sc.user_up_m, noise, params)
+    for kf in sc.keyframes[:40]:
+        est = on.add_keyframe(kf)
+    assert est.extra["active"].all()
+    # force a full solve, then take its state as the linearization point
+    on._full_update(on._n - 1, sc.keyframes[39].gps_enu_m, sc.keyframes[39].user_idx, sc.keyframes[39].range_m, None)
+    theta0, s0, pi = on._theta.copy(), on._s.copy(), on._nlos_pi.copy()
+    kf = sc.keyframes[40]
+    est = on.add_keyframe(kf)
+    assert est.extra.get("filter_step")
+    p, k_all = on._p, 3
+    dim = 3 + k_all * p
+    h = np.zeros((dim, dim))
+    g = np.zeros(dim)
+    h[:3, :3] = np.eye(3) / noise.sigma_gps_m**2
+    h[3:, 3:] = s0
+    x0 = kf.gps_enu_m
+    for k, r in zip(kf.user_idx, kf.range_m, strict=True):
+        f = RangeFactor(float(r), noise, params.user_dim, float(sc.user_up_m[k]), params.estimate_bias)
+        e = f.error(x0, theta0[k])
+        jx, jt = f.jacobian(x0, theta0[k])
+        sig = float(noise.range_sigma_m(np.linalg.norm(x0 - f._user(theta0[k])[0])))
+        _, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi[k], params.nlos_mean_m / sig))
+        j = np.zeros(dim)
+        j[:3] = jx
+        j[3 + k * p : 3 + (k + 1) * p] = jt
+        h += w[0] * np.outer(j, j)
+        g -= psi[0] * j
+    dz = np.linalg.solve(h, g)
+    np.testing.assert_allclose(on._theta.ravel() - theta0.ravel(), dz[3:], rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(est.uav_enu_m[-1], x0 + dz[:3], rtol=1e-9, atol=1e-11)
+    s_ref = h[3:, 3:] - h[3:, :3] @ np.linalg.solve(h[:3, :3], h[:3, 3:])
+    np.testing.assert_allclose(on._s, s_ref, rtol=1e-9, atol=1e-12 * np.abs(s_ref).max())
+    cov_ref = np.linalg.inv(s_ref).reshape(k_all, p, k_all, p)
+    for k in range(k_all):
+        d = params.user_dim
+        np.testing.assert_allclose(est.cov_users_m2[k], cov_ref[k, :d, k, :d], rtol=1e-9, atol=1e-12)
+
+
+def test_online_filter_steps_stay_close_to_full_resolves():
+    """Default online (filter steps between window solves) against re-solving at every keyframe:
+    users within a small fraction of their standard deviation, covariances within 10 %."""
+    sc = simulate(np.random.default_rng(23), n_users=4, n_keyframes=200, p_nlos=0.2)
+    fast = OnlineEstimator(4, sc.user_up_m, NOISE, SolverParams())
+    full = OnlineEstimator(4, sc.user_up_m, NOISE, SolverParams(online_resolve_every=1))
+    n_filter = 0
+    for i, kf in enumerate(sc.keyframes):
+        a, b = fast.add_keyframe(kf), full.add_keyframe(kf)
+        n_filter += bool(a.extra.get("filter_step"))
+        if i >= 60 and np.all(b.extra["active"]):
+            sd = np.sqrt(np.trace(b.cov_users_m2, axis1=1, axis2=2))
+            assert np.all(np.linalg.norm(a.users_enu_m - b.users_enu_m, axis=1) < 0.3 * sd), i
+            diff = np.linalg.norm(a.cov_users_m2 - b.cov_users_m2, axis=(1, 2))
+            rel = diff / np.linalg.norm(b.cov_users_m2, axis=(1, 2))
+            assert np.all(rel < 0.1), (i, rel)
+    assert n_filter > 0.6 * len(sc.keyframes)
+
+
 def test_online_with_marginalization_stays_close_to_batch_with_bounded_window():
     sc = simulate(np.random.default_rng(22), n_users=4, n_keyframes=300)
     params = SolverParams(window=40)
