@@ -26,11 +26,15 @@ return home, inside the fence and outside no-fly zones with `margin_m` clearance
 leg). `plan` raises :class:`uavloc.errors.PlannerError` when the UAV itself is outside the free
 space (the controller should return home). The safety gate should still check independently.
 
-Names: "casadi" (IPOPT on the information objective), "greedy" (best ring candidate of the same
-objective), "oracle" (casadi given the true users, `true_users_enu_m=`), "lawnmower", "circle",
-"random". Users the estimator has not initialised yet (NaN rows): while no user can be planned for
-(or all planned-for users already meet the target), planners explore — they fly the feasible leg
-that spreads the track out most (see :func:`planner.information.explore_waypoint`).
+Names: "casadi" (IPOPT on the information objective; options criterion "E"|"A"|"D", horizon,
+cost_rel, sigma_points, weighting, user_weights — see planner.active.ActivePlanner), "greedy"
+(best full-length heading of a 24-ring on the A-optimal objective), "oracle" (casadi given the
+true users, `true_users_enu_m=`), "lawnmower", "circle", "random".
+
+Users the estimator has not initialised yet (NaN rows): while no user can be planned for (or all
+planned-for users already meet the target), planners explore — they fly the feasible leg that
+spreads the track out most (see :func:`planner.information.explore_waypoint`). Users estimated
+more than 5 km from home (a diverged solve) count as not initialised.
 """
 
 from planner.factory import make_planner, planner_names

@@ -1,6 +1,10 @@
 """The active planner: the next waypoint from the information objective, by CasADi + IPOPT (DESIGN.md §6).
 
-Objective (planner.information; normalised by its value before the leg, J₀, so IPOPT sees O(1)):
+Defaults: criterion "E" (f = the error-ellipse semi-major axis per user, what the stop rule and
+the benchmark measure; "A" for 3-D users), horizon 2 (two waypoints planned, the first flown).
+
+Objective (planner.information; normalised by its value before the leg, J₀, so IPOPT sees O(1);
+shown for one leg, a horizon sums the information of its legs and their lengths):
 
     min_p  Σ_k w_k Σ_s c_ks f(I_ks(p)) / J₀  +  λ · ℓ(p),     ℓ(p) = |p − x_c|,
            λ = cost_rel · (1 − min_ring J/J₀) / leg_max  (a full leg must buy back cost_rel of the
@@ -231,7 +235,7 @@ class ActivePlanner(BasePlanner):
         constraints: PlanningConstraints,
         noise: NoiseModel,
         rng_seed: int = 0,
-        criterion: str = "A",
+        criterion: str = "E",
         cost_rel: float = 0.2,
         n_starts: int = 1,
         n_quad: int = 8,
@@ -239,7 +243,7 @@ class ActivePlanner(BasePlanner):
         user_weights: np.ndarray | None = None,
         max_planes: int = 24,
         weighting: str = "none",
-        horizon: int = 1,
+        horizon: int = 2,
     ) -> None:
         super().__init__(constraints, noise, rng_seed)
         if weighting not in ("none", "sqrt"):
@@ -408,7 +412,8 @@ class ActivePlanner(BasePlanner):
             self._remember(x, wp[None])
             return wp, "explore", float("nan")
         if self.criterion == "E" and hyp.dim != 2:
-            raise PlannerError("criterion 'E' needs 2-D users (SolverParams.user_dim = 2); use 'A' or 'D'")
+            log.warning("criterion 'E' is for 2-D users; planning A-optimal for %d-D users", hyp.dim)
+            self.criterion = "A"
         ring = self.feasible_ring(state)
         if len(ring) == 0:
             return x.copy(), "no ring", float("nan")
@@ -504,6 +509,7 @@ class GreedyPlanner(ActivePlanner):
 
     def __init__(self, constraints, noise, rng_seed=0, **opts) -> None:
         opts.setdefault("sigma_points", "none")
+        opts.setdefault("criterion", "A")
         super().__init__(constraints, noise, rng_seed, **opts)
 
     def _propose(self, state: PlanningState, leg_cap_m: float) -> tuple[np.ndarray, str, float]:

@@ -68,7 +68,7 @@ def test_three_dimensional_users_objective_matches_reference():
     from dataclasses import replace
 
     est3 = replace(est, cov_users_m2=cov3, info_users=np.linalg.inv(cov3[0]))
-    planner = make_planner("casadi", u_constraints(), NOISE)
+    planner = make_planner("casadi", u_constraints(), NOISE, criterion="A")
     state = PlanningState([0.0, -60.0, 30.0], est3)
     hyp = planner.hypotheses(state)
     assert hyp.dim == 3
@@ -172,7 +172,7 @@ def test_convex_cells_of_random_scenarios_stay_free():
 @pytest.mark.parametrize("seed", range(6))
 def test_choice_is_at_least_as_good_as_the_best_ring_candidate(seed):
     c, x, est = _random_setting(100 + seed)
-    planner = make_planner("casadi", c, NOISE)
+    planner = make_planner("casadi", c, NOISE, horizon=1)
     state = PlanningState(x, est, 0.0)
     hyp = planner.hypotheses(state)
     ring = planner.feasible_ring(state)
@@ -190,7 +190,7 @@ def test_ipopt_improves_on_the_ring_somewhere():
     better = 0
     for seed in range(6):
         c, x, est = _random_setting(200 + seed)
-        planner = make_planner("casadi", c, NOISE)
+        planner = make_planner("casadi", c, NOISE, horizon=1)
         state = PlanningState(x, est, 0.0)
         hyp = planner.hypotheses(state)
         ring = planner.feasible_ring(state)
@@ -204,7 +204,7 @@ def test_ipopt_improves_on_the_ring_somewhere():
 
 def test_ipopt_failure_falls_back_to_the_best_feasible_ring_candidate(monkeypatch):
     c = u_constraints()
-    planner = make_planner("casadi", c, NOISE)
+    planner = make_planner("casadi", c, NOISE, horizon=1)
 
     def broken(*args, **kwargs):
         raise RuntimeError("simulated IPOPT crash")
@@ -337,3 +337,13 @@ def test_horizon_objective_gradient_and_feasibility():
     vals = unc + lam * np.linalg.norm(ring - state.uav_enu_m, axis=1)
     seed = planner._extend(state, planner._seed_ends(state, ring, vals)[0], hyp, lam)
     assert r.objective <= planner.evaluate(state, seed[None], hyp, lam)[0] + 1e-12
+
+
+def test_three_dimensional_users_fall_back_to_a_optimal():
+    from dataclasses import replace
+
+    est = fake_estimate([[10, 40, 0]], np.eye(2))
+    cov3 = np.diag([4.0, 2.0, 9.0])[None]
+    planner = make_planner("casadi", u_constraints(), NOISE)  # default criterion "E"
+    r = planner.plan(PlanningState([0.0, -60.0, 30.0], replace(est, cov_users_m2=cov3, info_users=cov3[0])))
+    assert planner.criterion == "A" and not r.done
