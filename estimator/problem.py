@@ -52,6 +52,8 @@ def check_params(params: SolverParams) -> None:
         raise EstimatorError(f"online_resolve_every must be >= 1, got {params.online_resolve_every!r}")
     if not (np.isfinite(params.online_max_step_m) and params.online_max_step_m > 0):
         raise EstimatorError(f"online_max_step_m must be positive, got {params.online_max_step_m!r}")
+    if not (np.isfinite(params.step_tol_uav_m) and params.step_tol_uav_m > 0):
+        raise EstimatorError(f"step_tol_uav_m must be positive, got {params.step_tol_uav_m!r}")
     if int(params.window) < 2:
         raise EstimatorError(f"window must be >= 2 keyframes, got {params.window!r}")
 

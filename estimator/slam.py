@@ -62,7 +62,9 @@ HUBER_WARM_SCALE = 1.5
 NLOS_PROB_MIN = 0.005
 NLOS_PROB_MAX = 0.5
 NLOS_EM_ROUNDS = 10
-NLOS_EM_TOL = 1e-9
+NLOS_EM_TOL = 1e-4
+#: step tolerance of the solves while π_k is still being re-estimated [m]
+NLOS_ROUND_STEP_M = 1e-3
 
 
 @dataclass
@@ -111,7 +113,8 @@ def _range_terms(
     diff = np.ascontiguousarray(x.T)[:, None, :] - users.T[:, :, None]
     d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
     np.maximum(d, 1e-9, out=d)
-    sig = noise.range_sigma_m(d)
+    # σ(d); a scalar when it does not depend on d (cheaper loss evaluation)
+    sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
     r = prob.range_m[:n].T - d
     if params.estimate_bias:
         r -= theta[:, -1:]
@@ -238,7 +241,9 @@ def levenberg_marquardt(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     max_iterations: int | None = None, step_tol_m: float | None = None,
 ) -> _Result:
-    """Minimise L from (x, Θ); stop when the largest step component is below params.step_tol_m.
+    """Minimise L from (x, Θ); stop when the largest user step component is below
+    params.step_tol_m (or step_tol_m) and the largest keyframe step component below the larger of
+    that and params.step_tol_uav_m.
 
     The returned S (undamped Schur complement) belongs to the last linearization point, which
     differs from the returned estimate by less than step_tol_m.
@@ -261,8 +266,8 @@ def levenberg_marquardt(
                 break
             continue
         du = du.reshape(theta.shape)
-        step = max(float(np.max(np.abs(dx))), float(np.max(np.abs(du))))
-        if step < tol:
+        # users to tol; keyframes (σ_gps ~ 1 m) to the looser params.step_tol_uav_m
+        if float(np.max(np.abs(du))) < tol and float(np.max(np.abs(dx))) < max(tol, params.step_tol_uav_m):
             x = x + dx
             theta = theta + du
             s_final = s if lam == 0.0 else None
@@ -338,13 +343,23 @@ def solve_robust(
     if params.loss != "nlos" or not params.nlos_adapt:
         return levenberg_marquardt(prob, x, theta, active, prior, step_tol_m=step_tol_m)
     if prob.nlos_prob_k is None:
+        # π_k from params.nlos_prob re-estimated at the starting residuals (at LoS it drops to
+        # the floor at once, and the solve runs near-quadratic from the first iteration)
         prob.nlos_prob_k = np.full(prob.n_users, float(params.nlos_prob))
+        prob.nlos_prob_k = nlos_prob_update(prob, linearize(prob, x, theta, active, prior), active)
+    tol = params.step_tol_m if step_tol_m is None else step_tol_m
+    # while π_k still moves, solve only to NLOS_ROUND_STEP_M; then to tol (all π_k on the
+    # floor, i.e. LoS: to tol at once)
+    tight = bool(np.all(prob.nlos_prob_k[active] <= NLOS_PROB_MIN))
     for _ in range(NLOS_EM_ROUNDS):
-        res = levenberg_marquardt(prob, x, theta, active, prior, step_tol_m=step_tol_m)
+        res = levenberg_marquardt(
+            prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M))
         pi = nlos_prob_update(prob, res.lin, active)
         moved = float(np.max(np.abs(pi - prob.nlos_prob_k)))
         if moved <= NLOS_EM_TOL:
-            break
+            if tight:
+                break
+            tight = True
         prob.nlos_prob_k = pi
         x, theta = res.x, res.theta
     return res

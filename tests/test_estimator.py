@@ -89,7 +89,7 @@ def test_schur_solve_and_covariance_match_dense_reference(params, noise, lam):
 
 def test_reported_covariance_is_inverse_of_dense_normal_matrix_at_solution():
     sc = simulate(np.random.default_rng(5), n_users=3, n_keyframes=40)
-    params = SolverParams(step_tol_m=1e-10)
+    params = SolverParams(step_tol_m=1e-10, step_tol_uav_m=1e-10)
     est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, params)
     prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, NOISE, params)
     prob.nlos_prob_k = est.extra.get("nlos_prob_k")  # the per-user NLoS probability the solve ended with
@@ -112,7 +112,8 @@ def test_reported_covariance_is_inverse_of_dense_normal_matrix_at_solution():
 def test_online_equals_batch_without_marginalization(params):
     sc = simulate(np.random.default_rng(21), n_users=4, n_keyframes=80, odom_sigma_m=0.1, p_visible=0.9)
     # a full re-solve at every keyframe (no information-filter steps), nothing marginalized
-    tight = SolverParams(**{**params.__dict__, "window": 1000, "step_tol_m": 1e-10, "online_step_tol_m": 1e-10,
+    tight = SolverParams(**{**params.__dict__, "window": 1000, "step_tol_m": 1e-10, "step_tol_uav_m": 1e-10,
+                            "online_step_tol_m": 1e-10,
                             "online_resolve_every": 1})
     batch = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, tight)
     on = OnlineEstimator(4, sc.user_up_m, NOISE, tight)
