@@ -140,45 +140,67 @@ def refine_user(
 
 def _grid_cost(uav: np.ndarray, rng: np.ndarray, dz: np.ndarray, cand: np.ndarray, noise: NoiseModel) -> np.ndarray:
     """(G,) truncated-quadratic cost Σ min(e², c²) of horizontal candidates cand (G, 2)."""
-    # d_gi = ||x_i − (e_g, n_g, up)||
-    d = np.sqrt((cand[:, None, 0] - uav[None, :, 0]) ** 2 + (cand[:, None, 1] - uav[None, :, 1]) ** 2 + dz**2)
-    e = (rng[None, :] - d) / _sigma_eff(noise, d)
-    return np.minimum(e * e, GRID_CAUCHY_SCALE**2).sum(axis=1)
+    # d_gi = ||x_i − (e_g, n_g, up)||  (in place: the (G, M) temporaries dominate the cost)
+    d = cand[:, 0:1] - uav[None, :, 0]
+    d *= d
+    dn = cand[:, 1:2] - uav[None, :, 1]
+    dn *= dn
+    d += dn
+    d += dz * dz
+    np.sqrt(d, out=d)
+    sig = _sigma_eff(noise, d)
+    # e = (r̂ − d)/σ_eff;  Σ min(e², c²)
+    np.subtract(rng[None, :], d, out=dn)
+    dn /= sig
+    dn *= dn
+    np.minimum(dn, GRID_CAUCHY_SCALE**2, out=dn)
+    return dn.sum(axis=1)
 
 
-def _grid_starts(uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseModel, n_best: int) -> np.ndarray:
+#: 0..1 in GRID_SIZE steps, and the 7×7 zoom offsets in coarse cells, (49, 2)
+_GRID_FRAC = np.linspace(0.0, 1.0, GRID_SIZE)
+_ZOOM_OFF = np.stack(np.meshgrid(np.linspace(-1.0, 1.0, 7), np.linspace(-1.0, 1.0, 7), indexing="ij"),
+                     axis=-1).reshape(-1, 2)
+
+
+def _grid_starts(
+    uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseModel, n_best: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(≤ n_best, 2) horizontal starts: best local minima of a coarse grid, each refined on a
-    finer grid around it (cell/3 resolution)."""
+    finer grid around it (cell/3 resolution); and their (≤ n_best,) grid costs."""
     dz = uav[:, 2] - up_m
     rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
-    pad = 4.0 * np.broadcast_to(_sigma_eff(noise, rng), rng.shape) + 2.0
+    reach = (rho + 4.0 * _sigma_eff(noise, rng) + 2.0)[:, None]
     # the user lies within ρ_i (+ noise) of every fix: intersect the boxes, fall back to their union
-    lo = np.max(uav[:, :2] - (rho + pad)[:, None], axis=0)
-    hi = np.min(uav[:, :2] + (rho + pad)[:, None], axis=0)
-    if np.any(hi <= lo):
-        lo = np.min(uav[:, :2] - (rho + pad)[:, None], axis=0)
-        hi = np.max(uav[:, :2] + (rho + pad)[:, None], axis=0)
-    ge = np.linspace(lo[0], hi[0], GRID_SIZE)
-    gn = np.linspace(lo[1], hi[1], GRID_SIZE)
-    ee, nn = np.meshgrid(ge, gn, indexing="ij")
-    cand = np.stack([ee.ravel(), nn.ravel()], axis=1)
-    cost = _grid_cost(uav, rng, dz, cand, noise).reshape(GRID_SIZE, GRID_SIZE)
-    padded = np.pad(cost, 1, constant_values=np.inf)
+    lo = np.max(uav[:, :2] - reach, axis=0)
+    hi = np.min(uav[:, :2] + reach, axis=0)
+    if not (hi > lo).all():
+        lo = np.min(uav[:, :2] - reach, axis=0)
+        hi = np.max(uav[:, :2] + reach, axis=0)
+    g = GRID_SIZE
+    ge = lo[0] + (hi[0] - lo[0]) * _GRID_FRAC
+    gn = lo[1] + (hi[1] - lo[1]) * _GRID_FRAC
+    cand = np.empty((g, g, 2))
+    cand[:, :, 0] = ge[:, None]
+    cand[:, :, 1] = gn[None, :]
+    cand = cand.reshape(g * g, 2)
+    cost = _grid_cost(uav, rng, dz, cand, noise).reshape(g, g)
+    padded = np.full((g + 2, g + 2), np.inf)
+    padded[1:-1, 1:-1] = cost
     is_min = np.ones_like(cost, dtype=bool)
     for de in (-1, 0, 1):
         for dn in (-1, 0, 1):
             if de or dn:
-                is_min &= cost <= padded[1 + de : 1 + de + GRID_SIZE, 1 + dn : 1 + dn + GRID_SIZE]
+                is_min &= cost <= padded[1 + de : 1 + de + g, 1 + dn : 1 + dn + g]
     idx = np.flatnonzero(is_min.ravel())
     idx = idx[np.argsort(cost.ravel()[idx])][:n_best]
     # zoom: a 7×7 grid spanning ±1 coarse cell around each start
-    cell = np.array([ge[1] - ge[0], gn[1] - gn[0]])
-    off = np.linspace(-1.0, 1.0, 7)
-    oe, on = np.meshgrid(off * cell[0], off * cell[1], indexing="ij")
-    zoom = np.stack([oe.ravel(), on.ravel()], axis=1)
+    zoom = _ZOOM_OFF * np.array([ge[1] - ge[0], gn[1] - gn[0]])
     fine = (cand[idx][:, None, :] + zoom[None, :, :]).reshape(-1, 2)
     fcost = _grid_cost(uav, rng, dz, fine, noise).reshape(idx.size, -1)
-    return fine.reshape(idx.size, -1, 2)[np.arange(idx.size), np.argmin(fcost, axis=1)]
+    best = np.argmin(fcost, axis=1)
+    rows = np.arange(idx.size)
+    return fine.reshape(idx.size, -1, 2)[rows, best], fcost[rows, best]
 
 
 def init_user(
@@ -191,10 +213,10 @@ def init_user(
     uav_enu_m: (M, 3) UAV fixes [m, ENU]; range_m: (M,) [m]; up_m: ground height [m].
     """
     m = range_m.shape[0]
-    sub = np.unique(np.linspace(0, m - 1, min(m, GRID_MAX_RANGES)).round().astype(int))
-    starts = _grid_starts(uav_enu_m[sub], range_m[sub], up_m, noise, n_starts)
-    dz = uav_enu_m[sub, 2] - up_m
-    costs = _grid_cost(uav_enu_m[sub], range_m[sub], dz, starts, noise)
+    sub: slice | np.ndarray = slice(None)
+    if m > GRID_MAX_RANGES:
+        sub = np.unique(np.linspace(0, m - 1, GRID_MAX_RANGES).round().astype(int))
+    starts, costs = _grid_starts(uav_enu_m[sub], range_m[sub], up_m, noise, n_starts)
     theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))
     theta0[:2] = starts[int(np.argmin(costs))]
     if params.user_dim == 3:

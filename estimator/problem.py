@@ -174,15 +174,19 @@ def pack_keyframes(
         if not all(isinstance(kf, Keyframe) for kf in keyframes):
             raise ValueError
         gps = np.array([kf.gps_enu_m for kf in keyframes], dtype=float)
-        lengths = np.array([np.size(kf.user_idx) for kf in keyframes])
-        if np.any(lengths != [np.size(kf.range_m) for kf in keyframes]):
+        ui = [kf.user_idx for kf in keyframes]
+        rr = [kf.range_m for kf in keyframes]
+        # len() raises TypeError on a 0-d value; concatenate raises ValueError on mixed ndim
+        lengths_l = [len(u) for u in ui]
+        if lengths_l != [len(v) for v in rr]:
             raise ValueError
-        idx = np.concatenate([np.ravel(kf.user_idx) for kf in keyframes])
-        r = np.concatenate([np.ravel(kf.range_m) for kf in keyframes]).astype(float)
+        lengths = np.array(lengths_l)
+        idx = np.concatenate(ui)
+        r = np.concatenate(rr).astype(float)
         kf_of = np.repeat(np.arange(n), lengths)
         ok = (
             gps.shape == (n, 3) and np.isfinite(gps).all()
-            and all(np.ndim(kf.user_idx) == 1 and np.ndim(kf.range_m) == 1 for kf in keyframes)
+            and idx.ndim == 1 and r.ndim == 1 and idx.shape == kf_of.shape
             and (idx.size == 0 or (idx.dtype.kind in "iu" and idx.min() >= 0 and idx.max() < n_users))
             and np.isfinite(r).all() and (r.size == 0 or r.min() >= 0)
         )
