@@ -159,28 +159,48 @@ def linearize(
     p = prob.p
     mask_kn = prob.mask[:n].T & active[:, None]
     e, w, rho, jac, psi = _range_terms(prob, x, theta, mask_kn)
-    wj = jac * w
     inv_g2 = 1.0 / noise.sigma_gps_m**2
-    # O = w J_xᵀ J_x per range, (3, 3, K, n); H_nn = Σ_k O (+ I/σ_gps²)
-    o_xx = wj[:3, None] * jac[None, :3]
-    hxx = np.ascontiguousarray(o_xx.sum(axis=2).transpose(2, 0, 1))
-    hxx.reshape(n, 9)[:, ::4] += inv_g2
     dgps = x - prob.gps_enu_m
-    wje = jac * psi
-    gx = -dgps * inv_g2 - wje[:3].sum(axis=1).T
     cost = 0.5 * inv_g2 * float(np.vdot(dgps, dgps)) + float(rho.sum())
     if params.estimate_bias:
+        wj = jac * w
+        # O = w J_xᵀ J_x per range, (3, 3, K, n); H_nn = Σ_k O (+ I/σ_gps²)
+        o_xx = wj[:3, None] * jac[None, :3]
+        hxx = np.ascontiguousarray(o_xx.sum(axis=2).transpose(2, 0, 1))
+        wje = jac * psi
+        gx = -dgps * inv_g2 - wje[:3].sum(axis=1).T
         o_xt = wj[:3, None] * jac[None, 3:]
         o_tt = wj[3:, None] * jac[None, 3:]
+        # H_(n,k) = w J_xᵀ J_θ: (3, p, K, n) -> (3, n, K·p)
+        hxu = o_xt.transpose(0, 3, 2, 1).reshape(3, n, k_all * p)
+        # H_kk = Σ_n w J_θᵀ J_θ: (p, p, K) -> (K, p, p)
+        huu_blocks = o_tt.sum(axis=3).transpose(2, 0, 1)
+        gu = -wje[3:].sum(axis=2).T
     else:
-        # J_θ = −J_x[:d]: the coupling and user blocks are slices of O
-        o_xt = -o_xx[:, : prob.user_dim]
-        o_tt = o_xx[: prob.user_dim, : prob.user_dim]
-    # H_(n,k) = w J_xᵀ J_θ: (3, p, K, n) -> (3, n, K·p)
-    hxu = o_xt.transpose(0, 3, 2, 1).reshape(3, n, k_all * p)
-    # H_kk = Σ_n w J_θᵀ J_θ: (p, p, K) -> (K, p, p)
-    huu_blocks = o_tt.sum(axis=3).transpose(2, 0, 1)
-    gu = -wje[3:].sum(axis=2).T
+        # J_θ = −J_x[:d]: every block comes from the 6 distinct products O_ij = w J_x,i J_x,j
+        # (i ≤ j, each (K, n)): H_nn = Σ_k O (+ I/σ_gps²), H_(n,k) = −O[:, :d], H_kk = Σ_n O[:d, :d]
+        d_u = prob.user_dim
+        wj = jac[:3] * w
+        o = {(i, j): wj[i] * jac[j] for i in range(3) for j in range(i, 3)}
+        hxx = np.empty((n, 3, 3))
+        for (i, j), oij in o.items():
+            hxx[:, i, j] = oij.sum(axis=0)
+            if i != j:
+                hxx[:, j, i] = hxx[:, i, j]
+        hxu4 = np.empty((3, n, k_all, d_u))
+        for i in range(3):
+            for j in range(d_u):
+                np.negative(o[min(i, j), max(i, j)].T, out=hxu4[i, :, :, j])
+        hxu = hxu4.reshape(3, n, k_all * p)
+        huu_blocks = np.empty((k_all, d_u, d_u))
+        for i in range(d_u):
+            for j in range(i, d_u):
+                huu_blocks[:, i, j] = huu_blocks[:, j, i] = o[i, j].sum(axis=1)
+        # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ = Σ_n ψ J_x[:d]
+        jpsi = jac[:3] * psi
+        gx = -dgps * inv_g2 - jpsi.sum(axis=1).T
+        gu = jpsi[:d_u].sum(axis=2).T
+    hxx.reshape(n, 9)[:, ::4] += inv_g2
     if params.estimate_bias:
         inv_b2 = 1.0 / params.bias_prior_sigma_m**2
         bias = theta[:, -1]
@@ -290,8 +310,9 @@ def levenberg_marquardt(
     return _Result(x, theta, lin, s_final, it, converged)
 
 
-def nlos_prob_update(prob: Problem, lin: Linearization, active: np.ndarray) -> np.ndarray:
-    """(K,) maximum-likelihood NLoS probability of each user at the residuals of `lin`.
+def nlos_prob_update(prob: Problem, gamma: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """(K,) maximum-likelihood NLoS probability of each user at the residuals where the posterior
+    LoS probabilities gamma (K, n) (0 where no range; Linearization.w) were evaluated.
 
     With q_i = f(e_i)/φ(e_i) the NLoS/LoS density ratio of range i, the log-likelihood of user
     k's ranges in π is Σ_i log(1 + π (q_i − 1)) (+ const), concave, with derivative
@@ -299,14 +320,14 @@ def nlos_prob_update(prob: Problem, lin: Linearization, active: np.ndarray) -> n
         D(π) = Σ_i a_i / (1 + π a_i),   D'(π) = −Σ_i (a_i / (1 + π a_i))²,   a_i = q_i − 1,
 
     solved by Newton's method within [NLOS_PROB_MIN, NLOS_PROB_MAX] (the root, or the bound
-    where D keeps its sign). q is recovered from the posterior LoS probability γ = lin.w at the
+    where D keeps its sign). q is recovered from the posterior LoS probability γ at the
     current π: γ = (1 − π)/((1 − π) + π q)  ⇒  q = (1 − π)(1 − γ)/(π γ)  (inf where γ
     underflowed to 0, where the term a/(1 + πa) is 1/π). Inactive users keep their π.
     """
-    n = lin.w.shape[1]
+    n = gamma.shape[1]
     use = prob.mask[:n].T & active[:, None]
     pi0 = prob.nlos_prob_k.copy()
-    gam = lin.w
+    gam = gamma
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         q = (1.0 - pi0)[:, None] * (1.0 - gam) / (pi0[:, None] * gam)
     huge = use & ~np.isfinite(q)
@@ -346,7 +367,8 @@ def solve_robust(
         # π_k from params.nlos_prob re-estimated at the starting residuals (at LoS it drops to
         # the floor at once, and the solve runs near-quadratic from the first iteration)
         prob.nlos_prob_k = np.full(prob.n_users, float(params.nlos_prob))
-        prob.nlos_prob_k = nlos_prob_update(prob, linearize(prob, x, theta, active, prior), active)
+        mask_kn = prob.mask[: x.shape[0]].T & active[:, None]
+        prob.nlos_prob_k = nlos_prob_update(prob, _range_terms(prob, x, theta, mask_kn)[1], active)
     tol = params.step_tol_m if step_tol_m is None else step_tol_m
     # while π_k still moves, solve only to NLOS_ROUND_STEP_M; then to tol (all π_k on the
     # floor, i.e. LoS: to tol at once)
@@ -354,7 +376,7 @@ def solve_robust(
     for _ in range(NLOS_EM_ROUNDS):
         res = levenberg_marquardt(
             prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M))
-        pi = nlos_prob_update(prob, res.lin, active)
+        pi = nlos_prob_update(prob, res.lin.w, active)
         moved = float(np.max(np.abs(pi - prob.nlos_prob_k)))
         if moved <= NLOS_EM_TOL:
             if tight:
