@@ -33,6 +33,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.special import erfcx
 
 from estimator.init import init_user, mirror_test, user_cost
 from estimator.noise import NoiseModel
@@ -49,6 +50,8 @@ from estimator.schur import schur_solve
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
+_SQRT_HALF_PI = math.sqrt(0.5 * math.pi)
+_SQRT_HALF = math.sqrt(0.5)
 _LAM_START = 1e-4
 _LAM_MAX = 1e10
 #: the online estimator starts a user once the window holds this many of its ranges ...
@@ -533,10 +536,9 @@ def solve_batch(
     return _estimate(prob, res, active, mirrors, n_ranges)
 
 
-def _inv3(a: np.ndarray) -> np.ndarray:
-    """Inverse of one symmetric 3×3 matrix by cofactors, A⁻¹ = adj(A)/det(A), in Python floats
-    (for one small matrix, cheaper than numpy's batched machinery)."""
-    (a00, a01, a02), (_, a11, a12), (_, _, a22) = a.tolist()
+def _inv3_sym(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float) -> np.ndarray:
+    """(3, 3) inverse of the symmetric matrix [[a00 a01 a02] [a01 a11 a12] [a02 a12 a22]] by
+    cofactors, A⁻¹ = adj(A)/det(A), in Python floats (one small matrix: cheaper than numpy)."""
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -725,7 +727,7 @@ class OnlineEstimator:
         biases = self._theta[ka, -1].tolist() if with_bias else None
         sig_dd = noise.a_m != 0.0 and noise.b_per_m != 0.0
         s0, a_m, b_m = noise.s0_m, noise.a_m, noise.b_per_m
-        us, sigs, es, res_l = [], [], [], []
+        us, sigs, es = [], [], []
         for j, (r_j, (ux, uy, uz)) in enumerate(zip(rng[use].tolist(), users, strict=True)):
             dx, dy, dz = gx - ux, gy - uy, gz - uz
             d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
@@ -738,50 +740,56 @@ class OnlineEstimator:
             us.append((dx * f, dy * f, dz * f))  # α û = ∂e/∂u = −∂e/∂x
             sigs.append(sig)
             es.append(res / sig)
-            res_l.append(res)
-        sig_a = np.array(sigs)
-        nl = (self._nlos_pi[ka], params.nlos_mean_m / sig_a) if params.loss == "nlos" else None
-        _, psi_a, w_a = loss_psi_weight(np.array(es), params.loss, params.loss_scale, nl, need_rho=False)
-        psi, w = psi_a.tolist(), w_a.tolist()
+        if params.loss == "nlos":
+            # the mixture loss in Python floats (estimator.robust.nlos_terms, same formulas)
+            psi, w = [], []
+            for e_j, sig_j, pi_j in zip(es, sigs, self._nlos_pi[ka].tolist(), strict=True):
+                inv_m = sig_j / params.nlos_mean_m
+                t = e_j - inv_m
+                mills = _SQRT_HALF_PI * float(erfcx(-_SQRT_HALF * min(t, 37.0)))
+                q = pi_j * inv_m * mills
+                g = 1.0 - pi_j + q
+                w.append((1.0 - pi_j) / g)
+                psi.append(e_j - q / g * (t + 1.0 / mills))
+        else:
+            _, psi_a, w_a = loss_psi_weight(np.array(es), params.loss, params.loss_scale, None, need_rho=False)
+            psi, w = psi_a.tolist(), w_a.tolist()
         # J_x = −α û, J_θ = [α û_(:d), (−1/σ)]: H_nn = I/σ_gps² + Σ w J_xᵀJ_x, g_n = −Σ ψ J_x,
         # B = H_nθ (3, m·p) with blocks w J_xᵀ J_θ, blockdiag H_θθ = w J_θᵀ J_θ, g_θ = −ψ J_θ
         ig = self._inv_g2
         h00 = h11 = h22 = ig
         h01 = h02 = h12 = 0.0
         g0 = g1 = g2 = 0.0
-        b_rows: tuple[list, list, list] = ([], [], [])
-        blk: list[float] = []
-        g_t: list[float] = []
-        for j, (vx, vy, vz) in enumerate(us):
-            wj, pj = w[j], psi[j]
-            h00 += wj * vx * vx
-            h01 += wj * vx * vy
-            h02 += wj * vx * vz
-            h11 += wj * vy * vy
-            h12 += wj * vy * vz
+        for (vx, vy, vz), wj, pj in zip(us, w, psi, strict=True):
+            wx, wy = wj * vx, wj * vy
+            h00 += wx * vx
+            h01 += wx * vy
+            h02 += wx * vz
+            h11 += wy * vy
+            h12 += wy * vz
             h22 += wj * vz * vz
             g0 += pj * vx
             g1 += pj * vy
             g2 += pj * vz
-            jt = [vx, vy, vz][:d_u]
-            if with_bias:
-                jt.append(-1.0 / sigs[j])
-            for row, xi in zip(b_rows, (vx, vy, vz), strict=True):
-                # w J_x,iᵀ J_θ = −w α û_i J_θ
-                row.extend(-wj * xi * c for c in jt)
-            blk.extend(wj * ci * cj for ci in jt for cj in jt)
-            g_t.extend(-pj * c for c in jt)
-        hinv = _inv3(np.array([[h00, h01, h02], [h01, h11, h12], [h02, h12, h22]]))
+        hinv = _inv3_sym(h00, h01, h02, h11, h12, h22)
         m = ka.size
-        b = np.array(b_rows)  # (3, m·p)
+        u_a = np.array(us)  # α û, (m, 3)
+        w_a = np.array(w)
+        jt = np.empty((m, p))
+        jt[:, :d_u] = u_a[:, :d_u]
+        if with_bias:
+            jt[:, -1] = -1.0 / np.array(sigs)
+        # B[i, (j, c)] = w_j J_x,ji J_θ,jc = −w_j α û_ji J_θ,jc
+        b = ((u_a * w_a[:, None]).T[:, :, None] * jt[None, :, :]).reshape(3, m * p)
+        np.negative(b, out=b)
         hb = hinv @ b  # H_nn⁻¹ H_nθ
-        gn = np.array([g0, g1, g2])
-        hg = hinv @ gn
-        # S_add = blockdiag(H_θθ) − Bᵀ H_nn⁻¹ B;  g_add = g_θ − Bᵀ H_nn⁻¹ g_n
+        hg = hinv @ np.array([g0, g1, g2])
+        # S_add = blockdiag(w J_θᵀ J_θ) − Bᵀ H_nn⁻¹ B;  g_add = −ψ J_θ − Bᵀ H_nn⁻¹ g_n
         s_add = b.T @ hb
         np.negative(s_add, out=s_add)
-        s_add.ravel()[self._blockdiag_index(m)] += blk
-        g_add = np.array(g_t)
+        s_add.ravel()[self._blockdiag_index(m)] += ((jt * w_a[:, None])[:, :, None] * jt[:, None, :]).ravel()
+        g_add = (jt * np.array(psi)[:, None]).ravel()
+        np.negative(g_add, out=g_add)
         g_add -= b.T @ hg
         cols = (ka[:, None] * p + self._arange_p).ravel()
         s_new = self._s.copy()
