@@ -33,6 +33,7 @@ hundreds or more for a circle or a lawnmower. The solver jumps to the mirror whe
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -259,14 +260,23 @@ def mirror_test(
     """Reflect θ across the best-fit line of the fixes (in time order, (M, 3)) and compare."""
     h = uav_enu_m[:, :2]
     c = h.mean(axis=0)
-    _, s, vt = np.linalg.svd(h - c, full_matrices=False)
-    lin = float(s[1] / s[0]) if s.size > 1 and s[0] > 0 else 1.0
-    v = vt[0]
+    # principal axis v of the fixes: the leading eigenvector of the 2×2 scatter [[a, b], [b, d]]
+    # (the right singular vectors of h − c; singular values s_i = √λ_i)
+    hc = h - c
+    (a, b), (_, d) = (hc.T @ hc).tolist()
+    mid, rad = 0.5 * (a + d), math.hypot(0.5 * (a - d), b)
+    lam1, lam2 = mid + rad, max(mid - rad, 0.0)
+    lin = math.sqrt(lam2 / lam1) if lam1 > 0 else 1.0
+    vx, vy = (lam1 - d, b) if a >= d else (b, lam1 - a)
+    norm = math.hypot(vx, vy)
+    vx, vy = (vx / norm, vy / norm) if norm > 0 else (1.0, 0.0)
     # u' = c + (2 v vᵀ − I)(u − c)
-    refl = 2.0 * np.outer(v, v) - np.eye(2)
+    cx, cy = c.tolist()
+    ux, uy = float(theta[0]) - cx, float(theta[1]) - cy
+    dot = vx * ux + vy * uy
+    m_h = np.array([cx + 2.0 * dot * vx - ux, cy + 2.0 * dot * vy - uy])
     u_h = theta[:2]
-    m_h = c + refl @ (u_h - c)
-    if np.linalg.norm(m_h - u_h) < min_offset_m:
+    if math.hypot(2.0 * (dot * vx - ux), 2.0 * (dot * vy - uy)) < min_offset_m:
         return MirrorTest(False, None, np.inf, 0.0, lin)
     t_m = np.array(theta, dtype=float)
     t_m[:2] = m_h
