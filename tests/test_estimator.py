@@ -239,8 +239,9 @@ def test_monte_carlo_rmse_close_to_crlb_on_los():
 
 @pytest.mark.slow
 def test_robust_loss_resists_twenty_percent_nlos():
-    err = {"none": [], "huber": [], "cauchy": [], "tukey": []}
+    err = {"none": [], "huber": [], "cauchy": [], "tukey": [], "nlos": []}
     nees = []
+    nees_nlos = []
     for seed in range(8):
         sc = simulate(np.random.default_rng(200 + seed), n_users=5, n_keyframes=150, pattern="lawnmower",
                       p_nlos=0.2, nlos_mean_m=20.0)
@@ -250,6 +251,8 @@ def test_robust_loss_resists_twenty_percent_nlos():
             err[loss].extend(_user_errors(est, sc))
             if loss == "tukey":
                 nees.extend(_nees(est, sc))
+            if loss == "nlos":
+                nees_nlos.extend(_nees(est, sc))
     mean = {k: float(np.mean(v)) for k, v in err.items()}
     assert mean["none"] > 2.0, mean
     assert mean["huber"] < 0.5 * mean["none"], mean
@@ -257,6 +260,38 @@ def test_robust_loss_resists_twenty_percent_nlos():
     # the redescending loss rejects outliers outright: smaller error, and an honest covariance
     assert mean["tukey"] < mean["huber"], mean
     assert 1.4 < np.mean(nees) < 3.5, np.mean(nees)
+    # the LoS/NLoS mixture (the default) models the one-sided excess: best of all, honest covariance
+    assert mean["nlos"] < min(mean["huber"], mean["cauchy"], mean["tukey"]), mean
+    assert 1.4 < np.mean(nees_nlos) < 3.0, np.mean(nees_nlos)
+
+
+def test_nlos_probability_is_the_maximum_likelihood_mixing_weight():
+    """nlos_prob_update against a brute-force maximum of Σ log((1 − π) φ(e) + π f(e)) over π on a
+    fine grid, per user, for users with no, some and many NLoS ranges."""
+    from scipy.integrate import quad
+    from scipy.stats import norm
+
+    from estimator.problem import Problem
+    from estimator.robust import loss_weight
+    from estimator.slam import NLOS_PROB_MAX, NLOS_PROB_MIN, nlos_prob_update
+
+    rng = np.random.default_rng(3)
+    m_w = 20.0 / 3.0
+    e = rng.normal(size=(3, 300))
+    for k, frac in enumerate((0.0, 0.15, 0.4)):
+        e[k] += (rng.uniform(size=300) < frac) * rng.exponential(m_w, size=300)
+    mask = np.ones((300, 3), dtype=bool)
+    prob = Problem(np.zeros((300, 3)), np.zeros((300, 3)), mask, np.zeros((300, 3)), np.zeros(300, dtype=bool),
+                   np.zeros(3), NOISE, SolverParams(), np.array([0.1, 0.1, 0.1]))
+    gamma = loss_weight(e, "nlos", 1.0, (np.array([[0.1], [0.1], [0.1]]), m_w))
+    pi = nlos_prob_update(prob, gamma, np.ones(3, dtype=bool))
+    f = np.array([[quad(lambda s, v=v: norm.pdf(v - s) * np.exp(-s / m_w) / m_w, 0, np.inf)[0] for v in row]
+                  for row in e])
+    grid = np.linspace(NLOS_PROB_MIN, NLOS_PROB_MAX, 4001)
+    for k in range(3):
+        ll = np.log((1 - grid[:, None]) * norm.pdf(e[k])[None, :] + grid[:, None] * f[k][None, :]).sum(axis=1)
+        assert pi[k] == pytest.approx(grid[np.argmax(ll)], abs=2e-4), (k, pi[k])
+    assert pi[0] == NLOS_PROB_MIN and 0.08 < pi[1] < 0.25 and 0.3 < pi[2] < 0.5
 
 
 # --- mirror ambiguity ---------------------------------------------------------------------------
