@@ -44,6 +44,12 @@ def main() -> int:
         print(f"generated {log_path}: {counts['rtt']} rtt records, {counts['flown_m']:.0f} m "
               f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
     out = args.work / f"report_{sc.name}_{args.keyframes}"
+    # baseline, same run and same way: a subprocess that only parses the log (the I/O floor)
+    base_cmd = [sys.executable, "-c", "import sys; from mission.log import read_mission_log; "
+                "read_mission_log(sys.argv[1])", str(log_path)]
+    t0 = time.perf_counter()
+    subprocess.run(base_cmd, cwd=Path(__file__).resolve().parents[1], check=True)
+    base = time.perf_counter() - t0
     cmd = [sys.executable, "-m", "mission.cli", "replay", str(log_path), "--out", str(out)]
     print("$", " ".join(cmd), file=sys.stderr)
     t0 = time.perf_counter()
@@ -56,7 +62,10 @@ def main() -> int:
     m = re.search(r"report: .* \(([0-9.]+) s\)", proc.stderr)
     print(f"replay + report: {wall:.1f} s wall; report alone: {m.group(1) if m else '?'} s; "
           f"files in {out}", file=sys.stderr)
-    return 0
+    print(f"baseline (parse the log only): {base:.2f} s; replay + report / baseline: {wall / base:.1f}x")
+    verdict = "PASS" if wall <= 20.0 else "FAIL"
+    print(f"{verdict}  replay + report of {args.keyframes} keyframes <= 20 s: {wall:.1f} s")
+    return 0 if verdict == "PASS" else 1
 
 
 if __name__ == "__main__":
