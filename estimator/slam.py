@@ -604,6 +604,9 @@ class OnlineEstimator:
         self._arange_p = np.arange(self._p)[None, :]
         self._arange_k = np.arange(self._k)
         self._bd_cache: dict[int, np.ndarray] = {}
+        self._k_list = list(range(self._k))
+        self._all_active = False  # cached self._active.all()
+        self._nlos_pi_list = self._nlos_pi.tolist()
         self._users = np.zeros((self._k, 3))  # (K, 3) users_from_theta(θ), kept in step with θ
 
     @property
@@ -645,7 +648,7 @@ class OnlineEstimator:
         if (
             every > 1 and self._s is not None and not self._odom_mask[n] and self._n < self._cap
             and self._seen % every != 0
-            and not (~self._active[idx] & (self._win_count[idx] >= self._min_start)).any()
+            and (self._all_active or not (~self._active[idx] & (self._win_count[idx] >= self._min_start)).any())
         ):
             est = self._filter_step(n, gps, idx, rng)
             if est is not None:
@@ -688,6 +691,8 @@ class OnlineEstimator:
             self._last_check = self._seen
         est = _estimate(prob, res, self._active, self._mirrors, self._n_ranges)
         self._users = users_from_theta(self._theta, self._up, self._params.user_dim)
+        self._all_active = bool(self._active.all())
+        self._nlos_pi_list = self._nlos_pi.tolist()
         self._s = res.s
         self._cost = res.lin.cost
         while self._n > self._params.window:
@@ -715,10 +720,18 @@ class OnlineEstimator:
         """
         params, noise = self._params, self._noise
         self._x[n] = gps
-        use = self._active[idx]
-        if not use.any():
-            return self._filter_estimate(self._s, None)
-        ka = idx[use]
+        if self._all_active:
+            if idx.size == 0:
+                return self._filter_estimate(self._s, None)
+            ka, r_list = idx, rng.tolist()
+        else:
+            use = self._active[idx]
+            if not use.any():
+                return self._filter_estimate(self._s, None)
+            ka, r_list = idx[use], rng[use].tolist()
+        ka_list = ka.tolist()
+        # every user ranged, in order: S_add covers all of S
+        full = ka_list == self._k_list
         p, d_u = self._p, params.user_dim
         with_bias = params.estimate_bias
         # per range, in Python floats (m ≤ K small): geometry, residual, Jacobian factors
@@ -728,7 +741,7 @@ class OnlineEstimator:
         sig_dd = noise.a_m != 0.0 and noise.b_per_m != 0.0
         s0, a_m, b_m = noise.s0_m, noise.a_m, noise.b_per_m
         us, sigs, es = [], [], []
-        for j, (r_j, (ux, uy, uz)) in enumerate(zip(rng[use].tolist(), users, strict=True)):
+        for j, (r_j, (ux, uy, uz)) in enumerate(zip(r_list, users, strict=True)):
             dx, dy, dz = gx - ux, gy - uy, gz - uz
             d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
             # σ(d) = s0 + a·exp(b·d)
@@ -743,7 +756,8 @@ class OnlineEstimator:
         if params.loss == "nlos":
             # the mixture loss in Python floats (estimator.robust.nlos_terms, same formulas)
             psi, w = [], []
-            for e_j, sig_j, pi_j in zip(es, sigs, self._nlos_pi[ka].tolist(), strict=True):
+            for e_j, sig_j, k in zip(es, sigs, ka_list, strict=True):
+                pi_j = self._nlos_pi_list[k]
                 inv_m = sig_j / params.nlos_mean_m
                 t = e_j - inv_m
                 mills = _SQRT_HALF_PI * float(erfcx(-_SQRT_HALF * min(t, 37.0)))
@@ -791,19 +805,22 @@ class OnlineEstimator:
         g_add = (jt * np.array(psi)[:, None]).ravel()
         np.negative(g_add, out=g_add)
         g_add -= b.T @ hg
-        cols = (ka[:, None] * p + self._arange_p).ravel()
-        s_new = self._s.copy()
-        s_new[cols[:, None], cols] += s_add
+        if full:
+            s_new = self._s + s_add
+        else:
+            cols = (ka[:, None] * p + self._arange_p).ravel()
+            s_new = self._s.copy()
+            s_new[cols[:, None], cols] += s_add
         # P = S⁻¹ (the users' covariance), Δθ = P g
         try:
             cov = np.linalg.inv(s_new)
         except np.linalg.LinAlgError:
             return None
-        dth = cov[:, cols] @ g_add
+        dth = cov @ g_add if full else cov[:, cols] @ g_add
         if not (np.abs(dth).max() <= params.online_max_step_m):
             return None
         # Δx_n = H_nn⁻¹ (g_n − H_nθ Δθ)
-        self._x[n] = gps + hg - hb @ dth[cols]
+        self._x[n] = gps + hg - hb @ (dth if full else dth[cols])
         self._theta = self._theta + dth.reshape(self._k, p)
         self._users[:, :d_u] = self._theta[:, :d_u]
         self._s = s_new

@@ -127,16 +127,18 @@ def test_online_equals_batch_without_marginalization(params):
 
 
 @pytest.mark.parametrize(
-    "params, noise",
+    "params, noise, p_visible",
     [
-        (SolverParams(), NOISE),
-        (SolverParams(loss="huber", estimate_bias=True), NOISE_DD),
-        (SolverParams(loss="cauchy", user_dim=3), NOISE),
-        (SolverParams(nlos_adapt=False, nlos_prob=0.2), NOISE_DD),
+        (SolverParams(), NOISE, 1.0),
+        (SolverParams(), NOISE, 0.6),
+        (SolverParams(loss="huber", estimate_bias=True), NOISE_DD, 1.0),
+        (SolverParams(loss="huber", estimate_bias=True), NOISE_DD, 0.6),
+        (SolverParams(loss="cauchy", user_dim=3), NOISE, 0.7),
+        (SolverParams(nlos_adapt=False, nlos_prob=0.2), NOISE_DD, 1.0),
     ],
-    ids=["nlos", "huber-bias-dd", "cauchy-3d", "nlos-fixed-dd"],
+    ids=["nlos", "nlos-some-users", "huber-bias-dd", "huber-bias-dd-some-users", "cauchy-3d", "nlos-fixed-dd"],
 )
-def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params, noise):
+def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params, noise, p_visible):
     """One information-filter step against the dense reference: variables z = [x_n (3), θ (K·p)],
     H = blockdiag(I/σ_gps², S) + Σ w JᵀJ, g = −Σ ψ J over the new keyframe's ranges (RangeFactor
     objects, linearized at the GPS fix and the previous θ), Δz = H⁻¹ g; the new S is the Schur
@@ -144,17 +146,20 @@ def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params
     from estimator.factors import RangeFactor
     from estimator.robust import loss_psi_weight
 
-    sc = simulate(np.random.default_rng(31), n_users=3, n_keyframes=60, noise=noise, p_nlos=0.1)
+    sc = simulate(np.random.default_rng(31), n_users=3, n_keyframes=60, noise=noise, p_nlos=0.1, p_visible=p_visible)
     params = SolverParams(**{**params.__dict__, "online_resolve_every": 1000, "window": 1000,
                              "online_max_step_m": 100.0})
+    # the new keyframe ranges every user, or (p_visible < 1) some of them
+    j = next(i for i in range(40, 60) if p_visible == 1.0 or 0 < sc.keyframes[i].user_idx.size < 3)
     on = OnlineEstimator(3, sc.user_up_m, noise, params)
-    for kf in sc.keyframes[:40]:
+    for kf in sc.keyframes[:j]:
         est = on.add_keyframe(kf)
     assert est.extra["active"].all()
     # force a full solve, then take its state as the linearization point
-    on._full_update(on._n - 1, sc.keyframes[39].gps_enu_m, sc.keyframes[39].user_idx, sc.keyframes[39].range_m, None)
+    last = sc.keyframes[j - 1]
+    on._full_update(on._n - 1, last.gps_enu_m, last.user_idx, last.range_m, None)
     theta0, s0, pi = on._theta.copy(), on._s.copy(), on._nlos_pi.copy()
-    kf = sc.keyframes[40]
+    kf = sc.keyframes[j]
     est = on.add_keyframe(kf)
     assert est.extra.get("filter_step")
     p, k_all = on._p, 3
