@@ -264,9 +264,10 @@ def levenberg_marquardt(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     max_iterations: int | None = None, step_tol_m: float | None = None,
 ) -> _Result:
-    """Minimise L from (x, Θ); stop when the largest user step component is below
-    params.step_tol_m (or step_tol_m) and the largest keyframe step component below the larger of
-    that and params.step_tol_uav_m.
+    """Minimise L from (x, Θ); stop when the largest user step component, or the distance still
+    to go estimated from the contraction of the last two steps, is below params.step_tol_m (or
+    step_tol_m), and the same for the keyframes with the larger of that and
+    params.step_tol_uav_m.
 
     The returned S (undamped Schur complement) belongs to the last linearization point, which
     differs from the returned estimate by less than step_tol_m.
@@ -278,6 +279,7 @@ def levenberg_marquardt(
     lam = 0.0
     s_final = None
     converged = False
+    prev: tuple[float, float] | None = None  # (user, keyframe) sizes of the last undamped step
     it = 0
     while it < max_it:
         it += 1
@@ -289,8 +291,19 @@ def levenberg_marquardt(
                 break
             continue
         du = du.reshape(theta.shape)
+        su, sx = float(np.max(np.abs(du))), float(np.max(np.abs(dx)))
+        # distance still to go after this step: Gauss–Newton on these problems converges
+        # linearly, each step r times the previous one (r the ratio of the last two undamped
+        # steps), so the steps after this one add up to step·r/(1 − r)
+        left_u, left_x = su, sx
+        if prev is not None and lam == 0.0:
+            ru, rx = su / max(prev[0], 1e-300), sx / max(prev[1], 1e-300)
+            if ru < 0.5:
+                left_u = su * ru / (1.0 - ru)
+            if rx < 0.5:
+                left_x = sx * rx / (1.0 - rx)
         # users to tol; keyframes (σ_gps ~ 1 m) to the looser params.step_tol_uav_m
-        if float(np.max(np.abs(du))) < tol and float(np.max(np.abs(dx))) < max(tol, params.step_tol_uav_m):
+        if min(su, left_u) < tol and min(sx, left_x) < max(tol, params.step_tol_uav_m):
             x = x + dx
             theta = theta + du
             s_final = s if lam == 0.0 else None
@@ -300,8 +313,10 @@ def levenberg_marquardt(
         lin_t = linearize(prob, x_t, th_t, active, prior)
         if lin_t.cost <= lin.cost + 1e-12 * abs(lin.cost):
             x, theta, lin = x_t, th_t, lin_t
+            prev = (su, sx) if lam == 0.0 else None
             lam = 0.0 if lam <= _LAM_START else lam / 10.0
         else:
+            prev = None
             lam = max(_LAM_START, 10.0 * lam)
             if lam > _LAM_MAX:
                 break
