@@ -6,9 +6,11 @@ Cost (negative log-likelihood; factors in estimator.factors, losses in estimator
         + ½ Σ_n ||x_n − x_(n−1) − ô_n||²/σ_m² + L_prior(users, x_first)
     e_nk = (r̂_nk − ||x_n − u_k|| − b_k) / σ(d_nk)
 
-Levenberg–Marquardt on the IRLS-weighted normal equations, solved with the Schur complement over
-keyframes (estimator.schur), O(N·K²) per iteration. Damping starts at 0 (Gauss–Newton) and grows
-only when a step fails to lower L.
+Levenberg–Marquardt on the IRLS-weighted normal equations (Hessian weight w, gradient ψ = ρ'(e);
+ψ = w e except for the "nlos" mixture loss), solved with the Schur complement over keyframes
+(estimator.schur), O(N·K²) per iteration. Damping starts at 0 (Gauss–Newton) and grows only when
+a step fails to lower L. With the "nlos" loss (the default) the per-user NLoS probability π_k is
+re-estimated by maximum likelihood between solves (solve_robust).
 
 Covariance: S⁻¹ of the IRLS-weighted information at the final linearization, S = Σ w JᵀJ over
 ranges (+ priors) Schur-complemented over keyframes. Under a robust loss this is the information
@@ -24,6 +26,11 @@ on the users (and biases, and the next keyframe when a motion factor links them)
                                                       c = ∇_r − H_r0 H_00⁻¹ ∇_0
 
 exact at the linearization point z₀; each update then costs O(window · K²), independent of N.
+
+Between window solves (every params.online_resolve_every keyframes) a new keyframe is folded in by
+one information-filter step: linearized at its GPS fix and the current users, eliminated at once
+into the users' information S (OnlineEstimator._filter_step), O(K²) plus the (K·p)³ inverse for
+the covariance. The window is re-solved and marginalized at the next full update.
 """
 
 from __future__ import annotations
