@@ -24,6 +24,12 @@ heading (warm start). The answer is the best, by the numpy objective, of the IPO
 pass the exact check and the best ring candidate — so it is never worse than the ring, and it is
 never infeasible (the base class re-checks it).
 
+Range biases: when the estimate carries a bias per user (`Estimate.bias_m` not None), f is applied
+to the position information of the joint (position, bias) information (its Schur complement over
+the bias; planner.information), so legs that separate the bias from the position — ranges at
+diverse distances and elevations, e.g. over the user and far away — score better. Without biases
+the objective is unchanged.
+
 Users the estimator has not initialised: while none can be planned for, or all planned-for users
 already meet the target, the planner explores (planner.information.explore_waypoint).
 """
@@ -85,16 +91,20 @@ class _Layout:
     n_planes: int
     criterion: str
     horizon: int = 1
+    bias: bool = False  # a range bias per user: P is the joint (position, bias) information
 
 
 def objective_expr(z, x_c, U, wts, P, noise_par, delta, lay: _Layout):
     """CasADi expression of Σ_km wts_km f(I_km) after the legs x_c → w_1 → … → w_H (planner.information).
 
     z: 3H×1 waypoints stacked; x_c: 3×1; U: (K·M)×3 sample positions; wts: (K·M)×1;
-    P: (K·M)×(d·d) prior information (row-major); noise_par: [s0, a, b, σ_gps²];
-    returns (objective, lengths: list of the H leg lengths ℓ_h).
+    P: (K·M)×(p·p) prior information (row-major; p = d, or d + 1 with the bias last when lay.bias);
+    noise_par: [s0, a, b, σ_gps²]; returns (objective, lengths: list of the H leg lengths ℓ_h).
+    With a bias, measurements add h hᵀ/σ_eff², h = [−g; 1], and f is applied to the Schur complement
+    A − c cᵀ/s of the joint information (planner.information.position_information).
     """
     n_q, d, n_h = lay.n_quad, lay.dim, lay.horizon
+    p = d + int(lay.bias)
     km = lay.n_users * lay.n_samples
     t = ca.DM((np.arange(n_q) + 0.5) / n_q)
     pts, scales, lengths = [], [], []
@@ -119,7 +129,15 @@ def objective_expr(z, x_c, U, wts, P, noise_par, delta, lay: _Layout):
     info = {}
     for i in range(d):
         for j in range(i, d):
-            info[i, j] = P[:, i * d + j] + ca.sum2(comps[i] * comps[j] * w)
+            info[i, j] = P[:, i * p + j] + ca.sum2(comps[i] * comps[j] * w)
+    if lay.bias:
+        # h = [−g; 1]: cross terms −g_i/σ_eff² = −comps_i·w·dist, bias term 1/σ_eff² = w·dist²
+        wd = w * dist
+        s_b = P[:, d * p + d] + ca.sum2(wd * dist)
+        c_b = [P[:, i * p + d] - ca.sum2(comps[i] * wd) for i in range(d)]
+        for i in range(d):
+            for j in range(i, d):
+                info[i, j] = info[i, j] - c_b[i] * c_b[j] / s_b
     if lay.criterion == "A":
         if d == 2:
             # tr(I⁻¹) = (I₀₀ + I₁₁) / (I₀₀ I₁₁ − I₀₁²)
@@ -161,7 +179,8 @@ def _solver(lay: _Layout) -> tuple[ca.Function, ca.Function]:
     x_c = ca.SX.sym("x_c", 3)
     U = ca.SX.sym("U", km, 3)
     wts = ca.SX.sym("wts", km)
-    P = ca.SX.sym("P", km, d * d)
+    p = d + int(lay.bias)
+    P = ca.SX.sym("P", km, p * p)
     noise_par = ca.SX.sym("noise", 4)
     delta, lam = ca.SX.sym("delta"), ca.SX.sym("lam")
     A = ca.SX.sym("A", n_pl, 2)
@@ -201,10 +220,12 @@ def pack_params(
     return_factor: float,
 ) -> np.ndarray:
     """The parameter vector of :func:`_solver`'s problem (column-major as CasADi's vec)."""
-    km, d = lay.n_users * lay.n_samples, lay.dim
+    km, p = lay.n_users * lay.n_samples, lay.dim + int(lay.bias)
+    if hyp.n_par != p:
+        raise ValueError(f"layout has {p} parameters per user, the hypotheses {hyp.n_par}")
     U = hyp.users_enu_m.reshape(km, 3)
     wts = (hyp.user_w[:, None] * hyp.sample_w).reshape(km) / norm
-    P = hyp.prior_info.reshape(km, d * d)
+    P = hyp.prior_info.reshape(km, p * p)
     A_pad = np.zeros((lay.n_planes, 2))
     c_pad = np.ones(lay.n_planes)  # 0·p ≤ 1: inactive rows
     A_pad[: len(A)], c_pad[: len(c)] = A, c
@@ -379,7 +400,7 @@ class ActivePlanner(BasePlanner):
         n_h = self.horizon
         seed = np.asarray(seed, dtype=float).reshape(n_h, 3)
         lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, self.n_quad, self.max_planes,
-                      self.criterion, n_h)
+                      self.criterion, n_h, hyp.bias)
         solver, _ = _solver(lay)
         # the cell around the first seed leg holds every waypoint, so every leg (convex) stays free
         A, off = convex_cell(c, x[:2], seed[0, :2], self.max_planes)

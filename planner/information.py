@@ -16,7 +16,21 @@ standing for ℓ/(Δ·Q) measurements, so it is smooth in the waypoints:
     I_k(u) = P_k + Σ_legs (ℓ/(Δ·Q)) Σ_q g_q g_qᵀ / σ_eff²(d_q)
 
 P_k is the prior information: the inverse of the estimator's marginal covariance of user k (the
-exact S⁻¹ block), plus ε·I. Objective (to minimise):
+exact S⁻¹ block), plus ε·I.
+
+Range bias. When the estimator also estimates a range bias b_k per user (`Estimate.bias_m` not
+None), the range is r = |m − u_k| + b_k and a measurement's Jacobian on (u_k, b_k) is h = [−g; 1].
+The information is then predicted in the joint (position, bias) space,
+
+    J_k(u) = P_k + Σ_legs (ℓ/(Δ·Q)) Σ_q h_q h_qᵀ / σ_eff²(d_q),   h_q = [−g_q; 1]
+
+with P_k the inverse of user k's (d+1)×(d+1) block of `Estimate.extra["cov_theta_joint"]` (plus
+ε·I), and the position accuracy is that of the position block of J_k⁻¹, whose inverse is the Schur
+complement I_k = A − c cᵀ / s (J_k = [[A, c], [cᵀ, s]]): the criterion below is applied to it. A
+bias is only separable from the position with ranges at diverse distances and elevations, and this
+is what makes the planner look for them.
+
+Objective (to minimise):
 
     J = Σ_k w_k Σ_s c_ks · f(I_k(u_ks)) + λ · Σ_legs ℓ,   f = tr(I⁻¹) ("A"), −log det I ("D"),
                                                           or 1/sqrt(λ_min(I)) ("E", d = 2)
@@ -47,8 +61,10 @@ class Hypotheses:
     """Posterior samples the objective averages over.
 
     users_enu_m: (K, M, 3) sample positions [m]; sample_w: (K, M) weights (rows sum to 1);
-    prior_info: (K, M, d, d) prior information per sample [1/m²] (the mirror's is reflected);
-    user_w: (K,) per-user weights; index: (K,) rows of the Estimate these users are.
+    prior_info: (K, M, p, p) prior information per sample [1/m²] (the mirror's is reflected),
+        p = d, or d + 1 with the bias last when `bias`;
+    user_w: (K,) per-user weights; index: (K,) rows of the Estimate these users are;
+    bias: True when each user has a range bias (joint position + bias information).
     """
 
     users_enu_m: np.ndarray
@@ -56,9 +72,16 @@ class Hypotheses:
     prior_info: np.ndarray
     user_w: np.ndarray
     index: np.ndarray
+    bias: bool = False
 
     @property
     def dim(self) -> int:
+        """d: the users' position dimension."""
+        return int(self.prior_info.shape[-1]) - int(self.bias)
+
+    @property
+    def n_par(self) -> int:
+        """p: parameters per user (d, or d + 1 with a bias)."""
         return int(self.prior_info.shape[-1])
 
 
@@ -74,6 +97,30 @@ def _info_from_cov(cov: np.ndarray) -> np.ndarray:
     d = cov.shape[0]
     info = np.linalg.pinv(0.5 * (cov + cov.T), hermitian=True)
     return 0.5 * (info + info.T) + PRIOR_EPS_PER_M2 * np.eye(d)
+
+
+def joint_prior_info(estimate: Estimate, k: int) -> np.ndarray:
+    """(d+1, d+1) prior information of user k's (position, bias), bias last [1/m², 1/m²].
+
+    The inverse of user k's block of `estimate.extra["cov_theta_joint"]` (rows: the active users of
+    `extra["active"]` in order, d + 1 each), plus ε·I. Without a usable joint covariance: the
+    position marginal's information and ε for the bias (an unknown bias, uncorrelated).
+    """
+    d = int(estimate.cov_users_m2.shape[1])
+    p = d + 1
+    joint = estimate.extra.get("cov_theta_joint") if estimate.extra else None
+    if joint is not None:
+        joint = np.asarray(joint, dtype=float)
+        active = np.asarray(estimate.extra.get("active", np.ones(estimate.n_users, dtype=bool)), dtype=bool)
+        na = int(active.sum())
+        if joint.shape == (na * p, na * p) and 0 <= k < len(active) and active[k]:
+            j = int(np.count_nonzero(active[:k]))
+            block = joint[j * p:(j + 1) * p, j * p:(j + 1) * p]
+            if np.all(np.isfinite(block)):
+                return _info_from_cov(block)
+    out = PRIOR_EPS_PER_M2 * np.eye(p)
+    out[:d, :d] = _info_from_cov(np.asarray(estimate.cov_users_m2[k], dtype=float))
+    return out
 
 
 def hypotheses_from_estimate(
@@ -94,7 +141,10 @@ def hypotheses_from_estimate(
     the same set around the mirror solution with Σ reflected (R = I − 2nnᵀ, n along mirror − u),
     each set weighted ½. Every user gets M = (2r + 1)·(2 if any user is ambiguous else 1) samples
     (unused ones weight 0) so the sizes are fixed. A mirror farther than `max_range_m` horizontally
-    from `home_enu_m` is implausible (a diverged solve) and left out.
+    from `home_enu_m` is implausible (a diverged solve) and left out. With range biases
+    (`estimate.bias_m` not None) the prior information is the joint (position, bias) one of
+    :func:`joint_prior_info` (the mirror's reflected by diag(R, 1)); sigma points stay on the
+    position marginal.
     """
     if sigma_points not in ("major", "all", "none"):
         raise ValueError(f"sigma_points must be 'major', 'all' or 'none', got {sigma_points!r}")
@@ -102,6 +152,8 @@ def hypotheses_from_estimate(
     idx = np.flatnonzero(mask)
     d = int(estimate.cov_users_m2.shape[1])
     r = {"major": 1, "all": d, "none": 0}[sigma_points]
+    bias = estimate.bias_m is not None
+    p = d + int(bias)
     amb = np.asarray(estimate.ambiguous, dtype=bool) & np.all(np.isfinite(estimate.mirror_enu_m), axis=1)
     if home_enu_m is not None and np.isfinite(max_range_m):
         with np.errstate(invalid="ignore"):
@@ -112,9 +164,10 @@ def hypotheses_from_estimate(
     K = len(idx)
     U = np.zeros((K, M, 3))
     W = np.zeros((K, M))
-    P = np.tile(np.eye(d) * PRIOR_EPS_PER_M2, (K, M, 1, 1))
+    P = np.tile(np.eye(p) * PRIOR_EPS_PER_M2, (K, M, 1, 1))
     for row, k in enumerate(idx):
         cov = np.asarray(estimate.cov_users_m2[k], dtype=float)
+        prior_joint = joint_prior_info(estimate, k) if bias else None
         centres = [(estimate.users_enu_m[k], np.eye(d))]
         if amb[k]:
             n = np.zeros(d)
@@ -126,7 +179,12 @@ def hypotheses_from_estimate(
             cov_h = R @ cov @ R.T
             s0 = h * n_set
             U[row, s0:s0 + n_set] = centre
-            P[row, s0:s0 + n_set] = _info_from_cov(cov_h)
+            if bias:
+                R_ext = np.eye(p)
+                R_ext[:d, :d] = R
+                P[row, s0:s0 + n_set] = R_ext @ prior_joint @ R_ext.T
+            else:
+                P[row, s0:s0 + n_set] = _info_from_cov(cov_h)
             W[row, s0] = share * (kappa / (r + kappa) if r else 1.0)
             lam, vec = np.linalg.eigh(0.5 * (cov_h + cov_h.T))
             for i in range(r):
@@ -137,24 +195,30 @@ def hypotheses_from_estimate(
                     U[row, s0 + j, :d] += sgn * scale * offset
                     W[row, s0 + j] = share / (2 * (r + kappa))
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)[idx]
-    return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx)
+    return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx, bias=bias)
 
 
 def hypotheses_from_truth(
     users_enu_m: np.ndarray, estimate: Estimate | None, dim: int = 2, user_weights: np.ndarray | None = None
 ) -> Hypotheses:
     """The oracle's single hypothesis: the true positions (K, 3), with the estimator's information
-    (its marginal blocks; ε·I for users it has not initialised, or with no estimate yet)."""
+    (its marginal blocks; ε·I for users it has not initialised, or with no estimate yet; the joint
+    (position, bias) information when the estimate carries range biases)."""
     U = np.asarray(users_enu_m, dtype=float).reshape(-1, 3)
     K = len(U)
-    P = np.tile(np.eye(dim) * PRIOR_EPS_PER_M2, (K, 1, 1, 1))
+    bias = estimate is not None and estimate.bias_m is not None
+    p = dim + int(bias)
+    P = np.tile(np.eye(p) * PRIOR_EPS_PER_M2, (K, 1, 1, 1))
     if estimate is not None:
         ok = users_initialised(estimate)
         for k in np.flatnonzero(ok):
-            P[k, 0] = _info_from_cov(np.asarray(estimate.cov_users_m2[k], dtype=float))
+            if bias:
+                P[k, 0] = joint_prior_info(estimate, int(k))
+            else:
+                P[k, 0] = _info_from_cov(np.asarray(estimate.cov_users_m2[k], dtype=float))
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)
     return Hypotheses(users_enu_m=U[:, None, :], sample_w=np.ones((K, 1)), prior_info=P, user_w=w,
-                      index=np.arange(K))
+                      index=np.arange(K), bias=bias)
 
 
 def quadrature_points(start_enu_m: np.ndarray, waypoints_enu_m: np.ndarray, n_quad: int):
@@ -182,8 +246,10 @@ def predicted_information(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Posterior information after flying each candidate horizon.
 
-    waypoints_enu_m: (C, H, 3) → info (C, K, M, d, d) [1/m²] and leg lengths (C, H) [m].
-    I = P + Σ_legs (ℓ/(ΔQ)) Σ_q g gᵀ / (σ(d)² + σ_gps²)
+    waypoints_enu_m: (C, H, 3) → info (C, K, M, p, p) [1/m²] and leg lengths (C, H) [m].
+    I = P + Σ_legs (ℓ/(ΔQ)) Σ_q g gᵀ / (σ(d)² + σ_gps²)   (p = d), or with range biases (p = d + 1)
+    J = P + Σ_legs (ℓ/(ΔQ)) Σ_q h hᵀ / (σ(d)² + σ_gps²),  h = [−g; 1]  (:func:`position_information`
+    reduces J to the position information).
     """
     pts, lengths = quadrature_points(start_enu_m, waypoints_enu_m, n_quad)
     d = hyp.dim
@@ -194,8 +260,20 @@ def predicted_information(
     # σ_eff² = σ(d)² + σ_gps²
     var = noise.range_sigma_m(dist) ** 2 + noise.sigma_gps_m**2
     wq = n_meas[:, None, None, :] / var
+    if hyp.bias:
+        # Jacobian of r = |m − u| + b on (u, b): h = [−g; 1]
+        g = np.concatenate([-g, np.ones((*g.shape[:-1], 1))], axis=-1)
     info = hyp.prior_info[None] + np.einsum("ckmq,ckmqi,ckmqj->ckmij", wq, g, g)
     return info, lengths
+
+
+def position_information(info: np.ndarray, bias: bool) -> np.ndarray:
+    """(…, d, d) information of the positions alone: `info` itself without biases; with a bias last,
+    the Schur complement A − c cᵀ / s of J = [[A, c], [cᵀ, s]] (the inverse of J⁻¹'s position block)."""
+    if not bias:
+        return info
+    a, c, s = info[..., :-1, :-1], info[..., :-1, -1], info[..., -1, -1]
+    return a - c[..., :, None] * c[..., None, :] / s[..., None, None]
 
 
 #: relative ε under the eigenvalue-gap square root of the "E" criterion (smooth at isotropy).
@@ -237,13 +315,14 @@ def objective_values(
     if W.ndim == 2:
         W = W[:, None, :]
     info, lengths = predicted_information(start_enu_m, W, hyp, noise, delta_m, n_quad)
-    f = uncertainty(info, criterion)  # (C, K, M)
+    f = uncertainty(position_information(info, hyp.bias), criterion)  # (C, K, M)
     return np.einsum("k,km,ckm->c", hyp.user_w, hyp.sample_w, f) + cost_per_m * lengths.sum(axis=1)
 
 
 def prior_value(hyp: Hypotheses, criterion: str = "A") -> float:
     """Σ_k w_k Σ_s c_ks f(P_ks): the objective before flying (no cost)."""
-    return float(np.einsum("k,km,km->", hyp.user_w, hyp.sample_w, uncertainty(hyp.prior_info, criterion)))
+    f = uncertainty(position_information(hyp.prior_info, hyp.bias), criterion)
+    return float(np.einsum("k,km,km->", hyp.user_w, hyp.sample_w, f))
 
 
 def explore_waypoint(planner, state, visited_enu_m: np.ndarray) -> np.ndarray:

@@ -11,10 +11,15 @@ from planner import active as active_mod
 from planner.active import _Layout, _solver, pack_params
 from planner.geometry import convex_cell, in_free_space, leg_violations, point_in_polygon
 from planner.information import (
+    E_GAP_EPS,
+    PRIOR_EPS_PER_M2,
     hypotheses_from_estimate,
+    joint_prior_info,
     objective_values,
+    position_information,
     predicted_information,
     prior_value,
+    quadrature_points,
 )
 from tests.test_planner import fake_estimate, u_constraints
 from uavloc.errors import PlannerError
@@ -31,9 +36,37 @@ def _estimate_two_users(ambiguous: bool = True):
     )
 
 
+def with_bias(est, joint_blocks, bias_m=None, active=None):
+    """`est` with range biases estimated: (Ka, d+1, d+1) joint covariance blocks of the active users
+    (position block = est.cov_users_m2[k], bias last) laid out as the estimator's cov_theta_joint,
+    with a cross-user covariance between consecutive active users so per-user blocks are picked."""
+    from dataclasses import replace
+
+    blocks = np.asarray(joint_blocks, dtype=float)
+    na, p = blocks.shape[0], blocks.shape[1]
+    active = np.ones(est.n_users, bool) if active is None else np.asarray(active, bool)
+    assert active.sum() == na
+    joint = np.zeros((na * p, na * p))
+    for j in range(na):
+        joint[j * p:(j + 1) * p, j * p:(j + 1) * p] = blocks[j]
+        if j:
+            joint[j * p, (j - 1) * p] = joint[(j - 1) * p, j * p] = 0.1  # a small cross-user term
+    for j, k in enumerate(np.flatnonzero(active)):
+        np.testing.assert_allclose(blocks[j, :p - 1, :p - 1], est.cov_users_m2[k])
+    bias = np.where(active, 4.0, np.nan) if bias_m is None else np.asarray(bias_m, dtype=float)
+    return replace(est, bias_m=bias, extra={"active": active, "cov_theta_joint": joint})
+
+
+def _estimate_two_users_bias(ambiguous: bool = True):
+    est = _estimate_two_users(ambiguous)
+    b0 = np.block([[est.cov_users_m2[0], np.array([[6.0], [-3.0]])], [np.array([[6.0, -3.0, 25.0]])]])
+    b1 = np.block([[est.cov_users_m2[1], np.array([[1.5], [4.0]])], [np.array([[1.5, 4.0, 9.0]])]])
+    return with_bias(est, [b0, b1])
+
+
 def _casadi_objective(planner, state, hyp, lam, n_planes=0):
     lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, planner.n_quad, planner.max_planes,
-                  planner.criterion)
+                  planner.criterion, 1, hyp.bias)
     _, fun = _solver(lay)
     c = planner.constraints
     par = pack_params(lay, state.uav_enu_m, hyp, planner.noise, c.delta_m, prior_value(hyp, planner.criterion), lam,
@@ -43,10 +76,13 @@ def _casadi_objective(planner, state, hyp, lam, n_planes=0):
 
 @pytest.mark.parametrize("criterion", ["A", "D", "E"])
 @pytest.mark.parametrize("ambiguous", [True, False])
-def test_casadi_objective_and_gradient_match_the_numpy_reference(criterion, ambiguous):
+@pytest.mark.parametrize("bias", [False, True])
+def test_casadi_objective_and_gradient_match_the_numpy_reference(criterion, ambiguous, bias):
     planner = make_planner("casadi", u_constraints(), NOISE, criterion=criterion)
-    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users(ambiguous))
+    est = _estimate_two_users_bias(ambiguous) if bias else _estimate_two_users(ambiguous)
+    state = PlanningState([0.0, -60.0, 30.0], est)
     hyp = planner.hypotheses(state)
+    assert hyp.bias is bias and hyp.n_par == 2 + bias
     lam = 0.003
     f = _casadi_objective(planner, state, hyp, lam)
     rng = np.random.default_rng(7)
@@ -62,19 +98,147 @@ def test_casadi_objective_and_gradient_match_the_numpy_reference(criterion, ambi
         np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-9)
 
 
-def test_three_dimensional_users_objective_matches_reference():
+@pytest.mark.parametrize("criterion", ["A", "D"])
+@pytest.mark.parametrize("bias", [False, True])
+def test_three_dimensional_users_objective_matches_reference(criterion, bias):
     est = fake_estimate([[10, 40, 0]], np.eye(2))
     cov3 = np.diag([4.0, 2.0, 9.0])[None]
     from dataclasses import replace
 
     est3 = replace(est, cov_users_m2=cov3, info_users=np.linalg.inv(cov3[0]))
-    planner = make_planner("casadi", u_constraints(), NOISE, criterion="A")
+    if bias:
+        joint = np.array([[4.0, 0, 0, 1.0], [0, 2.0, 0, 0.5], [0, 0, 9.0, -2.0], [1.0, 0.5, -2.0, 16.0]])
+        est3 = with_bias(est3, [joint])
+    planner = make_planner("casadi", u_constraints(), NOISE, criterion=criterion)
     state = PlanningState([0.0, -60.0, 30.0], est3)
     hyp = planner.hypotheses(state)
-    assert hyp.dim == 3
+    assert hyp.dim == 3 and hyp.n_par == 3 + bias
     f = _casadi_objective(planner, state, hyp, 0.0)
     p = np.array([30.0, -20.0, 20.0])
-    assert f(p)[0][0] == pytest.approx(planner.evaluate(state, p[None], hyp, 0.0)[0], rel=1e-9)
+    value, grad = f(p)
+    assert value[0] == pytest.approx(planner.evaluate(state, p[None], hyp, 0.0)[0], rel=1e-9)
+    ev = lambda q: planner.evaluate(state, q[None], hyp, 0.0)[0]  # noqa: E731
+    fd = [(ev(p + e) - ev(p - e)) / 2e-4 for e in np.eye(3) * 1e-4]
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("ambiguous", [True, False])
+def test_bias_prior_is_the_inverse_joint_block_and_its_schur_complement_the_position_information(ambiguous):
+    est = _estimate_two_users_bias(ambiguous)
+    hyp = hypotheses_from_estimate(est)
+    p = 3
+    joint = est.extra["cov_theta_joint"]
+    for k in range(2):
+        block = joint[k * p:(k + 1) * p, k * p:(k + 1) * p]
+        np.testing.assert_allclose(joint_prior_info(est, k), np.linalg.inv(block) + PRIOR_EPS_PER_M2 * np.eye(3),
+                                   rtol=1e-9)
+        # the position information of the prior is the estimator's position marginal (up to ε)
+        pos = position_information(hyp.prior_info[k, 0], True)
+        np.testing.assert_allclose(pos, np.linalg.inv(est.cov_users_m2[k]), rtol=0, atol=3 * PRIOR_EPS_PER_M2)
+    if ambiguous:
+        # the mirror's prior: positions reflected, the bias not
+        n = (est.mirror_enu_m[0] - est.users_enu_m[0])[:2]
+        n /= np.linalg.norm(n)
+        R = np.eye(3)
+        R[:2, :2] -= 2 * np.outer(n, n)
+        np.testing.assert_allclose(hyp.prior_info[0, 3], R @ hyp.prior_info[0, 0] @ R.T, rtol=1e-12)
+
+
+def test_bias_prior_follows_the_active_layout_and_falls_back_without_a_joint_covariance():
+    from dataclasses import replace
+
+    base = fake_estimate([[-70, 60, 0], [0, 0, 0], [70, 40, 0]], np.diag([4.0, 9.0]))
+    base = replace(base, users_enu_m=np.array([[-70, 60, 0], [np.nan] * 3, [70, 40, 0]]),
+                   cov_users_m2=np.array([np.diag([4.0, 9.0]), np.full((2, 2), np.inf), np.diag([4.0, 9.0])]))
+    blocks = [np.diag([4.0, 9.0, 16.0]), np.array([[4.0, 0, 2.0], [0, 9.0, -1.0], [2.0, -1.0, 25.0]])]
+    est = with_bias(base, blocks, active=[True, False, True])
+    hyp = hypotheses_from_estimate(est)
+    assert hyp.index.tolist() == [0, 2] and hyp.bias
+    np.testing.assert_allclose(hyp.prior_info[1, 0], np.linalg.inv(blocks[1]) + PRIOR_EPS_PER_M2 * np.eye(3))
+    # no joint covariance: the position marginal's information, ε for the bias, uncorrelated
+    bare = replace(est, extra={})
+    P = joint_prior_info(bare, 2)
+    np.testing.assert_allclose(P[:2, :2], np.diag([1 / 4, 1 / 9]) + PRIOR_EPS_PER_M2 * np.eye(2))
+    assert P[2, 2] == PRIOR_EPS_PER_M2 and np.all(P[:2, 2] == 0)
+    assert np.isfinite(prior_value(hypotheses_from_estimate(bare), "E"))
+
+
+def _dense_bias_objective(start, path, hyp, criterion, n_quad, delta=2.0, smooth_e=True):
+    """Brute force: per user and sample, the full joint (position, bias) information from explicit
+    Jacobians [−g; 1], inverted densely; f of the position block of the covariance."""
+    pts, lengths = quadrature_points(start, path[None], n_quad)
+    n_meas = np.repeat(lengths[0] / (delta * n_quad), n_quad)
+    K, M = hyp.sample_w.shape
+    total = 0.0
+    for k in range(K):
+        for m in range(M):
+            if hyp.sample_w[k, m] == 0.0:
+                continue
+            J = hyp.prior_info[k, m].copy()
+            for q, pt in enumerate(pts[0]):
+                diff = pt - hyp.users_enu_m[k, m]
+                dist = np.sqrt(diff @ diff + 1e-9)
+                h = np.array([*(-diff[:2] / dist), 1.0])
+                J += n_meas[q] * np.outer(h, h) / (NOISE.range_sigma_m(dist) ** 2 + NOISE.sigma_gps_m**2)
+            cov = np.linalg.inv(J)[:2, :2]
+            if criterion == "E" and smooth_e:
+                # the planner's E: 1/sqrt(λ_min) of the position information with the gap smoothed by
+                # E_GAP_EPS·tr² (λ_min = (tr − gap)/2, gap = λ_max − λ_min)
+                lam = np.linalg.eigvalsh(np.linalg.inv(cov))
+                tr, gap = lam.sum(), lam[1] - lam[0]
+                f = {"E": 1 / np.sqrt(0.5 * (tr - np.sqrt(gap**2 + E_GAP_EPS * tr**2)))}
+            else:
+                f = {"A": np.trace(cov), "D": np.linalg.slogdet(cov)[1], "E": np.sqrt(np.linalg.eigvalsh(cov)[-1])}
+            total += hyp.user_w[k] * hyp.sample_w[k, m] * f[criterion]
+    return total
+
+
+@pytest.mark.parametrize("criterion", ["A", "D", "E"])
+def test_bias_objective_equals_a_brute_force_dense_computation(criterion):
+    hyp = hypotheses_from_estimate(_estimate_two_users_bias(True))
+    start = np.array([0.0, -60.0, 30.0])
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        path = start + rng.uniform([-50, -30, -15], [50, 50, 25], size=(2, 3)).cumsum(axis=0)
+        got = objective_values(start, path[None], hyp, NOISE, 2.0, 8, criterion)[0]
+        assert got == pytest.approx(_dense_bias_objective(start, path, hyp, criterion, 8), rel=1e-9)
+        assert prior_value(hyp, criterion) == pytest.approx(
+            _dense_bias_objective(start, np.repeat(start[None], 2, axis=0), hyp, criterion, 8), rel=1e-9)
+        if criterion == "E":  # and the unsmoothed semi-major axis sqrt(λ_max(Σ_pos)) to ~1e-5
+            assert got == pytest.approx(_dense_bias_objective(start, path, hyp, "E", 8, smooth_e=False), rel=1e-5)
+
+
+@pytest.mark.parametrize("criterion", ["A", "D", "E"])
+def test_with_a_bias_a_leg_over_the_user_beats_a_leg_at_constant_distance(criterion):
+    """A user well known east-west, poorly north-south, with an unknown range bias. A 40 m leg
+    60 m north of it (all ranges nearly along north at nearly the same distance) would measure its
+    north coordinate well if there were no bias; with one, a shift north is almost a constant range
+    change, i.e. a bias, so it learns little. A 40 m leg passing right over it (distances 30–36 m,
+    ranges from both sides and from above) separates the two."""
+    est = fake_estimate([[0, 0, 0]], np.diag([1.0, 25.0]))
+    est_b = with_bias(est, [np.diag([1.0, 25.0, 25.0])])
+    planner = make_planner("casadi", u_constraints(), NOISE, criterion=criterion)
+    far = (np.array([-20.0, 60.0, 30.0]), np.array([[20.0, 60.0, 30.0]]))
+    over = (np.array([0.0, -20.0, 30.0]), np.array([[0.0, 20.0, 30.0]]))
+
+    def value(est_, leg):
+        state = PlanningState(leg[0], est_)
+        return planner.evaluate(state, leg[1], planner.hypotheses(state), 0.0)[0]
+
+    assert value(est_b, over) < value(est_b, far)
+    assert value(est, far) < value(est, over)
+    # the far leg gains much less with the bias than without
+    assert 1 - value(est_b, far) < 0.5 * (1 - value(est, far))
+
+
+def test_plans_with_a_bias_estimate_and_caches_a_bias_layout():
+    c = u_constraints()
+    planner = make_planner("casadi", c, NOISE)
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias())
+    r = planner.plan(state)
+    assert not r.done and np.isfinite(r.objective) and r.status.startswith(("ipopt", "ring"))
+    assert leg_violations(c, state.uav_enu_m, r.waypoint_enu_m, c.budget_m) == []
+    assert any(lay.bias for lay in active_mod._SOLVERS)
 
 
 def test_quadrature_matches_a_dense_sum_of_measurements():
@@ -309,12 +473,14 @@ def test_no_fence_and_little_energy_left(name):
     assert np.linalg.norm(wp - x) + c.return_factor * np.linalg.norm(wp - c.home_enu_m) <= energy + 1e-6
 
 
-def test_horizon_objective_gradient_and_feasibility():
+@pytest.mark.parametrize("bias", [False, True])
+def test_horizon_objective_gradient_and_feasibility(bias):
     c = u_constraints()
     planner = make_planner("casadi", c, NOISE, horizon=3, criterion="E")
-    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users())
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias() if bias else _estimate_two_users())
     hyp = planner.hypotheses(state)
-    lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, planner.n_quad, planner.max_planes, "E", 3)
+    lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, planner.n_quad, planner.max_planes, "E", 3,
+                  hyp.bias)
     _, fun = _solver(lay)
     par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, prior_value(hyp, "E"), 0.002,
                       np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor)
