@@ -150,7 +150,7 @@ class RadioModel:
         self.scenario = scenario
         self.radio = scenario.radio
         self.rng = rng
-        self.noise = scenario.noise_model()
+        self.noise = scenario.radio_noise_model()
         self.ta_step_s = ta_step_s(self.radio.mu)
         self.users: list[UserConfig] = list(scenario.users)
         self.user_enu_m = np.array([[u.east_m, u.north_m, u.up_m] for u in self.users], float).reshape(-1, 3)

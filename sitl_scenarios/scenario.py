@@ -117,7 +117,10 @@ class MissionConfig:
     leg_max_m: maximum leg length the planner may choose; acceptance_m: arrival radius;
     battery_rtl_pct: battery below which the safety monitor returns home;
     sigma_gps_m: σ_gps the estimator assumes; planner: default planner name;
-    estimate_bias: estimate a range bias per user (a UE clock sawtooth has a positive mean).
+    estimate_bias: estimate a range bias per user (a UE clock sawtooth has a positive mean);
+    range_s0_m: the s0 of σ(d) the estimator and planner assume (default: the radio's); raise it
+    when the UEs add error the radio's σ(d) leaves out, e.g. a clock sawtooth of amplitude A adds a
+    spread of A/√12 around its mean.
     """
 
     delta_m: float = 2.0
@@ -133,6 +136,7 @@ class MissionConfig:
     sigma_gps_m: float = 1.0
     planner: str = "casadi"
     estimate_bias: bool = False
+    range_s0_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -155,10 +159,18 @@ class Scenario:
     def origin_geo(self) -> Origin:
         return Origin(self.origin.lat_deg, self.origin.lon_deg, self.origin.alt_m)
 
-    def noise_model(self) -> NoiseModel:
-        """The estimator's noise model implied by the scenario (σ_gps from the mission section)."""
+    def radio_noise_model(self) -> NoiseModel:
+        """The range noise the simulated radio draws from (the truth of a simulation)."""
         r = self.radio
-        return NoiseModel(sigma_gps_m=self.mission.sigma_gps_m, s0_m=r.s0_m, a_m=r.a_m, b_per_m=r.b_per_m)
+        # σ_gps does not enter the radio; a GPS-noise-free vehicle (gps_sigma_m = 0) still needs a valid model
+        return NoiseModel(sigma_gps_m=self.vehicle.gps_sigma_m or 1.0, s0_m=r.s0_m, a_m=r.a_m, b_per_m=r.b_per_m)
+
+    def noise_model(self) -> NoiseModel:
+        """The noise model the estimator and planner assume: σ_gps and (when given) s0 from the
+        mission section, the rest of σ(d) from the radio section."""
+        r, m = self.radio, self.mission
+        s0 = r.s0_m if m.range_s0_m is None else m.range_s0_m
+        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m)
 
     def user_by_rnti(self, rnti: int) -> UserConfig:
         for u in self.users:
@@ -300,6 +312,8 @@ def _check(sc: Scenario, where: str) -> None:
             f"{where}: need 0 <= mission.alt_min_m <= mission.altitude_m <= mission.alt_max_m, got "
             f"{m.alt_min_m}, {m.altitude_m}, {m.alt_max_m}"
         )
+    if m.range_s0_m is not None and not m.range_s0_m > 0:
+        raise ScenarioError(f"{where}: mission.range_s0_m must be positive, got {m.range_s0_m!r}")
     if not 0 <= m.battery_rtl_pct < 100:
         raise ScenarioError(f"{where}: mission.battery_rtl_pct must be in [0, 100), got {m.battery_rtl_pct}")
 

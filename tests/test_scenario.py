@@ -89,3 +89,12 @@ def test_file_round_trip(tmp_path):
     p.write_text('name = "s"\n[[users]]\nid = "u"\nrnti = 17921\neast_m = 1\nnorth_m = 2\n')
     assert tomllib.loads(p.read_text())["name"] == "s"
     assert load_scenario(p).users[0].east_m == 1.0
+
+
+def test_estimator_noise_can_differ_from_the_radio_truth():
+    sc = scenario_from_dict(with_(["mission", "range_s0_m"], 4.6))
+    assert sc.noise_model().s0_m == 4.6
+    assert sc.radio_noise_model().s0_m == sc.radio.s0_m == 3.0
+    assert scenario_from_dict(BASE).noise_model().s0_m == 3.0
+    with pytest.raises(ScenarioError, match="range_s0_m must be positive"):
+        scenario_from_dict(with_(["mission", "range_s0_m"], 0.0))
