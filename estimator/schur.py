@@ -26,21 +26,30 @@ from scipy.linalg import solveh_banded
 from uavloc.errors import EstimatorError
 
 
-def inv3_sym_batched(a: np.ndarray) -> np.ndarray:
-    """Inverse of a stack of symmetric 3×3 matrices by cofactors: (N, 3, 3) -> (N, 3, 3).
+def sym3_cofactors(a00, a01, a02, a11, a12, a22):
+    """Cofactors and determinant of the symmetric 3×3 [[a00 a01 a02] [a01 a11 a12] [a02 a12 a22]].
 
-    A⁻¹ = adj(A) / det(A); symmetric positive definite inputs expected (GPS prior makes them so).
+    Works on Python floats (one matrix, no numpy overhead) and on equal-shape arrays (a stack).
+    Returns (c00, c01, c02, c11, c12, c22, det), so that A⁻¹ = [[c00 c01 c02] [c01 c11 c12]
+    [c02 c12 c22]] / det (adj(A) / det(A)).
     """
-    a00, a01, a02 = a[:, 0, 0], a[:, 0, 1], a[:, 0, 2]
-    a11, a12, a22 = a[:, 1, 1], a[:, 1, 2], a[:, 2, 2]
-    # cofactors of a symmetric matrix
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
     c11 = a00 * a22 - a02 * a02
     c12 = a01 * a02 - a00 * a12
     c22 = a00 * a11 - a01 * a01
-    det = a00 * c00 + a01 * c01 + a02 * c02
+    # det(A) by the first row's cofactor expansion
+    return c00, c01, c02, c11, c12, c22, a00 * c00 + a01 * c01 + a02 * c02
+
+
+def inv3_sym_batched(a: np.ndarray) -> np.ndarray:
+    """Inverse of a stack of symmetric 3×3 matrices by cofactors: (N, 3, 3) -> (N, 3, 3).
+
+    A⁻¹ = adj(A) / det(A); symmetric positive definite inputs expected (GPS prior makes them so).
+    """
+    c00, c01, c02, c11, c12, c22, det = sym3_cofactors(
+        a[:, 0, 0], a[:, 0, 1], a[:, 0, 2], a[:, 1, 1], a[:, 1, 2], a[:, 2, 2])
     inv_det = 1.0 / det
     out = np.empty_like(a)
     out[:, 0, 0] = c00 * inv_det

@@ -53,7 +53,7 @@ from estimator.problem import (
     users_from_theta,
 )
 from estimator.robust import REDESCENDING, loss_psi_weight, nlos_args
-from estimator.schur import schur_solve
+from estimator.schur import schur_solve, sym3_cofactors
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
@@ -561,13 +561,8 @@ def solve_batch(
 def _inv3_sym(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float) -> np.ndarray:
     """(3, 3) inverse of the symmetric matrix [[a00 a01 a02] [a01 a11 a12] [a02 a12 a22]] by
     cofactors, A⁻¹ = adj(A)/det(A), in Python floats (one small matrix: cheaper than numpy)."""
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    r = 1.0 / (a00 * c00 + a01 * c01 + a02 * c02)
+    c00, c01, c02, c11, c12, c22, det = sym3_cofactors(a00, a01, a02, a11, a12, a22)
+    r = 1.0 / det
     return np.array([[c00 * r, c01 * r, c02 * r], [c01 * r, c11 * r, c12 * r], [c02 * r, c12 * r, c22 * r]])
 
 
