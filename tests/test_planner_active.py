@@ -333,16 +333,22 @@ def test_convex_cells_of_random_scenarios_stay_free():
             assert _free_along(c, np.array([*x[:2], 0]), np.array([*p, 0]))
 
 
-@pytest.mark.parametrize("seed", range(6))
-def test_choice_is_at_least_as_good_as_the_best_ring_candidate(seed):
-    c, x, est = _random_setting(100 + seed)
+def _ring_best_setting(seed: int):
+    """A one-waypoint casadi planner on a random setting, with its hypotheses, cost per metre and
+    the best objective among the feasible ring candidates."""
+    c, x, est = _random_setting(seed)
     planner = make_planner("casadi", c, NOISE, horizon=1)
     state = PlanningState(x, est, 0.0)
     hyp = planner.hypotheses(state)
     ring = planner.feasible_ring(state)
     unc = planner.uncertainty(state, ring, hyp)
     lam = planner.cost_per_m(unc)
-    ring_best = float(np.min(unc + lam * np.linalg.norm(ring - x, axis=1)))
+    return planner, state, hyp, lam, float(np.min(unc + lam * np.linalg.norm(ring - x, axis=1)))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_choice_is_at_least_as_good_as_the_best_ring_candidate(seed):
+    planner, state, hyp, lam, ring_best = _ring_best_setting(100 + seed)
     r = planner.plan(state)
     chosen = planner.evaluate(state, r.waypoint_enu_m[None], hyp, lam)[0]
     assert chosen <= ring_best + 1e-12
@@ -353,14 +359,7 @@ def test_ipopt_improves_on_the_ring_somewhere():
     """The continuous solve must beat the coarse ring strictly in most random settings."""
     better = 0
     for seed in range(6):
-        c, x, est = _random_setting(200 + seed)
-        planner = make_planner("casadi", c, NOISE, horizon=1)
-        state = PlanningState(x, est, 0.0)
-        hyp = planner.hypotheses(state)
-        ring = planner.feasible_ring(state)
-        unc = planner.uncertainty(state, ring, hyp)
-        lam = planner.cost_per_m(unc)
-        ring_best = float(np.min(unc + lam * np.linalg.norm(ring - x, axis=1)))
+        planner, state, _, _, ring_best = _ring_best_setting(200 + seed)
         r = planner.plan(state)
         better += r.status == "ipopt" and r.objective < ring_best - 1e-6
     assert better >= 4
