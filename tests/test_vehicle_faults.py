@@ -75,6 +75,9 @@ def test_low_battery_in_battery_stream_and_critical_triggers_rtl() -> None:
             await act.arm()
             await act.takeoff()
             await first(tel.subscribe_position(), lambda p: p.relative_altitude_m > 9.0, 10.0)
+            # PX4 switches takeoff -> hold only once the climb has settled; wait for that, not for the
+            # altitude alone (the mode can still read "takeoff" at 9.x m on a loaded machine)
+            await first(tel.subscribe_flight_mode(), lambda m: m == FlightMode.HOLD, 10.0)
 
             link.sim.set_battery_pct(12.0)  # low, not critical: warning only
             low = await first(tel.subscribe_battery(), lambda b: b.remaining_percent < 15.0, 5.0)
