@@ -127,7 +127,10 @@ def refine_user(
             break
         for _half in range(8):
             trial = theta + step
-            c = user_cost(uav_enu_m, range_m, trial, up_m, noise, params, loss, scale)
+            # a wild first step (near-singular h) may reach distances where σ(d) overflows: its
+            # cost is then inf or NaN, rejected below, and the step halved
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                c = user_cost(uav_enu_m, range_m, trial, up_m, noise, params, loss, scale)
             if c <= cost:
                 break
             step *= 0.5
@@ -140,89 +143,135 @@ def refine_user(
 
 
 def _grid_cost(uav: np.ndarray, rng: np.ndarray, dz: np.ndarray, cand: np.ndarray, noise: NoiseModel) -> np.ndarray:
-    """(G,) truncated-quadratic cost Σ min(e², c²) of horizontal candidates cand (G, 2)."""
-    # d_gi = ||x_i − (e_g, n_g, up)||  (in place: the (G, M) temporaries dominate the cost)
-    d = cand[:, 0:1] - uav[None, :, 0]
-    d *= d
-    dn = cand[:, 1:2] - uav[None, :, 1]
-    dn *= dn
-    d += dn
-    d += dz * dz
+    """(K, G) truncated-quadratic cost Σ_i min(e_i², c²) of each user's horizontal candidates.
+
+    uav: (M, 3) fixes; rng: (K, M) ranges; dz: (K, M) fix height above the user; cand: (K, G, 2).
+    The (K, G, M) passes dominate the cost, so there are few of them, all in place.
+    """
+    k_n, g_n, _ = cand.shape
+    m_n = uav.shape[0]
+    # d_kgi² = ||c_kg||² − 2 c_kg·h_i + ||h_i||² + dz_ki²  (h the fixes' horizontal position), one
+    # matrix product: [e, n, 1, ||c||²] · [−2 h_e; −2 h_n; ||h||² + dz²; 1]
+    a = np.empty((k_n, g_n, 4))
+    a[:, :, :2] = cand
+    a[:, :, 2] = 1.0
+    a[:, :, 3] = np.einsum("kgi,kgi->kg", cand, cand)
+    b = np.empty((k_n, 4, m_n))
+    b[:, 0] = -2.0 * uav[:, 0]
+    b[:, 1] = -2.0 * uav[:, 1]
+    b[:, 2] = (uav[:, 0] ** 2 + uav[:, 1] ** 2)[None, :] + dz * dz
+    b[:, 3] = 1.0
+    d = np.matmul(a, b)
+    np.maximum(d, 0.0, out=d)  # rounding, where a fix is at the candidate
     np.sqrt(d, out=d)
+    c2 = GRID_CAUCHY_SCALE**2
+    if noise.a_m == 0.0:
+        # constant σ_eff: min(((r − d)/σ)², c²) = min((r − d)², (cσ)²)/σ²
+        sig = float(_sigma_eff(noise, d))
+        d -= rng[:, None, :]
+        d *= d
+        np.minimum(d, c2 * sig * sig, out=d)
+        return (d @ np.ones(m_n)) / (sig * sig)
+    # e = (r̂ − d)/σ_eff(d);  Σ min(e², c²)
     sig = _sigma_eff(noise, d)
-    # e = (r̂ − d)/σ_eff;  Σ min(e², c²)
-    np.subtract(rng[None, :], d, out=dn)
-    dn /= sig
-    dn *= dn
-    np.minimum(dn, GRID_CAUCHY_SCALE**2, out=dn)
-    return dn.sum(axis=1)
+    d -= rng[:, None, :]
+    d /= sig
+    d *= d
+    np.minimum(d, c2, out=d)
+    return d @ np.ones(m_n)
 
 
 #: 0..1 in GRID_SIZE steps, and the 7×7 zoom offsets in coarse cells, (49, 2)
 _GRID_FRAC = np.linspace(0.0, 1.0, GRID_SIZE)
 _ZOOM_OFF = np.stack(np.meshgrid(np.linspace(-1.0, 1.0, 7), np.linspace(-1.0, 1.0, 7), indexing="ij"),
                      axis=-1).reshape(-1, 2)
+#: offsets of the 8 neighbours of a grid cell
+_NEIGHBOURS = [(de, dn) for de in (-1, 0, 1) for dn in (-1, 0, 1) if de or dn]
 
 
 def _grid_starts(
-    uav: np.ndarray, rng: np.ndarray, up_m: float, noise: NoiseModel, n_best: int
+    uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, noise: NoiseModel, n_best: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(≤ n_best, 2) horizontal starts: best local minima of a coarse grid, each refined on a
-    finer grid around it (cell/3 resolution); and their (≤ n_best,) grid costs."""
-    dz = uav[:, 2] - up_m
+    """Horizontal starts of K users ranged from the same fixes: the best local minima of a coarse
+    grid, each refined on a finer grid around it (cell/3 resolution).
+
+    uav: (M, 3); rng: (K, M); up_m: (K,). Returns starts (K, n_best, 2) and their grid costs
+    (K, n_best), inf where a user's grid has fewer than n_best local minima.
+    """
+    k_n = rng.shape[0]
+    dz = uav[None, :, 2] - up_m[:, None]
     rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
-    reach = (rho + 4.0 * _sigma_eff(noise, rng) + 2.0)[:, None]
+    reach = (rho + 4.0 * _sigma_eff(noise, rng) + 2.0)[:, :, None]
     # the user lies within ρ_i (+ noise) of every fix: intersect the boxes, fall back to their union
-    lo = np.max(uav[:, :2] - reach, axis=0)
-    hi = np.min(uav[:, :2] + reach, axis=0)
-    if not (hi > lo).all():
-        lo = np.min(uav[:, :2] - reach, axis=0)
-        hi = np.max(uav[:, :2] + reach, axis=0)
+    lo = np.max(uav[None, :, :2] - reach, axis=1)
+    hi = np.min(uav[None, :, :2] + reach, axis=1)
+    empty = ~(hi > lo).all(axis=1)
+    if empty.any():
+        lo[empty] = np.min(uav[None, :, :2] - reach[empty], axis=1)
+        hi[empty] = np.max(uav[None, :, :2] + reach[empty], axis=1)
     g = GRID_SIZE
-    ge = lo[0] + (hi[0] - lo[0]) * _GRID_FRAC
-    gn = lo[1] + (hi[1] - lo[1]) * _GRID_FRAC
-    cand = np.empty((g, g, 2))
-    cand[:, :, 0] = ge[:, None]
-    cand[:, :, 1] = gn[None, :]
-    cand = cand.reshape(g * g, 2)
-    cost = _grid_cost(uav, rng, dz, cand, noise).reshape(g, g)
-    padded = np.full((g + 2, g + 2), np.inf)
-    padded[1:-1, 1:-1] = cost
+    ge = lo[:, 0:1] + (hi[:, 0:1] - lo[:, 0:1]) * _GRID_FRAC
+    gn = lo[:, 1:2] + (hi[:, 1:2] - lo[:, 1:2]) * _GRID_FRAC
+    cand = np.empty((k_n, g, g, 2))
+    cand[..., 0] = ge[:, :, None]
+    cand[..., 1] = gn[:, None, :]
+    cand = cand.reshape(k_n, g * g, 2)
+    cost = _grid_cost(uav, rng, dz, cand, noise).reshape(k_n, g, g)
+    padded = np.full((k_n, g + 2, g + 2), np.inf)
+    padded[:, 1:-1, 1:-1] = cost
     is_min = np.ones_like(cost, dtype=bool)
-    for de in (-1, 0, 1):
-        for dn in (-1, 0, 1):
-            if de or dn:
-                is_min &= cost <= padded[1 + de : 1 + de + g, 1 + dn : 1 + dn + g]
-    idx = np.flatnonzero(is_min.ravel())
-    idx = idx[np.argsort(cost.ravel()[idx])][:n_best]
+    for de, dn in _NEIGHBOURS:
+        is_min &= cost <= padded[:, 1 + de : 1 + de + g, 1 + dn : 1 + dn + g]
+    # each user's n_best lowest local minima (non-minima sort last, as inf)
+    ranked = np.where(is_min, cost, np.inf).reshape(k_n, g * g)
+    idx = np.argsort(ranked, axis=1, kind="stable")[:, :n_best]
+    valid = np.isfinite(np.take_along_axis(ranked, idx, axis=1))
     # zoom: a 7×7 grid spanning ±1 coarse cell around each start
-    zoom = _ZOOM_OFF * np.array([ge[1] - ge[0], gn[1] - gn[0]])
-    fine = (cand[idx][:, None, :] + zoom[None, :, :]).reshape(-1, 2)
-    fcost = _grid_cost(uav, rng, dz, fine, noise).reshape(idx.size, -1)
-    best = np.argmin(fcost, axis=1)
-    rows = np.arange(idx.size)
-    return fine.reshape(idx.size, -1, 2)[rows, best], fcost[rows, best]
+    zoom = _ZOOM_OFF[None] * np.stack([ge[:, 1] - ge[:, 0], gn[:, 1] - gn[:, 0]], axis=1)[:, None, :]
+    starts = np.take_along_axis(cand, idx[:, :, None], axis=1)
+    fine = (starts[:, :, None, :] + zoom[:, None, :, :]).reshape(k_n, -1, 2)
+    fcost = _grid_cost(uav, rng, dz, fine, noise).reshape(k_n, n_best, -1)
+    best = np.argmin(fcost, axis=2)
+    fine = fine.reshape(k_n, n_best, -1, 2)
+    out = np.take_along_axis(fine, best[:, :, None, None], axis=2)[:, :, 0]
+    out_cost = np.where(valid, np.take_along_axis(fcost, best[:, :, None], axis=2)[:, :, 0], np.inf)
+    return out, out_cost
+
+
+def init_users(
+    uav_enu_m: np.ndarray, range_m: np.ndarray, up_m: np.ndarray, noise: NoiseModel, params: SolverParams,
+    n_starts: int = 3,
+) -> list[UserFit]:
+    """Initial θ of K users ranged from the same fixes: coarse-to-fine grid search, all users in
+    one pass (the joint solver polishes the best grid point; its cell is a third of the coarse
+    one, a few metres).
+
+    uav_enu_m: (M, 3) UAV fixes [m, ENU]; range_m: (M, K) [m]; up_m: (K,) ground heights [m].
+    Returns K UserFit (θ = [e, n, (up), (bias)], half the best grid cost).
+    """
+    m, k_n = range_m.shape
+    sub: slice | np.ndarray = slice(None)
+    if m > GRID_MAX_RANGES:
+        sub = np.unique(np.linspace(0, m - 1, GRID_MAX_RANGES).round().astype(int))
+    up = np.asarray(up_m, dtype=float)
+    starts, costs = _grid_starts(uav_enu_m[sub], range_m[sub].T, up, noise, n_starts)
+    best = np.argmin(costs, axis=1)
+    out = []
+    for k in range(k_n):
+        theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))
+        theta0[:2] = starts[k, best[k]]
+        if params.user_dim == 3:
+            theta0[2] = up[k]
+        out.append(UserFit(theta0, 0.5 * float(costs[k, best[k]])))
+    return out
 
 
 def init_user(
     uav_enu_m: np.ndarray, range_m: np.ndarray, up_m: float, noise: NoiseModel, params: SolverParams,
     n_starts: int = 3,
 ) -> UserFit:
-    """Initial θ of one user from its ranges: coarse-to-fine grid search (the joint solver
-    polishes the best grid point; its cell is a third of the coarse one, a few metres).
-
-    uav_enu_m: (M, 3) UAV fixes [m, ENU]; range_m: (M,) [m]; up_m: ground height [m].
-    """
-    m = range_m.shape[0]
-    sub: slice | np.ndarray = slice(None)
-    if m > GRID_MAX_RANGES:
-        sub = np.unique(np.linspace(0, m - 1, GRID_MAX_RANGES).round().astype(int))
-    starts, costs = _grid_starts(uav_enu_m[sub], range_m[sub], up_m, noise, n_starts)
-    theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))
-    theta0[:2] = starts[int(np.argmin(costs))]
-    if params.user_dim == 3:
-        theta0[2] = up_m
-    return UserFit(theta0, 0.5 * float(np.min(costs)))
+    """`init_users` of one user: uav_enu_m (M, 3) [m, ENU], range_m (M,) [m], up_m [m]."""
+    return init_users(uav_enu_m, range_m[:, None], np.array([up_m]), noise, params, n_starts)[0]
 
 
 @dataclass(frozen=True)
@@ -253,12 +302,8 @@ def smooth_track(pos_enu_m: np.ndarray, half: int = SMOOTH_HALF) -> np.ndarray:
     return (c[hi] - c[lo]) / (hi - lo)[:, None]
 
 
-def mirror_test(
-    uav_enu_m: np.ndarray, range_m: np.ndarray, theta: np.ndarray, up_m: float, noise: NoiseModel,
-    params: SolverParams, chi2_threshold: float, min_offset_m: float = 2.0,
-) -> MirrorTest:
-    """Reflect θ across the best-fit line of the fixes (in time order, (M, 3)) and compare."""
-    h = uav_enu_m[:, :2]
+def _track_line(h: np.ndarray) -> tuple[float, float, float, float, float]:
+    """Best-fit line of horizontal fixes h (M, 2): (c_x, c_y, v_x, v_y, linearity)."""
     c = h.mean(axis=0)
     # principal axis v of the fixes: the leading eigenvector of the 2×2 scatter [[a, b], [b, d]]
     # (the right singular vectors of h − c; singular values s_i = √λ_i)
@@ -270,8 +315,17 @@ def mirror_test(
     vx, vy = (lam1 - d, b) if a >= d else (b, lam1 - a)
     norm = math.hypot(vx, vy)
     vx, vy = (vx / norm, vy / norm) if norm > 0 else (1.0, 0.0)
-    # u' = c + (2 v vᵀ − I)(u − c)
     cx, cy = c.tolist()
+    return cx, cy, vx, vy, lin
+
+
+def mirror_test(
+    uav_enu_m: np.ndarray, range_m: np.ndarray, theta: np.ndarray, up_m: float, noise: NoiseModel,
+    params: SolverParams, chi2_threshold: float, min_offset_m: float = 2.0,
+) -> MirrorTest:
+    """Reflect θ across the best-fit line of the fixes (in time order, (M, 3)) and compare."""
+    cx, cy, vx, vy, lin = _track_line(uav_enu_m[:, :2])
+    # u' = c + (2 v vᵀ − I)(u − c)
     ux, uy = float(theta[0]) - cx, float(theta[1]) - cy
     dot = vx * ux + vy * uy
     m_h = np.array([cx + 2.0 * dot * vx - ux, cy + 2.0 * dot * vy - uy])
@@ -303,3 +357,67 @@ def mirror_test(
         return MirrorTest(False, None, np.inf, 0.0, lin)
     delta = 2.0 * (fit.cost - cost_u)
     return MirrorTest(bool(sep < chi2_threshold), fit.theta, float(delta), sep, lin)
+
+
+def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(P, M) distances ||a_j − b_i|| of points a (M, 3) and b (P, 3), coordinate by coordinate
+    (long rows of M: cheaper than a (P, M, 3) difference)."""
+    at = a.T
+    d = np.subtract.outer(b[:, 0], at[0])
+    d *= d
+    for i in (1, 2):
+        t = np.subtract.outer(b[:, i], at[i])
+        t *= t
+        d += t
+    return np.sqrt(d, out=d)
+
+
+def mirror_tests(
+    uav_enu_m: np.ndarray, range_m: np.ndarray, theta: np.ndarray, up_m: np.ndarray, noise: NoiseModel,
+    params: SolverParams, chi2_threshold: float, min_offset_m: float = 2.0,
+) -> list[MirrorTest]:
+    """`mirror_test` of several users that share their fixes, at once (same results).
+
+    uav_enu_m: (M, 3) fixes in time order; range_m: (M, K) each user's ranges from them;
+    theta: (K, p); up_m: (K,). Returns K MirrorTest.
+
+    The users share the fitted line and the smoothed track; the common outcome — a path that
+    separates the reflection (χ²_sep > 100 χ²_amb) and a reflection that fits far worse — is
+    decided for all users in one pass; the rest go through `mirror_test` one by one.
+    """
+    k_n = theta.shape[0]
+    cx, cy, vx, vy, lin = _track_line(uav_enu_m[:, :2])
+    # u' = c + (2 v vᵀ − I)(u − c), for all users
+    ux, uy = theta[:, 0] - cx, theta[:, 1] - cy
+    dot = vx * ux + vy * uy
+    offset = np.hypot(2.0 * (dot * vx - ux), 2.0 * (dot * vy - uy))
+    t_m = theta.astype(float, copy=True)
+    t_m[:, 0] = cx + 2.0 * dot * vx - ux
+    t_m[:, 1] = cy + 2.0 * dot * vy - uy
+    track = smooth_track(uav_enu_m)
+    # both hypotheses of every user, stacked: rows 0..K−1 are u, rows K..2K−1 the reflections
+    both = np.concatenate([theta, t_m])
+    pos = np.empty((2 * k_n, 3))
+    pos[:, :2] = both[:, :2]
+    pos[:, 2] = both[:, 2] if params.user_dim == 3 else np.concatenate([up_m, up_m])
+    bias = both[:, params.user_dim][:, None] if params.estimate_bias else 0.0
+    # χ²_sep = Σ_i ((d1_i − d2_i)/σ_eff(d1_i))² on the smoothed track
+    d_track = _distances(track, pos)
+    sep = np.sum(((d_track[:k_n] - d_track[k_n:]) / _sigma_eff(noise, d_track[:k_n])) ** 2, axis=1)
+    # cost Σ ρ(e_i) (+ bias prior) of each hypothesis, as user_cost
+    d = _distances(uav_enu_m, pos)
+    sig = _sigma_eff(noise, d)
+    e = (np.concatenate([range_m.T, range_m.T]) - d - bias) / sig
+    cost = np.sum(loss_rho(e, params.loss, params.loss_scale, nlos_args(params, sig)), axis=1)
+    if params.estimate_bias:
+        cost += 0.5 * (both[:, params.user_dim] / params.bias_prior_sigma_m) ** 2
+    out: list[MirrorTest] = []
+    for k in range(k_n):
+        if offset[k] < min_offset_m:
+            out.append(MirrorTest(False, None, np.inf, 0.0, lin))
+        elif sep[k] > 100.0 * chi2_threshold and cost[k_n + k] - cost[k] > 50.0 * chi2_threshold:
+            out.append(MirrorTest(False, None, 2.0 * float(cost[k_n + k] - cost[k]), np.inf, lin))
+        else:
+            out.append(mirror_test(uav_enu_m, range_m[:, k], theta[k], float(up_m[k]), noise, params,
+                                   chi2_threshold, min_offset_m))
+    return out

@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.special import erfcx
 
-from estimator.init import init_user, mirror_test, user_cost
+from estimator.init import init_user, init_users, mirror_tests, user_cost
 from estimator.noise import NoiseModel
 from estimator.problem import (
     Problem,
@@ -358,16 +358,31 @@ def nlos_prob_update(prob: Problem, gamma: np.ndarray, active: np.ndarray) -> np
     huge = use & ~np.isfinite(q)
     a = np.where(use & ~huge, q - 1.0, 0.0)
     n_huge = huge.sum(axis=1)
-    pi = pi0.copy()
-    for _ in range(40):
-        t = a / (1.0 + pi[:, None] * a)
-        d = t.sum(axis=1) + n_huge / pi
-        dp = -(t * t).sum(axis=1) - n_huge / (pi * pi)
-        new = np.clip(pi - d / np.minimum(dp, -1e-300), NLOS_PROB_MIN, NLOS_PROB_MAX)
-        done = float(np.max(np.abs(new - pi))) < 1e-13
-        pi = new
-        if done:
-            break
+
+    def slope(p: np.ndarray, a: np.ndarray, n_huge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = a / (1.0 + p[:, None] * a)
+        return t.sum(axis=1) + n_huge / p, -(t * t).sum(axis=1) - n_huge / (p * p)
+
+    # D is decreasing: D(π_min) ≤ 0 puts the maximum on the lower bound (the LoS case, no
+    # iteration), D(π_max) ≥ 0 on the upper one; Newton's method for the others
+    pi = np.clip(pi0, NLOS_PROB_MIN, NLOS_PROB_MAX)
+    lo = slope(np.full(pi.shape, NLOS_PROB_MIN), a, n_huge)[0] <= 0.0
+    pi[lo] = NLOS_PROB_MIN
+    free = ~lo
+    if free.any():
+        hi = free & (slope(np.full(pi.shape, NLOS_PROB_MAX), a, n_huge)[0] >= 0.0)
+        pi[hi] = NLOS_PROB_MAX
+        free &= ~hi
+    if free.any():
+        af, nf, pf = a[free], n_huge[free], pi[free]
+        for _ in range(40):
+            d, dp = slope(pf, af, nf)
+            new = np.clip(pf - d / np.minimum(dp, -1e-300), NLOS_PROB_MIN, NLOS_PROB_MAX)
+            done = float(np.max(np.abs(new - pf))) < 1e-13
+            pf = new
+            if done:
+                break
+        pi[free] = pf
     pi[~active] = pi0[~active]
     return pi
 
@@ -412,15 +427,20 @@ def solve_robust(
     return res
 
 
-def _init_theta(
-    prob: Problem, uav: np.ndarray, mask: np.ndarray, k: int, theta_row: np.ndarray | None = None
-) -> np.ndarray:
-    """Initial θ_k: from a given position (refined) or by grid search, UAV at `uav` (n, 3)."""
-    rows = mask[:, k]
-    up = float(prob.user_up_m[k])
-    if theta_row is not None:
-        return theta_row
-    return init_user(uav[rows], prob.range_m[: uav.shape[0]][rows, k], up, prob.noise, prob.params).theta
+def _grid_init(prob: Problem, uav: np.ndarray, users: Sequence[int]) -> dict[int, np.ndarray]:
+    """Initial θ_k of the given users by grid search, UAV at `uav` (n, 3), users ranged from the
+    same keyframes searched together (estimator.init.init_users). Returns {k: θ_k (p,)}."""
+    n = uav.shape[0]
+    mask = prob.mask[:n]
+    groups: dict[bytes, list[int]] = {}
+    for k in users:
+        groups.setdefault(mask[:, k].tobytes(), []).append(int(k))
+    out = {}
+    for ks in groups.values():
+        rows = mask[:, ks[0]]
+        fits = init_users(uav[rows], prob.range_m[:n][rows][:, ks], prob.user_up_m[ks], prob.noise, prob.params)
+        out.update({k: f.theta for k, f in zip(ks, fits, strict=True)})
+    return out
 
 
 def _mirror_all(
@@ -428,18 +448,21 @@ def _mirror_all(
 ) -> list:
     """Mirror test per user on the first n_rows keyframes (UAV at GPS). None for inactive users."""
     n = prob.n_keyframes if n_rows is None else n_rows
-    out = []
-    for k in range(prob.n_users):
-        if not active[k]:
-            out.append(None)
-            continue
-        rows = prob.mask[:n, k]
-        out.append(
-            mirror_test(
-                prob.gps_enu_m[:n][rows], prob.range_m[:n][rows, k], theta[k], float(prob.user_up_m[k]),
-                prob.noise, prob.params, prob.params.ambiguity_chi2,
-            )
+    out: list = [None] * prob.n_users
+    mask = prob.mask[:n]
+    # users ranged from the same keyframes share the fitted line and the smoothed track: test
+    # each such group at once
+    groups: dict[bytes, list[int]] = {}
+    for k in np.flatnonzero(active).tolist():
+        groups.setdefault(mask[:, k].tobytes(), []).append(k)
+    for ks in groups.values():
+        rows = mask[:, ks[0]]
+        tests = mirror_tests(
+            prob.gps_enu_m[:n][rows], prob.range_m[:n][rows][:, ks], theta[ks], prob.user_up_m[ks],
+            prob.noise, prob.params, prob.params.ambiguity_chi2,
         )
+        for k, mt in zip(ks, tests, strict=True):
+            out[k] = mt
     return out
 
 
@@ -546,12 +569,15 @@ def solve_batch(
         if given.shape != (k_all, 3):
             raise EstimatorError(f"init_users_enu_m must have shape ({k_all}, 3), got {given.shape}")
     x = prob.gps_enu_m.copy()
+    search = []
     for k in np.flatnonzero(active):
-        row = None
         if given is not None and np.all(np.isfinite(given[k])):
-            row = np.zeros(p)
-            row[: prob.user_dim] = given[k, : prob.user_dim]
-        theta[k] = _init_theta(prob, x, prob.mask, k, row)
+            theta[k] = 0.0
+            theta[k, : prob.user_dim] = given[k, : prob.user_dim]
+        else:
+            search.append(k)
+    for k, th in _grid_init(prob, x, search).items():
+        theta[k] = th
     theta[~active] = 0.0
     res = solve_robust(prob, x, theta, active)
     res, mirrors = _resolve_mirrors(prob, res, active)
@@ -688,11 +714,13 @@ class OnlineEstimator:
         prob = self._problem()
         newly = np.zeros(self._k, dtype=bool)
         ready = ~self._active & (prob.mask.sum(axis=0) >= self._min_start)
+        start = []
         for k in np.flatnonzero(ready):
             fixes = self._x[: self._n][prob.mask[:, k], :2]
-            if float(np.max(np.ptp(fixes, axis=0))) < ONLINE_MIN_EXTENT_M:
-                continue
-            self._theta[k] = _init_theta(prob, self._x[: self._n], prob.mask, k)
+            if float(np.max(np.ptp(fixes, axis=0))) >= ONLINE_MIN_EXTENT_M:
+                start.append(k)
+        for k, th in _grid_init(prob, self._x[: self._n], start).items():
+            self._theta[k] = th
             self._active[k] = newly[k] = True
         res = solve_robust(
             prob, self._x[: self._n].copy(), self._theta, self._active, self._prior,

@@ -8,6 +8,7 @@ import pytest
 
 from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
+from estimator.init import mirror_test, mirror_tests
 from estimator.noise import NoiseModel
 from estimator.problem import pack_keyframes
 from estimator.schur import schur_solve
@@ -314,6 +315,49 @@ def test_straight_line_flagged_ambiguous_with_mirror_across_the_line():
         np.linalg.norm(est.mirror_enu_m[:, :2] - sc.users_enu_m[:, :2], axis=1),
     )
     assert np.all(near < 3.0), near
+
+
+@pytest.mark.parametrize(
+    "pattern,params,noise",
+    [
+        ("line", SolverParams(), NOISE),
+        ("circle", SolverParams(), NOISE_DD),
+        ("lawnmower", SolverParams(loss="huber", estimate_bias=True), NOISE),
+        ("line", SolverParams(loss="cauchy", user_dim=3), NOISE_DD),
+    ],
+    ids=["line", "circle-sigma-of-d", "lawnmower-bias", "line-3d"],
+)
+def test_grouped_mirror_tests_equal_one_user_at_a_time(pattern, params, noise):
+    """mirror_tests (users sharing their fixes, one pass) against mirror_test per user: the same
+    verdicts and numbers, whether a user takes the one-pass shortcut or the full test; with
+    estimates both near the truth and at the truth's reflection."""
+    sc = simulate(np.random.default_rng(34), n_users=4, n_keyframes=150, pattern=pattern, noise=noise,
+                  p_nlos=0.1)
+    rng = np.random.default_rng(35)
+    p = params.user_dim + (1 if params.estimate_bias else 0)
+    theta = np.zeros((4, p))
+    theta[:, : params.user_dim] = sc.users_enu_m[:, : params.user_dim] + rng.normal(size=(4, params.user_dim))
+    theta[1, 1] = -theta[1, 1]  # a user at (about) its reflection across the east axis
+    theta[2, :2] = sc.uav_enu_m[20, :2]  # a user on the track: no reflection to test
+    if params.estimate_bias:
+        theta[:, -1] = rng.normal(size=4)
+    uav = np.array([kf.gps_enu_m for kf in sc.keyframes])
+    rng_m = np.array([kf.range_m for kf in sc.keyframes])
+    got = mirror_tests(uav, rng_m, theta, sc.user_up_m, noise, params, params.ambiguity_chi2)
+    for k in range(4):
+        ref = mirror_test(uav, rng_m[:, k], theta[k], float(sc.user_up_m[k]), noise, params, params.ambiguity_chi2)
+        assert got[k].ambiguous == ref.ambiguous
+        assert got[k].linearity == pytest.approx(ref.linearity, rel=1e-12)
+        assert got[k].delta_chi2 == pytest.approx(ref.delta_chi2, rel=1e-9, abs=1e-9)
+        assert got[k].separation_chi2 == pytest.approx(ref.separation_chi2, rel=1e-9, abs=1e-9)
+        if ref.mirror_theta is None:
+            assert got[k].mirror_theta is None
+        else:
+            np.testing.assert_allclose(got[k].mirror_theta, ref.mirror_theta, rtol=1e-12, atol=1e-9)
+    if pattern == "line":
+        assert any(t.mirror_theta is not None for t in got)  # the full test ran for some user
+    else:
+        assert any(t.mirror_theta is None and np.isinf(t.separation_chi2) for t in got)  # the shortcut did
 
 
 @pytest.mark.parametrize("pattern", ["circle", "lawnmower"])
