@@ -96,15 +96,15 @@ def schur_solve(
         hinv = inv3_sym_batched(hxx)
         if not np.all(np.isfinite(hinv)):
             raise EstimatorError("keyframe block of the normal matrix is singular")
-        # A_i = Σ_j (H_nn⁻¹)_ij H_(n,θ)_j  (rows i of A = H_xx⁻¹ H_xu),  y = H_xx⁻¹ g_x
-        hi = hinv.transpose(1, 2, 0)  # (3, 3, n)
-        a = np.empty((3, n, p))
-        for i in range(3):
-            a[i] = hi[i, 0][:, None] * hxu[0] + hi[i, 1][:, None] * hxu[1] + hi[i, 2][:, None] * hxu[2]
-        y = np.einsum("nij,nj->in", hinv, gx)  # (3, n)
-        b2 = hxu.reshape(3 * n, p)
-        a2 = a.reshape(3 * n, p)
-        y2 = y.reshape(3 * n)
+        # [A_n | y_n] = H_nn⁻¹ [H_(n,θ) | g_n]  (A = H_xx⁻¹ H_xu, y = H_xx⁻¹ g_x), one batched
+        # product per keyframe, in keyframe-major order (row 3n + i)
+        bg = np.empty((n, 3, p + 1))
+        bg[:, :, :p] = hxu.transpose(1, 0, 2)
+        bg[:, :, p] = gx
+        ay = np.matmul(hinv, bg).reshape(3 * n, p + 1)
+        b2 = bg[:, :, :p].reshape(3 * n, p)
+        a2 = ay[:, :p]
+        y2 = ay[:, p]
     else:
         # banded solve in keyframe-major order (row 3n + i)
         b_nm = hxu.transpose(1, 0, 2).reshape(3 * n, p)
@@ -118,6 +118,5 @@ def schur_solve(
     np.linalg.cholesky(s)  # raises LinAlgError unless S is positive definite
     du = np.linalg.solve(s, rhs)
     # Δx = H_xx⁻¹ (g_x − H_xu Δθ) = y − A Δθ
-    dx = y2 - a2 @ du
-    dx = dx.reshape(3, n).T if off is None else dx.reshape(n, 3)
+    dx = (y2 - a2 @ du).reshape(n, 3)
     return dx, du, s
