@@ -125,10 +125,13 @@ def _range_terms(
     np.maximum(d, 1e-9, out=d)
     # σ(d); a scalar when it does not depend on d (cheaper loss evaluation)
     sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
+    # every user ranged from every keyframe (the common case): no masking passes
+    full = bool(mask_kn.all())
     r = prob.range_m[:n].T - d
     if params.estimate_bias:
         r -= theta[:, -1:]
-    r[~mask_kn] = 0.0
+    if not full:
+        r[~mask_kn] = 0.0
     # e = (r̂ − d − b) / σ(d)
     e = r / sig
     nl = None
@@ -136,20 +139,24 @@ def _range_terms(
         pi = params.nlos_prob if prob.nlos_prob_k is None else prob.nlos_prob_k[:, None]
         nl = (pi, params.nlos_mean_m / sig)
     rho, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl)
-    w = w * mask_kn
-    psi = psi * mask_kn
-    rho = rho * mask_kn
+    if not full:
+        w = w * mask_kn
+        psi = psi * mask_kn
+        rho = rho * mask_kn
     # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −1/σ
     if noise.a_m != 0.0 and noise.b_per_m != 0.0:
-        alpha = (1.0 / sig + r * noise.range_sigma_dd(d) / sig**2) * mask_kn
+        alpha = 1.0 / sig + r * noise.range_sigma_dd(d) / sig**2
+        if not full:
+            alpha *= mask_kn
     else:
-        alpha = mask_kn / sig
+        alpha = 1.0 / sig if full else mask_kn / sig
     jac = np.empty((3 + prob.p, prob.n_users, n))
-    np.multiply(diff, -alpha / d, out=jac[:3])
+    np.multiply(diff, np.divide(-alpha, d), out=jac[:3])
     np.negative(jac[:d_u], out=jac[3 : 3 + d_u])
     if params.estimate_bias:
         np.divide(-1.0, sig, out=jac[-1])
-        jac[-1] *= mask_kn
+        if not full:
+            jac[-1] *= mask_kn
     return e, w, rho, jac, psi
 
 

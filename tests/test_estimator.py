@@ -56,12 +56,15 @@ def _dense_from_blocks(lin, n, pu):
         (SolverParams(loss="cauchy", estimate_bias=True), NOISE),
         (SolverParams(loss="huber", motion_sigma_m=0.2), NOISE),
         (SolverParams(loss="huber", user_dim=3, estimate_bias=True, motion_sigma_m=0.3), NOISE_DD),
+        (SolverParams(), NOISE),
+        (SolverParams(), NOISE_DD),
     ],
-    ids=["plain", "huber-sigma-of-d", "cauchy-bias", "huber-motion", "3d-bias-motion"],
+    ids=["plain", "huber-sigma-of-d", "cauchy-bias", "huber-motion", "3d-bias-motion", "nlos", "nlos-sigma-of-d"],
 )
 @pytest.mark.parametrize("lam", [0.0, 1e-2])
-def test_schur_solve_and_covariance_match_dense_reference(params, noise, lam):
-    sc = simulate(np.random.default_rng(11), n_users=3, n_keyframes=25, p_visible=0.8, p_nlos=0.2,
+@pytest.mark.parametrize("p_visible", [0.8, 1.0], ids=["gaps", "every-range"])
+def test_schur_solve_and_covariance_match_dense_reference(params, noise, lam, p_visible):
+    sc = simulate(np.random.default_rng(11), n_users=3, n_keyframes=25, p_visible=p_visible, p_nlos=0.2,
                   noise=noise, odom_sigma_m=0.1)
     prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, noise, params)
     rng = np.random.default_rng(12)
