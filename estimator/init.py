@@ -233,17 +233,19 @@ def _grid_starts(
     # each user's n_best lowest local minima (non-minima sort last, as inf)
     ranked = np.where(is_min, cost, np.inf).reshape(k_n, g * g)
     idx = np.argsort(ranked, axis=1, kind="stable")[:, :n_best]
-    valid = np.isfinite(np.take_along_axis(ranked, idx, axis=1))
+    users = np.arange(k_n)[:, None]
+    valid = np.isfinite(ranked[users, idx])
     # zoom: a 7×7 grid spanning ±1 coarse cell around each start
-    zoom = _ZOOM_OFF[None] * np.stack([ge[:, 1] - ge[:, 0], gn[:, 1] - gn[:, 0]], axis=1)[:, None, :]
-    starts = np.take_along_axis(cand, idx[:, :, None], axis=1)
-    fine = (starts[:, :, None, :] + zoom[:, None, :, :]).reshape(k_n, -1, 2)
-    fcost = _grid_cost(uav, rng, dz, fine, noise).reshape(k_n, n_best, -1)
+    cell = np.empty((k_n, 1, 1, 2))
+    cell[:, 0, 0, 0] = ge[:, 1] - ge[:, 0]
+    cell[:, 0, 0, 1] = gn[:, 1] - gn[:, 0]
+    fine = cand[users, idx][:, :, None, :] + _ZOOM_OFF * cell  # (K, n_best, 49, 2)
+    fcost = _grid_cost(uav, rng, dz, fine.reshape(k_n, -1, 2), noise).reshape(k_n, n_best, -1)
     best = np.argmin(fcost, axis=2)
-    fine = fine.reshape(k_n, n_best, -1, 2)
-    out = np.take_along_axis(fine, best[:, :, None, None], axis=2)[:, :, 0]
-    out_cost = np.where(valid, np.take_along_axis(fcost, best[:, :, None], axis=2)[:, :, 0], np.inf)
-    return out, out_cost
+    starts = np.arange(n_best)[None, :]
+    out_cost = fcost[users, starts, best]
+    out_cost[~valid] = np.inf
+    return fine[users, starts, best], out_cost
 
 
 def init_users(

@@ -8,7 +8,7 @@ import pytest
 
 from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
-from estimator.init import mirror_test, mirror_tests
+from estimator.init import init_user, init_users, mirror_test, mirror_tests
 from estimator.noise import NoiseModel
 from estimator.problem import pack_keyframes
 from estimator.schur import schur_solve
@@ -361,6 +361,25 @@ def test_grouped_mirror_tests_equal_one_user_at_a_time(pattern, params, noise):
         assert any(t.mirror_theta is not None for t in got)  # the full test ran for some user
     else:
         assert any(t.mirror_theta is None and np.isinf(t.separation_chi2) for t in got)  # the shortcut did
+
+
+@pytest.mark.parametrize("noise", [NOISE, NOISE_DD], ids=["sigma", "sigma-of-d"])
+def test_grid_init_of_several_users_equals_one_at_a_time_and_finds_the_basin(noise):
+    """init_users searches all users' grids in one pass; each user's start must be the one it gets
+    alone, and within a few metres of the truth (a coarse cell is ~6 m, the zoom a third of it),
+    with 20 % NLoS ranges."""
+    sc = simulate(np.random.default_rng(36), n_users=5, n_keyframes=150, noise=noise, p_nlos=0.2)
+    uav = np.array([kf.gps_enu_m for kf in sc.keyframes])
+    rng_m = np.array([kf.range_m for kf in sc.keyframes])
+    up = sc.user_up_m + np.array([0.0, 1.5, 0.0, -2.0, 0.0])  # heights differ: per-user search boxes
+    params = SolverParams()
+    fits = init_users(uav, rng_m, up, noise, params)
+    for k, fit in enumerate(fits):
+        alone = init_user(uav, rng_m[:, k], float(up[k]), noise, params)
+        np.testing.assert_array_equal(fit.theta, alone.theta)
+        assert fit.cost == alone.cost
+    err = np.linalg.norm(np.array([f.theta[:2] for f in fits]) - sc.users_enu_m[:, :2], axis=1)
+    assert np.all(err < 4.0), err
 
 
 @pytest.mark.parametrize("pattern", ["circle", "lawnmower"])
