@@ -52,7 +52,7 @@ from estimator.problem import (
     pack_keyframes,
     users_from_theta,
 )
-from estimator.robust import REDESCENDING, loss_psi_weight, nlos_args
+from estimator.robust import REDESCENDING, loss_psi_weight, nlos_args, nlos_terms
 from estimator.schur import schur_solve, sym3_cofactors
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
@@ -105,6 +105,36 @@ class Linearization:
     w: np.ndarray  # (K, N) IRLS weights, 0 where none
 
 
+def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray) -> tuple:
+    """Range residuals, user-major: (diff (3, K, n) = x_i − u_k, d (K, n), σ (K, n) or scalar,
+    r = r̂ − d − b (K, n), e = r/σ (K, n), full), r and e zero where mask_kn (K, n) is False;
+    full: mask_kn is all True. Shapes as in `_range_terms`."""
+    noise = prob.noise
+    n = x.shape[0]
+    users = users_from_theta(theta, prob.user_up_m, prob.user_dim)
+    # diff_i = x_i − u_i, (3, K, n)
+    diff = np.ascontiguousarray(x.T)[:, None, :] - users.T[:, :, None]
+    d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+    np.maximum(d, 1e-9, out=d)
+    # σ(d); a scalar when it does not depend on d (cheaper loss evaluation)
+    sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
+    # every user ranged from every keyframe (the common case): no masking passes
+    full = bool(mask_kn.all())
+    r = prob.range_m[:n].T - d
+    if prob.params.estimate_bias:
+        r -= theta[:, -1:]
+    if not full:
+        r[~mask_kn] = 0.0
+    # e = (r̂ − d − b) / σ(d)
+    return diff, d, sig, r, r / sig, full
+
+
+def _nlos_args(prob: Problem, sig: np.ndarray | float) -> tuple:
+    """(π (K, 1) or scalar, whitened NLoS mean m) of the "nlos" loss for ranges of σ `sig`."""
+    pi = prob.params.nlos_prob if prob.nlos_prob_k is None else prob.nlos_prob_k[:, None]
+    return pi, prob.params.nlos_mean_m / sig
+
+
 def _range_terms(
     prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray
 ) -> tuple[np.ndarray, ...]:
@@ -118,26 +148,8 @@ def _range_terms(
     params, noise = prob.params, prob.noise
     n = x.shape[0]
     d_u = prob.user_dim
-    users = users_from_theta(theta, prob.user_up_m, d_u)
-    # diff_i = x_i − u_i, (3, K, n)
-    diff = np.ascontiguousarray(x.T)[:, None, :] - users.T[:, :, None]
-    d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
-    np.maximum(d, 1e-9, out=d)
-    # σ(d); a scalar when it does not depend on d (cheaper loss evaluation)
-    sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
-    # every user ranged from every keyframe (the common case): no masking passes
-    full = bool(mask_kn.all())
-    r = prob.range_m[:n].T - d
-    if params.estimate_bias:
-        r -= theta[:, -1:]
-    if not full:
-        r[~mask_kn] = 0.0
-    # e = (r̂ − d − b) / σ(d)
-    e = r / sig
-    nl = None
-    if params.loss == "nlos":
-        pi = params.nlos_prob if prob.nlos_prob_k is None else prob.nlos_prob_k[:, None]
-        nl = (pi, params.nlos_mean_m / sig)
+    diff, d, sig, r, e, full = _residuals(prob, x, theta, mask_kn)
+    nl = _nlos_args(prob, sig) if params.loss == "nlos" else None
     rho, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl)
     if not full:
         w = w * mask_kn
@@ -415,7 +427,9 @@ def solve_robust(
         # the floor at once, and the solve runs near-quadratic from the first iteration)
         prob.nlos_prob_k = np.full(prob.n_users, float(params.nlos_prob))
         mask_kn = prob.mask[: x.shape[0]].T & active[:, None]
-        prob.nlos_prob_k = nlos_prob_update(prob, _range_terms(prob, x, theta, mask_kn)[1], active)
+        _, _, sig, _, e, _ = _residuals(prob, x, theta, mask_kn)
+        gamma = nlos_terms(e, *_nlos_args(prob, sig), need_rho=False)[2] * mask_kn
+        prob.nlos_prob_k = nlos_prob_update(prob, gamma, active)
     tol = params.step_tol_m if step_tol_m is None else step_tol_m
     # while π_k still moves, solve only to NLOS_ROUND_STEP_M; then to tol (all π_k on the
     # floor, i.e. LoS: to tol at once)
