@@ -77,6 +77,17 @@ NLOS_EM_TOL = 1e-4
 NLOS_ROUND_STEP_M = 1e-3
 
 
+#: the 6 distinct entries (i ≤ j) of a symmetric 3×3: row and column indices, their flat index,
+#: the flat index of their mirror (i > j) and of the entry they copy; _SYM3_OF[i, j]: which of
+#: the 6 holds entry (i, j)
+_SYM3_I = np.array([0, 0, 0, 1, 1, 2])
+_SYM3_J = np.array([0, 1, 2, 1, 2, 2])
+_SYM3_FLAT = 3 * _SYM3_I + _SYM3_J
+_SYM3_LOWER = np.array([3, 6, 7])
+_SYM3_UPPER = np.array([1, 2, 5])
+_SYM3_OF = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+
+
 @dataclass
 class Prior:
     """Gaussian prior from marginalized keyframes over z = [x_first (3, if has_x), Θ.ravel() (K·p)].
@@ -209,22 +220,17 @@ def linearize(
         # J_θ = −J_x[:d]: every block comes from the 6 distinct products O_ij = w J_x,i J_x,j
         # (i ≤ j, each (K, n)): H_nn = Σ_k O (+ I/σ_gps²), H_(n,k) = −O[:, :d], H_kk = Σ_n O[:d, :d]
         d_u = prob.user_dim
-        wj = jac[:3] * w
-        o = {(i, j): wj[i] * jac[j] for i in range(3) for j in range(i, 3)}
-        hxx = np.empty((n, 3, 3))
-        for (i, j), oij in o.items():
-            hxx[:, i, j] = oij.sum(axis=0)
-            if i != j:
-                hxx[:, j, i] = hxx[:, i, j]
-        hxu4 = np.empty((3, n, k_all, d_u))
-        for i in range(3):
-            for j in range(d_u):
-                np.negative(o[min(i, j), max(i, j)].T, out=hxu4[i, :, :, j])
-        hxu = hxu4.reshape(3, n, k_all * p)
-        huu_blocks = np.empty((k_all, d_u, d_u))
-        for i in range(d_u):
-            for j in range(i, d_u):
-                huu_blocks[:, i, j] = huu_blocks[:, j, i] = o[i, j].sum(axis=1)
+        # the 6 products, stacked (6, K, n) in the order of _SYM3 (one pass each for all of them)
+        o6 = (jac[_SYM3_I] * w) * jac[_SYM3_J]
+        hxx = np.empty((n, 9))
+        hxx[:, _SYM3_FLAT] = o6.sum(axis=1).T
+        hxx[:, _SYM3_LOWER] = hxx[:, _SYM3_UPPER]
+        hxx = hxx.reshape(n, 3, 3)
+        # H_(n,k)[i, j] = −O_ij (i < 3, j < d): (3, d, K, n) -> (3, n, K, d)
+        sel = _SYM3_OF[:, :d_u].ravel()
+        hxu = np.negative(o6[sel].reshape(3, d_u, k_all, n).transpose(0, 3, 2, 1)).reshape(3, n, k_all * p)
+        # H_kk[i, j] = Σ_n O_ij (i, j < d)
+        huu_blocks = o6[_SYM3_OF[:d_u, :d_u].ravel()].sum(axis=2).reshape(d_u, d_u, k_all).transpose(2, 0, 1)
         # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ = Σ_n ψ J_x[:d]
         jpsi = jac[:3] * psi
         gx = -dgps * inv_g2 - jpsi.sum(axis=1).T
