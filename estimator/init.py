@@ -169,7 +169,12 @@ def _grid_cost(uav: np.ndarray, rng: np.ndarray, dz: np.ndarray, cand: np.ndarra
     b[:, 2] = (he[:, 0] ** 2 + he[:, 1] ** 2)[None, :] + dz * dz
     b[:, 3] = 1.0
     d = np.matmul(a, b)
-    np.maximum(d, 0.0, out=d)  # rounding, where a fix is at the candidate
+    # rounding leaves d² slightly negative only where a fix is (nearly) at a candidate, i.e. where
+    # the height difference is below the rounding error of the sum (a pass spared otherwise)
+    # (|terms| ≤ (||c|| + √(||h||² + dz²))², each rounded to a few eps)
+    terms = (math.sqrt(float(np.max(a[:, :, 3]))) + math.sqrt(float(np.max(b[:, 2])))) ** 2
+    if float(np.min(np.abs(dz))) ** 2 <= 8.0 * float(np.finfo(f4).eps) * terms:
+        np.maximum(d, 0.0, out=d)
     np.sqrt(d, out=d)
     c2 = GRID_CAUCHY_SCALE**2
     ones = np.ones(m_n, dtype=f4)

@@ -8,7 +8,7 @@ import pytest
 
 from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
-from estimator.init import init_user, init_users, mirror_test, mirror_tests
+from estimator.init import _grid_cost, init_user, init_users, mirror_test, mirror_tests
 from estimator.noise import NoiseModel
 from estimator.problem import pack_keyframes
 from estimator.schur import schur_solve
@@ -380,6 +380,20 @@ def test_grid_init_of_several_users_equals_one_at_a_time_and_finds_the_basin(noi
         assert fit.cost == alone.cost
     err = np.linalg.norm(np.array([f.theta[:2] for f in fits]) - sc.users_enu_m[:, :2], axis=1)
     assert np.all(err < 4.0), err
+
+
+def test_grid_init_with_fixes_at_the_users_height():
+    """Candidates on the fixes themselves with no height difference: the squared distances of the
+    single-precision grid round to (slightly negative) zero there and must not become NaN."""
+    uav = np.column_stack([np.linspace(-50, 50, 60), np.full(60, 10.0), np.zeros(60)])
+    uav[::2, 1] -= 3.0  # not a line: no mirror
+    truth = np.array([5.0, -20.0, 0.0])
+    fit = init_user(uav, np.linalg.norm(uav - truth, axis=1), 0.0, NOISE, SolverParams())
+    assert np.all(np.isfinite(fit.theta)) and np.isfinite(fit.cost)
+    assert np.linalg.norm(fit.theta[:2] - truth[:2]) < 2.0
+    rng_m = np.linalg.norm(uav - truth, axis=1)[None, :]
+    on_fixes = _grid_cost(uav, rng_m, np.zeros((1, 60)), uav[None, :, :2] + 1e-4, NOISE)
+    assert np.all(np.isfinite(on_fixes))
 
 
 @pytest.mark.parametrize("pattern", ["circle", "lawnmower"])
