@@ -33,6 +33,7 @@ hundreds or more for a circle or a lawnmower. The solver jumps to the mirror whe
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -253,6 +254,16 @@ def _grid_starts(
     return fine[users, starts, best], out_cost
 
 
+@functools.lru_cache(maxsize=64)
+def _grid_subset(m: int) -> slice | np.ndarray:
+    """Indices of the (at most GRID_MAX_RANGES, evenly spread) of m ranges that score the grid."""
+    if m <= GRID_MAX_RANGES:
+        return slice(None)
+    sub = np.unique(np.linspace(0, m - 1, GRID_MAX_RANGES).round().astype(int))
+    sub.flags.writeable = False  # shared between calls
+    return sub
+
+
 def init_users(
     uav_enu_m: np.ndarray, range_m: np.ndarray, up_m: np.ndarray, noise: NoiseModel, params: SolverParams,
     n_starts: int = 3,
@@ -265,9 +276,7 @@ def init_users(
     Returns K UserFit (θ = [e, n, (up), (bias)], half the best grid cost).
     """
     m, k_n = range_m.shape
-    sub: slice | np.ndarray = slice(None)
-    if m > GRID_MAX_RANGES:
-        sub = np.unique(np.linspace(0, m - 1, GRID_MAX_RANGES).round().astype(int))
+    sub = _grid_subset(m)
     up = np.asarray(up_m, dtype=float)
     starts, costs = _grid_starts(uav_enu_m[sub], range_m[sub].T, up, noise, n_starts)
     best = np.argmin(costs, axis=1)
