@@ -23,7 +23,7 @@ import pytest
 
 from mission.controller import STATUS_RETURNED, STATUS_TARGET
 from mission.log import read_mission_log
-from mission.safety import point_in_polygon
+from mission.safety import point_in_polygon, point_on_boundary
 from mission.sim_runner import SimulatedMission
 from planner.types import PlanResult
 from sitl_scenarios.scenario import load_scenario
@@ -103,20 +103,23 @@ def test_gnb_killed_mid_mission_keeps_flying_then_returns_with_an_intact_log(tmp
                                     controller_overrides={"gnb_lost_wait_s": 20.0}) as sim:
             task = asyncio.create_task(sim.run())
             await _wait(lambda: sim.controller.measurements >= 10, 60, "10 measurements")
+            t_dying = sim.controller.now()
             await sim.kill_gnb()
-            n_at_kill = sim.controller.measurements
             t_kill = sim.controller.now()
             result = await task
-            return result, n_at_kill, t_kill
+            return result, t_dying, t_kill
 
-    result, n_at_kill, t_kill = _run(fly())
+    result, t_dying, t_kill = _run(fly())
     assert result.status == STATUS_RETURNED and "gNB lost" in result.reason, (result.status, result.reason)
     assert result.landed and result.rtl_sent
-    # at most the trigger in flight when the gNB died completes afterwards
-    assert result.measurements <= n_at_kill + len(sc.users)
     mlog = read_mission_log(log_path)  # the whole log parses: nothing torn, nothing invalid
     assert mlog.skipped_torn_line is None
     assert len(mlog.rtt_t_s) == result.measurements
+    # at most the trigger in flight when the gNB died completes afterwards. Counted by measurement
+    # time, not by `controller.measurements` at the kill: that counter grows only once a trigger is
+    # placed on the track (after the next fix), so triggers already measured but still queued for
+    # placing (more of them on a loaded machine) would count as measured after the kill.
+    assert np.count_nonzero(mlog.rtt_t_s > t_dying) <= len(sc.users), (mlog.rtt_t_s[-8:], t_dying)
     ev = {e.get("kind"): e for e in mlog.events}
     assert "gnb_lost" in ev and "rtl" in ev
     # it kept flying the plan without measurements for gnb_lost_wait_s before returning
@@ -197,17 +200,40 @@ def test_planner_waypoint_outside_the_geofence_is_refused_and_logged(tmp_path):
     async def fly():
         async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower") as sim:
             sim.controller.planner = OutsideFirstPlanner(sim.controller.planner, bad)
-            return await sim.run()
+            true_track = []
 
-    result = _run(fly())
+            async def track() -> None:  # the vehicle's true position, sampled every 20 ms of wall time
+                while True:
+                    true_track.append(sim.vehicle_sim.state().pos_enu_m)
+                    await asyncio.sleep(0.02)
+
+            tracker = asyncio.create_task(track())
+            try:
+                result = await sim.run()
+            finally:
+                tracker.cancel()
+                await asyncio.gather(tracker, return_exceptions=True)
+            return result, np.asarray(true_track)
+
+    result, true_track = _run(fly())
     assert result.ok and result.refusals == 1 and result.landed
     mlog = read_mission_log(log_path)
     refused = [e for e in mlog.events if e.get("kind") == "refused"]
     assert len(refused) == 1 and "outside the geofence" in refused[0]["message"]
     assert refused[0]["target_enu_m"] == pytest.approx(bad.tolist())
-    # the vehicle never went there: every telemetry fix stays inside the fence
+    # the vehicle never went there: its true track stays inside the fence ...
+    assert len(true_track) > 10 and all(point_in_polygon(p[:2], fence) for p in true_track)
+    # ... and so does every logged telemetry fix, up to GPS noise. The lawnmower's first vertex
+    # lies margin + 1 = 3 m inside the fence and the fixes carry independent N(0, σ_gps²) noise per
+    # axis, so each fix logged while the vehicle turns there reads outside the exact fence with
+    # probability ~1e-3 (a 3σ excursion); on a loaded machine the controller takes longer to plan
+    # the next leg and several times as many fixes are logged there (10 idle, up to 44 measured
+    # under load, the closest 0.5 m from the fence). 6σ beyond the fence is never noise, and still
+    # 44 m short of the refused waypoint.
+    tol_m = 6.0 * sc.vehicle.gps_sigma_m
     enu = mlog.header.origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
-    assert all(point_in_polygon(p[:2], fence) for p in enu)
+    outside = [p for p in enu if not (point_in_polygon(p[:2], fence) or point_on_boundary(p[:2], fence, tol_m))]
+    assert not outside, outside[:5]
 
 
 @pytest.mark.slow
