@@ -173,12 +173,13 @@ def pack_keyframes(
     try:
         if not all(isinstance(kf, Keyframe) for kf in keyframes):
             raise ValueError
-        gps = np.array([kf.gps_enu_m for kf in keyframes], dtype=float)
-        ui = [kf.user_idx for kf in keyframes]
-        rr = [kf.range_m for kf in keyframes]
+        # the fields of all keyframes in one pass
+        gps_l, ui, rr, odoms = zip(*[(kf.gps_enu_m, kf.user_idx, kf.range_m, kf.odom_enu_m) for kf in keyframes],
+                                   strict=True)
+        gps = np.array(gps_l, dtype=float)
         # len() raises TypeError on a 0-d value; concatenate raises ValueError on mixed ndim
-        lengths_l = [len(u) for u in ui]
-        if lengths_l != [len(v) for v in rr]:
+        lengths_l = list(map(len, ui))
+        if lengths_l != list(map(len, rr)):
             raise ValueError
         lengths = np.array(lengths_l)
         idx = np.concatenate(ui)
@@ -193,8 +194,8 @@ def pack_keyframes(
         if ok and idx.size:
             # a user twice in one keyframe: some (keyframe, user) cell counted more than once
             ok = int(np.bincount(kf_of * n_users + idx, minlength=n * n_users).max()) <= 1
-        odoms = [kf.odom_enu_m for kf in keyframes]
-        if ok and any(o is not None for o in odoms):
+        has_odom = any(o is not None for o in odoms)
+        if ok and has_odom:
             for o in odoms:
                 if o is not None and (np.shape(o) != (3,) or not np.isfinite(np.asarray(o, float)).all()):
                     ok = False
@@ -209,10 +210,11 @@ def pack_keyframes(
     rng[kf_of, idx.astype(np.intp)] = r
     odom = np.zeros((n, 3))
     odom_mask = np.zeros(n, dtype=bool)
-    for i, o in enumerate(odoms):
-        if o is not None and i > 0:
-            odom[i] = o
-            odom_mask[i] = True
+    if has_odom:
+        for i, o in enumerate(odoms):
+            if o is not None and i > 0:
+                odom[i] = o
+                odom_mask[i] = True
     if params.motion_sigma_m is None:
         odom_mask[:] = False
     return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params)
