@@ -8,8 +8,9 @@ positions are marginalized to first order):
 
 Initialization (not by luck): the user lies within the horizontal range ρ_i = √(r̂_i² − Δz_i²) of
 every UAV fix, which bounds a search box; a G×G grid over it is scored with a truncated quadratic (so
-NLoS outliers cannot drag the start), the best few local minima of the grid are refined by a small
-robust Gauss–Newton, and the lowest cost wins.
+NLoS outliers cannot drag the start), the best few local minima of the grid are refined on a finer
+grid around each, and the lowest cost wins (the joint solver polishes it). Users ranged from the same
+fixes are searched in one pass (`init_users`), and so are their mirror tests (`mirror_tests`).
 
 Mirror test: ranges from a straight flight line cannot tell a user from its reflection across the
 line. Fit the line to the user's UAV fixes (principal axis of the horizontal positions), reflect
