@@ -77,6 +77,17 @@ def _timeit(fn, repeat: int) -> float:
     return min(best)
 
 
+def _timeit_turns(fns: list, repeat: int) -> list[float]:
+    """Best time of each function over `repeat` rounds in which every function runs once, in turn."""
+    best = [float("inf")] * len(fns)
+    for _ in range(repeat):
+        for i, fn in enumerate(fns):
+            t0 = time.perf_counter()
+            fn()
+            best[i] = min(best[i], time.perf_counter() - t0)
+    return best
+
+
 # --- scipy.optimize.least_squares (trf, sparse analytic Jacobian) -------------------------------
 
 
@@ -243,19 +254,25 @@ def main(argv: list[str] | None = None) -> int:
     for n in sizes_n:
         for k in sizes_k:
             sc = _problem(7, n, k)
-            # best of several runs (the machines are shared and noisy): more where a run is short
+            # best of several runs, the solvers taking turns so that all see the same spells of a
+            # shared, noisy machine: more runs where a run is short
             rep = 15 if n <= 200 else 3 if n <= 1000 else 1
-            t_ours = _timeit(lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, PARAMS), rep)
-            t_hub = _timeit(lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, HUBER), rep)
+            init = _initial_users(sc)
+            solvers = [
+                lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, PARAMS),
+                lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, HUBER),
+                lambda sc=sc, init=init: scipy_solve(sc, init),
+            ]
+            if gtsam is not None:
+                solvers.append(lambda sc=sc, init=init: gtsam_lm(sc, init))
+            times = _timeit_turns(solvers, rep) + [float("nan")] * (4 - len(solvers))
+            t_ours, t_hub, t_sp, t_gt = times
             est = solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, PARAMS)
             e_ours = float(np.mean(np.linalg.norm(est.users_enu_m[:, :2] - sc.users_enu_m[:, :2], axis=1)))
-            init = _initial_users(sc)
-            t_sp = _timeit(lambda sc=sc, init=init: scipy_solve(sc, init), 1 if n > 1000 else rep)
             u_sp = scipy_solve(sc, init)
             e_sp = float(np.mean(np.linalg.norm(u_sp - sc.users_enu_m[:, :2], axis=1)))
-            t_gt = e_gt = float("nan")
+            e_gt = float("nan")
             if gtsam is not None:
-                t_gt = _timeit(lambda sc=sc, init=init: gtsam_lm(sc, init), 1 if n > 1000 else rep)
                 u_gt = gtsam_lm(sc, init)
                 e_gt = float(np.mean(np.linalg.norm(u_gt[:, :2] - sc.users_enu_m[:, :2], axis=1)))
             print(f"{n:>6} {k:>3} {t_ours:9.4f} {t_hub:9.4f} {t_sp:9.4f} {t_gt:9.4f} {t_sp / t_ours:11.1f}"

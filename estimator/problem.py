@@ -48,6 +48,8 @@ def check_params(params: SolverParams) -> None:
         raise EstimatorError(f"max_iterations must be >= 1, got {params.max_iterations!r}")
     if not (np.isfinite(params.step_tol_m) and params.step_tol_m > 0):
         raise EstimatorError(f"step_tol_m must be positive, got {params.step_tol_m!r}")
+    if not (np.isfinite(params.step_tol_sigma) and params.step_tol_sigma >= 0):
+        raise EstimatorError(f"step_tol_sigma must be >= 0, got {params.step_tol_sigma!r}")
     if int(params.online_resolve_every) < 1:
         raise EstimatorError(f"online_resolve_every must be >= 1, got {params.online_resolve_every!r}")
     if not (np.isfinite(params.online_max_step_m) and params.online_max_step_m > 0):

@@ -298,8 +298,9 @@ def levenberg_marquardt(
 ) -> _Result:
     """Minimise L from (x, Θ); stop when the largest user step component, or the distance still
     to go estimated from the contraction of the last two steps, is below params.step_tol_m (or
-    step_tol_m), and the same for the keyframes with the larger of that and
-    params.step_tol_uav_m.
+    step_tol_m) — or the users' step still to go is below params.step_tol_sigma of their
+    standard deviations, ||Δθ||_S = √(Δθᵀ S Δθ) — and the same for the keyframes (absolute
+    only) with the larger of step_tol_m and params.step_tol_uav_m.
 
     The returned S (undamped Schur complement) belongs to the last linearization point, which
     differs from the returned estimate by less than step_tol_m.
@@ -307,6 +308,7 @@ def levenberg_marquardt(
     params = prob.params
     max_it = params.max_iterations if max_iterations is None else max_iterations
     tol = params.step_tol_m if step_tol_m is None else step_tol_m
+    sig_tol = float(params.step_tol_sigma)
     lin = linearize(prob, x, theta, active, prior)
     lam = 0.0
     s_final = None
@@ -322,20 +324,25 @@ def levenberg_marquardt(
             if lam > _LAM_MAX:
                 break
             continue
+        # the users' step in their standard deviations, ||Δθ||_S (S undamped only at λ = 0)
+        su_sigma = math.sqrt(max(float(du @ s @ du), 0.0)) if (sig_tol > 0.0 and lam == 0.0) else math.inf
         du = du.reshape(theta.shape)
         su, sx = float(np.max(np.abs(du))), float(np.max(np.abs(dx)))
         # distance still to go after this step: Gauss–Newton on these problems converges
         # linearly, each step r times the previous one (r the ratio of the last two undamped
         # steps), so the steps after this one add up to step·r/(1 − r)
-        left_u, left_x = su, sx
+        left_u, left_x, left_sigma = su, sx, su_sigma
         if prev is not None and lam == 0.0:
             ru, rx = su / max(prev[0], 1e-300), sx / max(prev[1], 1e-300)
             if ru < 0.5:
                 left_u = su * ru / (1.0 - ru)
+                left_sigma = su_sigma * ru / (1.0 - ru)
             if rx < 0.5:
                 left_x = sx * rx / (1.0 - rx)
-        # users to tol; keyframes (σ_gps ~ 1 m) to the looser params.step_tol_uav_m
-        if min(su, left_u) < tol and min(sx, left_x) < max(tol, params.step_tol_uav_m):
+        # users to tol (or to sig_tol of their σ); keyframes (σ_gps ~ 1 m) to the looser
+        # params.step_tol_uav_m
+        users_done = min(su, left_u) < tol or min(su_sigma, left_sigma) < sig_tol
+        if users_done and min(sx, left_x) < max(tol, params.step_tol_uav_m):
             x = x + dx
             theta = theta + du
             s_final = s if lam == 0.0 else None

@@ -91,9 +91,23 @@ def test_schur_solve_and_covariance_match_dense_reference(params, noise, lam, p_
     np.testing.assert_allclose(np.linalg.inv(s), np.linalg.inv(h_damped)[3 * n :, 3 * n :], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("pattern,n", [("circle", 200), ("lawnmower", 400)])
+def test_solve_stops_within_step_tol_sigma_of_the_optimum(pattern, n):
+    """The default stop (step still to go below 0.001 σ in the users' Mahalanobis norm) lands
+    within a few thousandths of a σ of the tightly converged optimum, and saves iterations."""
+    sc = simulate(np.random.default_rng(37), n_users=4, n_keyframes=n, pattern=pattern, p_nlos=0.1)
+    default = SolverParams()
+    tight = SolverParams(step_tol_m=1e-12, step_tol_uav_m=1e-12, step_tol_sigma=0.0)
+    est = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, default)
+    opt = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, tight)
+    dth = (est.users_enu_m[:, :2] - opt.users_enu_m[:, :2]).ravel()
+    assert float(np.sqrt(dth @ opt.info_users @ dth)) < 3 * default.step_tol_sigma
+    assert est.iterations < opt.iterations
+
+
 def test_reported_covariance_is_inverse_of_dense_normal_matrix_at_solution():
     sc = simulate(np.random.default_rng(5), n_users=3, n_keyframes=40)
-    params = SolverParams(step_tol_m=1e-10, step_tol_uav_m=1e-10)
+    params = SolverParams(step_tol_m=1e-10, step_tol_uav_m=1e-10, step_tol_sigma=0.0)
     est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, params)
     prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, NOISE, params)
     prob.nlos_prob_k = est.extra.get("nlos_prob_k")  # the per-user NLoS probability the solve ended with
@@ -117,7 +131,7 @@ def test_online_equals_batch_without_marginalization(params):
     sc = simulate(np.random.default_rng(21), n_users=4, n_keyframes=80, odom_sigma_m=0.1, p_visible=0.9)
     # a full re-solve at every keyframe (no information-filter steps), nothing marginalized
     tight = SolverParams(**{**params.__dict__, "window": 1000, "step_tol_m": 1e-10, "step_tol_uav_m": 1e-10,
-                            "online_step_tol_m": 1e-10,
+                            "step_tol_sigma": 0.0, "online_step_tol_m": 1e-10,
                             "online_resolve_every": 1})
     batch = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, tight)
     on = OnlineEstimator(4, sc.user_up_m, NOISE, tight)
@@ -496,8 +510,11 @@ def test_bad_keyframe_rejected_with_offending_value(kf, match):
         (lambda: OnlineEstimator(2, np.array([0.0, np.nan]), NOISE), "nan"),
         (lambda: OnlineEstimator(2, np.zeros(2), NOISE, SolverParams(window=1)), "window"),
         (lambda: crlb_users(np.zeros((4, 2)), np.zeros((2, 3)), np.ones((4, 2), bool), NOISE), r"\(N, 3\)"),
+        (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, SolverParams(step_tol_sigma=-1e-3)), "step_tol_sigma"),
+        (lambda: solve_batch([_kf()], 2, np.zeros(2), NOISE, SolverParams(step_tol_sigma=np.nan)), "step_tol_sigma"),
     ],
-    ids=["empty", "up-shape", "no-users", "loss", "user-dim", "init-shape", "online-up", "window", "crlb-shape"],
+    ids=["empty", "up-shape", "no-users", "loss", "user-dim", "init-shape", "online-up", "window", "crlb-shape",
+         "tol-sigma-negative", "tol-sigma-nan"],
 )
 def test_bad_arguments_rejected(call, match):
     with pytest.raises(EstimatorError, match=match):
