@@ -8,7 +8,18 @@ import pytest
 
 from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
-from estimator.init import _grid_cost, init_user, init_users, mirror_test, mirror_tests
+from estimator.init import (
+    LINEAR_INIT_MAX_COST,
+    _grid_cost,
+    _grid_starts,
+    _grid_subset,
+    _linear_starts,
+    _refine_starts,
+    init_user,
+    init_users,
+    mirror_test,
+    mirror_tests,
+)
 from estimator.noise import NoiseModel
 from estimator.problem import pack_keyframes
 from estimator.schur import schur_solve
@@ -378,22 +389,73 @@ def test_grouped_mirror_tests_equal_one_user_at_a_time(pattern, params, noise):
 
 
 @pytest.mark.parametrize("noise", [NOISE, NOISE_DD], ids=["sigma", "sigma-of-d"])
-def test_grid_init_of_several_users_equals_one_at_a_time_and_finds_the_basin(noise):
-    """init_users searches all users' grids in one pass; each user's start must be the one it gets
-    alone, and within a few metres of the truth (a coarse cell is ~6 m, the zoom a third of it),
-    with 20 % NLoS ranges."""
-    sc = simulate(np.random.default_rng(36), n_users=5, n_keyframes=150, noise=noise, p_nlos=0.2)
-    uav = np.array([kf.gps_enu_m for kf in sc.keyframes])
-    rng_m = np.array([kf.range_m for kf in sc.keyframes])
-    up = sc.user_up_m + np.array([0.0, 1.5, 0.0, -2.0, 0.0])  # heights differ: per-user search boxes
-    params = SolverParams()
-    fits = init_users(uav, rng_m, up, noise, params)
-    for k, fit in enumerate(fits):
-        alone = init_user(uav, rng_m[:, k], float(up[k]), noise, params)
-        np.testing.assert_array_equal(fit.theta, alone.theta)
-        assert fit.cost == alone.cost
-    err = np.linalg.norm(np.array([f.theta[:2] for f in fits]) - sc.users_enu_m[:, :2], axis=1)
+def test_grid_search_of_several_users_equals_one_at_a_time(noise):
+    """_grid_starts searches all users' grids in one pass; each user's starts and costs must be the
+    ones it gets alone (heights differ, so do the search boxes), and the best start within a few
+    metres of the truth (a coarse cell is ~6 m, the zoom a third of it) with 20 % NLoS ranges."""
+    sc = simulate(np.random.default_rng(36), n_users=5, n_keyframes=160, noise=noise, p_nlos=0.2)
+    uav = np.array([kf.gps_enu_m for kf in sc.keyframes])[::4]
+    rng_m = np.array([kf.range_m for kf in sc.keyframes]).T[:, ::4]
+    up = sc.user_up_m + np.array([0.0, 1.5, 0.0, -2.0, 0.0])
+    starts, costs = _grid_starts(uav, rng_m, up, noise, 3)
+    for k in range(5):
+        s1, c1 = _grid_starts(uav, rng_m[k : k + 1], up[k : k + 1], noise, 3)
+        np.testing.assert_array_equal(starts[k], s1[0])
+        np.testing.assert_array_equal(costs[k], c1[0])
+    starts, costs = _grid_starts(uav, rng_m, sc.user_up_m, noise, 3)
+    best = starts[np.arange(5), np.argmin(costs, axis=1)]
+    err = np.linalg.norm(best - sc.users_enu_m[:, :2], axis=1)
     assert np.all(err < 4.0), err
+
+
+def test_linear_start_is_exact_on_noise_free_ranges_and_refuses_a_line():
+    """The closed-form multilateration recovers users exactly from exact ranges (any heights), and
+    gives nothing for fixes along a line (the mirror ambiguity needs the grid)."""
+    rng = np.random.default_rng(38)
+    for pattern in ("circle", "lawnmower"):
+        sc = simulate(rng, n_users=4, n_keyframes=150, pattern=pattern, noise=NoiseModel(sigma_gps_m=1e-9, s0_m=1e-9))
+        uav = sc.uav_enu_m
+        users = sc.users_enu_m + np.array([[0, 0, 0.0], [0, 0, 2.0], [0, 0, -1.0], [0, 0, 5.0]])
+        exact = np.linalg.norm(uav[None, :, :] - users[:, None, :], axis=2)
+        np.testing.assert_allclose(_linear_starts(uav, exact, users[:, 2]), users[:, :2], atol=1e-8)
+    line = simulate(rng, n_users=2, n_keyframes=60, pattern="line")
+    assert _linear_starts(line.uav_enu_m, np.full((2, 60), 50.0), np.zeros(2)) is None
+
+
+@pytest.mark.parametrize("noise", [NOISE, NOISE_DD], ids=["sigma", "sigma-of-d"])
+def test_init_users_takes_the_linear_start_or_searches_and_matches_one_at_a_time(noise):
+    """init_users: on clean (LoS) ranges the closed-form start passes its fit test; with 30 % NLoS
+    the users whose linear fit is dragged go to the grid. Either way each user's start equals the
+    one it gets alone, and lies within the truncated cost's reach of the truth."""
+    for p_nlos, seed in ((0.0, 39), (0.3, 40)):
+        sc = simulate(np.random.default_rng(seed), n_users=5, n_keyframes=150, noise=noise, p_nlos=p_nlos)
+        uav = np.array([kf.gps_enu_m for kf in sc.keyframes])
+        rng_m = np.array([kf.range_m for kf in sc.keyframes])
+        params = SolverParams()
+        fits = init_users(uav, rng_m, sc.user_up_m, noise, params)
+        for k, fit in enumerate(fits):
+            alone = init_user(uav, rng_m[:, k], float(sc.user_up_m[k]), noise, params)
+            np.testing.assert_allclose(fit.theta, alone.theta, rtol=0, atol=1e-9)
+        err = np.linalg.norm(np.array([f.theta[:2] for f in fits]) - sc.users_enu_m[:, :2], axis=1)
+        assert np.all(err < 3.0), (p_nlos, err)
+        # which path each user took: the linear fit's test, as init_users applies it
+        sub = _grid_subset(uav.shape[0])
+        lin = _linear_starts(uav[sub], rng_m[sub].T, sc.user_up_m)
+        lin_cost = _grid_cost(uav[sub], rng_m[sub].T, uav[sub][None, :, 2] - sc.user_up_m[:, None], lin[:, None, :],
+                              noise)[:, 0] / rng_m[sub].shape[0]
+        if p_nlos == 0.0:
+            assert np.all(lin_cost <= LINEAR_INIT_MAX_COST), lin_cost
+        else:
+            assert np.any(lin_cost > LINEAR_INIT_MAX_COST), lin_cost
+
+
+def test_start_refinement_lowers_the_truncated_cost_and_reaches_the_truth_on_exact_ranges():
+    sc = simulate(np.random.default_rng(41), n_users=4, n_keyframes=120, noise=NoiseModel(sigma_gps_m=1e-6, s0_m=1e-3))
+    uav = sc.uav_enu_m
+    exact = np.linalg.norm(uav[None, :, :] - sc.users_enu_m[:, None, :], axis=2)
+    start = sc.users_enu_m[:, :2] + np.array([[3.0, -2.0], [-2.5, 1.0], [0.5, 3.0], [-1.0, -1.0]])
+    out = _refine_starts(uav, exact, sc.user_up_m, start, NoiseModel(sigma_gps_m=1.0, s0_m=3.0), iterations=8)
+    np.testing.assert_allclose(out, sc.users_enu_m[:, :2], atol=1e-6)
 
 
 def test_grid_init_with_fixes_at_the_users_height():
