@@ -42,8 +42,11 @@ from estimator.types import SolverParams
 
 try:  # optional
     import gtsam
-except ImportError:  # pragma: no cover
+
+    GTSAM_MISSING = ""
+except ImportError as exc:  # pragma: no cover
     gtsam = None
+    GTSAM_MISSING = str(exc)
 
 NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
 #: keyframes per accuracy problem (800 m of flight at Δ = 2 m)
@@ -247,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     def target(name: str, value: str, ok: bool) -> None:
         results.append((name, value, ok))
 
-    print(f"gtsam: {'available' if gtsam is not None else 'not installed (GTSAM columns skipped)'}")
+    print(f"gtsam: {'available' if gtsam is not None else f'cannot import ({GTSAM_MISSING}): GTSAM columns skipped'}")
     print("\nBatch solve [s] (ours includes initialization; others start from our initial users)")
     print(f"{'N':>6} {'K':>3} {'ours':>9} {'ours hub':>9} {'scipy':>9} {'gtsam LM':>9} {'scipy/ours':>11}"
           f" {'gtsam/ours':>11} {'gtsam/hub':>10} {'err ours':>9} {'err scipy':>9} {'err gtsam':>9}")

@@ -54,6 +54,8 @@ GRID_CAUCHY_SCALE = 2.0
 LINEAR_INIT_MIN_SPREAD = 0.25
 #: ... and must fit with a mean truncated cost min(e², GRID_CAUCHY_SCALE²) at most this, else grid
 LINEAR_INIT_MAX_COST = 1.5
+#: at most this many ranges (evenly subsampled) enter the refinement of the start
+REFINE_MAX_RANGES = 400
 #: half-width (in fixes) of the moving average that smooths GPS noise out of the track
 SMOOTH_HALF = 10
 
@@ -260,13 +262,27 @@ def _grid_starts(
 
 
 @functools.lru_cache(maxsize=64)
-def _grid_subset(m: int) -> slice | np.ndarray:
-    """Indices of the (at most GRID_MAX_RANGES, evenly spread) of m ranges that score the grid."""
-    if m <= GRID_MAX_RANGES:
+def _grid_subset(m: int, most: int = GRID_MAX_RANGES) -> slice | np.ndarray:
+    """Indices of at most `most` of m ranges, evenly spread (by default those that score the grid)."""
+    if m <= most:
         return slice(None)
-    sub = np.unique(np.linspace(0, m - 1, GRID_MAX_RANGES).round().astype(int))
+    sub = np.unique(np.linspace(0, m - 1, most).round().astype(int))
     sub.flags.writeable = False  # shared between calls
     return sub
+
+
+def _truncated_terms(uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, u: np.ndarray, noise: NoiseModel) -> tuple:
+    """Truncated quadratic of K users at horizontal positions u (K, 2) from fixes uav (M, 3) with
+    ranges rng (K, M): (Σ_i min(e_i², c²) (K,), u − h east and north (K, M), d (K, M), σ_eff,
+    e (K, M), w = [|e| ≤ c] (K, M))."""
+    c2 = GRID_CAUCHY_SCALE**2
+    de = u[:, 0:1] - uav[:, 0]
+    dn = u[:, 1:2] - uav[:, 1]
+    d = np.sqrt(de * de + dn * dn + (uav[None, :, 2] - up_m[:, None]) ** 2)
+    sig = _sigma_eff(noise, d)
+    e = (rng - d) / sig
+    e2 = e * e
+    return np.minimum(e2, c2).sum(axis=1), de, dn, d, sig, e, (e2 <= c2).astype(float)
 
 
 def _refine_starts(
@@ -281,21 +297,8 @@ def _refine_starts(
     e_i = (r_i − d_i)/σ_eff(d_i),  ∂e_i/∂u = −(u − h_i)/(d_i σ_eff)  (σ_eff held fixed),
     Δu = −(Σ w jjᵀ)⁻¹ Σ w j e,  w_i = [|e_i| ≤ c].
     """
-    c2 = GRID_CAUCHY_SCALE**2
-    he, hn = np.ascontiguousarray(uav[:, 0]), np.ascontiguousarray(uav[:, 1])
-    dz2 = (uav[None, :, 2] - up_m[:, None]) ** 2
-
-    def terms(u: np.ndarray) -> tuple:
-        de = u[:, 0:1] - he
-        dn = u[:, 1:2] - hn
-        d = np.sqrt(de * de + dn * dn + dz2)
-        sig = _sigma_eff(noise, d)
-        e = (rng - d) / sig
-        e2 = e * e
-        return np.minimum(e2, c2).sum(axis=1), de, dn, d, sig, e, (e2 <= c2).astype(float)
-
     u = start.copy()
-    cost, de, dn, d, sig, e, w = terms(u)
+    cost, de, dn, d, sig, e, w = _truncated_terms(uav, rng, up_m, u, noise)
     for _ in range(iterations):
         # j = ∂e/∂u = −(u − h)/(d σ);  H = Σ w j jᵀ, g = Σ w j e
         f = -w / (d * sig)
@@ -308,7 +311,7 @@ def _refine_starts(
         step = -np.stack([(cc * ge - b * gn) / safe, (a * gn - b * ge) / safe], axis=1)
         step[~ok] = 0.0
         trial = u + step
-        t_cost, t_de, t_dn, t_d, t_sig, t_e, t_w = terms(trial)
+        t_cost, t_de, t_dn, t_d, t_sig, t_e, t_w = _truncated_terms(uav, rng, up_m, trial, noise)
         better = t_cost < cost
         if not better.any():
             break
@@ -329,18 +332,23 @@ def _linear_starts(uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray) -> np.nda
 
     ||h_i − u||² + dz_i² = r_i² (h the horizontal fix, dz its height above the user) less its
     mean over the fixes is linear in u:  −2 (h_i − h̄)·(u − h̄) = b_i − b̄,
-    b_i = r_i² − dz_i² − ||h_i − h̄||²; one 2×2 normal matrix serves every user.
+    b_i = r_i² − dz_i² − ||h_i − h̄||²; one 2×2 normal matrix [[p, q], [q, s]] = Σ (h_i − h̄)(h_i − h̄)ᵀ
+    serves every user:  u − h̄ = −½ [[p, q], [q, s]]⁻¹ Σ_i (b_i − b̄)(h_i − h̄).
     """
-    h0 = uav[:, :2].mean(axis=0)
-    hc = uav[:, :2] - h0
-    ata = 4.0 * (hc.T @ hc)
-    ev = np.linalg.eigvalsh(ata)
-    if not ev[1] > 0.0 or math.sqrt(max(ev[0], 0.0) / ev[1]) < LINEAR_INIT_MIN_SPREAD:
+    cx, cy, _, _, spread = _track_line(uav[:, :2])
+    if spread < LINEAR_INIT_MIN_SPREAD:
         return None
+    hc = uav[:, :2] - (cx, cy)
+    (p, q), (_, s) = (hc.T @ hc).tolist()
+    det = p * s - q * q
     dz = uav[None, :, 2] - up_m[:, None]
     b = rng * rng - dz * dz - np.sum(hc * hc, axis=1)[None, :]
     b -= b.mean(axis=1, keepdims=True)
-    return np.linalg.solve(ata, -2.0 * (b @ hc).T).T + h0
+    y = b @ hc  # (K, 2)
+    out = np.empty((rng.shape[0], 2))
+    out[:, 0] = cx - 0.5 * (s * y[:, 0] - q * y[:, 1]) / det
+    out[:, 1] = cy - 0.5 * (p * y[:, 1] - q * y[:, 0]) / det
+    return out
 
 
 def init_users(
@@ -361,26 +369,27 @@ def init_users(
     Returns K UserFit (θ = [e, n, (up), (bias)], half the truncated cost of the start).
     """
     m, k_n = range_m.shape
-    sub = _grid_subset(m)
     up = np.asarray(up_m, dtype=float)
-    uav, rng = uav_enu_m[sub], range_m[sub].T
-    m_sub = rng.shape[1]
+    # the linear start and the refinement use up to REFINE_MAX_RANGES ranges, the grid fewer
+    ref = _grid_subset(m, REFINE_MAX_RANGES)
+    uav_r, rng_r = uav_enu_m[ref], range_m[ref].T
     start = np.empty((k_n, 2))
     cost = np.full(k_n, np.inf)
-    lin = _linear_starts(uav, rng, up)
+    lin = _linear_starts(uav_r, rng_r, up)
     if lin is not None and np.all(np.isfinite(lin)):
-        lin_cost = _grid_cost(uav, rng, uav[None, :, 2] - up[:, None], lin[:, None, :], noise)[:, 0]
-        good = lin_cost <= LINEAR_INIT_MAX_COST * m_sub
+        lin_cost = _truncated_terms(uav_r, rng_r, up, lin, noise)[0]
+        good = lin_cost <= LINEAR_INIT_MAX_COST * rng_r.shape[1]
         start[good], cost[good] = lin[good], lin_cost[good]
     search = np.flatnonzero(~np.isfinite(cost))
     if search.size:
-        starts, costs = _grid_starts(uav, rng[search], up[search], noise, n_starts)
+        sub = _grid_subset(m)
+        starts, costs = _grid_starts(uav_enu_m[sub], range_m[sub].T[search], up[search], noise, n_starts)
         best = np.argmin(costs, axis=1)
         rows = np.arange(search.size)
         start[search], cost[search] = starts[rows, best], costs[rows, best]
-    # a few Gauss–Newton steps on all ranges: the joint solve then starts where the users' NLoS
-    # probabilities, estimated at its first residuals, are what they will be at the solution
-    start = _refine_starts(uav_enu_m, range_m.T, up, start, noise)
+    # a few Gauss–Newton steps: the joint solve then starts where the users' NLoS probabilities,
+    # estimated at its first residuals, are what they will be at the solution
+    start = _refine_starts(uav_r, rng_r, up, start, noise)
     out = []
     for k in range(k_n):
         theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))

@@ -12,9 +12,9 @@ from estimator.init import (
     LINEAR_INIT_MAX_COST,
     _grid_cost,
     _grid_starts,
-    _grid_subset,
     _linear_starts,
     _refine_starts,
+    _truncated_terms,
     init_user,
     init_users,
     mirror_test,
@@ -439,10 +439,8 @@ def test_init_users_takes_the_linear_start_or_searches_and_matches_one_at_a_time
         err = np.linalg.norm(np.array([f.theta[:2] for f in fits]) - sc.users_enu_m[:, :2], axis=1)
         assert np.all(err < 3.0), (p_nlos, err)
         # which path each user took: the linear fit's test, as init_users applies it
-        sub = _grid_subset(uav.shape[0])
-        lin = _linear_starts(uav[sub], rng_m[sub].T, sc.user_up_m)
-        lin_cost = _grid_cost(uav[sub], rng_m[sub].T, uav[sub][None, :, 2] - sc.user_up_m[:, None], lin[:, None, :],
-                              noise)[:, 0] / rng_m[sub].shape[0]
+        lin = _linear_starts(uav, rng_m.T, sc.user_up_m)
+        lin_cost = _truncated_terms(uav, rng_m.T, sc.user_up_m, lin, noise)[0] / uav.shape[0]
         if p_nlos == 0.0:
             assert np.all(lin_cost <= LINEAR_INIT_MAX_COST), lin_cost
         else:
