@@ -391,18 +391,20 @@ def nlos_prob_update(prob: Problem, gamma: np.ndarray, active: np.ndarray) -> np
     a = np.where(use & ~huge, q - 1.0, 0.0)
     n_huge = huge.sum(axis=1)
 
-    def slope(p: np.ndarray, a: np.ndarray, n_huge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        t = a / (1.0 + p[:, None] * a)
-        return t.sum(axis=1) + n_huge / p, -(t * t).sum(axis=1) - n_huge / (p * p)
+    def slope(p: np.ndarray | float, a: np.ndarray, n_huge: np.ndarray, curvature: bool = True) -> tuple:
+        # D(π) and D'(π) of every row of a; p scalar or (rows,)
+        t = a / (1.0 + (p[:, None] if np.ndim(p) else p) * a)
+        d = t.sum(axis=1) + n_huge / p
+        return (d, -(t * t).sum(axis=1) - n_huge / (p * p)) if curvature else (d, None)
 
     # D is decreasing: D(π_min) ≤ 0 puts the maximum on the lower bound (the LoS case, no
     # iteration), D(π_max) ≥ 0 on the upper one; Newton's method for the others
-    pi = np.clip(pi0, NLOS_PROB_MIN, NLOS_PROB_MAX)
-    lo = slope(np.full(pi.shape, NLOS_PROB_MIN), a, n_huge)[0] <= 0.0
+    pi = np.minimum(np.maximum(pi0, NLOS_PROB_MIN), NLOS_PROB_MAX)
+    lo = slope(NLOS_PROB_MIN, a, n_huge, curvature=False)[0] <= 0.0
     pi[lo] = NLOS_PROB_MIN
     free = ~lo
     if free.any():
-        hi = free & (slope(np.full(pi.shape, NLOS_PROB_MAX), a, n_huge)[0] >= 0.0)
+        hi = free & (slope(NLOS_PROB_MAX, a, n_huge, curvature=False)[0] >= 0.0)
         pi[hi] = NLOS_PROB_MAX
         free &= ~hi
     if free.any():
