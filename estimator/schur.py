@@ -80,7 +80,7 @@ def schur_solve(
     """Solve the (damped) normal equations by eliminating the keyframes.
 
     hxx: (N, 3, 3) diagonal blocks; off: (N−1,) scalar s_n of the off-diagonal block s_n·I between
-    keyframes n and n+1, or None; hxu: (3, N, P) coupling, hxu[i, n, :] = row i of block H_(n,θ);
+    keyframes n and n+1, or None; hxu: (N, 3, P) coupling, hxu[n] = block H_(n,θ);
     huu: (P, P); gx: (N, 3); gu: (P,); lam: Levenberg–Marquardt damping, H + λ·diag(H).
     Returns (Δx (N, 3), Δθ (P,), S (P, P)) where S is the Schur complement of the damped system.
     Raises numpy.linalg.LinAlgError when S is not positive definite.
@@ -99,7 +99,7 @@ def schur_solve(
         # [A_n | y_n] = H_nn⁻¹ [H_(n,θ) | g_n]  (A = H_xx⁻¹ H_xu, y = H_xx⁻¹ g_x), one batched
         # product per keyframe, in keyframe-major order (row 3n + i)
         bg = np.empty((n, 3, p + 1))
-        bg[:, :, :p] = hxu.transpose(1, 0, 2)
+        bg[:, :, :p] = hxu
         bg[:, :, p] = gx
         ay = np.matmul(hinv, bg).reshape(3 * n, p + 1)
         b2 = bg[:, :, :p].reshape(3 * n, p)
@@ -107,7 +107,7 @@ def schur_solve(
         y2 = ay[:, p]
     else:
         # banded solve in keyframe-major order (row 3n + i)
-        b_nm = hxu.transpose(1, 0, 2).reshape(3 * n, p)
+        b_nm = hxu.reshape(3 * n, p)
         sol = solveh_banded(_banded(hxx, off), np.column_stack([b_nm, gx.reshape(-1)]), lower=False)
         b2, a2, y2 = b_nm, sol[:, :p], sol[:, p]
     # S = H_uu − H_ux H_xx⁻¹ H_xu

@@ -108,7 +108,7 @@ class Linearization:
     cost: float
     hxx: np.ndarray  # (N, 3, 3)
     off: np.ndarray | None  # (N − 1,)
-    hxu: np.ndarray  # (3, N, K·p)
+    hxu: np.ndarray  # (N, 3, K·p)
     huu: np.ndarray  # (K·p, K·p)
     gx: np.ndarray  # (N, 3)
     gu: np.ndarray  # (K·p,)
@@ -211,8 +211,8 @@ def linearize(
         gx = -dgps * inv_g2 - wje[:3].sum(axis=1).T
         o_xt = wj[:3, None] * jac[None, 3:]
         o_tt = wj[3:, None] * jac[None, 3:]
-        # H_(n,k) = w J_xᵀ J_θ: (3, p, K, n) -> (3, n, K·p)
-        hxu = o_xt.transpose(0, 3, 2, 1).reshape(3, n, k_all * p)
+        # H_(n,k) = w J_xᵀ J_θ: (3, p, K, n) -> (n, 3, K·p)
+        hxu = o_xt.transpose(3, 0, 2, 1).reshape(n, 3, k_all * p)
         # H_kk = Σ_n w J_θᵀ J_θ: (p, p, K) -> (K, p, p)
         huu_blocks = o_tt.sum(axis=3).transpose(2, 0, 1)
         gu = -wje[3:].sum(axis=2).T
@@ -226,9 +226,11 @@ def linearize(
         hxx[:, _SYM3_FLAT] = o6.sum(axis=1).T
         hxx[:, _SYM3_LOWER] = hxx[:, _SYM3_UPPER]
         hxx = hxx.reshape(n, 3, 3)
-        # H_(n,k)[i, j] = −O_ij (i < 3, j < d): (3, d, K, n) -> (3, n, K, d)
+        # H_(n,k)[i, j] = −O_ij (i < 3, j < d): (3, d, K, n) -> (n, 3, K, d), in one pass
         sel = _SYM3_OF[:, :d_u].ravel()
-        hxu = np.negative(o6[sel].reshape(3, d_u, k_all, n).transpose(0, 3, 2, 1)).reshape(3, n, k_all * p)
+        hxu = np.empty((n, 3, k_all, d_u))
+        np.negative(o6[sel].reshape(3, d_u, k_all, n).transpose(3, 0, 2, 1), out=hxu)
+        hxu = hxu.reshape(n, 3, k_all * p)
         # H_kk[i, j] = Σ_n O_ij (i, j < d)
         huu_blocks = o6[_SYM3_OF[:d_u, :d_u].ravel()].sum(axis=2).reshape(d_u, d_u, k_all).transpose(2, 0, 1)
         # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ = Σ_n ψ J_x[:d]
@@ -247,7 +249,8 @@ def linearize(
         huu_blocks[inactive] = np.eye(p)
         gu[inactive] = 0.0
     huu = np.zeros((k_all, p, k_all, p))
-    np.einsum("kikj->kij", huu)[...] = huu_blocks  # block diagonal (a writable diagonal view)
+    ks = np.arange(k_all)
+    huu[ks, :, ks, :] = huu_blocks  # block diagonal
     huu = huu.reshape(k_all * p, k_all * p)
     gu = gu.ravel()
     off = None
@@ -272,7 +275,7 @@ def linearize(
         cost += float(prior.grad @ dz + 0.5 * dz @ prior.info @ dz)
         if prior.has_x:
             hxx[0] += prior.info[:3, :3]
-            hxu[:, 0, :] += prior.info[:3, 3:]
+            hxu[0] += prior.info[:3, 3:]
             gx[0] -= grad[:3]
             huu += prior.info[3:, 3:]
             gu -= grad[3:]

@@ -49,7 +49,7 @@ def _dense_from_blocks(lin, n, pu):
     h = np.zeros((3 * n + pu, 3 * n + pu))
     for i in range(n):
         h[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = lin.hxx[i]
-        h[3 * i : 3 * i + 3, 3 * n :] = lin.hxu[:, i, :]
+        h[3 * i : 3 * i + 3, 3 * n :] = lin.hxu[i]
         if lin.off is not None and i + 1 < n:
             h[3 * i : 3 * i + 3, 3 * i + 3 : 3 * i + 6] = np.eye(3) * lin.off[i]
     h[3 * n :, : 3 * n] = h[: 3 * n, 3 * n :].T
