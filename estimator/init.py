@@ -287,18 +287,20 @@ def _truncated_terms(uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, u: np.n
 
 def _refine_starts(
     uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, start: np.ndarray, noise: NoiseModel, iterations: int = 2,
+    terms: tuple | None = None,
 ) -> np.ndarray:
     """Gauss–Newton on the truncated quadratic Σ_i min(e_i², c²) of each of K users from the same
     fixes, UAV held at the fixes (ranges beyond c get no weight); a user's step is kept only
     where it lowers that cost.
 
-    uav: (M, 3); rng: (K, M); up_m: (K,); start: (K, 2). Returns (K, 2) [m, ENU].
+    uav: (M, 3); rng: (K, M); up_m: (K,); start: (K, 2); terms: `_truncated_terms` at start,
+    when already at hand. Returns (K, 2) [m, ENU].
 
     e_i = (r_i − d_i)/σ_eff(d_i),  ∂e_i/∂u = −(u − h_i)/(d_i σ_eff)  (σ_eff held fixed),
     Δu = −(Σ w jjᵀ)⁻¹ Σ w j e,  w_i = [|e_i| ≤ c].
     """
     u = start.copy()
-    cost, de, dn, d, sig, e, w = _truncated_terms(uav, rng, up_m, u, noise)
+    cost, de, dn, d, sig, e, w = _truncated_terms(uav, rng, up_m, u, noise) if terms is None else terms
     for _ in range(iterations):
         # j = ∂e/∂u = −(u − h)/(d σ);  H = Σ w j jᵀ, g = Σ w j e
         f = -w / (d * sig)
@@ -376,8 +378,10 @@ def init_users(
     start = np.empty((k_n, 2))
     cost = np.full(k_n, np.inf)
     lin = _linear_starts(uav_r, rng_r, up)
+    lin_terms = None
     if lin is not None and np.all(np.isfinite(lin)):
-        lin_cost = _truncated_terms(uav_r, rng_r, up, lin, noise)[0]
+        lin_terms = _truncated_terms(uav_r, rng_r, up, lin, noise)
+        lin_cost = lin_terms[0]
         good = lin_cost <= LINEAR_INIT_MAX_COST * rng_r.shape[1]
         start[good], cost[good] = lin[good], lin_cost[good]
     search = np.flatnonzero(~np.isfinite(cost))
@@ -389,7 +393,7 @@ def init_users(
         start[search], cost[search] = starts[rows, best], costs[rows, best]
     # a few Gauss–Newton steps: the joint solve then starts where the users' NLoS probabilities,
     # estimated at its first residuals, are what they will be at the solution
-    start = _refine_starts(uav_r, rng_r, up, start, noise)
+    start = _refine_starts(uav_r, rng_r, up, start, noise, terms=lin_terms if search.size == 0 else None)
     out = []
     for k in range(k_n):
         theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))
