@@ -51,7 +51,7 @@ from estimator.slam import OnlineEstimator, solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter
-from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
+from mission.safety import BreachWatch, GatedVehicle, SafetyGate, SafetyLimits
 from mission.telemetry import Odometer, TelemetryBuffer, odometer_dead_band_m
 from mission.vehicle import PositionFix, Vehicle
 from planner.stop import targets_reached
@@ -108,6 +108,10 @@ class ControllerConfig:
     gnb_timeout_s (wall): per measurement request; telemetry_log_hz (mission): telemetry records;
     status_interval_s (wall): progress lines; max_refusals: consecutive refused waypoints before
     returning home; alt_margin_m: tolerance of the altitude-band check while surveying;
+    breach_confirm_fixes: consecutive fixes outside a position limit before returning home (one
+    noisy fix near the fence is not a breach, mission.safety.BreachWatch);
+    position_smooth_s (mission): the position a waypoint's leg is checked from is the mean of
+    the fixes over this long (the vehicle hovers when a leg is planned);
     estimator_mode: "process" (estimator in a child process) or "thread" (see EstimatorWorker).
     """
 
@@ -131,6 +135,8 @@ class ControllerConfig:
     status_interval_s: float = 2.0
     max_refusals: int = 3
     alt_margin_m: float = 5.0
+    breach_confirm_fixes: int = 3
+    position_smooth_s: float = 1.0
     estimator_mode: str = "process"
 
     @classmethod
@@ -470,6 +476,11 @@ class MissionController:
         latest = self._buffer.latest()
         return None if latest is None else latest[1]
 
+    def _pos_enu_smoothed(self) -> np.ndarray | None:
+        """Mean of the fixes over the last config.position_smooth_s (mission), or None."""
+        latest = self._buffer.latest()
+        return None if latest is None else self._buffer.mean_since(latest[0] - self.config.position_smooth_s)
+
     def request_return(self, reason: str) -> None:
         """Ask the main flow to end the survey and return home (first reason wins)."""
         if self._return_reason is None:
@@ -609,6 +620,7 @@ class MissionController:
     async def _safety_task(self) -> None:
         cfg = self.config
         st = self.vehicle.state
+        breach = BreachWatch(self.gate, cfg.breach_confirm_fixes)
         while True:
             await asyncio.sleep(0.05)
             now = self.now()
@@ -624,9 +636,11 @@ class MissionController:
                 continue
             if self._link_lost_since is not None and now - self._link_lost_since > cfg.link_lost_wait_s:
                 self.request_return(f"vehicle link lost for more than {cfg.link_lost_wait_s:g} s")
-            reason = self.gate.return_reason(
-                None if lost else self._pos_enu(), st.battery_pct,
-                check_altitude=self.state == SURVEY, alt_margin_m=cfg.alt_margin_m)
+            reason = self.gate.return_reason(None, st.battery_pct)
+            latest = None if lost else self._buffer.latest()
+            if reason is None and latest is not None:
+                reason = breach.update(latest[0], latest[1], check_altitude=self.state == SURVEY,
+                                       alt_margin_m=cfg.alt_margin_m)
             if reason:
                 self.request_return(reason)
             if self._gnb_down_since is not None and now - self._gnb_down_since > cfg.gnb_lost_wait_s:
@@ -790,7 +804,7 @@ class MissionController:
         self._set_state(PREFLIGHT)
         home = await self.vehicle.wait_ready(cfg.ready_timeout_s)
         self.origin = Origin(home.lat_deg, home.lon_deg, home.alt_amsl_m)
-        self._gated = GatedVehicle(self.vehicle, self.gate, self.origin, self._event, self._pos_enu)
+        self._gated = GatedVehicle(self.vehicle, self.gate, self.origin, self._event, self._pos_enu_smoothed)
         self._open_log()
         self._event(f"home {home.lat_deg:.7f}, {home.lon_deg:.7f}, {home.alt_amsl_m:.1f} m AMSL", kind="home")
         try:

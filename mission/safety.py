@@ -227,6 +227,40 @@ class SafetyGate:
         return None
 
 
+class BreachWatch:
+    """Position limits (fence, no-fly zones, distance, altitude band) judged on consecutive fixes.
+
+    One GPS fix with σ = 1 m per axis lies 3 m off once in a few hundred, so a single fix just
+    inside a fence can read outside it. A breach is confirmed when `confirm_fixes` consecutive
+    new fixes (distinct times) all violate a limit — with white noise the chance that three fixes
+    do so by noise alone is that single-fix chance cubed, while a vehicle that really crosses
+    keeps reading outside and is caught `confirm_fixes` − 1 fixes later (a fraction of a second at
+    telemetry rates). Pure: the caller feeds fixes and their times.
+    """
+
+    def __init__(self, gate: SafetyGate, confirm_fixes: int = 3):
+        if int(confirm_fixes) < 1:
+            raise SafetyError(f"confirm_fixes must be >= 1, got {confirm_fixes!r}")
+        self.gate = gate
+        self.confirm_fixes = int(confirm_fixes)
+        self._last_t: float | None = None
+        self._streak = 0
+
+    def update(self, t_s: float, pos_enu_m: np.ndarray, check_altitude: bool = False,
+               alt_margin_m: float = 0.0) -> str | None:
+        """The confirmed breach (messages joined) after the fix at t_s, or None. A fix with the
+        time of the previous one is not new and changes nothing."""
+        if self._last_t is not None and t_s <= self._last_t:
+            return None
+        self._last_t = t_s
+        problems = self.gate.position_violations(pos_enu_m, check_altitude=check_altitude,
+                                                 alt_margin_m=alt_margin_m)
+        self._streak = self._streak + 1 if problems else 0
+        if problems and self._streak >= self.confirm_fixes:
+            return "; ".join(problems) + f" ({self._streak} fixes in a row)"
+        return None
+
+
 # ---------------------------------------------------------------------------------------------
 # the gate in front of the vehicle
 

@@ -70,6 +70,16 @@ class TelemetryBuffer:
         i = (self._head - 1) % self.capacity
         return float(self._t[i]), self._p[i].copy()
 
+    def mean_since(self, t_s: float) -> np.ndarray | None:
+        """Mean position (3,) [m] of the fixes at or after t_s (the newest fix alone when none
+        is that recent), or None before the first fix. Averages white GPS noise out of the
+        position of a hovering vehicle."""
+        if not self._n:
+            return None
+        t, p = self._ordered()
+        i = int(np.searchsorted(t, t_s, side="left"))
+        return p[min(i, len(t) - 1) :].mean(axis=0)
+
     def covers(self, t_s: float) -> bool:
         """True when a fix exists at or after t_s (so interpolation needs no extrapolation)."""
         return self._n > 0 and self.last_t_s >= t_s

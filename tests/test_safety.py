@@ -10,6 +10,7 @@ import pytest
 
 from estimator.geodesy import Origin
 from mission.safety import (
+    BreachWatch,
     GatedVehicle,
     SafetyGate,
     SafetyLimits,
@@ -112,6 +113,44 @@ def test_return_reason_battery_and_fence():
     # altitude is not checked while climbing unless asked
     assert gate.return_reason(np.array([25.0, 5.0, 2.0]), 80.0) is None
     assert "band" in gate.return_reason(np.array([25.0, 5.0, 2.0]), 80.0, check_altitude=True)
+
+
+def test_breach_needs_consecutive_new_fixes_outside():
+    """One GPS fix that reads outside the fence (noise) is not a breach; three in a row are; a
+    repeated fix (same time) does not count twice; an inside fix resets the count."""
+    watch = BreachWatch(_gate(), confirm_fixes=3)
+    inside, outside = np.array([25.0, 5.0, 30.0]), np.array([80.0, 80.0, 30.0])
+    assert watch.update(0.0, outside) is None
+    assert watch.update(0.1, inside) is None  # the lone outlier is forgotten
+    assert watch.update(0.2, outside) is None
+    assert watch.update(0.2, outside) is None  # not a new fix
+    assert watch.update(0.3, outside) is None
+    reason = watch.update(0.4, outside)
+    assert reason is not None and "geofence" in reason and "3 fixes in a row" in reason
+    assert BreachWatch(_gate(), confirm_fixes=1).update(0.0, outside) is not None
+    with pytest.raises(SafetyError, match="confirm_fixes"):
+        BreachWatch(_gate(), confirm_fixes=0)
+
+
+def test_breach_watch_against_gps_noise_at_a_fence_and_a_real_crossing():
+    """σ = 1 m fixes 3 m inside the fence for 10 minutes at 10 Hz: single fixes read outside
+    several times, confirmed breaches never; a vehicle crossing at 5 m/s is caught within
+    3 fixes of its first outside fix."""
+    rng = np.random.default_rng(7)
+    gate = _gate(fence_enu_m=SQUARE * 10.0, no_fly_enu_m=())  # 0..100 m square
+    hover = np.array([97.0, 50.0, 30.0])
+    fixes = hover + rng.normal(size=(6000, 3)) * np.array([1.0, 1.0, 0.0])
+    single = sum(bool(gate.position_violations(f, check_altitude=False)) for f in fixes)
+    watch = BreachWatch(gate, confirm_fixes=3)
+    confirmed = [watch.update(0.1 * i, f) for i, f in enumerate(fixes)]
+    assert single > 3 and not any(confirmed)
+    watch = BreachWatch(gate, confirm_fixes=3)
+    t = np.arange(0.0, 4.0, 0.1)
+    track = np.column_stack([90.0 + 5.0 * t, np.full(t.size, 50.0), np.full(t.size, 30.0)])
+    track[:, :2] += rng.normal(size=(t.size, 2))
+    caught = next(i for i, (ti, p) in enumerate(zip(t, track, strict=True)) if watch.update(ti, p))
+    first_out = next(i for i, p in enumerate(track) if p[0] > 100.0)
+    assert caught - first_out <= 4
 
 
 def test_takeoff_height_in_band():

@@ -51,6 +51,17 @@ def test_out_of_order_fix_is_dropped_and_equal_time_replaces():
     assert buf.at(1.5) == pytest.approx([1.0, 1.0, 1.0])
 
 
+def test_mean_of_the_recent_fixes():
+    buf = TelemetryBuffer(8)
+    assert buf.mean_since(0.0) is None
+    for i in range(12):  # the ring keeps fixes 4..11
+        buf.append(float(i), np.array([float(i), 2.0 * i, 30.0]))
+    np.testing.assert_allclose(buf.mean_since(9.0), [10.0, 20.0, 30.0])  # fixes 9, 10, 11
+    np.testing.assert_allclose(buf.mean_since(8.5), [10.0, 20.0, 30.0])
+    np.testing.assert_allclose(buf.mean_since(99.0), [11.0, 22.0, 30.0])  # none that recent: the newest
+    np.testing.assert_allclose(buf.mean_since(-5.0), [7.5, 15.0, 30.0])  # all the ring holds
+
+
 def test_empty_and_bad_input():
     buf = TelemetryBuffer(4)
     with pytest.raises(MissionError, match="no telemetry"):
