@@ -249,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
             sc = _problem(7, n, k)
             # each solver timed on consecutive runs (warm caches for all, as timeit does), best of
             # several (the machines are shared and noisy): more runs where a run is short
-            rep = 15 if n <= 200 else 3 if n <= 1000 else 1
+            rep = 30 if n <= 200 else 3 if n <= 1000 else 1
             init = _initial_users(sc)
             t_ours = _timeit(lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, PARAMS), rep)
             t_hub = _timeit(lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, HUBER), rep)

@@ -315,6 +315,9 @@ def _refine_starts(
         trial = u + step
         t_cost, t_de, t_dn, t_d, t_sig, t_e, t_w = _truncated_terms(uav, rng, up_m, trial, noise)
         better = t_cost < cost
+        if better.all():  # the usual case: every user moves
+            u, cost, de, dn, d, sig, e, w = trial, t_cost, t_de, t_dn, t_d, t_sig, t_e, t_w
+            continue
         if not better.any():
             break
         u = np.where(better[:, None], trial, u)

@@ -75,12 +75,13 @@ def _mills(t: np.ndarray) -> np.ndarray:
 
 def nlos_terms(
     e: np.ndarray, prob: np.ndarray | float = NLOS_PROB, mean_w: np.ndarray | float = NLOS_MEAN_WHITENED,
-    need_rho: bool = True,
-) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    need_rho: bool = True, need_psi: bool = True,
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
     """ρ, ψ = ρ', γ of the LoS/NLoS mixture loss (module docstring) at whitened residuals e.
 
     prob: π in (0, 1) and mean_w: whitened NLoS mean m > 0, each scalar or broadcastable to e.
-    Returns (ρ or None when need_rho is False, ψ, γ), each the shape of e.
+    Returns (ρ or None when need_rho is False, ψ and γ or None when need_psi is False), each the
+    shape of e.
 
     With q = (π/m) M(t) and g = (1 − π) + q:  γ = (1 − π)/g,  ψ = e − (q/g)(t + 1/M(t)),
     ρ = ½e² − log g + log g(0). M is evaluated at min(t, T) (T = 37, where Φ(T) = 1 in double
@@ -94,10 +95,11 @@ def nlos_terms(
     one_m_pi = 1.0 - prob
     q = (prob * inv_m) * mills
     g = one_m_pi + q
-    gamma = one_m_pi / g
-    # ψ = e − (1 − γ)(t + 1/M(t)),  1 − γ = q/g
-    psi = e - (q / g) * (t + 1.0 / mills)
-    rho = None
+    gamma = psi = rho = None
+    if need_psi:
+        gamma = one_m_pi / g
+        # ψ = e − (1 − γ)(t + 1/M(t)),  1 − γ = q/g
+        psi = e - (q / g) * (t + 1.0 / mills)
     if need_rho:
         log_g = np.log(g)
         over = t > _MILLS_T_MAX
@@ -116,7 +118,7 @@ def loss_rho(e: np.ndarray, loss: str, c: float, nlos: tuple | None = None) -> n
     """
     e = np.asarray(e, dtype=float)
     if loss == "nlos":
-        return nlos_terms(e, *(nlos or ()))[0]
+        return nlos_terms(e, *(nlos or ()), need_psi=False)[0]
     if loss == "none":
         # ρ = ½ e²
         return 0.5 * e * e
