@@ -306,7 +306,7 @@ def levenberg_marquardt(
     only) with the larger of step_tol_m and params.step_tol_uav_m.
 
     The returned S (undamped Schur complement) belongs to the last linearization point, which
-    differs from the returned estimate by less than step_tol_m.
+    differs from the returned estimate by the last step (below the tolerances above).
     """
     params = prob.params
     max_it = params.max_iterations if max_iterations is None else max_iterations
