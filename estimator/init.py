@@ -6,11 +6,16 @@ positions are marginalized to first order):
 
     σ_eff(d)² = σ(d)² + σ_gps²,     e_i = (r̂_i − ||x̂_i − u|| − b) / σ_eff(d_i)
 
-Initialization (not by luck): the user lies within the horizontal range ρ_i = √(r̂_i² − Δz_i²) of
-every UAV fix, which bounds a search box; a G×G grid over it is scored with a truncated quadratic (so
-NLoS outliers cannot drag the start), the best few local minima of the grid are refined on a finer
-grid around each, and the lowest cost wins (the joint solver polishes it). Users ranged from the same
-fixes are searched in one pass (`init_users`), and so are their mirror tests (`mirror_tests`).
+Initialization (not by luck): first the closed-form least-squares multilateration (ranges squared
+less their mean are linear in the user's position), kept when the fixes spread in two dimensions
+and it fits the ranges the way a true position fits clean ones (mean truncated quadratic cost, see
+`init_users`). Otherwise a search: the user lies within the horizontal range ρ_i = √(r̂_i² − Δz_i²)
+of every UAV fix, which bounds a search box; a G×G grid over it is scored with a truncated
+quadratic (so NLoS outliers cannot drag the start), the best few local minima of the grid are
+refined on a finer grid around each, and the lowest cost wins. Either start then takes two
+Gauss–Newton steps on the truncated quadratic, and the joint solver polishes it. Users ranged from
+the same fixes are initialised in one pass (`init_users`), and so are their mirror tests
+(`mirror_tests`).
 
 Mirror test: ranges from a straight flight line cannot tell a user from its reflection across the
 line. Fit the line to the user's UAV fixes (principal axis of the horizontal positions), reflect
