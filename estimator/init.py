@@ -442,7 +442,9 @@ class MirrorTest:
 def smooth_track(pos_enu_m: np.ndarray, half: int = SMOOTH_HALF) -> np.ndarray:
     """(M, 3) moving average over ±half fixes in time order (shrinking at the ends)."""
     m = pos_enu_m.shape[0]
-    c = np.vstack([np.zeros((1, 3)), np.cumsum(pos_enu_m, axis=0)])
+    c = np.empty((m + 1, 3))
+    c[0] = 0.0
+    np.cumsum(pos_enu_m, axis=0, out=c[1:])
     i = np.arange(m)
     lo, hi = np.maximum(i - half, 0), np.minimum(i + half + 1, m)
     return (c[hi] - c[lo]) / (hi - lo)[:, None]

@@ -524,7 +524,8 @@ def _covariances(
     cov_a = 0.5 * (cov_a + cov_a.T)
     na = s_a.shape[0] // p
     cov_a4 = cov_a.reshape(na, p, na, p)
-    blocks = np.einsum("kikj->kij", cov_a4)[:, :d, :d]
+    ka_ = np.arange(na)
+    blocks = cov_a4[ka_, :d, ka_, :d]  # the diagonal blocks, (na, d, d)
     if p == d:
         info_pos = s_a
     else:
