@@ -81,6 +81,16 @@ def _timeit(fn, repeat: int) -> float:
     return min(best)
 
 
+def _timeit_rounds(fns: list, rounds: int, per: int) -> list[float]:
+    """Best time of each function over `rounds` rounds in which each function runs `per` times
+    in a row, the functions taking turns."""
+    best = [float("inf")] * len(fns)
+    for _ in range(rounds):
+        for i, fn in enumerate(fns):
+            best[i] = min(best[i], _timeit(fn, per))
+    return best
+
+
 # --- scipy.optimize.least_squares (trf, sparse analytic Jacobian) -------------------------------
 
 
@@ -247,16 +257,19 @@ def main(argv: list[str] | None = None) -> int:
     for n in sizes_n:
         for k in sizes_k:
             sc = _problem(7, n, k)
-            # each solver timed on consecutive runs (warm caches for all, as timeit does), best of
-            # several (the machines are shared and noisy): more runs where a run is short
-            rep = 30 if n <= 200 else 3 if n <= 1000 else 1
+            # best of several runs (the machines are shared and noisy, and their speed drifts over
+            # seconds): the solvers take turns in rounds of a few consecutive runs each, so that
+            # all of them meet the same slow and fast spells and each runs with warm caches
+            rounds, per = (6, 5) if n <= 200 else (3, 1) if n <= 1000 else (1, 1)
             init = _initial_users(sc)
-            t_ours = _timeit(lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, PARAMS), rep)
-            t_hub = _timeit(lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, HUBER), rep)
-            t_sp = _timeit(lambda sc=sc, init=init: scipy_solve(sc, init), rep)
-            t_gt = float("nan")
+            solvers = [
+                lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, PARAMS),
+                lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, HUBER),
+                lambda sc=sc, init=init: scipy_solve(sc, init),
+            ]
             if gtsam is not None:
-                t_gt = _timeit(lambda sc=sc, init=init: gtsam_lm(sc, init), rep)
+                solvers.append(lambda sc=sc, init=init: gtsam_lm(sc, init))
+            t_ours, t_hub, t_sp, t_gt = _timeit_rounds(solvers, rounds, per) + [float("nan")] * (4 - len(solvers))
             est = solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, PARAMS)
             e_ours = float(np.mean(np.linalg.norm(est.users_enu_m[:, :2] - sc.users_enu_m[:, :2], axis=1)))
             u_sp = scipy_solve(sc, init)
