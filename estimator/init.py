@@ -215,6 +215,25 @@ _ZOOM_OFF = np.stack(np.meshgrid(np.linspace(-1.0, 1.0, 7), np.linspace(-1.0, 1.
 _NEIGHBOURS = [(de, dn) for de in (-1, 0, 1) for dn in (-1, 0, 1) if de or dn]
 
 
+def _search_box(uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, noise: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
+    """Where each of K users can be: (lo, hi) corners (K, 2) [m, ENU] of the box.
+
+    The user lies within the horizontal range ρ_i = √(r̂_i² − Δz_i²) (+ 4 σ_eff + 2 m) of every
+    fix: the intersection of those boxes, or their union where they do not intersect (outliers).
+    uav: (M, 3); rng: (K, M); up_m: (K,).
+    """
+    dz = uav[None, :, 2] - up_m[:, None]
+    rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
+    reach = (rho + 4.0 * _sigma_eff(noise, rng) + 2.0)[:, :, None]
+    lo = np.max(uav[None, :, :2] - reach, axis=1)
+    hi = np.min(uav[None, :, :2] + reach, axis=1)
+    empty = ~(hi > lo).all(axis=1)
+    if empty.any():
+        lo[empty] = np.min(uav[None, :, :2] - reach[empty], axis=1)
+        hi[empty] = np.max(uav[None, :, :2] + reach[empty], axis=1)
+    return lo, hi
+
+
 def _grid_starts(
     uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, noise: NoiseModel, n_best: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -226,15 +245,7 @@ def _grid_starts(
     """
     k_n = rng.shape[0]
     dz = uav[None, :, 2] - up_m[:, None]
-    rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
-    reach = (rho + 4.0 * _sigma_eff(noise, rng) + 2.0)[:, :, None]
-    # the user lies within ρ_i (+ noise) of every fix: intersect the boxes, fall back to their union
-    lo = np.max(uav[None, :, :2] - reach, axis=1)
-    hi = np.min(uav[None, :, :2] + reach, axis=1)
-    empty = ~(hi > lo).all(axis=1)
-    if empty.any():
-        lo[empty] = np.min(uav[None, :, :2] - reach[empty], axis=1)
-        hi[empty] = np.max(uav[None, :, :2] + reach[empty], axis=1)
+    lo, hi = _search_box(uav, rng, up_m, noise)
     g = GRID_SIZE
     ge = lo[:, 0:1] + (hi[:, 0:1] - lo[:, 0:1]) * _GRID_FRAC
     gn = lo[:, 1:2] + (hi[:, 1:2] - lo[:, 1:2]) * _GRID_FRAC
@@ -278,13 +289,15 @@ def _grid_subset(m: int, most: int = GRID_MAX_RANGES) -> slice | np.ndarray:
 
 def _truncated_terms(uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, u: np.ndarray, noise: NoiseModel) -> tuple:
     """Truncated quadratic of K users at horizontal positions u (K, 2) from fixes uav (M, 3) with
-    ranges rng (K, M): (Σ_i min(e_i², c²) (K,), u − h east and north (K, M), d (K, M), σ_eff,
-    e (K, M), w = [|e| ≤ c] (K, M))."""
+    ranges rng (K, M): (Σ_i min(e_i², c²) (K,), u − h east and north (K, M), d (K, M),
+    σ_eff(r̂) (K, M) or scalar, e = (r̂ − d)/σ_eff(r̂) (K, M), w = [|e| ≤ c] (K, M))."""
     c2 = GRID_CAUCHY_SCALE**2
     de = u[:, 0:1] - uav[:, 0]
     dn = u[:, 1:2] - uav[:, 1]
     d = np.sqrt(de * de + dn * dn + (uav[None, :, 2] - up_m[:, None]) ** 2)
-    sig = _sigma_eff(noise, d)
+    # σ_eff at the measured range, not at d: a far-off position must not buy small whitened
+    # residuals with the larger σ(d) of its larger distances
+    sig = _sigma_eff(noise, rng)
     e = (rng - d) / sig
     e2 = e * e
     return np.minimum(e2, c2).sum(axis=1), de, dn, d, sig, e, (e2 <= c2).astype(float)
@@ -301,7 +314,7 @@ def _refine_starts(
     uav: (M, 3); rng: (K, M); up_m: (K,); start: (K, 2); terms: `_truncated_terms` at start,
     when already at hand. Returns (K, 2) [m, ENU].
 
-    e_i = (r_i − d_i)/σ_eff(d_i),  ∂e_i/∂u = −(u − h_i)/(d_i σ_eff)  (σ_eff held fixed),
+    e_i = (r_i − d_i)/σ_eff(r_i),  ∂e_i/∂u = −(u − h_i)/(d_i σ_eff(r_i)),
     Δu = −(Σ w jjᵀ)⁻¹ Σ w j e,  w_i = [|e_i| ≤ c].
     """
     u = start.copy()
@@ -330,7 +343,6 @@ def _refine_starts(
         sel = better[:, None]
         de, dn, d, e, w = (np.where(sel, new, old) for new, old in ((t_de, de), (t_dn, dn), (t_d, d), (t_e, e),
                                                                       (t_w, w)))
-        sig = np.where(sel, t_sig, sig) if np.ndim(sig) else sig
     return u
 
 
@@ -390,7 +402,8 @@ def init_users(
     if lin is not None and np.all(np.isfinite(lin)):
         lin_terms = _truncated_terms(uav_r, rng_r, up, lin, noise)
         lin_cost = lin_terms[0]
-        good = lin_cost <= LINEAR_INIT_MAX_COST * rng_r.shape[1]
+        lo, hi = _search_box(uav_r, rng_r, up, noise)
+        good = (lin_cost <= LINEAR_INIT_MAX_COST * rng_r.shape[1]) & np.all((lin >= lo) & (lin <= hi), axis=1)
         start[good], cost[good] = lin[good], lin_cost[good]
     search = np.flatnonzero(~np.isfinite(cost))
     if search.size:

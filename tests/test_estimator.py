@@ -14,6 +14,7 @@ from estimator.init import (
     _grid_starts,
     _linear_starts,
     _refine_starts,
+    _search_box,
     _truncated_terms,
     init_user,
     init_users,
@@ -445,6 +446,29 @@ def test_init_users_takes_the_linear_start_or_searches_and_matches_one_at_a_time
             assert np.all(lin_cost <= LINEAR_INIT_MAX_COST), lin_cost
         else:
             assert np.any(lin_cost > LINEAR_INIT_MAX_COST), lin_cost
+
+
+def test_a_far_off_start_gets_no_credit_from_distance_dependent_noise():
+    """σ(d) = s0 + a·exp(b·d) grows without bound: judged with σ at the candidate's own distances,
+    a start kilometres away would see tiny whitened residuals and pass as a good fit (the online
+    estimator once started an edge-of-coverage user 10⁷ m away and never recovered). σ comes from
+    the measured ranges, so such a start saturates the truncated cost, and a linear start outside
+    the search box is not kept."""
+    noise = NoiseModel(sigma_gps_m=1.0, s0_m=2.5, a_m=0.1, b_per_m=0.01)
+    sc = simulate(np.random.default_rng(42), n_users=1, n_keyframes=120, noise=noise,
+                  users_enu_m=np.array([[280.0, 170.0, 0.0]]))
+    uav = np.array([kf.gps_enu_m for kf in sc.keyframes])
+    rng_m = np.array([kf.range_m for kf in sc.keyframes]).T
+    far = sc.users_enu_m[:, :2] + 1e5
+    cost = _truncated_terms(uav, rng_m, sc.user_up_m, far, noise)[0]
+    assert cost[0] == pytest.approx(uav.shape[0] * 4.0)  # every range beyond c = 2
+    near = _truncated_terms(uav, rng_m, sc.user_up_m, sc.users_enu_m[:, :2], noise)[0]
+    assert near[0] < 1.5 * uav.shape[0]
+    fit = init_users(uav, rng_m.T, sc.user_up_m, noise, SolverParams())[0]
+    lo, hi = _search_box(uav, rng_m, sc.user_up_m, noise)
+    assert np.all(fit.theta[:2] >= lo[0] - 5.0) and np.all(fit.theta[:2] <= hi[0] + 5.0)
+    # 330 m from a 60 m circle, σ ≈ 5 m there: the start is a few σ off across the line of sight
+    assert np.linalg.norm(fit.theta[:2] - sc.users_enu_m[0, :2]) < 20.0
 
 
 def test_start_refinement_lowers_the_truncated_cost_and_reaches_the_truth_on_exact_ranges():
