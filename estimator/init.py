@@ -287,20 +287,24 @@ def _grid_subset(m: int, most: int = GRID_MAX_RANGES) -> slice | np.ndarray:
     return sub
 
 
-def _truncated_terms(uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, u: np.ndarray, noise: NoiseModel) -> tuple:
+def _truncated_terms(
+    uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, u: np.ndarray, noise: NoiseModel,
+    sig: np.ndarray | float | None = None,
+) -> tuple:
     """Truncated quadratic of K users at horizontal positions u (K, 2) from fixes uav (M, 3) with
     ranges rng (K, M): (Σ_i min(e_i², c²) (K,), u − h east and north (K, M), d (K, M),
-    σ_eff(r̂) (K, M) or scalar, e = (r̂ − d)/σ_eff(r̂) (K, M), w = [|e| ≤ c] (K, M))."""
+    e = (r̂ − d)/σ_eff(r̂) (K, M), w = [|e| ≤ c] (K, M)). sig: σ_eff(r̂) when already at hand."""
     c2 = GRID_CAUCHY_SCALE**2
     de = u[:, 0:1] - uav[:, 0]
     dn = u[:, 1:2] - uav[:, 1]
     d = np.sqrt(de * de + dn * dn + (uav[None, :, 2] - up_m[:, None]) ** 2)
     # σ_eff at the measured range, not at d: a far-off position must not buy small whitened
     # residuals with the larger σ(d) of its larger distances
-    sig = _sigma_eff(noise, rng)
+    if sig is None:
+        sig = _sigma_eff(noise, rng)
     e = (rng - d) / sig
     e2 = e * e
-    return np.minimum(e2, c2).sum(axis=1), de, dn, d, sig, e, (e2 <= c2).astype(float)
+    return np.minimum(e2, c2).sum(axis=1), de, dn, d, e, (e2 <= c2).astype(float)
 
 
 def _refine_starts(
@@ -318,7 +322,8 @@ def _refine_starts(
     Δu = −(Σ w jjᵀ)⁻¹ Σ w j e,  w_i = [|e_i| ≤ c].
     """
     u = start.copy()
-    cost, de, dn, d, sig, e, w = _truncated_terms(uav, rng, up_m, u, noise) if terms is None else terms
+    sig = _sigma_eff(noise, rng)  # fixed: it depends on the measured ranges only
+    cost, de, dn, d, e, w = _truncated_terms(uav, rng, up_m, u, noise, sig) if terms is None else terms
     for _ in range(iterations):
         # j = ∂e/∂u = −(u − h)/(d σ);  H = Σ w j jᵀ, g = Σ w j e
         f = -w / (d * sig)
@@ -331,10 +336,10 @@ def _refine_starts(
         step = -np.stack([(cc * ge - b * gn) / safe, (a * gn - b * ge) / safe], axis=1)
         step[~ok] = 0.0
         trial = u + step
-        t_cost, t_de, t_dn, t_d, t_sig, t_e, t_w = _truncated_terms(uav, rng, up_m, trial, noise)
+        t_cost, t_de, t_dn, t_d, t_e, t_w = _truncated_terms(uav, rng, up_m, trial, noise, sig)
         better = t_cost < cost
         if better.all():  # the usual case: every user moves
-            u, cost, de, dn, d, sig, e, w = trial, t_cost, t_de, t_dn, t_d, t_sig, t_e, t_w
+            u, cost, de, dn, d, e, w = trial, t_cost, t_de, t_dn, t_d, t_e, t_w
             continue
         if not better.any():
             break

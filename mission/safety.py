@@ -253,11 +253,10 @@ class BreachWatch:
         if self._last_t is not None and t_s <= self._last_t:
             return None
         self._last_t = t_s
-        problems = self.gate.position_violations(pos_enu_m, check_altitude=check_altitude,
-                                                 alt_margin_m=alt_margin_m)
-        self._streak = self._streak + 1 if problems else 0
-        if problems and self._streak >= self.confirm_fixes:
-            return "; ".join(problems) + f" ({self._streak} fixes in a row)"
+        reason = self.gate.return_reason(pos_enu_m, None, check_altitude=check_altitude, alt_margin_m=alt_margin_m)
+        self._streak = self._streak + 1 if reason else 0
+        if reason and self._streak >= self.confirm_fixes:
+            return f"{reason} ({self._streak} fixes in a row)"
         return None
 
 
