@@ -4,15 +4,27 @@ Wire behaviour as OAI's `common/utils/telnetsrv/telnetsrv.c`: a request is one l
 is the command's output followed by the prompt ``softmodem_gnb> `` (no prompt on connect); lines
 of ≤ 2 characters get just the prompt; input starting with ``ex`` closes the connection; an
 unknown command answers ``Error: ... is not a softmodem command``; one client at a time (a
-second client is closed at once, or with ``busy_mode = "silent"`` left waiting unanswered like
-OAI's listen backlog). Commands:
+second client is accepted and left waiting unanswered until the first leaves, as OAI does;
+``busy_mode = "close"`` closes it instead). Commands, with OAI 2025.w36's texts
+(`../shared/data/oai-2025.w36/`):
 
 - ``o1 stats``: OAI's JSON document (UEs in coverage under ``O1-Operational.ues``) then ``OK``;
 - ``ci get_single_rnti``: ``single UE RNTI %04x`` / ``different number of UEs``;
-- ``ci force_reestab [rnti]``: OAI's answer, then (after `msg2_delay_s`) an OAI Msg2 line with
-  ``timing_offset`` (TA rounded to the nearest step) appended to the gNB log file;
+- ``ci force_reestab [rnti]``: OAI's answer (failures in two lines), then the random-access lines
+  of the UE's reaction (`stock_reaction`) in the gNB log; ``ci force_reestab``,
+  ``force_ue_release``, ``force_ul_failure`` and ``get_current_bwp`` with an RNTI in 1..0xfffd the
+  gNB does not have **crash the simulated gNB** as they crash OAI (every connection closed, the
+  port no longer listening, `crashed` says why);
 - ``rtt pdcch_order <rnti> [<rnti> ...]`` (module and command names configurable): one line per
   RNTI, ``rnti <hex> ta .. mu .. srs_peak .. fs .. snr_db ..`` or ``error rnti <hex> <reason>``.
+
+The gNB log (`log_path`) gets OAI's random-access lines with `wall_clock` stamps: the L1
+``Initiating RA procedure with preamble N ... delay D``, the MAC ``TC-RNTI`` line, the Msg2 line
+(fresh temporary RNTI, ``preamble_index(RAPID) N``, ``timing_offset``), then the line that tells
+who it was: ``Received a MAC CE for C-RNTI with <old>`` (a connected-mode RA, TA 0),
+``Reestablishment RNTI <tc> req C-RNTI <old>``, or ``Create UE context`` (initial access of a new
+UE). :meth:`SimulatedGnb.reattach` makes a UE go idle and attach again with a new RNTI (as
+``ciUE force_RRC_IDLE`` does), :meth:`SimulatedGnb.crnti_access` makes it do a C-RNTI RA.
 
 Answers come from the true geometry through :class:`sitl_scenarios.radio.RadioModel`. The UAV
 position comes from a callable (the built-in vehicle, in-process) or from a MAVLink stream
@@ -57,6 +69,13 @@ log = logging.getLogger(__name__)
 #: A UAV position source: returns the true UAV position (3,) [m, ENU] now, or None if unknown.
 PositionSource = Callable[[], "np.ndarray | None"]
 FaultKind = Literal["delay", "malformed", "drop", "refuse"]
+#: what a UE does after `ci force_reestab`: a reestablishment (a UE with traffic, OAI with a core),
+#: a connected-mode RA then an idle re-attach (what the recorded OAI did), or nothing (no traffic)
+StockReaction = Literal["reestablish", "crnti_then_idle", "none"]
+_STOCK_REACTIONS = ("reestablish", "crnti_then_idle", "none")
+#: `ci` commands that dereference the UE of a given RNTI without checking it (telnetsrv_ci.c)
+_CRASHING_CI = ("force_reestab", "force_ue_release", "force_ul_failure", "get_current_bwp")
+_CI_UNKNOWN = "could not identify UE (no UE, no such RNTI, or multiple UEs)\n"
 _FAULT_KINDS = ("delay", "malformed", "drop", "refuse")
 _MAX_LINE = 2048  # OAI's TELNET_MAX_MSGLENGTH
 
@@ -69,8 +88,8 @@ class GnbFaults:
     malformed_rate: probability an answer is replaced by a malformed one (truncated, binary, bad
     numbers), still followed by the prompt; drop_rate: probability the connection is closed
     instead of answering; refuse_rate: probability a new connection is closed at once;
-    busy_mode: how a second concurrent client is treated, "close" or "silent" (accepted, unanswered
-    until the first one leaves, as OAI's backlog does).
+    busy_mode: how a second concurrent client is treated, "silent" (accepted, unanswered until the
+    first one leaves, as OAI does) or "close".
     """
 
     delay_s: float = 0.0
@@ -78,7 +97,7 @@ class GnbFaults:
     malformed_rate: float = 0.0
     drop_rate: float = 0.0
     refuse_rate: float = 0.0
-    busy_mode: str = "close"
+    busy_mode: str = "silent"
 
     @classmethod
     def from_table(cls, table: dict[str, Any], where: str = "faults.gnb") -> GnbFaults:
@@ -133,8 +152,13 @@ class SimulatedGnb:
         rtt_module: str = "rtt",
         rtt_command: str = "pdcch_order",
         msg2_delay_s: float = 0.03,
-        reestab_new_rnti: bool = False,
+        stock_reaction: StockReaction = "reestablish",
+        reattach_delay_s: float = 0.05,
+        linger_s: float = 0.5,
+        wall: Callable[[], float] = time.time,
     ) -> None:
+        if stock_reaction not in _STOCK_REACTIONS:
+            raise SimulatorError(f"stock_reaction must be one of {_STOCK_REACTIONS}, got {stock_reaction!r}")
         self.scenario = scenario
         self.position = position
         self.host = host
@@ -150,9 +174,18 @@ class SimulatedGnb:
         self.rtt_module = rtt_module
         self.rtt_command = rtt_command
         self.msg2_delay_s = msg2_delay_s
-        self.reestab_new_rnti = reestab_new_rnti
-        #: current C-RNTI of each user (changes on reestablishment when reestab_new_rnti)
+        self.stock_reaction = stock_reaction
+        self.reattach_delay_s = reattach_delay_s
+        self.linger_s = linger_s
+        self.wall = wall
+        #: current C-RNTI of each user (a new one after a reestablishment or a re-attach)
         self.current_rnti: list[int] = [u.rnti for u in scenario.users]
+        #: old contexts of UEs that went idle: RNTI -> monotonic time the gNB drops it
+        self.lingering: dict[int, float] = {}
+        #: why the simulated gNB crashed (as OAI does on a `ci` command with an unknown RNTI)
+        self.crashed: str | None = None
+        self._rnti_rng = random.Random(int(seq.spawn(1)[0].generate_state(1)[0]))
+        self._ue_id = 0
         #: recent RTT results with their truth, newest last (for tests and diagnostics)
         self.truth: collections.deque[RawRtt] = collections.deque(maxlen=100_000)
         self.requests = 0
@@ -260,6 +293,9 @@ class SimulatedGnb:
             line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
             self.requests += 1
             answer = self.process(line)
+            if self.crashed is not None:
+                self._crash_now()
+                return
             if answer is None:
                 log.debug("client sent %r: closing", line)
                 return
@@ -318,8 +354,8 @@ class SimulatedGnb:
                     f"   module 2 = {self.rtt_module}:\n      {self.rtt_module} {self.rtt_command} <rnti(hex)>\n")
         if module == "ci" and cmd == "get_single_rnti":
             return self._get_single_rnti(args)
-        if module == "ci" and cmd == "force_reestab":
-            return self._force_reestab(args)
+        if module == "ci" and cmd in _CRASHING_CI:
+            return self._ci_with_rnti(cmd, args)
         if module == "o1" and cmd == "stats":
             return self._o1_stats(args)
         if module == self.rtt_module.lower() and cmd == self.rtt_command.lower():
@@ -334,12 +370,19 @@ class SimulatedGnb:
         return p if np.all(np.isfinite(p)) else None
 
     def _connected_rntis(self) -> list[int]:
-        """UEs in coverage of the UAV (all of them while the UAV position is unknown)."""
+        """UEs in coverage of the UAV (all of them while the UAV position is unknown), and the old
+        contexts of UEs that went idle until the gNB drops them."""
         uav = self._uav()
         out = []
         for k in range(len(self.radio.users)):
             if uav is None or np.linalg.norm(uav - self.radio.user_enu_m[k]) <= self.scenario.radio.coverage_m:
                 out.append(self.current_rnti[k])
+        now = time.monotonic()
+        for r, until in list(self.lingering.items()):
+            if until <= now:
+                del self.lingering[r]
+            elif r not in out:
+                out.append(r)
         return out
 
     def _user_of(self, rnti: int) -> int | None:
@@ -410,49 +453,141 @@ class SimulatedGnb:
                 out.append(format_rtt_line(rnti, res.ta, res.mu, res.srs_peak, res.fs_hz, res.snr_db))
         return "\n".join(out) + "\n"
 
-    def _force_reestab(self, args: str) -> str:
+    def _ci_with_rnti(self, cmd: str, args: str) -> str:
+        """`ci force_reestab|force_ue_release|force_ul_failure|get_current_bwp [rnti]` as OAI 2025.w36
+        (telnetsrv_ci.c: fetch_rnti, then the command): failures in two lines; an RNTI in
+        1..0xfffd that the gNB does not have crashes it."""
+        connected = self._connected_rntis()
         if args.strip():
             try:
                 rnti = int(args.split()[0], 16)  # OAI: strtol(buf, NULL, 16)
             except ValueError:
                 rnti = 0
             if not 1 <= rnti < 0xFFFE:
-                return "RNTI needs to be [1,0xfffe]\n"
+                return "RNTI needs to be [1,0xfffe]\n" + _CI_UNKNOWN
         else:
-            rntis = self._connected_rntis()
-            if len(rntis) != 1:
-                return "no UE found\n"
-            rnti = rntis[0]
-        if self.log_path is not None and self._tg is not None:
-            self._tg.create_task(self._msg2_later(rnti))
-        return f"Reset RLC counters of UE RNTI {rnti:04x} to trigger reestablishment\n"
+            if len(connected) != 1:
+                return ("no UE found\n" + _CI_UNKNOWN) * (2 if cmd == "force_ue_release" else 1)
+            rnti = connected[0]
+        if rnti not in connected:
+            self.crashed = f"segfault: `ci {cmd} {rnti:04x}` with an RNTI the gNB does not have"
+            log.warning("simulated gNB crashes: %s", self.crashed)
+            return ""
+        if cmd == "force_reestab":
+            k = self._user_of(rnti)
+            if k is not None and self.stock_reaction != "none" and self._tg is not None:
+                self._tg.create_task(self._react_later(k))
+            return f"Reset RLC counters of UE RNTI {rnti:04x} to trigger reestablishment\n"
+        if cmd == "get_current_bwp":
+            return f"UE {rnti:04x} DL BWP ID 0 (initial) UL BWP ID 0 (initial)\n"
+        # force_ue_release / force_ul_failure: the UE is dropped and attaches again
+        k = self._user_of(rnti)
+        if k is not None:
+            self.reattach(k)
+        return ""
 
-    async def _msg2_later(self, rnti: int) -> None:
-        await asyncio.sleep(self.msg2_delay_s)
-        res = self._measure(rnti)
+    def _crash_now(self) -> None:
+        """Die like nr-softmodem on a segfault: stop listening and drop every connection."""
+        if self.log_path is not None:
+            with self.log_path.open("a", encoding="utf-8") as fh:
+                fh.write(f"{self.crashed}\n")
+        if self._server is not None:
+            self._server.close()
+        for w in list(self._writers):
+            w.close()
+
+    # -- random accesses ------------------------------------------------------------------------
+    def _new_rnti(self) -> int:
+        while True:  # OAI draws TC-RNTIs at random
+            r = self._rnti_rng.randrange(1, 0xFFF0)
+            if r not in self.current_rnti and r not in self.lingering:
+                return r
+
+    def _ra_lines(self, k: int | None, ta: int, mu: int, tc: int) -> list[str]:
+        """L1, MAC and Msg2 lines of one random access (no stamps)."""
+        t = float(self.clock())
+        frame = int(t / 0.01) % 1023
+        self._frame_ra += 1
+        preamble = self._rnti_rng.randrange(64)
+        return [f"[NR_PHY] A [RAPROC] {frame}.19 Initiating RA procedure with preamble {preamble}, energy 44.5 dB "
+                f"(I0 0, thres 200), delay {ta} start symbol 8 freq index 0",
+                f"[NR_MAC] A {frame}.19 UE RA-RNTI 010b TC-RNTI {tc:04x}: initiating RA procedure",
+                format_msg2_line(tc, frame + 1, 10, 0x10B, preamble, ta, mu)]
+
+    def _round_trip_ta(self, k: int) -> tuple[int, int] | None:
+        """(PRACH timing estimate: the TA rounded to the nearest step, μ) of user k, or None."""
+        res = self._measure(self.current_rnti[k])
         if isinstance(res, str):
-            log.info("no Msg2 for RNTI %04x: %s", rnti, res)
-            return
-        # PRACH timing estimate: TA rounded to the nearest step (the RadioModel's TA is a floor)
+            log.info("no random access of user %d: %s", k, res)
+            return None
         step_s = self.radio.ta_step_s
         ta = res.ta + (1 if res.srs_peak / res.fs_hz >= step_s / 2 else 0)
-        ta = min(ta, 3846)
-        k = self._user_of(rnti)
-        if self.reestab_new_rnti and k is not None:
-            new = rnti
-            while new in self.current_rnti:  # next free C-RNTI
-                new = new % 0xFFEF + 1
-            self.current_rnti[k] = new
-            rnti = new
-        t = float(self.clock())
-        frame = int(t / 0.01) % 1024
-        slot = int((t % 0.01) / (0.001 / (1 << res.mu)))
-        self._frame_ra += 1
-        line = format_msg2_line(rnti, frame, slot, 0x10B, self._frame_ra % 64, ta, res.mu)
-        assert self.log_path is not None
+        return min(ta, 3846), res.mu
+
+    def _write_log(self, lines: list[str]) -> None:
+        if self.log_path is None:
+            return
+        stamp = f"{self.wall():.6f} "
         with self.log_path.open("a", encoding="utf-8") as fh:
-            fh.write(f"[NR_MAC]   UE {rnti:04x}: {frame}.{slot} RA procedure triggered (reestablishment)\n")
-            fh.write(line + "\n")
+            fh.write("".join(stamp + ln + "\n" for ln in lines))
+
+    def crnti_access(self, k: int) -> None:
+        """User k, connected, does a C-RNTI random access: TA 0 (a residual), RNTI unchanged."""
+        old = self.current_rnti[k]
+        tc = self._new_rnti()
+        lines = self._ra_lines(k, 0, self.scenario.radio.mu, tc)
+        frame = lines[-1].split(": ", 1)[1].split(".", 1)[0]
+        lines += [f"[NR_MAC] A Received a MAC CE for C-RNTI with {old:04x}",
+                  f"[NR_MAC] I Received UL_SCH_LCID_C_RNTI with C-RNTI 0x{old:04x}, triggering RRC Reconfiguration",
+                  f"[NR_MAC] A  {frame}.19 RA with C-RNTI {old:04x} complete"]
+        self._write_log(lines)
+
+    def reattach(self, k: int) -> int | None:
+        """User k goes idle and attaches again (initial access, new RNTI, full TA), as after
+        `ciUE force_RRC_IDLE`; the gNB keeps its old context for linger_s. Returns the new RNTI
+        (None when the user has no coverage)."""
+        got = self._round_trip_ta(k)
+        if got is None:
+            return None
+        ta, mu = got
+        old, tc = self.current_rnti[k], self._new_rnti()
+        self.lingering[old] = time.monotonic() + self.linger_s
+        self.current_rnti[k] = tc
+        self._ue_id += 1
+        n = self._ue_id
+        lines = self._ra_lines(k, ta, mu, tc)
+        self._write_log([
+            *lines,
+            f"[NR_RRC] A [--] (cellID 0, UE ID {n} RNTI {tc:04x}) Create UE context: CU UE ID {n} DU UE ID {tc} "
+            f"(rnti: {tc:04x}, random ue id {self._rnti_rng.getrandbits(60):x})",
+            f"[NR_RRC] A [UL] (cellID bc614e, UE ID {n} RNTI {tc:04x}) Received RRCSetupComplete (RRC_CONNECTED "
+            f"reached)"])
+        return tc
+
+    def reestablish(self, k: int) -> int | None:
+        """User k reestablishes: a random access with a full TA and a new RNTI, which OAI's
+        `Reestablishment RNTI <new> req C-RNTI <old>` line ties to the old one. Returns the new RNTI."""
+        got = self._round_trip_ta(k)
+        if got is None:
+            return None
+        ta, mu = got
+        old, tc = self.current_rnti[k], self._new_rnti()
+        self.current_rnti[k] = tc
+        lines = self._ra_lines(k, ta, mu, tc)
+        self._write_log([
+            *lines,
+            f"[NR_RRC] I Reestablishment RNTI {tc:04x} req C-RNTI {old:04x} physCellId 0 cause otherFailure",
+            f"[NR_RRC] A Send RRCReestablishment [34 bytes] to RNTI {tc:04x}"])
+        return tc
+
+    async def _react_later(self, k: int) -> None:
+        await asyncio.sleep(self.msg2_delay_s)
+        if self.stock_reaction == "reestablish":
+            self.reestablish(k)
+        elif self.stock_reaction == "crnti_then_idle":
+            self.crnti_access(k)
+            await asyncio.sleep(self.reattach_delay_s)
+            self.reattach(k)
 
 
 # ---------------------------------------------------------------------------------------------
