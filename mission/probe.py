@@ -116,6 +116,8 @@ class ProbeResult:
                 parts.append(f"UE {u.rnti:04x} is not among them")
             else:
                 said = u.errors[-1] if u.errors else "no answer"
+                if any(said in p for p in self.problems):
+                    said = "see above"
                 parts.append(f"UE {u.rnti:04x}: no measurement ({said})")
         head = "gNB ready" if self.ok else "gNB not ready"
         return f"{head} at {self.address} ({self.mode}): " + "; ".join(parts)

@@ -635,3 +635,81 @@ def test_every_bundled_scenario_serves_its_users(path):
     rntis, got = run(body())
     assert rntis and set(got) <= set(rntis)
     assert GnbFaults.from_scenario(sc) is not None  # its [faults.gnb] table (if any) is valid
+
+
+# ---------------------------------------------------------------------------------------------
+# preflight probe (mission.probe), the library behind `uavloc gnb probe`
+
+
+def test_probe_measures_every_configured_user_and_names_what_is_missing():
+    from mission.probe import probe_gnb
+
+    pos = {"uav": UAV}
+
+    async def body():
+        async with SimulatedGnb(scenario(), lambda: pos["uav"], port=0) as gnb, \
+                OaiGnbClient(client_config(gnb)) as c:
+            good = await probe_gnb(c, rntis=[0x4601, 0xB0B2], count=3)
+            every = await probe_gnb(c, count=1)
+            pos["uav"] = None  # the gNB lists every UE but measures none
+            bad = await probe_gnb(c, rntis=[0x4601, 0x0046], count=1)
+            return good, bad, every
+
+    good, bad, every = run(body())
+    assert good.ok and [len(u.samples) for u in good.ues] == [3, 3] and good.problems == []
+    assert all(abs(s.range_m - 75.0) < 60 for s in good.ues[0].samples)  # sanity: a range, metres
+    assert not bad.ok
+    msg = bad.message()
+    assert "the gNB has 4 UE(s): [0777, 1234, 4601, b0b2]" in msg
+    assert "UE 0046 is not among them" in msg
+    assert "UE 4601: no measurement (gNB has no RTT for RNTI 4601: error rnti 4601 no UAV position)" in msg
+    assert [u.rnti for u in every.ues] == [0x1234, 0x4601, 0xB0B2] and every.ok  # 0777: out of coverage
+    doc = bad.to_dict()
+    assert doc["gnb_rntis"] == ["0777", "1234", "4601", "b0b2"] and doc["ues"][1]["present"] is False
+
+
+def test_probe_says_what_is_wrong_with_the_setup(tmp_path: Path):
+    from mission.probe import probe_address, probe_gnb
+
+    async def body():
+        out = {}
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, rtt_module="ranging") as gnb:
+            out["module"] = await probe_address(client_config(gnb), rntis=[0x4601])
+            port = gnb.port
+        out["server"] = await probe_address(GnbConfig(port=port, retries=0, connect_timeout_s=0.5))
+        far = [USERS[3]]  # its only UE out of coverage: o1 stats lists none
+        async with SimulatedGnb(scenario(far), static_position(UAV), port=0) as gnb:
+            out["no_ue"] = await probe_address(client_config(gnb))
+        log_path = tmp_path / "gnb.log"
+        log_path.write_text("12.000001 [NR_MAC] I Frame.Slot 128.0\n")  # `time` stamps: monotonic
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
+                                stock_reaction="none") as gnb, \
+                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=0.1)) as c:
+            out["stock"] = await probe_gnb(c, rntis=[0x4601])
+        return out
+
+    out = run(body())
+    assert "wrong telnet module" in out["module"].message() and "rtt pdcch_order 4601" in out["module"].message()
+    assert "no telnet server" in out["server"].message() and out["server"].gnb_rntis is None
+    assert "no UE is connected" in out["no_ue"].message()
+    stock = out["stock"].message()
+    assert "no wall_clock time stamps (found 'monotonic')" in stock and "no random access seen" in stock
+    assert all(not r.ok for r in out.values())
+
+
+def test_gnb_probe_command_json_and_exit_status(capsys):
+    import json
+
+    from mission.cli import main
+
+    async def serve(argv):
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            return await asyncio.to_thread(main, ["gnb", "probe", "--gnb", f"127.0.0.1:{gnb.port}", *argv])
+
+    assert run(serve(["--rnti", "4601", "--count", "2", "--json"])) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ok"] and len(doc["ues"][0]["samples"]) == 2 and doc["ues"][0]["samples"][0]["fs_hz"] == 46.08e6
+    assert run(serve(["--rnti", "4601", "--rnti", "46"])) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("gNB not ready") and "UE 0046 is not among them" in out and "#2: range" in out
+    assert main(["gnb", "probe", "--gnb", "127.0.0.1:1", "--mode", "stock"]) == 1  # no --gnb-log: an error
