@@ -43,10 +43,10 @@ from pathlib import Path
 from typing import Literal, Protocol, runtime_checkable
 
 from estimator.ranging import MU_VALUES
+from mission.gnb_log import LogFollower, StockLog
 from mission.oai import (
     MAX_REPLY_CHARS,
     PROMPT_GNB,
-    Msg2Record,
     RttErrorReply,
     RttSample,
     check_known_command,
@@ -56,17 +56,15 @@ from mission.oai import (
     parse_rtt_reply,
     parse_single_rnti,
     protocol_error,
-    sample_from_msg2,
     sample_from_rtt,
     split_async_lines,
 )
-from mission.oai_ra import RandomAccess, RaTracker, RntiChange
+from mission.oai_ra import RandomAccess, RntiChange
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
     GnbNoMeasurementError,
     GnbNoRandomAccessError,
-    GnbProtocolError,
     GnbTimeoutError,
     GnbUnknownCommandError,
 )
@@ -190,49 +188,6 @@ class _ConnectionLost(Exception):
     pass
 
 
-class LogFollower:
-    """Follow a growing log file like `tail -f` (polling, no threads).
-
-    Handles a file that does not exist yet, and truncation/rotation (restarts from the beginning).
-    """
-
-    def __init__(self, path: Path, poll_s: float = 0.01) -> None:
-        self.path = Path(path)
-        self.poll_s = poll_s
-        self.position = 0
-        self._partial = b""
-
-    def _size(self) -> int:
-        try:
-            return self.path.stat().st_size
-        except FileNotFoundError:
-            return 0
-
-    def mark(self) -> None:
-        """Forget everything written so far: later reads start at the current end of the file."""
-        self.position = self._size()
-        self._partial = b""
-
-    def read_lines(self) -> list[str]:
-        """Complete lines appended since the last read (a partial last line is kept for later)."""
-        size = self._size()
-        if size < self.position:  # truncated or rotated
-            log.info("gNB log %s shrank (%d < %d): reading from the start", self.path, size, self.position)
-            self.position, self._partial = 0, b""
-        if size == self.position:
-            return []
-        try:
-            with self.path.open("rb") as fh:
-                fh.seek(self.position)
-                data = fh.read(min(size - self.position, 1 << 22))
-        except OSError as exc:
-            raise GnbError(f"cannot read the gNB log {self.path}: {exc}") from exc
-        self.position += len(data)
-        data = self._partial + data
-        *complete, self._partial = data.split(b"\n")
-        return [ln.decode("utf-8", errors="replace") for ln in complete]
-
-
 class OaiGnbClient:
     """Telnet client of an OAI gNB (see the module docstring); implements :class:`GnbClient`.
 
@@ -258,24 +213,18 @@ class OaiGnbClient:
         self._lock = asyncio.Lock()
         self._stock_lock = asyncio.Lock()
         self._prompt = self.config.prompt.encode()
-        self._follower = LogFollower(self.config.log_path, self.config.log_poll_s) if (
+        #: stock modes: the gNB log and what it proved (None without a log_path)
+        self.stock_log = StockLog(self.config.log_path, self.config.log_poll_s, self.config.log_history) if (
             self.config.log_path is not None) else None
-        self._log_started = False
-        self._tracker = RaTracker()
-        #: round-trip random accesses not yet returned, by the UE's RNTI at that access
-        self._fresh_ras: dict[int, list[RandomAccess]] = {}
-        self.recent_accesses: collections.deque[RandomAccess] = collections.deque(maxlen=256)
-        self.rnti_changes: list[RntiChange] = []
         self.late_lines: collections.deque[str] = collections.deque(maxlen=64)
         self.known_rntis: list[int] = []
-        #: stock modes: requested RNTI -> the RNTI the UE has now (proven by the log)
-        self.rnti_alias: dict[int, int] = {}
         self.reconnects = 0
         self.ci_sent: list[str] = []
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def __aenter__(self) -> OaiGnbClient:
-        self._start_log()
+        if self.stock_log is not None:
+            self.stock_log.start()
         async with self._lock:
             await self._connect_with_retry()
         return self
@@ -493,64 +442,22 @@ class OaiGnbClient:
             return await self._request_locked(line, 0, reconnect=False)
 
     # -- the gNB log (stock modes) -----------------------------------------------------------------
-    def _start_log(self) -> None:
-        if self._follower is None or self._log_started:
-            return
-        if not self.config.log_history:
-            self._follower.mark()
-        self._log_started = True
+    @property
+    def rnti_alias(self) -> dict[int, int]:
+        """Stock modes: an RNTI -> the RNTI that UE has now, as proven by the gNB log."""
+        return self.stock_log.rnti_alias if self.stock_log is not None else {}
+
+    @property
+    def recent_accesses(self) -> collections.deque[RandomAccess]:
+        """Stock modes: every random access the gNB log proved, newest last."""
+        return self.stock_log.recent if self.stock_log is not None else collections.deque()
 
     def current_rnti(self, rnti: int) -> int:
-        """The RNTI the UE first known as `rnti` has now (through proven RNTI changes only)."""
-        seen = {rnti}
-        while (nxt := self.rnti_alias.get(rnti)) is not None and nxt not in seen:
-            seen.add(nxt)
-            rnti = nxt
-        return rnti
+        return self.stock_log.current_rnti(rnti) if self.stock_log is not None else rnti
 
     def feed_log(self) -> list[RandomAccess | RntiChange]:
-        """Read the gNB log's new lines and return what they proved (stock modes). A malformed
-        random-access line is logged and skipped: the lines after it still count."""
-        if self._follower is None:
-            return []
-        self._start_log()
-        out: list[RandomAccess | RntiChange] = []
-        for line in self._follower.read_lines():
-            try:
-                events = self._tracker.feed(line)
-            except GnbProtocolError as exc:
-                log.warning("skipping a malformed gNB log line: %s", exc)
-                continue
-            for ev in events:
-                if isinstance(ev, RntiChange):
-                    log.info("UE %04x is now %04x (%s)", ev.old, ev.new, ev.proof)
-                    self.rnti_changes.append(ev)
-                    self.rnti_alias[ev.old] = ev.new
-                else:
-                    log.debug("random access: %s", ev.describe())
-                    self.recent_accesses.append(ev)
-                    if ev.round_trip:
-                        self._fresh_ras.setdefault(ev.tc_rnti, []).append(ev)
-                out.append(ev)
-        return out
-
-    def log_stamp_kinds(self) -> dict[str, int]:
-        """How many log lines read so far carried each kind of time stamp."""
-        return dict(self._tracker.stamps)
-
-    def _sample_of(self, ra: RandomAccess, rnti: int, require_wall: bool) -> RttSample:
-        rec = Msg2Record(ra.tc_rnti, ra.frame, ra.slot, ra.timing_offset, None, ra.preamble)
-        now = self.clock()
-        if ra.t_s is not None and ra.stamp in ("wall_clock", "utc_time"):
-            # the access happened (wall now − t_log) seconds ago
-            t_mono = now - max(0.0, self.wall() - ra.t_s)
-            return sample_from_msg2(rec, rnti, self.config.mu, t_mono, ra.t_s)
-        if require_wall:
-            raise GnbNoMeasurementError(
-                f"the gNB log {self.config.log_path} has no wall_clock time stamps (found "
-                f"{ra.stamp!r}): a passive random access cannot be placed in time; run the gNB with "
-                f"--log_config.global_log_options level,nocolor,wall_clock")
-        return sample_from_msg2(rec, rnti, self.config.mu, now)
+        """Read the gNB log's new lines and return what they proved (stock modes)."""
+        return self.stock_log.feed() if self.stock_log is not None else []
 
     # -- measurement ---------------------------------------------------------------------------
     async def measure(self, rnti: int) -> RttSample:
@@ -589,21 +496,25 @@ class OaiGnbClient:
 
     def _measure_passive(self, rnti: int) -> RttSample:
         """The newest round-trip random access of the UE since the last call (nothing is sent)."""
-        self.feed_log()
-        cur = self.current_rnti(rnti)
-        fresh = self._fresh_ras.pop(cur, [])
+        stock = self.stock_log
+        assert stock is not None
+        stock.feed()
+        cur = stock.current_rnti(rnti)
+        fresh = stock.take_fresh(cur)
         if not fresh:
             raise GnbNoRandomAccessError(
                 f"no new random access of UE {cur:04x} in {self.config.log_path} (passive mode measures "
                 f"only the accesses that happen anyway: initial access, re-attach, reestablishment)")
-        return self._sample_of(fresh[-1], rnti, require_wall=True)
+        return stock.sample(fresh[-1], rnti, self.config.mu, self.clock, self.wall, require_wall=True)
 
     async def _measure_active(self, rnti: int) -> RttSample:
         """Trigger a reestablishment of the UE (guarded `ci force_reestab`), then wait for a random
         access the log proves to be that UE's, with a round-trip TA."""
+        stock = self.stock_log
+        assert stock is not None
         async with self._stock_lock:
-            self.feed_log()  # everything before the trigger is history
-            wire = self.current_rnti(rnti)
+            stock.feed()  # everything before the trigger is history
+            wire = stock.current_rnti(rnti)
             line = f"ci force_reestab {wire:04x}"
             body = await self.guarded_ci("force_reestab", wire)
             rep = parse_force_reestab(check_known_command(body, line))
@@ -614,13 +525,12 @@ class OaiGnbClient:
             seen: list[str] = []
             t_end = self.clock() + self.config.msg2_timeout_s
             while True:
-                for ev in self.feed_log():
+                for ev in stock.feed():
                     if not isinstance(ev, RandomAccess):
                         continue
                     if ev.kind == "reestablishment" and ev.ue_rnti == wire:
-                        with contextlib.suppress(ValueError, KeyError):
-                            self._fresh_ras[ev.tc_rnti].remove(ev)
-                        return self._sample_of(ev, rnti, require_wall=False)
+                        stock.forget(ev)
+                        return stock.sample(ev, rnti, self.config.mu, self.clock, self.wall, require_wall=False)
                     seen.append(ev.describe())
                     if ev.kind == "connected" and ev.ue_rnti == wire:
                         log.info("UE %04x made a connected-mode random access: its TA %d is a residual, "

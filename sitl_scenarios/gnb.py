@@ -43,31 +43,27 @@ import argparse
 import asyncio
 import collections
 import contextlib
-import dataclasses
 import json
 import logging
-import math
 import random
 import signal
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
-from estimator.geodesy import Origin
 from mission.oai import PROMPT_GNB, format_msg2_line, format_rtt_line, unknown_command_text
+from sitl_scenarios.gnb_faults import GnbFaults
+from sitl_scenarios.position import MavlinkPositionSource, PositionSource, static_position
 from sitl_scenarios.radio import RadioModel, RawRtt
 from sitl_scenarios.scenario import Scenario, load_scenario
 from uavloc.errors import ScenarioError, SimulatorError
 
 log = logging.getLogger(__name__)
 
-#: A UAV position source: returns the true UAV position (3,) [m, ENU] now, or None if unknown.
-PositionSource = Callable[[], "np.ndarray | None"]
 FaultKind = Literal["delay", "malformed", "drop", "refuse"]
 #: what a UE does after `ci force_reestab`: a reestablishment (a UE with traffic, OAI with a core),
 #: a connected-mode RA then an idle re-attach (what the recorded OAI did), or nothing (no traffic)
@@ -78,51 +74,6 @@ _CRASHING_CI = ("force_reestab", "force_ue_release", "force_ul_failure", "get_cu
 _CI_UNKNOWN = "could not identify UE (no UE, no such RNTI, or multiple UEs)\n"
 _FAULT_KINDS = ("delay", "malformed", "drop", "refuse")
 _MAX_LINE = 2048  # OAI's TELNET_MAX_MSGLENGTH
-
-
-@dataclass
-class GnbFaults:
-    """Fault injection of the simulated gNB (the scenario's ``[faults.gnb]`` table).
-
-    delay_s: extra delay of an answer [s], applied with probability delay_rate;
-    malformed_rate: probability an answer is replaced by a malformed one (truncated, binary, bad
-    numbers), still followed by the prompt; drop_rate: probability the connection is closed
-    instead of answering; refuse_rate: probability a new connection is closed at once;
-    busy_mode: how a second concurrent client is treated, "silent" (accepted, unanswered until the
-    first one leaves, as OAI does) or "close".
-    """
-
-    delay_s: float = 0.0
-    delay_rate: float = 0.0
-    malformed_rate: float = 0.0
-    drop_rate: float = 0.0
-    refuse_rate: float = 0.0
-    busy_mode: str = "silent"
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any], where: str = "faults.gnb") -> GnbFaults:
-        """Strict conversion: unknown keys, wrong types and out-of-range rates are ScenarioError."""
-        if not isinstance(table, dict):
-            raise ScenarioError(f"{where}: expected a table, got {table!r}")
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(table) - set(fields))
-        if unknown:
-            raise ScenarioError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(fields)}")
-        kwargs: dict[str, Any] = {}
-        for k, v in table.items():
-            if k == "busy_mode":
-                if v not in ("close", "silent"):
-                    raise ScenarioError(f"{where}.busy_mode must be 'close' or 'silent', got {v!r}")
-            elif isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-                raise ScenarioError(f"{where}.{k} must be a non-negative number, got {v!r}")
-            elif k.endswith("_rate") and v > 1:
-                raise ScenarioError(f"{where}.{k} is a probability, got {v!r}")
-            kwargs[k] = v if k == "busy_mode" else float(v)
-        return cls(**kwargs)
-
-    @classmethod
-    def from_scenario(cls, scenario: Scenario) -> GnbFaults:
-        return cls.from_table(scenario.faults.get("gnb", {}))
 
 
 class SimulatedGnb:
@@ -588,87 +539,6 @@ class SimulatedGnb:
             self.crnti_access(k)
             await asyncio.sleep(self.reattach_delay_s)
             self.reattach(k)
-
-
-# ---------------------------------------------------------------------------------------------
-# UAV position from a MAVLink stream
-
-
-class MavlinkPositionSource:
-    """The UAV's position from a MAVLink stream (GLOBAL_POSITION_INT), as a PositionSource.
-
-    url: pymavlink connection string (e.g. "udpin:0.0.0.0:14550"); origin: the ENU origin (None:
-    the vehicle's home, from HOME_POSITION or, until that arrives, from the first
-    GLOBAL_POSITION_INT as lat/lon and alt − relative_alt). An async context manager owning the
-    connection and its polling task. Calling it returns (3,) ENU [m] or None before the first fix.
-    """
-
-    def __init__(self, url: str, origin: Origin | None = None, poll_s: float = 0.01) -> None:
-        self.url = url
-        self.origin = origin
-        self._home_from_vehicle = origin is None
-        self.poll_s = poll_s
-        self._lla: tuple[float, float, float] | None = None
-        self._conn: Any = None
-        self._tg: asyncio.TaskGroup | None = None
-        self._stop = asyncio.Event()
-        self.messages = 0
-
-    def __call__(self) -> np.ndarray | None:
-        if self._lla is None or self.origin is None:
-            return None
-        return self.origin.lla_to_enu(*self._lla)
-
-    async def __aenter__(self) -> MavlinkPositionSource:
-        from pymavlink import mavutil
-
-        try:
-            self._conn = mavutil.mavlink_connection(self.url, source_system=245, source_component=191)
-        except OSError as exc:
-            raise SimulatorError(f"cannot open MAVLink stream {self.url!r}: {exc}") from exc
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        self._tg.create_task(self._poll())
-        return self
-
-    async def __aexit__(self, *exc_info) -> None:
-        self._stop.set()
-        assert self._tg is not None
-        await self._tg.__aexit__(*exc_info)
-        self._conn.close()
-
-    def handle(self, msg: Any) -> None:
-        """Apply one MAVLink message (GLOBAL_POSITION_INT or HOME_POSITION)."""
-        mtype = msg.get_type()
-        if mtype == "GLOBAL_POSITION_INT":
-            lat, lon, alt = msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3
-            if self._home_from_vehicle and self.origin is None:
-                self.origin = Origin(lat, lon, alt - msg.relative_alt * 1e-3)
-                log.info("ENU origin from the first fix: %s", self.origin)
-            self._lla = (lat, lon, alt)
-            self.messages += 1
-        elif mtype == "HOME_POSITION" and self._home_from_vehicle:
-            home = Origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
-            if home != self.origin:
-                log.info("ENU origin from HOME_POSITION: %s", home)
-            self.origin = home
-
-    async def _poll(self) -> None:
-        while not self._stop.is_set():
-            for _ in range(1000):  # bounded burst, then yield to the loop
-                msg = self._conn.recv_match(type=["GLOBAL_POSITION_INT", "HOME_POSITION"], blocking=False)
-                if msg is None:
-                    break
-                self.handle(msg)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.poll_s):
-                    await self._stop.wait()
-
-
-def static_position(pos_enu_m) -> PositionSource:
-    """A PositionSource that always returns the same ENU position (3,) [m]."""
-    p = np.asarray(pos_enu_m, float).reshape(3)
-    return lambda: p.copy()
 
 
 # ---------------------------------------------------------------------------------------------
