@@ -507,6 +507,16 @@ class OaiGnbClient:
                 f"only the accesses that happen anyway: initial access, re-attach, reestablishment)")
         return stock.sample(fresh[-1], rnti, self.config.mu, self.clock, self.wall, require_wall=True)
 
+    def passive_samples(self, rnti: int) -> list[RttSample]:
+        """Stock passive mode: every round-trip random access of the UE the log proved since the
+        last call, oldest first (each a coarse sample with its log time stamp); [] when none."""
+        stock = self.stock_log
+        if stock is None:
+            raise GnbError("passive samples need the gNB log (stock mode, log_path)")
+        stock.feed()
+        return [stock.sample(ra, rnti, self.config.mu, self.clock, self.wall, require_wall=True)
+                for ra in stock.take_fresh(stock.current_rnti(rnti))]
+
     async def _measure_active(self, rnti: int) -> RttSample:
         """Trigger a reestablishment of the UE (guarded `ci force_reestab`), then wait for a random
         access the log proves to be that UE's, with a round-trip TA."""

@@ -116,7 +116,7 @@ class ProbeResult:
                 parts.append(f"UE {u.rnti:04x} is not among them")
             else:
                 said = u.errors[-1] if u.errors else "no answer"
-                if any(said in p for p in self.problems):
+                if any(said in p for p in self.problems) or said.startswith("not measured"):
                     said = "see above"
                 parts.append(f"UE {u.rnti:04x}: no measurement ({said})")
         head = "gNB ready" if self.ok else "gNB not ready"
@@ -134,8 +134,9 @@ class ProbeResult:
         out = [self.message()]
         for u in self.ues:
             tag = "configured" if u.expected else "found"
-            out.append(f"  UE {u.rnti:04x} ({tag}{'' if u.present else ', absent'}): "
-                       f"{len(u.samples)}/{self.count} measurement(s)")
+            what = (f"{len(u.samples)} random access(es) in the log" if self.mode.endswith("passive")
+                    else f"{len(u.samples)}/{self.count} measurement(s)")
+            out.append(f"  UE {u.rnti:04x} ({tag}{'' if u.present else ', absent'}): {what}")
             for k, (s, took) in enumerate(zip(u.samples, u.took_s, strict=True), 1):
                 snr = "-" if s.snr_db is None else f"{s.snr_db:.1f} dB"
                 peak = "" if s.fs_hz is None else f"  SRS peak {s.srs_peak:.3f} @ {s.fs_hz / 1e6:g} Msps"
@@ -199,9 +200,27 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
         res.ues.append(u)
         if res.gnb_rntis is not None and not u.present:
             u.errors.append("not among the gNB's UEs")
-    fatal = res.gnb_rntis is None
+    fatal: str | None = "discovery failed" if res.gnb_rntis is None else None
+    passive = isinstance(client, OaiGnbClient) and cfg is not None and cfg.mode == "stock" and (
+        cfg.stock_mode == "passive")
     for u in res.ues:
-        if fatal or not u.present:
+        if not u.present:
+            continue
+        if fatal:
+            u.errors.append(f"not measured: {fatal}")
+            continue
+        if passive:
+            assert isinstance(client, OaiGnbClient)
+            try:
+                got = client.passive_samples(u.rnti)[-count:]
+            except GnbError as exc:
+                u.errors.append(str(exc))
+                continue
+            u.samples.extend(got)
+            u.took_s.extend([0.0] * len(got))
+            if not got:
+                u.errors.append(f"no random access seen in {cfg.log_path if cfg else 'the gNB log'} (passive: "
+                                f"initial accesses, re-attaches and reestablishments only)")
             continue
         for _ in range(count):
             t1 = clock()
@@ -210,12 +229,10 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
             except GnbUnknownCommandError as exc:
                 u.errors.append(str(exc))
                 res.problems.append(f"wrong telnet module: {exc}")
-                fatal = True
+                fatal = "the gNB lacks the measurement command"
                 break
             except GnbNoRandomAccessError as exc:
                 u.errors.append(f"no random access seen: {exc}")
-                if mode.endswith("passive"):
-                    break  # nothing new will come by asking again
                 continue
             except (GnbNoMeasurementError, GnbProtocolError) as exc:
                 u.errors.append(str(exc))
@@ -223,7 +240,7 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
             except GnbError as exc:
                 u.errors.append(str(exc))
                 res.problems.append(f"the gNB stopped answering: {exc}")
-                fatal = True
+                fatal = "the gNB stopped answering"
                 break
             if not math.isfinite(s.range_m):
                 u.errors.append(f"non-finite range from TA {s.ta}")

@@ -555,7 +555,7 @@ async def _run(args: argparse.Namespace) -> None:
             position = static_position(args.static_enu or (0.0, 0.0, scenario.mission.altitude_m))
         gnb = await stack.enter_async_context(SimulatedGnb(
             scenario, position, host=args.host, port=args.port, log_path=args.log, seed=args.seed,
-            rtt_module=args.rtt_module, rtt_command=args.rtt_command))
+            rtt_module=args.rtt_module, rtt_command=args.rtt_command, stock_reaction=args.stock_reaction))
         print(f"simulated gNB for scenario {scenario.name!r} on {args.host}:{gnb.port}", file=sys.stderr)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -580,6 +580,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, help="override the scenario seed")
     p.add_argument("--rtt-module", default="rtt")
     p.add_argument("--rtt-command", default="pdcch_order")
+    p.add_argument("--stock-reaction", choices=("reestablish", "crnti_then_idle", "none"), default="reestablish",
+                   help="what a UE does after `ci force_reestab`: reestablish (a UE with traffic), a C-RNTI "
+                        "random access then an idle re-attach (the recorded OAI), or nothing (no traffic)")
     p.add_argument("-v", "--verbose", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,

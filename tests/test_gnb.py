@@ -713,3 +713,24 @@ def test_gnb_probe_command_json_and_exit_status(capsys):
     out = capsys.readouterr().out
     assert out.startswith("gNB not ready") and "UE 0046 is not among them" in out and "#2: range" in out
     assert main(["gnb", "probe", "--gnb", "127.0.0.1:1", "--mode", "stock"]) == 1  # no --gnb-log: an error
+
+
+def test_probe_in_passive_mode_lists_each_ues_accesses(tmp_path: Path):
+    from mission.probe import probe_gnb
+
+    log_path = tmp_path / "gnb.log"
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path) as gnb:
+            a = gnb.reattach(0)
+            gnb.crnti_access(1)  # a residual only: nothing for b
+            gnb.reattach(0)      # a again, under yet another RNTI
+            cfg = client_config(gnb, mode="stock", stock_mode="passive", log_path=log_path, log_history=True)
+            async with OaiGnbClient(cfg) as c:
+                return a, gnb.current_rnti[0], await probe_gnb(c, count=3)
+
+    a, a2, res = run(body())
+    by = {u.rnti: u for u in res.ues}
+    assert len(by[a].samples) == 1 and len(by[a2].samples) == 1 and not by[0xB0B2].samples
+    assert "no random access seen" in by[0xB0B2].errors[0] and not res.ok
+    assert res.log_stamps == "wall_clock" and "random access(es) in the log" in "\n".join(res.lines())

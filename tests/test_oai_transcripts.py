@@ -62,7 +62,9 @@ def test_fixtures_are_the_shared_recordings():
     shared = Path(__file__).resolve().parents[2] / "shared" / "data" / "oai-2025.w36"
     if not shared.is_dir():
         pytest.skip(f"no shared data at {shared} to compare with (the fixtures are used anyway)")
-    for f in sorted(FIXTURES.glob("*.txt")):
+    copied = [f for f in sorted(FIXTURES.glob("*.txt")) if not f.name.startswith("30_")]  # 30: ours
+    assert len(copied) == 13
+    for f in copied:
         assert f.read_bytes() == (shared / f.name).read_bytes(), f.name
 
 
@@ -223,3 +225,31 @@ def test_log_time_stamp_kinds():
     assert parse_stamp(run4[0]) == (pytest.approx(1796144868.784254), "wall_clock")
     assert parse_stamp("2026-12-01 17:30:00.250000 UTC [NR_MAC] A x") == (pytest.approx(1796146200.25), "utc_time")
     assert log_time_format(["[NR_MAC] A UE 4601: 1.2 Generating RA-Msg2 DCI", "[TELNETSRV] Command"]) == "none"
+
+
+def test_the_connected_mode_access_the_old_adapter_took_for_a_range(tmp_path):
+    """Recorded with wall_clock stamps: at 299.3 m the Msg2 after `ci force_reestab 133d` was a C-RNTI
+    RA (aa97, timing_offset 0: the old adapter returned 0 m and remembered aa97); the UE re-attached
+    as 835c with timing_offset 8. Passive mode over the same log gives each UE its own access."""
+    name = "30_gnb_log_wall_clock_crnti_ra.txt"
+    lines = (FIXTURES / name).read_text().splitlines()
+    assert log_time_format(lines) == "wall_clock"
+    ras = [e for e in RaTracker().feed_all(lines) if isinstance(e, RandomAccess)]
+    assert [(e.kind, f"{e.ue_rnti:04x}", f"{e.tc_rnti:04x}", e.timing_offset) for e in ras] == [
+        ("initial", "133d", "133d", 8), ("connected", "133d", "aa97", 0), ("initial", "835c", "835c", 8),
+        ("connected", "835c", "4755", 0), ("initial", "fcb7", "fcb7", 7)]
+    log_path = tmp_path / "gnb.log"
+    log_path.write_text("\n".join(lines) + "\n")
+
+    async def body():
+        c = OaiGnbClient(GnbConfig(mode="stock", stock_mode="passive", log_path=log_path, log_history=True),
+                         wall=lambda: 1796147300.0, clock=lambda: 1000.0)
+        return {r: c.passive_samples(r) for r in (0x133D, 0xAA97, 0x835C, 0xFCB7)}
+
+    got = run(body())
+    assert not got[0xAA97]
+    step = one_way_m_per_ta_step(1)
+    for r in (0x133D, 0x835C, 0xFCB7):
+        (s,) = got[r]
+        assert abs(s.range_m - 299.272) <= step and s.t_wall_s is not None
+        assert s.t_mono_s == pytest.approx(1000.0 - (1796147300.0 - s.t_wall_s))
