@@ -258,7 +258,7 @@ def test_a_client_leaving_in_the_middle_of_an_answer(oai):
         assert oai.gnb_process_alive()
 
 
-@pytest.mark.parametrize("distance_m", [300.0, 600.0])
+@pytest.mark.parametrize("distance_m", [300.0, 600.0, 450.0])
 def test_set_distance_and_a_fresh_initial_access_give_the_range(oai, distance_m):
     async def body():
         passive = cfg(oai, mode="stock", stock_mode="passive")
