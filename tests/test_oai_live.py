@@ -266,9 +266,9 @@ def test_set_distance_and_a_fresh_initial_access_give_the_range(oai, distance_m)
         async with OaiGnbClient(passive) as g, OaiGnbClient(ue_cfg) as ue:
             before = await g.discover()
             gnb_side = parse_rfsim_distance(
-                await g.request_late(f"rfsimu setdistance rfsimu_channel_ue0 {distance_m:g}", 5.0))
-            await ue.request_late(f"rfsimu setdistance rfsimu_channel_enB0 {distance_m:g}", 5.0)
-            ue_side = parse_rfsim_distance(await ue.request_late("rfsimu getdistance rfsimu_channel_enB0", 5.0))
+                await g.request_late(f"rfsimu setdistance rfsimu_channel_ue0 {distance_m:g}", 10.0))
+            await ue.request_late(f"rfsimu setdistance rfsimu_channel_enB0 {distance_m:g}", 10.0)
+            ue_side = parse_rfsim_distance(await ue.request_late("rfsimu getdistance rfsimu_channel_enB0", 10.0))
             g.feed_log()
             t_idle = time.time()
             await ue.request("ciUE force_RRC_IDLE")
