@@ -253,3 +253,39 @@ def test_the_connected_mode_access_the_old_adapter_took_for_a_range(tmp_path):
         (s,) = got[r]
         assert abs(s.range_m - 299.272) <= step and s.t_wall_s is not None
         assert s.t_mono_s == pytest.approx(1000.0 - (1796147300.0 - s.t_wall_s))
+
+
+@pytest.mark.parametrize("name", [
+    "01_noue_probe_and_crash.txt", "02_noue_probe.txt", "03_rfsimu_without_ue_and_exit.txt", "05_gnb_probe_with_ue.txt",
+    "06_ue_telnet.txt", "07_force_reestab_no_effect.txt", "08_ue_force_crnti_ra.txt", "09_setdistance_transcripts.txt"])
+def test_every_recorded_answer_is_read(name):
+    """Each answer that ended with a prompt decodes, and the parser of its command accepts it."""
+    if name == "03_rfsimu_without_ue_and_exit.txt":  # recorded with time stamps only, answers are bare prompts
+        text = (FIXTURES / name).read_text()
+        assert text.count("b'softmodem_gnb> '") == 5 and text.rstrip().endswith("EOF")
+        return
+    seen = 0
+    for sent, segs in exchanges(name):
+        data = b"".join(segs)
+        prompt = PROMPT_UE if b"softmodem_5Gue> " in data else PROMPT_GNB
+        if prompt.encode() not in data:
+            assert data == b""  # the gNB died (01) or closed on `exit`
+            continue
+        cut = data.index(prompt.encode()) + len(prompt)
+        body, late = split_async_lines(decode_reply(data[:cut], prompt) + data[cut:].decode())
+        cmd = sent.decode().strip()
+        if "is not a softmodem command" in body:
+            with pytest.raises(GnbUnknownCommandError):
+                check_known_command(body, cmd)
+        elif cmd == "o1 stats":
+            parse_o1_stats(body)
+        elif cmd == "ci get_single_rnti":
+            parse_single_rnti(body)
+        elif cmd.startswith("ci force_reestab"):
+            parse_force_reestab(body)
+        elif cmd.startswith(("rfsimu setdistance", "rfsimu getdistance")) and late:
+            parse_rfsim_distance(late[0])
+        elif cmd.startswith("rfsimu vtime") and late:
+            assert late[0].startswith("rfsimu_vtime_cmd: vtime measurement")
+        seen += 1
+    assert seen >= 1
