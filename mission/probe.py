@@ -247,7 +247,8 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
                 continue
             u.samples.append(s)
             u.took_s.append(clock() - t1)
-    if res.ues and not any(u.ok for u in res.ues) and mode.startswith("stock") and not fatal:
+    present = [u for u in res.ues if u.present]
+    if present and not any(u.ok for u in present) and mode.startswith("stock") and not fatal:
         res.problems.append("no random access seen for any UE")
     res.duration_s = clock() - t0
     return res
