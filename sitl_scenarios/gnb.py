@@ -55,8 +55,9 @@ from typing import Literal
 
 import numpy as np
 
-from mission.oai import PROMPT_GNB, format_msg2_line, format_rtt_line, unknown_command_text
+from mission.oai import PROMPT_GNB, format_rtt_line, unknown_command_text
 from sitl_scenarios.gnb_faults import GnbFaults
+from sitl_scenarios.gnb_ra import OaiRaLog
 from sitl_scenarios.position import MavlinkPositionSource, PositionSource, static_position
 from sitl_scenarios.radio import RadioModel, RawRtt
 from sitl_scenarios.scenario import Scenario, load_scenario
@@ -135,8 +136,8 @@ class SimulatedGnb:
         self.lingering: dict[int, float] = {}
         #: why the simulated gNB crashed (as OAI does on a `ci` command with an unknown RNTI)
         self.crashed: str | None = None
-        self._rnti_rng = random.Random(int(seq.spawn(1)[0].generate_state(1)[0]))
-        self._ue_id = 0
+        #: writes OAI's random-access lines to log_path
+        self.ra_log = OaiRaLog(self.log_path, wall, random.Random(int(seq.spawn(1)[0].generate_state(1)[0])))
         #: recent RTT results with their truth, newest last (for tests and diagnostics)
         self.truth: collections.deque[RawRtt] = collections.deque(maxlen=100_000)
         self.requests = 0
@@ -148,7 +149,6 @@ class SimulatedGnb:
         self._tg: asyncio.TaskGroup | None = None
         self._handlers: set[asyncio.Task] = set()
         self._writers: set[asyncio.StreamWriter] = set()
-        self._frame_ra = 0
 
     # -- fault API ---------------------------------------------------------------------------
     def inject(self, kind: FaultKind, count: int = 1, delay_s: float | None = None) -> None:
@@ -448,22 +448,11 @@ class SimulatedGnb:
             w.close()
 
     # -- random accesses ------------------------------------------------------------------------
-    def _new_rnti(self) -> int:
-        while True:  # OAI draws TC-RNTIs at random
-            r = self._rnti_rng.randrange(1, 0xFFF0)
-            if r not in self.current_rnti and r not in self.lingering:
-                return r
+    def _frame(self) -> int:
+        return int(float(self.clock()) / 0.01) % 1023
 
-    def _ra_lines(self, k: int | None, ta: int, mu: int, tc: int) -> list[str]:
-        """L1, MAC and Msg2 lines of one random access (no stamps)."""
-        t = float(self.clock())
-        frame = int(t / 0.01) % 1023
-        self._frame_ra += 1
-        preamble = self._rnti_rng.randrange(64)
-        return [f"[NR_PHY] A [RAPROC] {frame}.19 Initiating RA procedure with preamble {preamble}, energy 44.5 dB "
-                f"(I0 0, thres 200), delay {ta} start symbol 8 freq index 0",
-                f"[NR_MAC] A {frame}.19 UE RA-RNTI 010b TC-RNTI {tc:04x}: initiating RA procedure",
-                format_msg2_line(tc, frame + 1, 10, 0x10B, preamble, ta, mu)]
+    def _new_rnti(self) -> int:
+        return self.ra_log.new_tc_rnti(set(self.current_rnti) | set(self.lingering))
 
     def _round_trip_ta(self, k: int) -> tuple[int, int] | None:
         """(PRACH timing estimate: the TA rounded to the nearest step, μ) of user k, or None."""
@@ -475,23 +464,9 @@ class SimulatedGnb:
         ta = res.ta + (1 if res.srs_peak / res.fs_hz >= step_s / 2 else 0)
         return min(ta, 3846), res.mu
 
-    def _write_log(self, lines: list[str]) -> None:
-        if self.log_path is None:
-            return
-        stamp = f"{self.wall():.6f} "
-        with self.log_path.open("a", encoding="utf-8") as fh:
-            fh.write("".join(stamp + ln + "\n" for ln in lines))
-
     def crnti_access(self, k: int) -> None:
         """User k, connected, does a C-RNTI random access: TA 0 (a residual), RNTI unchanged."""
-        old = self.current_rnti[k]
-        tc = self._new_rnti()
-        lines = self._ra_lines(k, 0, self.scenario.radio.mu, tc)
-        frame = lines[-1].split(": ", 1)[1].split(".", 1)[0]
-        lines += [f"[NR_MAC] A Received a MAC CE for C-RNTI with {old:04x}",
-                  f"[NR_MAC] I Received UL_SCH_LCID_C_RNTI with C-RNTI 0x{old:04x}, triggering RRC Reconfiguration",
-                  f"[NR_MAC] A  {frame}.19 RA with C-RNTI {old:04x} complete"]
-        self._write_log(lines)
+        self.ra_log.connected(self._frame(), self.current_rnti[k], self._new_rnti(), self.scenario.radio.mu)
 
     def reattach(self, k: int) -> int | None:
         """User k goes idle and attaches again (initial access, new RNTI, full TA), as after
@@ -500,19 +475,10 @@ class SimulatedGnb:
         got = self._round_trip_ta(k)
         if got is None:
             return None
-        ta, mu = got
         old, tc = self.current_rnti[k], self._new_rnti()
         self.lingering[old] = time.monotonic() + self.linger_s
         self.current_rnti[k] = tc
-        self._ue_id += 1
-        n = self._ue_id
-        lines = self._ra_lines(k, ta, mu, tc)
-        self._write_log([
-            *lines,
-            f"[NR_RRC] A [--] (cellID 0, UE ID {n} RNTI {tc:04x}) Create UE context: CU UE ID {n} DU UE ID {tc} "
-            f"(rnti: {tc:04x}, random ue id {self._rnti_rng.getrandbits(60):x})",
-            f"[NR_RRC] A [UL] (cellID bc614e, UE ID {n} RNTI {tc:04x}) Received RRCSetupComplete (RRC_CONNECTED "
-            f"reached)"])
+        self.ra_log.initial(self._frame(), tc, *got)
         return tc
 
     def reestablish(self, k: int) -> int | None:
@@ -521,14 +487,9 @@ class SimulatedGnb:
         got = self._round_trip_ta(k)
         if got is None:
             return None
-        ta, mu = got
         old, tc = self.current_rnti[k], self._new_rnti()
         self.current_rnti[k] = tc
-        lines = self._ra_lines(k, ta, mu, tc)
-        self._write_log([
-            *lines,
-            f"[NR_RRC] I Reestablishment RNTI {tc:04x} req C-RNTI {old:04x} physCellId 0 cause otherFailure",
-            f"[NR_RRC] A Send RRCReestablishment [34 bytes] to RNTI {tc:04x}"])
+        self.ra_log.reestablishment(self._frame(), old, tc, *got)
         return tc
 
     async def _react_later(self, k: int) -> None:
