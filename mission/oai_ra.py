@@ -256,12 +256,12 @@ class RaTracker:
     def feed(self, line: str) -> list[RandomAccess | RntiChange]:
         """One log line -> what it proved (usually nothing). Malformed RA lines raise GnbProtocolError."""
         self.lines += 1
-        if "RA" not in line and "RNTI" not in line:
-            return []
         t_s, stamp = parse_stamp(line)
         if t_s is not None:
             self.stamps[stamp] += 1
             self._expire(t_s)
+        if "RA" not in line and "RNTI" not in line:
+            return []
         if (pr := parse_prach_line(line)) is not None:
             self._bounded_put(self._prach, (pr.frame, pr.slot, pr.preamble), pr, self.max_pending)
             return []
