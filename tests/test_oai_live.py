@@ -301,8 +301,6 @@ def test_probe_command_against_the_real_gnb(oai, capsys):
     rc = main(["gnb", "probe", "--gnb", f"127.0.0.1:{oai.gnb_port}", "--mode", "stock", "--stock", "passive",
                "--gnb-log", str(oai.gnb_log), "--count", "1", "--json"])
     doc = json.loads(capsys.readouterr().out)
-    with capsys.disabled():
-        print("\n" + json.dumps(doc, indent=1)[:3000])
     found = [u for u in doc["ues"] if u["samples"]]
     assert doc["log_stamps"] == "wall_clock" and found and doc["gnb_rntis"]
     assert rc == (0 if doc["ok"] else 1)
