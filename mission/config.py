@@ -207,6 +207,24 @@ class MissionConfig:
     def noise_model(self) -> NoiseModel:
         return self.noise.noise_model()
 
+    def header_fields(self, home: Origin) -> dict:
+        """The mission log header's optional shape fields (DESIGN.md §10): `geofence` and
+        `no_fly_zones` as open [[lat_deg, lon_deg], ...] rings, `altitude_band_m` {min_m, max_m}
+        above home. Fields without a value are left out."""
+
+        def lat_lon(ring_enu_m: np.ndarray) -> list[list[float]]:
+            lat, lon, _ = home.enu_to_lla(np.column_stack([ring_enu_m, np.zeros(len(ring_enu_m))]))
+            return [[float(a), float(o)] for a, o in zip(np.atleast_1d(lat), np.atleast_1d(lon), strict=True)]
+
+        fence, zones = self.geofence.polygons_enu_m(home)
+        out: dict = {}
+        if fence is not None:
+            out["geofence"] = lat_lon(fence)
+        if zones:
+            out["no_fly_zones"] = [lat_lon(z) for z in zones]
+        out["altitude_band_m"] = {"min_m": self.flight.alt_min_m, "max_m": self.flight.alt_max_m}
+        return out
+
     def user_by_rnti(self, rnti: int) -> MissionUserConfig | None:
         return next((u for u in self.users if u.rnti == rnti), None)
 

@@ -75,6 +75,15 @@ class SafetyLimits:
     battery_rtl_pct: float = 25.0
 
     @classmethod
+    def from_mission(cls, mission, home: Origin) -> SafetyLimits:
+        """From a :class:`mission.config.MissionConfig` once home is known (geodetic polygons of
+        the mission file become home-ENU)."""
+        fence, zones = mission.geofence.polygons_enu_m(home)
+        return cls(fence_enu_m=fence, no_fly_enu_m=zones, max_distance_m=mission.geofence.max_distance_m,
+                   alt_min_m=mission.flight.alt_min_m, alt_max_m=mission.flight.alt_max_m,
+                   battery_rtl_pct=mission.safety.battery_rtl_pct)
+
+    @classmethod
     def from_scenario(cls, sc) -> SafetyLimits:
         """From a :class:`sitl_scenarios.scenario.Scenario` (its geofence and mission sections)."""
         g, m = sc.geofence, sc.mission

@@ -145,3 +145,22 @@ def test_every_bundled_scenario_has_a_valid_mission_part(path):
     assert mc.flight.budget_m == sc.mission.budget_m
     assert mc.noise_model() == sc.noise_model()
     assert not any(hasattr(u, "east_m") for u in mc.users)
+
+
+def test_header_fields_round_trip_to_the_report_and_the_safety_gate():
+    """mission file → log header fields → the report's shapes, and → the safety gate's limits."""
+    from mission.report import shapes_from_header
+    from mission.safety import SafetyGate, SafetyLimits
+
+    home = Origin(47.397742, 8.545594, 488.0)
+    mc = load_mission(EXAMPLE)
+    fields = mc.header_fields(home)
+    assert set(fields) == {"geofence", "no_fly_zones", "altitude_band_m"}
+    sh = shapes_from_header(fields)
+    back = home.lla_to_enu(sh.geofence_lat_lon_deg[:, 0], sh.geofence_lat_lon_deg[:, 1], np.full(4, home.alt_m))
+    np.testing.assert_allclose(back[:, :2], mc.geofence.polygon_enu_m, atol=1e-6)
+    assert sh.altitude_band_m == (20.0, 80.0) and len(sh.no_fly_lat_lon_deg) == 1
+    gate = SafetyGate(SafetyLimits.from_mission(mc, home))
+    assert gate.position_violations(np.array([0.0, 0.0, 40.0])) == []
+    assert any("no-fly zone 0" in v for v in gate.position_violations(np.array([75.0, -25.0, 40.0])))
+    assert any("band" in v for v in gate.position_violations(np.array([0.0, 0.0, 90.0])))
