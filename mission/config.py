@@ -17,16 +17,26 @@ known.
 Mission and world (the split phase 2 makes in `sitl_scenarios/`)::
 
     Scenario (sitl_scenarios, a simulation)  =  MissionConfig (this module: what is flown)
-                                              +  World (what is true: true user positions,
-                                                 buildings, radio truth (μ, fs, σ(d) drawn from,
-                                                 coverage, NLoS, UE clock sawtooth), vehicle model
-                                                 (speeds, GPS error, battery), faults, origin, seed)
+                                              +  World (what is true)
 
-`sitl_scenarios` imports `mission` and never the other way: a scenario file becomes a mission
-file plus a `[world]` part, and `Scenario.mission_config()` (in `sitl_scenarios/scenario.py`) is the
-bridge from today's scenario files until then. Only the world's truth differs between a
-simulation and a flight, so the simulated mission is flown with exactly the settings a real one
-would be.
+    World, a frozen dataclass in sitl_scenarios/ whose fields are today's scenario sections:
+      seed: int; origin: OriginConfig (the built-in vehicle's home)
+      users: per user id → true east_m, north_m, up_m, UE clock sawtooth (amplitude, period)
+      buildings: [BuildingConfig]            footprint + height (NLoS in the radio model)
+      radio: RadioConfig                     μ, fs, oversampling, σ(d) the radio draws from,
+                                             coverage, NLoS excess, SNR
+      vehicle: VehicleConfig                 speeds, acceleration, GPS error (σ, τ), battery
+      faults: {...}                          fault injection of the simulators
+
+    A scenario file is then `[mission]` (a mission file's tables, nested) plus `[world]`; a world
+    user is matched to a mission user by id, and a world without a user the mission names (or the
+    other way round) is an error. Speeds the mission asks (`flight.cruise_speed_mps`) and the
+    vehicle model's top speed are different things and may differ.
+
+`sitl_scenarios` imports `mission` and never the other way: `Scenario.mission_config()` (in
+`sitl_scenarios/scenario.py`) is the bridge from today's scenario files until then. Only the
+world's truth differs between a simulation and a flight, so the simulated mission is flown with
+exactly the settings a real one would be.
 
 Example: `mission/examples/flight.toml` (shipped as package data; :func:`example_mission_path`).
 """
@@ -106,7 +116,8 @@ class FlightConfig:
     user's 95 % error ellipse fits in this radius [m]; budget_m: survey metres; time_limit_s:
     mission time; cruise_speed_mps, climb_mps, descent_mps: speeds asked of the vehicle (and its
     leg / landing timeouts) [m/s]; leg_max_m: longest leg the planner may choose; acceptance_m:
-    arrival radius [m]; planner: "casadi", "lawnmower" or "circle"."""
+    arrival radius [m]; planner: "casadi", "greedy", "lawnmower", "circle" or "random" (not
+    "oracle": it needs the true positions a flight does not have)."""
 
     altitude_m: float = 30.0
     alt_min_m: float = 10.0
@@ -120,7 +131,7 @@ class FlightConfig:
     descent_mps: float = 1.5
     leg_max_m: float = 80.0
     acceptance_m: float = 2.0
-    planner: Literal["casadi", "lawnmower", "circle"] = "casadi"
+    planner: Literal["casadi", "greedy", "lawnmower", "circle", "random"] = "casadi"
 
 
 @dataclass(frozen=True)
@@ -268,10 +279,14 @@ def _convert(value: Any, tp: Any, where: str, key: str) -> Any:
         return value
     if tp is int:
         if isinstance(value, str):  # RNTIs are often written in hex: "0x4601"
+            # OAI prints RNTIs in hex without a prefix ("4601"): a bare digit string is ambiguous
+            if not value.strip().lower().startswith("0x"):
+                raise _fail(where, key, value, "expected an integer; a string must be hex with 0x "
+                            f"(\"0x{value.strip()}\"), or write the decimal number unquoted")
             try:
-                return int(value, 0)
+                return int(value, 16)
             except ValueError:
-                raise _fail(where, key, value, "expected an integer") from None
+                raise _fail(where, key, value, "expected an integer (hex with 0x)") from None
         if isinstance(value, bool) or not isinstance(value, int):
             raise _fail(where, key, value, "expected an integer")
         return value

@@ -70,6 +70,7 @@ BAD = [
     ("flight.altitude_m", 100.0, ["flight.altitude_m", "100.0", "alt_max_m"]),
     ("flight.planner", "rrt", ["flight.planner", "'rrt'", "'casadi'"]),
     ("users.0.rnti", "0xZZ", ["users[0].rnti", "'0xZZ'", "integer"]),
+    ("users.0.rnti", "4601", ["users[0].rnti", "'4601'", "hex with 0x", '"0x4601"']),
     ("users.0.rnti", 0, ["users[0].rnti", "0x0001..0xFFEF"]),
     ("users.1.rnti", "0x4601", ["users[1].rnti", "duplicate RNTI"]),
     ("users.0.id", None, ["missing required key", "id"]),
