@@ -59,6 +59,9 @@ from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from uavloc.errors import MissionConfigError
 
+if typing.TYPE_CHECKING:
+    from planner.types import PlanningConstraints
+
 EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 
 Polygon = tuple[tuple[float, float], ...]
@@ -157,6 +160,13 @@ class NoiseConfig:
         return NoiseModel(sigma_gps_m=self.sigma_gps_m, s0_m=self.range_s0_m, a_m=self.range_a_m,
                           b_per_m=self.range_b_per_m)
 
+    def header_noise(self) -> dict:
+        """The mission log header's `noise` section (DESIGN.md §10), with `gps_tau_s` when known."""
+        out = self.noise_model().to_log_dict()
+        if self.gps_tau_s is not None:
+            out["gps_tau_s"] = self.gps_tau_s
+        return out
+
 
 @dataclass(frozen=True)
 class GnbSettings:
@@ -235,6 +245,30 @@ class MissionConfig:
             out["no_fly_zones"] = [lat_lon(z) for z in zones]
         out["altitude_band_m"] = {"min_m": self.flight.alt_min_m, "max_m": self.flight.alt_max_m}
         return out
+
+    def planning_constraints(self, home: Origin, **overrides: Any) -> PlanningConstraints:
+        """The planner's constraints in the home ENU frame (home at (0, 0, 0); altitudes above
+        home become ENU up). `overrides` replace any field (e.g. margin_m=3.0)."""
+        from planner.types import PlanningConstraints
+
+        fence, zones = self.geofence.polygons_enu_m(home)
+        f = self.flight
+        kwargs = dict(
+            home_enu_m=np.zeros(3),
+            fence_enu_m=np.zeros((0, 2)) if fence is None else fence,
+            no_fly_enu_m=zones,
+            alt_min_m=f.alt_min_m,
+            alt_max_m=f.alt_max_m,
+            cruise_alt_m=f.altitude_m,
+            leg_max_m=f.leg_max_m,
+            max_distance_m=self.geofence.max_distance_m,
+            budget_m=f.budget_m,
+            delta_m=f.delta_m,
+            target_radius_m=f.target_radius_m,
+            min_leg_m=min(10.0, f.leg_max_m),
+        )
+        kwargs.update(overrides)
+        return PlanningConstraints(**kwargs)
 
     def user_by_rnti(self, rnti: int) -> MissionUserConfig | None:
         return next((u for u in self.users if u.rnti == rnti), None)

@@ -33,6 +33,8 @@ def test_example_mission_file_loads_with_its_values():
     assert mc.flight.altitude_m == 40.0 and mc.flight.cruise_speed_mps == 8.0
     assert mc.noise.noise_model().range_sigma_m(100.0) == pytest.approx(3.0)
     assert mc.gnb.mode == "rtt" and mc.safety.gnb_lost_wait_s == 20.0
+    assert mc.noise.header_noise() == {"sigma_gps_m": 1.0, "gps_tau_s": 5.0,
+                                       "range_sigma_m": {"s0": 3.0, "a": 0.0, "b": 0.0}}
     with pytest.raises(dataclasses.FrozenInstanceError):
         mc.flight.budget_m = 1.0  # type: ignore[misc]
 
@@ -165,3 +167,24 @@ def test_header_fields_round_trip_to_the_report_and_the_safety_gate():
     assert gate.position_violations(np.array([0.0, 0.0, 40.0])) == []
     assert any("no-fly zone 0" in v for v in gate.position_violations(np.array([75.0, -25.0, 40.0])))
     assert any("band" in v for v in gate.position_violations(np.array([0.0, 0.0, 90.0])))
+
+
+@pytest.mark.parametrize("path", bundled_scenarios(), ids=lambda p: p.stem)
+def test_planning_constraints_of_the_mission_part_equal_the_scenarios_without_buildings(path):
+    """The mission file gives the planner what the scenario gave it (buildings are the world's:
+    a scenario turns them into an altitude floor or no-fly zones, a mission file names no-fly zones)."""
+    from planner.types import PlanningConstraints
+
+    sc = load_scenario(path)
+    if sc.buildings:
+        sc = dataclasses.replace(sc, buildings=[])
+    want = PlanningConstraints.from_scenario(sc)
+    got = sc.mission_config().planning_constraints(Origin(sc.origin.lat_deg, sc.origin.lon_deg, sc.origin.alt_m))
+    for f in dataclasses.fields(PlanningConstraints):
+        a, b = getattr(got, f.name), getattr(want, f.name)
+        if f.name == "no_fly_enu_m":
+            assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+        elif isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=f.name)
+        else:
+            assert a == b, f.name
