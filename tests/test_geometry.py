@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import shapely
-from shapely.geometry import LineString, Point
+from shapely.geometry import Point
 
 from mission import geometry
 from planner import geometry as pg
@@ -72,27 +72,21 @@ def test_segment_blocked_by_prism_table(a, b, blocked):
 
 
 def test_prism_test_agrees_with_dense_sampling_of_the_segment():
-    """Reference: 20 001 points along the segment, blocked when one is inside the closed footprint
-    below the roof; segments are drawn so that no sample lies within 1e-6 of the decision."""
+    """Reference: 4 001 points along the segment, blocked when one is inside the closed footprint
+    below the roof (a random non-convex footprint, 120 seeded segments, both outcomes present)."""
     rng = np.random.default_rng(11)
     fp = star_polygon(rng, (0, 0), 9, 5, 20)
     shp = geometry.polygon(fp)
-    checked = 0
-    for _ in range(150):
+    outcomes = []
+    for _ in range(120):
         a = np.r_[rng.uniform(-40, 40, 2), rng.uniform(0, 40)]
         b = np.r_[rng.uniform(-40, 40, 2), rng.uniform(0, 5)]
-        s = np.linspace(0, 1, 20001)[:, None]
-        pts = a + s * (b - a)
-        inside = shapely.covers(shp, shapely.points(pts[:, :2]))
-        below = pts[:, 2] < 12.0
-        slow = bool(np.any(inside & below))
+        pts = a + np.linspace(0, 1, 4001)[:, None] * (b - a)
+        slow = bool(np.any(shapely.covers(shp, shapely.points(pts[:, :2])) & (pts[:, 2] < 12.0)))
         fast = geometry.segment_blocked_by_prism(a, b, fp, 12.0)
-        if slow != fast:  # only allowed when the crossing is thinner than the sampling step
-            seg = LineString([a[:2], b[:2]])
-            assert shp.boundary.distance(seg) < 1e-3 or abs(shp.intersection(seg).length) < 1e-3 * seg.length
-        else:
-            checked += 1
-    assert checked >= 140
+        assert fast is slow, (a, b)
+        outcomes.append(fast)
+    assert 20 <= sum(outcomes) <= 100
 
 
 # ---------------------------------------------------------------------------------------------
