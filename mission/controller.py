@@ -81,8 +81,10 @@ STATUS_RETURNED = "returned"  # a safety condition ended the survey early
 STATUS_ABORTED = "aborted"  # an error ended the mission (RTL sent when airborne)
 STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne)
 
-#: wall seconds the safe end may spend getting RTL accepted after an error or Ctrl-C
+#: wall seconds the safe end may spend getting RTL accepted after an error
 SAFE_END_TIMEOUT_S = 60.0
+#: ... and after Ctrl-C (the user waits; a second Ctrl-C exits at once, mission.runtime)
+INTERRUPT_SAFE_END_TIMEOUT_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -406,6 +408,8 @@ class MissionController:
         self._battery_start_pct: float | None = None
         self.loop_lag = LoopLagMonitor()
         self._on_leg = False  # flying a survey leg: the Δ-trigger is armed (not while hovering to plan)
+        self.result: MissionResult | None = None  # set when the mission ends (also when cancelled)
+        self._rtl_gave_up = False  # RTL retried for its whole time without being accepted
 
     # -- clock ----------------------------------------------------------------------------------
 
@@ -683,6 +687,7 @@ class MissionController:
                     log.warning("RTL attempt %d failed: %s", attempt, exc)
                     self._event(f"RTL attempt {attempt} failed: {exc}", kind="rtl_failed")
                 if time.monotonic() >= t_end:
+                    self._rtl_gave_up = True
                     return False
                 await asyncio.sleep(0.5)
                 continue
@@ -721,13 +726,13 @@ class MissionController:
         except asyncio.CancelledError:
             self._set_state(ABORT)
             self._event("mission interrupted (cancelled): returning home", kind="interrupted")
-            await self._safe_end("interrupted")
+            await self._safe_end("interrupted", INTERRUPT_SAFE_END_TIMEOUT_S)
             self._close(STATUS_INTERRUPTED, "interrupted", t_wall)
             raise
         except KeyboardInterrupt:
             self._set_state(ABORT)
             self._event("mission interrupted (Ctrl-C): returning home", kind="interrupted")
-            await self._safe_end("interrupted")
+            await self._safe_end("interrupted", INTERRUPT_SAFE_END_TIMEOUT_S)
             self._close(STATUS_INTERRUPTED, "interrupted", t_wall)
             raise
         except UavlocError as exc:
@@ -746,16 +751,17 @@ class MissionController:
             raise
         return self._close(status, reason, t_wall)
 
-    async def _safe_end(self, reason: str) -> None:
-        """Never leave the vehicle without a safe command: RTL when it may be airborne."""
-        if not self._connected or self._gated is None or self._rtl_sent:
+    async def _safe_end(self, reason: str, timeout_s: float = SAFE_END_TIMEOUT_S) -> None:
+        """Never leave the vehicle without a safe command: RTL when it may be airborne (trying
+        for at most timeout_s wall seconds)."""
+        if not self._connected or self._gated is None or self._rtl_sent or self._rtl_gave_up:
             return
         st = self.vehicle.state
         if st.armed is False and st.landed_state in ("ON_GROUND", "UNKNOWN"):
             return
         try:
-            async with asyncio.timeout(SAFE_END_TIMEOUT_S):
-                sent = await self._send_rtl(reason)
+            async with asyncio.timeout(timeout_s):
+                sent = await self._send_rtl(reason, retry_s=timeout_s)
         except TimeoutError:
             sent = False
         if not sent:
@@ -775,7 +781,7 @@ class MissionController:
             self._log_estimate(est, final=True)
         self._event(f"mission end: {status} ({reason})", kind="end", status=status)
         self._writer.close()
-        return MissionResult(
+        self.result = MissionResult(
             status=status, reason=reason, user_ids=[u.id for u in self.users], estimate=est,
             origin=self.origin, truth_enu_m=self.truth_enu_m, flown_m=self.flown_m,
             measurements=self.measurements, keyframes=len(self.keyframes),
@@ -783,6 +789,7 @@ class MissionController:
             wall_s=time.monotonic() - t_wall, rtl_sent=self._rtl_sent, landed=self._landed,
             refusals=self._gated.refusals if self._gated else 0, events=list(self.event_messages),
             loop_lag=self.loop_lag.summary())
+        return self.result
 
     def _final_estimate_sync(self) -> Estimate:
         up = np.array([u.up_m for u in self.users])

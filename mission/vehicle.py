@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
@@ -136,16 +137,28 @@ def _enum_name(value: Any) -> str:
     return getattr(value, "name", str(value))
 
 
+_library_wedged = False
+
+
+def vehicle_library_wedged() -> bool:
+    """True once a MAVSDK instance did not shut down in time (its threads are abandoned)."""
+    return _library_wedged
+
+
 class MavsdkVehicle:
     """:class:`Vehicle` over `mavsdk.asyncio` (one MAVSDK instance per vehicle).
 
     url: a MAVSDK connection URL, e.g. `udpin://0.0.0.0:14540` (PX4 SITL) or `udpin://127.0.0.1:PORT`.
-    request_timeout_s: wall-time limit of every request to the vehicle.
+    request_timeout_s: wall-time limit of every request to the vehicle; close_timeout_s: wall
+    seconds :meth:`close` waits for MAVSDK to shut down before abandoning it (a wedged MAVSDK never
+    returns from `destroy()`; see mission.runtime).
     """
 
-    def __init__(self, url: str, request_timeout_s: float = 10.0, position_rate_hz: float = 10.0):
+    def __init__(self, url: str, request_timeout_s: float = 10.0, position_rate_hz: float = 10.0,
+                 close_timeout_s: float = 5.0):
         self.url = url
         self.request_timeout_s = float(request_timeout_s)
+        self.close_timeout_s = float(close_timeout_s)
         self.position_rate_hz = float(position_rate_hz)
         self.state = VehicleState()
         self._mavsdk = None
@@ -188,9 +201,28 @@ class MavsdkVehicle:
         log.info("autopilot found on %s", self.url)
 
     async def close(self) -> None:
-        if self._mavsdk is not None:
-            mav, self._mavsdk = self._mavsdk, None
-            mav.destroy()
+        """Shut MAVSDK down in a daemon thread; give up on it after close_timeout_s (wall)."""
+        global _library_wedged
+        if self._mavsdk is None:
+            return
+        mav, self._mavsdk = self._mavsdk, None
+        done = threading.Event()
+
+        def destroy() -> None:
+            try:
+                mav.destroy()
+            except Exception:  # a failing shutdown must not hide the mission's result
+                log.exception("MAVSDK shutdown failed")
+            finally:
+                done.set()
+
+        threading.Thread(target=destroy, name="mavsdk-destroy", daemon=True).start()
+        deadline = time.monotonic() + self.close_timeout_s
+        while not done.is_set() and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+        if not done.is_set():
+            _library_wedged = True
+            log.error("MAVSDK did not shut down within %g s: abandoned", self.close_timeout_s)
 
     def _need(self) -> None:
         if self._system is None:
