@@ -152,7 +152,7 @@ def test_params_list_read_set() -> None:
             await param.set_param_float("MPC_XY_CRUISE", 7.5)
             assert await param.get_param_float("MPC_XY_CRUISE") == pytest.approx(7.5)
             assert link.sim.param("MPC_XY_CRUISE") == pytest.approx(7.5)
-            assert await link.action.get_return_to_launch_altitude() == pytest.approx(60.0)
+            assert await link.action.get_return_to_launch_altitude() == pytest.approx(30.0)  # PX4 SITL default
 
     asyncio.run(run())
 
