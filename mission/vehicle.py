@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 import threading
@@ -93,8 +94,11 @@ class Vehicle(Protocol):
         """Wait until global position and home are ok; return home."""
         ...
 
-    async def run_telemetry(self, on_position: Callable[[PositionFix], None]) -> None:
-        """Keep :attr:`state` up to date and call `on_position` on every fix, until cancelled."""
+    async def run_telemetry(self, on_position: Callable[[PositionFix], None],
+                            on_vehicle_time: Callable[[float, float], None] | None = None) -> None:
+        """Keep :attr:`state` up to date and call `on_position` on every fix, until cancelled;
+        `on_vehicle_time(t_mono_s, boot_s)` on every vehicle boot time received (MAVLink
+        `time_boot_ms`)."""
         ...
 
     async def arm(self) -> None: ...
@@ -102,6 +106,10 @@ class Vehicle(Protocol):
     async def takeoff(self, height_m: float) -> None: ...
 
     async def goto_location(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, yaw_deg: float) -> None: ...
+
+    async def set_speed(self, speed_mps: float) -> None:
+        """Command the horizontal cruise speed of the following legs (MAV_CMD_DO_CHANGE_SPEED)."""
+        ...
 
     async def return_to_launch(self) -> None: ...
 
@@ -256,8 +264,11 @@ class MavsdkVehicle:
 
     # -- telemetry ------------------------------------------------------------------------------
 
-    async def run_telemetry(self, on_position: Callable[[PositionFix], None]) -> None:
-        """Subscribe to every stream the mission uses; runs until cancelled."""
+    async def run_telemetry(self, on_position: Callable[[PositionFix], None],
+                            on_vehicle_time: Callable[[float, float], None] | None = None) -> None:
+        """Subscribe to every stream the mission uses; runs until cancelled. The vehicle's clock
+        comes from SYSTEM_TIME's `time_boot_ms` (MAVSDK's telemetry carries no timestamps; its
+        MavlinkDirect plugin gives the raw message)."""
         self._need()
         tel, st = self._telemetry, self.state
         await self._request("set position rate", tel.set_rate_position(self.position_rate_hz), optional=True)
@@ -311,8 +322,24 @@ class MavsdkVehicle:
                     if connected:
                         touch()
 
+        def on_system_time(msg) -> None:
+            if on_vehicle_time is None:
+                return
+            try:
+                boot_ms = json.loads(msg.fields_json)["time_boot_ms"]
+            except (ValueError, KeyError, TypeError):
+                log.debug("vehicle: SYSTEM_TIME without time_boot_ms: %r", msg.fields_json)
+                return
+            if isinstance(boot_ms, int | float) and math.isfinite(boot_ms) and boot_ms > 0:
+                on_vehicle_time(time.monotonic(), boot_ms / 1000.0)
+
         async with asyncio.TaskGroup() as tg:
             tg.create_task(follow(tel.subscribe_position(), on_pos))
+            if on_vehicle_time is not None:
+                from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+
+                direct = MavlinkDirectAsync(self._system)
+                tg.create_task(follow(direct.subscribe_message("SYSTEM_TIME"), on_system_time))
             tg.create_task(follow(tel.subscribe_home(), on_home))
             tg.create_task(follow(tel.subscribe_battery(), on_battery))
             tg.create_task(follow(tel.subscribe_health(), on_health))
@@ -362,6 +389,13 @@ class MavsdkVehicle:
             f"goto ({lat_deg:.7f}, {lon_deg:.7f}, {alt_amsl_m:.1f} m AMSL)",
             self._action.goto_location(lat_deg, lon_deg, alt_amsl_m, yaw_deg),
         )
+
+    async def set_speed(self, speed_mps: float) -> None:
+        """MAV_CMD_DO_CHANGE_SPEED (ground speed) through MAVSDK's `set_current_speed`. PX4 (v1.18-dev
+        SITL, measured) flies the following repositions at this speed instead of MPC_XY_CRUISE and
+        keeps it over later repositions; MAVSDK's goto_location sends no speed of its own."""
+        self._need()
+        await self._request(f"set speed {speed_mps:g} m/s", self._action.set_current_speed(float(speed_mps)))
 
     async def return_to_launch(self) -> None:
         self._need()
