@@ -48,3 +48,53 @@ def test_uavloc_sim_exits_with_its_result_when_mavsdk_wedges(tmp_path: Path) -> 
     events = [r for r in records if r["type"] == "event"]
     assert any(e.get("kind") == "goto_failed" and "UNKNOWN" in e["message"] for e in events), events
     assert events[-1]["kind"] == "end" and events[-1]["status"] == "aborted"
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+@pytest.mark.parametrize("ctrl_c", [1, 2])
+def test_ctrl_c_ends_uavloc_sim_when_mavsdk_wedges(tmp_path: Path, ctrl_c: int) -> None:
+    """One Ctrl-C: RTL tried for a bounded time, result printed, exit 130. A second Ctrl-C: exit 130 at once."""
+    import os
+    import signal
+    import time
+
+    text = (SCENARIO_DIR / "three_users_nlos.toml").read_text()
+    scenario = tmp_path / "wedge.toml"
+    scenario.write_text(text + '\n[[faults.vehicle]]\nkind = "reposition_refused"\nat_s = 0.0\n')
+    out = tmp_path / "out"
+    log_path = out / "mission.jsonl"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mission", "sim", str(scenario), "--planner", "lawnmower", "--out", str(out), "--json"],
+        cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+
+    def wait_log(needle: str) -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            if log_path.exists() and needle in log_path.read_text():
+                return
+            time.sleep(0.05)
+        raise AssertionError(f"{needle!r} never logged")
+
+    try:
+        wait_log('"kind":"goto_failed"')
+        proc.send_signal(signal.SIGINT)
+        if ctrl_c == 2:
+            wait_log('"kind":"interrupted"')
+            proc.send_signal(signal.SIGINT)
+        try:
+            stdout, stderr = proc.communicate(timeout=300)
+        except subprocess.TimeoutExpired as exc:
+            raise AssertionError("uavloc sim did not return after Ctrl-C") from exc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, stderr[-3000:]
+    records = [json.loads(line) for line in log_path.read_text().splitlines()]  # every line complete
+    kinds = [r.get("kind") for r in records if r["type"] == "event"]
+    assert "interrupted" in kinds
+    if ctrl_c == 1:
+        assert json.loads(stdout)["status"] == "interrupted"
+        assert kinds[-1] == "end"
