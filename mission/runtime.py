@@ -48,7 +48,21 @@ class BoundedRun:
         self.stuck = False
 
     def run(self, coro: Coroutine[Any, Any, Any]) -> Any:
-        """Run `coro` to completion; re-raises its exception (CancelledError after a Ctrl-C)."""
+        """Run `coro` to completion; re-raises its exception (CancelledError after a Ctrl-C).
+        A project error (`UavlocError`) with stuck vehicle-library threads is reported here and
+        ends the process with exit code 1 (the CLI's error code), since the interpreter's exit
+        would hang."""
+        from uavloc.errors import UavlocError
+
+        try:
+            return self._run(coro)
+        except UavlocError as exc:
+            if self.stuck:
+                log.error("%s", exc)
+                _hard_exit(1)
+            raise
+
+    def _run(self, coro: Coroutine[Any, Any, Any]) -> Any:
         loop = asyncio.new_event_loop()
         executor = ThreadPoolExecutor(self.max_workers, thread_name_prefix="uavloc-io")
         loop.set_default_executor(executor)
