@@ -257,7 +257,24 @@ _CHILD_ONLINE: OnlineEstimator | None = None
 
 def _child_init(n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams) -> None:
     global _CHILD_ONLINE
+    _die_with_parent()
     _CHILD_ONLINE = OnlineEstimator(n_users, user_up_m, noise, params)
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGTERM this process when its parent dies (a crashed or hard-exited uavloc must not
+    leave the estimator child behind holding its stdout). Elsewhere a no-op."""
+    import ctypes
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+        if os.getppid() == 1:  # the parent is already gone
+            os._exit(0)
 
 
 def _child_ping() -> int:
@@ -950,7 +967,11 @@ class MissionController:
                 # it and replan from wherever the vehicle is then
                 refusals += 1
                 self._event(f"goto failed: {exc}", kind="goto_failed")
-                if refusals >= cfg.max_refusals:
+                if getattr(exc, "result", None) == "UNKNOWN":
+                    # MAVSDK 4.1's answer to a MAV_RESULT it does not know (PX4's 9 to a reposition):
+                    # it stops delivering telemetry and may crash on later calls, so send nothing but RTL
+                    self.request_return(f"the vehicle library answered UNKNOWN: {exc}")
+                elif refusals >= cfg.max_refusals:
                     self.request_return(f"{refusals} gotos in a row failed: {exc}")
                 await self._wait_link()
                 continue
