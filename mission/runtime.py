@@ -68,6 +68,7 @@ class BoundedRun:
         loop.set_default_executor(executor)
         task = loop.create_task(coro)
         handler_set = False
+        previous = signal.getsignal(signal.SIGINT)
         if threading.current_thread() is threading.main_thread():
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(signal.SIGINT, self._on_sigint, task)
@@ -77,7 +78,11 @@ class BoundedRun:
         finally:
             if handler_set:
                 loop.remove_signal_handler(signal.SIGINT)
+                # until the process ends, a Ctrl-C after the first one exits at once
+                signal.signal(signal.SIGINT, self._on_late_sigint)
             self._close_loop(loop, executor)
+            if handler_set and self.interrupts == 0 and not self.stuck:
+                signal.signal(signal.SIGINT, previous)  # a clean run leaves Ctrl-C as it was
 
     def _on_sigint(self, task: asyncio.Task) -> None:
         self.interrupts += 1
@@ -88,6 +93,14 @@ class BoundedRun:
             return
         print("\nCtrl-C again: exiting now", file=sys.stderr, flush=True)
         _hard_exit(EXIT_INTERRUPTED)
+
+    def _on_late_sigint(self, signum: int, frame: Any) -> None:
+        """SIGINT once the mission's loop has ended (shutdown, result printing)."""
+        self.interrupts += 1
+        if self.interrupts >= 2 or self.stuck:
+            print("\nCtrl-C again: exiting now", file=sys.stderr, flush=True)
+            _hard_exit(EXIT_INTERRUPTED)
+        raise KeyboardInterrupt
 
     def _close_loop(self, loop: asyncio.AbstractEventLoop, executor: ThreadPoolExecutor) -> None:
         t_end = time.monotonic() + self.shutdown_timeout_s
@@ -124,7 +137,17 @@ class BoundedRun:
 
 
 def _hard_exit(code: int) -> None:
-    """Flush what can be flushed and end the process at once."""
+    """End child processes (the estimator's worker would otherwise outlive us holding our stdout),
+    flush what can be flushed and end the process at once."""
+    import multiprocessing
+
+    children = multiprocessing.active_children()
+    for child in children:
+        with contextlib.suppress(Exception):
+            child.terminate()
+    for child in children:
+        with contextlib.suppress(Exception):
+            child.join(1.0)
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()
