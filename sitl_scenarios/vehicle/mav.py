@@ -58,7 +58,8 @@ CMD_REQUEST_AUTOPILOT_CAPABILITIES = mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILIT
 #: COMPONENT_ARM_DISARM param2 that forces arming / disarming (MAVLink's documented magic number,
 #: not an enum value in common.xml)
 FORCE_MAGIC = 21196.0
-# the first and last MAV_CMD_DO_* command (common.xml), gimbal manager and camera / video ranges
+# MAVLink's command-number ranges (conventions of common.xml, not enum values): DO commands
+# (MAV_CMD_DO_SET_MODE .. 252), the gimbal manager, camera / video
 CMD_DO_FIRST, CMD_DO_LAST = mavlink.MAV_CMD_DO_SET_MODE, 252
 CMD_GIMBAL_FIRST, CMD_GIMBAL_LAST = 1000, 1001
 CMD_CAMERA_FIRST, CMD_CAMERA_LAST = 2000, 2600
