@@ -54,7 +54,8 @@ class VehicleSimulator:
     to the vehicle is answered too; bind: local (host, port), port 0 picks a free one; faults:
     scheduled fault events; gps_fix_delay_s: simulated time until the first GPS fix;
     tick_wall_s: simulation step in wall seconds; max_stream_wall_hz: cap of each stream's rate
-    on the wire.
+    on the wire; clock: the wall clock [s] the simulation follows (time.monotonic; a test can hand
+    in one it moves itself).
 
     Start/stop: `async with` (the caller's loop is never blocked: the simulation runs in a
     thread), `with`, or :meth:`start` / :meth:`stop`. An error inside the simulation thread is
@@ -74,6 +75,7 @@ class VehicleSimulator:
         gps_fix_delay_s: float = 2.0,
         tick_wall_s: float = 0.01,
         max_stream_wall_hz: float = 25.0,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if not (math.isfinite(speedup) and speedup > 0):
             raise SimulatorError(f"speedup must be a positive number, got {speedup!r}")
@@ -90,6 +92,7 @@ class VehicleSimulator:
             targets = [tuple(t) for t in target]
         self.tick_wall_s = tick_wall_s
         self.max_stream_wall_hz = max_stream_wall_hz
+        self._clock = clock
         self._rng = np.random.default_rng([int(seed), 0x5EED])
         self._ap = Autopilot(origin, self.vehicle, self._rng, gps_fix_delay_s=gps_fix_delay_s)
         self._faults = VehicleFaults(faults)
@@ -255,17 +258,18 @@ class VehicleSimulator:
     # --- thread -------------------------------------------------------------------------------
     def _run(self) -> None:
         try:
-            self._wall_last_s = time.monotonic()
+            self._wall_last_s = self._clock()
             next_tick = self._wall_last_s
             while not self._stop.is_set():
-                now = time.monotonic()
+                now = self._clock()
                 if now >= next_tick:
                     with self._lock:
                         self._tick(now)
                     next_tick = max(next_tick + self.tick_wall_s, now)
                 sock = self._link.sock
                 assert sock is not None
-                readable, _, _ = select.select([sock], [], [], max(0.0, next_tick - time.monotonic()))
+                wait_s = min(max(0.0, next_tick - self._clock()), self.tick_wall_s)
+                readable, _, _ = select.select([sock], [], [], wait_s)
                 if readable:
                     self._receive_all()
         except BaseException as exc:  # handed to stop()/state(); the thread must not die silently

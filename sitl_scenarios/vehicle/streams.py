@@ -85,7 +85,7 @@ class StreamSchedule:
     def interval_us(self, msg_id: int) -> int:
         """MESSAGE_INTERVAL.interval_us of a stream (-1: not streamed)."""
         iv = self.intervals_s[msg_id]
-        return -1 if iv is None else int(iv * 1e6)
+        return -1 if iv is None else round(iv * 1e6)
 
     def due(self, now: float) -> list[int]:
         """The streams to send at wall time `now` [s], their next send times moved on."""
