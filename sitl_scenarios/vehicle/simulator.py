@@ -124,7 +124,6 @@ class VehicleSimulator:
         return cls(scenario.origin_geo, scenario.vehicle, **kwargs)
 
     # --- lifecycle ----------------------------------------------------------------------------
-    # --- lifecycle ----------------------------------------------------------------------------
     def start(self) -> None:
         """Bind the socket and start the simulation thread (returns at once)."""
         if self._thread is not None:
