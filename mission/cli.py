@@ -31,6 +31,7 @@ COMMANDS = {
     "replay": "mission.commands.replay",
     "calibrate": "mission.commands.calibrate",
     "import": "mission.commands.importer",
+    "campaign": "sitl_scenarios.commands.campaign",
 }
 
 EXIT_OK = 0
