@@ -117,8 +117,8 @@ def _inside(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
     return np.sum(up, axis=-1) - np.sum(down, axis=-1) != 0
 
 
-def generate_scenario(fam: FamilySpec, j: int) -> Scenario:
-    """Scenario j of the family (seeded by fam.seed + j; named `<family><j>`)."""
+def generate_scenario(fam: FamilySpec, j: int, where: str = "") -> Scenario:
+    """Scenario j of the family (seeded by fam.seed + j; named `<family><j>`); `where` prefixes errors."""
     rng = np.random.default_rng(fam.seed + j)
 
     def uniform(key: str) -> float:
@@ -198,4 +198,4 @@ def generate_scenario(fam: FamilySpec, j: int) -> Scenario:
         "vehicle": {"speed_mps": fam.speed_mps, "gps_sigma_m": gps_sigma_m, "gps_tau_s": gps_tau_s},
         "mission": {**DEFAULT_MISSION, **fam.mission},
     }
-    return scenario_from_dict(data, name)
+    return scenario_from_dict(data, f"{where} scenario {name}" if where else name)

@@ -2,7 +2,9 @@
 
 Each run starts its own simulators on ports the OS chooses (UDP for MAVLink, TCP for the gNB's
 telnet), so any number of runs can share a machine, and flies the mission controller exactly as
-`uavloc sim` does, with the run's planner, estimator settings and seed. Its mission log (in a
+`uavloc sim` does, with the run's planner, estimator settings and seed. The estimator runs in a
+thread of the run's own process (a campaign's unit of parallelism is the worker process; Dask's
+worker processes are daemons and may not start children). Its mission log (in a
 temporary folder) is then read back for the record:
 
 - metres flown: the controller's own odometer (mission.telemetry.odometer_m, dead band
@@ -35,7 +37,8 @@ def fly_full(sc: Scenario, planner_name: str, params: SolverParams, seed: int, t
 
         async def main():
             async with SimulatedMission(sc, log_path=log_path, seed=seed, speedup=speedup, planner=planner_name,
-                                        controller_overrides={"params": params}) as sim:
+                                        controller_overrides={"params": params,
+                                                                      "estimator_mode": "thread"}) as sim:
                 return await sim.run()
 
         result = asyncio.run(main())

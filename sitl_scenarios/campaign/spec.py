@@ -269,7 +269,7 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
         try:
             validate_family(fam, f"families[{i}]")
             for j in range(fam.count):
-                sc = generate_scenario(fam, j)
+                sc = generate_scenario(fam, j, f"families[{i}]")
                 scenarios.append((fam.name, sc, _scenario_params(sc, f"family:{fam.name}")))
         except ScenarioError as exc:
             raise _err(where, str(exc)) from exc
