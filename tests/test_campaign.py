@@ -231,3 +231,23 @@ def test_the_planner_benchmark_spec_loads():
     campaign = load_spec(REPO / "benchmarks" / "planner_campaign.toml")
     assert len(campaign.runs) == 30 * 6 and campaign.targets_m == (1.0, 0.6)
     assert {r.params.window for r in campaign.runs} == {40}
+
+
+def test_the_command_writes_results_summary_and_figures_and_exits_non_zero_on_failed_runs(tmp_path, capsys):
+    from mission.cli import main
+
+    (tmp_path / "outside.toml").write_text(OUTSIDE)
+    data = copy.deepcopy(SPEC)
+    data["campaign"]["planners"] = ["lawnmower"]
+    data["families"][0]["count"] = 1
+    (tmp_path / "spec.toml").write_text(_toml(data))
+    out = tmp_path / "out"
+    assert main(["campaign", str(tmp_path / "spec.toml"), "--workers", "0", "--out", str(out), "--no-progress"]) == 0
+    for name in ("summary.csv", "summary.txt", "metres_to_target.png", "error_vs_bound.png"):
+        assert (out / name).stat().st_size > 0, name
+    printed = capsys.readouterr().out
+    assert "small" in printed and "lawnmower" in printed and "1 run now on local" in printed
+    data["scenarios"] = [{"file": "outside.toml"}]
+    (tmp_path / "spec.toml").write_text(_toml(data))
+    assert main(["campaign", str(tmp_path / "spec.toml"), "--workers", "0", "--out", str(out), "--no-progress"]) == 1
+    assert "1 already done, 1 failed" in capsys.readouterr().out
