@@ -8,8 +8,8 @@ and whether every run's record is identical across them.
 
 The external cluster is started separately, e.g. (from this repository's venv, loopback only):
 
-    dask scheduler --host 127.0.0.1 --port 8786 --no-dashboard &
-    dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 --no-dashboard &
+    dask scheduler --host 127.0.0.1 --port 8786 --dashboard-address 127.0.0.1:8787 &
+    dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 --host 127.0.0.1 --dashboard-address 127.0.0.1:0 &
 
 Wall time is from the first submission to the last result (cluster start-up excluded, printed
 apart). Identical records: every column but the timing ones (wall time, plan compute times, worker)

@@ -64,8 +64,9 @@ def cluster():
     """A LocalCluster of 2 single-threaded worker processes, reached by address like an external one."""
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, scheduler_port=0,
-                      dashboard_address=None) as c:
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, scheduler_port=0, dashboard_address=None,
+                      scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                      worker_dashboard_address="127.0.0.1:0") as c:
         yield c
 
 

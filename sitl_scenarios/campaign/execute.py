@@ -141,9 +141,12 @@ def _run_dask(todo: list[RunSpec], scheduler: str | None, workers: int | None,
     cluster = None
     if scheduler is None:
         n = workers or os.cpu_count() or 1
-        # one single-threaded process per worker: the estimator and IPOPT hold the GIL
+        # one single-threaded process per worker: the estimator and IPOPT hold the GIL. Every port is
+        # chosen by the OS on loopback: no dashboard, and the scheduler's and workers' HTTP endpoints
+        # (health, metrics) on 127.0.0.1:0 rather than 8787 on all interfaces
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, scheduler_port=0,
-                               dashboard_address=None)
+                               dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                               worker_dashboard_address="127.0.0.1:0")
         result.where = f"LocalCluster({n})"
     else:
         result.where = scheduler
