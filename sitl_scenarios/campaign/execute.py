@@ -151,7 +151,11 @@ def _run_dask(todo: list[RunSpec], scheduler: str | None, workers: int | None,
     else:
         result.where = scheduler
     try:
-        with Client(cluster if cluster is not None else scheduler) as client:
+        try:
+            client = Client(cluster if cluster is not None else scheduler, timeout=30)
+        except (OSError, TimeoutError) as exc:
+            raise CampaignError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from exc
+        with client:
             if scheduler is not None:
                 if workers:
                     log.info("--workers is ignored with --scheduler (the cluster has its own workers)")
@@ -174,6 +178,9 @@ def _run_dask(todo: list[RunSpec], scheduler: str | None, workers: int | None,
                 fut.release()
                 arrived(rec)
             result.wall_s = time.perf_counter() - t0
+    except OSError as exc:  # the scheduler went away mid-campaign (CommClosedError is an OSError)
+        raise CampaignError(f"lost the Dask cluster at {result.where}: {exc}; the results so far are saved, "
+                            "run the same spec again to resume") from exc
     finally:
         if cluster is not None:
             cluster.close()
