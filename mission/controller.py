@@ -973,6 +973,11 @@ class MissionController:
         refusals = 0
         leg = 0
         while self._return_reason is None and self._stop_status is None:
+            # while the vehicle link is lost, wait (the safety monitor returns home after
+            # link_lost_wait_s) rather than plan from a stale fix and command into the void
+            await self._wait_link()
+            if self._return_reason is not None or self._stop_status is not None:
+                break
             pos = self._pos_enu()
             try:
                 plan = await self._plan(pos)
