@@ -88,6 +88,12 @@ STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne
 #: command was refused, so the leg timeouts follow it then
 PX4_DEFAULT_CRUISE_MPS = 5.0
 
+#: flight modes an autopilot switches to on its own failsafe (PX4: GPS/position loss → LAND, low
+#: battery or data-link loss → RETURN_TO_LAUNCH); the controller never commands LAND
+AUTOPILOT_FAILSAFE_MODES = ("LAND", "RETURN_TO_LAUNCH")
+#: STATUSTEXT severities copied into the mission log as `vehicle_text` events
+LOGGED_TEXT_SEVERITIES = ("WARNING", "ERROR", "CRITICAL", "ALERT", "EMERGENCY")
+
 #: wall seconds the safe end may spend getting RTL accepted after an error
 SAFE_END_TIMEOUT_S = 60.0
 #: ... and after Ctrl-C (the user waits; a second Ctrl-C exits at once, mission.runtime)
@@ -437,6 +443,9 @@ class MissionController:
         self._rtl_gave_up = False  # RTL retried for its whole time without being accepted
         self._leg_speed_mps = PX4_DEFAULT_CRUISE_MPS  # the speed the vehicle flies legs at (commanded or default)
         self._speed_refusals = 0
+        self._texts_logged = 0  # vehicle status texts looked at so far
+        self._position_lost = False  # the vehicle reports no valid global position (GPS/estimator)
+        self._autopilot_landing = False  # RTL not sent: the autopilot was already landing on its own
 
     # -- clock ----------------------------------------------------------------------------------
 
@@ -663,8 +672,20 @@ class MissionController:
                 self._event(f"vehicle link restored after {now - self._link_lost_since:.1f} s",
                             kind="link_restored")
                 self._link_lost_since = None
+            self._log_vehicle_texts(st)
+            if not lost and st.global_position_ok == self._position_lost and self.origin is not None:
+                self._position_lost = not st.global_position_ok
+                if self._position_lost:
+                    self._event("vehicle global position lost (GPS or estimator)", kind="position_lost")
+                else:
+                    self._event("vehicle global position restored", kind="position_restored")
             if self.state not in (TAKEOFF, SURVEY):
                 continue
+            if self._position_lost:
+                self.request_return("the vehicle lost its global position (GPS)")
+            if not lost and st.flight_mode in AUTOPILOT_FAILSAFE_MODES:
+                self.request_return(f"the autopilot switched to {st.flight_mode} on its own (failsafe"
+                                    + (f": {self._last_vehicle_text}" if self._last_vehicle_text else "") + ")")
             if self._link_lost_since is not None and now - self._link_lost_since > cfg.link_lost_wait_s:
                 self.request_return(f"vehicle link lost for more than {cfg.link_lost_wait_s:g} s")
             reason = self.gate.return_reason(None, st.battery_pct)
@@ -678,6 +699,18 @@ class MissionController:
                 self.request_return(f"gNB lost for more than {cfg.gnb_lost_wait_s:g} s")
             if now > cfg.time_limit_s:
                 self.request_return(f"mission time limit {cfg.time_limit_s:g} s reached")
+
+    _last_vehicle_text: str | None = None
+
+    def _log_vehicle_texts(self, st) -> None:
+        """Copy the vehicle's new warnings and worse (PX4's failsafe messages) into the log."""
+        texts = st.texts
+        while self._texts_logged < len(texts):
+            _, severity, text = texts[self._texts_logged]
+            self._texts_logged += 1
+            if severity in LOGGED_TEXT_SEVERITIES and text:
+                self._last_vehicle_text = text
+                self._event(f"vehicle {severity.lower()}: {text}", kind="vehicle_text", severity=severity)
 
     async def _status_task(self) -> None:
         while True:
@@ -712,6 +745,12 @@ class MissionController:
         attempt = 0
         while True:
             attempt += 1
+            if self.vehicle.state.flight_mode == "LAND":
+                # the autopilot's own failsafe is landing the vehicle (PX4 after a GPS loss): that is
+                # a safe command already, and RTL would be refused without a position
+                self._autopilot_landing = True
+                self._event(f"RTL not sent: the autopilot is already landing ({reason})", kind="autopilot_land")
+                return True
             try:
                 await self._gated.return_to_launch()
             except VehicleError as exc:
@@ -934,6 +973,11 @@ class MissionController:
         refusals = 0
         leg = 0
         while self._return_reason is None and self._stop_status is None:
+            # while the vehicle link is lost, wait (the safety monitor returns home after
+            # link_lost_wait_s) rather than plan from a stale fix and command into the void
+            await self._wait_link()
+            if self._return_reason is not None or self._stop_status is not None:
+                break
             pos = self._pos_enu()
             try:
                 plan = await self._plan(pos)
