@@ -31,6 +31,7 @@ COMMANDS = {
     "replay": "mission.commands.replay",
     "calibrate": "mission.commands.calibrate",
     "import": "mission.commands.importer",
+    "view": "mission.commands.view",
 }
 
 EXIT_OK = 0
