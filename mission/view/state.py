@@ -276,8 +276,10 @@ class ViewState:
             "keyframes": self.keyframes, "vehicle": self.vehicle, "waypoint": self.waypoint,
             "users": self.users_frame(),
         }
-        if cursor.static != self.static_version:
+        if cursor.static != self.static_version and self.static:
             doc["static"] = self.static
+        elif not self.static:
+            new.static = cursor.static
         for name in ("track", "est_track", "events"):
             part, new.series[name] = getattr(self, name).since(cursor.series.get(name))
             doc[name] = part

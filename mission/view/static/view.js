@@ -5,11 +5,12 @@
 (() => {
   const SVGNS = "http://www.w3.org/2000/svg";
   const COLORS = ["#d35400", "#16a085", "#8e44ad", "#c0392b", "#2980b9", "#7a8a00", "#d63384", "#34495e"];
-  const WARN_KINDS = new Set(["return", "rtl", "rtl_failed", "gnb_lost", "link_lost", "abort", "interrupted",
-    "refused", "dropped", "estimator_error", "leg_timeout", "landing_timeout", "goto_failed"]);
+  const WARN_KINDS = new Set(["return", "rtl_failed", "gnb_lost", "link_lost", "abort", "interrupted",
+    "refused", "dropped", "estimator_error", "leg_timeout", "landing_timeout", "goto_failed", "breach"]);
+  const NOTE_KINDS = new Set(["rtl", "stop", "landed", "end", "gnb_restored", "link_restored"]);
   const $ = (id) => document.getElementById(id);
   const S = { info: null, static: null, frame: null, series: { track: null, est_track: null, events: null } };
-  const view = { cx: 0, cy: 0, scale: 2, auto: true, w: 800, h: 600 };
+  const view = { cx: 0, cy: 0, scale: 2, auto: true, whole: false, w: 800, h: 600 };
   let frames = 0;
 
   // ---- frames -------------------------------------------------------------------------------
@@ -25,7 +26,7 @@
   }
 
   function applyFrame(f) {
-    if (f.static) S.static = f.static;
+    if (f.static && f.static.origin) S.static = f.static;
     let ok = true;
     for (const name of ["track", "est_track", "events"]) if (f[name]) ok = mergeSeries(name, f[name]) && ok;
     S.frame = f;
@@ -66,7 +67,11 @@
     const add = (e, n) => { if (isFinite(e) && isFinite(n)) { xs.push(e); ys.push(n); } };
     add(0, 0);
     const st = S.static || {};
-    (st.geofence || []).forEach((p) => add(p[0], p[1]));
+    // "fit" follows the action (track, users, waypoint, buildings); "area" shows the whole fence
+    if (view.whole) {
+      (st.geofence || []).forEach((p) => add(p[0], p[1]));
+      (st.no_fly_zones || []).forEach((z) => z.forEach((p) => add(p[0], p[1])));
+    }
     (st.buildings || []).forEach((b) => b.footprint.forEach((p) => add(p[0], p[1])));
     Object.values(st.truth || {}).forEach((p) => add(p[0], p[1]));
     const tr = S.series.track ? S.series.track.items : [];
@@ -79,7 +84,7 @@
 
   function fit() {
     const [x0, y0, x1, y1] = contentBox();
-    const wm = Math.max(x1 - x0, 20), hm = Math.max(y1 - y0, 20);
+    const wm = Math.max(x1 - x0, 60), hm = Math.max(y1 - y0, 60);
     view.scale = Math.min((view.w - 60) / wm, (view.h - 60) / hm);
     view.cx = (x0 + x1) / 2;
     view.cy = (y0 + y1) / 2;
@@ -101,7 +106,7 @@
       if (isMajor) maj += seg; else minor += seg;
       if (isMajor || step * view.scale > 90) {
         const [x] = toScreen(e, 0);
-        el("text", { x: x + 2, y: view.h - 4, class: "gridlabel" }, labels).textContent = `${+e.toFixed(6)} m E`;
+        if (x > 60) el("text", { x: x + 2, y: view.h - 4, class: "gridlabel" }, labels).textContent = `${+e.toFixed(6)} m E`;
       }
     }
     for (let n = Math.ceil(n0 / step) * step; n <= n1; n += step) {
@@ -110,7 +115,7 @@
       if (isMajor) maj += seg; else minor += seg;
       if (isMajor || step * view.scale > 90) {
         const [, y] = toScreen(0, n);
-        el("text", { x: 4, y: y - 2, class: "gridlabel" }, labels).textContent = `${+n.toFixed(6)} m N`;
+        if (y > 44 && y < view.h - 16) el("text", { x: 4, y: y - 2, class: "gridlabel" }, labels).textContent = `${+n.toFixed(6)} m N`;
       }
     }
     el("path", { d: minor, class: "gridline" }, g);
@@ -163,11 +168,11 @@
     const a = $("area"), b = $("buildings");
     clear(a); clear(b);
     const st = S.static;
-    if (!st) return;
+    if (!st || !st.origin) return;
     if (st.max_distance_m) el("circle", { cx: 0, cy: 0, r: st.max_distance_m, class: "maxdist" }, a);
     if (st.geofence) el("polygon", { points: pts(st.geofence), class: "fence", id: "geofence" }, a);
-    st.no_fly_zones.forEach((z, i) => el("polygon", { points: pts(z), class: "nofly", "data-zone": i }, a));
-    st.buildings.forEach((bd) => {
+    (st.no_fly_zones || []).forEach((z, i) => el("polygon", { points: pts(z), class: "nofly", "data-zone": i }, a));
+    (st.buildings || []).forEach((bd) => {
       const poly = el("polygon", { points: pts(bd.footprint), class: "building" }, b);
       el("title", {}, poly).textContent = `building ${bd.height_m} m`;
     });
@@ -273,6 +278,7 @@
         const ev = evs[i];
         const li = document.createElement("li");
         if (WARN_KINDS.has(ev.kind)) li.className = "warn";
+        else if (NOTE_KINDS.has(ev.kind)) li.className = "note";
         const t = document.createElement("span");
         t.className = "t"; t.textContent = `${fmt(ev.t, 1)} s`;
         li.append(t, ev.message);
@@ -287,7 +293,7 @@
     const svg = $("map");
     const r = svg.getBoundingClientRect();
     view.w = r.width || 800; view.h = r.height || 600;
-    if (view.auto && S.static) fit();
+    if (view.auto && S.static && S.static.origin) fit();
     $("world").setAttribute("transform",
       `translate(${view.w / 2} ${view.h / 2}) scale(${view.scale} ${-view.scale}) translate(${-view.cx} ${-view.cy})`);
     drawTiles();
@@ -323,7 +329,8 @@
     const end = () => { drag = null; svg.classList.remove("dragging"); };
     svg.addEventListener("pointerup", end);
     svg.addEventListener("pointercancel", end);
-    $("fit").addEventListener("click", () => { view.auto = true; render(); });
+    $("fit").addEventListener("click", () => { view.auto = true; view.whole = false; render(); });
+    $("whole").addEventListener("click", () => { view.auto = true; view.whole = true; render(); });
     window.addEventListener("resize", render);
   }
 

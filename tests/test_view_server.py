@@ -1,0 +1,167 @@
+"""The live view's server (mission/view/server.py) over real sockets, without a browser: access
+token, loopback-only Host names, frames over the WebSocket while records are written, a client
+that never reads, the recorded-log API, and `uavloc view` on a bad log."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import aiohttp
+import numpy as np
+import pytest
+
+from mission.cli import main as cli_main
+from mission.log import MissionLogWriter
+from mission.view.server import LiveFeed, LogFeed, ViewServer, parse_view_address
+from tests.test_view_state import ORIGIN, USERS, lla, write_mission
+from uavloc.errors import MissionError
+
+
+@pytest.mark.parametrize("text, expect", [
+    ("9360", ("127.0.0.1", 9360)),
+    ("0", ("127.0.0.1", 0)),
+    ("0.0.0.0:9361", ("0.0.0.0", 9361)),
+    ("localhost:9362", ("localhost", 9362)),
+    ("[::1]:9363", ("::1", 9363)),
+])
+def test_view_address(text, expect):
+    assert parse_view_address(text) == expect
+
+
+@pytest.mark.parametrize("text", ["abc", "127.0.0.1:", "70000", "host:-1"])
+def test_bad_view_address_is_a_clear_error(text):
+    with pytest.raises(MissionError, match="--view"):
+        parse_view_address(text)
+
+
+def test_bad_tile_url_is_refused():
+    with pytest.raises(MissionError, match="lacks"):
+        ViewServer(LiveFeed(), tiles_url="http://tiles.local/{z}/{x}.png")
+    with pytest.raises(MissionError, match="http"):
+        ViewServer(LiveFeed(), tiles_url="file:///tmp/{z}/{x}/{y}.png")
+
+
+async def _status(session, url, **kw) -> int:
+    async with session.get(url, **kw) as r:
+        await r.read()
+        return r.status
+
+
+def test_requests_without_the_token_are_refused_on_a_non_loopback_address():
+    async def main():
+        async with ViewServer(LiveFeed(), "0.0.0.0", 0) as server:
+            assert server.token and f"?token={server.token}" in server.url
+            base = f"http://127.0.0.1:{server.port}"
+            async with aiohttp.ClientSession() as s:
+                for path in ("/", "/static/view.js", "/api/info", "/api/frame", "/ws"):
+                    assert await _status(s, base + path) == 403, path
+                    assert await _status(s, base + path + "?token=wrong" + server.token[:-1]) == 403, path
+                assert await _status(s, f"{base}/api/info?token={server.token}") == 200
+            # the page sets the token as a cookie; the script, the API and the socket then need no query
+            # (unsafe: the client's jar takes cookies from an IP address, as a browser does)
+            async with aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as s:
+                async with s.get(f"{base}/?token={server.token}") as r:
+                    assert r.status == 200
+                    assert "Content-Security-Policy" in r.headers
+                assert await _status(s, f"{base}/static/view.js") == 200
+                assert await _status(s, f"{base}/api/frame") == 200
+                async with s.ws_connect(f"{base}/ws") as ws:
+                    msg = await ws.receive(timeout=5)
+                    assert json.loads(msg.data)["version"] == 0
+
+    asyncio.run(main())
+
+
+def test_loopback_needs_no_token_but_refuses_other_host_names():
+    async def main():
+        async with ViewServer(LiveFeed(), "127.0.0.1", 0) as server:
+            assert server.token is None and "token" not in server.url
+            base = f"http://127.0.0.1:{server.port}"
+            async with aiohttp.ClientSession() as s:
+                assert await _status(s, base + "/") == 200
+                assert await _status(s, base + "/static/view.css") == 200
+                assert await _status(s, base + "/static/secret.py") == 404
+                # DNS rebinding: a page from another site resolving its name to 127.0.0.1
+                assert await _status(s, base + "/api/info", headers={"Host": "evil.example:80"}) == 403
+
+    asyncio.run(main())
+
+
+def test_live_frames_follow_the_log_writer_and_a_client_that_never_reads_holds_nothing_up(tmp_path):
+    """One client reads every frame it gets and rebuilds the track incrementally; another
+    connects and never reads. The writer goes on record after record; at the end the reading
+    client's picture equals the server's whole state."""
+    async def main():
+        feed = LiveFeed()
+        async with ViewServer(feed, "127.0.0.1", 0, max_rate_hz=50.0) as server:
+            base = f"http://127.0.0.1:{server.port}"
+            async with aiohttp.ClientSession() as s1, aiohttp.ClientSession() as s2:
+                idle = await s2.ws_connect(f"{base}/ws")  # never read
+                ws = await s1.ws_connect(f"{base}/ws")
+                track: list = []
+                frames = []
+
+                async def reader():
+                    async for msg in ws:
+                        f = json.loads(msg.data)
+                        frames.append(f)
+                        part = f["track"]
+                        track[:] = part["items"] if part["from"] == 0 else track + part["items"]
+                        if f.get("ended"):
+                            return
+
+                rd = asyncio.create_task(reader())
+                with MissionLogWriter(tmp_path / "m.jsonl") as w:
+                    w.subscribe(feed.on_record)
+                    w.write_header(ORIGIN, USERS, {"mu": 1})
+                    for i in range(3000):
+                        w.write("telemetry", 0.1 * i, **lla(0.01 * i, 0.0, 30.0))
+                        if i % 100 == 0:
+                            await asyncio.sleep(0.005)
+                await server.close()
+                await asyncio.wait_for(rd, 10)
+                await idle.close()
+        assert feed.state.records == 3001
+        assert len(track) == 3000
+        full, _ = feed.state.frame()
+        assert track == full["track"]["items"]
+        assert frames[-1]["ended"]
+        assert 2 <= len(frames) < 3001  # frames were skipped, not queued per record
+
+    asyncio.run(main())
+
+
+def test_recorded_log_frames_at_the_chosen_time(tmp_path):
+    records = write_mission(tmp_path / "m.jsonl")
+    est = [r for r in records if r["type"] == "estimate"]
+
+    async def main():
+        async with ViewServer(LogFeed(records), "127.0.0.1", 0) as server:
+            base = f"http://127.0.0.1:{server.port}"
+            async with aiohttp.ClientSession() as s:
+                async with s.get(f"{base}/api/info") as r:
+                    info = await r.json()
+                assert info["mode"] == "log" and info["t_end_s"] == 13.0
+                async with s.get(f"{base}/api/frame", params={"t": str(est[1]["t"])}) as r:
+                    f = await r.json()
+                assert await _status(s, f"{base}/api/frame?t=nan") == 400
+                assert await _status(s, f"{base}/api/frame?t=soon") == 400
+                assert await _status(s, f"{base}/ws") == 404
+        return f
+
+    f = asyncio.run(main())
+    u1 = f["users"][0]
+    expect = ORIGIN.lla_to_enu(est[1]["users"][0]["lat_deg"], est[1]["users"][0]["lon_deg"], 150.0)
+    np.testing.assert_allclose(u1["enu_m"][:2], expect[:2], atol=0.01)
+    assert f["t"] == est[1]["t"]
+
+
+def test_view_command_refuses_a_malformed_log_with_its_line(tmp_path, caplog):
+    p = tmp_path / "m.jsonl"
+    write_mission(p)
+    lines = p.read_text().splitlines()
+    lines[3] = '{"type": "telemetry", "t": 1.0, "lat_deg": 95}'
+    p.write_text("\n".join(lines) + "\n")
+    assert cli_main(["view", str(p), "--port", "0"]) == 1
+    assert "m.jsonl:4" in caplog.text
