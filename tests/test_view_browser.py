@@ -196,7 +196,7 @@ def test_ellipse_radius_shown_at_the_end_is_the_json_results_bound(live_mission)
         # the drawn ellipse (world units are metres) and the number in the panel
         assert shown[0]["rx"] == pytest.approx(u["error_bound_95_m"], rel=1e-9)
         assert shown[0]["r95"] == pytest.approx(u["error_bound_95_m"], rel=1e-9)
-        assert final["r95_text"][u["id"]] == f"{u['error_bound_95_m']:.2f} m"
+        assert final["r95_text"][u["id"]] == f"{u['error_bound_95_m']:.2f}"
         # and the centre is the JSON result's position
         assert [shown[0]["cx"], shown[0]["cy"]] == pytest.approx(u["enu_m"][:2], abs=0.006)
 

@@ -88,17 +88,26 @@ def test_loopback_needs_no_token_but_refuses_other_host_names():
     asyncio.run(main())
 
 
-def test_live_frames_follow_the_log_writer_and_a_client_that_never_reads_holds_nothing_up(tmp_path):
-    """One client reads every frame it gets and rebuilds the track incrementally; another
-    connects and never reads. The writer goes on record after record; at the end the reading
-    client's picture equals the server's whole state."""
+def test_live_frames_follow_the_log_writer_and_slow_clients_skip_frames(tmp_path):
+    """One client reads and acknowledges every frame and rebuilds the track incrementally; one
+    reads but never acknowledges (a stalled page); one never reads at all. The writer goes on
+    record after record; the stalled client got only its first frame and the final one, which
+    still completes its picture; the reading client's picture equals the server's whole state."""
     async def main():
         feed = LiveFeed()
         async with ViewServer(feed, "127.0.0.1", 0, max_rate_hz=50.0) as server:
             base = f"http://127.0.0.1:{server.port}"
             async with aiohttp.ClientSession() as s1, aiohttp.ClientSession() as s2:
                 idle = await s2.ws_connect(f"{base}/ws")  # never read
+                stalled = await s2.ws_connect(f"{base}/ws")  # reads, never acknowledges
                 ws = await s1.ws_connect(f"{base}/ws")
+                stalled_frames: list = []
+
+                async def stalled_reader():
+                    async for msg in stalled:
+                        stalled_frames.append(json.loads(msg.data))
+                        if stalled_frames[-1].get("ended"):
+                            return
                 track: list = []
                 frames = []
 
@@ -110,8 +119,10 @@ def test_live_frames_follow_the_log_writer_and_a_client_that_never_reads_holds_n
                         track[:] = part["items"] if part["from"] == 0 else track + part["items"]
                         if f.get("ended"):
                             return
+                        await ws.send_str("ack")
 
                 rd = asyncio.create_task(reader())
+                st = asyncio.create_task(stalled_reader())
                 with MissionLogWriter(tmp_path / "m.jsonl") as w:
                     w.subscribe(feed.on_record)
                     w.write_header(ORIGIN, USERS, {"mu": 1})
@@ -121,6 +132,7 @@ def test_live_frames_follow_the_log_writer_and_a_client_that_never_reads_holds_n
                             await asyncio.sleep(0.005)
                 await server.close()
                 await asyncio.wait_for(rd, 10)
+                await asyncio.wait_for(st, 10)
                 await idle.close()
         assert feed.state.records == 3001
         assert len(track) == 3000
@@ -128,6 +140,9 @@ def test_live_frames_follow_the_log_writer_and_a_client_that_never_reads_holds_n
         assert track == full["track"]["items"]
         assert frames[-1]["ended"]
         assert 2 <= len(frames) < 3001  # frames were skipped, not queued per record
+        assert len(stalled_frames) == 2 and stalled_frames[-1]["ended"]
+        first, last = stalled_frames
+        assert first["track"]["items"] + last["track"]["items"] == full["track"]["items"]
 
     asyncio.run(main())
 

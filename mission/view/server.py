@@ -7,10 +7,11 @@ One page (`/`, with its script and style from this package: no CDN) and a small 
   mode the state at mission time t (the time slider);
 - `GET /ws` (live mode): a WebSocket of frames. Each client has its own sender task that waits for
   the state to change, builds one frame with what that client has not seen yet (incremental
-  tracks and events) and sends it, at most `max_rate_hz`. A slow client never holds anything up:
-  the mission only updates the state (O(1) per record) and pulses; a sender still busy with its
-  client simply sends the newest state next (frames in between are skipped), and nothing is
-  queued per client beyond the socket's own bounded buffer.
+  tracks and events) and sends it, at most `max_rate_hz`. The client acknowledges each frame (any
+  text message); the next frame goes out only after that, so at most one frame per client is in
+  flight and a slow client gets the newest state when it is ready, skipping the frames in between.
+  Nothing waits on a browser: the mission only updates the state (O(1) per record) and pulses;
+  nothing is queued per client.
 
 Access: on a loopback address nobody else can connect, and requests must name a loopback host
 (no DNS rebinding). On any other address an access token is required: the URL printed at start
@@ -187,7 +188,7 @@ class ViewServer:
         self.final_flush_s = final_flush_s
         self._runner: web.AppRunner | None = None
         self._senders: set[asyncio.Task] = set()
-        self._sockets: set[web.WebSocketResponse] = set()
+        self._sockets: dict[web.WebSocketResponse, asyncio.Event] = {}  # socket -> "frame acknowledged"
         self._closing = asyncio.Event()
         self.frames_sent = 0
 
@@ -202,7 +203,8 @@ class ViewServer:
         app.router.add_get("/api/info", self._info)
         app.router.add_get("/api/frame", self._frame)
         app.router.add_get("/ws", self._ws)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False,
+                                     shutdown_timeout=max(0.5, self.final_flush_s))
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.host, self.port, reuse_address=True)
         try:
@@ -224,6 +226,8 @@ class ViewServer:
         if isinstance(self.feed, LiveFeed):
             self.feed.end()
         self._closing.set()
+        for acked in self._sockets.values():
+            acked.set()  # the last frame goes out without waiting for the previous one's ack
         if self._senders:
             await asyncio.wait(set(self._senders), timeout=self.final_flush_s)
         for task in list(self._senders):
@@ -316,23 +320,26 @@ class ViewServer:
             raise web.HTTPServiceUnavailable(text=f"at most {self.max_clients} live viewers\n")
         ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=4096)
         await ws.prepare(request)
-        self._sockets.add(ws)
-        sender = asyncio.create_task(self._send_frames(ws), name="view-sender")
+        acked = asyncio.Event()
+        self._sockets[ws] = acked
+        sender = asyncio.create_task(self._send_frames(ws, acked), name="view-sender")
         self._senders.add(sender)
         try:
-            async for msg in ws:  # clients send nothing meaningful; read to see the close
+            async for msg in ws:  # each text message acknowledges the frame in flight
                 if msg.type in (WSMsgType.ERROR, WSMsgType.CLOSE):
                     break
+                acked.set()
         finally:
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await sender
             self._senders.discard(sender)
-            self._sockets.discard(ws)
+            self._sockets.pop(ws, None)
         return ws
 
-    async def _send_frames(self, ws: web.WebSocketResponse) -> None:
-        """One client's sender: newest state, what the client lacks, at most max_rate_hz."""
+    async def _send_frames(self, ws: web.WebSocketResponse, acked: asyncio.Event) -> None:
+        """One client's sender: newest state, what the client lacks, at most max_rate_hz, one
+        frame in flight (the next after the client's acknowledgement)."""
         feed: LiveFeed = self.feed  # type: ignore[assignment]
         cursor: Cursor | None = None
         seen = -1
@@ -347,6 +354,8 @@ class ViewServer:
                 if last_end:
                     return  # the final frame is out
                 t_next = loop.time() + self.min_interval_s
+                await acked.wait()
+                acked.clear()
                 await feed.wait_change(seen, 5.0)
                 delay = t_next - loop.time()
                 if delay > 0 and not feed.ended:

@@ -85,9 +85,10 @@
   function fit() {
     const [x0, y0, x1, y1] = contentBox();
     const wm = Math.max(x1 - x0, 60), hm = Math.max(y1 - y0, 60);
-    view.scale = Math.min((view.w - 60) / wm, (view.h - 60) / hm);
+    // margins: 30 px at the sides and the bottom, 70 px at the top (the legend and the buttons)
+    view.scale = Math.min((view.w - 60) / wm, (view.h - 100) / hm);
     view.cx = (x0 + x1) / 2;
-    view.cy = (y0 + y1) / 2;
+    view.cy = (y0 + y1) / 2 + 20 / view.scale;
   }
 
   // ---- drawing ------------------------------------------------------------------------------
@@ -263,8 +264,8 @@
         id.append(" ", b);
       }
       const cells = u.located
-        ? [fmt(u.enu_m[0]), fmt(u.enu_m[1]), `${fmt(u.sigma_m, 2)} m`, `${fmt(u.r95_m, 2)} m`, String(u.measurements),
-          u.error_m !== undefined ? `${fmt(u.error_m, 2)} m` : "-"]
+        ? [fmt(u.enu_m[0]), fmt(u.enu_m[1]), fmt(u.sigma_m, 2), fmt(u.r95_m, 2), String(u.measurements),
+          u.error_m !== undefined ? fmt(u.error_m, 2) : "-"]
         : ["-", "-", "-", "-", String(u.measurements), "-"];
       const names = ["east", "north", "sigma", "r95", "meas", "error"];
       cells.forEach((txt, i) => { const c = tr.insertCell(); c.className = names[i]; c.textContent = txt; });
@@ -345,6 +346,7 @@
     ws.onmessage = (msg) => {
       const f = JSON.parse(msg.data);
       if (!applyFrame(f)) { ws.close(); return; }
+      ws.send("ack"); // the server sends the next frame after this: a slow page skips frames
       if (f.ended) { ended = true; setConn("ended", `mission ended${f.status ? ": " + f.status : ""}`); }
     };
     ws.onclose = () => {
