@@ -299,3 +299,77 @@ def test_a_page_opened_before_the_mission_starts_draws_it_when_records_come(brow
     assert errors == []
     assert n_buildings == 1 and n_nofly == 1
     assert sorted(e["id"] for e in snap["ellipses"]) == ["ue1", "ue2"]
+
+
+# a 1x1 PNG (a map tile)
+_PNG = bytes.fromhex("89504e470d0a1a0a0000000d4948445200000001000000010806000000"
+                     "1f15c4890000000d49444154789c6360f8cfc0f01f0005000201e2f2"
+                     "0d2d0000000049454e44ae426082")
+
+
+@contextlib.contextmanager
+def _tile_server():
+    """A local tile server that records the tiles asked for."""
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    asked: list[str] = []
+
+    class Tiles(BaseHTTPRequestHandler):
+        def do_GET(self):
+            asked.append(self.path)
+            self.send_response(200)
+            self.send_header("Content-Type", "image/png")
+            self.send_header("Content-Length", str(len(_PNG)))
+            self.end_headers()
+            self.wfile.write(_PNG)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Tiles)
+    t = threading.Thread(target=httpd.serve_forever, daemon=True)
+    t.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_port}/tiles/{{z}}/{{x}}/{{y}}.png", asked
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+@pytest.mark.parametrize("with_tiles", [False, True])
+def test_the_page_loads_nothing_but_its_own_files_and_the_tiles_it_was_given(browser, tmp_path, with_tiles):
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import write_mission
+
+    records = write_mission(tmp_path / "m.jsonl")
+    feed = LiveFeed()
+    for rec in records:
+        feed.state.apply(rec)
+    with _tile_server() as (tiles_url, asked), \
+            _server_in_thread(feed, tiles_url=tiles_url if with_tiles else None) as server:
+        page = browser.new_page()
+        errors = _watch(page)
+        requests: list[str] = []
+        page.on("request", lambda r: requests.append(r.url))
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => document.getElementById('m-state').textContent.startsWith('LANDED')")
+            if with_tiles:
+                page.wait_for_function("() => document.querySelectorAll('#tiles image').length > 0")
+                page.wait_for_timeout(300)
+            n_images = page.evaluate("() => document.querySelectorAll('#tiles image').length")
+        finally:
+            page.close()
+    assert errors == []
+    own = f"http://127.0.0.1:{server.port}/"
+    foreign = [u for u in requests if not u.startswith(own)]
+    if with_tiles:
+        assert n_images > 0 and asked
+        assert foreign and all(u.startswith(tiles_url.split("/tiles/")[0] + "/tiles/") for u in foreign)
+        # the tiles asked for cover the mission area: zoom level and indices around the origin
+        z, x, y = (int(v) for v in asked[0].removesuffix(".png").split("/")[-3:])
+        lat, lon = np.radians(43.6143), 7.0716
+        assert abs(x - (lon + 180) / 360 * 2**z) < 4
+        assert abs(y - (1 - np.log(np.tan(lat) + 1 / np.cos(lat)) / np.pi) / 2 * 2**z) < 4
+    else:
+        assert n_images == 0 and foreign == [] and asked == []
