@@ -219,6 +219,16 @@ def test_timeline_shows_the_estimate_of_the_chosen_time_forwards_and_backwards(t
     assert tl.state_at(1e9).frame()[0]["final"]
 
 
+def test_timeline_checkpoints_give_the_same_state_as_a_fresh_replay(tmp_path):
+    records = write_mission(tmp_path / "m.jsonl")
+    tl = Timeline(records, checkpoint_every=7)
+    rng = np.random.default_rng(5)
+    for t in [13.0, *rng.uniform(0, 13.5, 12)]:
+        got = tl.state_at(t).frame()[0]
+        fresh = Timeline(records).state_at(t).frame()[0]
+        assert json.dumps(got, sort_keys=True) == json.dumps(fresh, sort_keys=True)
+
+
 # -- the mission log's parts ----------------------------------------------------------------------
 
 
