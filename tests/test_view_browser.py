@@ -201,6 +201,20 @@ def test_ellipse_radius_shown_at_the_end_is_the_json_results_bound(live_mission)
         assert [shown[0]["cx"], shown[0]["cy"]] == pytest.approx(u["enu_m"][:2], abs=0.006)
 
 
+def test_the_missions_log_header_carries_the_scenarios_area(live_mission):
+    """What the page and the exports draw: the fence and the altitude band of the scenario."""
+    from mission.log import read_mission_log
+    from sitl_scenarios.scenario import load_scenario
+
+    sc = load_scenario("paper")
+    h = read_mission_log(live_mission["log"]).header
+    ring = np.array(h.geofence)
+    back = h.origin.lla_to_enu(ring[:, 0], ring[:, 1], h.origin.alt_m)[:, :2]
+    np.testing.assert_allclose(back, sc.geofence.polygon_enu_m, atol=0.01)
+    assert h.altitude_band_m == {"min_m": sc.mission.alt_min_m, "max_m": sc.mission.alt_max_m}
+    assert h.max_distance_m == sc.geofence.max_distance_m and h.buildings == [] and h.no_fly_zones == []
+
+
 @contextlib.contextmanager
 def _view_log(log_path: Path):
     proc = _Proc(["view", str(log_path), "--port", "0"])

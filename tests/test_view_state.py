@@ -283,3 +283,23 @@ def test_bad_area_fields_name_the_line_and_the_field(tmp_path, field, value, mat
     p.write_text(json.dumps(head) + "\n")
     with pytest.raises(MissionLogError, match=rf"bad.jsonl:1: .*{match}"):
         read_mission_log(p)
+
+
+def test_simulated_buildings_reach_the_header_in_the_home_frame(tmp_path):
+    """The built-in vehicle's world is the scenario origin; the log's frame is the reported home
+    (a little off): the buildings land at the same geodetic place either way."""
+    from mission.sim_runner import SimulatedMission
+    from sitl_scenarios.scenario import load_scenario
+
+    sc = load_scenario("three_users_nlos")
+    sim = SimulatedMission(sc, tmp_path / "m.jsonl")
+    world = sc.origin_geo
+    home = Origin(*world.enu_to_lla(np.array([3.0, -2.0, 0.5])))
+    blds = sim._buildings(home)
+    assert len(blds) == len(sc.buildings) == 3
+    area = area_fields(home, buildings=blds)
+    for b, cfg in zip(area["buildings"], sc.buildings, strict=True):
+        ring = np.array(b["footprint"])
+        back = world.lla_to_enu(ring[:, 0], ring[:, 1], world.alt_m)[:, :2]
+        np.testing.assert_allclose(back, cfg.footprint_enu_m, atol=0.01)
+        assert b["height_m"] == cfg.height_m
