@@ -154,14 +154,35 @@ async def _mission_lag(scenario, viewers: int, seed: int) -> tuple[dict, dict | 
     from mission.sim_runner import SimulatedMission
     from mission.view.server import LiveFeed, ViewServer
 
+    class TimedFeed(LiveFeed):
+        """LiveFeed that adds up the time spent taking records."""
+
+        record_s = 0.0
+
+        def on_record(self, rec: dict) -> None:
+            t0 = time.perf_counter()
+            super().on_record(rec)
+            self.record_s += time.perf_counter() - t0
+
+    class TimedServer(ViewServer):
+        """ViewServer that adds up the time spent building frames and their JSON."""
+
+        frame_s = 0.0
+
+        def _frame_text(self, cursor):
+            t0 = time.perf_counter()
+            out = super()._frame_text(cursor)
+            self.frame_s += time.perf_counter() - t0
+            return out
+
     with tempfile.TemporaryDirectory(prefix="uavloc-bench-") as tmp:
         async with SimulatedMission(scenario, log_path=Path(tmp) / "m.jsonl", seed=seed, speedup=10.0) as sim:
             if not viewers:
                 result = await sim.run()
                 return result.loop_lag, None, result.wall_s
-            feed = LiveFeed()
+            feed = TimedFeed()
             sim.controller.log_writer.subscribe(feed.on_record)
-            async with ViewServer(feed, "127.0.0.1", 0) as server:
+            async with TimedServer(feed, "127.0.0.1", 0) as server:
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable, __file__, "--viewer-client", server.url, str(viewers),
                     stdout=asyncio.subprocess.PIPE)
@@ -173,6 +194,7 @@ async def _mission_lag(scenario, viewers: int, seed: int) -> tuple[dict, dict | 
             clients = json.loads(out.decode().strip().splitlines()[-1])
             clients["frames_sent"] = server.frames_sent
             clients["records"] = feed.state.records
+            clients["record_s"], clients["frame_s"] = feed.record_s, server.frame_s
             return result.loop_lag, clients, result.wall_s
 
 
@@ -194,6 +216,11 @@ def viewers_mode(args) -> int:
                 per = ", ".join(f"{c['frames']} frames/{c['bytes'] / 1e3:.0f} kB" for c in clients["viewers"])
                 print(f"    {clients['records']} log records -> {clients['frames_sent']} frames sent; "
                       f"per viewer: {per}")
+                print(f"    the view's own work on the loop: {1e3 * clients['record_s']:.0f} ms on records "
+                      f"({1e6 * clients['record_s'] / max(clients['records'], 1):.0f} us each), "
+                      f"{1e3 * clients['frame_s']:.0f} ms on frames and their JSON "
+                      f"({1e6 * clients['frame_s'] / max(clients['frames_sent'], 1):.0f} us each), "
+                      f"in {wall:.1f} s of mission")
                 fast = clients["viewers"][:-1]
                 print(f"    the fast viewers got the final frame with the whole GPS track: "
                       f"{all(c['ended'] and c['track'] == fast[0]['track'] for c in fast)} "

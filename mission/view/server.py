@@ -337,19 +337,22 @@ class ViewServer:
             self._sockets.pop(ws, None)
         return ws
 
+    def _frame_text(self, cursor: Cursor | None) -> tuple[str, int, Cursor]:
+        """(JSON text, state version, new cursor) of the live frame a client with `cursor` needs."""
+        doc, cursor = self.feed.frame(cursor)
+        return json.dumps(doc, separators=(",", ":")), doc["version"], cursor
+
     async def _send_frames(self, ws: web.WebSocketResponse, acked: asyncio.Event) -> None:
         """One client's sender: newest state, what the client lacks, at most max_rate_hz, one
         frame in flight (the next after the client's acknowledgement)."""
         feed: LiveFeed = self.feed  # type: ignore[assignment]
         cursor: Cursor | None = None
-        seen = -1
         loop = asyncio.get_running_loop()
         try:
             while not ws.closed:
                 last_end = feed.ended
-                doc, cursor = feed.frame(cursor)
-                seen = doc["version"]
-                await ws.send_str(json.dumps(doc, separators=(",", ":")))
+                text, seen, cursor = self._frame_text(cursor)
+                await ws.send_str(text)
                 self.frames_sent += 1
                 if last_end:
                     return  # the final frame is out
