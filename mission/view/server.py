@@ -176,6 +176,9 @@ class ViewServer:
     def __init__(self, feed: LiveFeed | LogFeed, host: str = "127.0.0.1", port: int = 0, *,
                  token: str | None = None, tiles_url: str | None = None, title: str = "uavloc",
                  max_clients: int = 16, max_rate_hz: float = 10.0, final_flush_s: float = 1.0):
+        if not (max_rate_hz > 0 and max_clients >= 1 and final_flush_s >= 0):
+            raise MissionError(f"view server needs max_rate_hz > 0, max_clients >= 1, final_flush_s >= 0; got "
+                               f"{max_rate_hz}, {max_clients}, {final_flush_s}")
         self.feed = feed
         self.host = host
         self.port = port
@@ -212,8 +215,7 @@ class ViewServer:
         except OSError as exc:
             await self._runner.cleanup()
             raise MissionError(f"live view cannot listen on {self.host}:{self.port}: {exc}") from exc
-        sock = site._server.sockets[0]  # the port the OS chose for port 0
-        self.port = sock.getsockname()[1]
+        self.port = self._runner.addresses[0][1]  # the port the OS chose for port 0
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -232,9 +234,11 @@ class ViewServer:
             await asyncio.wait(set(self._senders), timeout=self.final_flush_s)
         for task in list(self._senders):
             task.cancel()
-        for ws in list(self._sockets):
+        async def close_one(ws: web.WebSocketResponse) -> None:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(ws.close(), 0.2)
+
+        await asyncio.gather(*(close_one(ws) for ws in list(self._sockets)))
         runner, self._runner = self._runner, None
         await runner.cleanup()
 
