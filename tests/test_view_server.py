@@ -13,7 +13,8 @@ import pytest
 
 from mission.cli import main as cli_main
 from mission.log import MissionLogWriter
-from mission.view.server import LiveFeed, LogFeed, ViewServer, parse_view_address
+from mission.view.address import parse_view_address
+from mission.view.server import LiveFeed, LogFeed, ViewServer
 from tests.test_view_state import ORIGIN, USERS, lla, write_mission
 from uavloc.errors import MissionError
 
@@ -33,6 +34,14 @@ def test_view_address(text, expect):
 def test_bad_view_address_is_a_clear_error(text):
     with pytest.raises(MissionError, match="--view"):
         parse_view_address(text)
+
+
+@pytest.mark.parametrize("args", [["--view", "nowhere"], ["--view", "9360", "--view-tiles", "ftp://x/{z}/{x}/{y}"]])
+def test_bad_view_options_are_usage_errors_before_anything_starts(args, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["sim", "paper", *args])
+    assert exc.value.code == 2
+    assert "--view" in capsys.readouterr().err
 
 
 def test_bad_tile_url_is_refused():

@@ -8,6 +8,9 @@ import logging
 import sys
 from pathlib import Path
 
+from mission.view.address import check_tiles_url
+from mission.view.live import checked
+
 log = logging.getLogger(__name__)
 
 HELP = "show a recorded mission log in a browser, with a time slider"
@@ -18,7 +21,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=0, help="TCP port (default 0: any free port, printed at start)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; any other requires the printed access token)")
-    p.add_argument("--tiles", metavar="URL", help="background map tiles, e.g. http://tiles.local/{z}/{x}/{y}.png")
+    p.add_argument("--tiles", metavar="URL", type=checked(check_tiles_url),
+                   help="background map tiles, e.g. http://tiles.local/{z}/{x}/{y}.png")
 
 
 async def serve(log_path: Path, host: str, port: int, tiles_url: str | None, ready=None) -> None:

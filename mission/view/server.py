@@ -23,7 +23,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
-import ipaddress
 import json
 import logging
 import secrets
@@ -33,6 +32,7 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
 
+from mission.view.address import check_tiles_url, is_loopback
 from mission.view.state import Cursor, Timeline, ViewState
 from uavloc.errors import MissionError
 
@@ -41,46 +41,6 @@ log = logging.getLogger(__name__)
 TOKEN_COOKIE = "uavloc_view_token"
 STATIC_FILES = {"view.js": "text/javascript", "view.css": "text/css", "index.html": "text/html"}
 LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1", "[::1]"}
-
-
-def is_loopback(host: str) -> bool:
-    """True for loopback addresses (127.0.0.0/8, ::1) and `localhost`."""
-    h = host.strip("[]")
-    if h == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(h).is_loopback
-    except ValueError:
-        return False
-
-
-def parse_view_address(text: str) -> tuple[str, int]:
-    """`[HOST:]PORT` → (host, port); host defaults to 127.0.0.1, `[::1]:PORT` for IPv6."""
-    s = str(text).strip()
-    host, sep, port_s = s.rpartition(":")
-    if not sep:
-        host, port_s = "127.0.0.1", s
-    host = host.strip("[]") or "127.0.0.1"
-    try:
-        port = int(port_s)
-    except ValueError:
-        raise MissionError(f"--view wants [HOST:]PORT, got {text!r}") from None
-    if not 0 <= port <= 65535:
-        raise MissionError(f"--view port must be 0..65535, got {port}")
-    return host, port
-
-
-def check_tiles_url(url: str | None) -> str | None:
-    """A tile URL template with {z}, {x}, {y} over http(s), or None."""
-    if url is None:
-        return None
-    parts = urlsplit(url)
-    if parts.scheme not in ("http", "https") or not parts.netloc:
-        raise MissionError(f"tile URL must be http(s)://host/...{{z}}/{{x}}/{{y}}..., got {url!r}")
-    missing = [k for k in ("{z}", "{x}", "{y}") if k not in url]
-    if missing:
-        raise MissionError(f"tile URL {url!r} lacks {', '.join(missing)}")
-    return url
 
 
 def _host_name(host_header: str) -> str:
