@@ -205,6 +205,8 @@ def viewers_mode(args) -> int:
     print(f"event-loop lag of a whole `sim {args.scenario}` mission (speedup 10, in-process), "
           f"bare vs. live view with {args.viewers} WebSocket viewers (1 slow), {args.rounds} rounds, "
           f"load {_load()}:")
+    idle = asyncio.run(lag_idle(10.0))
+    print(f"  idle loop, 10 s:       {fmt(idle)}   <- this machine's floor now")
     bare, viewed = [], []
     for r in range(args.rounds):
         for v in (0, args.viewers):
