@@ -387,3 +387,37 @@ def test_the_page_loads_nothing_but_its_own_files_and_the_tiles_it_was_given(bro
         assert abs(y - (1 - np.log(np.tan(lat) + 1 / np.cos(lat)) / np.pi) / 2 * 2**z) < 4
     else:
         assert n_images == 0 and foreign == [] and asked == []
+
+
+@pytest.mark.parametrize("corr, inside, outside", [(4.0, (1, 1), (-1, 1)), (-4.0, (-1, 1), (1, 1))])
+def test_an_ellipse_is_drawn_along_its_major_axis_north_up(browser, corr, inside, outside):
+    """Σ = [[5, ±4], [±4, 5]]: the major axis points north-east (+) or north-west (−); on the
+    page north is up, so a point 0.8 a along the major axis is on the ellipse, across it is not."""
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import ORIGIN, USERS, lla
+
+    feed = LiveFeed()
+    est = {"id": "ue1", **lla(0, 0), "cov_en_m2": [[5, corr], [corr, 5]]}
+    feed.state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS[:1]})
+    feed.state.apply({"type": "estimate", "t": 1, "users": [est]})
+    with _server_in_thread(feed) as server:
+        page = browser.new_page()
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => document.querySelectorAll('#ellipses ellipse').length === 1")
+            hits = page.evaluate("""([inside, outside]) => {
+                const e = document.querySelector('#ellipses ellipse');
+                const a = Number(e.getAttribute('rx'));
+                const origin = document.querySelector('#markers .home').getBoundingClientRect();
+                const cx = origin.x + origin.width / 2, cy = origin.y + origin.height / 2;
+                const world = document.getElementById('world').getCTM();  // metres -> pixels
+                const hit = ([de, dn]) => {
+                    const k = 0.8 * a / Math.SQRT2;
+                    const x = cx + world.a * de * k, y = cy + world.d * dn * k;
+                    return document.elementsFromPoint(x, y).includes(e);
+                };
+                return [hit(inside), hit(outside), world.d < 0];
+            }""", [list(inside), list(outside)])
+        finally:
+            page.close()
+    assert hits == [True, False, True]
