@@ -1,6 +1,7 @@
 """Safety gate: nothing reaches the vehicle that it did not pass (DESIGN.md §7).
 
-Pure geometry and checks in the local ENU frame whose origin is home (`up` = height above home):
+Checks in the local ENU frame whose origin is home (`up` = height above home), with the plane
+geometry of mission/geometry.py (shapely; polygons are closed sets):
 
 - geofence inclusion polygon (may be non-convex), no-fly exclusion polygons, maximum horizontal
   distance from home, altitude band above home, battery threshold → RTL;
@@ -21,108 +22,36 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.geodesy import Origin
+from mission import geometry
 from uavloc.errors import SafetyError
 
 log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------------
-# geometry (east, north) [m]
+# geometry (east, north) [m]: the gate's names for mission.geometry (one boundary rule: polygons
+# are closed, a point on the boundary belongs to the polygon)
 
 
 def point_in_polygon(p_en_m: np.ndarray, poly_en_m: np.ndarray) -> bool:
-    """True when the point (2,) lies inside the polygon (P, 2) (even-odd rule; non-convex allowed).
-
-    Ray casting to +east: count edges (a, b) that straddle the point's north coordinate and cross
-    the ray east of it. Points exactly on an edge count as inside.
-    """
-    poly = np.asarray(poly_en_m, float)
-    x, y = float(p_en_m[0]), float(p_en_m[1])
-    if point_on_boundary(p_en_m, poly):
-        return True
-    inside = False
-    n = len(poly)
-    for i in range(n):
-        ax, ay = poly[i]
-        bx, by = poly[(i + 1) % n]
-        if (ay > y) != (by > y):
-            # east coordinate where the edge crosses the horizontal line north = y
-            x_cross = ax + (y - ay) * (bx - ax) / (by - ay)
-            if x_cross > x:
-                inside = not inside
-    return inside
+    """True when the point (2,) lies inside the polygon (P, 2) or on its boundary."""
+    return geometry.contains_point(poly_en_m, p_en_m)
 
 
 def point_on_boundary(p_en_m: np.ndarray, poly_en_m: np.ndarray, tol_m: float = 1e-9) -> bool:
-    """True when the point lies on one of the polygon's edges (within tol_m)."""
-    poly = np.asarray(poly_en_m, float)
-    p = np.asarray(p_en_m, float)[:2]
-    n = len(poly)
-    for i in range(n):
-        a, b = poly[i], poly[(i + 1) % n]
-        ab = b - a
-        L2 = float(ab @ ab)
-        s = 0.0 if L2 == 0 else float(np.clip((p - a) @ ab / L2, 0.0, 1.0))
-        if np.linalg.norm(a + s * ab - p) <= tol_m:
-            return True
-    return False
-
-
-def _orient(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
-    # z of (b − a) × (c − a): > 0 when c is left of a→b
-    return float((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
-
-
-def segments_intersect(p1: np.ndarray, p2: np.ndarray, q1: np.ndarray, q2: np.ndarray) -> bool:
-    """True when the closed segments p1–p2 and q1–q2 (each (2,)) share a point."""
-    d1, d2 = _orient(q1, q2, p1), _orient(q1, q2, p2)
-    d3, d4 = _orient(p1, p2, q1), _orient(p1, p2, q2)
-    if ((d1 > 0) != (d2 > 0)) and d1 != 0 and d2 != 0 and ((d3 > 0) != (d4 > 0)) and d3 != 0 and d4 != 0:
-        return True
-
-    def on_seg(a, b, c) -> bool:  # c collinear with a–b and within its box
-        return (min(a[0], b[0]) - 1e-12 <= c[0] <= max(a[0], b[0]) + 1e-12
-                and min(a[1], b[1]) - 1e-12 <= c[1] <= max(a[1], b[1]) + 1e-12)
-
-    return ((d1 == 0 and on_seg(q1, q2, p1)) or (d2 == 0 and on_seg(q1, q2, p2))
-            or (d3 == 0 and on_seg(p1, p2, q1)) or (d4 == 0 and on_seg(p1, p2, q2)))
+    """True when the point (2,) lies within tol_m of one of the polygon's edges."""
+    return geometry.boundary_distance_m(poly_en_m, p_en_m) <= tol_m
 
 
 def segment_crosses_boundary(a_en_m: np.ndarray, b_en_m: np.ndarray, poly_en_m: np.ndarray) -> bool:
-    """True when the open segment a–b crosses an edge of the polygon properly (a straight leg
-    between two inside points of a non-convex fence can still leave it)."""
-    poly = np.asarray(poly_en_m, float)
-    a = np.asarray(a_en_m, float)[:2]
-    b = np.asarray(b_en_m, float)[:2]
-    n = len(poly)
-    for i in range(n):
-        q1, q2 = poly[i], poly[(i + 1) % n]
-        d1, d2 = _orient(q1, q2, a), _orient(q1, q2, b)
-        d3, d4 = _orient(a, b, q1), _orient(a, b, q2)
-        if d1 * d2 < 0 and d3 * d4 < 0:
-            return True
-        # a polygon vertex touching the leg's interior: the leg grazes or leaves through a corner
-        if (d3 == 0 or d4 == 0) and segments_intersect(a, b, q1, q2):
-            v = q1 if d3 == 0 else q2
-            if not (np.allclose(v, a) or np.allclose(v, b)):
-                # does the leg go outside next to that vertex? test points just beside it
-                t = float((v - a) @ (b - a) / max((b - a) @ (b - a), 1e-12))
-                for dt in (-1e-6, 1e-6):
-                    s = min(max(t + dt, 0.0), 1.0)
-                    if not point_in_polygon(a + s * (b - a), poly):
-                        return True
-    return False
+    """True when some point of the segment a–b lies outside the polygon (a straight leg between two
+    inside points of a non-convex fence can still leave it; running along the edge does not)."""
+    return not geometry.segment_inside(poly_en_m, a_en_m, b_en_m)
 
 
 def segment_enters_polygon(a_en_m: np.ndarray, b_en_m: np.ndarray, poly_en_m: np.ndarray) -> bool:
-    """True when any point of the closed segment a–b lies inside the polygon (a no-fly zone)."""
-    poly = np.asarray(poly_en_m, float)
-    a = np.asarray(a_en_m, float)[:2]
-    b = np.asarray(b_en_m, float)[:2]
-    if point_in_polygon(a, poly) or point_in_polygon(b, poly):
-        return True
-    n = len(poly)
-    return any(segments_intersect(a, b, poly[i], poly[(i + 1) % n]) for i in range(n))
+    """True when any point of the closed segment a–b lies inside the polygon or on its boundary."""
+    return geometry.segment_meets(poly_en_m, a_en_m, b_en_m)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -146,6 +75,15 @@ class SafetyLimits:
     battery_rtl_pct: float = 25.0
 
     @classmethod
+    def from_mission(cls, mission, home: Origin) -> SafetyLimits:
+        """From a :class:`mission.config.MissionConfig` once home is known (geodetic polygons of
+        the mission file become home-ENU)."""
+        fence, zones = mission.geofence.polygons_enu_m(home)
+        return cls(fence_enu_m=fence, no_fly_enu_m=zones, max_distance_m=mission.geofence.max_distance_m,
+                   alt_min_m=mission.flight.alt_min_m, alt_max_m=mission.flight.alt_max_m,
+                   battery_rtl_pct=mission.safety.battery_rtl_pct)
+
+    @classmethod
     def from_scenario(cls, sc) -> SafetyLimits:
         """From a :class:`sitl_scenarios.scenario.Scenario` (its geofence and mission sections)."""
         g, m = sc.geofence, sc.mission
@@ -165,6 +103,12 @@ class SafetyGate:
 
     def __init__(self, limits: SafetyLimits):
         self.limits = limits
+        try:
+            self._fence = (None if limits.fence_enu_m is None
+                           else geometry.polygon(limits.fence_enu_m, "geofence polygon"))
+            self._no_fly = tuple(geometry.polygon(z, f"no-fly zone {i}") for i, z in enumerate(limits.no_fly_enu_m))
+        except geometry.GeometryError as exc:
+            raise SafetyError(str(exc)) from exc
 
     def position_violations(self, pos_enu_m: np.ndarray, check_altitude: bool = True,
                             alt_margin_m: float = 0.0) -> list[str]:
@@ -176,10 +120,10 @@ class SafetyGate:
         d = float(np.hypot(p[0], p[1]))
         if d > lim.max_distance_m:
             out.append(f"{d:.1f} m from home exceeds max_distance_m {lim.max_distance_m:g}")
-        if lim.fence_enu_m is not None and not point_in_polygon(p[:2], lim.fence_enu_m):
+        if self._fence is not None and not geometry.contains_point(self._fence, p[:2]):
             out.append(f"position ({p[0]:.1f}, {p[1]:.1f}) m is outside the geofence polygon")
-        for i, zone in enumerate(lim.no_fly_enu_m):
-            if point_in_polygon(p[:2], zone):
+        for i, zone in enumerate(self._no_fly):
+            if geometry.contains_point(zone, p[:2]):
                 out.append(f"position ({p[0]:.1f}, {p[1]:.1f}) m is inside no-fly zone {i}")
         if check_altitude and len(p) > 2 and not lim.alt_min_m - alt_margin_m <= p[2] <= lim.alt_max_m + alt_margin_m:
             out.append(f"height {p[2]:.1f} m above home is outside the band "
@@ -195,11 +139,10 @@ class SafetyGate:
         problems = self.position_violations(t)
         if current_enu_m is not None and not problems:
             c = np.asarray(current_enu_m, float)
-            lim = self.limits
-            if lim.fence_enu_m is not None and segment_crosses_boundary(c[:2], t[:2], lim.fence_enu_m):
+            if self._fence is not None and not geometry.segment_inside(self._fence, c[:2], t[:2]):
                 problems.append("the leg from the current position leaves the geofence polygon")
-            for i, zone in enumerate(lim.no_fly_enu_m):
-                if segment_enters_polygon(c[:2], t[:2], zone):
+            for i, zone in enumerate(self._no_fly):
+                if geometry.segment_meets(zone, c[:2], t[:2]):
                     problems.append(f"the leg from the current position crosses no-fly zone {i}")
         if problems:
             raise SafetyError(

@@ -19,7 +19,6 @@ up to the SRS quantization (C / (2·fs·os) one-way). Beyond `coverage_m` there 
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator.ranging import C_MPS, TA_RAR_MAX, ta_step_s
+from mission import geometry
 from sitl_scenarios.scenario import BuildingConfig, Scenario, UserConfig
 from uavloc.errors import SimulatorError
 
@@ -67,67 +67,18 @@ class RawRtt:
 
 
 def point_in_polygon(p_en_m: Sequence[float], polygon_en_m: Sequence[Sequence[float]]) -> bool:
-    """Even-odd rule: is the 2-D point (east, north) inside the polygon [[e, n], ...]?"""
-    x, y = float(p_en_m[0]), float(p_en_m[1])
-    inside = False
-    n = len(polygon_en_m)
-    for i in range(n):
-        x1, y1 = polygon_en_m[i]
-        x2, y2 = polygon_en_m[(i + 1) % n]
-        if (y1 > y) != (y2 > y):
-            # x coordinate where the edge crosses the horizontal line through p
-            x_cross = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
-            if x < x_cross:
-                inside = not inside
-    return inside
-
-
-def _edge_crossings(a: np.ndarray, b: np.ndarray, polygon: Sequence[Sequence[float]]) -> list[float]:
-    """Parameters s ∈ (0, 1) where the 2-D segment a + s(b − a) crosses a polygon edge."""
-    d = b - a
-    out = []
-    n = len(polygon)
-    for i in range(n):
-        p = np.asarray(polygon[i], float)
-        q = np.asarray(polygon[(i + 1) % n], float)
-        e = q - p
-        # a + s·d = p + t·e  →  [d, −e] [s, t]ᵀ = p − a
-        den = d[0] * (-e[1]) - d[1] * (-e[0])
-        if abs(den) < 1e-12:
-            continue  # parallel (collinear overlap is caught by the midpoint tests)
-        r = p - a
-        s = (r[0] * (-e[1]) - r[1] * (-e[0])) / den
-        t = (d[0] * r[1] - d[1] * r[0]) / den
-        if -_EPS <= t <= 1 + _EPS and 0.0 < s < 1.0:
-            out.append(float(s))
-    return out
+    """Is the 2-D point (east, north) inside the polygon [[e, n], ...] or on its boundary?
+    (mission.geometry's one rule: polygons are closed.)"""
+    return geometry.contains_point(polygon_en_m, p_en_m)
 
 
 def segment_blocked_by(uav_enu_m, user_enu_m, building: BuildingConfig) -> bool:
-    """Does the 3-D segment UAV → user pass through the building prism (footprint × [0, height])?
+    """Does the 3-D segment UAV → user pass through the building prism (footprint × [0, height))?
 
-    uav_enu_m, user_enu_m: (3,) [m, ENU]. Touching the roof exactly counts as clear.
+    uav_enu_m, user_enu_m: (3,) [m, ENU]. Grazing a wall below the roof blocks; touching the roof
+    exactly counts as clear (mission.geometry.segment_blocked_by_prism).
     """
-    a3 = np.asarray(uav_enu_m, float)
-    b3 = np.asarray(user_enu_m, float)
-    a, b = a3[:2], b3[:2]
-    h = float(building.height_m)
-    poly = building.footprint_enu_m
-    if float(np.hypot(*(b - a))) < 1e-9:  # vertical segment
-        return point_in_polygon(a, poly) and min(a3[2], b3[2]) < h
-    cuts = sorted({0.0, 1.0, *_edge_crossings(a, b, poly)})
-    for s0, s1 in itertools.pairwise(cuts):
-        if s1 - s0 < 1e-12:
-            continue
-        mid = a + 0.5 * (s0 + s1) * (b - a)
-        if not point_in_polygon(mid, poly):
-            continue
-        # height along the segment is linear in s: the lowest point of the piece is at an end
-        z0 = a3[2] + s0 * (b3[2] - a3[2])
-        z1 = a3[2] + s1 * (b3[2] - a3[2])
-        if min(z0, z1) < h - 1e-9:
-            return True
-    return False
+    return geometry.segment_blocked_by_prism(uav_enu_m, user_enu_m, building.footprint_enu_m, building.height_m)
 
 
 def line_of_sight_blocked(uav_enu_m, user_enu_m, buildings: Sequence[BuildingConfig]) -> bool:

@@ -21,6 +21,9 @@ from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from uavloc.errors import ScenarioError
 
+if typing.TYPE_CHECKING:
+    from mission import config as mission_config
+
 SCENARIO_DIR = Path(__file__).resolve().parent
 
 
@@ -171,6 +174,38 @@ class Scenario:
         r, m = self.radio, self.mission
         s0 = r.s0_m if m.range_s0_m is None else m.range_s0_m
         return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m)
+
+    def mission_config(self) -> mission_config.MissionConfig:
+        """The mission part of this scenario as a :class:`mission.config.MissionConfig` (what a real
+        flight would be configured with: users without their positions, fence, limits, the noise
+        the estimator assumes, the gNB's numerology). The bridge until scenarios are written as a
+        mission plus a world (see mission/config.py)."""
+        from mission import config as mc
+
+        m, g, n = self.mission, self.geofence, self.noise_model()
+        out = mc.MissionConfig(
+            name=self.name,
+            description=self.description,
+            users=tuple(mc.MissionUserConfig(u.id, u.rnti, u.up_m) for u in self.users),
+            geofence=mc.GeofenceConfig(
+                polygon_enu_m=tuple(tuple(p) for p in g.polygon_enu_m),
+                no_fly_enu_m=tuple(tuple(tuple(p) for p in z) for z in g.no_fly_enu_m),
+                max_distance_m=g.max_distance_m),
+            flight=mc.FlightConfig(
+                altitude_m=m.altitude_m, alt_min_m=m.alt_min_m, alt_max_m=m.alt_max_m, delta_m=m.delta_m,
+                target_radius_m=m.target_radius_m, budget_m=m.budget_m, time_limit_s=m.time_limit_s,
+                cruise_speed_mps=self.vehicle.speed_mps, climb_mps=self.vehicle.climb_mps,
+                descent_mps=self.vehicle.descent_mps, leg_max_m=m.leg_max_m, acceptance_m=m.acceptance_m,
+                planner=m.planner),
+            noise=mc.NoiseConfig(sigma_gps_m=n.sigma_gps_m, range_s0_m=n.s0_m, range_a_m=n.a_m,
+                                 range_b_per_m=n.b_per_m, estimate_bias=m.estimate_bias),
+            gnb=mc.GnbSettings(mu=self.radio.mu, fs_hz=self.radio.fs_hz),
+            safety=mc.SafetyConfig(battery_rtl_pct=m.battery_rtl_pct,
+                                   battery_takeoff_min_pct=max(mc.SafetyConfig.battery_takeoff_min_pct,
+                                                               m.battery_rtl_pct)),
+        )
+        mc.validate_mission(out, f"scenario {self.name!r}")
+        return out
 
     def user_by_rnti(self, rnti: int) -> UserConfig:
         for u in self.users:

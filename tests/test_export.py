@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from estimator.types import CHI2_2DOF_95
-from mission.export import (
+from mission.report.exports import (
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
     MAV_CMD_NAV_TAKEOFF,
     MAV_CMD_NAV_WAYPOINT,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,7 +26,9 @@ from mission.log import read_mission_log
 from mission.oai import format_msg2_line, format_rtt_line
 from uavloc.errors import ImportDataError
 
-VTOL = "ardupilot_vtol_sitl.tlog"
+#: the GPS part of ../shared/data/ardupilot_vtol_sitl.tlog (see tests/data/README.md): in the checkout,
+#: so these tests run in a fresh clone
+VTOL = Path(__file__).resolve().parent / "data" / "ardupilot_vtol_sitl_gps.tlog"
 USERS_ENU = np.array([[-40.0, -150.0, 0.0], [50.0, -300.0, 0.0], [10.0, -20.0, 0.0]])
 RNTIS = [0x4601, 0x4602, 0x4603]
 
@@ -105,8 +108,8 @@ def simulated_gnb_log(path, track, origin, period_s=0.5, seed=11):
 # the public VTOL tlog
 
 
-def test_tlog_track_is_what_pymavlink_reads(shared_data):
-    path = shared_data / VTOL
+def test_tlog_track_is_what_pymavlink_reads():
+    path = VTOL
     track = read_tlog_gps(path)
     raw = pymavlink_fixes(path)
     assert track.n_raw == len(raw) == 807
@@ -120,8 +123,8 @@ def test_tlog_track_is_what_pymavlink_reads(shared_data):
     assert track.home_lla is not None and track.home_lla[0] == pytest.approx(-35.3609626, abs=1e-7)
 
 
-def test_import_vtol_flight_writes_track_and_aligned_ranges(shared_data, tmp_path):
-    path = shared_data / VTOL
+def test_import_vtol_flight_writes_track_and_aligned_ranges(tmp_path):
+    path = VTOL
     track = read_tlog_gps(path)
     origin = Origin(*track.home_lla)
     written = simulated_gnb_log(tmp_path / "gnb.log", track, origin)
@@ -152,14 +155,14 @@ def test_import_vtol_flight_writes_track_and_aligned_ranges(shared_data, tmp_pat
     assert mlog.truth_lla is not None
 
 
-def test_imported_vtol_flight_localizes_the_users(shared_data, tmp_path):
+def test_imported_vtol_flight_localizes_the_users(tmp_path):
     """Estimator over the imported log: each rtt record is a keyframe (GPS prior at the interpolated
     UAV position, one range), as replay builds them from a log whose users were ranged one by one."""
     from estimator.noise import NoiseModel
     from estimator.slam import solve_batch
     from estimator.types import Keyframe
 
-    path = shared_data / VTOL
+    path = VTOL
     track = read_tlog_gps(path)
     origin = Origin(*track.home_lla)
     simulated_gnb_log(tmp_path / "gnb.log", track, origin)
@@ -177,12 +180,12 @@ def test_imported_vtol_flight_localizes_the_users(shared_data, tmp_path):
     assert np.all(est.error_bound_95_m() < 5.0), est.error_bound_95_m()
 
 
-def test_replay_of_the_imported_vtol_flight(shared_data, tmp_path):
+def test_replay_of_the_imported_vtol_flight(tmp_path):
     try:
         from mission.replay import ReplayOptions, replay
     except ImportError as exc:  # replay is being written in parallel
         pytest.skip(f"mission.replay not importable yet: {exc}")
-    path = shared_data / VTOL
+    path = VTOL
     track = read_tlog_gps(path)
     origin = Origin(*track.home_lla)
     simulated_gnb_log(tmp_path / "gnb.log", track, origin)

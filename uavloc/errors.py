@@ -31,6 +31,10 @@ class MissionError(UavlocError):
     """The mission controller or one of its adapters failed."""
 
 
+class MissionConfigError(MissionError):
+    """A mission file (`uavloc fly --mission`) that does not follow the schema; names file, key, value."""
+
+
 class MissionLogError(MissionError):
     """A mission log that does not follow `uavloc-mission/1`."""
 

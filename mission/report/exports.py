@@ -7,8 +7,15 @@
   Points too. Every feature has a `kind` property.
 - KML 2.2: the same as Placemarks (tracks with altitudeMode absolute, ellipses clamped to ground).
 - QGroundControl `.plan` (JSON, fileType "Plan", version 1, mission version 2, with geoFence and
-  rallyPoints): waypoints as SimpleItems in MAV_FRAME_GLOBAL (frame 0: altitude AMSL) with
-  QGC's AltitudeMode 2 (absolute), which MAVSDK's `import_qgroundcontrol_mission` accepts.
+  rallyPoints): waypoints as SimpleItems in MAV_FRAME_GLOBAL (altitude AMSL) with QGC's
+  AltitudeMode 2 (absolute), which MAVSDK's `import_qgroundcontrol_mission` accepts; the log's
+  geofence as a geoFence polygon with `inclusion: true`, its no-fly zones with `inclusion: false`.
+
+The log header's shapes (:class:`mission.report.inputs.MissionShapes`: geofence, no-fly zones,
+altitude band, buildings) appear in all three when present: GeoJSON Polygons of kind `geofence`,
+`no_fly_zone`, `building` (with `height_m`; the altitude band is a property of the fence and of
+the collection), KML Placemarks (buildings extruded to their height). MAVLink numbers are
+pymavlink's enums.
 
 Input is a :class:`mission.report.ReportInputs` (ENU about its origin) or plain arrays.
 """
@@ -23,9 +30,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
 
 from estimator.geodesy import Origin
-from mission.report import ReportInputs, ellipse_en_m
+from mission.report.inputs import MissionShapes, ReportInputs
+from mission.report.statistics import ellipse_en_m
+from mission.result import user_entries
 from uavloc.errors import MissionError
 
 log = logging.getLogger(__name__)
@@ -34,14 +44,14 @@ log = logging.getLogger(__name__)
 DEG_DECIMALS = 8
 M_DECIMALS = 3
 
-# MAVLink numbers used in a plan
-MAV_CMD_NAV_WAYPOINT = 16
-MAV_CMD_NAV_RETURN_TO_LAUNCH = 20
-MAV_CMD_NAV_TAKEOFF = 22
-MAV_FRAME_GLOBAL = 0  # altitude AMSL
-MAV_FRAME_MISSION = 2
-MAV_AUTOPILOT_PX4 = 12
-MAV_TYPE_QUADROTOR = 2
+# MAVLink numbers used in a plan (pymavlink's common dialect)
+MAV_CMD_NAV_WAYPOINT = mavlink.MAV_CMD_NAV_WAYPOINT
+MAV_CMD_NAV_RETURN_TO_LAUNCH = mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH
+MAV_CMD_NAV_TAKEOFF = mavlink.MAV_CMD_NAV_TAKEOFF
+MAV_FRAME_GLOBAL = mavlink.MAV_FRAME_GLOBAL  # altitude AMSL
+MAV_FRAME_MISSION = mavlink.MAV_FRAME_MISSION
+MAV_AUTOPILOT_PX4 = mavlink.MAV_AUTOPILOT_PX4
+MAV_TYPE_QUADROTOR = mavlink.MAV_TYPE_QUADROTOR
 #: QGroundControl's AltMode enum: 0 mixed, 1 relative, 2 absolute (AMSL), 3 calc. above terrain, 4 terrain frame
 QGC_ALT_MODE_ABSOLUTE = 2
 
@@ -65,24 +75,59 @@ def _ellipse_ring_enu(center: np.ndarray, cov: np.ndarray, n: int = 72) -> np.nd
 
 
 def _user_stats(inp: ReportInputs, k: int) -> dict:
-    cov = inp.cov_en_m2[k]
-    ok = bool(np.all(np.isfinite(cov)))
-    bound = inp.error_bound_95_m()[k]
+    """The export properties of user k: the result document's entry (mission.result), rounded."""
+    (entry,) = user_entries(
+        [inp.user_ids[k]], inp.origin, inp.users_enu_m[k:k + 1], inp.cov_en_m2[k:k + 1],
+        ambiguous=None if inp.ambiguous is None else inp.ambiguous[k:k + 1],
+        bias_m=None if inp.bias_m is None else inp.bias_m[k:k + 1],
+        truth_enu_m=None if inp.truth_enu_m is None else inp.truth_enu_m[k:k + 1])
+    cov = entry["cov_en_m2"]
     props = {
-        "id": inp.user_ids[k],
-        "sigma_east_m": _num(math.sqrt(max(cov[0, 0], 0.0))) if ok else None,
-        "sigma_north_m": _num(math.sqrt(max(cov[1, 1], 0.0))) if ok else None,
-        "cov_en_m2": [[_num(cov[i, j], 6) for j in range(2)] for i in range(2)] if ok else None,
-        "error_bound_95_m": _num(bound) if np.isfinite(bound) else None,
+        "id": entry["id"],
+        "sigma_east_m": _num_or_none(entry["sigma_east_m"]),
+        "sigma_north_m": _num_or_none(entry["sigma_north_m"]),
+        "cov_en_m2": None if cov is None else [[_num(cov[i][j], 6) for j in range(2)] for i in range(2)],
+        "error_bound_95_m": _num_or_none(entry["error_bound_95_m"]),
     }
-    if inp.bias_m is not None:
-        props["bias_m"] = _num(inp.bias_m[k])
-    if inp.ambiguous is not None:
-        props["ambiguous"] = bool(inp.ambiguous[k])
-    err = inp.error_m()
-    if err is not None:
-        props["error_m"] = _num(err[k])
+    for key in ("bias_m", "ambiguous", "error_m"):
+        if key in entry:
+            props[key] = entry[key] if key == "ambiguous" else _num_or_none(entry[key])
     return props
+
+
+def _num_or_none(x: float | None, nd: int = 4) -> float | None:
+    return None if x is None else _num(x, nd)
+
+
+def _ring_lonlat(ring_lat_lon_deg: np.ndarray, ccw: bool = True) -> list[list[float]]:
+    """Closed [[lon, lat], ...] ring of an open (P, 2) lat/lon ring, counter-clockwise (RFC 7946
+    §3.1.6 exterior) when `ccw`."""
+    lonlat = [[round(float(lo), DEG_DECIMALS), round(float(la), DEG_DECIMALS)] for la, lo in ring_lat_lon_deg]
+    a = np.asarray(lonlat)
+    # shoelace: twice the signed area, > 0 for counter-clockwise (lon east, lat north)
+    area2 = float(np.sum(a[:, 0] * np.roll(a[:, 1], -1) - np.roll(a[:, 0], -1) * a[:, 1]))
+    if ccw and area2 < 0:
+        lonlat = lonlat[::-1]
+    return [*lonlat, lonlat[0]]
+
+
+def _shape_features(shapes: MissionShapes) -> list[dict]:
+    """GeoJSON Features of the geofence, the no-fly zones and the buildings."""
+    feats = []
+    band = shapes.altitude_band_m
+    band_props = {} if band is None else {"altitude_band_m": {"min_m": band[0], "max_m": band[1]}}
+    if shapes.geofence_lat_lon_deg is not None:
+        feats.append({"type": "Feature",
+                      "geometry": {"type": "Polygon", "coordinates": [_ring_lonlat(shapes.geofence_lat_lon_deg)]},
+                      "properties": {"kind": "geofence", "inclusion": True, **band_props}})
+    for i, zone in enumerate(shapes.no_fly_lat_lon_deg):
+        feats.append({"type": "Feature", "geometry": {"type": "Polygon", "coordinates": [_ring_lonlat(zone)]},
+                      "properties": {"kind": "no_fly_zone", "index": i, "inclusion": False}})
+    for i, b in enumerate(shapes.buildings):
+        feats.append({"type": "Feature",
+                      "geometry": {"type": "Polygon", "coordinates": [_ring_lonlat(b.footprint_lat_lon_deg)]},
+                      "properties": {"kind": "building", "index": i, "height_m": b.height_m}})
+    return feats
 
 
 # ---------------------------------------------------------------------------------------------
@@ -117,8 +162,11 @@ def geojson_document(inp: ReportInputs) -> dict:
         if pts is not None and len(pts) >= 2:
             geom = {"type": "LineString", "coordinates": _lonlatalt(inp.origin, pts)}
             feats.append({"type": "Feature", "geometry": geom, "properties": {"kind": kind, "points": len(pts)}})
-    return {"type": "FeatureCollection", "features": feats,
-            "properties": {"title": inp.title, "status": inp.status, "flown_m": _num(inp.flown_m, 1)}}
+    feats += _shape_features(inp.shapes)
+    props = {"title": inp.title, "status": inp.status, "flown_m": _num(inp.flown_m, 1)}
+    if inp.shapes.altitude_band_m is not None:
+        props["altitude_band_m"] = {"min_m": inp.shapes.altitude_band_m[0], "max_m": inp.shapes.altitude_band_m[1]}
+    return {"type": "FeatureCollection", "features": feats, "properties": props}
 
 
 def write_geojson(inp: ReportInputs, path: str | Path) -> Path:
@@ -143,7 +191,8 @@ def kml_document(inp: ReportInputs) -> str:
     doc = ET.SubElement(kml, "Document")
     ET.SubElement(doc, "name").text = inp.title
     for sid, color, width in (("track", "ff999999", "2"), ("estimate", "ffff7f00", "2"), ("ellipse", "ff0000ff", "2"),
-                              ("waypoints", "ff000000", "1")):
+                              ("waypoints", "ff000000", "1"), ("geofence", "ff00aa00", "3"),
+                              ("no_fly", "ff0000cc", "3"), ("building", "ff555555", "1")):
         st = ET.SubElement(doc, "Style", id=sid)
         ls = ET.SubElement(st, "LineStyle")
         ET.SubElement(ls, "color").text = color
@@ -195,8 +244,34 @@ def kml_document(inp: ReportInputs) -> str:
         ls = ET.SubElement(pm, "LineString")
         ET.SubElement(ls, "altitudeMode").text = "absolute"
         ET.SubElement(ls, "coordinates").text = _kml_coords(_lonlatalt(inp.origin, pts))
+    _kml_shapes(inp.shapes, placemark)
     ET.indent(kml)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(kml, encoding="unicode") + "\n"
+
+
+def _kml_shapes(shapes: MissionShapes, placemark) -> None:
+    """Placemarks of the geofence and no-fly zones (on the ground) and the buildings (extruded)."""
+
+    def polygon(pm: ET.Element, ring_lat_lon: np.ndarray, height_m: float | None) -> None:
+        poly = ET.SubElement(pm, "Polygon")
+        if height_m is None:
+            ET.SubElement(poly, "altitudeMode").text = "clampToGround"
+        else:
+            ET.SubElement(poly, "extrude").text = "1"
+            ET.SubElement(poly, "altitudeMode").text = "relativeToGround"
+        ring = ET.SubElement(ET.SubElement(poly, "outerBoundaryIs"), "LinearRing")
+        h = 0.0 if height_m is None else height_m
+        ET.SubElement(ring, "coordinates").text = _kml_coords([[lo, la, h] for lo, la in _ring_lonlat(ring_lat_lon)])
+
+    band = shapes.altitude_band_m
+    if shapes.geofence_lat_lon_deg is not None:
+        desc = "inclusion" + ("" if band is None else f"; altitude band {band[0]:g}..{band[1]:g} m above home")
+        polygon(placemark("geofence", "geofence", desc), shapes.geofence_lat_lon_deg, None)
+    for i, zone in enumerate(shapes.no_fly_lat_lon_deg):
+        polygon(placemark(f"no-fly zone {i}", "no_fly", "exclusion"), zone, None)
+    for i, b in enumerate(shapes.buildings):
+        polygon(placemark(f"building {i}", "building", f"height_m = {b.height_m:g}"), b.footprint_lat_lon_deg,
+                b.height_m)
 
 
 def write_kml(inp: ReportInputs, path: str | Path) -> Path:
@@ -253,6 +328,7 @@ def qgc_plan(
     takeoff: bool = True,
     return_to_launch: bool = True,
     geofence_polygons_latlon: list[np.ndarray] | None = None,
+    exclusion_polygons_latlon: list[np.ndarray] | None = None,
     geofence_circle: tuple[float, float, float] | None = None,
     rally_lla: np.ndarray | None = None,
     cruise_speed_mps: float = 10.0,
@@ -262,8 +338,9 @@ def qgc_plan(
 
     waypoints_lla: (W, 3) lat_deg, lon_deg, alt_m AMSL; home_lla: planned home (lat, lon, alt AMSL).
     takeoff: first item NAV_TAKEOFF to the first waypoint's altitude above home; return_to_launch:
-    last item RTL. geofence_polygons_latlon: inclusion polygons, each (P, 2) lat/lon;
-    geofence_circle: (lat, lon, radius_m) inclusion circle; rally_lla: (R, 3) rally points.
+    last item RTL. geofence_polygons_latlon: inclusion polygons, each (P, 2) lat/lon (open ring);
+    exclusion_polygons_latlon: exclusion (no-fly) polygons, the same way; geofence_circle:
+    (lat, lon, radius_m) inclusion circle; rally_lla: (R, 3) rally points.
     """
     wps = np.asarray(waypoints_lla, float).reshape(-1, 3)
     if len(wps) == 0:
@@ -285,10 +362,13 @@ def qgc_plan(
     if return_to_launch:
         items.append(_simple_item(len(items), MAV_CMD_NAV_RETURN_TO_LAUNCH, MAV_FRAME_MISSION, [0, 0, 0, 0, 0, 0, 0]))
     polygons = []
-    for poly in geofence_polygons_latlon or []:
-        p = np.asarray(poly, float).reshape(-1, 2)
-        polygons.append({"inclusion": True, "version": 1,
-                         "polygon": [[round(float(a), DEG_DECIMALS), round(float(b), DEG_DECIMALS)] for a, b in p]})
+    for inclusion, polys in ((True, geofence_polygons_latlon), (False, exclusion_polygons_latlon)):
+        for poly in polys or []:
+            p = np.asarray(poly, float).reshape(-1, 2)
+            if len(p) < 3 or not np.all(np.isfinite(p)):
+                raise MissionError(f"a geofence polygon needs >= 3 finite lat/lon vertices, got {p.tolist()!r}")
+            polygons.append({"inclusion": inclusion, "version": 1,
+                             "polygon": [[round(float(a), DEG_DECIMALS), round(float(b), DEG_DECIMALS)] for a, b in p]})
     circles = []
     if geofence_circle is not None:
         la, lo, r = geofence_circle
@@ -321,7 +401,8 @@ def plan_from_inputs(inp: ReportInputs, tolerance_m: float = 2.0, max_waypoints:
                      min_height_m: float = 2.0, **kwargs: Any) -> dict:
     """Plan of the mission's waypoints when it logged any, else of the flown GPS track simplified
     to within `tolerance_m` (points less than `min_height_m` above home — take-off and landing —
-    are left out; the tolerance doubles until at most `max_waypoints` remain)."""
+    are left out; the tolerance doubles until at most `max_waypoints` remain). The log's geofence
+    and no-fly zones become the plan's inclusion and exclusion polygons."""
     if inp.waypoints_enu_m is not None and len(inp.waypoints_enu_m):
         pts = inp.waypoints_enu_m
     else:
@@ -334,6 +415,10 @@ def plan_from_inputs(inp: ReportInputs, tolerance_m: float = 2.0, max_waypoints:
             pts = simplify_track_m(track, tol)
     lat, lon, alt = inp.origin.enu_to_lla(pts)
     o = inp.origin
+    shapes = inp.shapes
+    kwargs.setdefault("geofence_polygons_latlon",
+                      [] if shapes.geofence_lat_lon_deg is None else [shapes.geofence_lat_lon_deg])
+    kwargs.setdefault("exclusion_polygons_latlon", list(shapes.no_fly_lat_lon_deg))
     return qgc_plan(np.c_[lat, lon, alt], (o.lat_deg, o.lon_deg, o.alt_m), **kwargs)
 
 

@@ -1,0 +1,469 @@
+"""The mission file a real flight is flown with (`uavloc fly --mission FILE`): strict TOML.
+
+What an operator knows before take-off and nothing else: the users by id and RNTI (with the
+height of the ground they stand on), the geofence and no-fly zones, the altitude band, Δ, the
+target accuracy, budget and time limit, the cruise speed, the noise model the estimator assumes,
+how to talk to the gNB, and how long to wait before giving up on a lost link or gNB. A mission
+file never holds a user's true position: that is what the flight is for.
+
+The TOML keys ARE the field names of the frozen dataclasses below (`[flight] budget_m = 1200`).
+An unknown key, a key in the wrong unit (`budget_km`), a wrong type, a NaN or an out-of-range
+number is a :class:`MissionConfigError` naming the file, the key and the value. Units are in the
+names (`_m`, `_s`, `_mps`, `_pct`, `_deg`, `_hz`); positions are ENU offsets in metres from home
+(`*_enu_m`, as in DESIGN.md §9) or geodetic (`*_lat_lon_deg`, [[lat_deg, lon_deg], ...]), one or the
+other per polygon kind; :meth:`GeofenceConfig.polygons_enu_m` turns both into home-ENU once home is
+known.
+
+Mission and world (the split phase 2 makes in `sitl_scenarios/`)::
+
+    Scenario (sitl_scenarios, a simulation)  =  MissionConfig (this module: what is flown)
+                                              +  World (what is true)
+
+    World, a frozen dataclass in sitl_scenarios/ whose fields are today's scenario sections:
+      seed: int; origin: OriginConfig (the built-in vehicle's home)
+      users: per user id → true east_m, north_m, up_m, UE clock sawtooth (amplitude, period)
+      buildings: [BuildingConfig]            footprint + height (NLoS in the radio model)
+      radio: RadioConfig                     μ, fs, oversampling, σ(d) the radio draws from,
+                                             coverage, NLoS excess, SNR
+      vehicle: VehicleConfig                 speeds, acceleration, GPS error (σ, τ), battery
+      faults: {...}                          fault injection of the simulators
+
+    A scenario file is then `[mission]` (a mission file's tables, nested) plus `[world]`; a world
+    user is matched to a mission user by id, and a world without a user the mission names (or the
+    other way round) is an error. Speeds the mission asks (`flight.cruise_speed_mps`) and the
+    vehicle model's top speed are different things and may differ.
+
+`sitl_scenarios` imports `mission` and never the other way: `Scenario.mission_config()` (in
+`sitl_scenarios/scenario.py`) is the bridge from today's scenario files until then. Only the
+world's truth differs between a simulation and a flight, so the simulated mission is flown with
+exactly the settings a real one would be.
+
+Example: `mission/examples/flight.toml` (shipped as package data; :func:`example_mission_path`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from estimator.geodesy import Origin
+from estimator.noise import NoiseModel
+from uavloc.errors import MissionConfigError
+
+if typing.TYPE_CHECKING:
+    from planner.types import PlanningConstraints
+
+EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
+
+Polygon = tuple[tuple[float, float], ...]
+
+#: keys that would place a user: a mission file never holds them.
+TRUE_POSITION_KEYS = frozenset({
+    "east_m", "north_m", "up_m", "x_m", "y_m", "z_m", "lat_deg", "lon_deg", "alt_m", "position",
+    "position_enu_m", "pos_enu_m", "enu_m", "latitude", "longitude", "true_position",
+})
+#: top-level sections of a simulation scenario that describe the world, not the mission.
+WORLD_SECTIONS = frozenset({"buildings", "radio", "vehicle", "faults", "truth", "origin", "seed", "world"})
+
+
+@dataclass(frozen=True)
+class MissionUserConfig:
+    """A user (UE) to locate. rnti: its C-RNTI (1..0xFFEF; "0x4601" or 17921);
+    ground_height_m: height of the ground it stands on above home [m] (ENU up; 0 = level with home)."""
+
+    id: str
+    rnti: int
+    ground_height_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class GeofenceConfig:
+    """Where the vehicle may fly. Inclusion polygon and no-fly (exclusion) polygons, each given
+    either as ENU offsets from home [m] ([[east_m, north_m], ...]) or geodetic ([[lat_deg, lon_deg],
+    ...]); open rings (the closing edge is implied), ≥ 3 vertices, possibly non-convex; empty:
+    none. max_distance_m: largest horizontal distance from home [m]."""
+
+    polygon_enu_m: Polygon = ()
+    polygon_lat_lon_deg: Polygon = ()
+    no_fly_enu_m: tuple[Polygon, ...] = ()
+    no_fly_lat_lon_deg: tuple[Polygon, ...] = ()
+    max_distance_m: float = 500.0
+
+    def polygons_enu_m(self, home: Origin) -> tuple[np.ndarray | None, tuple[np.ndarray, ...]]:
+        """(fence (P, 2) or None, no-fly zones ((Q, 2), ...)) in the home ENU frame [m]."""
+
+        def enu(poly_deg: Polygon) -> np.ndarray:
+            lat, lon = np.asarray(poly_deg, float).T
+            return home.lla_to_enu(lat, lon, np.full_like(lat, home.alt_m))[:, :2]
+
+        fence = (np.asarray(self.polygon_enu_m, float) if self.polygon_enu_m
+                 else enu(self.polygon_lat_lon_deg) if self.polygon_lat_lon_deg else None)
+        zones = tuple(np.asarray(z, float) for z in self.no_fly_enu_m)
+        zones += tuple(enu(z) for z in self.no_fly_lat_lon_deg)
+        return fence, zones
+
+
+@dataclass(frozen=True)
+class FlightConfig:
+    """How to fly. altitude_m: survey height above home; alt_min_m ≤ altitude_m ≤ alt_max_m: the
+    allowed band above home [m]; delta_m: keyframe spacing Δ [m]; target_radius_m: stop when every
+    user's 95 % error ellipse fits in this radius [m]; budget_m: survey metres; time_limit_s:
+    mission time; cruise_speed_mps, climb_mps, descent_mps: speeds asked of the vehicle (and its
+    leg / landing timeouts) [m/s]; leg_max_m: longest leg the planner may choose; acceptance_m:
+    arrival radius [m]; planner: "casadi", "greedy", "lawnmower", "circle" or "random" (not
+    "oracle": it needs the true positions a flight does not have)."""
+
+    altitude_m: float = 30.0
+    alt_min_m: float = 10.0
+    alt_max_m: float = 120.0
+    delta_m: float = 2.0
+    target_radius_m: float = 2.0
+    budget_m: float = 2000.0
+    time_limit_s: float = 1200.0
+    cruise_speed_mps: float = 10.0
+    climb_mps: float = 3.0
+    descent_mps: float = 1.5
+    leg_max_m: float = 80.0
+    acceptance_m: float = 2.0
+    planner: Literal["casadi", "greedy", "lawnmower", "circle", "random"] = "casadi"
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """The noise the estimator and planner assume (DESIGN.md §4, §5).
+
+    sigma_gps_m: per-axis GPS error [m]; gps_tau_s: its correlation time [s] (absent: unknown);
+    σ(d) = range_s0_m + range_a_m·exp(range_b_per_m·d) one-way range spread [m];
+    estimate_bias: estimate a range bias per user (a UE clock sawtooth has a positive mean), with a
+    zero-mean prior of bias_prior_sigma_m [m].
+    """
+
+    sigma_gps_m: float = 1.0
+    gps_tau_s: float | None = None
+    range_s0_m: float = 3.0
+    range_a_m: float = 0.0
+    range_b_per_m: float = 0.0
+    estimate_bias: bool = False
+    bias_prior_sigma_m: float = 10.0
+
+    def noise_model(self) -> NoiseModel:
+        """The estimator's :class:`NoiseModel`."""
+        return NoiseModel(sigma_gps_m=self.sigma_gps_m, s0_m=self.range_s0_m, a_m=self.range_a_m,
+                          b_per_m=self.range_b_per_m)
+
+    def header_noise(self) -> dict:
+        """The mission log header's `noise` section (DESIGN.md §10), with `gps_tau_s` when known."""
+        out = self.noise_model().to_log_dict()
+        if self.gps_tau_s is not None:
+            out["gps_tau_s"] = self.gps_tau_s
+        return out
+
+
+@dataclass(frozen=True)
+class GnbSettings:
+    """How to measure with the gNB (DESIGN.md §8; the address is given on the command line).
+
+    mode: "rtt" (the RTT telnet module) or "stock" (`ci force_reestab` + the Msg2 line of log_path);
+    rtt_module, rtt_command: the RTT command's names; discovery: "auto", "o1" or "single";
+    mu, fs_hz: numerology and sampling rate of the gNB (the log header's `radio`);
+    log_path: the gNB log followed in stock mode; request_timeout_s, connect_timeout_s,
+    msg2_timeout_s: timeouts [s]; retries: reconnect attempts after a lost connection.
+    """
+
+    mode: Literal["rtt", "stock"] = "rtt"
+    rtt_module: str = "rtt"
+    rtt_command: str = "pdcch_order"
+    discovery: Literal["auto", "o1", "single"] = "auto"
+    mu: int = 1
+    fs_hz: float = 46.08e6
+    log_path: str | None = None
+    request_timeout_s: float = 2.0
+    connect_timeout_s: float = 2.0
+    msg2_timeout_s: float = 3.0
+    retries: int = 3
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """When to give up. link_timeout_s: no vehicle data this long is a lost link [s];
+    link_lost_wait_s: wait this long for it before returning home [s]; gnb_lost_wait_s: fly on
+    without measurements this long before returning home [s]; battery_takeoff_min_pct: do not take
+    off below this charge [%]; battery_rtl_pct: return home below this charge [%]; max_refusals:
+    consecutive refused waypoints before returning home; breach_confirm_fixes: consecutive fixes
+    outside a position limit that confirm a breach; alt_margin_m: tolerance of the altitude-band
+    check while surveying [m]."""
+
+    link_timeout_s: float = 3.0
+    link_lost_wait_s: float = 10.0
+    gnb_lost_wait_s: float = 20.0
+    battery_takeoff_min_pct: float = 50.0
+    battery_rtl_pct: float = 25.0
+    max_refusals: int = 3
+    breach_confirm_fixes: int = 3
+    alt_margin_m: float = 5.0
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    """A whole mission file."""
+
+    name: str
+    users: tuple[MissionUserConfig, ...]
+    description: str = ""
+    geofence: GeofenceConfig = field(default_factory=GeofenceConfig)
+    flight: FlightConfig = field(default_factory=FlightConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    gnb: GnbSettings = field(default_factory=GnbSettings)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+
+    def noise_model(self) -> NoiseModel:
+        return self.noise.noise_model()
+
+    def header_fields(self, home: Origin) -> dict:
+        """The mission log header's optional shape fields (DESIGN.md §10): `geofence` and
+        `no_fly_zones` as open [[lat_deg, lon_deg], ...] rings, `altitude_band_m` {min_m, max_m}
+        above home. Fields without a value are left out."""
+
+        def lat_lon(ring_enu_m: np.ndarray) -> list[list[float]]:
+            lat, lon, _ = home.enu_to_lla(np.column_stack([ring_enu_m, np.zeros(len(ring_enu_m))]))
+            return [[float(a), float(o)] for a, o in zip(np.atleast_1d(lat), np.atleast_1d(lon), strict=True)]
+
+        fence, zones = self.geofence.polygons_enu_m(home)
+        out: dict = {}
+        if fence is not None:
+            out["geofence"] = lat_lon(fence)
+        if zones:
+            out["no_fly_zones"] = [lat_lon(z) for z in zones]
+        out["altitude_band_m"] = {"min_m": self.flight.alt_min_m, "max_m": self.flight.alt_max_m}
+        return out
+
+    def planning_constraints(self, home: Origin, **overrides: Any) -> PlanningConstraints:
+        """The planner's constraints in the home ENU frame (home at (0, 0, 0); altitudes above
+        home become ENU up). `overrides` replace any field (e.g. margin_m=3.0)."""
+        from planner.types import PlanningConstraints
+
+        fence, zones = self.geofence.polygons_enu_m(home)
+        f = self.flight
+        kwargs = dict(
+            home_enu_m=np.zeros(3),
+            fence_enu_m=np.zeros((0, 2)) if fence is None else fence,
+            no_fly_enu_m=zones,
+            alt_min_m=f.alt_min_m,
+            alt_max_m=f.alt_max_m,
+            cruise_alt_m=f.altitude_m,
+            leg_max_m=f.leg_max_m,
+            max_distance_m=self.geofence.max_distance_m,
+            budget_m=f.budget_m,
+            delta_m=f.delta_m,
+            target_radius_m=f.target_radius_m,
+            min_leg_m=min(10.0, f.leg_max_m),
+        )
+        kwargs.update(overrides)
+        return PlanningConstraints(**kwargs)
+
+    def user_by_rnti(self, rnti: int) -> MissionUserConfig | None:
+        return next((u for u in self.users if u.rnti == rnti), None)
+
+
+# ---------------------------------------------------------------------------------------------
+# strict conversion of parsed TOML into the dataclasses above
+
+_UNIT = re.compile(r"_(m|km|ft|s|ms|min|h|mps|kmh|kph|pct|deg|rad|hz|khz|mhz|per_m|m2)$")
+
+
+def _fail(where: str, key: str, value: Any, problem: str) -> MissionConfigError:
+    return MissionConfigError(f"{where}: key {key!r} = {value!r}: {problem}")
+
+
+def _convert(value: Any, tp: Any, where: str, key: str) -> Any:
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        (inner,) = [a for a in args if a is not type(None)]
+        return _convert(value, inner, where, key)
+    if origin is Literal:
+        if value not in args:
+            raise _fail(where, key, value, f"must be one of {', '.join(map(repr, args))}")
+        return value
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise _fail(where, key, value, "expected a table")
+        return build_dataclass(tp, value, where, key)
+    if origin is tuple:
+        if not isinstance(value, list):
+            raise _fail(where, key, value, "expected a list")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], where, f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise _fail(where, key, value, f"expected {len(args)} numbers")
+        return tuple(_convert(v, a, where, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise _fail(where, key, value, "expected true or false")
+        return value
+    if tp is int:
+        if isinstance(value, str):  # RNTIs are often written in hex: "0x4601"
+            # OAI prints RNTIs in hex without a prefix ("4601"): a bare digit string is ambiguous
+            if not value.strip().lower().startswith("0x"):
+                raise _fail(where, key, value, "expected an integer; a string must be hex with 0x "
+                            f"(\"0x{value.strip()}\"), or write the decimal number unquoted")
+            try:
+                return int(value, 16)
+            except ValueError:
+                raise _fail(where, key, value, "expected an integer (hex with 0x)") from None
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _fail(where, key, value, "expected an integer")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            hint = " (the unit is in the key's name; write the number alone)" if isinstance(value, str) else ""
+            raise _fail(where, key, value, f"expected a number{hint}")
+        if not math.isfinite(value):
+            raise _fail(where, key, value, "must be a finite number")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise _fail(where, key, value, "expected a string")
+        return value
+    raise _fail(where, key, value, f"unsupported type {tp!r}")  # pragma: no cover - schema bug
+
+
+def _unknown_key(cls: type, name: str, value: Any, where: str, key: str) -> MissionConfigError:
+    fields = {f.name for f in dataclasses.fields(cls)}
+    if name in TRUE_POSITION_KEYS:
+        return _fail(where, key, value, "a mission file never holds true positions (they are what the flight "
+                     "measures); true user positions belong to a simulation world in sitl_scenarios")
+    if cls is MissionConfig and name in WORLD_SECTIONS:
+        return _fail(where, key, value, "describes the simulated world, not the mission; a mission file holds "
+                     f"only {', '.join(sorted(fields))}")
+    stem = _UNIT.sub("", name)
+    same = sorted(f for f in fields if _UNIT.sub("", f) == stem and f != name)
+    if same:
+        return _fail(where, key, value, f"wrong unit: the key is {' or '.join(map(repr, same))} "
+                     "(units are part of the key names)")
+    return _fail(where, key, value, f"unknown key; allowed here: {', '.join(sorted(fields))}")
+
+
+def build_dataclass(cls: type, data: dict, where: str, prefix: str = "") -> Any:
+    """An instance of the frozen dataclass `cls` from a parsed TOML table, strictly: every key a
+    field, every value of the field's type. where: the file (for messages); prefix: the key path."""
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{prefix}.{name}" if prefix else name
+        if name not in fields:
+            raise _unknown_key(cls, name, value, where, key)
+        kwargs[name] = _convert(value, hints[name], where, key)
+    for name, f in fields.items():
+        if name not in kwargs and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise MissionConfigError(f"{where}: missing required key {(prefix + '.' if prefix else '') + name!r}")
+    return cls(**kwargs)
+
+
+def validate_mission(mc: MissionConfig, where: str) -> None:
+    """Raise :class:`MissionConfigError` unless the values of `mc` are consistent and in range."""
+    def bad(key: str, value: Any, problem: str) -> MissionConfigError:
+        return _fail(where, key, value, problem)
+
+    def positive(section: str, obj: Any, *names: str) -> None:
+        for n in names:
+            if not getattr(obj, n) > 0:
+                raise bad(f"{section}.{n}", getattr(obj, n), "must be positive")
+
+    if not mc.users:
+        raise bad("users", [], "a mission needs at least one user")
+    ids, rntis = set(), set()
+    for i, u in enumerate(mc.users):
+        if u.id in ids:
+            raise bad(f"users[{i}].id", u.id, "duplicate user id")
+        if not 0 < u.rnti <= 0xFFEF:
+            raise bad(f"users[{i}].rnti", u.rnti, "an RNTI is in 0x0001..0xFFEF")
+        if u.rnti in rntis:
+            raise bad(f"users[{i}].rnti", u.rnti, "duplicate RNTI")
+        ids.add(u.id)
+        rntis.add(u.rnti)
+    g = mc.geofence
+    if g.polygon_enu_m and g.polygon_lat_lon_deg:
+        raise bad("geofence.polygon_lat_lon_deg", g.polygon_lat_lon_deg,
+                  "give the fence once: polygon_enu_m or polygon_lat_lon_deg")
+    polys = [("geofence.polygon_enu_m", g.polygon_enu_m), ("geofence.polygon_lat_lon_deg", g.polygon_lat_lon_deg)]
+    polys += [(f"geofence.no_fly_enu_m[{i}]", p) for i, p in enumerate(g.no_fly_enu_m)]
+    polys += [(f"geofence.no_fly_lat_lon_deg[{i}]", p) for i, p in enumerate(g.no_fly_lat_lon_deg)]
+    for key, poly in polys:
+        if poly and len(poly) < 3:
+            raise bad(key, [list(p) for p in poly], "a polygon needs >= 3 vertices")
+        if "lat_lon" in key and any(not (-90 <= la <= 90 and -180 <= lo <= 180) for la, lo in poly):
+            raise bad(key, [list(p) for p in poly], "latitude must be in [-90, 90], longitude in [-180, 180] degrees")
+    positive("geofence", g, "max_distance_m")
+    f = mc.flight
+    positive("flight", f, "delta_m", "altitude_m", "target_radius_m", "budget_m", "time_limit_s",
+             "cruise_speed_mps", "climb_mps", "descent_mps", "leg_max_m", "acceptance_m")
+    if not 0 <= f.alt_min_m <= f.altitude_m <= f.alt_max_m:
+        raise bad("flight.altitude_m", f.altitude_m,
+                  f"need 0 <= alt_min_m ({f.alt_min_m:g}) <= altitude_m <= alt_max_m ({f.alt_max_m:g})")
+    n = mc.noise
+    positive("noise", n, "sigma_gps_m", "range_s0_m", "bias_prior_sigma_m")
+    if n.range_a_m < 0:
+        raise bad("noise.range_a_m", n.range_a_m, "must be >= 0")
+    if n.gps_tau_s is not None and n.gps_tau_s < 0:
+        raise bad("noise.gps_tau_s", n.gps_tau_s, "must be >= 0")
+    gn = mc.gnb
+    if gn.mu not in (0, 1, 2, 3):
+        raise bad("gnb.mu", gn.mu, "the numerology is 0..3")
+    positive("gnb", gn, "fs_hz", "request_timeout_s", "connect_timeout_s", "msg2_timeout_s")
+    if gn.retries < 0:
+        raise bad("gnb.retries", gn.retries, "must be >= 0")
+    if gn.mode == "stock" and not gn.log_path:
+        raise bad("gnb.mode", gn.mode, "stock mode reads the TA from the gNB log: set gnb.log_path")
+    for key in ("rtt_module", "rtt_command"):
+        if not re.fullmatch(r"[A-Za-z0-9_]+", getattr(gn, key)):
+            raise bad(f"gnb.{key}", getattr(gn, key), "a telnet module/command name is one word of [A-Za-z0-9_]")
+    s = mc.safety
+    positive("safety", s, "link_timeout_s", "link_lost_wait_s", "gnb_lost_wait_s", "max_refusals",
+             "breach_confirm_fixes")
+    if s.alt_margin_m < 0:
+        raise bad("safety.alt_margin_m", s.alt_margin_m, "must be >= 0")
+    for key in ("battery_rtl_pct", "battery_takeoff_min_pct"):
+        if not 0 <= getattr(s, key) < 100:
+            raise bad(f"safety.{key}", getattr(s, key), "a charge in [0, 100) %")
+    if s.battery_takeoff_min_pct < s.battery_rtl_pct:
+        raise bad("safety.battery_takeoff_min_pct", s.battery_takeoff_min_pct,
+                  f"must be >= battery_rtl_pct ({s.battery_rtl_pct:g})")
+
+
+def mission_from_dict(data: dict, where: str = "mission") -> MissionConfig:
+    """Build and validate a :class:`MissionConfig` from a parsed TOML document; `where` names the
+    source in every message."""
+    mc = build_dataclass(MissionConfig, data, where)
+    validate_mission(mc, where)
+    return mc
+
+
+def load_mission(path: str | Path) -> MissionConfig:
+    """Read a mission file strictly (see the module docstring)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise MissionConfigError(f"{p}: cannot read the mission file: {exc}") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise MissionConfigError(f"{p}: not valid TOML: {exc}") from exc
+    return mission_from_dict(data, str(p))
+
+
+def example_mission_path(name: str = "flight") -> Path:
+    """A mission file shipped with the package (`mission/examples/<name>.toml`)."""
+    return EXAMPLES_DIR / f"{name}.toml"

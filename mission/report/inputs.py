@@ -1,0 +1,248 @@
+"""What a report draws: :class:`ReportInputs`, plain arrays independent of how replay or the
+mission controller store their results, and :class:`MissionShapes`, the geofence, no-fly zones,
+altitude band and buildings a log header may carry (DESIGN.md §10, optional fields):
+
+    geofence         [[lat_deg, lon_deg], ...]            open ring (inclusion)
+    no_fly_zones     [[[lat_deg, lon_deg], ...], ...]     open rings (exclusion)
+    altitude_band_m  {"min_m", "max_m"}                   above home
+    buildings        [{"footprint": ring, "height_m"}]    simulations only
+
+Absent fields are fine; a malformed one is left out with a warning naming it (the report of a
+flight is not lost to a bad decoration).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimator.geodesy import Origin
+from estimator.noise import NoiseModel
+from mission.result import error_bound_95_m, horizontal_error_m
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Building:
+    """A building: footprint (P, 2) [lat_deg, lon_deg] (open ring) and height above ground [m]."""
+
+    footprint_lat_lon_deg: np.ndarray
+    height_m: float
+
+
+@dataclass(frozen=True)
+class MissionShapes:
+    """The mission's areas in geodetic coordinates. geofence_lat_lon_deg (P, 2) or None;
+    no_fly_lat_lon_deg: tuple of (Q, 2); altitude_band_m: (min_m, max_m) above home or None;
+    buildings: tuple of :class:`Building`."""
+
+    geofence_lat_lon_deg: np.ndarray | None = None
+    no_fly_lat_lon_deg: tuple[np.ndarray, ...] = ()
+    altitude_band_m: tuple[float, float] | None = None
+    buildings: tuple[Building, ...] = ()
+
+
+def _ring(value: Any, what: str) -> np.ndarray:
+    ring = np.asarray(value, dtype=float)
+    if ring.ndim != 2 or ring.shape[1] != 2 or len(ring) < 3 or not np.all(np.isfinite(ring)):
+        raise ValueError(f"{what} must be >= 3 [lat_deg, lon_deg] pairs, got {value!r}")
+    if np.any(np.abs(ring[:, 0]) > 90) or np.any(np.abs(ring[:, 1]) > 180):
+        raise ValueError(f"{what} has a latitude beyond 90 or a longitude beyond 180 degrees: {value!r}")
+    if len(ring) > 3 and np.array_equal(ring[0], ring[-1]):
+        ring = ring[:-1]  # tolerate a closed ring
+    return ring
+
+
+def shapes_from_header(header: dict) -> MissionShapes:
+    """:class:`MissionShapes` of a raw log header object (see the module docstring)."""
+
+    def field_or_none(key: str, parse):
+        if header.get(key) is None:
+            return None
+        try:
+            return parse(header[key])
+        except (ValueError, TypeError, KeyError, AttributeError) as exc:
+            log.warning("log header field %r left out of the report: %s", key, exc)
+            return None
+
+    def band(v: dict) -> tuple[float, float]:
+        lo, hi = float(v["min_m"]), float(v["max_m"])
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+            raise ValueError(f"need finite min_m <= max_m, got {v!r}")
+        return lo, hi
+
+    def buildings(v: list) -> tuple[Building, ...]:
+        out = []
+        for i, b in enumerate(v):
+            h = float(b["height_m"])
+            if not (math.isfinite(h) and h > 0):
+                raise ValueError(f"buildings[{i}].height_m must be positive, got {b['height_m']!r}")
+            out.append(Building(_ring(b["footprint"], f"buildings[{i}].footprint"), h))
+        return tuple(out)
+
+    return MissionShapes(
+        geofence_lat_lon_deg=field_or_none("geofence", lambda v: _ring(v, "geofence")),
+        no_fly_lat_lon_deg=field_or_none("no_fly_zones", lambda v: tuple(
+            _ring(z, f"no_fly_zones[{i}]") for i, z in enumerate(v))) or (),
+        altitude_band_m=field_or_none("altitude_band_m", band),
+        buildings=field_or_none("buildings", buildings) or (),
+    )
+
+
+def shapes_from_log(mlog: Any) -> MissionShapes:
+    """The shapes of a parsed log's header: its raw header object when the parser keeps one
+    (`header.raw`), else the log file's first line, read again; empty when neither is there."""
+    raw = getattr(mlog.header, "raw", None)
+    if not isinstance(raw, dict):
+        try:
+            with open(Path(str(mlog.path)), encoding="utf-8") as f:
+                raw = json.loads(f.readline())
+        except (OSError, ValueError, TypeError):
+            return MissionShapes()
+    return shapes_from_header(raw) if isinstance(raw, dict) else MissionShapes()
+
+
+@dataclass(frozen=True)
+class ReportInputs:
+    """Everything a report or an export draws. Shapes: K users, N keyframes, M range measurements,
+    T telemetry fixes, H history steps, W waypoints. Positions are ENU [m] about `origin`.
+
+    user_ids: K names. users_enu_m (K, 3) estimated users (NaN rows: not located);
+    cov_en_m2 (K, 2, 2) their east-north covariance [m²]; bias_m (K,) estimated range bias or None.
+    truth_enu_m (K, 3) true users or None. ambiguous (K,) bool or None.
+    kf_t_s (N,), kf_gps_enu_m (N, 3): keyframe times and GPS positions; uav_enu_m (N, 3) the
+    estimator's corrected track (or None).
+    tel_t_s (T,), tel_enu_m (T, 3): telemetry track (or None: the keyframes are the track).
+    meas_t_s (M,), meas_user (M,), meas_range_m (M,), meas_uav_enu_m (M, 3): every range used, with
+    the GPS position it was taken at.
+    noise: the noise model the estimator used.
+    hist_flown_m (H,), hist_bound_95_m (H, K), hist_error_m (H, K) or None: how the estimate evolved.
+    waypoints_enu_m (W, 3) or None: the planner's waypoints, if the mission logged them.
+    flown_m, status, title: summary.
+    shapes: the geofence, no-fly zones, altitude band and buildings of the log header (empty when
+    the header has none).
+    """
+
+    origin: Origin
+    user_ids: list[str]
+    users_enu_m: np.ndarray
+    cov_en_m2: np.ndarray
+    noise: NoiseModel
+    kf_t_s: np.ndarray
+    kf_gps_enu_m: np.ndarray
+    meas_t_s: np.ndarray
+    meas_user: np.ndarray
+    meas_range_m: np.ndarray
+    meas_uav_enu_m: np.ndarray
+    bias_m: np.ndarray | None = None
+    truth_enu_m: np.ndarray | None = None
+    ambiguous: np.ndarray | None = None
+    uav_enu_m: np.ndarray | None = None
+    tel_t_s: np.ndarray | None = None
+    tel_enu_m: np.ndarray | None = None
+    hist_flown_m: np.ndarray | None = None
+    hist_bound_95_m: np.ndarray | None = None
+    hist_error_m: np.ndarray | None = None
+    waypoints_enu_m: np.ndarray | None = None
+    flown_m: float = float("nan")
+    status: str = ""
+    title: str = "uavloc mission"
+    extra: dict = field(default_factory=dict)
+    shapes: MissionShapes = field(default_factory=lambda: MissionShapes())
+
+    @property
+    def n_users(self) -> int:
+        return len(self.user_ids)
+
+    def track_enu_m(self) -> np.ndarray:
+        """(T, 3) the flown GPS track: telemetry when present, else the keyframe GPS positions."""
+        if self.tel_enu_m is not None and len(self.tel_enu_m) >= 2:
+            return self.tel_enu_m
+        return self.kf_gps_enu_m
+
+    def error_bound_95_m(self) -> np.ndarray:
+        """(K,) semi-major axis of each user's 95 % ellipse [m]; inf where unknown."""
+        return error_bound_95_m(self.cov_en_m2)
+
+    def error_m(self) -> np.ndarray | None:
+        """(K,) horizontal error of each estimated user [m] when the truth is known."""
+        if self.truth_enu_m is None:
+            return None
+        return horizontal_error_m(self.users_enu_m, self.truth_enu_m)
+
+
+def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
+    """Build :class:`ReportInputs` from a `mission.replay.ReplayResult` (duck-typed: keyframes,
+    estimate, log, noise, truth_enu_m, flown_m, history)."""
+    mlog = result.log
+    origin = mlog.header.origin
+    est = result.estimate
+    kfs = list(result.keyframes)
+    k = mlog.n_users
+    meas_t = np.concatenate([np.full(len(kf.range_m), kf.t_s) for kf in kfs]) if kfs else np.zeros(0)
+    meas_user = np.concatenate([np.asarray(kf.user_idx, int) for kf in kfs]) if kfs else np.zeros(0, int)
+    meas_r = np.concatenate([np.asarray(kf.range_m, float) for kf in kfs]) if kfs else np.zeros(0)
+    meas_uav = (np.concatenate([np.repeat(np.asarray(kf.gps_enu_m, float)[None], len(kf.range_m), 0) for kf in kfs])
+                if kfs else np.zeros((0, 3)))
+    cov = np.array([est.cov_en_m2(j) for j in range(k)]).reshape(k, 2, 2)
+    tel_t = tel_enu = None
+    if len(mlog.tel_t_s) >= 2:
+        tel_t = mlog.tel_t_s
+        tel_enu = origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
+    uav = np.asarray(est.uav_enu_m, float)
+    if uav.shape != result.kf_gps_enu_m.shape:
+        uav = None  # a fixed-lag estimator keeps only the last keyframes: nothing to draw against
+    hist = getattr(result, "history", None)
+    wps = waypoints_from_log(mlog)
+    return ReportInputs(
+        origin=origin,
+        user_ids=[u.id for u in mlog.header.users],
+        users_enu_m=np.asarray(est.users_enu_m, float),
+        cov_en_m2=cov,
+        noise=result.noise,
+        kf_t_s=np.asarray(result.kf_t_s, float),
+        kf_gps_enu_m=np.asarray(result.kf_gps_enu_m, float),
+        meas_t_s=meas_t, meas_user=meas_user, meas_range_m=meas_r, meas_uav_enu_m=meas_uav,
+        bias_m=None if est.bias_m is None else np.asarray(est.bias_m, float),
+        truth_enu_m=None if result.truth_enu_m is None else np.asarray(result.truth_enu_m, float),
+        ambiguous=np.asarray(est.ambiguous, bool),
+        uav_enu_m=uav,
+        tel_t_s=tel_t, tel_enu_m=tel_enu,
+        hist_flown_m=None if hist is None else np.asarray(hist.flown_m, float),
+        hist_bound_95_m=None if hist is None else np.asarray(hist.bound_95_m, float),
+        hist_error_m=None if hist is None or hist.error_m is None else np.asarray(hist.error_m, float),
+        waypoints_enu_m=wps,
+        shapes=shapes_from_log(mlog),
+        flown_m=float(result.flown_m),
+        status=_status(est),
+        title=title or f"uavloc replay of {Path(str(mlog.path)).name}",
+    )
+
+
+def _status(est: Any) -> str:
+    if not np.all(np.isfinite(est.users_enu_m)):
+        return "incomplete"
+    if np.any(est.ambiguous):
+        return "ambiguous"
+    return "ok"
+
+
+def waypoints_from_log(mlog: Any) -> np.ndarray | None:
+    """(W, 3) ENU of the log's `waypoint` records that carry lat_deg/lon_deg/alt_m, or None."""
+    pts = []
+    for w in getattr(mlog, "waypoints", []) or []:
+        try:
+            pts.append((float(w["lat_deg"]), float(w["lon_deg"]), float(w["alt_m"])))
+        except (KeyError, TypeError, ValueError):
+            continue
+    if not pts:
+        return None
+    a = np.asarray(pts)
+    return mlog.header.origin.lla_to_enu(a[:, 0], a[:, 1], a[:, 2])
