@@ -260,7 +260,7 @@
       id.textContent = u.id;
       if (u.ambiguous) {
         const b = document.createElement("span");
-        b.className = "badge"; b.textContent = "ambiguous"; b.title = "a mirror solution fits about as well";
+        b.className = "badge"; b.textContent = "ambig."; b.title = "ambiguous: a mirror solution fits about as well";
         id.append(" ", b);
       }
       const cells = u.located
