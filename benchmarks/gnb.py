@@ -14,12 +14,18 @@ import asyncio
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from mission.gnb import GnbConfig, OaiGnbClient
-from sitl_scenarios.gnb import SimulatedGnb, static_position
-from sitl_scenarios.scenario import scenario_from_dict
+# this file is benchmarks/gnb.py: put the repository root in place of its folder on sys.path, so that
+# `import estimator` finds the package and not benchmarks/estimator.py
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+
+from mission.gnb import GnbConfig, OaiGnbClient  # noqa: E402 (after the sys.path fix)
+from sitl_scenarios.gnb import SimulatedGnb, static_position  # noqa: E402
+from sitl_scenarios.scenario import scenario_from_dict  # noqa: E402
 
 TARGET_ONE_MS = 5.0
 TARGET_TEN_MS = 50.0

@@ -31,6 +31,7 @@ COMMANDS = {
     "replay": "mission.commands.replay",
     "calibrate": "mission.commands.calibrate",
     "import": "mission.commands.importer",
+    "gnb": "mission.commands.gnb",
     "view": "mission.commands.view",
 }
 

@@ -22,8 +22,11 @@ pass) and flies it until arrival within the acceptance radius or the leg timeout
 (every user's 95 % ellipse within the target radius, or the budget spent) leads to RETURN. An
 exception, a cancellation (Ctrl-C) or a safety condition ends in RTL and a flushed log.
 
-Time: control uses the monotonic clock; the log's `t` is mission seconds since start, i.e.
-`(monotonic − start) · time_scale` (time_scale = the simulator's speedup; 1 for real flights).
+Time: the log's `t` is mission seconds since start on the vehicle's clock (MAVLink boot time,
+:class:`mission.telemetry.VehicleClock`), so logs of SITL at any speed factor and of real flights
+are in vehicle seconds; before the vehicle's time is known (and with a vehicle that sends none) it
+is `(monotonic − start) · time_scale` (time_scale = the simulator's speedup; 1 for real flights).
+Request timeouts stay in wall seconds.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ from estimator.types import Estimate, Keyframe, SolverParams
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields
 from mission.safety import BreachWatch, GatedVehicle, SafetyGate, SafetyLimits
-from mission.telemetry import Odometer, TelemetryBuffer, odometer_dead_band_m
+from mission.telemetry import Odometer, TelemetryBuffer, VehicleClock, odometer_dead_band_m
 from mission.vehicle import PositionFix, Vehicle
 from planner.stop import targets_reached
 from planner.types import Planner, PlanningState, PlanResult
@@ -81,8 +84,14 @@ STATUS_RETURNED = "returned"  # a safety condition ended the survey early
 STATUS_ABORTED = "aborted"  # an error ended the mission (RTL sent when airborne)
 STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne)
 
-#: wall seconds the safe end may spend getting RTL accepted after an error or Ctrl-C
+#: PX4's default horizontal cruise speed (MPC_XY_CRUISE): what the vehicle flies when a speed
+#: command was refused, so the leg timeouts follow it then
+PX4_DEFAULT_CRUISE_MPS = 5.0
+
+#: wall seconds the safe end may spend getting RTL accepted after an error
 SAFE_END_TIMEOUT_S = 60.0
+#: ... and after Ctrl-C (the user waits; a second Ctrl-C exits at once, mission.runtime)
+INTERRUPT_SAFE_END_TIMEOUT_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -248,7 +257,24 @@ _CHILD_ONLINE: OnlineEstimator | None = None
 
 def _child_init(n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams) -> None:
     global _CHILD_ONLINE
+    _die_with_parent()
     _CHILD_ONLINE = OnlineEstimator(n_users, user_up_m, noise, params)
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGTERM this process when its parent dies (a crashed or hard-exited uavloc must not
+    leave the estimator child behind holding its stdout). Elsewhere a no-op."""
+    import ctypes
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+        if os.getppid() == 1:  # the parent is already gone
+            os._exit(0)
 
 
 def _child_ping() -> int:
@@ -391,6 +417,7 @@ class MissionController:
         self.measurements = 0
         self.event_messages: list[str] = []
         self._t0_mono = time.monotonic()
+        self._clock = VehicleClock(self._t0_mono, config.time_scale)
         self._start_utc = datetime.now(UTC).isoformat(timespec="milliseconds")
         self._buffer = TelemetryBuffer(4096)
         self._fix_pulse: _Pulse | None = None
@@ -410,19 +437,23 @@ class MissionController:
         self._battery_start_pct: float | None = None
         self.loop_lag = LoopLagMonitor()
         self._on_leg = False  # flying a survey leg: the Δ-trigger is armed (not while hovering to plan)
+        self.result: MissionResult | None = None  # set when the mission ends (also when cancelled)
+        self._rtl_gave_up = False  # RTL retried for its whole time without being accepted
+        self._leg_speed_mps = PX4_DEFAULT_CRUISE_MPS  # the speed the vehicle flies legs at (commanded or default)
+        self._speed_refusals = 0
 
     # -- clock ----------------------------------------------------------------------------------
 
     def now(self) -> float:
-        """Mission seconds since start."""
-        return (time.monotonic() - self._t0_mono) * self.config.time_scale
+        """Mission seconds since start (vehicle seconds once the vehicle's clock is known)."""
+        return self._clock.mission_t(time.monotonic())
 
     def mission_t(self, t_mono_s: float) -> float:
-        return (t_mono_s - self._t0_mono) * self.config.time_scale
+        return self._clock.mission_t(t_mono_s)
 
     def wall(self, mission_s: float) -> float:
-        """Mission seconds → wall seconds."""
-        return mission_s / self.config.time_scale
+        """Mission seconds → wall seconds (at the vehicle clock's current rate)."""
+        return mission_s / self._clock.rate
 
     # -- log ------------------------------------------------------------------------------------
 
@@ -680,7 +711,12 @@ class MissionController:
             bound = est.error_bound_95_m()
             for k, u in enumerate(self.users):
                 p = est.users_enu_m[k]
-                if np.all(np.isfinite(p)):
+                if np.all(np.isfinite(p)) and bool(est.ambiguous[k]):
+                    # a mirror position explains the ranges as well: its small r95 means nothing yet
+                    m = est.mirror_enu_m[k]
+                    mirror = f" or ({m[0]:.1f}, {m[1]:.1f})" if np.all(np.isfinite(m[:2])) else ""
+                    parts.append(f"{u.id} AMBIGUOUS ({p[0]:.1f}, {p[1]:.1f}){mirror}")
+                elif np.all(np.isfinite(p)):
                     parts.append(f"{u.id} ({p[0]:.1f}, {p[1]:.1f}) r95 {bound[k]:.2f} m")
                 else:
                     parts.append(f"{u.id} -")
@@ -702,6 +738,7 @@ class MissionController:
                     log.warning("RTL attempt %d failed: %s", attempt, exc)
                     self._event(f"RTL attempt {attempt} failed: {exc}", kind="rtl_failed")
                 if time.monotonic() >= t_end:
+                    self._rtl_gave_up = True
                     return False
                 await asyncio.sleep(0.5)
                 continue
@@ -723,7 +760,8 @@ class MissionController:
         dist = 0.0 if pos is None else float(np.hypot(pos[0], pos[1]))
         height = self.config.altitude_m if pos is None else max(float(pos[2]), 0.0)
         cfg = self.config
-        return 2.0 * (dist / cfg.speed_mps + height / cfg.descent_mps) + 60.0
+        # RTL flies at the vehicle's own return speed (PX4: MPC_XY_CRUISE unless changed)
+        return 2.0 * (dist / min(self._leg_speed_mps, PX4_DEFAULT_CRUISE_MPS) + height / cfg.descent_mps) + 60.0
 
     # -- main flow ------------------------------------------------------------------------------
 
@@ -740,13 +778,13 @@ class MissionController:
         except asyncio.CancelledError:
             self._set_state(ABORT)
             self._event("mission interrupted (cancelled): returning home", kind="interrupted")
-            await self._safe_end("interrupted")
+            await self._safe_end("interrupted", INTERRUPT_SAFE_END_TIMEOUT_S)
             self._close(STATUS_INTERRUPTED, "interrupted", t_wall)
             raise
         except KeyboardInterrupt:
             self._set_state(ABORT)
             self._event("mission interrupted (Ctrl-C): returning home", kind="interrupted")
-            await self._safe_end("interrupted")
+            await self._safe_end("interrupted", INTERRUPT_SAFE_END_TIMEOUT_S)
             self._close(STATUS_INTERRUPTED, "interrupted", t_wall)
             raise
         except UavlocError as exc:
@@ -765,16 +803,17 @@ class MissionController:
             raise
         return self._close(status, reason, t_wall)
 
-    async def _safe_end(self, reason: str) -> None:
-        """Never leave the vehicle without a safe command: RTL when it may be airborne."""
-        if not self._connected or self._gated is None or self._rtl_sent:
+    async def _safe_end(self, reason: str, timeout_s: float = SAFE_END_TIMEOUT_S) -> None:
+        """Never leave the vehicle without a safe command: RTL when it may be airborne (trying
+        for at most timeout_s wall seconds)."""
+        if not self._connected or self._gated is None or self._rtl_sent or self._rtl_gave_up:
             return
         st = self.vehicle.state
         if st.armed is False and st.landed_state in ("ON_GROUND", "UNKNOWN"):
             return
         try:
-            async with asyncio.timeout(SAFE_END_TIMEOUT_S):
-                sent = await self._send_rtl(reason)
+            async with asyncio.timeout(timeout_s):
+                sent = await self._send_rtl(reason, retry_s=timeout_s)
         except TimeoutError:
             sent = False
         if not sent:
@@ -794,7 +833,7 @@ class MissionController:
             self._log_estimate(est, final=True)
         self._event(f"mission end: {status} ({reason})", kind="end", status=status)
         self._writer.close()
-        return MissionResult(
+        self.result = MissionResult(
             status=status, reason=reason, user_ids=[u.id for u in self.users], estimate=est,
             origin=self.origin, truth_enu_m=self.truth_enu_m, flown_m=self.flown_m,
             measurements=self.measurements, keyframes=len(self.keyframes),
@@ -802,6 +841,7 @@ class MissionController:
             wall_s=time.monotonic() - t_wall, rtl_sent=self._rtl_sent, landed=self._landed,
             refusals=self._gated.refusals if self._gated else 0, events=list(self.event_messages),
             loop_lag=self.loop_lag.summary())
+        return self.result
 
     def _final_estimate_sync(self) -> Estimate:
         up = np.array([u.up_m for u in self.users])
@@ -818,7 +858,8 @@ class MissionController:
         self._set_state(CONNECT)
         await self.vehicle.connect(cfg.connect_timeout_s)
         self._connected = True
-        background.append(tg.create_task(self.vehicle.run_telemetry(self._on_fix), name="telemetry"))
+        background.append(tg.create_task(self.vehicle.run_telemetry(self._on_fix, self._clock.update),
+                                         name="telemetry"))
         # PREFLIGHT: global position and home ok; home is the ENU origin
         self._set_state(PREFLIGHT)
         home = await self.vehicle.wait_ready(cfg.ready_timeout_s)
@@ -932,6 +973,7 @@ class MissionController:
                                enu_m=wp.tolist(), planner=getattr(self.planner, "name", "?"),
                                status=plan.status, objective=plan.objective if math.isfinite(plan.objective)
                                else None, solve_time_s=plan.solve_time_s)
+            await self._command_speed()
             try:
                 await self._gated.goto_enu(wp)
             except SafetyError:
@@ -944,7 +986,11 @@ class MissionController:
                 # it and replan from wherever the vehicle is then
                 refusals += 1
                 self._event(f"goto failed: {exc}", kind="goto_failed")
-                if refusals >= cfg.max_refusals:
+                if getattr(exc, "result", None) == "UNKNOWN":
+                    # MAVSDK 4.1's answer to a MAV_RESULT it does not know (PX4's 9 to a reposition):
+                    # it stops delivering telemetry and may crash on later calls, so send nothing but RTL
+                    self.request_return(f"the vehicle library answered UNKNOWN: {exc}")
+                elif refusals >= cfg.max_refusals:
                     self.request_return(f"{refusals} gotos in a row failed: {exc}")
                 await self._wait_link()
                 continue
@@ -952,6 +998,23 @@ class MissionController:
             await self._fly_leg(pos, wp)
         if self._budget_spent():
             self._finish_survey(STATUS_BUDGET, "budget spent")
+
+    async def _command_speed(self) -> None:
+        """Command the mission's cruise speed before every leg (PX4 keeps it over repositions, but a
+        mode change resets it); the leg timeouts follow what the vehicle then flies."""
+        cfg = self.config
+        try:
+            await self.vehicle.set_speed(cfg.speed_mps)
+        except VehicleError as exc:
+            self._speed_refusals += 1
+            self._leg_speed_mps = min(cfg.speed_mps, PX4_DEFAULT_CRUISE_MPS)
+            if self._speed_refusals == 1:
+                self._event(f"speed {cfg.speed_mps:g} m/s not accepted ({exc}): legs timed for "
+                            f"{self._leg_speed_mps:g} m/s", kind="speed_refused")
+            return
+        if self._leg_speed_mps != cfg.speed_mps:
+            self._event(f"cruise speed {cfg.speed_mps:g} m/s commanded", kind="speed", speed_mps=cfg.speed_mps)
+        self._leg_speed_mps = cfg.speed_mps
 
     async def _wait_link(self) -> None:
         """While the vehicle link is lost (and no return is requested), wait."""
@@ -974,7 +1037,7 @@ class MissionController:
     async def _fly_leg_until_done(self, start: np.ndarray, wp: np.ndarray) -> None:
         cfg = self.config
         dist = float(np.linalg.norm(wp - start))
-        deadline = time.monotonic() + self.wall(2.0 * dist / cfg.speed_mps + 20.0)
+        deadline = time.monotonic() + self.wall(2.0 * dist / self._leg_speed_mps + 20.0)
         # metres flown: an odometer whose dead band (max(5 m, 8 σ_gps)) GPS noise does not cross
         self._odometer.start(start)
         while True:

@@ -4,64 +4,72 @@ The controller depends on the small :class:`GnbClient` protocol; :class:`OaiGnbC
 it over TCP for a real (modified or stock) OAI gNB and for the simulated one
 (`sitl_scenarios/gnb.py`). The client is an async context manager that owns its connection:
 
-- a request is one line ``module command [args]\\n``; the answer is everything up to the prompt
-  ``softmodem_gnb> ``; every request has a timeout;
+- a request is one line ``module command [args]\n``; the answer is everything up to the prompt
+  ``softmodem_gnb> ``; every request has a timeout; late ``rfsimu_*_cmd:`` lines (OAI prints
+  them after the prompt) are taken out of the next answer;
 - a lost connection is re-opened with jittered exponential backoff (seeded rng) and the request
   re-sent, up to `retries` times; after a timeout the connection is closed (a late answer would
   otherwise be read as the next one) and GnbTimeoutError raised;
 - OAI serves one client at a time: a fresh connection that is closed before its first answer, or
-  stays silent, is reported as GnbBusyError;
+  stays silent (what OAI does), is reported as GnbBusyError;
 - an unknown command (``... is not a softmodem command``) is GnbUnknownCommandError;
 - discovery through ``o1 stats`` (RNTI list) or ``ci get_single_rnti``;
 - measurement through the RTT command set (default ``rtt pdcch_order <rnti hex>``, names are
-  configuration), or the stock fallback: ``ci force_reestab <rnti>`` then the Msg2 line
-  ``timing_offset = N`` from the gNB log file, followed like `tail -f` (coarse TA only).
+  configuration), or one of two stock modes that read Msg2 lines from the gNB log file (followed
+  like `tail -f`, every line fed to :class:`mission.oai_ra.RaTracker`, coarse TA only):
+  *active* sends ``ci force_reestab <rnti>`` and waits for a random access the log proves to be
+  that UE's; *passive* sends nothing and returns the UE's random accesses that happened anyway.
 
-All parsing is in the pure `mission.oai`.
+Stock OAI 2025.w36 crashes (segfault) on ``ci force_reestab``/``force_ue_release``/
+``force_ul_failure``/``get_current_bwp`` with an RNTI it does not have. So a ``ci`` command that
+names an RNTI is sent only by :meth:`OaiGnbClient.guarded_ci`, right after a fresh discovery on the
+same connection that lists the RNTI, and never retried on another connection;
+``force_ue_release`` and ``force_ul_failure`` are never sent at all.
+
+All parsing is in the pure `mission.oai` and `mission.oai_ra`.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import random
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Literal, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
-from estimator.ranging import MU_VALUES
+from mission.gnb_config import FORBIDDEN_CI, GnbConfig, check_ci_line, parse_host_port
+from mission.gnb_log import LogFollower, StockLog
 from mission.oai import (
     MAX_REPLY_CHARS,
-    PROMPT_GNB,
-    Msg2Record,
     RttErrorReply,
     RttSample,
     check_known_command,
     decode_reply,
     parse_force_reestab,
-    parse_msg2_line,
     parse_o1_stats,
     parse_rtt_reply,
     parse_single_rnti,
     protocol_error,
-    sample_from_msg2,
     sample_from_rtt,
+    split_async_lines,
 )
+from mission.oai_ra import RandomAccess, RntiChange
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
     GnbNoMeasurementError,
+    GnbNoRandomAccessError,
     GnbTimeoutError,
     GnbUnknownCommandError,
 )
 
-__all__ = ["GnbClient", "GnbConfig", "LogFollower", "OaiGnbClient", "RttSample", "parse_host_port"]
+__all__ = ["FORBIDDEN_CI", "GnbClient", "GnbConfig", "LogFollower", "OaiGnbClient", "RttSample", "check_ci_line",
+           "parse_host_port"]
 
 log = logging.getLogger(__name__)
-
 
 @runtime_checkable
 class GnbClient(Protocol):
@@ -77,167 +85,47 @@ class GnbClient(Protocol):
     async def measure(self, rnti: int) -> RttSample: ...
 
 
-@dataclass(frozen=True)
-class GnbConfig:
-    """Settings of :class:`OaiGnbClient`.
-
-    host, port: the gNB telnet server (`--telnetsrv.listenport`, default 9090); prompt: what ends
-    an answer; mode: "rtt" (RTT command set) or "stock" (force_reestab + Msg2 log line);
-    rtt_module, rtt_command: the RTT command's names; discovery: "o1", "single" or "auto" (o1
-    stats, falling back to ci get_single_rnti when the o1 module is not loaded);
-    request_timeout_s, connect_timeout_s: per request / connection attempt [s]; retries: reconnect
-    attempts after a lost connection; backoff_initial_s, backoff_max_s: jittered exponential
-    backoff; seed: seeds the jitter; log_path: gNB log file followed in stock mode; msg2_timeout_s:
-    how long to wait for the Msg2 line [s]; log_poll_s: log polling period [s]; mu: numerology of
-    the UL BWP, the unit of the Msg2 TA (stock mode).
-    """
-
-    host: str = "127.0.0.1"
-    port: int = 9090
-    prompt: str = PROMPT_GNB
-    mode: Literal["rtt", "stock"] = "rtt"
-    rtt_module: str = "rtt"
-    rtt_command: str = "pdcch_order"
-    discovery: Literal["auto", "o1", "single"] = "auto"
-    request_timeout_s: float = 2.0
-    connect_timeout_s: float = 2.0
-    retries: int = 3
-    backoff_initial_s: float = 0.05
-    backoff_max_s: float = 2.0
-    seed: int = 0
-    log_path: Path | None = None
-    msg2_timeout_s: float = 3.0
-    log_poll_s: float = 0.01
-    mu: int = 1
-
-    def __post_init__(self) -> None:
-        if self.mode not in ("rtt", "stock"):
-            raise GnbError(f"gNB mode must be 'rtt' or 'stock', got {self.mode!r}")
-        if self.discovery not in ("auto", "o1", "single"):
-            raise GnbError(f"gNB discovery must be 'auto', 'o1' or 'single', got {self.discovery!r}")
-        if self.mode == "stock" and self.log_path is None:
-            raise GnbError("stock mode reads the TA from the gNB log: set log_path")
-        if self.mu not in MU_VALUES:
-            raise GnbError(f"mu must be one of {MU_VALUES}, got {self.mu!r}")
-        for name in ("request_timeout_s", "connect_timeout_s", "msg2_timeout_s", "log_poll_s"):
-            if not getattr(self, name) > 0:
-                raise GnbError(f"{name} must be positive, got {getattr(self, name)!r}")
-        if self.retries < 0 or self.backoff_initial_s < 0 or self.backoff_max_s < 0:
-            raise GnbError("retries and backoff times must be non-negative")
-        for name in ("rtt_module", "rtt_command"):
-            v = getattr(self, name)
-            if not v or any(c.isspace() for c in v):
-                raise GnbError(f"{name} must be one word, got {v!r}")
-
-
-def parse_host_port(text: str, default_port: int = 9090) -> tuple[str, int]:
-    """"HOST:PORT" (or "HOST") -> (host, port); GnbError when the port is not a number."""
-    host, sep, port = text.rpartition(":")
-    if not sep:
-        return text, default_port
-    try:
-        p = int(port)
-    except ValueError:
-        raise GnbError(f"bad gNB address {text!r}: port {port!r} is not a number") from None
-    if not 0 < p < 65536:
-        raise GnbError(f"bad gNB address {text!r}: port out of range")
-    return host.strip("[]") or "127.0.0.1", p
-
-
 class _ConnectionLost(Exception):
     pass
-
-
-class LogFollower:
-    """Follow a growing log file like `tail -f`, from a mark, for Msg2 lines (polling, no threads).
-
-    Handles a file that does not exist yet, and truncation/rotation (restarts from the beginning).
-    """
-
-    def __init__(self, path: Path, poll_s: float = 0.01) -> None:
-        self.path = Path(path)
-        self.poll_s = poll_s
-        self.position = 0
-        self._partial = b""
-
-    def _size(self) -> int:
-        try:
-            return self.path.stat().st_size
-        except FileNotFoundError:
-            return 0
-
-    def mark(self) -> None:
-        """Forget everything written so far: later reads start at the current end of the file."""
-        self.position = self._size()
-        self._partial = b""
-
-    def read_lines(self) -> list[str]:
-        """Complete lines appended since the last read (a partial last line is kept for later)."""
-        size = self._size()
-        if size < self.position:  # truncated or rotated
-            log.info("gNB log %s shrank (%d < %d): reading from the start", self.path, size, self.position)
-            self.position, self._partial = 0, b""
-        if size == self.position:
-            return []
-        try:
-            with self.path.open("rb") as fh:
-                fh.seek(self.position)
-                data = fh.read(min(size - self.position, 1 << 22))
-        except OSError as exc:
-            raise GnbError(f"cannot read the gNB log {self.path}: {exc}") from exc
-        self.position += len(data)
-        data = self._partial + data
-        *complete, self._partial = data.split(b"\n")
-        return [ln.decode("utf-8", errors="replace") for ln in complete]
-
-    async def wait_msg2(self, accept: Callable[[Msg2Record], bool], timeout_s: float) -> Msg2Record:
-        """The first Msg2 record after the mark that `accept`s; GnbTimeoutError after timeout_s.
-
-        A malformed Msg2 line raises GnbProtocolError (clearer than waiting for the timeout).
-        """
-        try:
-            async with asyncio.timeout(timeout_s):
-                while True:
-                    for line in self.read_lines():
-                        rec = parse_msg2_line(line)
-                        if rec is not None and accept(rec):
-                            return rec
-                        if rec is not None:
-                            log.debug("ignoring Msg2 of another UE: %s", line.strip())
-                    await asyncio.sleep(self.poll_s)
-        except TimeoutError:
-            raise GnbTimeoutError(f"no matching Msg2 `timing_offset` line in {self.path} within "
-                                  f"{timeout_s:g} s") from None
 
 
 class OaiGnbClient:
     """Telnet client of an OAI gNB (see the module docstring); implements :class:`GnbClient`.
 
     config: GnbConfig; rng: jitter source (default random.Random(config.seed)); clock: monotonic
-    clock [s] used to time-stamp samples (the midpoint of request and answer for RTT samples, the
-    time the Msg2 line was read for stock samples).
+    clock [s] used to time-stamp samples (the midpoint of request and answer for RTT samples; for
+    stock samples the Msg2 line's wall_clock stamp mapped through `wall`, or the time it was read
+    when the log has no such stamp); wall: UNIX time [s].
+
+    State of the stock modes: `rnti_alias` (requested RNTI -> the RNTI the UE has now, changed only
+    by a log line that proves it), `recent_accesses` (every random access the log proved, newest
+    last), `late_lines` (rfsimu output that arrived after its prompt).
     """
 
     def __init__(self, config: GnbConfig | None = None, *, rng: random.Random | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> None:
         self.config = config if config is not None else GnbConfig()
         self.rng = rng if rng is not None else random.Random(self.config.seed)
         self.clock = clock
+        self.wall = wall
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._fresh = True  # no answer received yet on the current connection
         self._lock = asyncio.Lock()
         self._stock_lock = asyncio.Lock()
         self._prompt = self.config.prompt.encode()
-        self._follower = LogFollower(self.config.log_path, self.config.log_poll_s) if (
+        #: stock modes: the gNB log and what it proved (None without a log_path)
+        self.stock_log = StockLog(self.config.log_path, self.config.log_poll_s, self.config.log_history) if (
             self.config.log_path is not None) else None
+        self.late_lines: collections.deque[str] = collections.deque(maxlen=64)
         self.known_rntis: list[int] = []
-        #: stock mode: requested RNTI -> the RNTI the UE got after its reestablishment
-        self.rnti_alias: dict[int, int] = {}
         self.reconnects = 0
+        self.ci_sent: list[str] = []
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def __aenter__(self) -> OaiGnbClient:
+        if self.stock_log is not None:
+            self.stock_log.start()
         async with self._lock:
             await self._connect_with_retry()
         return self
@@ -325,63 +213,99 @@ class OaiGnbClient:
         """Send one request line and return the answer text before the prompt.
 
         Retries after a lost connection (jittered backoff); raises GnbTimeoutError, GnbBusyError,
-        GnbProtocolError (undecodable answer) or GnbError (gNB unreachable).
+        GnbProtocolError (undecodable answer) or GnbError (gNB unreachable, or a `ci` line that
+        check_ci_line refuses).
         """
+        check_ci_line(line)
+        async with self._lock:
+            return await self._request_locked(line, self.config.retries)
+
+    async def _request_locked(self, line: str, retries: int, reconnect: bool = True) -> str:
         if "\n" in line or "\r" in line:
             raise GnbError(f"a request is one line, got {line!r}")
         cfg = self.config
-        async with self._lock:
-            refused = 0
-            last = ""
-            for attempt in range(cfg.retries + 1):
-                if attempt:
-                    self.reconnects += 1
-                    await self._backoff(attempt - 1)
-                if self._writer is None:
-                    try:
-                        await self._connect()
-                    except GnbError as exc:
-                        last = str(exc)
-                        log.info("gNB reconnect attempt %d failed: %s", attempt, exc)
-                        continue
-                fresh = self._fresh
+        refused = 0
+        last = ""
+        for attempt in range(retries + 1):
+            if attempt:
+                self.reconnects += 1
+                await self._backoff(attempt - 1)
+            if self._writer is None:
+                if not reconnect:
+                    raise GnbError(f"not sending {line!r}: the connection was lost since the check before it")
                 try:
-                    async with asyncio.timeout(cfg.request_timeout_s):
-                        data = await self._exchange(line)
-                except TimeoutError:
-                    await self._close()
-                    if fresh:
-                        raise GnbBusyError(
-                            f"no answer to {line!r} within {cfg.request_timeout_s:g} s on a new connection to "
-                            f"{cfg.host}:{cfg.port}: the OAI telnet server serves one client at a time; is "
-                            f"another client connected (or is the gNB hung)?") from None
-                    raise GnbTimeoutError(f"no answer to {line!r} within {cfg.request_timeout_s:g} s") from None
-                except asyncio.CancelledError:
-                    # cancelled mid-exchange (e.g. the caller's own timeout): the answer may still
-                    # arrive, so this connection is out of step; drop it without awaiting
-                    self._drop()
-                    raise
-                except _ConnectionLost as exc:
-                    await self._close()
+                    await self._connect()
+                except GnbError as exc:
                     last = str(exc)
-                    refused += fresh
-                    log.info("gNB request %r: %s (attempt %d of %d)", line, exc, attempt + 1, cfg.retries + 1)
+                    log.info("gNB reconnect attempt %d failed: %s", attempt, exc)
                     continue
-                self._fresh = False
-                return decode_reply(data, cfg.prompt)
-            if refused == cfg.retries + 1:
-                raise GnbBusyError(f"the gNB at {cfg.host}:{cfg.port} closed every new connection before "
-                                   f"answering ({refused} attempts): it serves one client at a time; is "
-                                   f"another client connected?")
-            raise GnbError(f"request {line!r} failed after {cfg.retries + 1} attempts: {last}")
+            fresh = self._fresh
+            try:
+                async with asyncio.timeout(cfg.request_timeout_s):
+                    data = await self._exchange(line)
+            except TimeoutError:
+                await self._close()
+                if fresh:
+                    raise GnbBusyError(
+                        f"no answer to {line!r} within {cfg.request_timeout_s:g} s on a new connection to "
+                        f"{cfg.host}:{cfg.port}: the OAI telnet server serves one client at a time; is "
+                        f"another client connected (or is the gNB hung)?") from None
+                raise GnbTimeoutError(f"no answer to {line!r} within {cfg.request_timeout_s:g} s") from None
+            except asyncio.CancelledError:
+                # cancelled mid-exchange (e.g. the caller's own timeout): the answer may still
+                # arrive, so this connection is out of step; drop it without awaiting
+                self._drop()
+                raise
+            except _ConnectionLost as exc:
+                await self._close()
+                last = str(exc)
+                refused += fresh
+                log.info("gNB request %r: %s (attempt %d of %d)", line, exc, attempt + 1, retries + 1)
+                continue
+            self._fresh = False
+            body, late = split_async_lines(decode_reply(data, cfg.prompt))
+            for ln in late:
+                log.debug("late rfsimu output before the answer to %r: %s", line, ln)
+                self.late_lines.append(ln)
+            return body
+        if refused == retries + 1:
+            raise GnbBusyError(f"the gNB at {cfg.host}:{cfg.port} closed every new connection before "
+                               f"answering ({refused} attempts): it serves one client at a time; is "
+                               f"another client connected?")
+        raise GnbError(f"request {line!r} failed after {retries + 1} attempts: {last}")
+
+    async def request_late(self, line: str, wait_s: float = 2.0) -> str:
+        """Send a command whose output OAI prints after the prompt (`rfsimu ...`) and return the
+        answer plus the lines that followed within wait_s [s] (empty when OAI printed nothing, e.g.
+        rfsimu without a connected peer)."""
+        check_ci_line(line)
+        async with self._lock:
+            body = await self._request_locked(line, self.config.retries)
+            out = [body] if body.strip() else []
+            reader = self._reader
+            assert reader is not None
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(wait_s):
+                    while True:
+                        raw = await reader.readuntil(b"\n")
+                        text = raw.decode("utf-8", errors="replace")
+                        if text.strip():
+                            out.append(text)
+                            if text.lstrip().startswith("rfsimu_"):
+                                break
+            return "".join(out)
 
     # -- discovery -----------------------------------------------------------------------------
     async def discover(self) -> list[int]:
         """RNTIs of the connected UEs, by `o1 stats` or `ci get_single_rnti` (config.discovery)."""
+        async with self._lock:
+            return await self._discover_locked()
+
+    async def _discover_locked(self) -> list[int]:
         mode = self.config.discovery
         rntis: list[int] | None = None
         if mode in ("auto", "o1"):
-            body = await self.request("o1 stats")
+            body = await self._request_locked("o1 stats", self.config.retries)
             try:
                 rntis = parse_o1_stats(check_known_command(body, "o1 stats")).rntis
             except GnbUnknownCommandError:
@@ -389,7 +313,7 @@ class OaiGnbClient:
                     raise
                 log.info("o1 module not loaded; discovering with `ci get_single_rnti`")
         if rntis is None:
-            body = await self.request("ci get_single_rnti")
+            body = await self._request_locked("ci get_single_rnti", self.config.retries)
             single = parse_single_rnti(check_known_command(body, "ci get_single_rnti"))
             if single is None:
                 raise GnbNoMeasurementError(
@@ -397,8 +321,44 @@ class OaiGnbClient:
                     "telnet module (--telnetsrv.shrmod o1) to discover several UEs")
             rntis = [single]
         self.known_rntis = sorted(rntis)
-        log.info("gNB reports %d UE(s): %s", len(rntis), ", ".join(f"{r:04x}" for r in self.known_rntis))
+        log.debug("gNB reports %d UE(s): %s", len(rntis), ", ".join(f"{r:04x}" for r in self.known_rntis))
         return list(self.known_rntis)
+
+    async def guarded_ci(self, command: str, rnti: int) -> str:
+        """Send `ci <command> <rnti hex>` only if a discovery taken just before it, on the same
+        connection and under the same lock, lists `rnti`; return the answer.
+
+        GnbNoMeasurementError (nothing sent) when the gNB does not have the RNTI; GnbError for a
+        forbidden command or when the connection was lost in between (never re-sent elsewhere).
+        """
+        line = f"ci {command} {rnti:04x}"
+        check_ci_line(line, guarded=True)
+        async with self._lock:
+            rntis = await self._discover_locked()
+            if rnti not in rntis:
+                raise GnbNoMeasurementError(
+                    f"not sending `{line}`: the gNB's UEs are [{', '.join(f'{r:04x}' for r in rntis)}], "
+                    f"without {rnti:04x} (stock OAI crashes on an RNTI it does not have)")
+            self.ci_sent.append(line)
+            return await self._request_locked(line, 0, reconnect=False)
+
+    # -- the gNB log (stock modes) -----------------------------------------------------------------
+    @property
+    def rnti_alias(self) -> dict[int, int]:
+        """Stock modes: an RNTI -> the RNTI that UE has now, as proven by the gNB log."""
+        return self.stock_log.rnti_alias if self.stock_log is not None else {}
+
+    @property
+    def recent_accesses(self) -> collections.deque[RandomAccess]:
+        """Stock modes: every random access the gNB log proved, newest last."""
+        return self.stock_log.recent if self.stock_log is not None else collections.deque()
+
+    def current_rnti(self, rnti: int) -> int:
+        return self.stock_log.current_rnti(rnti) if self.stock_log is not None else rnti
+
+    def feed_log(self) -> list[RandomAccess | RntiChange]:
+        """Read the gNB log's new lines and return what they proved (stock modes)."""
+        return self.stock_log.feed() if self.stock_log is not None else []
 
     # -- measurement ---------------------------------------------------------------------------
     async def measure(self, rnti: int) -> RttSample:
@@ -406,7 +366,9 @@ class OaiGnbClient:
         if isinstance(rnti, bool) or not isinstance(rnti, int) or not 0 < rnti <= 0xFFFF:
             raise GnbError(f"RNTI must be an integer 1..0xffff, got {rnti!r}")
         if self.config.mode == "stock":
-            return await self._measure_stock(rnti)
+            if self.config.stock_mode == "passive":
+                return self._measure_passive(rnti)
+            return await self._measure_active(rnti)
         return await self._measure_rtt(rnti)
 
     async def measure_many(self, rntis: list[int]) -> dict[int, RttSample]:
@@ -433,28 +395,61 @@ class OaiGnbClient:
             raise protocol_error(f"expected one RTT result for RNTI {rnti:04x}, got {len(mine)}", body)
         return sample_from_rtt(mine[0], 0.5 * (t0 + t1))
 
-    async def _measure_stock(self, rnti: int) -> RttSample:
-        assert self._follower is not None
+    def _measure_passive(self, rnti: int) -> RttSample:
+        """The newest round-trip random access of the UE since the last call (nothing is sent)."""
+        stock = self.stock_log
+        assert stock is not None
+        stock.feed()
+        cur = stock.current_rnti(rnti)
+        fresh = stock.take_fresh(cur)
+        if not fresh:
+            raise GnbNoRandomAccessError(
+                f"no new random access of UE {cur:04x} in {self.config.log_path} (passive mode measures "
+                f"only the accesses that happen anyway: initial access, re-attach, reestablishment)")
+        return stock.sample(fresh[-1], rnti, self.config.mu, self.clock, self.wall, require_wall=True)
+
+    def passive_samples(self, rnti: int) -> list[RttSample]:
+        """Stock passive mode: every round-trip random access of the UE the log proved since the
+        last call, oldest first (each a coarse sample with its log time stamp); [] when none."""
+        stock = self.stock_log
+        if stock is None:
+            raise GnbError("passive samples need the gNB log (stock mode, log_path)")
+        stock.feed()
+        return [stock.sample(ra, rnti, self.config.mu, self.clock, self.wall, require_wall=True)
+                for ra in stock.take_fresh(stock.current_rnti(rnti))]
+
+    async def _measure_active(self, rnti: int) -> RttSample:
+        """Trigger a reestablishment of the UE (guarded `ci force_reestab`), then wait for a random
+        access the log proves to be that UE's, with a round-trip TA."""
+        stock = self.stock_log
+        assert stock is not None
         async with self._stock_lock:
-            wire = self.rnti_alias.get(rnti, rnti)
-            self._follower.mark()
+            stock.feed()  # everything before the trigger is history
+            wire = stock.current_rnti(rnti)
             line = f"ci force_reestab {wire:04x}"
-            body = await self.request(line)
+            body = await self.guarded_ci("force_reestab", wire)
             rep = parse_force_reestab(check_known_command(body, line))
             if rep.rnti is None:
                 raise GnbNoMeasurementError(f"`{line}` failed: {rep.message}")
             if rep.rnti != wire:
                 raise protocol_error(f"force_reestab answered for RNTI {rep.rnti:04x}, asked {wire:04x}", body)
-            known = set(self.known_rntis) | set(self.rnti_alias.values())
-
-            def accept(rec: Msg2Record) -> bool:
-                # the UE may come back with a new C-RNTI after reestablishment
-                return rec.rnti is None or rec.rnti == wire or rec.rnti not in known
-
-            rec = await self._follower.wait_msg2(accept, self.config.msg2_timeout_s)
-            if rec.rnti is not None and rec.rnti != wire:
-                log.info("UE %04x came back from reestablishment as %04x", wire, rec.rnti)
-                self.rnti_alias[rnti] = rec.rnti
-            return sample_from_msg2(rec, rnti, self.config.mu, self.clock())
-
-
+            seen: list[str] = []
+            t_end = self.clock() + self.config.msg2_timeout_s
+            while True:
+                for ev in stock.feed():
+                    if not isinstance(ev, RandomAccess):
+                        continue
+                    if ev.kind == "reestablishment" and ev.ue_rnti == wire:
+                        stock.forget(ev)
+                        return stock.sample(ev, rnti, self.config.mu, self.clock, self.wall, require_wall=False)
+                    seen.append(ev.describe())
+                    if ev.kind == "connected" and ev.ue_rnti == wire:
+                        log.info("UE %04x made a connected-mode random access: its TA %d is a residual, "
+                                 "not a range; still waiting", wire, ev.timing_offset)
+                if self.clock() >= t_end:
+                    raise GnbNoRandomAccessError(
+                        f"no random access proven to be UE {wire:04x}'s within {self.config.msg2_timeout_s:g} s "
+                        f"after `{line}` (seen: {'; '.join(seen) if seen else 'none'}); stock OAI starts a "
+                        f"reestablishment only when the UE has traffic, and a connected-mode RA carries no "
+                        f"range")
+                await asyncio.sleep(self.config.log_poll_s)

@@ -227,7 +227,8 @@ class RttSample:
     rnti: the UE (as asked for); ta, mu, srs_peak, fs_hz, snr_db: raw gNB fields (fs_hz None and
     srs_peak 0 for a coarse, Msg2-only sample); toa_s: one-way time of arrival [s] computed with
     estimator.ranging; t_mono_s: monotonic time of the measurement [s] (supplied by the caller);
-    source: "rtt" (RTT command set) or "msg2" (stock fallback, coarse TA only).
+    source: "rtt" (RTT command set) or "msg2" (stock modes, coarse TA only); t_wall_s: UNIX time of
+    the random access from the gNB log's `wall_clock` stamp (stock modes; None otherwise).
     """
 
     rnti: int
@@ -239,6 +240,7 @@ class RttSample:
     toa_s: float
     t_mono_s: float
     source: Literal["rtt", "msg2"] = "rtt"
+    t_wall_s: float | None = None
 
     @property
     def range_m(self) -> float:
@@ -333,29 +335,88 @@ def parse_single_rnti(body: str) -> int | None:
 
 @dataclass(frozen=True)
 class ReestabReply:
-    """`ci force_reestab` answer: the RNTI it triggered, or None with OAI's reason."""
+    """`ci force_reestab` answer: the RNTI it triggered, or None with OAI's reason (all its lines)."""
 
     rnti: int | None
     message: str
 
 
 _REESTAB = re.compile(r"Reset RLC counters of UE RNTI ([0-9a-fA-F]{1,4}) to trigger reestablishment")
-_REESTAB_FAILURES = ("no UE found", "RNTI needs to be", "no MAC/RLC present")
+#: first lines of OAI's failures (telnetsrv_ci.c: fetch_rnti, then trigger_reestab's ERROR_MSG_RET)
+_CI_FAILURES = ("no UE found", "RNTI needs to be", "no MAC/RLC present")
+_CI_FAILURE_TAIL = "could not identify UE"
 
 
 def parse_force_reestab(body: str) -> ReestabReply:
-    """Parse `ci force_reestab`: success line, or one of OAI's failure texts."""
+    """Parse `ci force_reestab`: the success line, or OAI's failure text.
+
+    OAI 2025.w36 prints a failure as two lines (`no UE found` or `RNTI needs to be [1,0xfffe]`,
+    then `could not identify UE (no UE, no such RNTI, or multiple UEs)`); one-line failures of
+    older versions are accepted too.
+    """
     check_known_command(body)
     lines = _lines(body[:4096]) if len(body) <= 4096 else None
-    if lines is None or len(lines) != 1:
-        raise protocol_error("force_reestab answer is not one line", body)
-    (line,) = lines
-    m = _REESTAB.fullmatch(line)
-    if m:
-        return ReestabReply(rnti=int(m.group(1), 16), message=line)
-    if any(line.startswith(f) for f in _REESTAB_FAILURES):
-        return ReestabReply(rnti=None, message=line)
+    if not lines or len(lines) > 2:
+        raise protocol_error("force_reestab answer is not one or two lines", body)
+    m = _REESTAB.fullmatch(lines[0])
+    if m and len(lines) == 1:
+        return ReestabReply(rnti=int(m.group(1), 16), message=lines[0])
+    if any(lines[0].startswith(f) for f in _CI_FAILURES) and (
+            len(lines) == 1 or lines[1].startswith(_CI_FAILURE_TAIL)):
+        return ReestabReply(rnti=None, message=" / ".join(lines))
+    if len(lines) == 1 and lines[0].startswith(_CI_FAILURE_TAIL):
+        return ReestabReply(rnti=None, message=lines[0])
     raise protocol_error("force_reestab answer not understood", body)
+
+
+# ---------------------------------------------------------------------------------------------
+# rfsimulator commands (their output is queued to the rfsim thread and arrives after the prompt)
+
+
+@dataclass(frozen=True)
+class RfsimDistance:
+    """`rfsimu setdistance` / `getdistance` output: offset [samples], distance [m] (set only; None
+    for getdistance), one-way delay [ms]."""
+
+    offset_samples: int
+    distance_m: float | None
+    delay_ms: float
+
+
+_RFSIM_SET = re.compile(r"rfsimu_setdistance_cmd: new_offset (\S+), new \(exact\) distance (\S+) m, "
+                        r"new delay (\S+) ms")
+_RFSIM_GET = re.compile(r"rfsimu_getdistance_cmd: \S+ offset (\S+) delay (\S+) ms")
+#: a line printed by an rfsimu command; it may arrive after the prompt, i.e. before the next answer
+ASYNC_LINE = re.compile(r"^\s*rfsimu_\w+_cmd:[^\n]*\n?", re.MULTILINE)
+
+
+def parse_rfsim_distance(text: str) -> RfsimDistance:
+    """The rfsimu distance line in `text` (the answer plus what followed the prompt)."""
+    s = strip_ansi(text)
+    if len(s) > 4096:
+        raise protocol_error("rfsimu answer too long", text)
+    m = _RFSIM_SET.search(s)
+    if m:
+        return RfsimDistance(_int(m.group(1), "new_offset", text), _float(m.group(2), "distance", text),
+                             _float(m.group(3), "delay", text))
+    m = _RFSIM_GET.search(s)
+    if m:
+        return RfsimDistance(_int(m.group(1), "offset", text), None, _float(m.group(2), "delay", text))
+    raise protocol_error("no rfsimu distance line (the rfsim thread prints it only while a peer is "
+                         "connected)", text)
+
+
+def split_async_lines(body: str) -> tuple[str, list[str]]:
+    """Remove late `rfsimu_*_cmd:` lines (output of an earlier rfsimu command) from an answer.
+
+    Returns (the answer without them, the removed lines). OAI queues rfsimu commands to the rfsim
+    thread, so their output follows the prompt and lands in front of the next answer.
+    """
+    found = [m.group(0).strip() for m in ASYNC_LINE.finditer(body)]
+    if not found:
+        return body, []
+    rest = ASYNC_LINE.sub("", body)
+    return (rest.lstrip("\n") if rest.strip() else ""), found
 
 
 # ---------------------------------------------------------------------------------------------
@@ -364,19 +425,28 @@ def parse_force_reestab(body: str) -> ReestabReply:
 
 @dataclass(frozen=True)
 class Msg2Record:
-    """A Msg2 (RAR) log line: UE RNTI (None if the line has none), frame.slot, the absolute RAR
-    timing advance `timing_offset`, and OAI's own distance estimate [m] (None if absent)."""
+    """A Msg2 (RAR) log line: the access's temporary RNTI (None if the line has none), frame.slot,
+    the absolute RAR timing advance `timing_offset`, OAI's own distance estimate [m] (None if
+    absent), the preamble index (RAPID) and the RA-RNTI (None when the line lacks them).
+
+    The RNTI is the TC-RNTI of this random access, never an existing C-RNTI: which UE made the
+    access is known only from later lines (see `mission.oai_ra`).
+    """
 
     rnti: int | None
     frame: int | None
     slot: int | None
     timing_offset: int
     distance_m: float | None
+    preamble: int | None = None
+    ra_rnti: int | None = None
 
 
 _MSG2_MARK = "timing_offset"
 _MSG2 = re.compile(r"timing_offset\s*=\s*(\S+)(?:\s*\(estimated distance\s+(\S+)\s*\[m\]\))?")
 _MSG2_UE = re.compile(r"\bUE ([0-9a-fA-F]{4}):\s*(?:([0-9]{1,5})\.([0-9]{1,3})\s)?")
+_MSG2_RAPID = re.compile(r"preamble_index\(RAPID\)\s*(\S+?),")
+_MSG2_RA_RNTI = re.compile(r"RA RNTI 0x([0-9a-fA-F]{1,4})\b")
 
 
 def parse_msg2_line(line: str) -> Msg2Record | None:
@@ -402,7 +472,15 @@ def parse_msg2_line(line: str) -> Msg2Record | None:
         rnti = int(ue.group(1), 16)
         if ue.group(2) is not None:
             frame, slot = int(ue.group(2)), int(ue.group(3))
-    return Msg2Record(rnti=rnti, frame=frame, slot=slot, timing_offset=ta, distance_m=dist)
+    preamble = None
+    if (mp := _MSG2_RAPID.search(s)) is not None:
+        preamble = _int(mp.group(1), "preamble_index", line)
+        if not 0 <= preamble <= 63:
+            raise protocol_error("preamble_index outside 0..63", line)
+    mr = _MSG2_RA_RNTI.search(s)
+    ra_rnti = int(mr.group(1), 16) if mr else None
+    return Msg2Record(rnti=rnti, frame=frame, slot=slot, timing_offset=ta, distance_m=dist,
+                      preamble=preamble, ra_rnti=ra_rnti)
 
 
 @dataclass(frozen=True)
@@ -435,13 +513,15 @@ def parse_srs_toa_line(line: str) -> SrsToaRecord | None:
     return None
 
 
-def sample_from_msg2(rec: Msg2Record, rnti: int, mu: int, t_mono_s: float) -> RttSample:
+def sample_from_msg2(rec: Msg2Record, rnti: int, mu: int, t_mono_s: float,
+                     t_wall_s: float | None = None) -> RttSample:
     """A coarse RttSample from a Msg2 timing advance (μ of the UL BWP supplied by the caller)."""
     try:
         toa = toa_s_from_raw(rec.timing_offset, mu)
     except RangingError as exc:
         raise protocol_error(f"Msg2 timing_offset does not give a ToA ({exc})", repr(rec)) from None
-    return RttSample(rnti, rec.timing_offset, mu, 0.0, None, None, toa, float(t_mono_s), "msg2")
+    return RttSample(rnti, rec.timing_offset, mu, 0.0, None, None, toa, float(t_mono_s), "msg2",
+                     None if t_wall_s is None else float(t_wall_s))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -455,11 +535,12 @@ def format_rtt_line(rnti: int, ta: int, mu: int, srs_peak: float, fs_hz: float, 
 
 
 def format_msg2_line(rnti: int, frame: int, slot: int, ra_rnti: int, preamble: int, ta: int, mu: int) -> str:
-    """OAI's Msg2 log line (gNB_scheduler_RA.c) with its distance estimate, `[NR_MAC]` prefix."""
+    """OAI's Msg2 log line (gNB_scheduler_RA.c) with its distance estimate, `[NR_MAC] A` prefix
+    (no time stamp)."""
     # OAI: distance = C · (TA · 0.509 ns · 16 · 64 / 2^μ) / 2
     rtt_ns = 0.509 * 16 * 64 / (1 << mu) * ta
     dist = C_MPS * rtt_ns * 1e-9 / 2
-    return (f"[NR_MAC]   UE {rnti:04x}: {frame}.{slot} Generating RA-Msg2 DCI, RA RNTI 0x{ra_rnti:x}, "
+    return (f"[NR_MAC] A UE {rnti:04x}: {frame}.{slot} Generating RA-Msg2 DCI, RA RNTI 0x{ra_rnti:x}, "
             f"state 1, preamble_index(RAPID) {preamble}, timing_offset = {ta} (estimated distance "
             f"{dist:.1f} [m])")
 

@@ -97,6 +97,8 @@ class SimulatedMission:
     def _sim_clock(self) -> float:
         if self.vehicle_sim is not None:
             return float(self.vehicle_sim.state().t_s)
+        if self.controller is not None:
+            return self.controller.now()  # PX4 SITL: the vehicle's clock, at any speed factor
         return time.monotonic() - self._t0
 
     def _truth(self, home: Origin) -> np.ndarray:

@@ -11,6 +11,9 @@ Pure: times are whatever clock the caller uses (the controller uses mission seco
 
 from __future__ import annotations
 
+import math
+from collections import deque
+
 import numpy as np
 
 from uavloc.errors import MissionError
@@ -117,6 +120,71 @@ class TelemetryBuffer:
         v = (p[-1] - p[-2]) / (t[-1] - t[-2])
         return p[-1] + ahead * v
 
+
+
+class VehicleClock:
+    """Mission seconds on the vehicle's clock (MAVLink boot time, `time_boot_ms`), from wall instants.
+
+    The vehicle's boot time b at a wall instant t (monotonic) is extrapolated from the newest
+    sample (m, b_m) with the rate r [vehicle s per wall s] fitted (least squares) over the samples
+    of the last `window_s` wall seconds:
+
+        b(t) = b_m + r · (t − m),   mission t = b(t) − b_0
+
+    Before the first sample, mission t = (t − t0) · fallback_rate (the simulator's speedup, 1 for a
+    real flight); b_0 is chosen at the first sample so that mission time is continuous there, and
+    again after a vehicle reboot (boot time jumping back). Pure: the caller passes the instants.
+    """
+
+    def __init__(self, t0_mono_s: float, fallback_rate: float = 1.0, window_s: float = 5.0):
+        if not (math.isfinite(fallback_rate) and fallback_rate > 0):
+            raise MissionError(f"clock rate must be a positive number, got {fallback_rate!r}")
+        self.t0_mono_s = float(t0_mono_s)
+        self.fallback_rate = float(fallback_rate)
+        self.window_s = float(window_s)
+        self._samples: deque[tuple[float, float]] = deque()
+        self._b0: float | None = None
+        self._rate = self.fallback_rate
+
+    @property
+    def synced(self) -> bool:
+        """True once the vehicle's time is known."""
+        return self._b0 is not None
+
+    @property
+    def rate(self) -> float:
+        """Vehicle seconds per wall second (the fallback rate until fitted over ≥ 1 wall second)."""
+        return self._rate
+
+    def mission_t(self, t_mono_s: float) -> float:
+        if self._b0 is None:
+            return (t_mono_s - self.t0_mono_s) * self.fallback_rate
+        m, b = self._samples[-1]
+        return b + self._rate * (t_mono_s - m) - self._b0
+
+    def update(self, t_mono_s: float, boot_s: float) -> None:
+        """A vehicle boot time `boot_s` [s] received at wall instant `t_mono_s`. Non-finite ignored."""
+        if not (math.isfinite(t_mono_s) and math.isfinite(boot_s)):
+            return
+        if self._b0 is None or (self._samples and boot_s < self._samples[-1][1] - 1.0):
+            before = self.mission_t(t_mono_s)  # continuity: first sample, or the vehicle rebooted
+            self._samples.clear()
+            self._b0 = boot_s - before
+            self._samples.append((t_mono_s, boot_s))
+            return
+        if boot_s < self._samples[-1][1]:
+            return  # out of order
+        self._samples.append((t_mono_s, boot_s))
+        while self._samples and self._samples[0][0] < t_mono_s - self.window_s:
+            self._samples.popleft()
+        m = np.array([s[0] for s in self._samples])
+        if m[-1] - m[0] >= 1.0:
+            b = np.array([s[1] for s in self._samples])
+            # r = Σ (m − m̄)(b − b̄) / Σ (m − m̄)²
+            dm = m - m.mean()
+            r = float(dm @ (b - b.mean()) / (dm @ dm))
+            if math.isfinite(r) and r > 0:
+                self._rate = min(max(r, 1e-3), 1e4)
 
 
 def odometer_dead_band_m(sigma_gps_m: float) -> float:

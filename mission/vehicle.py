@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
@@ -92,8 +94,11 @@ class Vehicle(Protocol):
         """Wait until global position and home are ok; return home."""
         ...
 
-    async def run_telemetry(self, on_position: Callable[[PositionFix], None]) -> None:
-        """Keep :attr:`state` up to date and call `on_position` on every fix, until cancelled."""
+    async def run_telemetry(self, on_position: Callable[[PositionFix], None],
+                            on_vehicle_time: Callable[[float, float], None] | None = None) -> None:
+        """Keep :attr:`state` up to date and call `on_position` on every fix, until cancelled;
+        `on_vehicle_time(t_mono_s, boot_s)` on every vehicle boot time received (MAVLink
+        `time_boot_ms`)."""
         ...
 
     async def arm(self) -> None: ...
@@ -101,6 +106,10 @@ class Vehicle(Protocol):
     async def takeoff(self, height_m: float) -> None: ...
 
     async def goto_location(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, yaw_deg: float) -> None: ...
+
+    async def set_speed(self, speed_mps: float) -> None:
+        """Command the horizontal cruise speed of the following legs (MAV_CMD_DO_CHANGE_SPEED)."""
+        ...
 
     async def return_to_launch(self) -> None: ...
 
@@ -136,16 +145,28 @@ def _enum_name(value: Any) -> str:
     return getattr(value, "name", str(value))
 
 
+_library_wedged = False
+
+
+def vehicle_library_wedged() -> bool:
+    """True once a MAVSDK instance did not shut down in time (its threads are abandoned)."""
+    return _library_wedged
+
+
 class MavsdkVehicle:
     """:class:`Vehicle` over `mavsdk.asyncio` (one MAVSDK instance per vehicle).
 
     url: a MAVSDK connection URL, e.g. `udpin://0.0.0.0:14540` (PX4 SITL) or `udpin://127.0.0.1:PORT`.
-    request_timeout_s: wall-time limit of every request to the vehicle.
+    request_timeout_s: wall-time limit of every request to the vehicle; close_timeout_s: wall
+    seconds :meth:`close` waits for MAVSDK to shut down before abandoning it (a wedged MAVSDK never
+    returns from `destroy()`; see mission.runtime).
     """
 
-    def __init__(self, url: str, request_timeout_s: float = 10.0, position_rate_hz: float = 10.0):
+    def __init__(self, url: str, request_timeout_s: float = 10.0, position_rate_hz: float = 10.0,
+                 close_timeout_s: float = 5.0):
         self.url = url
         self.request_timeout_s = float(request_timeout_s)
+        self.close_timeout_s = float(close_timeout_s)
         self.position_rate_hz = float(position_rate_hz)
         self.state = VehicleState()
         self._mavsdk = None
@@ -188,9 +209,28 @@ class MavsdkVehicle:
         log.info("autopilot found on %s", self.url)
 
     async def close(self) -> None:
-        if self._mavsdk is not None:
-            mav, self._mavsdk = self._mavsdk, None
-            mav.destroy()
+        """Shut MAVSDK down in a daemon thread; give up on it after close_timeout_s (wall)."""
+        global _library_wedged
+        if self._mavsdk is None:
+            return
+        mav, self._mavsdk = self._mavsdk, None
+        done = threading.Event()
+
+        def destroy() -> None:
+            try:
+                mav.destroy()
+            except Exception:  # a failing shutdown must not hide the mission's result
+                log.exception("MAVSDK shutdown failed")
+            finally:
+                done.set()
+
+        threading.Thread(target=destroy, name="mavsdk-destroy", daemon=True).start()
+        deadline = time.monotonic() + self.close_timeout_s
+        while not done.is_set() and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+        if not done.is_set():
+            _library_wedged = True
+            log.error("MAVSDK did not shut down within %g s: abandoned", self.close_timeout_s)
 
     def _need(self) -> None:
         if self._system is None:
@@ -224,8 +264,11 @@ class MavsdkVehicle:
 
     # -- telemetry ------------------------------------------------------------------------------
 
-    async def run_telemetry(self, on_position: Callable[[PositionFix], None]) -> None:
-        """Subscribe to every stream the mission uses; runs until cancelled."""
+    async def run_telemetry(self, on_position: Callable[[PositionFix], None],
+                            on_vehicle_time: Callable[[float, float], None] | None = None) -> None:
+        """Subscribe to every stream the mission uses; runs until cancelled. The vehicle's clock
+        comes from SYSTEM_TIME's `time_boot_ms` (MAVSDK's telemetry carries no timestamps; its
+        MavlinkDirect plugin gives the raw message)."""
         self._need()
         tel, st = self._telemetry, self.state
         await self._request("set position rate", tel.set_rate_position(self.position_rate_hz), optional=True)
@@ -279,8 +322,24 @@ class MavsdkVehicle:
                     if connected:
                         touch()
 
+        def on_system_time(msg) -> None:
+            if on_vehicle_time is None:
+                return
+            try:
+                boot_ms = json.loads(msg.fields_json)["time_boot_ms"]
+            except (ValueError, KeyError, TypeError):
+                log.debug("vehicle: SYSTEM_TIME without time_boot_ms: %r", msg.fields_json)
+                return
+            if isinstance(boot_ms, int | float) and math.isfinite(boot_ms) and boot_ms > 0:
+                on_vehicle_time(time.monotonic(), boot_ms / 1000.0)
+
         async with asyncio.TaskGroup() as tg:
             tg.create_task(follow(tel.subscribe_position(), on_pos))
+            if on_vehicle_time is not None:
+                from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+
+                direct = MavlinkDirectAsync(self._system)
+                tg.create_task(follow(direct.subscribe_message("SYSTEM_TIME"), on_system_time))
             tg.create_task(follow(tel.subscribe_home(), on_home))
             tg.create_task(follow(tel.subscribe_battery(), on_battery))
             tg.create_task(follow(tel.subscribe_health(), on_health))
@@ -330,6 +389,13 @@ class MavsdkVehicle:
             f"goto ({lat_deg:.7f}, {lon_deg:.7f}, {alt_amsl_m:.1f} m AMSL)",
             self._action.goto_location(lat_deg, lon_deg, alt_amsl_m, yaw_deg),
         )
+
+    async def set_speed(self, speed_mps: float) -> None:
+        """MAV_CMD_DO_CHANGE_SPEED (ground speed) through MAVSDK's `set_current_speed`. PX4 (v1.18-dev
+        SITL, measured) flies the following repositions at this speed instead of MPC_XY_CRUISE and
+        keeps it over later repositions; MAVSDK's goto_location sends no speed of its own."""
+        self._need()
+        await self._request(f"set speed {speed_mps:g} m/s", self._action.set_current_speed(float(speed_mps)))
 
     async def return_to_launch(self) -> None:
         self._need()

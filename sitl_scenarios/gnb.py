@@ -4,15 +4,27 @@ Wire behaviour as OAI's `common/utils/telnetsrv/telnetsrv.c`: a request is one l
 is the command's output followed by the prompt ``softmodem_gnb> `` (no prompt on connect); lines
 of ≤ 2 characters get just the prompt; input starting with ``ex`` closes the connection; an
 unknown command answers ``Error: ... is not a softmodem command``; one client at a time (a
-second client is closed at once, or with ``busy_mode = "silent"`` left waiting unanswered like
-OAI's listen backlog). Commands:
+second client is accepted and left waiting unanswered until the first leaves, as OAI does;
+``busy_mode = "close"`` closes it instead). Commands, with OAI 2025.w36's texts
+(`../shared/data/oai-2025.w36/`):
 
 - ``o1 stats``: OAI's JSON document (UEs in coverage under ``O1-Operational.ues``) then ``OK``;
 - ``ci get_single_rnti``: ``single UE RNTI %04x`` / ``different number of UEs``;
-- ``ci force_reestab [rnti]``: OAI's answer, then (after `msg2_delay_s`) an OAI Msg2 line with
-  ``timing_offset`` (TA rounded to the nearest step) appended to the gNB log file;
+- ``ci force_reestab [rnti]``: OAI's answer (failures in two lines), then the random-access lines
+  of the UE's reaction (`stock_reaction`) in the gNB log; ``ci force_reestab``,
+  ``force_ue_release``, ``force_ul_failure`` and ``get_current_bwp`` with an RNTI in 1..0xfffd the
+  gNB does not have **crash the simulated gNB** as they crash OAI (every connection closed, the
+  port no longer listening, `crashed` says why);
 - ``rtt pdcch_order <rnti> [<rnti> ...]`` (module and command names configurable): one line per
   RNTI, ``rnti <hex> ta .. mu .. srs_peak .. fs .. snr_db ..`` or ``error rnti <hex> <reason>``.
+
+The gNB log (`log_path`) gets OAI's random-access lines with `wall_clock` stamps: the L1
+``Initiating RA procedure with preamble N ... delay D``, the MAC ``TC-RNTI`` line, the Msg2 line
+(fresh temporary RNTI, ``preamble_index(RAPID) N``, ``timing_offset``), then the line that tells
+who it was: ``Received a MAC CE for C-RNTI with <old>`` (a connected-mode RA, TA 0),
+``Reestablishment RNTI <tc> req C-RNTI <old>``, or ``Create UE context`` (initial access of a new
+UE). :meth:`SimulatedGnb.reattach` makes a UE go idle and attach again with a new RNTI (as
+``ciUE force_RRC_IDLE`` does), :meth:`SimulatedGnb.crnti_access` makes it do a C-RNTI RA.
 
 Answers come from the true geometry through :class:`sitl_scenarios.radio.RadioModel`. The UAV
 position comes from a callable (the built-in vehicle, in-process) or from a MAVLink stream
@@ -31,79 +43,38 @@ import argparse
 import asyncio
 import collections
 import contextlib
-import dataclasses
 import json
 import logging
-import math
 import random
 import signal
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
-from estimator.geodesy import Origin
-from mission.oai import PROMPT_GNB, format_msg2_line, format_rtt_line, unknown_command_text
+from mission.oai import PROMPT_GNB, format_rtt_line, unknown_command_text
+from sitl_scenarios.gnb_faults import GnbFaults
+from sitl_scenarios.gnb_ra import OaiRaLog
+from sitl_scenarios.position import MavlinkPositionSource, PositionSource, static_position
 from sitl_scenarios.radio import RadioModel, RawRtt
 from sitl_scenarios.scenario import Scenario, load_scenario
 from uavloc.errors import ScenarioError, SimulatorError
 
 log = logging.getLogger(__name__)
 
-#: A UAV position source: returns the true UAV position (3,) [m, ENU] now, or None if unknown.
-PositionSource = Callable[[], "np.ndarray | None"]
 FaultKind = Literal["delay", "malformed", "drop", "refuse"]
+#: what a UE does after `ci force_reestab`: a reestablishment (a UE with traffic, OAI with a core),
+#: a connected-mode RA then an idle re-attach (what the recorded OAI did), or nothing (no traffic)
+StockReaction = Literal["reestablish", "crnti_then_idle", "none"]
+_STOCK_REACTIONS = ("reestablish", "crnti_then_idle", "none")
+#: `ci` commands that dereference the UE of a given RNTI without checking it (telnetsrv_ci.c)
+_CRASHING_CI = ("force_reestab", "force_ue_release", "force_ul_failure", "get_current_bwp")
+_CI_UNKNOWN = "could not identify UE (no UE, no such RNTI, or multiple UEs)\n"
 _FAULT_KINDS = ("delay", "malformed", "drop", "refuse")
 _MAX_LINE = 2048  # OAI's TELNET_MAX_MSGLENGTH
-
-
-@dataclass
-class GnbFaults:
-    """Fault injection of the simulated gNB (the scenario's ``[faults.gnb]`` table).
-
-    delay_s: extra delay of an answer [s], applied with probability delay_rate;
-    malformed_rate: probability an answer is replaced by a malformed one (truncated, binary, bad
-    numbers), still followed by the prompt; drop_rate: probability the connection is closed
-    instead of answering; refuse_rate: probability a new connection is closed at once;
-    busy_mode: how a second concurrent client is treated, "close" or "silent" (accepted, unanswered
-    until the first one leaves, as OAI's backlog does).
-    """
-
-    delay_s: float = 0.0
-    delay_rate: float = 0.0
-    malformed_rate: float = 0.0
-    drop_rate: float = 0.0
-    refuse_rate: float = 0.0
-    busy_mode: str = "close"
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any], where: str = "faults.gnb") -> GnbFaults:
-        """Strict conversion: unknown keys, wrong types and out-of-range rates are ScenarioError."""
-        if not isinstance(table, dict):
-            raise ScenarioError(f"{where}: expected a table, got {table!r}")
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(table) - set(fields))
-        if unknown:
-            raise ScenarioError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(fields)}")
-        kwargs: dict[str, Any] = {}
-        for k, v in table.items():
-            if k == "busy_mode":
-                if v not in ("close", "silent"):
-                    raise ScenarioError(f"{where}.busy_mode must be 'close' or 'silent', got {v!r}")
-            elif isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-                raise ScenarioError(f"{where}.{k} must be a non-negative number, got {v!r}")
-            elif k.endswith("_rate") and v > 1:
-                raise ScenarioError(f"{where}.{k} is a probability, got {v!r}")
-            kwargs[k] = v if k == "busy_mode" else float(v)
-        return cls(**kwargs)
-
-    @classmethod
-    def from_scenario(cls, scenario: Scenario) -> GnbFaults:
-        return cls.from_table(scenario.faults.get("gnb", {}))
 
 
 class SimulatedGnb:
@@ -133,8 +104,13 @@ class SimulatedGnb:
         rtt_module: str = "rtt",
         rtt_command: str = "pdcch_order",
         msg2_delay_s: float = 0.03,
-        reestab_new_rnti: bool = False,
+        stock_reaction: StockReaction = "reestablish",
+        reattach_delay_s: float = 0.05,
+        linger_s: float = 0.5,
+        wall: Callable[[], float] = time.time,
     ) -> None:
+        if stock_reaction not in _STOCK_REACTIONS:
+            raise SimulatorError(f"stock_reaction must be one of {_STOCK_REACTIONS}, got {stock_reaction!r}")
         self.scenario = scenario
         self.position = position
         self.host = host
@@ -150,9 +126,18 @@ class SimulatedGnb:
         self.rtt_module = rtt_module
         self.rtt_command = rtt_command
         self.msg2_delay_s = msg2_delay_s
-        self.reestab_new_rnti = reestab_new_rnti
-        #: current C-RNTI of each user (changes on reestablishment when reestab_new_rnti)
+        self.stock_reaction = stock_reaction
+        self.reattach_delay_s = reattach_delay_s
+        self.linger_s = linger_s
+        self.wall = wall
+        #: current C-RNTI of each user (a new one after a reestablishment or a re-attach)
         self.current_rnti: list[int] = [u.rnti for u in scenario.users]
+        #: old contexts of UEs that went idle: RNTI -> monotonic time the gNB drops it
+        self.lingering: dict[int, float] = {}
+        #: why the simulated gNB crashed (as OAI does on a `ci` command with an unknown RNTI)
+        self.crashed: str | None = None
+        #: writes OAI's random-access lines to log_path
+        self.ra_log = OaiRaLog(self.log_path, wall, random.Random(int(seq.spawn(1)[0].generate_state(1)[0])))
         #: recent RTT results with their truth, newest last (for tests and diagnostics)
         self.truth: collections.deque[RawRtt] = collections.deque(maxlen=100_000)
         self.requests = 0
@@ -164,7 +149,6 @@ class SimulatedGnb:
         self._tg: asyncio.TaskGroup | None = None
         self._handlers: set[asyncio.Task] = set()
         self._writers: set[asyncio.StreamWriter] = set()
-        self._frame_ra = 0
 
     # -- fault API ---------------------------------------------------------------------------
     def inject(self, kind: FaultKind, count: int = 1, delay_s: float | None = None) -> None:
@@ -260,6 +244,9 @@ class SimulatedGnb:
             line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
             self.requests += 1
             answer = self.process(line)
+            if self.crashed is not None:
+                self._crash_now()
+                return
             if answer is None:
                 log.debug("client sent %r: closing", line)
                 return
@@ -318,8 +305,8 @@ class SimulatedGnb:
                     f"   module 2 = {self.rtt_module}:\n      {self.rtt_module} {self.rtt_command} <rnti(hex)>\n")
         if module == "ci" and cmd == "get_single_rnti":
             return self._get_single_rnti(args)
-        if module == "ci" and cmd == "force_reestab":
-            return self._force_reestab(args)
+        if module == "ci" and cmd in _CRASHING_CI:
+            return self._ci_with_rnti(cmd, args)
         if module == "o1" and cmd == "stats":
             return self._o1_stats(args)
         if module == self.rtt_module.lower() and cmd == self.rtt_command.lower():
@@ -334,12 +321,19 @@ class SimulatedGnb:
         return p if np.all(np.isfinite(p)) else None
 
     def _connected_rntis(self) -> list[int]:
-        """UEs in coverage of the UAV (all of them while the UAV position is unknown)."""
+        """UEs in coverage of the UAV (all of them while the UAV position is unknown), and the old
+        contexts of UEs that went idle until the gNB drops them."""
         uav = self._uav()
         out = []
         for k in range(len(self.radio.users)):
             if uav is None or np.linalg.norm(uav - self.radio.user_enu_m[k]) <= self.scenario.radio.coverage_m:
                 out.append(self.current_rnti[k])
+        now = time.monotonic()
+        for r, until in list(self.lingering.items()):
+            if until <= now:
+                del self.lingering[r]
+            elif r not in out:
+                out.append(r)
         return out
 
     def _user_of(self, rnti: int) -> int | None:
@@ -410,130 +404,102 @@ class SimulatedGnb:
                 out.append(format_rtt_line(rnti, res.ta, res.mu, res.srs_peak, res.fs_hz, res.snr_db))
         return "\n".join(out) + "\n"
 
-    def _force_reestab(self, args: str) -> str:
+    def _ci_with_rnti(self, cmd: str, args: str) -> str:
+        """`ci force_reestab|force_ue_release|force_ul_failure|get_current_bwp [rnti]` as OAI 2025.w36
+        (telnetsrv_ci.c: fetch_rnti, then the command): failures in two lines; an RNTI in
+        1..0xfffd that the gNB does not have crashes it."""
+        connected = self._connected_rntis()
         if args.strip():
             try:
                 rnti = int(args.split()[0], 16)  # OAI: strtol(buf, NULL, 16)
             except ValueError:
                 rnti = 0
             if not 1 <= rnti < 0xFFFE:
-                return "RNTI needs to be [1,0xfffe]\n"
+                return "RNTI needs to be [1,0xfffe]\n" + _CI_UNKNOWN
         else:
-            rntis = self._connected_rntis()
-            if len(rntis) != 1:
-                return "no UE found\n"
-            rnti = rntis[0]
-        if self.log_path is not None and self._tg is not None:
-            self._tg.create_task(self._msg2_later(rnti))
-        return f"Reset RLC counters of UE RNTI {rnti:04x} to trigger reestablishment\n"
+            if len(connected) != 1:
+                return ("no UE found\n" + _CI_UNKNOWN) * (2 if cmd == "force_ue_release" else 1)
+            rnti = connected[0]
+        if rnti not in connected:
+            self.crashed = f"segfault: `ci {cmd} {rnti:04x}` with an RNTI the gNB does not have"
+            log.warning("simulated gNB crashes: %s", self.crashed)
+            return ""
+        if cmd == "force_reestab":
+            k = self._user_of(rnti)
+            if k is not None and self.stock_reaction != "none" and self._tg is not None:
+                self._tg.create_task(self._react_later(k))
+            return f"Reset RLC counters of UE RNTI {rnti:04x} to trigger reestablishment\n"
+        if cmd == "get_current_bwp":
+            return f"UE {rnti:04x} DL BWP ID 0 (initial) UL BWP ID 0 (initial)\n"
+        # force_ue_release / force_ul_failure: the UE is dropped and attaches again
+        k = self._user_of(rnti)
+        if k is not None:
+            self.reattach(k)
+        return ""
 
-    async def _msg2_later(self, rnti: int) -> None:
-        await asyncio.sleep(self.msg2_delay_s)
-        res = self._measure(rnti)
+    def _crash_now(self) -> None:
+        """Die like nr-softmodem on a segfault: stop listening and drop every connection."""
+        if self.log_path is not None:
+            with self.log_path.open("a", encoding="utf-8") as fh:
+                fh.write(f"{self.crashed}\n")
+        if self._server is not None:
+            self._server.close()
+        for w in list(self._writers):
+            w.close()
+
+    # -- random accesses ------------------------------------------------------------------------
+    def _frame(self) -> int:
+        return int(float(self.clock()) / 0.01) % 1023
+
+    def _new_rnti(self) -> int:
+        return self.ra_log.new_tc_rnti(set(self.current_rnti) | set(self.lingering))
+
+    def _round_trip_ta(self, k: int) -> tuple[int, int] | None:
+        """(PRACH timing estimate: the TA rounded to the nearest step, μ) of user k, or None."""
+        res = self._measure(self.current_rnti[k])
         if isinstance(res, str):
-            log.info("no Msg2 for RNTI %04x: %s", rnti, res)
-            return
-        # PRACH timing estimate: TA rounded to the nearest step (the RadioModel's TA is a floor)
+            log.info("no random access of user %d: %s", k, res)
+            return None
         step_s = self.radio.ta_step_s
         ta = res.ta + (1 if res.srs_peak / res.fs_hz >= step_s / 2 else 0)
-        ta = min(ta, 3846)
-        k = self._user_of(rnti)
-        if self.reestab_new_rnti and k is not None:
-            new = rnti
-            while new in self.current_rnti:  # next free C-RNTI
-                new = new % 0xFFEF + 1
-            self.current_rnti[k] = new
-            rnti = new
-        t = float(self.clock())
-        frame = int(t / 0.01) % 1024
-        slot = int((t % 0.01) / (0.001 / (1 << res.mu)))
-        self._frame_ra += 1
-        line = format_msg2_line(rnti, frame, slot, 0x10B, self._frame_ra % 64, ta, res.mu)
-        assert self.log_path is not None
-        with self.log_path.open("a", encoding="utf-8") as fh:
-            fh.write(f"[NR_MAC]   UE {rnti:04x}: {frame}.{slot} RA procedure triggered (reestablishment)\n")
-            fh.write(line + "\n")
+        return min(ta, 3846), res.mu
 
+    def crnti_access(self, k: int) -> None:
+        """User k, connected, does a C-RNTI random access: TA 0 (a residual), RNTI unchanged."""
+        self.ra_log.connected(self._frame(), self.current_rnti[k], self._new_rnti(), self.scenario.radio.mu)
 
-# ---------------------------------------------------------------------------------------------
-# UAV position from a MAVLink stream
-
-
-class MavlinkPositionSource:
-    """The UAV's position from a MAVLink stream (GLOBAL_POSITION_INT), as a PositionSource.
-
-    url: pymavlink connection string (e.g. "udpin:0.0.0.0:14550"); origin: the ENU origin (None:
-    the vehicle's home, from HOME_POSITION or, until that arrives, from the first
-    GLOBAL_POSITION_INT as lat/lon and alt − relative_alt). An async context manager owning the
-    connection and its polling task. Calling it returns (3,) ENU [m] or None before the first fix.
-    """
-
-    def __init__(self, url: str, origin: Origin | None = None, poll_s: float = 0.01) -> None:
-        self.url = url
-        self.origin = origin
-        self._home_from_vehicle = origin is None
-        self.poll_s = poll_s
-        self._lla: tuple[float, float, float] | None = None
-        self._conn: Any = None
-        self._tg: asyncio.TaskGroup | None = None
-        self._stop = asyncio.Event()
-        self.messages = 0
-
-    def __call__(self) -> np.ndarray | None:
-        if self._lla is None or self.origin is None:
+    def reattach(self, k: int) -> int | None:
+        """User k goes idle and attaches again (initial access, new RNTI, full TA), as after
+        `ciUE force_RRC_IDLE`; the gNB keeps its old context for linger_s. Returns the new RNTI
+        (None when the user has no coverage)."""
+        got = self._round_trip_ta(k)
+        if got is None:
             return None
-        return self.origin.lla_to_enu(*self._lla)
+        old, tc = self.current_rnti[k], self._new_rnti()
+        self.lingering[old] = time.monotonic() + self.linger_s
+        self.current_rnti[k] = tc
+        self.ra_log.initial(self._frame(), tc, *got)
+        return tc
 
-    async def __aenter__(self) -> MavlinkPositionSource:
-        from pymavlink import mavutil
+    def reestablish(self, k: int) -> int | None:
+        """User k reestablishes: a random access with a full TA and a new RNTI, which OAI's
+        `Reestablishment RNTI <new> req C-RNTI <old>` line ties to the old one. Returns the new RNTI."""
+        got = self._round_trip_ta(k)
+        if got is None:
+            return None
+        old, tc = self.current_rnti[k], self._new_rnti()
+        self.current_rnti[k] = tc
+        self.ra_log.reestablishment(self._frame(), old, tc, *got)
+        return tc
 
-        try:
-            self._conn = mavutil.mavlink_connection(self.url, source_system=245, source_component=191)
-        except OSError as exc:
-            raise SimulatorError(f"cannot open MAVLink stream {self.url!r}: {exc}") from exc
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        self._tg.create_task(self._poll())
-        return self
-
-    async def __aexit__(self, *exc_info) -> None:
-        self._stop.set()
-        assert self._tg is not None
-        await self._tg.__aexit__(*exc_info)
-        self._conn.close()
-
-    def handle(self, msg: Any) -> None:
-        """Apply one MAVLink message (GLOBAL_POSITION_INT or HOME_POSITION)."""
-        mtype = msg.get_type()
-        if mtype == "GLOBAL_POSITION_INT":
-            lat, lon, alt = msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3
-            if self._home_from_vehicle and self.origin is None:
-                self.origin = Origin(lat, lon, alt - msg.relative_alt * 1e-3)
-                log.info("ENU origin from the first fix: %s", self.origin)
-            self._lla = (lat, lon, alt)
-            self.messages += 1
-        elif mtype == "HOME_POSITION" and self._home_from_vehicle:
-            home = Origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
-            if home != self.origin:
-                log.info("ENU origin from HOME_POSITION: %s", home)
-            self.origin = home
-
-    async def _poll(self) -> None:
-        while not self._stop.is_set():
-            for _ in range(1000):  # bounded burst, then yield to the loop
-                msg = self._conn.recv_match(type=["GLOBAL_POSITION_INT", "HOME_POSITION"], blocking=False)
-                if msg is None:
-                    break
-                self.handle(msg)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.poll_s):
-                    await self._stop.wait()
-
-
-def static_position(pos_enu_m) -> PositionSource:
-    """A PositionSource that always returns the same ENU position (3,) [m]."""
-    p = np.asarray(pos_enu_m, float).reshape(3)
-    return lambda: p.copy()
+    async def _react_later(self, k: int) -> None:
+        await asyncio.sleep(self.msg2_delay_s)
+        if self.stock_reaction == "reestablish":
+            self.reestablish(k)
+        elif self.stock_reaction == "crnti_then_idle":
+            self.crnti_access(k)
+            await asyncio.sleep(self.reattach_delay_s)
+            self.reattach(k)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -550,7 +516,7 @@ async def _run(args: argparse.Namespace) -> None:
             position = static_position(args.static_enu or (0.0, 0.0, scenario.mission.altitude_m))
         gnb = await stack.enter_async_context(SimulatedGnb(
             scenario, position, host=args.host, port=args.port, log_path=args.log, seed=args.seed,
-            rtt_module=args.rtt_module, rtt_command=args.rtt_command))
+            rtt_module=args.rtt_module, rtt_command=args.rtt_command, stock_reaction=args.stock_reaction))
         print(f"simulated gNB for scenario {scenario.name!r} on {args.host}:{gnb.port}", file=sys.stderr)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -575,6 +541,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, help="override the scenario seed")
     p.add_argument("--rtt-module", default="rtt")
     p.add_argument("--rtt-command", default="pdcch_order")
+    p.add_argument("--stock-reaction", choices=("reestablish", "crnti_then_idle", "none"), default="reestablish",
+                   help="what a UE does after `ci force_reestab`: reestablish (a UE with traffic), a C-RNTI "
+                        "random access then an idle re-attach (the recorded OAI), or nothing (no traffic)")
     p.add_argument("-v", "--verbose", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,

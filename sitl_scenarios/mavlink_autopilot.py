@@ -486,13 +486,39 @@ class Autopilot:
         self._set_mode(mode)
         return ACCEPTED, mode.value
 
+    def rtl_return_up_m(self) -> float:
+        """Height (ENU up) an RTL started now returns at, PX4's rule (navigator RTL, RTL_TYPE 0):
+
+            d ≤ NAV_ACC_RAD:            h = 2 d
+            otherwise:                  h = RTL_RETURN_ALT, or min(RTL_RETURN_ALT, d / tan(RTL_CONE_ANG))
+                                        when 0 < RTL_CONE_ANG and d ≤ RTL_MIN_DIST; at least 2 NAV_ACC_RAD
+            return height:              max(home + h, current height)   (RTL never descends first)
+
+        d: horizontal distance to home [m]; heights above home [m]."""
+        p, home = self.params, self.home
+        d = math.hypot(self.pos[0] - home[0], self.pos[1] - home[1])
+        acc = p["NAV_ACC_RAD"]
+        if d <= acc:
+            h = 2.0 * d
+        else:
+            h = p["RTL_RETURN_ALT"]
+            cone = p["RTL_CONE_ANG"]
+            if cone > 0 and d <= p["RTL_MIN_DIST"]:
+                h = min(h, d / math.tan(math.radians(min(max(cone, 1.0), 89.0))))
+            h = max(h, 2.0 * acc)
+        return max(home[2] + h, self.pos[2])
+
     def _set_mode(self, mode: FlightMode, keep_hold: bool = False) -> None:
         if mode is not self.mode:
             log.debug("vehicle mode %s -> %s", self.mode.value, mode.value)
         if mode is FlightMode.RTL and self.mode is not FlightMode.RTL:
-            self._rtl = _RtlState(return_up_m=max(self.pos[2], self.home[2] + self.params["RTL_RETURN_ALT"]))
+            self._rtl = _RtlState(return_up_m=self.rtl_return_up_m())
             if not self.in_air:
                 self._rtl.phase = "land"
+            else:
+                above = self._rtl.return_up_m - self.home[2]
+                self._say(SEV_INFO, f"RTL: start return at {self.origin.alt_m + self._rtl.return_up_m:.0f} m "
+                                    f"({above:.0f} m above destination)")
         if mode in (FlightMode.HOLD, FlightMode.POSCTL) and not keep_hold:
             self._hold = self._stopping_point()
         if mode is not FlightMode.HOLD and self.mode is FlightMode.HOLD:

@@ -189,10 +189,15 @@ def px4_params(speed_mps: float, climb_mps: float, descent_mps: float, accel_mps
     f, i = PARAM_TYPE_REAL32, PARAM_TYPE_INT32
     return [
         ParamSpec("MIS_TAKEOFF_ALT", f, 2.5, "takeoff height above home when the command gives none [m]"),
-        ParamSpec("RTL_RETURN_ALT", f, 60.0, "RTL: climb to at least this height above home [m]"),
-        ParamSpec("RTL_DESCEND_ALT", f, 30.0, "RTL: descend to this height above home before landing [m]"),
+        # RTL defaults of PX4 SITL (v1.18-dev, SIH quadrotor; read from the real bundle): return at
+        # max(current height, RTL_RETURN_ALT), lower only inside the cone near home (rtl_return_height_m)
+        ParamSpec("RTL_RETURN_ALT", f, 30.0, "RTL: climb to at least this height above home [m]"),
+        ParamSpec("RTL_DESCEND_ALT", f, 10.0, "RTL: descend to this height above home before landing [m]"),
+        ParamSpec("RTL_CONE_ANG", i, 45, "RTL: half angle of the return cone above home, 0 off [deg]"),
+        ParamSpec("RTL_MIN_DIST", f, 10.0, "RTL: the cone applies within this distance of home [m]"),
         ParamSpec("RTL_LAND_DELAY", f, 0.0, "RTL: hover this long at RTL_DESCEND_ALT, < 0 forever [s]"),
-        ParamSpec("MPC_XY_CRUISE", f, speed_mps, "horizontal speed in auto modes [m/s]"),
+        # PX4's default cruise: the mission's speed reaches the vehicle as DO_CHANGE_SPEED, as on PX4
+        ParamSpec("MPC_XY_CRUISE", f, 5.0, "horizontal speed in auto modes [m/s]"),
         ParamSpec("MPC_XY_VEL_MAX", f, max(12.0, speed_mps), "horizontal speed limit [m/s]"),
         ParamSpec("MPC_Z_V_AUTO_UP", f, climb_mps, "climb rate in auto modes [m/s]"),
         ParamSpec("MPC_Z_V_AUTO_DN", f, descent_mps, "descent rate in auto modes [m/s]"),

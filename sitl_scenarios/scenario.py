@@ -105,7 +105,7 @@ class VehicleConfig:
     descent_mps: float = 1.5
     accel_mps2: float = 3.0
     gps_sigma_m: float = 1.0
-    gps_tau_s: float = 0.0
+    gps_tau_s: float = 3.0  # EKF2-like drift (PX4 SITL: error correlation ~2-3 s); 0 on request only
     battery_capacity_s: float = 1800.0
     battery_start_pct: float = 100.0
 

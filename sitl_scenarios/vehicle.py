@@ -112,13 +112,21 @@ _DEFAULT_INTERVALS_S: dict[int, float | None] = {
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: None,
 }
 
-_FAULT_KINDS = ("link_pause", "gps_loss", "low_battery")
+_FAULT_KINDS = ("link_pause", "gps_loss", "low_battery", "reposition_refused")
+
+#: MAV_RESULT_COMMAND_UNSUPPORTED_MAV_FRAME: what PX4 main before #26626 answered to every COMMAND_INT
+#: whose frame was not MAV_FRAME_GLOBAL_INT (MAVSDK's goto_location among them)
+RESULT_UNSUPPORTED_MAV_FRAME = 9
 
 
 @dataclass(frozen=True)
 class FaultEvent:
     """A scheduled fault (scenario `[[faults.vehicle]]`): kind, simulated start time [s], duration
-    [simulated s] (link_pause, gps_loss; gps_loss without duration lasts), battery_pct (low_battery)."""
+    [simulated s] (link_pause, gps_loss, reposition_refused; the last two last for ever without a
+    duration), battery_pct (low_battery).
+
+    reposition_refused: COMMAND_INT DO_REPOSITION is answered with MAV_RESULT 9 (unsupported frame),
+    as the PX4 build before PX4 #26626 did; MAVSDK 4.1 reports UNKNOWN and then wedges."""
 
     kind: str
     at_s: float
@@ -249,6 +257,7 @@ class VehicleSimulator:
         self._next_wall_s: dict[int, float] = {}
         self._link_down_until_s: float | None = None
         self._gps_back_at_s: float | None = None
+        self._refuse_reposition_until_s = -math.inf  # fault reposition_refused
         self._upload: _Upload | None = None
         self._unix_start_s = time.time()
         self._wall_last_s = 0.0
@@ -356,6 +365,12 @@ class VehicleSimulator:
             self._ap.set_gps_lost(False)
             self._gps_back_at_s = None
 
+    def refuse_reposition(self, duration_s: float | None = None) -> None:
+        """Answer COMMAND_INT DO_REPOSITION with MAV_RESULT 9 (for duration_s simulated seconds, or
+        for ever), like the PX4 build before PX4 #26626 (fault `reposition_refused`)."""
+        with self._lock:
+            self._refuse_reposition_until_s = math.inf if duration_s is None else self._ap.t_s + duration_s
+
     def set_battery_pct(self, pct: float) -> None:
         """Set the remaining charge (e.g. 12 for a low battery); it keeps draining from there."""
         if not (math.isfinite(pct) and 0 <= pct <= 100):
@@ -445,6 +460,8 @@ class VehicleSimulator:
                 self._gps_back_at_s = None if f.duration_s is None else ap.t_s + f.duration_s
             elif f.kind == "low_battery":
                 ap.set_battery_pct(f.battery_pct if f.battery_pct is not None else 10.0)
+            elif f.kind == "reposition_refused":
+                self._refuse_reposition_until_s = math.inf if f.duration_s is None else ap.t_s + f.duration_s
         if self._gps_back_at_s is not None and ap.t_s >= self._gps_back_at_s:
             ap.set_gps_lost(False)
             self._gps_back_at_s = None
@@ -525,6 +542,11 @@ class VehicleSimulator:
         self._command(msg, p, FRAME_GLOBAL, lat, lon, alt)
 
     def _on_command_int(self, msg: Any) -> None:
+        if msg.command == CMD_DO_REPOSITION and self._ap.t_s < self._refuse_reposition_until_s:
+            log.info("vehicle: fault: COMMAND_INT DO_REPOSITION refused with MAV_RESULT %d",
+                     RESULT_UNSUPPORTED_MAV_FRAME)
+            self._ack(msg, RESULT_UNSUPPORTED_MAV_FRAME)
+            return
         p = [msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z]
         unset = (0, 2**31 - 1)
         lat = math.nan if msg.x in unset and msg.y in unset else msg.x * 1e-7

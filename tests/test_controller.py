@@ -162,3 +162,22 @@ def test_result_document_follows_design_section_11(survey):
     for u, truth in zip(doc["users"], survey.users_enu_m, strict=True):
         assert set(u) >= {"id", "lat_deg", "lon_deg", "alt_m", "enu_m", "cov_en_m2", "error_m"}
         assert u["error_m"] == pytest.approx(np.hypot(*(np.asarray(u["enu_m"][:2]) - truth[:2])))
+
+
+def test_status_line_marks_an_ambiguous_user_instead_of_a_small_r95(tmp_path):
+    from estimator.types import Estimate
+    from mission.controller import controller_from_scenario
+
+    sc = load_scenario("three_users_nlos")
+    ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower")
+    k = len(sc.users)
+    users = np.array([[10.0, 20.0, 0.0]] * k)
+    mirror = np.full((k, 3), np.nan)
+    mirror[0] = [10.0, -20.0, 0.0]
+    ctl.estimate = Estimate(users_enu_m=users, cov_users_m2=np.tile(np.eye(3) * 0.01, (k, 1, 1)),
+                            info_users=np.eye(3 * k), bias_m=None, uav_enu_m=np.zeros((0, 3)),
+                            ambiguous=np.array([True] + [False] * (k - 1)), mirror_enu_m=mirror,
+                            n_ranges=np.full(k, 10))
+    parts = ctl.status_line().split(" | ")
+    assert parts[1] == f"{sc.users[0].id} AMBIGUOUS (10.0, 20.0) or (10.0, -20.0)"
+    assert "r95" not in parts[1] and "r95" in parts[2]

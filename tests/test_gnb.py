@@ -12,13 +12,14 @@ import pytest
 
 from estimator.ranging import C_MPS, one_way_m_per_ta_step
 from mission.gnb import GnbClient, GnbConfig, LogFollower, OaiGnbClient, parse_host_port
-from mission.oai import PROMPT_GNB, format_msg2_line
+from mission.oai import PROMPT_GNB, format_msg2_line, parse_force_reestab
 from sitl_scenarios.gnb import GnbFaults, SimulatedGnb, static_position
 from sitl_scenarios.scenario import bundled_scenarios, load_scenario, scenario_from_dict
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
     GnbNoMeasurementError,
+    GnbNoRandomAccessError,
     GnbProtocolError,
     GnbTimeoutError,
     GnbUnknownCommandError,
@@ -209,22 +210,25 @@ def test_stock_fallback_force_reestab_and_msg2_log(tmp_path: Path):
     assert log_path.read_text().count("Generating RA-Msg2") == 3
 
 
-def test_stock_fallback_without_msg2_times_out_clearly(tmp_path: Path):
+def test_stock_active_without_random_access_is_a_clear_no_measurement(tmp_path: Path):
     log_path = tmp_path / "gnb.log"
 
     async def body():
-        # the simulator writes no log: the client waits msg2_timeout_s and says so
-        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=None) as gnb, \
+        # a UE without traffic: force_reestab is answered, no random access follows (OAI, no core)
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
+                                stock_reaction="none") as gnb, \
                 OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=0.2)) as c:
-            with pytest.raises(GnbTimeoutError, match="Msg2"):
+            with pytest.raises(GnbNoRandomAccessError, match="no random access proven to be UE 4601"):
                 await c.measure(0x4601)
-            with pytest.raises(GnbNoMeasurementError, match="RNTI needs"):
+            with pytest.raises(GnbNoMeasurementError, match="not sending `ci force_reestab ffff`"):
                 await c.measure(0xFFFF)
+            return gnb.crashed, c.ci_sent
 
-    run(body())
+    crashed, sent = run(body())
+    assert crashed is None and sent == ["ci force_reestab 4601"]
 
 
-def test_log_follower_partial_lines_rotation_and_new_rnti(tmp_path: Path):
+def test_log_follower_partial_lines_and_rotation(tmp_path: Path):
     p = tmp_path / "gnb.log"
     f = LogFollower(p, poll_s=0.005)
     f.mark()  # file does not exist yet
@@ -236,24 +240,8 @@ def test_log_follower_partial_lines_rotation_and_new_rnti(tmp_path: Path):
     assert f.read_lines() == [line]
     p.write_text("")  # truncated (rotation)
     assert f.read_lines() == []
-    new = format_msg2_line(0x5555, 1, 2, 0x10B, 3, 7, 1)
-
-    async def body():
-        async def writer():
-            await asyncio.sleep(0.02)
-            with p.open("a") as fh:
-                fh.write(new + "\n")
-
-        async with asyncio.TaskGroup() as tg:
-            tg.create_task(writer())
-            rec = await f.wait_msg2(lambda r: r.rnti in (0x5555,), 1.0)
-        return rec
-
-    assert run(body()).timing_offset == 7
-    with p.open("a") as fh:
-        fh.write("[NR_MAC]   UE 4601: 1.2 Generating RA-Msg2 DCI, timing_offset = banana\n")
-    with pytest.raises(GnbProtocolError, match="timing_offset"):
-        run(f.wait_msg2(lambda r: True, 0.5))
+    p.write_text("a\nb\n")
+    assert f.read_lines() == ["a", "b"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -502,25 +490,122 @@ def test_caller_cancellation_mid_request_does_not_desync_the_stream():
     assert s.rnti == 0xB0B2 and stats == IN_COVERAGE
 
 
-def test_stock_fallback_follows_a_new_rnti_after_reestablishment(tmp_path: Path):
+def test_stock_active_follows_a_new_rnti_only_through_the_reestablishment_line(tmp_path: Path):
     log_path = tmp_path / "gnb.log"
 
     async def body():
-        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path, msg2_delay_s=0.01,
-                                reestab_new_rnti=True) as gnb, \
-                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=1.0)) as c:
-            await c.discover()
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
+                                msg2_delay_s=0.01) as gnb, \
+                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=2.0)) as c:
             first = await c.measure(0x4601)
-            alias = dict(c.rnti_alias)
+            alias1 = dict(c.rnti_alias)
             second = await c.measure(0x4601)  # triggers the UE under its new RNTI
-            return first, second, alias, dict(c.rnti_alias), list(gnb.current_rnti)
+            return first, second, alias1, dict(c.rnti_alias), list(gnb.current_rnti), list(c.ci_sent)
 
-    first, second, alias1, alias2, current = run(body())
+    first, second, alias1, alias2, current, sent = run(body())
     assert first.rnti == second.rnti == 0x4601
-    assert alias1 == {0x4601: 0x4602} and alias2 == {0x4601: 0x4603}
-    assert current[0] == 0x4603
+    (new1,) = alias1.values()
+    assert alias1 == {0x4601: new1} and alias2 == {0x4601: new1, new1: current[0]}
+    assert sent == ["ci force_reestab 4601", f"ci force_reestab {new1:04x}"]
     text = log_path.read_text()
-    assert "ci" not in text and "UE 4602: " in text and "UE 4603: " in text
+    assert f"Reestablishment RNTI {new1:04x} req C-RNTI 4601" in text
+
+
+def test_stock_active_rejects_the_connected_mode_access_and_an_unproven_new_ue(tmp_path: Path):
+    """The recorded OAI case: after the trigger, a C-RNTI RA with timing_offset 0 (a residual), then
+    an idle re-attach under a new RNTI that no line ties to the UE: no range, and a message."""
+    log_path = tmp_path / "gnb.log"
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
+                                stock_reaction="crnti_then_idle", msg2_delay_s=0.01, reattach_delay_s=0.05) as gnb, \
+                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=0.5)) as c:
+            with pytest.raises(GnbNoRandomAccessError) as info:
+                await c.measure(0x4601)
+            kinds = [ra.kind for ra in c.recent_accesses]
+            # the stale RNTI is still listed by o1 stats while the gNB keeps the old context; once
+            # dropped, a trigger for it is not sent (the recorded gNB segfaulted on exactly this)
+            await asyncio.sleep(gnb.linger_s + 0.05)
+            with pytest.raises(GnbNoMeasurementError, match="not sending"):
+                await c.measure(0x4601)
+            return str(info.value), kinds, gnb.crashed, c.ci_sent
+
+    msg, kinds, crashed, sent = run(body())
+    assert "connected-mode (C-RNTI) RA of UE 4601" in msg and "initial access of UE" in msg
+    assert kinds == ["connected", "initial"] and crashed is None
+    assert sent == ["ci force_reestab 4601"]
+    assert log_path.read_text().count("Generating RA-Msg2") == 2
+
+
+def test_stock_passive_takes_each_ues_own_initial_access_with_its_time_stamp(tmp_path: Path):
+    log_path = tmp_path / "gnb.log"
+    wall0 = 1_796_145_128.0
+
+    async def body():
+        t = {"wall": wall0}
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
+                                wall=lambda: t["wall"]) as gnb, \
+                OaiGnbClient(client_config(gnb, mode="stock", stock_mode="passive", log_path=log_path),
+                             wall=lambda: t["wall"] + 2.0) as c:
+            with pytest.raises(GnbNoRandomAccessError, match="passive"):
+                await c.measure(0x4601)
+            gnb.crnti_access(0)           # a residual: never a range
+            new_a = gnb.reattach(0)       # user a re-attaches under a new RNTI
+            gnb.reattach(1)               # another UE's access in between
+            gnb.crnti_access(2)
+            sample = await c.measure(new_a)
+            with pytest.raises(GnbNoRandomAccessError):
+                await c.measure(new_a)    # consumed; nothing new
+            with pytest.raises(GnbNoRandomAccessError):
+                await c.measure(0x4601)   # nothing ties the old RNTI to the new one
+            return sample, new_a, c.ci_sent, [ra.kind for ra in c.recent_accesses]
+
+    sample, new_a, sent, kinds = run(body())
+    u = USERS[0]
+    d = float(np.linalg.norm(UAV - [u["east_m"], u["north_m"], 0.0]))
+    assert sample.rnti == new_a and sample.source == "msg2"
+    assert abs(sample.range_m - d) <= one_way_m_per_ta_step(1) / 2 + 4.0
+    assert sample.t_wall_s == pytest.approx(wall0, abs=1e-5)
+    assert sent == [] and kinds == ["connected", "initial", "initial", "connected"]
+
+
+def test_ci_commands_that_crash_stock_oai_are_refused_by_the_client():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb, \
+                OaiGnbClient(client_config(gnb)) as c:
+            for line in ("ci force_reestab 1234", "ci force_ue_release", "ci force_ue_release 4601",
+                         "ci force_ul_failure 4601", "ci get_current_bwp 1234"):
+                with pytest.raises(GnbError, match="refusing"):
+                    await c.request(line)
+            with pytest.raises(GnbError, match="refusing"):
+                await c.guarded_ci("force_ue_release", 0x4601)
+            answer = await c.guarded_ci("get_current_bwp", 0x4601)
+            return answer, gnb.crashed, gnb.requests
+
+    answer, crashed, requests = run(body())
+    assert answer.startswith("UE 4601 DL BWP") and crashed is None and requests == 2  # o1 stats + the ci
+
+
+def test_simulated_gnb_crashes_like_oai_on_an_unknown_rnti():
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            r, w = await asyncio.open_connection("127.0.0.1", gnb.port)
+            w.write(b"ci force_reestab\n")  # several UEs: OAI's two-line failure
+            two = (await r.readuntil(PROMPT_GNB.encode())).decode()
+            w.write(b"ci force_reestab fffe\n")
+            bad = (await r.readuntil(PROMPT_GNB.encode())).decode()
+            w.write(b"ci force_reestab 2345\n")
+            eof = await r.read()
+            w.close()
+            with pytest.raises(OSError):
+                await asyncio.open_connection("127.0.0.1", gnb.port)
+            return two, bad, eof, gnb.crashed
+
+    two, bad, eof, crashed = run(body())
+    assert two == "no UE found\ncould not identify UE (no UE, no such RNTI, or multiple UEs)\n" + PROMPT_GNB
+    assert bad.startswith("RNTI needs to be [1,0xfffe]\ncould not identify UE")
+    assert parse_force_reestab(two[: -len(PROMPT_GNB)]).rnti is None
+    assert eof == b"" and "force_reestab 2345" in crashed
 
 
 def test_killed_gnb_is_a_clear_error_and_double_exit_is_harmless():
@@ -550,3 +635,102 @@ def test_every_bundled_scenario_serves_its_users(path):
     rntis, got = run(body())
     assert rntis and set(got) <= set(rntis)
     assert GnbFaults.from_scenario(sc) is not None  # its [faults.gnb] table (if any) is valid
+
+
+# ---------------------------------------------------------------------------------------------
+# preflight probe (mission.probe), the library behind `uavloc gnb probe`
+
+
+def test_probe_measures_every_configured_user_and_names_what_is_missing():
+    from mission.probe import probe_gnb
+
+    pos = {"uav": UAV}
+
+    async def body():
+        async with SimulatedGnb(scenario(), lambda: pos["uav"], port=0) as gnb, \
+                OaiGnbClient(client_config(gnb)) as c:
+            good = await probe_gnb(c, rntis=[0x4601, 0xB0B2], count=3)
+            every = await probe_gnb(c, count=1)
+            pos["uav"] = None  # the gNB lists every UE but measures none
+            bad = await probe_gnb(c, rntis=[0x4601, 0x0046], count=1)
+            return good, bad, every
+
+    good, bad, every = run(body())
+    assert good.ok and [len(u.samples) for u in good.ues] == [3, 3] and good.problems == []
+    assert all(abs(s.range_m - 75.0) < 60 for s in good.ues[0].samples)  # sanity: a range, metres
+    assert not bad.ok
+    msg = bad.message()
+    assert "the gNB has 4 UE(s): [0777, 1234, 4601, b0b2]" in msg
+    assert "UE 0046 is not among them" in msg
+    assert "UE 4601: no measurement (gNB has no RTT for RNTI 4601: error rnti 4601 no UAV position)" in msg
+    assert [u.rnti for u in every.ues] == [0x1234, 0x4601, 0xB0B2] and every.ok  # 0777: out of coverage
+    doc = bad.to_dict()
+    assert doc["gnb_rntis"] == ["0777", "1234", "4601", "b0b2"] and doc["ues"][1]["present"] is False
+
+
+def test_probe_says_what_is_wrong_with_the_setup(tmp_path: Path):
+    from mission.probe import probe_address, probe_gnb
+
+    async def body():
+        out = {}
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, rtt_module="ranging") as gnb:
+            out["module"] = await probe_address(client_config(gnb), rntis=[0x4601])
+            port = gnb.port
+        out["server"] = await probe_address(GnbConfig(port=port, retries=0, connect_timeout_s=0.5))
+        far = [USERS[3]]  # its only UE out of coverage: o1 stats lists none
+        async with SimulatedGnb(scenario(far), static_position(UAV), port=0) as gnb:
+            out["no_ue"] = await probe_address(client_config(gnb))
+        log_path = tmp_path / "gnb.log"
+        log_path.write_text("12.000001 [NR_MAC] I Frame.Slot 128.0\n")  # `time` stamps: monotonic
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
+                                stock_reaction="none") as gnb, \
+                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=0.1)) as c:
+            out["stock"] = await probe_gnb(c, rntis=[0x4601])
+        return out
+
+    out = run(body())
+    assert "wrong telnet module" in out["module"].message() and "rtt pdcch_order 4601" in out["module"].message()
+    assert "no telnet server" in out["server"].message() and out["server"].gnb_rntis is None
+    assert "no UE is connected" in out["no_ue"].message()
+    stock = out["stock"].message()
+    assert "no wall_clock time stamps (found 'monotonic')" in stock and "no random access seen" in stock
+    assert all(not r.ok for r in out.values())
+
+
+def test_gnb_probe_command_json_and_exit_status(capsys):
+    import json
+
+    from mission.cli import main
+
+    async def serve(argv):
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            return await asyncio.to_thread(main, ["gnb", "probe", "--gnb", f"127.0.0.1:{gnb.port}", *argv])
+
+    assert run(serve(["--rnti", "4601", "--count", "2", "--json"])) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ok"] and len(doc["ues"][0]["samples"]) == 2 and doc["ues"][0]["samples"][0]["fs_hz"] == 46.08e6
+    assert run(serve(["--rnti", "4601", "--rnti", "46"])) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("gNB not ready") and "UE 0046 is not among them" in out and "#2: range" in out
+    assert main(["gnb", "probe", "--gnb", "127.0.0.1:1", "--mode", "stock"]) == 1  # no --gnb-log: an error
+
+
+def test_probe_in_passive_mode_lists_each_ues_accesses(tmp_path: Path):
+    from mission.probe import probe_gnb
+
+    log_path = tmp_path / "gnb.log"
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path) as gnb:
+            a = gnb.reattach(0)
+            gnb.crnti_access(1)  # a residual only: nothing for b
+            gnb.reattach(0)      # a again, under yet another RNTI
+            cfg = client_config(gnb, mode="stock", stock_mode="passive", log_path=log_path, log_history=True)
+            async with OaiGnbClient(cfg) as c:
+                return a, gnb.current_rnti[0], await probe_gnb(c, count=3)
+
+    a, a2, res = run(body())
+    by = {u.rnti: u for u in res.ues}
+    assert len(by[a].samples) == 1 and len(by[a2].samples) == 1 and not by[0xB0B2].samples
+    assert "no random access seen" in by[0xB0B2].errors[0] and not res.ok
+    assert res.log_stamps == "wall_clock" and "random access(es) in the log" in "\n".join(res.lines())

@@ -135,7 +135,7 @@ def test_standalone_entry_point_serves_the_adapter(tmp_path: Path):
                 rntis = await c.discover()
                 s = await c.measure(rntis[0])
             async with OaiGnbClient(GnbConfig(port=port)) as c:
-                return rntis, s, await c.measure(rntis[0])
+                return rntis, s, await c.measure((await c.discover())[0])  # reestablished: a new RNTI
 
         rntis, coarse, fine = run(body(), timeout_s=15)
         d = float(np.linalg.norm([60.0, 45.0, -40.0]))  # paper.toml: user at (60, 45, 0)

@@ -247,7 +247,7 @@ def test_force_reestab_transcripts():
 
 def test_msg2_line_transcript_plain_and_coloured():
     for line in (MSG2_LINE, MSG2_LINE_COLOUR):
-        assert parse_msg2_line(line) == Msg2Record(0x4601, 158, 19, 3, 117.2)
+        assert parse_msg2_line(line) == Msg2Record(0x4601, 158, 19, 3, 117.2, preamble=52, ra_rnti=0x10B)
 
 
 def test_msg2_line_formatter_matches_parser_and_oai_distance():

@@ -93,3 +93,28 @@ def test_odometer_rejects_a_non_positive_band():
 
     with pytest.raises(MissionError, match="dead band"):
         Odometer(0.0)
+
+
+# --- vehicle clock ------------------------------------------------------------------------------
+def test_vehicle_clock_follows_boot_time_at_any_rate_and_is_continuous() -> None:
+    from mission.telemetry import VehicleClock
+
+    clock = VehicleClock(t0_mono_s=100.0, fallback_rate=1.0)
+    assert clock.mission_t(102.0) == pytest.approx(2.0) and not clock.synced
+    # a vehicle at 4x (PX4 SITL -s 4), booted 50 s of its time before the first sample
+    for k in range(41):
+        t = 102.0 + 0.1 * k
+        clock.update(t, 50.0 + 4.0 * (t - 102.0))
+    assert clock.synced and clock.rate == pytest.approx(4.0)
+    assert clock.mission_t(102.0) == pytest.approx(2.0)  # continuous at the first sample
+    assert clock.mission_t(107.0) == pytest.approx(2.0 + 4.0 * 5.0)  # vehicle seconds, extrapolated
+    clock.update(107.0, float("nan"))  # ignored
+    clock.update(107.1, 0.5)  # the vehicle rebooted: no jump back
+    assert clock.mission_t(107.1) == pytest.approx(2.0 + 4.0 * 5.1)
+
+
+def test_vehicle_clock_rejects_a_bad_rate() -> None:
+    from mission.telemetry import VehicleClock
+
+    with pytest.raises(MissionError):
+        VehicleClock(0.0, fallback_rate=0.0)

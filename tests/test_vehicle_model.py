@@ -107,6 +107,7 @@ def test_takeoff_and_leg_respect_speed_climb_and_acceleration_limits() -> None:
     climb = [v[2] for _, _, v in rec]
     assert max(climb) <= ap.params["MPC_TKO_SPEED"] + 1e-9
     lat, lon, alt = ORIGIN.enu_to_lla([0.0, 100.0, 20.0])
+    assert ap.change_speed(8.0)[0] == ACCEPTED  # DO_CHANGE_SPEED, as the mission controller commands it
     assert ap.reposition(float(lat), float(lon), float(alt))[0] == ACCEPTED
     rec.clear()
     run(ap, 30.0, rec)
@@ -130,6 +131,41 @@ def test_cruise_speed_follows_the_px4_parameter() -> None:
     rec: list = []
     run(ap, 10.0, rec)
     assert max(math.hypot(v[0], v[1]) for _, _, v in rec) == pytest.approx(4.0, abs=1e-6)
+
+
+def test_without_a_speed_command_the_vehicle_flies_px4s_default_cruise() -> None:
+    ap = make(VehicleConfig(speed_mps=10.0))
+    fly_to_altitude(ap, 10.0)
+    lat, lon, alt = ORIGIN.enu_to_lla([80.0, 0.0, 10.0])
+    ap.reposition(float(lat), float(lon), float(alt))
+    rec: list = []
+    run(ap, 10.0, rec)
+    assert max(math.hypot(v[0], v[1]) for _, _, v in rec) == pytest.approx(5.0, abs=1e-6)  # MPC_XY_CRUISE
+
+
+def test_commanded_speed_is_held_over_the_next_repositions() -> None:
+    ap = make()
+    fly_to_altitude(ap, 10.0)
+    assert ap.change_speed(10.0)[0] == ACCEPTED
+    for east in (120.0, 0.0):
+        lat, lon, alt = ORIGIN.enu_to_lla([east, 0.0, 10.0])
+        ap.reposition(float(lat), float(lon), float(alt))
+        rec: list = []
+        run(ap, 20.0, rec)
+        assert max(math.hypot(v[0], v[1]) for _, _, v in rec) == pytest.approx(10.0, abs=1e-6)
+
+
+@pytest.mark.parametrize(("east_m", "up_m", "expected_up_m"), [
+    (200.0, 20.0, 30.0),   # far: RTL_RETURN_ALT
+    (200.0, 45.0, 45.0),   # above it: never descends first
+    (6.0, 3.0, 6.0),       # inside RTL_MIN_DIST: the 45° cone, d / tan(45°)
+    (3.0, 1.0, 4.0),       # ... at least 2 NAV_ACC_RAD
+])
+def test_rtl_return_height_follows_px4s_rule(east_m: float, up_m: float, expected_up_m: float) -> None:
+    ap = make()
+    fly_to_altitude(ap, up_m)
+    ap.pos[0] = east_m
+    assert ap.rtl_return_up_m() == pytest.approx(ap.home[2] + max(expected_up_m, ap.pos[2] - ap.home[2]))
 
 
 def test_rtl_climbs_returns_lands_and_disarms() -> None:

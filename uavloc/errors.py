@@ -63,6 +63,10 @@ class GnbNoMeasurementError(GnbError):
     """The gNB answered, but without a measurement (an `error ...` line, UE unknown or out of coverage)."""
 
 
+class GnbNoRandomAccessError(GnbNoMeasurementError):
+    """Stock OAI modes: no random access proven to be the UE's was seen in the gNB log in time."""
+
+
 class VehicleError(MissionError):
     """The vehicle refused a command, timed out or was lost."""
 

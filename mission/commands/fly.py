@@ -51,17 +51,35 @@ def run(args: argparse.Namespace) -> int:
     else:
         log_path = Path(f"uavloc-mission-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}.jsonl")
 
+    from mission.runtime import EXIT_INTERRUPTED, BoundedRun
+
+    runner = BoundedRun()
+    held: dict = {}
+
     async def main():
         gnb_cfg = GnbConfig(host=host, port=port, mode=args.gnb_mode, log_path=args.gnb_log, mu=scenario.radio.mu)
         async with MavsdkVehicle(args.connect) as vehicle, OaiGnbClient(gnb_cfg) as gnb:
             controller = controller_from_scenario(
                 scenario, vehicle, gnb, log_path, planner=args.planner,
                 header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb})
+            held["controller"] = controller
             async with live_view(args, controller.log_writer, title="uavloc fly"):
                 return await controller.run()
 
-    result = asyncio.run(main())
+    interrupted = False
+    try:
+        result = runner.run(main())
+    except (asyncio.CancelledError, KeyboardInterrupt):
+        interrupted = True
+        controller = held.get("controller")
+        result = controller.result if controller is not None else None
+        if result is None:
+            log.error("interrupted before the mission started")
+            runner.exit_if_stuck(EXIT_INTERRUPTED)
+            return EXIT_INTERRUPTED
     print_result(result, args.json)
     if args.out is not None and result.log_path is not None and result.measurements:
         write_report(result.log_path, args.out)
-    return 0 if result.ok else 1
+    code = EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
+    runner.exit_if_stuck(code)
+    return code

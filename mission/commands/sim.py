@@ -55,14 +55,30 @@ def run(args: argparse.Namespace) -> int:
         tmp = tempfile.TemporaryDirectory(prefix="uavloc-sim-")
         log_path = Path(tmp.name) / "mission.jsonl"
 
+    from mission.runtime import EXIT_INTERRUPTED, BoundedRun
+
+    runner = BoundedRun()
+    held: dict = {}
+
     async def main():
         async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
-                                    planner=args.planner, connect=args.connect) as sim, \
-                live_view(args, sim.controller.log_writer, title=f"uavloc sim {scenario.name}"):
-            return await sim.run()
+                                    planner=args.planner, connect=args.connect) as sim:
+            held["sim"] = sim
+            async with live_view(args, sim.controller.log_writer, title=f"uavloc sim {scenario.name}"):
+                return await sim.run()
 
+    interrupted = False
     try:
-        result = asyncio.run(main())
+        try:
+            result = runner.run(main())
+        except (asyncio.CancelledError, KeyboardInterrupt):
+            interrupted = True
+            sim = held.get("sim")
+            result = sim.controller.result if sim is not None and sim.controller is not None else None
+            if result is None:
+                log.error("interrupted before the mission started")
+                runner.exit_if_stuck(EXIT_INTERRUPTED)
+                return EXIT_INTERRUPTED
         if tmp is not None:
             result.log_path = None  # the temporary log goes away with the command
         print_result(result, args.json)
@@ -71,4 +87,6 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if tmp is not None:
             tmp.cleanup()
-    return 0 if result.ok else 1
+    code = EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
+    runner.exit_if_stuck(code)
+    return code

@@ -1,0 +1,96 @@
+"""`uavloc gnb probe --gnb HOST:PORT [--mode rtt|stock] [--gnb-log FILE] [--count N] [--json]`.
+
+The preflight check an operator runs before take-off: discover the gNB's UEs, take N
+measurements of each, print ranges, TA, SNR and timing, or say exactly what is wrong. Exit
+status 0 when every UE answered, 1 otherwise. The logic is `mission.probe.probe_address`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+HELP = "check a gNB before flight: discover its UEs and measure each (gnb probe)"
+
+
+def _rnti(text: str) -> int:
+    try:
+        v = int(text, 16)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"RNTI must be hex (e.g. 4601), got {text!r}") from None
+    if not 0 < v <= 0xFFFF:
+        raise argparse.ArgumentTypeError(f"RNTI must be 1..ffff, got {text!r}")
+    return v
+
+
+def _count(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"count must be an integer, got {text!r}") from None
+    if not 1 <= v <= 1000:
+        raise argparse.ArgumentTypeError(f"count must be 1..1000, got {v}")
+    return v
+
+
+def _seconds(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0 < v < 3600:
+        raise argparse.ArgumentTypeError(f"seconds must be in (0, 3600), got {text!r}")
+    return v
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="gnb_command", metavar="SUBCOMMAND", required=True)
+    q = sub.add_parser("probe", help="discover the UEs and measure each", description=__doc__.split("\n\n")[1])
+    q.add_argument("--gnb", required=True, metavar="HOST:PORT", help="the gNB's telnet server (default port 9090)")
+    q.add_argument("--mode", choices=("rtt", "stock"), default="rtt",
+                   help="rtt: the RTT command set of a modified gNB; stock: Msg2 lines of --gnb-log")
+    q.add_argument("--stock", choices=("active", "passive"), default="active",
+                   help="stock mode: active triggers `ci force_reestab` and waits for the UE's random access; "
+                        "passive only reads the random accesses that happen anyway (default: active)")
+    q.add_argument("--gnb-log", type=Path, metavar="FILE", help="the gNB's log file (stock mode)")
+    q.add_argument("--count", type=_count, default=3, metavar="N", help="measurements per UE (default 3)")
+    q.add_argument("--rnti", type=_rnti, action="append", metavar="HEX",
+                   help="a configured UE that must be present and answer (repeatable; default: every UE found)")
+    q.add_argument("--wait", type=_seconds, default=15.0, metavar="S",
+                   help="stock active: how long to wait for the UE's random access (default 15)")
+    q.add_argument("--timeout", type=_seconds, default=2.0, metavar="S", help="per request (default 2)")
+    q.add_argument("--rtt-module", default="rtt", help="RTT command set: module name (default rtt)")
+    q.add_argument("--rtt-command", default="pdcch_order", help="RTT command set: command (default pdcch_order)")
+    q.add_argument("--mu", type=int, default=1, help="numerology of the UL BWP (stock TA unit; default 1)")
+    q.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+
+
+def run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from mission.gnb import GnbConfig, parse_host_port
+    from mission.probe import probe_address
+    from uavloc.errors import GnbError
+
+    host, port = parse_host_port(args.gnb)
+    if args.mode == "stock" and args.gnb_log is None:
+        raise GnbError("--mode stock reads the random accesses from the gNB log: give --gnb-log FILE")
+    if args.gnb_log is not None and not args.gnb_log.is_file():
+        raise GnbError(f"--gnb-log {args.gnb_log}: no such file")
+    cfg = GnbConfig(host=host, port=port, mode=args.mode, stock_mode=args.stock,
+                    log_path=args.gnb_log if args.mode == "stock" else None, rtt_module=args.rtt_module,
+                    rtt_command=args.rtt_command, request_timeout_s=args.timeout, connect_timeout_s=args.timeout,
+                    retries=1, msg2_timeout_s=args.wait, mu=args.mu,
+                    log_history=args.mode == "stock" and args.stock == "passive")
+    result = asyncio.run(probe_address(cfg, rntis=args.rnti, count=args.count))
+    if args.json:
+        json.dump(result.to_dict(), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(result.lines()))
+    return 0 if result.ok else 1

@@ -1,0 +1,108 @@
+"""Settings of the OAI gNB adapter, its address, and the `ci` commands it refuses to send
+(re-exported by `mission.gnb`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from estimator.ranging import MU_VALUES
+from mission.oai import PROMPT_GNB
+from uavloc.errors import GnbError
+
+#: `ci` commands never sent: they release the UE, and crash stock OAI with an RNTI it no longer has
+FORBIDDEN_CI = ("force_ue_release", "force_ul_failure")
+
+
+@dataclass(frozen=True)
+class GnbConfig:
+    """Settings of :class:`OaiGnbClient`.
+
+    host, port: the gNB telnet server (`--telnetsrv.listenport`, default 9090); prompt: what ends
+    an answer; mode: "rtt" (RTT command set) or "stock" (Msg2 lines of the gNB log); stock_mode:
+    "active" (trigger with `ci force_reestab`, then wait) or "passive" (only the random accesses
+    that happen anyway); rtt_module, rtt_command: the RTT command's names; discovery: "o1",
+    "single" or "auto" (o1 stats, falling back to ci get_single_rnti when the o1 module is not
+    loaded); request_timeout_s, connect_timeout_s: per request / connection attempt [s]; retries:
+    reconnect attempts after a lost connection; backoff_initial_s, backoff_max_s: jittered
+    exponential backoff; seed: seeds the jitter; log_path: gNB log file (stock modes);
+    msg2_timeout_s: active mode, how long to wait for the UE's random access after the trigger [s]
+    (real OAI: about 5 s of log time after force_reestab, and the rfsimulator may run at 0.4x real
+    time); log_poll_s: log polling period [s]; log_history: read the gNB log from its start (else
+    from its end when connecting); mu: numerology of the UL BWP, the unit of the Msg2 TA.
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 9090
+    prompt: str = PROMPT_GNB
+    mode: Literal["rtt", "stock"] = "rtt"
+    stock_mode: Literal["active", "passive"] = "active"
+    rtt_module: str = "rtt"
+    rtt_command: str = "pdcch_order"
+    discovery: Literal["auto", "o1", "single"] = "auto"
+    request_timeout_s: float = 2.0
+    connect_timeout_s: float = 2.0
+    retries: int = 3
+    backoff_initial_s: float = 0.05
+    backoff_max_s: float = 2.0
+    seed: int = 0
+    log_path: Path | None = None
+    msg2_timeout_s: float = 15.0
+    log_poll_s: float = 0.01
+    log_history: bool = False
+    mu: int = 1
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("rtt", "stock"):
+            raise GnbError(f"gNB mode must be 'rtt' or 'stock', got {self.mode!r}")
+        if self.stock_mode not in ("active", "passive"):
+            raise GnbError(f"stock mode must be 'active' or 'passive', got {self.stock_mode!r}")
+        if self.discovery not in ("auto", "o1", "single"):
+            raise GnbError(f"gNB discovery must be 'auto', 'o1' or 'single', got {self.discovery!r}")
+        if self.mode == "stock" and self.log_path is None:
+            raise GnbError("stock mode reads the TA from the gNB log: set log_path")
+        if self.mu not in MU_VALUES:
+            raise GnbError(f"mu must be one of {MU_VALUES}, got {self.mu!r}")
+        for name in ("request_timeout_s", "connect_timeout_s", "msg2_timeout_s", "log_poll_s"):
+            if not getattr(self, name) > 0:
+                raise GnbError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if self.retries < 0 or self.backoff_initial_s < 0 or self.backoff_max_s < 0:
+            raise GnbError("retries and backoff times must be non-negative")
+        for name in ("rtt_module", "rtt_command"):
+            v = getattr(self, name)
+            if not v or any(c.isspace() for c in v):
+                raise GnbError(f"{name} must be one word, got {v!r}")
+
+
+def parse_host_port(text: str, default_port: int = 9090) -> tuple[str, int]:
+    """"HOST:PORT" (or "HOST") -> (host, port); GnbError when the port is not a number."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        return text, default_port
+    try:
+        p = int(port)
+    except ValueError:
+        raise GnbError(f"bad gNB address {text!r}: port {port!r} is not a number") from None
+    if not 0 < p < 65536:
+        raise GnbError(f"bad gNB address {text!r}: port out of range")
+    return host.strip("[]") or "127.0.0.1", p
+
+
+def check_ci_line(line: str, guarded: bool = False) -> None:
+    """Refuse a `ci` request that could crash or release a UE on stock OAI (GnbError).
+
+    Never `force_ue_release` / `force_ul_failure`; a `ci` command with an argument (an RNTI) only
+    when `guarded` (sent by OaiGnbClient.guarded_ci right after a fresh discovery).
+    """
+    parts = line.split()
+    if not parts or parts[0].lower() != "ci":
+        return
+    cmd = parts[1].lower() if len(parts) > 1 else ""
+    if cmd in FORBIDDEN_CI:
+        raise GnbError(f"refusing to send {line!r}: `ci {cmd}` releases the UE, and with an RNTI the gNB "
+                       f"no longer has it crashes stock OAI (2025.w36)")
+    if len(parts) > 2 and not guarded:
+        raise GnbError(f"refusing to send {line!r}: a `ci` command naming an RNTI is sent only right after "
+                       f"a fresh `o1 stats` lists it (OaiGnbClient.guarded_ci); stock OAI crashes on an "
+                       f"RNTI it does not have")

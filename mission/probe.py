@@ -1,0 +1,269 @@
+"""Preflight check of a gNB: discover its UEs, measure each, and say exactly what is wrong.
+
+`uavloc gnb probe` prints a :class:`ProbeResult`; a mission controller calls :func:`probe_gnb` with
+its configured RNTIs before take-off and refuses to take off unless ``result.ok``, showing
+``result.message()`` (which RNTIs the gNB has, and what it answered for each configured one).
+
+    result = await probe_gnb(gnb, rntis=[0x4601, 0xB0B2], count=1)
+    if not result.ok:
+        raise MissionError(f"not taking off: {result.message()}")
+
+A probe never raises for what the gNB says or fails to say: every failure becomes a `problem`
+(setup: no telnet server, wrong module, no UE, a log without `wall_clock` time stamps) or an
+error of one UE (no measurement, no random access seen), in the gNB's own words.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+from mission.gnb import GnbClient, GnbConfig, OaiGnbClient
+from mission.oai import RttSample
+from mission.oai_ra import log_time_format
+from uavloc.errors import (
+    GnbError,
+    GnbNoMeasurementError,
+    GnbNoRandomAccessError,
+    GnbProtocolError,
+    GnbUnknownCommandError,
+)
+
+log = logging.getLogger(__name__)
+
+#: how much of the end of a gNB log the time-stamp check reads [bytes]
+LOG_TAIL_BYTES = 1 << 20
+
+
+@dataclass
+class UeProbe:
+    """What one UE gave: rnti; expected (a configured user); present (among the gNB's UEs);
+    samples (RttSample); took_s (request-to-answer time of each sample [s]); errors (the reason
+    of each failed attempt, in the gNB's own words)."""
+
+    rnti: int
+    expected: bool
+    present: bool
+    samples: list[RttSample] = field(default_factory=list)
+    took_s: list[float] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.present and bool(self.samples)
+
+    def to_dict(self) -> dict:
+        return {
+            "rnti": f"{self.rnti:04x}", "expected": self.expected, "present": self.present, "ok": self.ok,
+            "samples": [_sample_dict(s, t) for s, t in zip(self.samples, self.took_s, strict=True)],
+            "errors": list(self.errors),
+        }
+
+
+def _sample_dict(s: RttSample, took_s: float) -> dict:
+    out = {"range_m": round(s.range_m, 3), "toa_s": s.toa_s, "ta": s.ta, "mu": s.mu, "source": s.source,
+           "srs_peak": s.srs_peak, "fs_hz": s.fs_hz, "snr_db": s.snr_db, "took_s": round(took_s, 4)}
+    if s.t_wall_s is not None:
+        out["t_utc"] = _utc(s.t_wall_s)
+    return out
+
+
+def _utc(t_s: float) -> str:
+    return datetime.fromtimestamp(t_s, UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+@dataclass
+class ProbeResult:
+    """The outcome of a probe.
+
+    address: "host:port"; mode: "rtt", "stock/active" or "stock/passive"; gnb_rntis: the UEs the
+    gNB listed (None when discovery failed); ues: one UeProbe per UE probed (configured ones
+    first); problems: what is wrong with the setup, one sentence each; log_stamps: time-stamp kind
+    of the gNB log (stock modes, else None); count: measurements asked per UE.
+    """
+
+    address: str
+    mode: str
+    count: int
+    gnb_rntis: list[int] | None = None
+    ues: list[UeProbe] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+    log_stamps: str | None = None
+    duration_s: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        """No setup problem, at least one UE, and every probed UE present with a measurement."""
+        return not self.problems and bool(self.ues) and all(u.ok for u in self.ues)
+
+    def message(self) -> str:
+        """One paragraph: which RNTIs the gNB has and, for every UE that failed, what it answered."""
+        if self.gnb_rntis is None:
+            has = "the gNB's UEs are unknown"
+        else:
+            has = f"the gNB has {len(self.gnb_rntis)} UE(s): [{', '.join(f'{r:04x}' for r in self.gnb_rntis)}]"
+        parts = [has]
+        parts += self.problems
+        for u in self.ues:
+            if u.ok:
+                continue
+            if not u.present:
+                parts.append(f"UE {u.rnti:04x} is not among them")
+            else:
+                said = u.errors[-1] if u.errors else "no answer"
+                if any(said in p for p in self.problems) or said.startswith("not measured"):
+                    said = "see above"
+                parts.append(f"UE {u.rnti:04x}: no measurement ({said})")
+        head = "gNB ready" if self.ok else "gNB not ready"
+        return f"{head} at {self.address} ({self.mode}): " + "; ".join(parts)
+
+    def to_dict(self) -> dict:
+        return {"ok": self.ok, "address": self.address, "mode": self.mode, "count": self.count,
+                "gnb_rntis": None if self.gnb_rntis is None else [f"{r:04x}" for r in self.gnb_rntis],
+                "log_stamps": self.log_stamps, "problems": list(self.problems),
+                "ues": [u.to_dict() for u in self.ues], "duration_s": round(self.duration_s, 3),
+                "message": self.message()}
+
+    def lines(self) -> list[str]:
+        """Human-readable report, one string per line."""
+        out = [self.message()]
+        for u in self.ues:
+            tag = "configured" if u.expected else "found"
+            what = (f"{len(u.samples)} random access(es) in the log" if self.mode.endswith("passive")
+                    else f"{len(u.samples)}/{self.count} measurement(s)")
+            out.append(f"  UE {u.rnti:04x} ({tag}{'' if u.present else ', absent'}): {what}")
+            for k, (s, took) in enumerate(zip(u.samples, u.took_s, strict=True), 1):
+                snr = "-" if s.snr_db is None else f"{s.snr_db:.1f} dB"
+                peak = "" if s.fs_hz is None else f"  SRS peak {s.srs_peak:.3f} @ {s.fs_hz / 1e6:g} Msps"
+                when = "" if s.t_wall_s is None else f"  at {_utc(s.t_wall_s)} (gNB log)"
+                out.append(f"    #{k}: range {s.range_m:8.2f} m  TA {s.ta} (mu {s.mu}){peak}  SNR {snr}  "
+                           f"took {took:.3f} s{when}")
+            for e in u.errors:
+                out.append(f"    error: {e}")
+        return out
+
+
+def check_log_stamps(path: Path) -> tuple[str | None, str | None]:
+    """(time-stamp kind of the gNB log's tail, a problem sentence or None)."""
+    try:
+        with Path(path).open("rb") as fh:
+            fh.seek(0, 2)
+            size = fh.tell()
+            fh.seek(max(0, size - LOG_TAIL_BYTES))
+            text = fh.read().decode("utf-8", errors="replace")
+    except OSError as exc:
+        return None, f"cannot read the gNB log {path}: {exc}"
+    kind = log_time_format(text.splitlines())
+    if kind in ("wall_clock", "utc_time"):
+        return kind, None
+    return kind, (f"the gNB log {path} has no wall_clock time stamps (found {kind!r}): run nr-softmodem with "
+                  f"--log_config.global_log_options level,nocolor,wall_clock so random accesses line up with "
+                  f"telemetry")
+
+
+async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count: int = 1,
+                    log_path: Path | None = None, address: str = "", mode: str = "",
+                    clock: Callable[[], float] = time.monotonic) -> ProbeResult:
+    """Discover the gNB's UEs and take `count` measurements of each UE of `rntis` (default: every UE
+    the gNB lists). log_path: a gNB log whose time stamps are checked (stock modes). Never raises
+    a GnbError: see ProbeResult."""
+    if count < 1:
+        raise GnbError(f"a probe takes at least one measurement per UE, got count={count}")
+    cfg: GnbConfig | None = client.config if isinstance(client, OaiGnbClient) else None
+    if cfg is not None:
+        address = address or f"{cfg.host}:{cfg.port}"
+        mode = mode or (cfg.mode if cfg.mode == "rtt" else f"stock/{cfg.stock_mode}")
+        log_path = log_path if log_path is not None else cfg.log_path
+    res = ProbeResult(address=address or "gNB", mode=mode or "?", count=count)
+    t0 = clock()
+    if log_path is not None:
+        res.log_stamps, problem = check_log_stamps(log_path)
+        if problem:
+            res.problems.append(problem)
+    try:
+        res.gnb_rntis = await client.discover()
+    except GnbUnknownCommandError as exc:
+        res.problems.append(f"discovery failed, telnet module missing: {exc}")
+    except GnbError as exc:
+        res.problems.append(f"discovery failed: {exc}")
+    if res.gnb_rntis is not None and not res.gnb_rntis:
+        res.problems.append("no UE is connected to the gNB")
+    have = set(res.gnb_rntis or [])
+    targets = list(rntis) if rntis is not None else sorted(have)
+    for r in targets:
+        u = UeProbe(rnti=r, expected=rntis is not None, present=r in have)
+        res.ues.append(u)
+        if res.gnb_rntis is not None and not u.present:
+            u.errors.append("not among the gNB's UEs")
+    fatal: str | None = "discovery failed" if res.gnb_rntis is None else None
+    passive = isinstance(client, OaiGnbClient) and cfg is not None and cfg.mode == "stock" and (
+        cfg.stock_mode == "passive")
+    for u in res.ues:
+        if not u.present:
+            continue
+        if fatal:
+            u.errors.append(f"not measured: {fatal}")
+            continue
+        if passive:
+            assert isinstance(client, OaiGnbClient)
+            try:
+                got = client.passive_samples(u.rnti)[-count:]
+            except GnbError as exc:
+                u.errors.append(str(exc))
+                continue
+            u.samples.extend(got)
+            u.took_s.extend([0.0] * len(got))
+            if not got:
+                u.errors.append(f"no random access seen in {cfg.log_path if cfg else 'the gNB log'} (passive: "
+                                f"initial accesses, re-attaches and reestablishments only)")
+            continue
+        for _ in range(count):
+            t1 = clock()
+            try:
+                s = await client.measure(u.rnti)
+            except GnbUnknownCommandError as exc:
+                u.errors.append(str(exc))
+                res.problems.append(f"wrong telnet module: {exc}")
+                fatal = "the gNB lacks the measurement command"
+                break
+            except GnbNoRandomAccessError as exc:
+                u.errors.append(f"no random access seen: {exc}")
+                continue
+            except (GnbNoMeasurementError, GnbProtocolError) as exc:
+                u.errors.append(str(exc))
+                continue
+            except GnbError as exc:
+                u.errors.append(str(exc))
+                res.problems.append(f"the gNB stopped answering: {exc}")
+                fatal = "the gNB stopped answering"
+                break
+            if not math.isfinite(s.range_m):
+                u.errors.append(f"non-finite range from TA {s.ta}")
+                continue
+            u.samples.append(s)
+            u.took_s.append(clock() - t1)
+    present = [u for u in res.ues if u.present]
+    if present and not any(u.ok for u in present) and mode.startswith("stock") and not fatal:
+        res.problems.append("no random access seen for any UE")
+    res.duration_s = clock() - t0
+    return res
+
+
+async def probe_address(config: GnbConfig, *, rntis: list[int] | None = None, count: int = 1) -> ProbeResult:
+    """probe_gnb on a fresh connection to config's gNB; a gNB that cannot be reached is a problem."""
+    if count < 1:
+        raise GnbError(f"a probe takes at least one measurement per UE, got count={count}")
+    address = f"{config.host}:{config.port}"
+    mode = config.mode if config.mode == "rtt" else f"stock/{config.stock_mode}"
+    try:
+        async with OaiGnbClient(config) as client:
+            return await probe_gnb(client, rntis=rntis, count=count)
+    except GnbError as exc:
+        res = ProbeResult(address=address, mode=mode, count=count)
+        res.problems.append(f"no telnet server: {exc}")
+        return res

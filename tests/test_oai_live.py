@@ -1,0 +1,309 @@
+"""The adapter against a real OAI 2025.w36 gNB and UE (`../shared/oai-rfsim/`, marker `oai`).
+
+One gNB+UE pair is started for the session (about 1.7 cores while it runs) and stopped at the end;
+after every test the gNB process must still be alive and answer `o1 stats`. Skipped with the reason
+when the bundle is absent or its runtime packages are missing (`oai-rfsim --check`).
+
+Order matters on purpose: the tests that trigger the connected UE run before the ones that make it
+re-attach (an idle UE's old context lingers in the gNB for about 21 s).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import shutil
+import signal
+import socket
+import subprocess
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from estimator.ranging import one_way_m_per_ta_step
+from mission.gnb import GnbConfig, OaiGnbClient
+from mission.oai import PROMPT_UE, parse_force_reestab, parse_rfsim_distance
+from mission.oai_ra import RandomAccess, log_time_format
+from uavloc.errors import (
+    GnbBusyError,
+    GnbError,
+    GnbNoMeasurementError,
+    GnbNoRandomAccessError,
+    GnbTimeoutError,
+    GnbUnknownCommandError,
+)
+
+pytestmark = pytest.mark.oai
+
+BUNDLE = Path(__file__).resolve().parents[2] / "shared" / "oai-rfsim"
+LAUNCHER = BUNDLE / "oai-rfsim"
+TA_STEP_M = one_way_m_per_ta_step(1)  # 39.03 m at 30 kHz SCS
+
+
+@dataclass
+class OaiRun:
+    """A running oai-rfsim launcher and what it printed (KEY=VALUE lines)."""
+
+    proc: subprocess.Popen
+    workdir: Path
+    info: dict[str, str] = field(default_factory=dict)
+    exited: list[str] = field(default_factory=list)
+
+    @property
+    def gnb_log(self) -> Path:
+        return Path(self.info["GNB_LOG"])
+
+    @property
+    def gnb_port(self) -> int:
+        return int(self.info["GNB_TELNET_PORT"])
+
+    @property
+    def ue_port(self) -> int:
+        return int(self.info["UE_TELNET_PORT"])
+
+    def gnb_process_alive(self) -> bool:
+        """The nr-softmodem process exists and is not a zombie, and the launcher saw no exit."""
+        if self.exited or self.proc.poll() is not None:
+            return False
+        try:
+            stat = Path(f"/proc/{int(self.info['GNB_PID'])}/stat").read_text()
+        except OSError:
+            return False
+        return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+
+    def commands_received(self) -> list[str]:
+        """The telnet commands the gNB logged (`[TELNETSRV] Command received: ... "<line>"`)."""
+        out = []
+        for ln in self.gnb_log.read_text(errors="replace").splitlines():
+            if "[TELNETSRV] Command received" in ln and '"' in ln:
+                out.append(ln.split('"', 1)[1].rsplit('"', 1)[0])
+        return out
+
+
+def _read_until_ready(run: OaiRun, deadline_s: float) -> None:
+    assert run.proc.stdout is not None
+    lines: list[str] = []
+
+    def reader() -> None:
+        for line in run.proc.stdout:  # type: ignore[union-attr]
+            k, _, v = line.strip().partition("=")
+            run.info[k] = v
+            if k == "EXITED":
+                run.exited.append(v)
+            lines.append(line)
+
+    threading.Thread(target=reader, daemon=True).start()
+    t_end = time.monotonic() + deadline_s
+    while time.monotonic() < t_end and "READY" not in run.info and run.proc.poll() is None:
+        time.sleep(0.1)
+
+
+@pytest.fixture(scope="session")
+def oai(tmp_path_factory):
+    if not LAUNCHER.is_file():
+        pytest.skip(f"the OAI bundle is not at {BUNDLE}")
+    check = subprocess.run([str(LAUNCHER), "--check"], capture_output=True, text=True, timeout=60)
+    if check.returncode != 0:
+        missing = [ln for ln in check.stdout.splitlines() if ln.startswith("MISSING_PACKAGES")]
+        pytest.skip(f"oai-rfsim --check failed ({check.returncode}): {missing or check.stderr.strip()[-300:]}")
+    workdir = tmp_path_factory.mktemp("oai-rfsim")
+    proc = subprocess.Popen([str(LAUNCHER), "--workdir", str(workdir / "run")], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    run = OaiRun(proc=proc, workdir=workdir)
+    try:
+        _read_until_ready(run, deadline_s=240.0)
+        if run.info.get("READY") != "1":
+            pytest.fail(f"oai-rfsim did not attach the UE: {run.info.get('ERROR', 'no READY line')} "
+                        f"(exit status {proc.poll()})")
+        yield run
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)  # the launcher stops both OAI processes
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
+        if proc.stdout is not None:
+            proc.stdout.close()
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def run(coro, timeout_s: float = 90.0):
+    async def guarded():
+        async with asyncio.timeout(timeout_s):
+            return await coro
+
+    return asyncio.run(guarded())
+
+
+def cfg(oai: OaiRun, **kw) -> GnbConfig:
+    base = {"port": oai.gnb_port, "request_timeout_s": 5.0, "connect_timeout_s": 5.0, "retries": 1,
+            "log_path": oai.gnb_log}
+    base.update(kw)
+    return GnbConfig(**base)
+
+
+@pytest.fixture(autouse=True)
+def gnb_survives(oai):
+    """After every test: the gNB process is alive and answers `o1 stats` on a new connection."""
+    yield
+
+    async def ask():
+        async with OaiGnbClient(cfg(oai, discovery="o1")) as c:
+            return await c.discover()
+
+    assert oai.gnb_process_alive(), f"the gNB died: {oai.exited}"
+    run(ask())
+    assert oai.gnb_process_alive(), f"the gNB died: {oai.exited}"
+    # every `ci` command naming an RNTI came right after a discovery (as far as the log shows yet)
+    sent = oai.commands_received()
+    for k, line in enumerate(sent):
+        if line.startswith("ci ") and len(line.split()) > 2:
+            assert k and sent[k - 1] in ("o1 stats", "ci get_single_rnti"), sent[max(0, k - 3):k + 1]
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def test_discovery_and_the_rtt_command_set_is_refused(oai):
+    ue = int(oai.info["UE_RNTI"], 16)
+
+    async def body():
+        async with OaiGnbClient(cfg(oai, discovery="o1")) as c:
+            o1 = await c.discover()
+            with pytest.raises(GnbUnknownCommandError, match=f"rtt pdcch_order {ue:04x}"):
+                await c.measure(ue)
+        async with OaiGnbClient(cfg(oai, discovery="single")) as c:
+            single = await c.discover()
+        return o1, single
+
+    o1, single = run(body())
+    assert o1 == single == [ue]
+    assert log_time_format(oai.gnb_log.read_text().splitlines()) == "wall_clock"
+
+
+def test_active_stock_mode_on_a_ue_without_traffic_times_out_clearly(oai):
+    ue = int(oai.info["UE_RNTI"], 16)
+
+    async def body():
+        async with OaiGnbClient(cfg(oai, mode="stock", msg2_timeout_s=3.0)) as c:
+            with pytest.raises(GnbNoRandomAccessError, match=f"no random access proven to be UE {ue:04x}"):
+                await c.measure(ue)
+            return c.ci_sent
+
+    assert run(body()) == [f"ci force_reestab {ue:04x}"]
+    t_end = time.monotonic() + 20  # the gNB's stdout (its log) is block-buffered
+    while f"ci force_reestab {ue:04x}" not in (sent := oai.commands_received()) and time.monotonic() < t_end:
+        time.sleep(0.2)
+    k = sent.index(f"ci force_reestab {ue:04x}")
+    assert sent[k - 1] == "o1 stats"
+
+
+def test_bad_rntis_never_reach_the_gnb(oai):
+    async def body():
+        async with OaiGnbClient(cfg(oai, mode="stock", msg2_timeout_s=1.0)) as c:
+            for bad in (0x1234, 0xFFFD, 0xFFFF):
+                with pytest.raises(GnbNoMeasurementError, match="not sending"):
+                    await c.measure(bad)
+            for line in ("ci force_reestab 1234", "ci force_ue_release", "ci force_ue_release 1234",
+                         "ci get_current_bwp 1234"):
+                with pytest.raises(GnbError, match="refusing"):
+                    await c.request(line)
+            # without an RNTI OAI picks the single UE itself, or answers its two-line failure
+            return parse_force_reestab(await c.request("ci force_reestab"))
+
+    rep = run(body())
+    assert rep.rnti is None or rep.rnti == int(oai.info["UE_RNTI"], 16)
+    sent = oai.commands_received()
+    assert not [s for s in sent if s.startswith("ci ") and s.split()[1:2] != ["get_single_rnti"]
+                and len(s.split()) > 2 and s.split()[2] in ("1234", "fffd", "ffff")]
+    assert "ci force_ue_release" not in " ".join(sent)
+
+
+def test_timeouts_and_a_silent_second_client(oai):
+    async def body():
+        async with OaiGnbClient(cfg(oai)) as first:
+            await first.discover()
+            async with OaiGnbClient(cfg(oai, request_timeout_s=1.5, retries=0)) as second:
+                with pytest.raises(GnbBusyError, match="one client at a time"):
+                    await second.discover()
+            after = await first.discover()
+        # an answer later than the request timeout: the connection is dropped, the next one works
+        async with OaiGnbClient(cfg(oai, request_timeout_s=1e-4, retries=0)) as c:
+            with contextlib.suppress(GnbTimeoutError, GnbBusyError):
+                await c.request("help")
+            assert not c.connected
+        async with OaiGnbClient(cfg(oai)) as c:
+            return after, await c.discover()
+
+    after, again = run(body())
+    assert after == again and after
+
+
+def test_a_client_leaving_in_the_middle_of_an_answer(oai):
+    for line, keep in ((b"help\n", 0), (b"o1 stats\n", 40), (b"ci get_single_rnti\n", 0)):
+        s = socket.create_connection(("127.0.0.1", oai.gnb_port), timeout=5)
+        s.sendall(line)
+        if keep:
+            s.recv(keep)
+        # reset, not a polite close: the gNB's telnet thread is writing when the socket goes away
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+        s.close()
+        time.sleep(0.3)
+        assert oai.gnb_process_alive()
+
+
+@pytest.mark.parametrize("distance_m", [300.0, 600.0, 450.0])
+def test_set_distance_and_a_fresh_initial_access_give_the_range(oai, distance_m):
+    async def body():
+        passive = cfg(oai, mode="stock", stock_mode="passive")
+        ue_cfg = GnbConfig(port=oai.ue_port, prompt=PROMPT_UE, request_timeout_s=5.0, retries=1)
+        async with OaiGnbClient(passive) as g, OaiGnbClient(ue_cfg) as ue:
+            before = await g.discover()
+            gnb_side = parse_rfsim_distance(
+                await g.request_late(f"rfsimu setdistance rfsimu_channel_ue0 {distance_m:g}", 10.0))
+            await ue.request_late(f"rfsimu setdistance rfsimu_channel_enB0 {distance_m:g}", 10.0)
+            ue_side = parse_rfsim_distance(await ue.request_late("rfsimu getdistance rfsimu_channel_enB0", 10.0))
+            g.feed_log()
+            # the gNB's log is block-buffered: an access logged before the trigger may still be read
+            # after it, so only one stamped after the trigger counts (same host, same clock)
+            t_idle = time.time()
+            await ue.request("ciUE force_RRC_IDLE")
+            new: RandomAccess | None = None
+            while new is None:
+                for ev in g.feed_log():
+                    if isinstance(ev, RandomAccess) and ev.kind == "initial" and ev.t_s and ev.t_s > t_idle:
+                        new = ev
+                        break
+                await asyncio.sleep(0.1)
+            sample = await g.measure(new.ue_rnti)
+            with pytest.raises(GnbNoRandomAccessError):
+                await g.measure(before[0])  # nothing proves the old RNTI is the new UE
+            return gnb_side, ue_side, new, sample, before, await g.discover()
+
+    gnb_side, ue_side, new, sample, before, after = run(body())
+    assert gnb_side.offset_samples == ue_side.offset_samples
+    exact_m = gnb_side.distance_m
+    assert abs(sample.range_m - exact_m) <= TA_STEP_M, (sample.range_m, exact_m, new.line)
+    assert sample.rnti == new.ue_rnti not in before and new.ue_rnti in after
+    assert new.prach_delay == new.timing_offset and sample.t_wall_s == new.t_s
+    print(f"set {distance_m:g} m (exact {exact_m} m): {new.describe()} -> {sample.range_m:.1f} m")
+
+
+def test_probe_command_against_the_real_gnb(oai, capsys):
+    from mission.cli import main
+
+    rc = main(["gnb", "probe", "--gnb", f"127.0.0.1:{oai.gnb_port}", "--mode", "stock", "--stock", "passive",
+               "--gnb-log", str(oai.gnb_log), "--count", "1", "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    found = [u for u in doc["ues"] if u["samples"]]
+    assert doc["log_stamps"] == "wall_clock" and found and doc["gnb_rntis"]
+    assert rc == (0 if doc["ok"] else 1)
+    rc_rtt = main(["gnb", "probe", "--gnb", f"127.0.0.1:{oai.gnb_port}", "--count", "1"])
+    out = capsys.readouterr().out
+    assert rc_rtt == 1 and "wrong telnet module" in out and "rtt pdcch_order" in out
