@@ -98,10 +98,11 @@ def test_loopback_needs_no_token_but_refuses_other_host_names():
 
 
 def test_live_frames_follow_the_log_writer_and_slow_clients_skip_frames(tmp_path):
-    """One client reads and acknowledges every frame and rebuilds the track incrementally; one
-    reads but never acknowledges (a stalled page); one never reads at all. The writer goes on
-    record after record; the stalled client got only its first frame and the final one, which
-    still completes its picture; the reading client's picture equals the server's whole state."""
+    """Two clients read and acknowledge every frame and rebuild the track incrementally (they
+    share the frames built for a cursor); one reads but never acknowledges (a stalled page); one
+    never reads at all. The writer goes on record after record; the stalled client got only its
+    first frame and the final one, which still completes its picture; each reading client's
+    picture equals the server's whole state."""
     async def main():
         feed = LiveFeed()
         async with ViewServer(feed, "127.0.0.1", 0, max_rate_hz=50.0) as server:
@@ -109,7 +110,7 @@ def test_live_frames_follow_the_log_writer_and_slow_clients_skip_frames(tmp_path
             async with aiohttp.ClientSession() as s1, aiohttp.ClientSession() as s2:
                 idle = await s2.ws_connect(f"{base}/ws")  # never read
                 stalled = await s2.ws_connect(f"{base}/ws")  # reads, never acknowledges
-                ws = await s1.ws_connect(f"{base}/ws")
+                sockets = [await s1.ws_connect(f"{base}/ws") for _ in range(2)]
                 stalled_frames: list = []
 
                 async def stalled_reader():
@@ -117,20 +118,21 @@ def test_live_frames_follow_the_log_writer_and_slow_clients_skip_frames(tmp_path
                         stalled_frames.append(json.loads(msg.data))
                         if stalled_frames[-1].get("ended"):
                             return
-                track: list = []
-                frames = []
+                tracks: list[list] = [[], []]
+                frames: list[list] = [[], []]
 
-                async def reader():
-                    async for msg in ws:
+                async def reader(i):
+                    track = tracks[i]
+                    async for msg in sockets[i]:
                         f = json.loads(msg.data)
-                        frames.append(f)
+                        frames[i].append(f)
                         part = f["track"]
                         track[:] = part["items"] if part["from"] == 0 else track + part["items"]
                         if f.get("ended"):
                             return
-                        await ws.send_str("ack")
+                        await sockets[i].send_str("ack")
 
-                rd = asyncio.create_task(reader())
+                rd = asyncio.gather(reader(0), reader(1))
                 st = asyncio.create_task(stalled_reader())
                 with MissionLogWriter(tmp_path / "m.jsonl") as w:
                     w.subscribe(feed.on_record)
@@ -144,11 +146,12 @@ def test_live_frames_follow_the_log_writer_and_slow_clients_skip_frames(tmp_path
                 await asyncio.wait_for(st, 10)
                 await idle.close()
         assert feed.state.records == 3001
-        assert len(track) == 3000
         full, _ = feed.state.frame()
-        assert track == full["track"]["items"]
-        assert frames[-1]["ended"]
-        assert 2 <= len(frames) < 3001  # frames were skipped, not queued per record
+        for track, fr in zip(tracks, frames, strict=True):
+            assert len(track) == 3000
+            assert track == full["track"]["items"]
+            assert fr[-1]["ended"]
+            assert 2 <= len(fr) < 3001  # frames were skipped, not queued per record
         assert len(stalled_frames) == 2 and stalled_frames[-1]["ended"]
         first, last = stalled_frames
         assert first["track"]["items"] + last["track"]["items"] == full["track"]["items"]

@@ -135,7 +135,7 @@ class ViewServer:
 
     def __init__(self, feed: LiveFeed | LogFeed, host: str = "127.0.0.1", port: int = 0, *,
                  token: str | None = None, tiles_url: str | None = None, title: str = "uavloc",
-                 max_clients: int = 16, max_rate_hz: float = 10.0, final_flush_s: float = 1.0):
+                 max_clients: int = 16, max_rate_hz: float = 5.0, final_flush_s: float = 1.0):
         if not (max_rate_hz > 0 and max_clients >= 1 and final_flush_s >= 0):
             raise MissionError(f"view server needs max_rate_hz > 0, max_clients >= 1, final_flush_s >= 0; got "
                                f"{max_rate_hz}, {max_clients}, {final_flush_s}")
@@ -154,6 +154,9 @@ class ViewServer:
         self._sockets: dict[web.WebSocketResponse, asyncio.Event] = {}  # socket -> "frame acknowledged"
         self._closing = asyncio.Event()
         self.frames_sent = 0
+        # frames of the current state by client cursor: clients that saw the same send the same text
+        self._frame_cache: dict[tuple, tuple[str, int, Cursor]] = {}
+        self._frame_cache_state: tuple | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -302,9 +305,20 @@ class ViewServer:
         return ws
 
     def _frame_text(self, cursor: Cursor | None) -> tuple[str, int, Cursor]:
-        """(JSON text, state version, new cursor) of the live frame a client with `cursor` needs."""
-        doc, cursor = self.feed.frame(cursor)
-        return json.dumps(doc, separators=(",", ":")), doc["version"], cursor
+        """(JSON text, state version, new cursor) of the live frame a client with `cursor` needs;
+        built once per state and cursor (clients that keep up share it)."""
+        feed: LiveFeed = self.feed  # type: ignore[assignment]
+        state_key = (feed.state.version, feed.ended)
+        if state_key != self._frame_cache_state:
+            self._frame_cache.clear()
+            self._frame_cache_state = state_key
+        key = None if cursor is None else cursor.key()
+        hit = self._frame_cache.get(key)
+        if hit is None:
+            doc, new = feed.frame(cursor)
+            hit = (json.dumps(doc, separators=(",", ":")), doc["version"], new)
+            self._frame_cache[key] = hit
+        return hit
 
     async def _send_frames(self, ws: web.WebSocketResponse, acked: asyncio.Event) -> None:
         """One client's sender: newest state, what the client lacks, at most max_rate_hz, one

@@ -102,6 +102,10 @@ class Cursor:
     static: int = -1
     series: dict[str, tuple[int, int]] = field(default_factory=dict)
 
+    def key(self) -> tuple:
+        """Hashable: clients with equal keys need the same frame."""
+        return (self.static, tuple(sorted(self.series.items())))
+
 
 def _r(x: float, nd: int = 2) -> float:
     return round(float(x), nd)
