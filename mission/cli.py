@@ -32,6 +32,7 @@ COMMANDS = {
     "calibrate": "mission.commands.calibrate",
     "import": "mission.commands.importer",
     "gnb": "mission.commands.gnb",
+    "campaign": "sitl_scenarios.commands.campaign",
     "view": "mission.commands.view",
 }
 

@@ -168,10 +168,9 @@ def test_mavsdk_flies_takeoff_goto_rtl(kind: str) -> None:
         async with vehicle_link(kind) as link:
             return await fly_goto_rtl(link)
 
-    timings = asyncio.run(run())
-    if kind == "builtin":
-        # at 25x the whole flight (about 2 minutes of vehicle time) takes seconds
-        assert timings["landed_s"] < 30.0, timings
+    # fly_goto_rtl checks each phase; how long the flight takes on the wall clock is measured by
+    # `python benchmarks/vehicle.py`, not asserted here
+    asyncio.run(run())
 
 
 def test_takeoff_refused_when_disarmed() -> None:
