@@ -33,6 +33,7 @@ COMMANDS = {
     "import": "mission.commands.importer",
     "gnb": "mission.commands.gnb",
     "campaign": "sitl_scenarios.commands.campaign",
+    "view": "mission.commands.view",
 }
 
 EXIT_OK = 0

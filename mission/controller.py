@@ -53,7 +53,7 @@ from estimator.ranging import C_MPS
 from estimator.slam import OnlineEstimator, solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.gnb import GnbClient
-from mission.log import MissionLogWriter
+from mission.log import MissionLogWriter, area_fields
 from mission.safety import BreachWatch, GatedVehicle, SafetyGate, SafetyLimits
 from mission.telemetry import Odometer, TelemetryBuffer, VehicleClock, odometer_dead_band_m
 from mission.vehicle import PositionFix, Vehicle
@@ -386,13 +386,16 @@ class MissionController:
     safety gate's limits (home ENU frame); log_path: where the mission log goes;
     truth: simulation only: home Origin -> (K, 3) true user positions in the home ENU frame [m]
     (written as the `truth` record once home is known);
-    header_config: the header's `config` section (scenario, planner, …).
+    header_config: the header's `config` section (scenario, planner, …);
+    buildings: simulation only: home Origin -> [(footprint (Q, 2) [m, ENU from home], height_m)]
+    for the header's `buildings` (the live view and the exports draw them).
     """
 
     def __init__(self, vehicle: Vehicle, gnb: GnbClient, planner: Planner, users: list[MissionUser],
                  noise: NoiseModel, limits: SafetyLimits, config: ControllerConfig, log_path: str | Path,
                  params: SolverParams | None = None, truth: Callable[[Origin], np.ndarray] | None = None,
-                 header_config: dict | None = None, radio: dict | None = None):
+                 header_config: dict | None = None, radio: dict | None = None,
+                 buildings: Callable[[Origin], list] | None = None):
         if not users:
             raise MissionError("a mission needs at least one user")
         self.vehicle = vehicle
@@ -404,6 +407,7 @@ class MissionController:
         self.params = params or SolverParams(delta_m=config.delta_m)
         self.gate = SafetyGate(limits)
         self._truth = truth
+        self._buildings = buildings
         self.truth_enu_m: np.ndarray | None = None
         self.header_config = header_config or {}
         self.radio = radio or {}
@@ -462,6 +466,11 @@ class MissionController:
 
     # -- log ------------------------------------------------------------------------------------
 
+    @property
+    def log_writer(self) -> MissionLogWriter:
+        """The mission log's writer; the live view subscribes to its records."""
+        return self._writer
+
     def _event(self, message: str, **fields: Any) -> None:
         """An `event` record (buffered until the header is written)."""
         t = self.now()
@@ -479,8 +488,11 @@ class MissionController:
         cfg.setdefault("controller", asdict(self.config))
         cfg.setdefault("solver", asdict(self.params))
         self._writer.open()
+        lim = self.gate.limits
+        area = area_fields(self.origin, lim.fence_enu_m, lim.no_fly_enu_m, lim.alt_min_m, lim.alt_max_m,
+                           lim.max_distance_m, self._buildings(self.origin) if self._buildings else None)
         self._writer.write_header(self.origin, users, self.radio, noise=self.noise, config=cfg,
-                                  start_utc=self._start_utc)
+                                  start_utc=self._start_utc, area=area)
         for t, rec in self._pending_events:
             self._writer.write("event", t, **rec)
         self._pending_events.clear()
@@ -501,9 +513,16 @@ class MissionController:
             if not (np.all(np.isfinite(est.users_enu_m[k])) and np.all(np.isfinite(cov))):
                 continue
             users.append({"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]),
-                          "alt_m": float(alt[k]), "cov_en_m2": cov.tolist()})
+                          "alt_m": float(alt[k]), "cov_en_m2": cov.tolist(), "ambiguous": bool(est.ambiguous[k])})
         extra = {"final": True} if final else {}
-        self._writer.write("estimate", self.now(), users=users, keyframes=len(self.keyframes), **extra)
+        # the corrected UAV track (the live view's estimated track): the newest keyframe, all at the end
+        uav = np.asarray(est.uav_enu_m, float).reshape(-1, 3)
+        uav = uav[np.all(np.isfinite(uav), axis=1)]
+        if len(uav):
+            ulat, ulon, ualt = (np.atleast_1d(a) for a in self.origin.enu_to_lla(uav if final else uav[-1:]))
+            extra["uav_lla"] = np.round(np.column_stack([ulat, ulon, ualt]), 8).tolist()
+        self._writer.write("estimate", self.now(), users=users, keyframes=len(self.keyframes),
+                           flown_m=round(self.flown_m, 2), **extra)
 
     # -- state ----------------------------------------------------------------------------------
 
@@ -1124,6 +1143,7 @@ def controller_from_scenario(scenario, vehicle: Vehicle, gnb: GnbClient, log_pat
                              planner: str | None = None, seed: int | None = None, time_scale: float = 1.0,
                              truth: Callable[[Origin], np.ndarray] | None = None,
                              header_config: dict | None = None, params: SolverParams | None = None,
+                             buildings: Callable[[Origin], list] | None = None,
                              **overrides: Any) -> MissionController:
     """A :class:`MissionController` for a scenario (positions are offsets from the vehicle's home).
 
@@ -1144,4 +1164,5 @@ def controller_from_scenario(scenario, vehicle: Vehicle, gnb: GnbClient, log_pat
     if params is None:
         params = SolverParams(delta_m=scenario.mission.delta_m, estimate_bias=scenario.mission.estimate_bias)
     return MissionController(vehicle, gnb, planner_obj, users, noise, SafetyLimits.from_scenario(scenario),
-                             config, log_path, params=params, truth=truth, header_config=cfg, radio=radio)
+                             config, log_path, params=params, truth=truth, header_config=cfg, radio=radio,
+                             buildings=buildings)

@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from mission.view.live import add_view_arguments
+
 log = logging.getLogger(__name__)
 
 HELP = "fly a localization mission with a MAVLink vehicle (PX4) and an OAI gNB"
@@ -26,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="rtt: the RTT command set; stock: ci force_reestab + Msg2 lines of --gnb-log")
     p.add_argument("--gnb-log", type=Path, metavar="FILE", help="gNB log file to follow (stock mode)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    add_view_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -36,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from mission.gnb import GnbConfig, OaiGnbClient, parse_host_port
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
+    from mission.view.live import live_view
     from sitl_scenarios.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
@@ -59,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
                 scenario, vehicle, gnb, log_path, planner=args.planner,
                 header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb})
             held["controller"] = controller
-            return await controller.run()
+            async with live_view(args, controller.log_writer, title="uavloc fly"):
+                return await controller.run()
 
     interrupted = False
     try:
