@@ -42,6 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.special import erfcx
 
+from estimator.gps import gps_chain_terms
 from estimator.init import init_user, init_users, mirror_tests, user_cost
 from estimator.noise import NoiseModel
 from estimator.problem import (
@@ -75,6 +76,19 @@ NLOS_EM_ROUNDS = 10
 NLOS_EM_TOL = 1e-4
 #: step tolerance of the solves while π_k is still being re-estimated [m]
 NLOS_ROUND_STEP_M = 1e-3
+#: per-user range-noise scale (params.estimate_noise_scale): upper bound, fewest degrees of
+#: freedom to estimate it from, relative change that ends the rounds, and most rounds
+NOISE_SCALE_MAX = 10.0
+NOISE_SCALE_MIN_DOF = 8
+NOISE_SCALE_TOL = 0.02
+NOISE_SCALE_ROUNDS = 6
+#: bias selection (params.bias_select): a bias below this many of its standard deviations is
+#: fixed at 0 by a prior of BIAS_OFF_SIGMA_M
+BIAS_SELECT_Z = 4.0
+BIAS_OFF_SIGMA_M = 1e-3
+#: ... and kept only when determined to this standard deviation [m] (a bias the geometry barely
+#: separates from the position trades a large position error for a small fit gain)
+BIAS_SELECT_MAX_SD_M = 1.5
 
 
 #: the 6 distinct entries (i ≤ j) of a symmetric 3×3: row and column indices, their flat index,
@@ -114,6 +128,7 @@ class Linearization:
     gu: np.ndarray  # (K·p,)
     e: np.ndarray  # (K, N) whitened range residuals, 0 where none
     w: np.ndarray  # (K, N) IRLS weights, 0 where none
+    rho_k: np.ndarray | None = None  # (K,) Σ_n ρ(e) of each user's ranges
 
 
 def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray) -> tuple:
@@ -127,8 +142,10 @@ def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndar
     diff = np.ascontiguousarray(x.T)[:, None, :] - users.T[:, :, None]
     d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
     np.maximum(d, 1e-9, out=d)
-    # σ(d); a scalar when it does not depend on d (cheaper loss evaluation)
+    # σ_k(d) = s_k σ(d); a scalar (or (K, 1)) when it does not depend on d (cheaper loss evaluation)
     sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
+    if prob.noise_scale_k is not None:
+        sig = sig * prob.noise_scale_k[:, None]
     # every user ranged from every keyframe (the common case): no masking passes
     full = bool(mask_kn.all())
     r = prob.range_m[:n].T - d
@@ -168,7 +185,10 @@ def _range_terms(
         rho = rho * mask_kn
     # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −1/σ
     if noise.a_m != 0.0 and noise.b_per_m != 0.0:
-        alpha = 1.0 / sig + r * noise.range_sigma_dd(d) / sig**2
+        dsig = noise.range_sigma_dd(d)
+        if prob.noise_scale_k is not None:
+            dsig = dsig * prob.noise_scale_k[:, None]
+        alpha = 1.0 / sig + r * dsig / sig**2
         if not full:
             alpha *= mask_kn
     else:
@@ -199,9 +219,17 @@ def linearize(
     p = prob.p
     mask_kn = prob.mask[:n].T & active[:, None]
     e, w, rho, jac, psi = _range_terms(prob, x, theta, mask_kn)
-    inv_g2 = 1.0 / noise.sigma_gps_m**2
-    dgps = x - prob.gps_enu_m
-    cost = 0.5 * inv_g2 * float(np.vdot(dgps, dgps)) + float(rho.sum())
+    linked = prob.gps_linked
+    if linked:
+        # Gauss–Markov GPS factors (estimator.gps): diagonal, off-diagonal and gradient terms
+        gt = gps_chain_terms(x, prob.gps_enu_m[:n], prob.gps_phi(), noise.sigma_gps_m, prob.gps_first)
+        inv_g2 = 0.0
+        dgps = np.zeros_like(x)
+        cost = gt.cost + float(rho.sum())
+    else:
+        inv_g2 = 1.0 / noise.sigma_gps_m**2
+        dgps = x - prob.gps_enu_m
+        cost = 0.5 * inv_g2 * float(np.vdot(dgps, dgps)) + float(rho.sum())
     if params.estimate_bias:
         wj = jac * w
         # O = w J_xᵀ J_x per range, (3, 3, K, n); H_nn = Σ_k O (+ I/σ_gps²)
@@ -237,13 +265,21 @@ def linearize(
         jpsi = jac[:3] * psi
         gx = -dgps * inv_g2 - jpsi.sum(axis=1).T
         gu = jpsi[:d_u].sum(axis=2).T
-    hxx.reshape(n, 9)[:, ::4] += inv_g2
+    off = None
+    if linked:
+        hxx.reshape(n, 9)[:, ::4] += gt.diag[:, None]
+        gx -= gt.grad
+        off = gt.off.copy()
+    else:
+        hxx.reshape(n, 9)[:, ::4] += inv_g2
     if params.estimate_bias:
-        inv_b2 = 1.0 / params.bias_prior_sigma_m**2
+        # bias prior e_k = b_k / σ_b,k (σ_b,k tiny where the bias was selected off)
+        sb = params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
+        inv_b2 = np.broadcast_to(1.0 / np.square(sb), (k_all,))
         bias = theta[:, -1]
         huu_blocks[:, -1, -1] += inv_b2
         gu[:, -1] -= bias * inv_b2
-        cost += 0.5 * inv_b2 * float(np.sum(bias[active] ** 2))
+        cost += 0.5 * float(np.sum((inv_b2 * bias * bias)[active]))
     if not active.all():
         inactive = ~active
         huu_blocks[inactive] = np.eye(p)
@@ -253,7 +289,6 @@ def linearize(
     huu[ks, :, ks, :] = huu_blocks  # block diagonal
     huu = huu.reshape(k_all * p, k_all * p)
     gu = gu.ravel()
-    off = None
     if prob.use_motion:
         inv_m2 = 1.0 / params.motion_sigma_m**2
         om = prob.odom_mask[1:n]
@@ -263,7 +298,7 @@ def linearize(
         add = inv_m2 * om
         hxx.reshape(n, 9)[1:, ::4] += add[:, None]
         hxx.reshape(n, 9)[:-1, ::4] += add[:, None]
-        off = -add
+        off = -add if off is None else off - add
         gx[1:] -= inv_m2 * em
         gx[:-1] += inv_m2 * em
     if prior is not None:
@@ -282,7 +317,7 @@ def linearize(
         else:
             huu += prior.info
             gu -= grad
-    return Linearization(cost, hxx, off, hxu, huu, gx, gu, e, w)
+    return Linearization(cost, hxx, off, hxu, huu, gx, gu, e, w, rho.sum(axis=1))
 
 
 @dataclass
@@ -424,7 +459,110 @@ def nlos_prob_update(prob: Problem, gamma: np.ndarray, active: np.ndarray) -> np
     return pi
 
 
+def noise_scale_update(prob: Problem, lin: Linearization, active: np.ndarray) -> np.ndarray:
+    """(K,) per-user range-noise scale s_k from the residuals of a solve (σ_k(d) = s_k σ(d)).
+
+    With e the whitened residuals at the current scale s_k and w their weights (the LoS
+    posterior of the "nlos" loss, the IRLS weight otherwise; Linearization.w), the maximum-
+    likelihood variance factor of user k's ranges, corrected for its p fitted parameters, is
+
+        s_k'² = s_k² · Σ_n w e² / (Σ_n w − p)
+
+    kept within [1, NOISE_SCALE_MAX]: the assumed σ(d) is a floor (a UE is not taken to be
+    better than configured), and a user with fewer than NOISE_SCALE_MIN_DOF degrees of freedom
+    keeps its scale. Inactive users keep theirs.
+    """
+    old = np.ones(prob.n_users) if prob.noise_scale_k is None else prob.noise_scale_k
+    w, e = lin.w, lin.e
+    n_eff = w.sum(axis=1)
+    dof = n_eff - prob.p
+    chi2 = (w * e * e).sum(axis=1)
+    ok = active & (dof >= NOISE_SCALE_MIN_DOF)
+    new = old.copy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # s'² = s² χ² / dof
+        fit = old * np.sqrt(chi2 / np.maximum(dof, 1e-9))
+    new[ok] = np.clip(fit[ok], 1.0, NOISE_SCALE_MAX)
+    return new
+
+
 def solve_robust(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
+    step_tol_m: float | None = None,
+) -> _Result:
+    """:func:`solve_loss` and, with params.estimate_noise_scale, the per-user range-noise scale
+    re-estimated from the solution's residuals (noise_scale_update, stored in
+    prob.noise_scale_k) and the problem re-solved, until no scale moves by NOISE_SCALE_TOL
+    (relative); at most NOISE_SCALE_ROUNDS rounds. A user whose ranges are noisier than the
+    assumed σ(d) then gets a covariance that says so.
+
+    With params.estimate_bias and params.bias_select (and prob.bias_sigma_k not yet chosen), a
+    user whose bias is insignificant, |b̂_k| < BIAS_SELECT_Z · sd(b̂_k), has it fixed at 0 (prior
+    σ BIAS_OFF_SIGMA_M, in prob.bias_sigma_k) and the problem is solved again: a UE without a
+    clock offset pays nothing for the unknown, one with a sawtooth keeps it."""
+    params = prob.params
+    if not (params.estimate_bias and params.bias_select and prob.bias_sigma_k is None):
+        return _solve_scaled(prob, x, theta, active, prior, step_tol_m)
+    # bias selection: first every bias fixed at 0, then all free from that solution; a user keeps
+    # its bias when it is significant (z_k = |b̂_k| / sd ≥ BIAS_SELECT_Z) and its ranges fit clearly
+    # better with it (likelihood ratio 2 (L_off,k − L_on,k) > BIAS_SELECT_Z², per user at the
+    # same noise scale)
+    k_all = prob.n_users
+    prob.bias_sigma_k = np.full(k_all, BIAS_OFF_SIGMA_M)
+    theta = theta.copy()
+    theta[:, -1] = 0.0
+    res_off = _solve_scaled(prob, x, theta, active, prior, step_tol_m)
+    scale_off = None if prob.noise_scale_k is None else prob.noise_scale_k.copy()
+    prob.bias_sigma_k = np.full(k_all, params.bias_prior_sigma_m)
+    res_on = _solve_scaled(prob, res_off.x, res_off.theta, active, prior, step_tol_m)
+    if res_on.s is None or res_off.lin.rho_k is None or res_on.lin.rho_k is None:
+        keep = np.zeros(k_all, dtype=bool)
+    else:
+        try:
+            cov = np.linalg.inv(res_on.s)
+        except np.linalg.LinAlgError:
+            cov = None
+        if cov is None:
+            keep = np.zeros(k_all, dtype=bool)
+        else:
+            ib = np.arange(k_all) * prob.p + prob.user_dim
+            sd = np.sqrt(np.maximum(np.diag(cov)[ib], 1e-300))
+            gain = 2.0 * (res_off.lin.rho_k - res_on.lin.rho_k)
+            if scale_off is not None and prob.noise_scale_k is not None:
+                gain = gain * (scale_off / prob.noise_scale_k) ** 2
+            keep = (active & (np.abs(res_on.theta[:, -1]) >= BIAS_SELECT_Z * sd) & (gain > BIAS_SELECT_Z**2)
+                    & (sd <= BIAS_SELECT_MAX_SD_M))
+    if keep.all():
+        return res_on
+    prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
+    if not keep.any():
+        prob.noise_scale_k = scale_off
+        return res_off
+    theta = res_on.theta.copy()
+    theta[~keep, -1] = 0.0
+    return _solve_scaled(prob, res_on.x, theta, active, prior, step_tol_m)
+
+
+def _solve_scaled(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None,
+    step_tol_m: float | None,
+) -> _Result:
+    """solve_loss, then rounds of noise_scale_update and re-solves (see solve_robust)."""
+    res = solve_loss(prob, x, theta, active, prior, step_tol_m)
+    if not prob.params.estimate_noise_scale:
+        return res
+    if prob.noise_scale_k is None:
+        prob.noise_scale_k = np.ones(prob.n_users)
+    for _ in range(NOISE_SCALE_ROUNDS):
+        new = noise_scale_update(prob, res.lin, active)
+        if float(np.max(np.abs(new / prob.noise_scale_k - 1.0))) <= NOISE_SCALE_TOL:
+            break
+        prob.noise_scale_k = new
+        res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m)
+    return res
+
+
+def solve_loss(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     step_tol_m: float | None = None,
 ) -> _Result:
@@ -561,6 +699,11 @@ def _estimate(
     extra = {"active": active.copy(), "cov_theta_joint": cov_joint, "lin_cost": res.lin.cost}
     if prob.nlos_prob_k is not None:
         extra["nlos_prob_k"] = prob.nlos_prob_k.copy()  # (K,) π_k the "nlos" loss ended with
+    extra["noise_scale"] = (np.ones(k_all) if prob.noise_scale_k is None else prob.noise_scale_k.copy())
+    if prob.params.estimate_bias:
+        # (K,) True where the range bias is estimated (False: selected off, fixed at 0)
+        sb = prob.bias_sigma_k
+        extra["bias_on"] = np.ones(k_all, dtype=bool) if sb is None else sb > BIAS_OFF_SIGMA_M
     return Estimate(
         users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias, uav_enu_m=res.x.copy(),
         ambiguous=ambiguous, mirror_enu_m=mirror, n_ranges=n_ranges.copy(), cost=res.lin.cost,
@@ -691,6 +834,12 @@ class OnlineEstimator:
         self._all_active = False  # cached self._active.all()
         self._nlos_pi_list = self._nlos_pi.tolist()
         self._users = np.zeros((self._k, 3))  # (K, 3) users_from_theta(θ), kept in step with θ
+        self._t = np.zeros(cap)  # keyframe times [s] (Gauss–Markov GPS links)
+        self._gps_linked = noise.gps_tau_used_s > 0.0
+        self._gps_first = True  # window keyframe 0 carries its own GPS prior (nothing marginalized yet)
+        self._scale = np.ones(self._k)  # per-user range noise scale s_k, re-estimated by each full solve
+        self._scale_list = self._scale.tolist()
+        self._bias_sigma: np.ndarray | None = None  # bias selection of the last full solve
 
     @property
     def estimate(self) -> Estimate | None:
@@ -706,7 +855,9 @@ class OnlineEstimator:
         rng = self._rng[:n]
         return Problem(
             self._gps[:n], rng, ~np.isnan(rng), self._odom[:n], self._odom_mask[:n], self._up,
-            self._noise, self._params, self._nlos_pi,
+            self._noise, self._params, self._nlos_pi, t_s=self._t[:n], gps_first=self._gps_first,
+            noise_scale_k=self._scale if self._params.estimate_noise_scale else None,
+            bias_sigma_k=self._bias_sigma,
         )
 
     def add_keyframe(self, kf: Keyframe) -> Estimate:
@@ -722,6 +873,7 @@ class OnlineEstimator:
         self._rng[n] = np.nan
         self._rng[n, idx] = rng
         self._odom_mask[n] = odom is not None and n + self._seen > 0 and self._params.motion_sigma_m is not None
+        self._t[n] = float(kf.t_s)
         self._odom[n] = odom if odom is not None else 0.0
         self._win_count[idx] += 1
         self._n_ranges[idx] += 1
@@ -730,6 +882,7 @@ class OnlineEstimator:
         every = int(self._params.online_resolve_every)
         if (
             every > 1 and self._s is not None and not self._odom_mask[n] and self._n < self._cap
+            and not self._gps_linked
             and self._seen % every != 0
             and (self._all_active or not (~self._active[idx] & (self._win_count[idx] >= self._min_start)).any())
         ):
@@ -762,6 +915,9 @@ class OnlineEstimator:
         for k, th in _grid_init(prob, self._x[: self._n], start).items():
             self._theta[k] = th
             self._active[k] = newly[k] = True
+        check_every = max(int(self._params.online_check_every), 1)
+        if np.any(newly) or self._seen // check_every > self._last_check // check_every:
+            prob.bias_sigma_k = None  # choose again which biases to estimate
         res = solve_robust(
             prob, self._x[: self._n].copy(), self._theta, self._active, self._prior,
             step_tol_m=self._params.online_step_tol_m,
@@ -770,6 +926,10 @@ class OnlineEstimator:
         self._theta = res.theta
         if prob.nlos_prob_k is not None:
             self._nlos_pi = prob.nlos_prob_k
+        if prob.noise_scale_k is not None:
+            self._scale = prob.noise_scale_k.copy()
+            self._scale_list = self._scale.tolist()
+        self._bias_sigma = prob.bias_sigma_k
         check_every = max(int(self._params.online_check_every), 1)
         if np.any(newly) or self._seen // check_every > self._last_check // check_every:
             res = self._check_mirrors(prob, res)
@@ -830,10 +990,11 @@ class OnlineEstimator:
             dx, dy, dz = gx - ux, gy - uy, gz - uz
             d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
             # σ(d) = s0 + a·exp(b·d)
-            sig = s0 + a_m * math.exp(b_m * d) if a_m != 0.0 else s0
+            sc = self._scale_list[ka_list[j]]
+            sig = (s0 + a_m * math.exp(b_m * d) if a_m != 0.0 else s0) * sc
             res = r_j - d - (biases[j] if with_bias else 0.0)
             # α = 1/σ + r σ'/σ²
-            alpha = 1.0 / sig + (res * a_m * b_m * math.exp(b_m * d) / (sig * sig) if sig_dd else 0.0)
+            alpha = 1.0 / sig + (res * sc * a_m * b_m * math.exp(b_m * d) / (sig * sig) if sig_dd else 0.0)
             f = alpha / d
             us.append((dx * f, dy * f, dz * f))  # α û = ∂e/∂u = −∂e/∂x
             sigs.append(sig)
@@ -941,7 +1102,8 @@ class OnlineEstimator:
             uav_enu_m=self._x[: self._n].copy(), ambiguous=prev.ambiguous.copy(),
             mirror_enu_m=prev.mirror_enu_m.copy(), n_ranges=self._n_ranges.copy(), cost=float("nan"),
             iterations=0, converged=True,
-            extra={"active": self._active.copy(), "cov_theta_joint": cov_joint, "filter_step": True},
+            extra={"active": self._active.copy(), "cov_theta_joint": cov_joint, "filter_step": True,
+                   "noise_scale": self._scale.copy()},
         )
 
     def _place_keyframe(self, x0: np.ndarray, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> np.ndarray:
@@ -962,7 +1124,7 @@ class OnlineEstimator:
         for _ in range(1):
             diff = x - users
             d = np.maximum(np.sqrt((diff * diff).sum(axis=1)), 1e-9)
-            sig = self._noise.range_sigma_m(d)
+            sig = self._noise.range_sigma_m(d) * self._scale[k]
             e = (r_meas - d - bias) / sig
             _, psi, w = loss_psi_weight(
                 e, self._params.loss, self._params.loss_scale, nlos_args(self._params, sig), need_rho=False)
@@ -1060,7 +1222,9 @@ class OnlineEstimator:
         pu = k_all * p
         x = self._x[: self._n]
         theta = self._theta
-        link = bool(prob.use_motion and self._odom_mask[1])
+        motion_link = bool(prob.use_motion and self._odom_mask[1])
+        gps_link = bool(prob.gps_linked)
+        link = motion_link or gps_link
         # variables v = [x_0 (3), x_1 (3), Θ (K·p)]; H and ∇ of every factor touching x_0
         dim = 6 + pu
         h = np.zeros((dim, dim))
@@ -1074,10 +1238,19 @@ class OnlineEstimator:
         jfull[kk, 6 + kk * p + np.arange(p)[None, :]] = jac[3:, :, 0].T  # (K, p)
         h += (jfull * w[:, :1]).T @ jfull
         grad += jfull.T @ psi[:, 0]
-        inv_g2 = 1.0 / noise.sigma_gps_m**2
-        h[:3, :3] += np.eye(3) * inv_g2
-        grad[:3] += (x[0] - prob.gps_enu_m[0]) * inv_g2
-        if link:
+        if gps_link:
+            # the GPS factors touching x_0: its own (if still in the window) and the link to x_1
+            gt = gps_chain_terms(x[:2], prob.gps_enu_m[:2], prob.gps_phi()[:2], noise.sigma_gps_m, prob.gps_first)
+            h[:3, :3] += np.eye(3) * gt.diag[0]
+            h[3:6, 3:6] += np.eye(3) * gt.diag[1]
+            h[:3, 3:6] += np.eye(3) * gt.off[0]
+            h[3:6, :3] += np.eye(3) * gt.off[0]
+            grad[:6] += gt.grad.ravel()
+        else:
+            inv_g2 = 1.0 / noise.sigma_gps_m**2
+            h[:3, :3] += np.eye(3) * inv_g2
+            grad[:3] += (x[0] - prob.gps_enu_m[0]) * inv_g2
+        if motion_link:
             inv_m2 = 1.0 / params.motion_sigma_m**2
             em = x[1] - x[0] - prob.odom_enu_m[1]
             h[:3, :3] += np.eye(3) * inv_m2
@@ -1107,7 +1280,9 @@ class OnlineEstimator:
         # drop keyframe 0
         n = self._n
         self._win_count -= prob.mask[0]
-        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x):
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x, self._t):
             arr[: n - 1] = arr[1:n]
         self._odom_mask[0] = False
+        if gps_link:
+            self._gps_first = False  # its link to the dropped keyframe now lives in the prior
         self._n = n - 1
