@@ -1166,8 +1166,12 @@ class OnlineEstimator:
                 trial = levenberg_marquardt(prob, res.x, theta, self._active, prior)
                 res, self._prior, flipped = trial, prior, True
         mirrors = _mirror_all(prob, res.theta, self._active)
+        # a prior that also holds the first keyframe (Gauss–Markov GPS or motion links) ties the
+        # users to the whole marginalized track: reflecting one user's part of it is no longer a
+        # consistent mirror hypothesis, so the window's mirror test only flags, it does not flip
+        can_flip = self._prior is None or not self._prior.has_x
         for k, mt in enumerate(mirrors):
-            if mt is None or not mt.mirror_is_better(chi2):
+            if mt is None or not mt.mirror_is_better(chi2) or not can_flip:
                 continue
             theta = res.theta.copy()
             theta[k] = mt.mirror_theta
