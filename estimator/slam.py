@@ -77,10 +77,10 @@ NLOS_EM_TOL = 1e-4
 #: step tolerance of the solves while π_k is still being re-estimated [m]
 NLOS_ROUND_STEP_M = 1e-3
 #: per-user range-noise scale (params.estimate_noise_scale): upper bound, fewest degrees of
-#: freedom to estimate it from, relative change that ends the rounds, and most rounds
+#: freedom to estimate it from, relative change below which it is not re-solved, and most rounds
 NOISE_SCALE_MAX = 10.0
 NOISE_SCALE_MIN_DOF = 8
-NOISE_SCALE_TOL = 0.02
+NOISE_SCALE_RESOLVE = 0.1
 NOISE_SCALE_ROUNDS = 6
 #: bias selection (params.bias_select): a bias below this many of its standard deviations is
 #: fixed at 0 by a prior of BIAS_OFF_SIGMA_M
@@ -491,63 +491,75 @@ def solve_robust(
     step_tol_m: float | None = None,
 ) -> _Result:
     """:func:`solve_loss` and, with params.estimate_noise_scale, the per-user range-noise scale
-    re-estimated from the solution's residuals (noise_scale_update, stored in
-    prob.noise_scale_k) and the problem re-solved, until no scale moves by NOISE_SCALE_TOL
-    (relative); at most NOISE_SCALE_ROUNDS rounds. A user whose ranges are noisier than the
-    assumed σ(d) then gets a covariance that says so.
+    re-estimated from the solution's residuals (noise_scale_update, stored in prob.noise_scale_k):
+    the problem is re-solved while a scale moves by more than NOISE_SCALE_RESOLVE (relative), and
+    a smaller last change only re-linearizes at the solution so that the covariance uses it; at
+    most NOISE_SCALE_ROUNDS rounds. A user whose ranges are noisier than the assumed σ(d) then
+    gets a covariance that says so.
 
-    With params.estimate_bias and params.bias_select (and prob.bias_sigma_k not yet chosen), a
-    user whose bias is insignificant, |b̂_k| < BIAS_SELECT_Z · sd(b̂_k), has it fixed at 0 (prior
-    σ BIAS_OFF_SIGMA_M, in prob.bias_sigma_k) and the problem is solved again: a UE without a
-    clock offset pays nothing for the unknown, one with a sawtooth keeps it."""
+    With params.estimate_bias and params.bias_select (and prob.bias_sigma_k not yet chosen) the
+    biases are selected: the problem is solved with every bias fixed at 0 (prior σ
+    BIAS_OFF_SIGMA_M, in prob.bias_sigma_k), then one Gauss–Newton step of the model with free
+    biases from that solution gives each bias b̂_k and its standard deviation sd_k (S⁻¹ there:
+    the score test of b_k = 0). A user keeps its bias when |b̂_k| ≥ BIAS_SELECT_Z · sd_k and
+    sd_k ≤ BIAS_SELECT_MAX_SD_M, and the problem is solved again with those biases free. A UE
+    without a clock offset pays nothing for the unknown; one with a sawtooth keeps it. (A full
+    solve of the free model instead of the step wanders, where the geometry barely separates a
+    bias from the position, into basins 5–13 m away that fit a little better.)"""
     params = prob.params
     if not (params.estimate_bias and params.bias_select and prob.bias_sigma_k is None):
         return _solve_scaled(prob, x, theta, active, prior, step_tol_m)
-    # bias selection: first every bias fixed at 0, then all free from that solution; a user keeps
-    # its bias when it is significant (z_k = |b̂_k| / sd ≥ BIAS_SELECT_Z) and its ranges fit clearly
-    # better with it (likelihood ratio 2 (L_off,k − L_on,k) > BIAS_SELECT_Z², per user at the
-    # same noise scale)
-    k_all = prob.n_users
-    prob.bias_sigma_k = np.full(k_all, BIAS_OFF_SIGMA_M)
-    theta = theta.copy()
-    theta[:, -1] = 0.0
-    res_off = _solve_scaled(prob, x, theta, active, prior, step_tol_m)
-    scale_off = None if prob.noise_scale_k is None else prob.noise_scale_k.copy()
+    k_all, d_u = prob.n_users, prob.user_dim
+    # every bias off: the model without biases (its faster p = d path), then the biases appended
+    # at 0 with the prior of BIAS_OFF_SIGMA_M
+    plain = replace(prob, params=replace(params, estimate_bias=False))
+    res = _solve_scaled(plain, x, theta[:, :d_u].copy(), active, _prior_without_bias(prior, k_all, prob.p), step_tol_m)
+    prob.nlos_prob_k, prob.noise_scale_k = plain.nlos_prob_k, plain.noise_scale_k
+    theta = np.zeros((k_all, prob.p))
+    theta[:, :d_u] = res.theta
     prob.bias_sigma_k = np.full(k_all, params.bias_prior_sigma_m)
-    res_on = _solve_scaled(prob, res_off.x, res_off.theta, active, prior, step_tol_m)
-    if res_on.s is None or res_off.lin.rho_k is None or res_on.lin.rho_k is None:
-        keep = np.zeros(k_all, dtype=bool)
-    else:
-        try:
-            cov = np.linalg.inv(res_on.s)
-        except np.linalg.LinAlgError:
-            cov = None
-        if cov is None:
-            keep = np.zeros(k_all, dtype=bool)
-        else:
-            ib = np.arange(k_all) * prob.p + prob.user_dim
-            sd = np.sqrt(np.maximum(np.diag(cov)[ib], 1e-300))
-            gain = 2.0 * (res_off.lin.rho_k - res_on.lin.rho_k)
-            if scale_off is not None and prob.noise_scale_k is not None:
-                gain = gain * (scale_off / prob.noise_scale_k) ** 2
-            keep = (active & (np.abs(res_on.theta[:, -1]) >= BIAS_SELECT_Z * sd) & (gain > BIAS_SELECT_Z**2)
-                    & (sd <= BIAS_SELECT_MAX_SD_M))
-    if keep.all():
-        return res_on
+    lin = linearize(prob, res.x, theta, active, prior)
+    try:
+        _, du, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
+        cov = np.linalg.inv(s)
+    except (np.linalg.LinAlgError, EstimatorError):
+        s, cov = None, None
+    ib = np.arange(k_all) * prob.p + d_u
+    keep = np.zeros(k_all, dtype=bool)
+    if cov is not None:
+        b_step = du[ib]
+        sd = np.sqrt(np.maximum(np.diag(cov)[ib], 0.0))
+        keep = active & (np.abs(b_step) >= BIAS_SELECT_Z * sd) & (sd <= BIAS_SELECT_MAX_SD_M)
     prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
     if not keep.any():
-        prob.noise_scale_k = scale_off
-        return res_off
-    theta = res_on.theta.copy()
-    theta[~keep, -1] = 0.0
-    return _solve_scaled(prob, res_on.x, theta, active, prior, step_tol_m)
+        # the bias prior enters H_uu only, so the Schur complement of the model with every bias
+        # fixed is that of the free one plus the difference of the priors (exact)
+        if s is not None:
+            s = s.copy()
+            s[ib, ib] += 1.0 / BIAS_OFF_SIGMA_M**2 - 1.0 / params.bias_prior_sigma_m**2
+        return _Result(res.x, theta, lin, s, res.iterations, res.converged)
+    theta[keep, -1] = b_step[keep]
+    return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m)
+
+
+def _prior_without_bias(prior: Prior | None, k_all: int, p: int) -> Prior | None:
+    """The marginalization prior restricted to the positions (bias rows and columns dropped: the
+    biases are held at 0 by a tight prior, so conditioning on b = 0 is what the model does)."""
+    if prior is None:
+        return None
+    off = 3 if prior.has_x else 0
+    keep = np.ones(prior.z0.size, dtype=bool)
+    keep[off + np.arange(k_all) * p + (p - 1)] = False
+    # L(z) with b = 0: the linear term gains Λ_rb (0 − b0)
+    grad = prior.grad[keep] - prior.info[np.ix_(keep, ~keep)] @ prior.z0[~keep]
+    return Prior(prior.has_x, prior.z0[keep], prior.info[np.ix_(keep, keep)], grad)
 
 
 def _solve_scaled(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None,
     step_tol_m: float | None,
 ) -> _Result:
-    """solve_loss, then rounds of noise_scale_update and re-solves (see solve_robust)."""
+    """solve_loss, then rounds of noise_scale_update (see solve_robust)."""
     res = solve_loss(prob, x, theta, active, prior, step_tol_m)
     if not prob.params.estimate_noise_scale:
         return res
@@ -555,9 +567,20 @@ def _solve_scaled(
         prob.noise_scale_k = np.ones(prob.n_users)
     for _ in range(NOISE_SCALE_ROUNDS):
         new = noise_scale_update(prob, res.lin, active)
-        if float(np.max(np.abs(new / prob.noise_scale_k - 1.0))) <= NOISE_SCALE_TOL:
+        change = float(np.max(np.abs(new / prob.noise_scale_k - 1.0)))
+        if change == 0.0:
             break
         prob.noise_scale_k = new
+        if change <= NOISE_SCALE_RESOLVE:
+            # a small change moves the solution by a fraction of its σ: re-linearize at it so that
+            # the information S (the covariance) carries the new scale
+            lin = linearize(prob, res.x, res.theta, active, prior)
+            try:
+                _, _, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
+            except (np.linalg.LinAlgError, EstimatorError):
+                s = None
+            res = _Result(res.x, res.theta, lin, s, res.iterations, res.converged)
+            break
         res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m)
     return res
 
