@@ -118,3 +118,43 @@ class GpsFactor:
         """(∂e/∂x (3, 3), ∂e/∂x_prev (3, 3)) = (I, −φ I) / (σ √(1 − φ²))."""
         c = self._scale()
         return np.eye(3) * c, -self.phi * c * np.eye(3)
+
+
+#: fewest consecutive fix pairs to estimate τ from
+TAU_MIN_PAIRS = 20
+#: median of χ²(1): median(Δβ²) = 0.4549 · var(Δβ) for Gaussian increments
+_CHI2_1_MEDIAN = 0.454936423119572
+
+
+def estimate_gps_tau_s(
+    t_s: np.ndarray, pos_enu_m: np.ndarray, vel_enu_mps: np.ndarray, sigma_gps_m: float,
+) -> float | None:
+    """Correlation time τ [s] of the GPS error from fixes and the autopilot's velocity.
+
+    t_s: (T,) fix times [s]; pos_enu_m: (T, 3) fixes [m, ENU]; vel_enu_mps: (T, 3) velocity
+    [m/s, ENU] (NaN rows: unknown); sigma_gps_m: the stationary σ of the error per axis.
+    The velocity removes the motion from consecutive fixes and leaves the error's increment:
+
+        Δβ_i = (x̂_i − x̂_(i−1)) − ½ (v_i + v_(i−1)) Δt_i,   E[Δβ_i²] = 2σ² (1 − e^(−Δt_i/τ)) per axis
+
+    so with m = median(Δβ²) / (0.455 · 2σ²) over the horizontal axes (the median resists GPS
+    glitches) and Δt the median step, τ = −Δt / ln(1 − m). Returns 0.0 (white) when m says
+    τ < Δt, None with fewer than TAU_MIN_PAIRS usable pairs.
+    """
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(pos_enu_m, dtype=float)
+    v = np.asarray(vel_enu_mps, dtype=float)
+    dt = np.diff(t)
+    ok = np.isfinite(v).all(axis=1)
+    use = ok[1:] & ok[:-1] & (dt > 0) & (dt < 5.0)
+    if int(use.sum()) < TAU_MIN_PAIRS:
+        return None
+    # Δβ = Δx̂ − ½ (v_i + v_(i−1)) Δt, horizontal
+    db = (x[1:, :2] - x[:-1, :2]) - 0.5 * (v[1:, :2] + v[:-1, :2]) * dt[:, None]
+    db = db[use]
+    m = float(np.median(db * db)) / (_CHI2_1_MEDIAN * 2.0 * sigma_gps_m**2)
+    step = float(np.median(dt[use]))
+    if m >= 1.0 - math.exp(-1.0):
+        return 0.0
+    # τ = −Δt / ln(1 − m)
+    return -step / math.log1p(-max(m, 1e-12))

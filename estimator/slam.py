@@ -42,6 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.special import erfcx
 
+from estimator.clock import fit_sawtooth
 from estimator.gps import gps_chain_terms
 from estimator.init import init_user, init_users, mirror_tests, user_cost
 from estimator.noise import NoiseModel
@@ -89,6 +90,11 @@ BIAS_OFF_SIGMA_M = 1e-3
 #: ... and kept only when determined to this standard deviation [m] (a bias the geometry barely
 #: separates from the position trades a large position error for a small fit gain)
 BIAS_SELECT_MAX_SD_M = 1.5
+#: clock tracking (params.track_clock): a user is tested for a sawtooth when its residuals' RMS
+#: exceeds CLOCK_TRIGGER_SCALE σ(d) and it has CLOCK_MIN_RANGES ranges; rounds of fit + re-solve
+CLOCK_TRIGGER_SCALE = 1.08
+CLOCK_MIN_RANGES = 40
+CLOCK_ROUNDS = 3
 
 
 #: the 6 distinct entries (i ≤ j) of a symmetric 3×3: row and column indices, their flat index,
@@ -786,8 +792,54 @@ def solve_batch(
         theta[k] = th
     theta[~active] = 0.0
     res = solve_robust(prob, x, theta, active)
+    clocks: list = [None] * k_all
+    if params.track_clock and prob.t_s is not None:
+        res, clocks = _track_clocks(prob, res, active)
     res, mirrors = _resolve_mirrors(prob, res, active)
-    return _estimate(prob, res, active, mirrors, n_ranges)
+    est = _estimate(prob, res, active, mirrors, n_ranges)
+    est.extra["clock"] = clocks
+    return est
+
+
+def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Result, list]:
+    """Fit a clock sawtooth (estimator.clock) to each user whose range residuals are noisier than
+    its σ(d) by CLOCK_TRIGGER_SCALE, subtract the accepted fits from its ranges and solve again;
+    CLOCK_ROUNDS rounds, each refitting the sawtooth on the residuals plus the current fit.
+    prob.range_m is replaced by the corrected ranges. Returns (result, [SawtoothFit or None] per user)."""
+    n = prob.n_keyframes
+    raw = prob.range_m.copy()
+    corr = np.zeros_like(raw)
+    fits: list = [None] * prob.n_users
+    t = prob.t_s[:n]
+    for _ in range(CLOCK_ROUNDS):
+        users = users_from_theta(res.theta, prob.user_up_m, prob.user_dim)
+        d = np.linalg.norm(res.x[:, None, :] - users[None, :, :], axis=2)
+        sig = prob.noise.range_sigma_m(d)
+        changed = False
+        # only ranges the loss keeps (weight ≥ ½): an NLoS excess is no sawtooth
+        kept = res.lin.w.T >= 0.5
+        for k in np.flatnonzero(active):
+            rows = prob.mask[:n, k] & kept[:, k]
+            if int(rows.sum()) < CLOCK_MIN_RANGES:
+                continue
+            # the residual with the current sawtooth put back: r̂ − d (bias and offset included);
+            # the trigger on the residual without it
+            r = raw[rows, k] - d[rows, k]
+            dev = (r - corr[rows, k]) - np.mean(r - corr[rows, k])
+            if fits[k] is None and math.sqrt(float(np.mean((dev / sig[rows, k]) ** 2))) < CLOCK_TRIGGER_SCALE:
+                continue
+            fit = fit_sawtooth(t[rows], r)
+            if fit is None:
+                continue
+            fits[k] = fit
+            corr[prob.mask[:n, k], k] = fit.value_m(t[prob.mask[:n, k]])
+            changed = True
+        if not changed:
+            break
+        prob.range_m = np.where(prob.mask, raw - corr, np.nan)
+        prob.noise_scale_k, prob.bias_sigma_k = None, None
+        res = solve_robust(prob, res.x, res.theta, active)
+    return res, fits
 
 
 def _inv3_sym(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float) -> np.ndarray:

@@ -39,6 +39,8 @@ class SolverParams:
         UE without one pays little for the extra unknown under the weak prior.
     bias_select: with estimate_bias, fix at 0 the bias of a user whose estimate is insignificant
         (|b̂| < 4 sd, estimator.slam.solve_robust), so a UE without a clock offset loses nothing.
+    track_clock: the batch solver fits a UE clock sawtooth (drift and resets, estimator.clock)
+        to each user whose residuals are noisier than σ(d) and removes it from its ranges.
     estimate_noise_scale: re-estimate a per-user scale s_k ≥ 1 of the range noise from the
         residuals, σ_k(d) = s_k σ(d) (estimator.slam.noise_scale_update), so that a UE noisier
         than the assumed σ(d) gets an honest covariance. Reported as Estimate.extra["noise_scale"].
@@ -87,6 +89,7 @@ class SolverParams:
     bias_prior_sigma_m: float = 10.0
     estimate_noise_scale: bool = True
     bias_select: bool = True
+    track_clock: bool = True
     user_dim: int = 2
     motion_sigma_m: float | None = None
     delta_m: float = 2.0

@@ -121,6 +121,8 @@ class MissionConfig:
     range_s0_m: the s0 of σ(d) the estimator and planner assume (default: the radio's); raise it
     when the UEs add error the radio's σ(d) leaves out, e.g. a clock sawtooth of amplitude A adds a
     spread of A/√12 around its mean.
+    gps_tau_s: correlation time of the GPS error the estimator assumes [s] (0 white; default: the
+    vehicle section's, i.e. the built-in vehicle's truth; set it for a real autopilot).
     """
 
     delta_m: float = 2.0
@@ -137,6 +139,7 @@ class MissionConfig:
     planner: str = "casadi"
     estimate_bias: bool = False
     range_s0_m: float | None = None
+    gps_tau_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -170,7 +173,8 @@ class Scenario:
         mission section, the rest of σ(d) from the radio section."""
         r, m = self.radio, self.mission
         s0 = r.s0_m if m.range_s0_m is None else m.range_s0_m
-        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m)
+        tau = self.vehicle.gps_tau_s if m.gps_tau_s is None else m.gps_tau_s
+        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m, gps_tau_s=float(tau))
 
     def user_by_rnti(self, rnti: int) -> UserConfig:
         for u in self.users:
@@ -312,6 +316,8 @@ def _check(sc: Scenario, where: str) -> None:
             f"{where}: need 0 <= mission.alt_min_m <= mission.altitude_m <= mission.alt_max_m, got "
             f"{m.alt_min_m}, {m.altitude_m}, {m.alt_max_m}"
         )
+    if m.gps_tau_s is not None and not (isinstance(m.gps_tau_s, int | float) and 0 <= m.gps_tau_s < float("inf")):
+        raise ScenarioError(f"{where}: mission.gps_tau_s must be a number >= 0, got {m.gps_tau_s!r}")
     if m.range_s0_m is not None and not m.range_s0_m > 0:
         raise ScenarioError(f"{where}: mission.range_s0_m must be positive, got {m.range_s0_m!r}")
     if not 0 <= m.battery_rtl_pct < 100:

@@ -27,7 +27,7 @@ from uavloc.errors import EstimatorError
 GM = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, gps_tau_s=60.0)
 GM_DD = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.5, b_per_m=0.01, gps_tau_s=30.0)
 #: fixed model (no bias selection, no noise-scale rounds): the solve is one smooth problem
-FIXED = SolverParams(estimate_bias=True, bias_select=False, estimate_noise_scale=False)
+FIXED = SolverParams(estimate_bias=True, bias_select=False, estimate_noise_scale=False, track_clock=False)
 
 
 def test_gps_factor_zero_error_at_consistent_values_and_white_limit():
@@ -213,3 +213,48 @@ def test_noise_log_dict_round_trip_and_unknown_tau():
     assert unknown.gps_tau_s is None and unknown.gps_tau_used_s > 0
     with pytest.raises(EstimatorError, match="gps_tau_s"):
         NoiseModel.from_log_dict({"gps_tau_s": "slow"})
+
+
+# --- UE clock sawtooth ----------------------------------------------------------------------------
+
+
+def test_fit_sawtooth_recovers_period_phase_and_drift():
+    from estimator.clock import SawtoothFit, fit_sawtooth
+
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.uniform(3.0, 163.0, 400))
+    truth = SawtoothFit(15.0, 0.3, 12.0, 0.0, 1.0)
+    fit = fit_sawtooth(t, truth.value_m(t) + 2.0 + rng.normal(scale=3.0, size=t.size))
+    assert fit is not None
+    assert fit.period_s == pytest.approx(15.0, rel=0.01)
+    assert fit.amplitude_m == pytest.approx(12.0, abs=1.5)
+    # the fitted sawtooth follows the true one (phase included) up to the noise
+    assert np.sqrt(np.mean((fit.value_m(t) + fit.offset_m - truth.value_m(t) - 2.0) ** 2)) < 1.0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_fit_sawtooth_rejects_white_noise(seed):
+    from estimator.clock import fit_sawtooth
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(400) * 0.4
+    assert fit_sawtooth(t, rng.normal(scale=3.0, size=t.size)) is None
+
+
+def test_batch_tracks_a_clock_sawtooth_and_stays_honest():
+    """Three UEs, one with a 12 m / 15 s sawtooth: the solver finds it, and that user ends near
+    the truth inside its bound; no sawtooth is invented for the others."""
+    sc = simulate(np.random.default_rng(61), n_users=3, n_keyframes=400, dt_s=0.4)
+    t = np.array([kf.t_s for kf in sc.keyframes])
+    saw = 12.0 * np.mod(t / 15.0 + 0.37, 1.0)
+    kfs = [replace(kf, range_m=kf.range_m + np.where(kf.user_idx == 1, saw[i], 0.0))
+           for i, kf in enumerate(sc.keyframes)]
+    est = solve_batch(kfs, 3, sc.user_up_m, NoiseModel())
+    clock = est.extra["clock"]
+    assert clock[0] is None and clock[2] is None
+    assert clock[1] is not None and clock[1].period_s == pytest.approx(15.0, rel=0.01)
+    nees = _nees(est, sc)
+    assert np.all(nees < 9.0), nees
+    assert np.linalg.norm(est.users_enu_m[1, :2] - sc.users_enu_m[1, :2]) < 1.5
+    plain = solve_batch(kfs, 3, sc.user_up_m, NoiseModel(), SolverParams(track_clock=False, estimate_bias=False))
+    assert np.linalg.norm(plain.users_enu_m[1, :2] - sc.users_enu_m[1, :2]) > 3.0
