@@ -142,6 +142,9 @@ class Problem:
     #: (K,) per-user σ of the bias prior (None: params.bias_prior_sigma_m for all; estimator.slam
     #: sets a tiny one where the bias selection fixed a bias at 0)
     bias_sigma_k: np.ndarray | None = None
+    #: (K,) users whose bias the selection keeps whatever the test says (a tracked clock sawtooth:
+    #: its fitted offset is uncertain, and the free bias carries that into the covariance)
+    bias_force_k: np.ndarray | None = None
 
     def gps_phi(self) -> np.ndarray:
         """(N,) Gauss–Markov links φ_n of the GPS factors (estimator.gps.gps_phi); 0 when white."""

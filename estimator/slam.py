@@ -532,10 +532,13 @@ def solve_robust(
         s, cov = None, None
     ib = np.arange(k_all) * prob.p + d_u
     keep = np.zeros(k_all, dtype=bool)
+    b_step = np.zeros(k_all)
     if cov is not None:
         b_step = du[ib]
         sd = np.sqrt(np.maximum(np.diag(cov)[ib], 0.0))
         keep = active & (np.abs(b_step) >= BIAS_SELECT_Z * sd) & (sd <= BIAS_SELECT_MAX_SD_M)
+    if prob.bias_force_k is not None:
+        keep |= active & prob.bias_force_k
     prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
     if not keep.any():
         # the bias prior enters H_uu only, so the Schur complement of the model with every bias
@@ -838,6 +841,7 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
             break
         prob.range_m = np.where(prob.mask, raw - corr, np.nan)
         prob.noise_scale_k, prob.bias_sigma_k = None, None
+        prob.bias_force_k = np.array([f is not None for f in fits])
         res = solve_robust(prob, res.x, res.theta, active)
     return res, fits
 
