@@ -54,7 +54,9 @@ class RangeFactor:
     """Range keyframe -> user: e = (r̂ − ||x − u|| − b) / σ(||x − u||), a scalar.
 
     User parameters θ = [east, north, (up if user_dim == 3), (bias if with_bias)]; in 2-D mode the
-    user's up coordinate is the known `user_up_m`.
+    user's up coordinate is the known `user_up_m`. The bias enters as b·g with gain g = bias_gain
+    (1; a tracked clock sawtooth's shape frac(t/P − φ), b then its amplitude):
+    e = (r̂ − ||x − u|| − b g) / σ.
     """
 
     range_m: float
@@ -62,11 +64,12 @@ class RangeFactor:
     user_dim: int = 2
     user_up_m: float = 0.0
     with_bias: bool = False
+    bias_gain: float = 1.0
 
     def _user(self, theta: np.ndarray) -> tuple[np.ndarray, float]:
         theta = np.asarray(theta, float)
         u = np.array([theta[0], theta[1], theta[2] if self.user_dim == 3 else self.user_up_m])
-        b = float(theta[-1]) if self.with_bias else 0.0
+        b = float(theta[-1]) * self.bias_gain if self.with_bias else 0.0
         return u, b
 
     def error(self, x_enu_m: np.ndarray, theta: np.ndarray) -> float:
@@ -89,7 +92,8 @@ class RangeFactor:
         j_x = -alpha * uhat
         j_theta = [alpha * uhat[: self.user_dim]]
         if self.with_bias:
-            j_theta.append([-1.0 / sig])
+            # ∂e/∂b = −g/σ
+            j_theta.append([-self.bias_gain / sig])
         return j_x, np.concatenate(j_theta)
 
 
@@ -169,7 +173,8 @@ def dense_normal_equations(
                 continue
             # σ_k(d) = s_k σ(d): the same model with s0 and a scaled by s_k
             nk = replace(noise, s0_m=noise.s0_m * scale[k], a_m=noise.a_m * scale[k])
-            f = RangeFactor(prob.range_m[i, k], nk, prob.user_dim, prob.user_up_m[k], params.estimate_bias)
+            gain = 1.0 if prob.bias_gain is None else float(prob.bias_gain[i, k])
+            f = RangeFactor(prob.range_m[i, k], nk, prob.user_dim, prob.user_up_m[k], params.estimate_bias, gain)
             e = f.error(uav_enu_m[i], theta[k])
             jx, jt = f.jacobian(uav_enu_m[i], theta[k])
             sig = float(nk.range_sigma_m(np.linalg.norm(uav_enu_m[i] - f._user(theta[k])[0])))

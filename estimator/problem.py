@@ -145,6 +145,9 @@ class Problem:
     #: (K,) users whose bias the selection keeps whatever the test says (a tracked clock sawtooth:
     #: its fitted offset is uncertain, and the free bias carries that into the covariance)
     bias_force_k: np.ndarray | None = None
+    #: (N, K) gain g_nk of user k's bias in range n, r̂ = d + b_k g_nk (None: 1 everywhere); a
+    #: tracked clock sawtooth (estimator.clock) makes b_k its amplitude and g its shape
+    bias_gain: np.ndarray | None = None
 
     def gps_phi(self) -> np.ndarray:
         """(N,) Gauss–Markov links φ_n of the GPS factors (estimator.gps.gps_phi); 0 when white."""

@@ -156,7 +156,8 @@ def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndar
     full = bool(mask_kn.all())
     r = prob.range_m[:n].T - d
     if prob.params.estimate_bias:
-        r -= theta[:, -1:]
+        # b_k g_nk: the bias, or a tracked clock sawtooth's amplitude times its shape
+        r -= theta[:, -1:] if prob.bias_gain is None else theta[:, -1:] * prob.bias_gain[:n].T
     if not full:
         r[~mask_kn] = 0.0
     # e = (r̂ − d − b) / σ(d)
@@ -203,7 +204,10 @@ def _range_terms(
     np.multiply(diff, np.divide(-alpha, d), out=jac[:3])
     np.negative(jac[:d_u], out=jac[3 : 3 + d_u])
     if params.estimate_bias:
+        # ∂e/∂b = −g/σ
         np.divide(-1.0, sig, out=jac[-1])
+        if prob.bias_gain is not None:
+            jac[-1] *= prob.bias_gain[:n].T
         if not full:
             jac[-1] *= mask_kn
     return e, w, rho, jac, psi
@@ -806,40 +810,44 @@ def solve_batch(
 
 def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Result, list]:
     """Fit a clock sawtooth (estimator.clock) to each user whose range residuals are noisier than
-    its σ(d) by CLOCK_TRIGGER_SCALE, subtract the accepted fits from its ranges and solve again;
-    CLOCK_ROUNDS rounds, each refitting the sawtooth on the residuals plus the current fit.
-    prob.range_m is replaced by the corrected ranges. Returns (result, [SawtoothFit or None] per user)."""
+    its σ(d) by CLOCK_TRIGGER_SCALE; an accepted fit turns the user's bias into the sawtooth's
+    amplitude, r̂ = d + A_k · frac(t/P_k − φ_k) (prob.bias_gain, the bias kept free), so that A_k is
+    estimated with the positions and its uncertainty enters their covariance; then solve again.
+    CLOCK_ROUNDS rounds, each refitting (P, φ) on the residuals of the last solution.
+    Returns (result, [SawtoothFit or None] per user)."""
     n = prob.n_keyframes
-    raw = prob.range_m.copy()
-    corr = np.zeros_like(raw)
     fits: list = [None] * prob.n_users
     t = prob.t_s[:n]
+    gain = np.ones((n, prob.n_users))
     for _ in range(CLOCK_ROUNDS):
         users = users_from_theta(res.theta, prob.user_up_m, prob.user_dim)
         d = np.linalg.norm(res.x[:, None, :] - users[None, :, :], axis=2)
         sig = prob.noise.range_sigma_m(d)
-        changed = False
+        bias = res.theta[:, -1] if prob.params.estimate_bias else np.zeros(prob.n_users)
         # only ranges the loss keeps (weight ≥ ½): an NLoS excess is no sawtooth
         kept = res.lin.w.T >= 0.5
+        changed = False
         for k in np.flatnonzero(active):
             rows = prob.mask[:n, k] & kept[:, k]
             if int(rows.sum()) < CLOCK_MIN_RANGES:
                 continue
-            # the residual with the current sawtooth put back: r̂ − d (bias and offset included);
-            # the trigger on the residual without it
-            r = raw[rows, k] - d[rows, k]
-            dev = (r - corr[rows, k]) - np.mean(r - corr[rows, k])
-            if fits[k] is None and math.sqrt(float(np.mean((dev / sig[rows, k]) ** 2))) < CLOCK_TRIGGER_SCALE:
-                continue
+            # r̂ − d: the sawtooth (or bias) and the noise
+            r = prob.range_m[rows, k] - d[rows, k]
+            if fits[k] is None:
+                dev = r - bias[k] - np.mean(r - bias[k])
+                if math.sqrt(float(np.mean((dev / sig[rows, k]) ** 2))) < CLOCK_TRIGGER_SCALE:
+                    continue
             fit = fit_sawtooth(t[rows], r)
             if fit is None:
                 continue
             fits[k] = fit
-            corr[prob.mask[:n, k], k] = fit.value_m(t[prob.mask[:n, k]])
+            all_k = prob.mask[:n, k]
+            gain[all_k, k] = fit.value_m(t[all_k]) / fit.amplitude_m
+            res.theta[k, -1] = fit.amplitude_m
             changed = True
-        if not changed:
+        if not changed or not prob.params.estimate_bias:
             break
-        prob.range_m = np.where(prob.mask, raw - corr, np.nan)
+        prob.bias_gain = gain.copy()
         prob.noise_scale_k, prob.bias_sigma_k = None, None
         prob.bias_force_k = np.array([f is not None for f in fits])
         res = solve_robust(prob, res.x, res.theta, active)

@@ -87,8 +87,10 @@ def test_gps_phi_white_and_links():
     assert phi[3] < 1.0  # two fixes at the same time: floored q, finite weight
 
 
-@pytest.mark.parametrize("noise, scale", [(GM, None), (GM_DD, np.array([1.0, 1.7, 2.5]))], ids=["gm", "gm-dd-scale"])
-def test_gm_bias_scale_solve_and_covariance_match_dense_reference(noise, scale):
+@pytest.mark.parametrize("noise, scale, gain", [(GM, None, False), (GM_DD, np.array([1.0, 1.7, 2.5]), False),
+                                               (GM, np.array([1.2, 1.0, 1.0]), True)],
+                         ids=["gm", "gm-dd-scale", "gm-clock-gain"])
+def test_gm_bias_scale_solve_and_covariance_match_dense_reference(noise, scale, gain):
     """At one linearization point: the Schur step and S⁻¹ against np.linalg on the dense normal
     equations built from the factor objects (GPS chain, ranges with bias and noise scale, bias prior)."""
     sc = simulate(np.random.default_rng(7), n_users=3, n_keyframes=30, noise=noise, gps_tau_s=noise.gps_tau_s,
@@ -98,6 +100,10 @@ def test_gm_bias_scale_solve_and_covariance_match_dense_reference(noise, scale):
     prob.noise_scale_k = scale
     prob.bias_sigma_k = np.array([1e-3, 10.0, 10.0])
     rng = np.random.default_rng(8)
+    if gain:
+        # user 1's bias is a clock sawtooth's amplitude: r̂ = d + b g, g = frac(t/P − φ)
+        prob.bias_gain = np.ones((30, 3))
+        prob.bias_gain[:, 1] = np.mod(prob.t_s / 7.0 + 0.2, 1.0)
     x = sc.uav_enu_m + rng.normal(size=sc.uav_enu_m.shape) * 0.5
     theta = np.column_stack([sc.users_enu_m[:, :2] + rng.normal(size=(3, 2)), [0.1, 3.0, 1.0]])
     active = np.ones(3, dtype=bool)
@@ -258,3 +264,13 @@ def test_batch_tracks_a_clock_sawtooth_and_stays_honest():
     assert np.linalg.norm(est.users_enu_m[1, :2] - sc.users_enu_m[1, :2]) < 1.5
     plain = solve_batch(kfs, 3, sc.user_up_m, NoiseModel(), SolverParams(track_clock=False, estimate_bias=False))
     assert np.linalg.norm(plain.users_enu_m[1, :2] - sc.users_enu_m[1, :2]) > 3.0
+
+
+def test_range_factor_with_a_clock_gain_jacobian_matches_central_differences():
+    from estimator.factors import RangeFactor
+
+    f = RangeFactor(95.0, GM_DD, 2, 1.5, True, bias_gain=0.37)
+    x, theta = np.array([10.0, -20.0, 35.0]), np.array([60.0, 40.0, 8.0])
+    jx, jt = f.jacobian(x, theta)
+    np.testing.assert_allclose(jx, numerical_jacobian(lambda v: f.error(v, theta), x)[0], atol=1e-8)
+    np.testing.assert_allclose(jt, numerical_jacobian(lambda v: f.error(x, v), theta)[0], atol=1e-8)
