@@ -260,6 +260,11 @@ def users_document(estimate: Estimate, origin, user_ids: list[str],
         if estimate.bias_m is not None:
             on = estimate.extra.get("bias_on")
             b = float(estimate.bias_m[k]) if located and np.isfinite(estimate.bias_m[k]) else None
+            clock = (estimate.extra.get("clock") or [None] * len(user_ids))[k]
+            if clock is not None and b is not None:
+                # a tracked clock sawtooth: its amplitude is the estimated b; its mean A/2 the bias
+                entry["clock_sawtooth"] = {"period_s": float(clock.period_s), "amplitude_m": b}
+                b = 0.5 * b
             # None where the user is not located; 0 where its bias was selected off
             entry["bias_m"] = b if (on is None or not located or on[k]) else 0.0
         if error_m is not None:
