@@ -240,41 +240,39 @@ def linearize(
         inv_g2 = 1.0 / noise.sigma_gps_m**2
         dgps = x - prob.gps_enu_m
         cost = 0.5 * inv_g2 * float(np.vdot(dgps, dgps)) + float(rho.sum())
+    # J_θ = [−J_x[:d], (J_b)]: every block comes from the 6 distinct products O_ij = w J_x,i J_x,j
+    # (i ≤ j, each (K, n)) and, with a bias, B_i = w J_x,i J_b and w J_b²:
+    #   H_nn = Σ_k O (+ GPS),  H_(n,k) = [−O[:, :d], B],  H_kk = [[Σ_n O[:d, :d], −Σ_n B[:d]], [·, Σ_n w J_b²]]
+    d_u = prob.user_dim
+    # the 6 products, stacked (6, K, n) in the order of _SYM3 (one pass each for all of them)
+    o6 = (jac[_SYM3_I] * w) * jac[_SYM3_J]
+    hxx = np.empty((n, 9))
+    hxx[:, _SYM3_FLAT] = o6.sum(axis=1).T
+    hxx[:, _SYM3_LOWER] = hxx[:, _SYM3_UPPER]
+    hxx = hxx.reshape(n, 3, 3)
+    # H_(n,k)[i, j] = −O_ij (i < 3, j < d): (3, d, K, n) -> (n, 3, K, d), in one pass
+    sel = _SYM3_OF[:, :d_u].ravel()
+    hxu = np.empty((n, 3, k_all, p))
+    np.negative(o6[sel].reshape(3, d_u, k_all, n).transpose(3, 0, 2, 1), out=hxu[..., :d_u])
+    # H_kk[i, j] = Σ_n O_ij (i, j < d)
+    huu_blocks = np.empty((k_all, p, p))
+    huu_blocks[:, :d_u, :d_u] = o6[_SYM3_OF[:d_u, :d_u].ravel()].sum(axis=2).reshape(d_u, d_u, k_all).transpose(2, 0, 1)
+    # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ = [Σ_n ψ J_x[:d], −Σ_n ψ J_b]
+    jpsi = jac[:3] * psi
+    gx = -dgps * inv_g2 - jpsi.sum(axis=1).T
+    gu = np.empty((k_all, p))
+    gu[:, :d_u] = jpsi[:d_u].sum(axis=2).T
     if params.estimate_bias:
-        wj = jac * w
-        # O = w J_xᵀ J_x per range, (3, 3, K, n); H_nn = Σ_k O (+ I/σ_gps²)
-        o_xx = wj[:3, None] * jac[None, :3]
-        hxx = np.ascontiguousarray(o_xx.sum(axis=2).transpose(2, 0, 1))
-        wje = jac * psi
-        gx = -dgps * inv_g2 - wje[:3].sum(axis=1).T
-        o_xt = wj[:3, None] * jac[None, 3:]
-        o_tt = wj[3:, None] * jac[None, 3:]
-        # H_(n,k) = w J_xᵀ J_θ: (3, p, K, n) -> (n, 3, K·p)
-        hxu = o_xt.transpose(3, 0, 2, 1).reshape(n, 3, k_all * p)
-        # H_kk = Σ_n w J_θᵀ J_θ: (p, p, K) -> (K, p, p)
-        huu_blocks = o_tt.sum(axis=3).transpose(2, 0, 1)
-        gu = -wje[3:].sum(axis=2).T
-    else:
-        # J_θ = −J_x[:d]: every block comes from the 6 distinct products O_ij = w J_x,i J_x,j
-        # (i ≤ j, each (K, n)): H_nn = Σ_k O (+ I/σ_gps²), H_(n,k) = −O[:, :d], H_kk = Σ_n O[:d, :d]
-        d_u = prob.user_dim
-        # the 6 products, stacked (6, K, n) in the order of _SYM3 (one pass each for all of them)
-        o6 = (jac[_SYM3_I] * w) * jac[_SYM3_J]
-        hxx = np.empty((n, 9))
-        hxx[:, _SYM3_FLAT] = o6.sum(axis=1).T
-        hxx[:, _SYM3_LOWER] = hxx[:, _SYM3_UPPER]
-        hxx = hxx.reshape(n, 3, 3)
-        # H_(n,k)[i, j] = −O_ij (i < 3, j < d): (3, d, K, n) -> (n, 3, K, d), in one pass
-        sel = _SYM3_OF[:, :d_u].ravel()
-        hxu = np.empty((n, 3, k_all, d_u))
-        np.negative(o6[sel].reshape(3, d_u, k_all, n).transpose(3, 0, 2, 1), out=hxu)
-        hxu = hxu.reshape(n, 3, k_all * p)
-        # H_kk[i, j] = Σ_n O_ij (i, j < d)
-        huu_blocks = o6[_SYM3_OF[:d_u, :d_u].ravel()].sum(axis=2).reshape(d_u, d_u, k_all).transpose(2, 0, 1)
-        # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ = Σ_n ψ J_x[:d]
-        jpsi = jac[:3] * psi
-        gx = -dgps * inv_g2 - jpsi.sum(axis=1).T
-        gu = jpsi[:d_u].sum(axis=2).T
+        jb = jac[-1]
+        wjb = w * jb
+        ob = jac[:3] * wjb  # B_i = w J_x,i J_b, (3, K, n)
+        hxu[..., d_u] = ob.transpose(2, 0, 1)
+        sb_u = ob[:d_u].sum(axis=2).T  # (K, d)
+        huu_blocks[:, :d_u, d_u] = -sb_u
+        huu_blocks[:, d_u, :d_u] = -sb_u
+        huu_blocks[:, d_u, d_u] = (wjb * jb).sum(axis=1)
+        gu[:, d_u] = -(psi * jb).sum(axis=1)
+    hxu = hxu.reshape(n, 3, k_all * p)
     off = None
     if linked:
         hxx.reshape(n, 9)[:, ::4] += gt.diag[:, None]
@@ -511,7 +509,8 @@ def solve_robust(
     biases are selected: the problem is solved with every bias fixed at 0 (prior σ
     BIAS_OFF_SIGMA_M, in prob.bias_sigma_k), then one Gauss–Newton step of the model with free
     biases from that solution gives each bias b̂_k and its standard deviation sd_k (S⁻¹ there:
-    the score test of b_k = 0). A user keeps its bias when |b̂_k| ≥ BIAS_SELECT_Z · sd_k and
+    the score test of b_k = 0; from that solve's S and the ranges' gradient, no new
+    linearization). A user keeps its bias when |b̂_k| ≥ BIAS_SELECT_Z · sd_k and
     sd_k ≤ BIAS_SELECT_MAX_SD_M, and the problem is solved again with those biases free. A UE
     without a clock offset pays nothing for the unknown; one with a sawtooth keeps it. (A full
     solve of the free model instead of the step wanders, where the geometry barely separates a
@@ -520,52 +519,43 @@ def solve_robust(
     if not (params.estimate_bias and params.bias_select and prob.bias_sigma_k is None):
         return _solve_scaled(prob, x, theta, active, prior, step_tol_m)
     k_all, d_u = prob.n_users, prob.user_dim
-    # every bias off: the model without biases (its faster p = d path), then the biases appended
-    # at 0 with the prior of BIAS_OFF_SIGMA_M
-    plain = replace(prob, params=replace(params, estimate_bias=False))
-    res = _solve_scaled(plain, x, theta[:, :d_u].copy(), active, _prior_without_bias(prior, k_all, prob.p), step_tol_m)
-    prob.nlos_prob_k, prob.noise_scale_k = plain.nlos_prob_k, plain.noise_scale_k
-    theta = np.zeros((k_all, prob.p))
-    theta[:, :d_u] = res.theta
-    prob.bias_sigma_k = np.full(k_all, params.bias_prior_sigma_m)
-    lin = linearize(prob, res.x, theta, active, prior)
-    try:
-        _, du, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
-        cov = np.linalg.inv(s)
-    except (np.linalg.LinAlgError, EstimatorError):
-        s, cov = None, None
+    # every bias held at 0 by the tight prior σ_off
+    inv_off2 = 1.0 / BIAS_OFF_SIGMA_M**2
+    inv_free2 = 1.0 / params.bias_prior_sigma_m**2
+    prob.bias_sigma_k = np.full(k_all, BIAS_OFF_SIGMA_M)
+    theta = theta.copy()
+    theta[:, -1] = 0.0
+    res = _solve_scaled(prob, x, theta, active, prior, step_tol_m)
     ib = np.arange(k_all) * prob.p + d_u
     keep = np.zeros(k_all, dtype=bool)
     b_step = np.zeros(k_all)
-    if cov is not None:
-        b_step = du[ib]
-        sd = np.sqrt(np.maximum(np.diag(cov)[ib], 0.0))
-        keep = active & (np.abs(b_step) >= BIAS_SELECT_Z * sd) & (sd <= BIAS_SELECT_MAX_SD_M)
+    if res.s is not None:
+        # the free model at this solution without a new linearization: its Schur complement
+        # differs by the bias priors only (they enter H_uu alone), and its reduced gradient is the
+        # ranges' pull on b, −∂L_ranges/∂b = −Σ_n ψ J_b, minus the free prior's b/σ_b² (the other
+        # parameters' gradient is zero at the optimum)
+        s_free = res.s.copy()
+        s_free[ib, ib] -= inv_off2 - inv_free2
+        n = res.x.shape[0]
+        _, _, _, jac, psi = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
+        g = np.zeros(s_free.shape[0])
+        g[ib] = -(psi * jac[-1]).sum(axis=1) - res.theta[:, -1] * inv_free2
+        try:
+            cov = np.linalg.inv(s_free)
+        except np.linalg.LinAlgError:
+            cov = None
+        if cov is not None and np.all(np.isfinite(cov)):
+            b_step = res.theta[:, -1] + (cov @ g)[ib]
+            sd = np.sqrt(np.maximum(np.diag(cov)[ib], 0.0))
+            keep = active & (np.abs(b_step) >= BIAS_SELECT_Z * sd) & (sd <= BIAS_SELECT_MAX_SD_M)
     if prob.bias_force_k is not None:
         keep |= active & prob.bias_force_k
-    prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
     if not keep.any():
-        # the bias prior enters H_uu only, so the Schur complement of the model with every bias
-        # fixed is that of the free one plus the difference of the priors (exact)
-        if s is not None:
-            s = s.copy()
-            s[ib, ib] += 1.0 / BIAS_OFF_SIGMA_M**2 - 1.0 / params.bias_prior_sigma_m**2
-        return _Result(res.x, theta, lin, s, res.iterations, res.converged)
+        return res
+    prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
+    theta = res.theta.copy()
     theta[keep, -1] = b_step[keep]
     return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m)
-
-
-def _prior_without_bias(prior: Prior | None, k_all: int, p: int) -> Prior | None:
-    """The marginalization prior restricted to the positions (bias rows and columns dropped: the
-    biases are held at 0 by a tight prior, so conditioning on b = 0 is what the model does)."""
-    if prior is None:
-        return None
-    off = 3 if prior.has_x else 0
-    keep = np.ones(prior.z0.size, dtype=bool)
-    keep[off + np.arange(k_all) * p + (p - 1)] = False
-    # L(z) with b = 0: the linear term gains Λ_rb (0 − b0)
-    grad = prior.grad[keep] - prior.info[np.ix_(keep, ~keep)] @ prior.z0[~keep]
-    return Prior(prior.has_x, prior.z0[keep], prior.info[np.ix_(keep, keep)], grad)
 
 
 def _solve_scaled(
@@ -580,19 +570,25 @@ def _solve_scaled(
         prob.noise_scale_k = np.ones(prob.n_users)
     for _ in range(NOISE_SCALE_ROUNDS):
         new = noise_scale_update(prob, res.lin, active)
-        change = float(np.max(np.abs(new / prob.noise_scale_k - 1.0)))
+        ratio = new / prob.noise_scale_k
+        change = float(np.max(np.abs(ratio - 1.0)))
         if change == 0.0:
             break
         prob.noise_scale_k = new
         if change <= NOISE_SCALE_RESOLVE:
-            # a small change moves the solution by a fraction of its σ: re-linearize at it so that
-            # the information S (the covariance) carries the new scale
-            lin = linearize(prob, res.x, res.theta, active, prior)
-            try:
-                _, _, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
-            except (np.linalg.LinAlgError, EstimatorError):
-                s = None
-            res = _Result(res.x, res.theta, lin, s, res.iterations, res.converged)
+            # a small change moves the solution by a fraction of its σ: keep it, and scale the
+            # information of user k by 1/s_k (S' = D S D, D = diag(1/ratio_k) per parameter). A
+            # user's information comes mostly from its own ranges, which scale exactly so; the
+            # GPS part scaled too makes S' slightly conservative.
+            if res.s is not None:
+                # (the bias priors do not scale: S' = D (S − B) D + B)
+                dvec = np.repeat(1.0 / ratio, prob.p)
+                prior_b = np.zeros(prob.n_users * prob.p)
+                if prob.params.estimate_bias:
+                    sb = prob.params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
+                    prior_b[prob.user_dim :: prob.p] = 1.0 / np.square(sb)
+                s_new = (res.s - np.diag(prior_b)) * dvec[:, None] * dvec[None, :] + np.diag(prior_b)
+                res = _Result(res.x, res.theta, res.lin, s_new, res.iterations, res.converged)
             break
         res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m)
     return res
@@ -826,6 +822,17 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
         bias = res.theta[:, -1] if prob.params.estimate_bias else np.zeros(prob.n_users)
         # only ranges the loss keeps (weight ≥ ½): an NLoS excess is no sawtooth
         kept = res.lin.w.T >= 0.5
+        if not any(fits):
+            # the trigger for all users at once: RMS of the whitened residuals about their mean
+            # (the noise scale undone: the test is against the assumed σ(d))
+            wk = kept.T & prob.mask[:n].T
+            cnt = np.maximum(wk.sum(axis=1), 1)
+            sc = np.ones(prob.n_users) if prob.noise_scale_k is None else prob.noise_scale_k
+            e = res.lin.e * sc[:, None]
+            mean = (e * wk).sum(axis=1) / cnt
+            rms = np.sqrt((((e - mean[:, None]) ** 2) * wk).sum(axis=1) / cnt)
+            if not np.any(active & (rms >= CLOCK_TRIGGER_SCALE) & (cnt >= CLOCK_MIN_RANGES)):
+                break
         changed = False
         for k in np.flatnonzero(active):
             rows = prob.mask[:n, k] & kept[:, k]
