@@ -9,8 +9,9 @@ constant offset:
 Treated as noise it is neither zero-mean nor white (a 12 m sawtooth is a 6 m bias plus ramps that
 last a whole period). :func:`fit_sawtooth` finds the period P from the periodogram of a
 user's range residuals (the sawtooth's fundamental is its strongest line), then the reset phase φ
-and the drift (A/P) by least squares on a grid around it; the estimator subtracts the fitted
-sawtooth from that user's ranges and solves again (estimator.slam.solve_batch).
+and the drift (A/P) by least squares on a grid around it; the estimator then estimates the
+amplitude A_k with the positions (the user's bias becomes A_k times the sawtooth's shape) and
+solves again (estimator.slam._track_clocks).
 """
 
 from __future__ import annotations
