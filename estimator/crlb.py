@@ -28,11 +28,13 @@ from uavloc.errors import EstimatorError
 def crlb_users(
     uav_enu_m: np.ndarray, users_enu_m: np.ndarray, visible: np.ndarray, noise: NoiseModel,
     params: SolverParams = SolverParams(),  # noqa: B008
+    t_s: np.ndarray | None = None,
 ) -> np.ndarray:
     """(K·d, K·d) lower bound on the joint covariance of the users' coordinates [m²].
 
     uav_enu_m: (N, 3) true keyframe positions [m, ENU]; users_enu_m: (K, 3) true users [m, ENU];
-    visible: (N, K) bool, which ranges are measured; d = params.user_dim. Coordinates are ordered
+    visible: (N, K) bool, which ranges are measured; d = params.user_dim; t_s: (N,) keyframe
+    times [s], needed for Gauss–Markov GPS factors (noise.gps_tau_s > 0; None: GPS white). Coordinates are ordered
     user by user (east, north[, up]). Users that no range sees get inf on their diagonal.
     """
     check_params(params)
@@ -60,7 +62,11 @@ def crlb_users(
         odom_mask[1:] = True
     # Fisher information of the Gaussian range model: unit weights whatever the solver's loss
     # (the "nlos" loss weighs even a zero residual by γ(0) < 1)
-    prob = Problem(uav, rng, vis, odom, odom_mask, users[:, 2].copy(), noise, replace(params, loss="none"))
+    times = None if t_s is None else np.asarray(t_s, dtype=float)
+    if times is not None and times.shape != (n,):
+        raise EstimatorError(f"t_s must have shape ({n},), got {times.shape}")
+    prob = Problem(uav, rng, vis, odom, odom_mask, users[:, 2].copy(), noise, replace(params, loss="none"),
+                   t_s=times)
     theta = np.zeros((k_all, p))
     theta[:, :d_u] = users[:, :d_u]
     active = vis.sum(axis=0) > 0

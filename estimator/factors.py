@@ -23,10 +23,11 @@ objects one by one, so the fast Schur path can be checked against `np.linalg.sol
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from estimator.gps import GpsFactor
 from estimator.noise import NoiseModel
 from estimator.problem import Problem
 from estimator.robust import loss_psi_weight
@@ -53,7 +54,9 @@ class RangeFactor:
     """Range keyframe -> user: e = (r̂ − ||x − u|| − b) / σ(||x − u||), a scalar.
 
     User parameters θ = [east, north, (up if user_dim == 3), (bias if with_bias)]; in 2-D mode the
-    user's up coordinate is the known `user_up_m`.
+    user's up coordinate is the known `user_up_m`. The bias enters as b·g with gain g = bias_gain
+    (1; a tracked clock sawtooth's shape frac(t/P − φ), b then its amplitude):
+    e = (r̂ − ||x − u|| − b g) / σ.
     """
 
     range_m: float
@@ -61,11 +64,12 @@ class RangeFactor:
     user_dim: int = 2
     user_up_m: float = 0.0
     with_bias: bool = False
+    bias_gain: float = 1.0
 
     def _user(self, theta: np.ndarray) -> tuple[np.ndarray, float]:
         theta = np.asarray(theta, float)
         u = np.array([theta[0], theta[1], theta[2] if self.user_dim == 3 else self.user_up_m])
-        b = float(theta[-1]) if self.with_bias else 0.0
+        b = float(theta[-1]) * self.bias_gain if self.with_bias else 0.0
         return u, b
 
     def error(self, x_enu_m: np.ndarray, theta: np.ndarray) -> float:
@@ -88,7 +92,8 @@ class RangeFactor:
         j_x = -alpha * uhat
         j_theta = [alpha * uhat[: self.user_dim]]
         if self.with_bias:
-            j_theta.append([-1.0 / sig])
+            # ∂e/∂b = −g/σ
+            j_theta.append([-self.bias_gain / sig])
         return j_x, np.concatenate(j_theta)
 
 
@@ -147,11 +152,16 @@ def dense_normal_equations(
             for c2, j2 in rows:
                 h[c1 : c1 + j1.shape[1], c2 : c2 + j2.shape[1]] += w * j1.T @ j2
 
+    phi = prob.gps_phi() if prob.gps_linked else np.zeros(n)
+    scale = np.ones(k_all) if prob.noise_scale_k is None else prob.noise_scale_k
     for i in range(n):
-        f = GpsPriorFactor(prob.gps_enu_m[i], noise.sigma_gps_m)
-        e = f.error(uav_enu_m[i])
-        cost += 0.5 * float(e @ e)
-        add([(3 * i, f.jacobian(uav_enu_m[i]))], e, 1.0)
+        if i > 0 or prob.gps_first or not prob.gps_linked:
+            gf = GpsFactor(prob.gps_enu_m[i], noise.sigma_gps_m, float(phi[i]),
+                           prob.gps_enu_m[i - 1] if i > 0 else None)
+            e = gf.error(uav_enu_m[i], uav_enu_m[i - 1] if i > 0 else None)
+            cost += 0.5 * float(e @ e)
+            jx, jprev = gf.jacobian()
+            add([(3 * i, jx)] + ([(3 * (i - 1), jprev)] if phi[i] != 0.0 else []), e, 1.0)
         if prob.odom_mask[i] and params.motion_sigma_m is not None:
             m = MotionFactor(prob.odom_enu_m[i], params.motion_sigma_m)
             e = m.error(uav_enu_m[i - 1], uav_enu_m[i])
@@ -161,10 +171,13 @@ def dense_normal_equations(
         for k in users:
             if not prob.mask[i, k]:
                 continue
-            f = RangeFactor(prob.range_m[i, k], noise, prob.user_dim, prob.user_up_m[k], params.estimate_bias)
+            # σ_k(d) = s_k σ(d): the same model with s0 and a scaled by s_k
+            nk = replace(noise, s0_m=noise.s0_m * scale[k], a_m=noise.a_m * scale[k])
+            gain = 1.0 if prob.bias_gain is None else float(prob.bias_gain[i, k])
+            f = RangeFactor(prob.range_m[i, k], nk, prob.user_dim, prob.user_up_m[k], params.estimate_bias, gain)
             e = f.error(uav_enu_m[i], theta[k])
             jx, jt = f.jacobian(uav_enu_m[i], theta[k])
-            sig = float(noise.range_sigma_m(np.linalg.norm(uav_enu_m[i] - f._user(theta[k])[0])))
+            sig = float(nk.range_sigma_m(np.linalg.norm(uav_enu_m[i] - f._user(theta[k])[0])))
             pi = params.nlos_prob if prob.nlos_prob_k is None else float(prob.nlos_prob_k[k])
             rho, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi, params.nlos_mean_m / sig))
             cost += float(rho[0])
@@ -174,7 +187,8 @@ def dense_normal_equations(
                 float(w[0]))
     if params.estimate_bias:
         for k in users:
-            f = BiasPriorFactor(params.bias_prior_sigma_m)
+            f = BiasPriorFactor(params.bias_prior_sigma_m if prob.bias_sigma_k is None
+                                else float(prob.bias_sigma_k[k]))
             e = f.error(theta[k, -1])
             cost += 0.5 * e * e
             jb = np.zeros((1, p))

@@ -12,6 +12,9 @@ import numpy as np
 
 from uavloc.errors import EstimatorError
 
+#: GPS correlation time [s] assumed when a log does not say (NoiseModel.gps_tau_s None)
+DEFAULT_GPS_TAU_S = 60.0
+
 
 @dataclass(frozen=True)
 class NoiseModel:
@@ -19,24 +22,38 @@ class NoiseModel:
 
     sigma_gps_m: per-axis standard deviation of a GPS fix [m] (paper: 1 m).
     s0_m, a_m, b_per_m: range spread σ(d) = s0 + a·exp(b·d) [m]; defaults s0 = 3 m, a = 0.
+    gps_tau_s: correlation time τ of the GPS error [s]: 0 independent per fix (white); > 0
+        first-order Gauss–Markov, β(t + Δt) = e^(−Δt/τ) β(t) + w, stationary σ_gps per axis (an
+        autopilot's EKF output drifts like this); None unknown (a log without it): the estimator
+        then assumes DEFAULT_GPS_TAU_S (replay first tries to estimate it from the log).
     """
 
     sigma_gps_m: float = 1.0
     s0_m: float = 3.0
     a_m: float = 0.0
     b_per_m: float = 0.0
+    gps_tau_s: float | None = 0.0
 
     def __post_init__(self) -> None:
         for name in ("sigma_gps_m", "s0_m", "a_m", "b_per_m"):
             value = getattr(self, name)
             if not isinstance(value, int | float) or not math.isfinite(value):
                 raise EstimatorError(f"noise model {name} must be a finite number, got {value!r}")
+        tau = self.gps_tau_s
+        if tau is not None and (isinstance(tau, bool) or not isinstance(tau, int | float)
+                                or not math.isfinite(tau) or tau < 0):
+            raise EstimatorError(f"gps_tau_s must be a finite number >= 0 or None, got {tau!r}")
         if self.sigma_gps_m <= 0:
             raise EstimatorError(f"sigma_gps_m must be positive, got {self.sigma_gps_m}")
         if self.s0_m <= 0:
             raise EstimatorError(f"s0_m must be positive, got {self.s0_m}")
         if self.a_m < 0:
             raise EstimatorError(f"a_m must be non-negative, got {self.a_m}")
+
+    @property
+    def gps_tau_used_s(self) -> float:
+        """τ the estimator uses: gps_tau_s, or DEFAULT_GPS_TAU_S when unknown (None)."""
+        return DEFAULT_GPS_TAU_S if self.gps_tau_s is None else float(self.gps_tau_s)
 
     def range_sigma_m(self, d_m: np.ndarray | float) -> np.ndarray:
         """σ(d) = s0 + a·exp(b·d) [m]; `d_m` any shape, result the same shape."""
@@ -56,19 +73,24 @@ class NoiseModel:
         if not noise:
             return cls()
         rs = noise.get("range_sigma_m", {}) or {}
+        tau = noise.get("gps_tau_s")
+        if tau is not None and (isinstance(tau, bool) or not isinstance(tau, int | float)):
+            raise EstimatorError(f"noise gps_tau_s must be a number, got {tau!r}")
         try:
             return cls(
                 sigma_gps_m=float(noise.get("sigma_gps_m", 1.0)),
                 s0_m=float(rs.get("s0", 3.0)),
                 a_m=float(rs.get("a", 0.0)),
                 b_per_m=float(rs.get("b", 0.0)),
+                gps_tau_s=None if tau is None else float(tau),
             )
         except (TypeError, ValueError, AttributeError) as exc:
             raise EstimatorError(f"noise section is malformed: {noise!r}") from exc
 
     def to_log_dict(self) -> dict:
         """The mission-log header `noise` section."""
-        return {
-            "sigma_gps_m": self.sigma_gps_m,
-            "range_sigma_m": {"s0": self.s0_m, "a": self.a_m, "b": self.b_per_m},
-        }
+        out: dict = {"sigma_gps_m": self.sigma_gps_m}
+        if self.gps_tau_s is not None:
+            out["gps_tau_s"] = self.gps_tau_s
+        out["range_sigma_m"] = {"s0": self.s0_m, "a": self.a_m, "b": self.b_per_m}
+        return out

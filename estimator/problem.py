@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimator.gps import gps_phi
 from estimator.noise import NoiseModel
 from estimator.robust import check_loss
 from estimator.types import Keyframe, SolverParams
@@ -106,6 +107,9 @@ def check_keyframe(kf: Keyframe, n_users: int, index: int | None = None) -> tupl
         idx = idx.astype(np.intp, copy=False)
     else:
         idx = idx.astype(np.intp)
+    if isinstance(kf.t_s, bool) or not isinstance(kf.t_s, int | float | np.floating | np.integer) or not (
+            np.isfinite(kf.t_s)):
+        raise EstimatorError(f"{where}: t_s must be a finite number, got {kf.t_s!r}")
     odom = None
     if kf.odom_enu_m is not None:
         odom = np.asarray(kf.odom_enu_m, dtype=float)
@@ -128,6 +132,35 @@ class Problem:
     params: SolverParams
     #: (K,) per-user NLoS probability π_k of the "nlos" loss (None: params.nlos_prob for all)
     nlos_prob_k: np.ndarray | None = None
+    #: (N,) keyframe times [s] for the Gauss–Markov GPS links (None: GPS treated as white)
+    t_s: np.ndarray | None = None
+    #: keyframe 0 carries its own GPS prior (False in an online window whose keyframe 0 is linked
+    #: to a keyframe already folded into the marginalization prior)
+    gps_first: bool = True
+    #: (K,) per-user scale s_k of the range noise, σ_k(d) = s_k σ(d) (None: 1 for all)
+    noise_scale_k: np.ndarray | None = None
+    #: (K,) per-user σ of the bias prior (None: params.bias_prior_sigma_m for all; estimator.slam
+    #: sets a tiny one where the bias selection fixed a bias at 0)
+    bias_sigma_k: np.ndarray | None = None
+    #: (K,) users whose bias the selection keeps whatever the test says (a tracked clock sawtooth:
+    #: its fitted offset is uncertain, and the free bias carries that into the covariance)
+    bias_force_k: np.ndarray | None = None
+    #: (N, K) gain g_nk of user k's bias in range n, r̂ = d + b_k g_nk (None: 1 everywhere); a
+    #: tracked clock sawtooth (estimator.clock) makes b_k its amplitude and g its shape
+    bias_gain: np.ndarray | None = None
+
+    def gps_phi(self) -> np.ndarray:
+        """(N,) Gauss–Markov links φ_n of the GPS factors (estimator.gps.gps_phi); 0 when white."""
+        n = self.n_keyframes
+        if self.t_s is None:
+            return np.zeros(n)
+        tau = self.noise.gps_tau_used_s
+        return gps_phi(self.t_s[:n], tau)
+
+    @property
+    def gps_linked(self) -> bool:
+        """True when GPS factors link consecutive keyframes (τ > 0 and times known)."""
+        return self.t_s is not None and self.noise.gps_tau_used_s > 0.0 and self.n_keyframes > 1
 
     @property
     def n_keyframes(self) -> int:
@@ -176,8 +209,9 @@ def pack_keyframes(
         if not all(isinstance(kf, Keyframe) for kf in keyframes):
             raise ValueError
         # the fields of all keyframes in one pass
-        gps_l, ui, rr, odoms = zip(*[(kf.gps_enu_m, kf.user_idx, kf.range_m, kf.odom_enu_m) for kf in keyframes],
-                                   strict=True)
+        gps_l, ui, rr, odoms, ts = zip(
+            *[(kf.gps_enu_m, kf.user_idx, kf.range_m, kf.odom_enu_m, kf.t_s) for kf in keyframes], strict=True)
+        t_s = np.array(ts, dtype=float)
         gps = np.array(gps_l, dtype=float)
         # len() raises TypeError on a 0-d value; concatenate raises ValueError on mixed ndim
         lengths_l = list(map(len, ui))
@@ -192,6 +226,7 @@ def pack_keyframes(
             and idx.ndim == 1 and r.ndim == 1 and idx.shape == kf_of.shape
             and (idx.size == 0 or (idx.dtype.kind in "iu" and idx.min() >= 0 and idx.max() < n_users))
             and np.isfinite(r).all() and (r.size == 0 or r.min() >= 0)
+            and t_s.shape == (n,) and np.isfinite(t_s).all()
         )
         if ok and idx.size:
             # a user twice in one keyframe: some (keyframe, user) cell counted more than once
@@ -219,7 +254,7 @@ def pack_keyframes(
                 odom_mask[i] = True
     if params.motion_sigma_m is None:
         odom_mask[:] = False
-    return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params)
+    return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params, t_s=t_s)
 
 
 def users_from_theta(theta: np.ndarray, user_up_m: np.ndarray, user_dim: int) -> np.ndarray:

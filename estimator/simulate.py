@@ -4,8 +4,10 @@ Geometry: a UAV at `altitude_m` flies a circle, a lawnmower or a straight line w
 `delta_m` apart over users placed 40–110 m (horizontally) from the flight centre, at ground height
 0. Measurements follow the estimator's model:
 
-    x̂_n = x_n + N(0, σ_gps² I)
-    r̂_nk = ||x_n − u_k|| + b_k + N(0, σ(d)²) + NLoS,  NLoS ~ Exp(mean) with probability p_nlos
+    x̂_n = x_n + β_n,  β white N(0, σ_gps² I), or Gauss–Markov with correlation time gps_tau_s:
+          β_n = φ β_(n−1) + N(0, σ_gps² (1 − φ²) I), φ = exp(−dt_s/τ), β_0 ~ N(0, σ_gps² I)
+    r̂_nk = ||x_n − u_k|| + b_k + s_k·N(0, σ(d)²) + NLoS,  s_k = noise_scale (per user or scalar),
+           NLoS ~ Exp(mean) with probability p_nlos;  keyframe n at t_n = n·dt_s
     ô_n = x_n − x_(n−1) + N(0, σ_odom² I)    (when odom_sigma_m is given)
 """
 
@@ -62,11 +64,30 @@ def trajectory(pattern: str, n_keyframes: int, delta_m: float = 2.0, altitude_m:
     return np.column_stack([xy, np.full(n_keyframes, altitude_m)])
 
 
+def gps_error_m(rng: np.random.Generator, n: int, sigma_m: float, tau_s: float = 0.0,
+                dt_s: float = 1.0) -> np.ndarray:
+    """(n, 3) GPS errors at fixes dt_s apart: white (τ = 0) or stationary Gauss–Markov.
+
+        β_0 ~ N(0, σ² I),  β_i = φ β_(i−1) + N(0, σ² (1 − φ²) I),  φ = exp(−dt/τ)
+    """
+    w = rng.normal(scale=sigma_m, size=(n, 3))
+    if tau_s <= 0.0:
+        return w
+    phi = np.exp(-dt_s / tau_s)
+    out = np.empty((n, 3))
+    out[0] = w[0]
+    q = np.sqrt(1.0 - phi * phi)
+    for i in range(1, n):
+        out[i] = phi * out[i - 1] + q * w[i]
+    return out
+
+
 def simulate(
     rng: np.random.Generator, n_users: int = 5, n_keyframes: int = 200, pattern: str = "circle",
     noise: NoiseModel | None = None, delta_m: float = 2.0, altitude_m: float = 35.0,
     p_nlos: float = 0.0, nlos_mean_m: float = 20.0, bias_m: np.ndarray | float = 0.0,
     p_visible: float = 1.0, odom_sigma_m: float | None = None, users_enu_m: np.ndarray | None = None,
+    gps_tau_s: float = 0.0, dt_s: float = 1.0, noise_scale: np.ndarray | float = 1.0,
 ) -> Scenario:
     """Draw one problem. All randomness comes from `rng`; see the module docstring."""
     noise = NoiseModel() if noise is None else noise
@@ -85,10 +106,11 @@ def simulate(
     d = np.linalg.norm(uav[:, None, :] - users[None, :, :], axis=2)
     visible = rng.uniform(size=d.shape) < p_visible
     nlos = rng.uniform(size=d.shape) < p_nlos
-    ranges = d + bias[None, :] + rng.normal(size=d.shape) * noise.range_sigma_m(d)
+    scale = np.broadcast_to(np.asarray(noise_scale, float), (n_users,))
+    ranges = d + bias[None, :] + rng.normal(size=d.shape) * noise.range_sigma_m(d) * scale[None, :]
     ranges = ranges + nlos * rng.exponential(nlos_mean_m, size=d.shape)
     ranges = np.maximum(ranges, 0.0)
-    gps = uav + rng.normal(scale=noise.sigma_gps_m, size=uav.shape)
+    gps = uav + gps_error_m(rng, n_keyframes, noise.sigma_gps_m, gps_tau_s, dt_s)
     odom = None
     if odom_sigma_m is not None:
         odom = np.diff(uav, axis=0, prepend=uav[:1]) + rng.normal(scale=odom_sigma_m, size=uav.shape)
@@ -98,7 +120,7 @@ def simulate(
         kfs.append(
             Keyframe(
                 gps_enu_m=gps[n], user_idx=idx, range_m=ranges[n, idx],
-                odom_enu_m=None if (odom is None or n == 0) else odom[n], t_s=float(n),
+                odom_enu_m=None if (odom is None or n == 0) else odom[n], t_s=float(n * dt_s),
             )
         )
     return Scenario(kfs, users, users[:, 2].copy(), uav, visible, nlos & visible)

@@ -35,6 +35,15 @@ class SolverParams:
         solves (estimator.slam.solve_robust); at LoS π_k falls to its floor and the loss becomes
         nearly quadratic (a fixed π biases the solution slightly towards short ranges).
     estimate_bias: add a range bias b_k per user, with a zero-mean prior of bias_prior_sigma_m.
+        Default True (it was False): a commercial UE's clock sawtooth has a positive mean, and a
+        UE without one pays little for the extra unknown under the weak prior.
+    bias_select: with estimate_bias, fix at 0 the bias of a user whose estimate is insignificant
+        (|b̂| < 4 sd, estimator.slam.solve_robust), so a UE without a clock offset loses nothing.
+    track_clock: the batch solver fits a UE clock sawtooth (drift and resets, estimator.clock)
+        to each user whose residuals are noisier than σ(d) and removes it from its ranges.
+    estimate_noise_scale: re-estimate a per-user scale s_k ≥ 1 of the range noise from the
+        residuals, σ_k(d) = s_k σ(d) (estimator.slam.noise_scale_update), so that a UE noisier
+        than the assumed σ(d) gets an honest covariance. Reported as Estimate.extra["noise_scale"].
     user_dim: 2 (east, north; up fixed at the known ground height) or 3.
     motion_sigma_m: per-axis σ of the relative-motion factor between consecutive keyframes
         (None: no motion factors).
@@ -76,8 +85,11 @@ class SolverParams:
     nlos_prob: float = 0.1
     nlos_mean_m: float = 20.0
     nlos_adapt: bool = True
-    estimate_bias: bool = False
+    estimate_bias: bool = True
     bias_prior_sigma_m: float = 10.0
+    estimate_noise_scale: bool = True
+    bias_select: bool = True
+    track_clock: bool = True
     user_dim: int = 2
     motion_sigma_m: float | None = None
     delta_m: float = 2.0

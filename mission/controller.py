@@ -656,7 +656,7 @@ class MissionController:
         gps = self.origin.lla_to_enu(lat, lon, alt)
         kf = Keyframe(gps_enu_m=np.asarray(gps, float), user_idx=np.array([k for k, _, _ in samples]),
                       range_m=np.array([C_MPS * s.toa_s for _, s, _ in samples]),
-                      t_s=self.mission_t(samples[0][2]))
+                      t_s=round(self.mission_t(samples[0][2]), 6))  # as logged (the GPS links use it)
         self.keyframes.append(kf)
         self._kf_queue.put_nowait(kf)
 

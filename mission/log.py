@@ -206,7 +206,9 @@ class MissionLog:
 
     rtt_*: one entry per `rtt` record, in file order: rtt_t_s (M,), rtt_user (M,) user indices,
     rtt_uav_lla (M, 3) lat_deg/lon_deg/alt_m, rtt_toa_s (M,), rtt_raw: list of the raw-field dicts.
-    tel_t_s (T,), tel_lla (T, 3): telemetry. truth_lla: (K, 3) or None (NaN rows for users absent).
+    tel_t_s (T,), tel_lla (T, 3): telemetry; tel_vel_ned_mps (T, 3): the autopilot's velocity
+    (north, east, down) [m/s], NaN rows where a record has none. truth_lla: (K, 3) or None (NaN rows
+    for users absent).
     """
 
     path: Path
@@ -219,6 +221,7 @@ class MissionLog:
     tel_t_s: np.ndarray
     tel_lla: np.ndarray
     truth_lla: np.ndarray | None
+    tel_vel_ned_mps: np.ndarray | None = None
     estimates: list[dict] = field(default_factory=list)
     waypoints: list[dict] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
@@ -362,6 +365,22 @@ def _parse_area(obj: dict) -> dict:
     return out
 
 
+#: largest speed a telemetry velocity may claim [m/s]
+MAX_SPEED_MPS = 200.0
+
+
+def _velocity(obj: dict) -> tuple[float, float, float]:
+    """Optional `vel_ned_mps` [north, east, down] of a telemetry record; NaNs when absent."""
+    v = obj.get("vel_ned_mps")
+    if v is None:
+        return (math.nan, math.nan, math.nan)
+    if (not isinstance(v, list) or len(v) != 3
+            or not all(isinstance(c, int | float) and not isinstance(c, bool) for c in v)
+            or not all(math.isfinite(c) and abs(c) <= MAX_SPEED_MPS for c in v)):
+        raise _LineError(f"vel_ned_mps must be 3 finite numbers within ±{MAX_SPEED_MPS:g} m/s, got {v!r}")
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
 def _rtt_toa(obj: dict, header: LogHeader) -> tuple[float, dict]:
     raw = {k: obj[k] for k in ("ta", "mu", "srs_peak", "fs_hz", "snr_db") if k in obj}
     if "toa_s" in obj:
@@ -413,7 +432,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
     header: LogHeader | None = None
     user_ix: dict[str, int] = {}
     rtt_t, rtt_user, rtt_lla, rtt_toa, rtt_raw = [], [], [], [], []
-    tel_t, tel_lla = [], []
+    tel_t, tel_lla, tel_vel = [], [], []
     truth: np.ndarray | None = None
     estimates, waypoints, events = [], [], []
     torn: int | None = None
@@ -451,6 +470,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
                     elif rtype == "telemetry":
                         tel_t.append(t)
                         tel_lla.append(_lla(obj, "telemetry"))
+                        tel_vel.append(_velocity(obj))
                     elif rtype == "truth":
                         truth = _parse_truth(obj, user_ix) if truth is None else truth
                     elif rtype == "estimate":
@@ -479,6 +499,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
         tel_t_s=np.asarray(tel_t, float),
         tel_lla=np.asarray(tel_lla, float).reshape(-1, 3),
         truth_lla=truth,
+        tel_vel_ned_mps=np.asarray(tel_vel, float).reshape(-1, 3),
         estimates=estimates,
         waypoints=waypoints,
         events=events,

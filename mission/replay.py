@@ -18,6 +18,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from estimator.gps import estimate_gps_tau_s
 from estimator.keyframes import KeyframeSelector
 from estimator.noise import NoiseModel
 from estimator.ranging import C_MPS
@@ -114,6 +115,28 @@ def solver_params_from_header(mlog: MissionLog) -> SolverParams:
     return replace(defaults, **kwargs)
 
 
+def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
+    """The noise model with a GPS correlation time: the given one, else estimated from the log's
+    telemetry velocity (estimator.gps.estimate_gps_tau_s), else left unknown (the estimator then
+    assumes estimator.noise.DEFAULT_GPS_TAU_S)."""
+    if noise.gps_tau_s is not None:
+        return noise
+    vel = mlog.tel_vel_ned_mps
+    tau = None
+    if vel is not None and len(mlog.tel_t_s) > 1:
+        origin = mlog.header.origin
+        pos = origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
+        # NED -> ENU
+        vel_enu = np.column_stack([vel[:, 1], vel[:, 0], -vel[:, 2]])
+        tau = estimate_gps_tau_s(mlog.tel_t_s, pos, vel_enu, noise.sigma_gps_m)
+    if tau is None:
+        log.info("%s: no gps_tau_s in the header and no telemetry velocity to estimate it: assuming %.0f s",
+                 mlog.path, noise.gps_tau_used_s)
+        return noise
+    log.info("%s: no gps_tau_s in the header; estimated from the telemetry velocity: %.1f s", mlog.path, tau)
+    return replace(noise, gps_tau_s=tau)
+
+
 def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyframe]:
     """Group the log's rtt records into keyframes, optionally re-selected at Δ spacing.
 
@@ -156,7 +179,7 @@ def horizontal_error_m(users_enu_m: np.ndarray, truth_enu_m: np.ndarray) -> np.n
 def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
            progress: Callable[[int, int], None] | None = None) -> ReplayResult:
     """Re-run the estimator over a parsed log. `progress(done, total)` is called per keyframe."""
-    noise = options.noise or mlog.header.noise
+    noise = resolve_gps_tau(mlog, options.noise or mlog.header.noise)
     params = options.params if options.params is not None else solver_params_from_header(mlog)
     if options.delta_m is not None:
         params = replace(params, delta_m=options.delta_m)
@@ -230,6 +253,20 @@ def users_document(estimate: Estimate, origin, user_ids: list[str],
             "ambiguous": bool(estimate.ambiguous[k]),
             "measurements": int(estimate.n_ranges[k]),
         }
+        scale = estimate.extra.get("noise_scale")
+        if scale is not None:
+            # the factor by which this user's ranges were noisier than the assumed σ(d)
+            entry["noise_scale"] = float(scale[k]) if located else None
+        if estimate.bias_m is not None:
+            on = estimate.extra.get("bias_on")
+            b = float(estimate.bias_m[k]) if located and np.isfinite(estimate.bias_m[k]) else None
+            clock = (estimate.extra.get("clock") or [None] * len(user_ids))[k]
+            if clock is not None and b is not None:
+                # a tracked clock sawtooth: its amplitude is the estimated b; its mean A/2 the bias
+                entry["clock_sawtooth"] = {"period_s": float(clock.period_s), "amplitude_m": b}
+                b = 0.5 * b
+            # None where the user is not located; 0 where its bias was selected off
+            entry["bias_m"] = b if (on is None or not located or on[k]) else 0.0
         if error_m is not None:
             entry["error_m"] = float(error_m[k]) if np.isfinite(error_m[k]) else None
         users.append(entry)

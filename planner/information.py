@@ -64,7 +64,9 @@ class Hypotheses:
     prior_info: (K, M, p, p) prior information per sample [1/m²] (the mirror's is reflected),
         p = d, or d + 1 with the bias last when `bias`;
     user_w: (K,) per-user weights; index: (K,) rows of the Estimate these users are;
-    bias: True when each user has a range bias (joint position + bias information).
+    bias: True when each user has a range bias (joint position + bias information);
+    noise_scale: (K,) factor by which each user's ranges are noisier than σ(d), as the estimator
+        found (Estimate.extra["noise_scale"]); None: 1.
     """
 
     users_enu_m: np.ndarray
@@ -73,6 +75,7 @@ class Hypotheses:
     user_w: np.ndarray
     index: np.ndarray
     bias: bool = False
+    noise_scale: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -195,7 +198,9 @@ def hypotheses_from_estimate(
                     U[row, s0 + j, :d] += sgn * scale * offset
                     W[row, s0 + j] = share / (2 * (r + kappa))
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)[idx]
-    return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx, bias=bias)
+    scale = estimate.extra.get("noise_scale")
+    scale = None if scale is None else np.asarray(scale, dtype=float)[idx]
+    return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx, bias=bias, noise_scale=scale)
 
 
 def hypotheses_from_truth(
@@ -247,9 +252,10 @@ def predicted_information(
     """Posterior information after flying each candidate horizon.
 
     waypoints_enu_m: (C, H, 3) → info (C, K, M, p, p) [1/m²] and leg lengths (C, H) [m].
-    I = P + Σ_legs (ℓ/(ΔQ)) Σ_q g gᵀ / (σ(d)² + σ_gps²)   (p = d), or with range biases (p = d + 1)
-    J = P + Σ_legs (ℓ/(ΔQ)) Σ_q h hᵀ / (σ(d)² + σ_gps²),  h = [−g; 1]  (:func:`position_information`
-    reduces J to the position information).
+    I = P + Σ_legs (ℓ/(ΔQ)) Σ_q g gᵀ / ((s_k σ(d))² + σ_gps²)   (p = d), or with range biases
+    J = P + Σ_legs (ℓ/(ΔQ)) Σ_q h hᵀ / ((s_k σ(d))² + σ_gps²),  h = [−g; 1]  (p = d + 1;
+    :func:`position_information` reduces J to the position information); s_k the user's noise
+    scale (hyp.noise_scale).
     """
     pts, lengths = quadrature_points(start_enu_m, waypoints_enu_m, n_quad)
     d = hyp.dim
@@ -257,8 +263,11 @@ def predicted_information(
     diff = pts[:, None, None, :, :] - hyp.users_enu_m[None, :, :, None, :]  # (C, K, M, HQ, 3)
     dist = np.sqrt(np.sum(diff**2, axis=-1) + 1e-9)
     g = diff[..., :d] / dist[..., None]
-    # σ_eff² = σ(d)² + σ_gps²
-    var = noise.range_sigma_m(dist) ** 2 + noise.sigma_gps_m**2
+    # σ_eff² = (s_k σ(d))² + σ_gps²
+    sig = noise.range_sigma_m(dist)
+    if hyp.noise_scale is not None:
+        sig = sig * hyp.noise_scale[None, :, None, None]
+    var = sig**2 + noise.sigma_gps_m**2
     wq = n_meas[:, None, None, :] / var
     if hyp.bias:
         # Jacobian of r = |m − u| + b on (u, b): h = [−g; 1]

@@ -2,7 +2,10 @@
 
 The UAV flies a fixed survey pattern (out from home, a circle around the users' centroid, back)
 at the scenario's altitude; every Δ metres the radio model measures every user in coverage, the
-GPS fix is the true position plus N(0, σ_gps²) noise, and everything is written as a
+GPS fix is the true position plus the vehicle's GPS error (white, or Gauss–Markov with
+`vehicle.gps_tau_s`, like an autopilot's EKF output), telemetry carries the velocity
+(`vel_ned_mps`), the UEs are the scenario's (commercial ones with their clock sawtooth), and
+everything is written as a
 `uavloc-mission/1` log with raw fields, `toa_s` and `truth`. Deterministic for a given seed.
 
     python -m sitl_scenarios.example_log --scenario paper --seed 1 -o example.jsonl
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +43,40 @@ def survey_path_enu_m(scenario: Scenario, radius_m: float = 50.0, n_turns: float
     return np.vstack([home, circle, [[0.0, 0.0, alt]]])
 
 
+class GpsError:
+    """GPS error at increasing times: white N(0, σ²) per fix (τ = 0) or first-order Gauss–Markov
+    like an autopilot's EKF output, β(t) = φ β(t_prev) + √(1 − φ²) σ w, φ = exp(−Δt/τ)."""
+
+    def __init__(self, sigma_m: float, tau_s: float, rng: np.random.Generator) -> None:
+        self.sigma_m, self.tau_s, self.rng = float(sigma_m), float(tau_s), rng
+        self._t: float | None = None
+        self._beta = np.zeros(3)
+
+    def at(self, t_s: float) -> np.ndarray:
+        """(3,) error [m, ENU] at time t_s (not before the previous call's)."""
+        if self.sigma_m <= 0:
+            return np.zeros(3)
+        w = self.rng.normal(0.0, self.sigma_m, 3)
+        if self.tau_s <= 0 or self._t is None:
+            self._beta = w
+        else:
+            phi = math.exp(-max(t_s - self._t, 0.0) / self.tau_s)
+            self._beta = phi * self._beta + math.sqrt(1.0 - phi * phi) * w
+        self._t = t_s
+        return self._beta.copy()
+
+
+def path_direction(path_enu_m: np.ndarray, p_enu_m: np.ndarray) -> np.ndarray:
+    """(3,) unit direction of the path segment nearest to the point p (zeros on a zero-length one)."""
+    a, b = path_enu_m[:-1], path_enu_m[1:]
+    ab = b - a
+    ll = np.maximum((ab * ab).sum(axis=1), 1e-12)
+    s = np.clip(((p_enu_m - a) * ab).sum(axis=1) / ll, 0.0, 1.0)
+    i = int(np.argmin(np.linalg.norm(a + s[:, None] * ab - p_enu_m, axis=1)))
+    n = float(np.linalg.norm(ab[i]))
+    return ab[i] / n if n > 1e-9 else np.zeros(3)
+
+
 def densify(path_enu_m: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Points every `step_m` along a polyline (P, 3) and their arc length [m]."""
     seg = np.linalg.norm(np.diff(path_enu_m, axis=0), axis=1)
@@ -57,6 +95,7 @@ def generate(scenario: Scenario, out: Path, seed: int | None = None, radius_m: f
     origin = scenario.origin_geo
     speed = scenario.vehicle.speed_mps
     sigma_gps = scenario.vehicle.gps_sigma_m
+    tau_s = scenario.vehicle.gps_tau_s
     path = survey_path_enu_m(scenario, radius_m, n_turns)
     tel_pts, tel_s = densify(path, speed * 1.0)  # telemetry at 1 Hz
     kf_pts, kf_s = densify(path, scenario.mission.delta_m)
@@ -83,11 +122,15 @@ def generate(scenario: Scenario, out: Path, seed: int | None = None, radius_m: f
         events = sorted([(s / speed, "tel", p) for s, p in zip(tel_s, tel_pts, strict=True)]
                         + [(s / speed, "kf", p) for s, p in zip(kf_s, kf_pts, strict=True) if p[2] > 1.0],
                         key=lambda e: e[0])
+        gps_err = GpsError(sigma_gps, tau_s, rng)
         for t, kind, p in events:
-            gps = p + rng.normal(0.0, sigma_gps, 3) if sigma_gps > 0 else p
+            gps = p + gps_err.at(t)
             lat, lon, alt = (float(x) for x in origin.enu_to_lla(gps))
             if kind == "tel":
-                w.write("telemetry", t, lat_deg=lat, lon_deg=lon, alt_m=alt)
+                # the autopilot's velocity: speed along the path (north, east, down)
+                v = speed * path_direction(path, p)
+                w.write("telemetry", t, lat_deg=lat, lon_deg=lon, alt_m=alt,
+                        vel_ned_mps=[round(float(v[1]), 3), round(float(v[0]), 3), round(float(-v[2]), 3)])
                 continue
             for k, u in enumerate(scenario.users):
                 raw = radio.measure(k, p, t)

@@ -8,6 +8,7 @@ Chain for one measurement of user k from UAV position x at time t (one-way metre
     d        = ||x − u_k||                                   true slant range [m]
     n        ~ N(0, σ(d)²),  σ(d) = s0 + a·exp(b·d)          distance-dependent noise [m]
     saw(t)   = A_k · frac(t / P_k + φ_k)                      UE clock sawtooth, 0 → A_k, then reset
+                                                              (commercial UEs by default: 12 m, 15 s)
     e_nlos   ~ Exp(mean = nlos_excess_mean_m) if a building cuts the segment x → u_k, else 0
     RTT      = 2 (d + n + saw(t) + e_nlos) / C               [s], clipped at 0
     TA       = floor(RTT / TA step), clipped to 0..3846       TA step = 16·64·Tc / 2^μ
@@ -125,15 +126,22 @@ class RadioModel:
         return self._by_rnti.get(rnti)
 
     # -- deterministic parts ------------------------------------------------------------------
+    def sawtooth_params(self, user: int | UserConfig) -> tuple[float, float]:
+        """(A [m], P [s]) of a user's clock sawtooth: its own, else the radio's commercial-UE one."""
+        u = self.users[self.user_index(user)]
+        amp = self.radio.ue_sawtooth_amplitude_m if u.sawtooth_amplitude_m is None else u.sawtooth_amplitude_m
+        period = self.radio.ue_sawtooth_period_s if u.sawtooth_period_s is None else u.sawtooth_period_s
+        return float(amp), float(period)
+
     def sawtooth_m(self, user: int | UserConfig, t_s: float) -> float:
         """saw(t) = A · frac(t / P + φ) [m, one-way]; mean A/2 over a period."""
         k = self.user_index(user)
-        u = self.users[k]
-        if u.sawtooth_amplitude_m == 0.0:
+        amp, period = self.sawtooth_params(k)
+        if amp == 0.0:
             return 0.0
         # saw(t) = A · frac(t/P + φ)
-        phase = t_s / u.sawtooth_period_s + self.sawtooth_phase[k]
-        return u.sawtooth_amplitude_m * (phase - math.floor(phase))
+        phase = t_s / period + self.sawtooth_phase[k]
+        return amp * (phase - math.floor(phase))
 
     def range_sigma_m(self, d_m: float) -> float:
         """σ(d) = s0 + a·exp(b·d) [m]."""

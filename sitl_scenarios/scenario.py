@@ -42,6 +42,8 @@ class UserConfig:
 
     sawtooth_amplitude_m / sawtooth_period_s: UE downlink-timing drift as a one-way range error that
     rises linearly from 0 to the amplitude and resets (its mean, amplitude/2, is a range bias).
+    None (the default): a commercial UE, the radio section's ue_sawtooth_amplitude_m / _period_s;
+    0 amplitude: an ideal UE (e.g. a software UE with a perfect clock).
     """
 
     id: str
@@ -49,8 +51,8 @@ class UserConfig:
     east_m: float
     north_m: float
     up_m: float = 0.0
-    sawtooth_amplitude_m: float = 0.0
-    sawtooth_period_s: float = 20.0
+    sawtooth_amplitude_m: float | None = None
+    sawtooth_period_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -79,7 +81,9 @@ class RadioConfig:
     oversampling: SRS CIR oversampling factor (peak resolution 1/oversampling samples);
     range noise σ(d) = s0_m + a_m·exp(b_per_m·d) (one-way, metres);
     coverage_m: no answer beyond this slant range; nlos_excess_mean_m: mean of the exponential
-    excess delay (one-way metres) when a building blocks the line of sight.
+    excess delay (one-way metres) when a building blocks the line of sight;
+    ue_sawtooth_amplitude_m / ue_sawtooth_period_s: the clock sawtooth of a commercial UE (a user
+    without its own), 12 m peak as the paper saw with a Quectel module.
     """
 
     mu: int = 1
@@ -91,6 +95,8 @@ class RadioConfig:
     coverage_m: float = 1500.0
     nlos_excess_mean_m: float = 20.0
     snr_db_at_100m: float = 30.0
+    ue_sawtooth_amplitude_m: float = 12.0
+    ue_sawtooth_period_s: float = 15.0
 
 
 @dataclass(frozen=True)
@@ -124,6 +130,8 @@ class MissionConfig:
     range_s0_m: the s0 of σ(d) the estimator and planner assume (default: the radio's); raise it
     when the UEs add error the radio's σ(d) leaves out, e.g. a clock sawtooth of amplitude A adds a
     spread of A/√12 around its mean.
+    gps_tau_s: correlation time of the GPS error the estimator assumes [s] (0 white; default: the
+    vehicle section's, i.e. the built-in vehicle's truth; set it for a real autopilot).
     """
 
     delta_m: float = 2.0
@@ -138,8 +146,9 @@ class MissionConfig:
     battery_rtl_pct: float = 25.0
     sigma_gps_m: float = 1.0
     planner: str = "casadi"
-    estimate_bias: bool = False
+    estimate_bias: bool = True
     range_s0_m: float | None = None
+    gps_tau_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -173,7 +182,8 @@ class Scenario:
         mission section, the rest of σ(d) from the radio section."""
         r, m = self.radio, self.mission
         s0 = r.s0_m if m.range_s0_m is None else m.range_s0_m
-        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m)
+        tau = self.vehicle.gps_tau_s if m.gps_tau_s is None else m.gps_tau_s
+        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m, gps_tau_s=float(tau))
 
     def mission_config(self) -> mission_config.MissionConfig:
         """The mission part of this scenario as a :class:`mission.config.MissionConfig` (what a real
@@ -306,9 +316,10 @@ def _check(sc: Scenario, where: str) -> None:
             raise ScenarioError(f"{where}: duplicate RNTI {u.rnti:#06x}")
         if not 0 < u.rnti <= 0xFFEF:
             raise ScenarioError(f"{where}: user {u.id!r} RNTI must be in 0x0001..0xFFEF, got {u.rnti:#x}")
-        if u.sawtooth_amplitude_m < 0:
+        if u.sawtooth_amplitude_m is not None and not u.sawtooth_amplitude_m >= 0:
             raise ScenarioError(f"{where}: user {u.id!r} sawtooth_amplitude_m must be >= 0")
-        positive(f"user {u.id!r} sawtooth_period_s", u.sawtooth_period_s)
+        if u.sawtooth_period_s is not None:
+            positive(f"user {u.id!r} sawtooth_period_s", u.sawtooth_period_s)
         seen_id.add(u.id)
         seen_rnti.add(u.rnti)
     if not -90 <= sc.origin.lat_deg <= 90 or not -180 <= sc.origin.lon_deg <= 180:
@@ -327,10 +338,11 @@ def _check(sc: Scenario, where: str) -> None:
     r = sc.radio
     if r.mu not in (0, 1, 2, 3):
         raise ScenarioError(f"{where}: radio.mu must be 0..3, got {r.mu}")
-    for path in ("fs_hz", "oversampling", "s0_m", "coverage_m"):
+    for path in ("fs_hz", "oversampling", "s0_m", "coverage_m", "ue_sawtooth_period_s"):
         positive(f"radio.{path}", getattr(r, path))
-    if r.a_m < 0 or r.nlos_excess_mean_m < 0:
-        raise ScenarioError(f"{where}: radio.a_m and radio.nlos_excess_mean_m must be >= 0")
+    if r.a_m < 0 or r.nlos_excess_mean_m < 0 or not r.ue_sawtooth_amplitude_m >= 0:
+        raise ScenarioError(f"{where}: radio.a_m, radio.nlos_excess_mean_m and radio.ue_sawtooth_amplitude_m "
+                            "must be >= 0")
     v = sc.vehicle
     for path in ("speed_mps", "climb_mps", "descent_mps", "accel_mps2", "battery_capacity_s"):
         positive(f"vehicle.{path}", getattr(v, path))
@@ -347,6 +359,8 @@ def _check(sc: Scenario, where: str) -> None:
             f"{where}: need 0 <= mission.alt_min_m <= mission.altitude_m <= mission.alt_max_m, got "
             f"{m.alt_min_m}, {m.altitude_m}, {m.alt_max_m}"
         )
+    if m.gps_tau_s is not None and not (isinstance(m.gps_tau_s, int | float) and 0 <= m.gps_tau_s < float("inf")):
+        raise ScenarioError(f"{where}: mission.gps_tau_s must be a number >= 0, got {m.gps_tau_s!r}")
     if m.range_s0_m is not None and not m.range_s0_m > 0:
         raise ScenarioError(f"{where}: mission.range_s0_m must be positive, got {m.range_s0_m!r}")
     if not 0 <= m.battery_rtl_pct < 100:

@@ -16,7 +16,7 @@ NOISE = NoiseModel()
 
 def test_crlb_equals_inverse_dense_fisher_information_at_truth():
     sc = simulate(np.random.default_rng(1), n_users=3, n_keyframes=30, p_visible=0.8)
-    params = SolverParams(loss="none")
+    params = SolverParams(loss="none", estimate_bias=False)
     crlb = crlb_users(sc.uav_enu_m, sc.users_enu_m, sc.visible, NOISE, params)
     # noise-free measurements at the truth: zero residuals, the normal matrix is the Fisher information
     prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, NOISE, params)
@@ -41,7 +41,7 @@ def test_crlb_with_bias_is_larger_and_blind_user_is_infinite():
     sc = simulate(np.random.default_rng(3), n_users=3, n_keyframes=100)
     vis = sc.visible.copy()
     vis[:, 2] = False
-    plain = crlb_users(sc.uav_enu_m, sc.users_enu_m, vis, NOISE)
+    plain = crlb_users(sc.uav_enu_m, sc.users_enu_m, vis, NOISE, SolverParams(estimate_bias=False))
     biased = crlb_users(sc.uav_enu_m, sc.users_enu_m, vis, NOISE, SolverParams(estimate_bias=True))
     assert np.trace(biased[:4, :4]) > np.trace(plain[:4, :4])
     assert np.all(np.isinf(np.diag(plain)[4:]))

@@ -3,6 +3,8 @@ mirror ambiguity, bad input. All problems are simulated with fixed seeds (estima
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -119,7 +121,8 @@ def test_solve_stops_within_step_tol_sigma_of_the_optimum(pattern, n):
 
 def test_reported_covariance_is_inverse_of_dense_normal_matrix_at_solution():
     sc = simulate(np.random.default_rng(5), n_users=3, n_keyframes=40)
-    params = SolverParams(step_tol_m=1e-10, step_tol_uav_m=1e-10, step_tol_sigma=0.0)
+    params = SolverParams(step_tol_m=1e-10, step_tol_uav_m=1e-10, step_tol_sigma=0.0, estimate_bias=False,
+                          estimate_noise_scale=False)
     est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, params)
     prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, NOISE, params)
     prob.nlos_prob_k = est.extra.get("nlos_prob_k")  # the per-user NLoS probability the solve ended with
@@ -136,7 +139,8 @@ def test_reported_covariance_is_inverse_of_dense_normal_matrix_at_solution():
 
 @pytest.mark.parametrize(
     "params",
-    [SolverParams(), SolverParams(estimate_bias=True, motion_sigma_m=0.2)],
+    [SolverParams(estimate_noise_scale=False),
+     SolverParams(estimate_bias=True, bias_select=False, motion_sigma_m=0.2, estimate_noise_scale=False)],
     ids=["default", "bias-motion"],
 )
 def test_online_equals_batch_without_marginalization(params):
@@ -178,7 +182,7 @@ def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params
 
     sc = simulate(np.random.default_rng(31), n_users=3, n_keyframes=60, noise=noise, p_nlos=0.1, p_visible=p_visible)
     params = SolverParams(**{**params.__dict__, "online_resolve_every": 1000, "window": 1000,
-                             "online_max_step_m": 100.0})
+                             "online_max_step_m": 100.0, "estimate_noise_scale": False})
     # the new keyframe ranges every user, or (p_visible < 1) some of them
     j = next(i for i in range(40, 60) if p_visible == 1.0 or 0 < sc.keyframes[i].user_idx.size < 3)
     on = OnlineEstimator(3, sc.user_up_m, noise, params)
@@ -225,8 +229,9 @@ def test_online_filter_steps_stay_close_to_full_resolves():
     """Default online (filter steps between window solves) against re-solving at every keyframe:
     users within a small fraction of their standard deviation, covariances within 10 %."""
     sc = simulate(np.random.default_rng(23), n_users=4, n_keyframes=200, p_nlos=0.2)
-    fast = OnlineEstimator(4, sc.user_up_m, NOISE, SolverParams())
-    full = OnlineEstimator(4, sc.user_up_m, NOISE, SolverParams(online_resolve_every=1))
+    plain = SolverParams(estimate_bias=False, estimate_noise_scale=False)
+    fast = OnlineEstimator(4, sc.user_up_m, NOISE, plain)
+    full = OnlineEstimator(4, sc.user_up_m, NOISE, replace(plain, online_resolve_every=1))
     n_filter = 0
     for i, kf in enumerate(sc.keyframes):
         a, b = fast.add_keyframe(kf), full.add_keyframe(kf)
@@ -242,7 +247,7 @@ def test_online_filter_steps_stay_close_to_full_resolves():
 
 def test_online_with_marginalization_stays_close_to_batch_with_bounded_window():
     sc = simulate(np.random.default_rng(22), n_users=4, n_keyframes=300)
-    params = SolverParams(window=40)
+    params = SolverParams(window=40, estimate_bias=False, estimate_noise_scale=False)
     batch = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, params)
     on = OnlineEstimator(4, sc.user_up_m, NOISE, params)
     for kf in sc.keyframes:
@@ -263,7 +268,8 @@ def test_monte_carlo_rmse_close_to_crlb_on_los():
     for seed in range(20):
         sc = simulate(np.random.default_rng(100 + seed), n_users=5, n_keyframes=120)
         est = solve_batch(sc.keyframes, 5, sc.user_up_m, NOISE)
-        crlb = crlb_users(sc.uav_enu_m, sc.users_enu_m, sc.visible, NOISE)
+        # the default estimator (bias selection, noise scale) against the bound of the bias-free model
+        crlb = crlb_users(sc.uav_enu_m, sc.users_enu_m, sc.visible, NOISE, SolverParams(estimate_bias=False))
         sq_err.extend(_user_errors(est, sc) ** 2)
         trace_crlb.extend(np.trace(crlb[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]) for k in range(5))
         nees.extend(_nees(est, sc))
@@ -281,7 +287,7 @@ def test_robust_loss_resists_twenty_percent_nlos():
         sc = simulate(np.random.default_rng(200 + seed), n_users=5, n_keyframes=150, pattern="lawnmower",
                       p_nlos=0.2, nlos_mean_m=20.0)
         for loss in err:
-            params = SolverParams(loss=loss, loss_scale=3.0 if loss == "tukey" else 1.5)
+            params = SolverParams(loss=loss, loss_scale=3.0 if loss == "tukey" else 1.5, estimate_bias=False)
             est = solve_batch(sc.keyframes, 5, sc.user_up_m, NOISE, params)
             err[loss].extend(_user_errors(est, sc))
             if loss == "tukey":
@@ -334,7 +340,7 @@ def test_nlos_probability_is_the_maximum_likelihood_mixing_weight():
 
 def test_straight_line_flagged_ambiguous_with_mirror_across_the_line():
     sc = simulate(np.random.default_rng(31), n_users=4, n_keyframes=100, pattern="line")
-    est = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE)
+    est = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, SolverParams(estimate_bias=False))
     assert est.ambiguous.all()
     # the line is the east axis: the mirror is the estimate with north negated, and one of the two
     # is the truth
@@ -497,7 +503,7 @@ def test_grid_init_with_fixes_at_the_users_height():
 @pytest.mark.parametrize("pattern", ["circle", "lawnmower"])
 def test_curved_flight_not_ambiguous(pattern):
     sc = simulate(np.random.default_rng(32), n_users=4, n_keyframes=150, pattern=pattern)
-    est = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE)
+    est = solve_batch(sc.keyframes, 4, sc.user_up_m, NOISE, SolverParams(estimate_bias=False))
     assert not est.ambiguous.any()
     assert np.all(np.isnan(est.mirror_enu_m))
     assert np.all(_user_errors(est, sc) < 3.0)
@@ -516,7 +522,7 @@ def test_online_reports_ambiguity_on_a_straight_line():
 
 def test_range_bias_is_estimated():
     sc = simulate(np.random.default_rng(41), n_users=3, n_keyframes=200, bias_m=np.array([4.0, 6.0, 2.0]))
-    est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, SolverParams(estimate_bias=True))
+    est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, SolverParams(estimate_bias=True, bias_select=False))
     # within 3σ of the reported bias uncertainty (joint covariance of θ_k = [e, n, b])
     sigma_b = np.sqrt(np.diag(est.extra["cov_theta_joint"])[2::3])
     assert np.all(np.abs(est.bias_m - [4.0, 6.0, 2.0]) < 3 * sigma_b), (est.bias_m, sigma_b)
@@ -608,7 +614,7 @@ def test_bad_arguments_rejected(call, match):
 def test_given_initial_users_are_used():
     sc = simulate(np.random.default_rng(44), n_users=2, n_keyframes=80)
     init = sc.users_enu_m + np.array([3.0, -2.0, 0.0])
-    est = solve_batch(sc.keyframes, 2, sc.user_up_m, NOISE, init_users_enu_m=init)
+    est = solve_batch(sc.keyframes, 2, sc.user_up_m, NOISE, SolverParams(estimate_bias=False), init_users_enu_m=init)
     assert np.all(_user_errors(est, sc) < 2.0)
 
 

@@ -38,7 +38,7 @@ IN_COVERAGE = [0x1234, 0x4601, 0xB0B2]
 
 def scenario(users=None, faults=None, **radio):
     data = {"name": "gnb-test", "seed": 7, "users": users or USERS,
-            "radio": {"coverage_m": 1000.0, "s0_m": 1.0, **radio}}
+            "radio": {"coverage_m": 1000.0, "s0_m": 1.0, "ue_sawtooth_amplitude_m": 0.0, **radio}}
     if faults is not None:
         data["faults"] = faults
     return scenario_from_dict(data)

@@ -85,7 +85,7 @@ def test_follower_home_position_message_sets_origin():
 
 def test_gnb_answers_from_the_followed_vehicle_position():
     port = free_udp_port()
-    sc = scenario_from_dict({"name": "f", "seed": 2, "radio": {"s0_m": 0.5},
+    sc = scenario_from_dict({"name": "f", "seed": 2, "radio": {"s0_m": 0.5, "ue_sawtooth_amplitude_m": 0.0},
                              "users": [{"id": "a", "rnti": "0x4601", "east_m": 200.0, "north_m": 0.0}]})
 
     async def body():

@@ -74,7 +74,8 @@ def radio_model(origin: Origin, seed: int = 11):
         "origin": origin.to_dict(),
         "users": [{"id": f"ue{k + 1}", "rnti": RNTIS[k], "east_m": float(e), "north_m": float(n), "up_m": float(u)}
                   for k, (e, n, u) in enumerate(USERS_ENU)],
-        "radio": {"mu": 1, "fs_hz": 46.08e6, "oversampling": 8, "s0_m": 1.5, "coverage_m": 2000.0},
+        "radio": {"mu": 1, "fs_hz": 46.08e6, "oversampling": 8, "s0_m": 1.5, "coverage_m": 2000.0,
+                  "ue_sawtooth_amplitude_m": 0.0},
     })
     return RadioModel(sc, np.random.default_rng(seed))
 

@@ -512,3 +512,21 @@ def test_three_dimensional_users_fall_back_to_a_optimal():
     planner = make_planner("casadi", u_constraints(), NOISE)  # default criterion "E"
     r = planner.plan(PlanningState([0.0, -60.0, 30.0], replace(est, cov_users_m2=cov3, info_users=cov3[0])))
     assert planner.criterion == "A" and not r.done
+
+
+def test_predicted_information_uses_each_users_noise_scale():
+    """A user the estimator found 2× noisier than σ(d) gains information at (2σ)² + σ_gps²."""
+    from dataclasses import replace
+
+    est = fake_estimate([[20, 30, 0]], np.eye(2) * 1e6)
+    est = replace(est, extra={**est.extra, "noise_scale": np.array([2.0])})
+    hyp = hypotheses_from_estimate(est, sigma_points="none")
+    assert hyp.noise_scale is not None and hyp.noise_scale[0] == 2.0
+    start, end = np.array([-30.0, 0.0, 25.0]), np.array([30.0, 0.0, 25.0])
+    info, _ = predicted_information(start, end[None, None], hyp, NOISE, 2.0, n_quad=8)
+    plain, _ = predicted_information(start, end[None, None], replace(hyp, noise_scale=None), NOISE, 2.0, n_quad=8)
+    pts = start + (end - start) * np.linspace(0, 1, 50)[:, None]
+    d = np.linalg.norm(pts - hyp.users_enu_m[0, 0], axis=1)
+    ratio = np.mean((NOISE.range_sigma_m(d) ** 2 + 1.0) / (4.0 * NOISE.range_sigma_m(d) ** 2 + 1.0))
+    gain, gain_plain = info[0, 0, 0] - hyp.prior_info[0, 0], plain[0, 0, 0] - hyp.prior_info[0, 0]
+    assert np.trace(gain) == pytest.approx(ratio * np.trace(gain_plain), rel=0.05)

@@ -10,7 +10,7 @@ import pytest
 from estimator.ranging import C_MPS, range_m_from_raw, ta_step_s
 from sitl_scenarios.radio import RadioModel, line_of_sight_blocked, point_in_polygon
 from sitl_scenarios.scenario import BuildingConfig, RadioConfig, scenario_from_dict
-from uavloc.errors import SimulatorError
+from uavloc.errors import ScenarioError, SimulatorError
 
 SQUARE = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]
 BLD = BuildingConfig(footprint_enu_m=SQUARE, height_m=20.0)
@@ -21,7 +21,8 @@ def make_scenario(radio: dict | None = None, users: list[dict] | None = None, bu
         "name": "t",
         "seed": 3,
         "users": users or [{"id": "a", "rnti": 0x4601, "east_m": 0.0, "north_m": 0.0}],
-        "radio": radio or {},
+        # ideal UEs unless a test asks for a clock sawtooth (commercial UEs are the default)
+        "radio": {"ue_sawtooth_amplitude_m": 0.0, **(radio or {})},
     }
     if buildings is not None:
         data["buildings"] = buildings
@@ -172,4 +173,24 @@ def test_nlos_excess_mean_zero_config_gives_no_excess():
 
 def test_radio_config_defaults_are_used():
     sc = make_scenario()
-    assert sc.radio == dataclasses.replace(RadioConfig())
+    assert sc.radio == dataclasses.replace(RadioConfig(), ue_sawtooth_amplitude_m=0.0)
+
+
+def test_users_are_commercial_ues_with_a_clock_sawtooth_by_default():
+    sc = scenario_from_dict({"name": "t", "seed": 3, "users": [
+        {"id": "a", "rnti": 0x4601, "east_m": 0.0, "north_m": 0.0},
+        {"id": "b", "rnti": 0x4602, "east_m": 5.0, "north_m": 0.0, "sawtooth_amplitude_m": 0.0},
+        {"id": "c", "rnti": 0x4603, "east_m": 9.0, "north_m": 0.0, "sawtooth_amplitude_m": 4.0,
+         "sawtooth_period_s": 7.0}]})
+    model = RadioModel(sc, np.random.default_rng(1))
+    assert model.sawtooth_params(0) == (RadioConfig().ue_sawtooth_amplitude_m, RadioConfig().ue_sawtooth_period_s)
+    assert model.sawtooth_params(1)[0] == 0.0 and model.sawtooth_m(1, 3.0) == 0.0
+    assert model.sawtooth_params(2) == (4.0, 7.0)
+    saw = [model.sawtooth_m(0, t) for t in np.arange(0.0, 60.0, 0.1)]
+    assert 0.0 <= min(saw) < 1.0 and 11.0 < max(saw) <= 12.0
+
+
+@pytest.mark.parametrize("bad", [{"ue_sawtooth_amplitude_m": -1.0}, {"ue_sawtooth_period_s": 0.0}])
+def test_bad_commercial_ue_sawtooth_rejected(bad):
+    with pytest.raises(ScenarioError, match="ue_sawtooth"):
+        make_scenario(radio=bad)

@@ -26,7 +26,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bias", action=argparse.BooleanOptionalAction, default=None,
                    help="estimate a range bias per user (default: as the mission did)")
     p.add_argument("--sigma-gps", type=float, metavar="M", help="override the header's GPS sigma [m]")
-    p.add_argument("--no-history", action="store_true", help="skip the online pass (faster; no history figure)")
+    p.add_argument("--no-history", action="store_true",
+                   help="with --out: skip the online pass (faster; no history figure); without --out there is none")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,7 +57,9 @@ def run(args: argparse.Namespace) -> int:
     overrides = {"loss": args.loss, "loss_scale": args.loss_scale, "estimate_bias": args.bias}
     params = replace(params, **{k: v for k, v in overrides.items() if v is not None})
     check_loss(params.loss, params.loss_scale)
-    options = ReplayOptions(params=params, delta_m=args.delta, noise=noise, history=not args.no_history)
+    # the online pass feeds only the report's history figure
+    options = ReplayOptions(params=params, delta_m=args.delta, noise=noise,
+                            history=args.out is not None and not args.no_history)
     log.info("replaying %s: %d users, %d rtt records", args.log, mlog.n_users, len(mlog.rtt_t_s))
     bar = Progress("replay", len(mlog.rtt_t_s) // max(mlog.n_users, 1) + 1, min_total=1000)
     try:

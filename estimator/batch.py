@@ -1,0 +1,195 @@
+"""The batch solver: initialization, the solve, UE clock tracking (estimator.clock), mirror tests."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from estimator.clock import fit_sawtooth
+from estimator.init import init_users, mirror_tests
+from estimator.linearize import (
+    Prior,
+)
+from estimator.lm import (
+    _Result,
+    levenberg_marquardt,
+)
+from estimator.marginals import (
+    _estimate,
+)
+from estimator.noise import NoiseModel
+from estimator.problem import (
+    Problem,
+    pack_keyframes,
+    users_from_theta,
+)
+from estimator.solve import (
+    solve_robust,
+)
+from estimator.types import Estimate, Keyframe, SolverParams
+from uavloc.errors import EstimatorError
+
+#: clock tracking (params.track_clock): a user is tested for a sawtooth when its residuals' RMS
+#: exceeds CLOCK_TRIGGER_SCALE σ(d) and it has CLOCK_MIN_RANGES ranges; rounds of fit + re-solve
+CLOCK_TRIGGER_SCALE = 1.08
+CLOCK_MIN_RANGES = 40
+CLOCK_ROUNDS = 3
+
+
+def _grid_init(prob: Problem, uav: np.ndarray, users: Sequence[int]) -> dict[int, np.ndarray]:
+    """Initial θ_k of the given users by grid search, UAV at `uav` (n, 3), users ranged from the
+    same keyframes searched together (estimator.init.init_users). Returns {k: θ_k (p,)}."""
+    n = uav.shape[0]
+    mask = prob.mask[:n]
+    groups: dict[bytes, list[int]] = {}
+    for k in users:
+        groups.setdefault(mask[:, k].tobytes(), []).append(int(k))
+    out = {}
+    for ks in groups.values():
+        rows = mask[:, ks[0]]
+        fits = init_users(uav[rows], prob.range_m[:n][rows][:, ks], prob.user_up_m[ks], prob.noise, prob.params)
+        out.update({k: f.theta for k, f in zip(ks, fits, strict=True)})
+    return out
+
+
+def _mirror_all(
+    prob: Problem, theta: np.ndarray, active: np.ndarray, n_rows: int | None = None
+) -> list:
+    """Mirror test per user on the first n_rows keyframes (UAV at GPS). None for inactive users."""
+    n = prob.n_keyframes if n_rows is None else n_rows
+    out: list = [None] * prob.n_users
+    mask = prob.mask[:n]
+    # users ranged from the same keyframes share the fitted line and the smoothed track: test
+    # each such group at once
+    groups: dict[bytes, list[int]] = {}
+    for k in np.flatnonzero(active).tolist():
+        groups.setdefault(mask[:, k].tobytes(), []).append(k)
+    for ks in groups.values():
+        rows = mask[:, ks[0]]
+        tests = mirror_tests(
+            prob.gps_enu_m[:n][rows], prob.range_m[:n][rows][:, ks], theta[ks], prob.user_up_m[ks],
+            prob.noise, prob.params, prob.params.ambiguity_chi2,
+        )
+        for k, mt in zip(ks, tests, strict=True):
+            out[k] = mt
+    return out
+
+
+def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Prior | None = None):
+    """Mirror tests; a user whose mirror fits clearly better (Δχ² < −χ²_amb) jumps there and
+    the problem is re-solved once. Returns (result, mirror tests)."""
+    mirrors = _mirror_all(prob, res.theta, active)
+    flip = [k for k, mt in enumerate(mirrors) if mt is not None and mt.mirror_is_better(prob.params.ambiguity_chi2)]
+    if flip:
+        theta = res.theta.copy()
+        for k in flip:
+            theta[k] = mirrors[k].mirror_theta
+        res2 = levenberg_marquardt(prob, res.x, theta, active, prior)
+        if res2.lin.cost < res.lin.cost:
+            res = res2
+            mirrors = _mirror_all(prob, res.theta, active)
+    return res, mirrors
+
+
+def solve_batch(
+    keyframes: Sequence[Keyframe], n_users: int, user_up_m: np.ndarray, noise: NoiseModel,
+    params: SolverParams = SolverParams(), init_users_enu_m: np.ndarray | None = None,  # noqa: B008
+) -> Estimate:
+    """Estimate users and UAV keyframes from all keyframes at once.
+
+    keyframes: N keyframes (GPS fix, ranges to users, optional odometry).
+    n_users: K; user_up_m: (K,) ground height of each user [m, ENU up] (fixed in 2-D mode,
+        the initial value in 3-D mode); init_users_enu_m: optional (K, 3) starts [m, ENU], rows
+        with NaN are initialised by grid search.
+    Users with fewer than p + 1 ranges (p unknowns) are not estimated: NaN rows, inf covariance.
+    Raises EstimatorError on malformed input, naming the offending value.
+    """
+    prob = pack_keyframes(keyframes, n_users, user_up_m, noise, params)
+    k_all, p = prob.n_users, prob.p
+    n_ranges = prob.mask.sum(axis=0)
+    active = n_ranges >= prob.min_ranges()
+    theta = np.zeros((k_all, p))
+    theta[:, :2] = np.nan
+    given = None
+    if init_users_enu_m is not None:
+        given = np.asarray(init_users_enu_m, dtype=float)
+        if given.shape != (k_all, 3):
+            raise EstimatorError(f"init_users_enu_m must have shape ({k_all}, 3), got {given.shape}")
+    x = prob.gps_enu_m.copy()
+    search = []
+    for k in np.flatnonzero(active):
+        if given is not None and np.all(np.isfinite(given[k])):
+            theta[k] = 0.0
+            theta[k, : prob.user_dim] = given[k, : prob.user_dim]
+        else:
+            search.append(k)
+    for k, th in _grid_init(prob, x, search).items():
+        theta[k] = th
+    theta[~active] = 0.0
+    res = solve_robust(prob, x, theta, active)
+    clocks: list = [None] * k_all
+    if params.track_clock and prob.t_s is not None:
+        res, clocks = _track_clocks(prob, res, active)
+    res, mirrors = _resolve_mirrors(prob, res, active)
+    est = _estimate(prob, res, active, mirrors, n_ranges)
+    est.extra["clock"] = clocks
+    return est
+
+
+def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Result, list]:
+    """Fit a clock sawtooth (estimator.clock) to each user whose range residuals are noisier than
+    its σ(d) by CLOCK_TRIGGER_SCALE; an accepted fit turns the user's bias into the sawtooth's
+    amplitude, r̂ = d + A_k · frac(t/P_k − φ_k) (prob.bias_gain, the bias kept free), so that A_k is
+    estimated with the positions and its uncertainty enters their covariance; then solve again.
+    CLOCK_ROUNDS rounds, each refitting (P, φ) on the residuals of the last solution.
+    Returns (result, [SawtoothFit or None] per user)."""
+    n = prob.n_keyframes
+    fits: list = [None] * prob.n_users
+    t = prob.t_s[:n]
+    gain = np.ones((n, prob.n_users))
+    for _ in range(CLOCK_ROUNDS):
+        users = users_from_theta(res.theta, prob.user_up_m, prob.user_dim)
+        d = np.linalg.norm(res.x[:, None, :] - users[None, :, :], axis=2)
+        sig = prob.noise.range_sigma_m(d)
+        bias = res.theta[:, -1] if prob.params.estimate_bias else np.zeros(prob.n_users)
+        # only ranges the loss keeps (weight ≥ ½): an NLoS excess is no sawtooth
+        kept = res.lin.w.T >= 0.5
+        if not any(fits):
+            # the trigger for all users at once: RMS of the whitened residuals about their mean
+            # (the noise scale undone: the test is against the assumed σ(d))
+            wk = kept.T & prob.mask[:n].T
+            cnt = np.maximum(wk.sum(axis=1), 1)
+            sc = np.ones(prob.n_users) if prob.noise_scale_k is None else prob.noise_scale_k
+            e = res.lin.e * sc[:, None]
+            mean = (e * wk).sum(axis=1) / cnt
+            rms = np.sqrt((((e - mean[:, None]) ** 2) * wk).sum(axis=1) / cnt)
+            if not np.any(active & (rms >= CLOCK_TRIGGER_SCALE) & (cnt >= CLOCK_MIN_RANGES)):
+                break
+        changed = False
+        for k in np.flatnonzero(active):
+            rows = prob.mask[:n, k] & kept[:, k]
+            if int(rows.sum()) < CLOCK_MIN_RANGES:
+                continue
+            # r̂ − d: the sawtooth (or bias) and the noise
+            r = prob.range_m[rows, k] - d[rows, k]
+            if fits[k] is None:
+                dev = r - bias[k] - np.mean(r - bias[k])
+                if math.sqrt(float(np.mean((dev / sig[rows, k]) ** 2))) < CLOCK_TRIGGER_SCALE:
+                    continue
+            fit = fit_sawtooth(t[rows], r)
+            if fit is None:
+                continue
+            fits[k] = fit
+            all_k = prob.mask[:n, k]
+            gain[all_k, k] = fit.value_m(t[all_k]) / fit.amplitude_m
+            res.theta[k, -1] = fit.amplitude_m
+            changed = True
+        if not changed or not prob.params.estimate_bias:
+            break
+        prob.bias_gain = gain.copy()
+        prob.noise_scale_k, prob.bias_sigma_k = None, None
+        prob.bias_force_k = np.array([f is not None for f in fits])
+        res = solve_robust(prob, res.x, res.theta, active)
+    return res, fits

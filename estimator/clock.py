@@ -1,0 +1,132 @@
+"""A commercial UE's clock sawtooth, tracked instead of treated as noise (DESIGN.md §4).
+
+A Rel-15 UE corrects its downlink timing only when conformance requires it: its round trip drifts
+at a steady rate and then resets, so the range error of user k is a sawtooth on top of any
+constant offset:
+
+    saw_k(t) = A_k · frac(t / P_k − φ_k)          (A > 0: rises and drops; A < 0: falls and jumps)
+
+Treated as noise it is neither zero-mean nor white (a 12 m sawtooth is a 6 m bias plus ramps that
+last a whole period). :func:`fit_sawtooth` finds the period P from the periodogram of a
+user's range residuals (the sawtooth's fundamental is its strongest line), then the reset phase φ
+and the drift (A/P) by least squares on a grid around it; the estimator then estimates the
+amplitude A_k with the positions (the user's bias becomes A_k times the sawtooth's shape) and
+solves again (estimator.slam._track_clocks).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: a sawtooth is fitted only when the residuals span at least this many periods ...
+CLOCK_MIN_PERIODS = 2.0
+#: ... with at least this many samples per period
+CLOCK_MIN_SAMPLES_PER_PERIOD = 4.0
+#: ... and accepted when it removes this share of the residual variance at least
+CLOCK_MIN_EXPLAINED = 0.15
+#: phases tried per period, periods tried around the periodogram peak
+_N_PHASE = 48
+_N_PERIOD = 31
+
+
+@dataclass(frozen=True)
+class SawtoothFit:
+    """saw(t) = amplitude_m · frac(t / period_s − phase) (+ offset_m, the residuals' constant).
+
+    explained: share of the residual variance the sawtooth removes (0..1).
+    """
+
+    period_s: float
+    phase: float
+    amplitude_m: float
+    offset_m: float
+    explained: float
+
+    def value_m(self, t_s: np.ndarray) -> np.ndarray:
+        """saw(t) [m] at times t_s (any shape)."""
+        # A · frac(t/P − φ)
+        u = np.asarray(t_s, dtype=float) / self.period_s - self.phase
+        return self.amplitude_m * (u - np.floor(u))
+
+
+def periodogram(t_s: np.ndarray, x: np.ndarray, freqs_hz: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """(F,) power |Σ_n x_n e^(−2πi f t_n)|² / n of a zero-mean series at uneven times (the classic
+    periodogram; for the peak of a sawtooth's fundamental it agrees with Lomb–Scargle, and it
+    spares the estimator scipy.signal's import time)."""
+    out = np.empty(freqs_hz.size)
+    for i in range(0, freqs_hz.size, chunk):
+        ph = 2.0 * np.pi * freqs_hz[i : i + chunk, None] * t_s[None, :]
+        c, s = np.cos(ph) @ x, np.sin(ph) @ x
+        out[i : i + chunk] = (c * c + s * s) / t_s.size
+    return out
+
+
+def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndarray) -> tuple:
+    """Least squares r ≈ c + A·frac(t/P − φ) over the (P, φ) grid; (rss, P, φ, A, c) of the best."""
+    # s (P, Φ, n) = frac(t/P − φ)
+    u = t[None, None, :] / periods[:, None, None] - phases[None, :, None]
+    s = u - np.floor(u)
+    n = t.size
+    sm = s.mean(axis=2)
+    rm = r.mean()
+    sc = s - sm[..., None]
+    sxx = np.einsum("pfn,pfn->pf", sc, sc)
+    sxy = np.einsum("pfn,n->pf", sc, r - rm)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(sxx > 1e-12, sxy / sxx, 0.0)
+    # rss = Σ (r − r̄)² − A² Sxx
+    rss = float(np.sum((r - rm) ** 2)) - a * a * sxx
+    i, j = np.unravel_index(int(np.argmin(rss)), rss.shape)
+    amp = float(a[i, j])
+    return float(rss[i, j]), float(periods[i]), float(phases[j]), amp, float(rm - amp * sm[i, j]), n
+
+
+def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray) -> SawtoothFit | None:
+    """Fit a clock sawtooth to one user's range residuals.
+
+    t_s: (n,) measurement times [s]; resid_m: (n,) measured minus modelled range [m] (no bias
+    removed). Returns None when the times cover fewer than CLOCK_MIN_PERIODS of any period with
+    CLOCK_MIN_SAMPLES_PER_PERIOD samples, or when the best sawtooth explains less than
+    CLOCK_MIN_EXPLAINED of the residual variance.
+    """
+    t = np.asarray(t_s, dtype=float)
+    r = np.asarray(resid_m, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(r)
+    t, r = t[ok], r[ok]
+    if t.size < 16:
+        return None
+    t0 = float(t.min())
+    t = t - t0
+    span = float(t.max())
+    dt = float(np.median(np.diff(np.sort(t))))
+    if span <= 0 or dt <= 0:
+        return None
+    f_min = CLOCK_MIN_PERIODS / span
+    f_max = 1.0 / (CLOCK_MIN_SAMPLES_PER_PERIOD * dt)
+    if f_max <= f_min:
+        return None
+    # periodogram on a grid 4× finer than the frequency resolution 1/span
+    n_f = min(math.ceil(4.0 * (f_max - f_min) * span) + 1, 20000)
+    freqs = np.linspace(f_min, f_max, n_f)
+    rc = r - r.mean()
+    power = periodogram(t, rc, freqs)
+    f0 = float(freqs[int(np.argmax(power))])
+    # (P, φ) grid around the peak: ± one frequency bin, then a finer grid around the best
+    df = 1.0 / (4.0 * span)
+    periods = 1.0 / np.linspace(max(f0 - 1.5 * df, f_min * 0.5), f0 + 1.5 * df, _N_PERIOD)
+    phases = np.arange(_N_PHASE) / _N_PHASE
+    rss, p_best, ph_best, _, _, _ = _fit_grid(t, r, periods, phases)
+    dp = float(np.max(np.abs(np.diff(periods))))
+    periods = p_best + np.linspace(-dp, dp, 21)
+    phases = ph_best + np.linspace(-1.0, 1.0, 21) / _N_PHASE
+    rss, p_best, ph_best, amp, off, _ = _fit_grid(t, r, periods, phases)
+    total = float(np.sum(rc * rc))
+    explained = 1.0 - rss / total if total > 0 else 0.0
+    if explained < CLOCK_MIN_EXPLAINED:
+        return None
+    # back to absolute time: frac((t − t0)/P − φ) = frac(t/P − (φ + t0/P))
+    phase = (ph_best + t0 / p_best) % 1.0
+    return SawtoothFit(p_best, phase, amp, off, explained)

@@ -1,0 +1,250 @@
+"""Linearization of the SLAM cost (DESIGN.md §5): the IRLS-weighted normal equations at a point.
+
+Every factor's vectorised error and Jacobian enters here once: the range factor (_range_terms,
+the same model as estimator.factors.RangeFactor), the GPS factors (estimator.gps), the bias
+priors, the relative-motion factors and the marginalization prior. The batch solver, the online
+window and its marginalization, and the CRLB (estimator.crlb) all call it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.gps import gps_chain_terms
+from estimator.problem import (
+    Problem,
+    users_from_theta,
+)
+from estimator.robust import loss_psi_weight
+
+#: the 6 distinct entries (i ≤ j) of a symmetric 3×3: row and column indices, their flat index,
+#: the flat index of their mirror (i > j) and of the entry they copy; _SYM3_OF[i, j]: which of
+#: the 6 holds entry (i, j)
+_SYM3_I = np.array([0, 0, 0, 1, 1, 2])
+_SYM3_J = np.array([0, 1, 2, 1, 2, 2])
+_SYM3_FLAT = 3 * _SYM3_I + _SYM3_J
+_SYM3_LOWER = np.array([3, 6, 7])
+_SYM3_UPPER = np.array([1, 2, 5])
+_SYM3_OF = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+
+
+@dataclass
+class Prior:
+    """Gaussian prior from marginalized keyframes over z = [x_first (3, if has_x), Θ.ravel() (K·p)].
+
+    L_prior(z) = cᵀ(z − z0) + ½ (z − z0)ᵀ Λ (z − z0).
+    """
+
+    has_x: bool
+    z0: np.ndarray
+    info: np.ndarray
+    grad: np.ndarray
+
+
+@dataclass
+class Linearization:
+    """IRLS-weighted normal equations at one point (shapes as in estimator.schur.schur_solve)."""
+
+    cost: float
+    hxx: np.ndarray  # (N, 3, 3)
+    off: np.ndarray | None  # (N − 1,)
+    hxu: np.ndarray  # (N, 3, K·p)
+    huu: np.ndarray  # (K·p, K·p)
+    gx: np.ndarray  # (N, 3)
+    gu: np.ndarray  # (K·p,)
+    e: np.ndarray  # (K, N) whitened range residuals, 0 where none
+    w: np.ndarray  # (K, N) IRLS weights, 0 where none
+    rho_k: np.ndarray | None = None  # (K,) Σ_n ρ(e) of each user's ranges
+
+
+def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray) -> tuple:
+    """Range residuals, user-major: (diff (3, K, n) = x_i − u_k, d (K, n), σ (K, n) or scalar,
+    r = r̂ − d − b (K, n), e = r/σ (K, n), full), r and e zero where mask_kn (K, n) is False;
+    full: mask_kn is all True. Shapes as in `_range_terms`."""
+    noise = prob.noise
+    n = x.shape[0]
+    users = users_from_theta(theta, prob.user_up_m, prob.user_dim)
+    # diff_i = x_i − u_i, (3, K, n)
+    diff = np.ascontiguousarray(x.T)[:, None, :] - users.T[:, :, None]
+    d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+    np.maximum(d, 1e-9, out=d)
+    # σ_k(d) = s_k σ(d); a scalar (or (K, 1)) when it does not depend on d (cheaper loss evaluation)
+    sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
+    if prob.noise_scale_k is not None:
+        sig = sig * prob.noise_scale_k[:, None]
+    # every user ranged from every keyframe (the common case): no masking passes
+    full = bool(mask_kn.all())
+    r = prob.range_m[:n].T - d
+    if prob.params.estimate_bias:
+        # b_k g_nk: the bias, or a tracked clock sawtooth's amplitude times its shape
+        r -= theta[:, -1:] if prob.bias_gain is None else theta[:, -1:] * prob.bias_gain[:n].T
+    if not full:
+        r[~mask_kn] = 0.0
+    # e = (r̂ − d − b) / σ(d)
+    return diff, d, sig, r, r / sig, full
+
+
+def _nlos_args(prob: Problem, sig: np.ndarray | float) -> tuple:
+    """(π (K, 1) or scalar, whitened NLoS mean m) of the "nlos" loss for ranges of σ `sig`."""
+    pi = prob.params.nlos_prob if prob.nlos_prob_k is None else prob.nlos_prob_k[:, None]
+    return pi, prob.params.nlos_mean_m / sig
+
+
+def _range_terms(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """Whitened range residuals and Jacobians (see estimator.factors.RangeFactor), user-major.
+
+    x: (n, 3); theta: (K, p); mask_kn: (K, n) ranges to use; ranges are prob.range_m[:n].
+    Arrays are laid out (K, n) so that numpy's inner loops run over keyframes (long), not over
+    3 coordinates. Returns e, w, rho (K, n), J (3 + p, K, n) = [∂e/∂x; ∂e/∂θ_k] and ψ = ρ'(e)
+    (K, n), zero where mask_kn is False.
+    """
+    params, noise = prob.params, prob.noise
+    n = x.shape[0]
+    d_u = prob.user_dim
+    diff, d, sig, r, e, full = _residuals(prob, x, theta, mask_kn)
+    nl = _nlos_args(prob, sig) if params.loss == "nlos" else None
+    rho, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl)
+    if not full:
+        w = w * mask_kn
+        psi = psi * mask_kn
+        rho = rho * mask_kn
+    # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −1/σ
+    if noise.a_m != 0.0 and noise.b_per_m != 0.0:
+        dsig = noise.range_sigma_dd(d)
+        if prob.noise_scale_k is not None:
+            dsig = dsig * prob.noise_scale_k[:, None]
+        alpha = 1.0 / sig + r * dsig / sig**2
+        if not full:
+            alpha *= mask_kn
+    else:
+        alpha = 1.0 / sig if full else mask_kn / sig
+    jac = np.empty((3 + prob.p, prob.n_users, n))
+    np.multiply(diff, np.divide(-alpha, d), out=jac[:3])
+    np.negative(jac[:d_u], out=jac[3 : 3 + d_u])
+    if params.estimate_bias:
+        # ∂e/∂b = −g/σ
+        np.divide(-1.0, sig, out=jac[-1])
+        if prob.bias_gain is not None:
+            jac[-1] *= prob.bias_gain[:n].T
+        if not full:
+            jac[-1] *= mask_kn
+    return e, w, rho, jac, psi
+
+
+def linearize(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None
+) -> Linearization:
+    """IRLS-weighted normal equations H Δ = g (g = −∇L) at (x (N, 3), Θ (K, p)).
+
+    Per range, with J = [∂e/∂x | ∂e/∂θ_k] (1 × (3 + p)):
+        H_nn = I/σ_gps² + Σ_k w J_xᵀ J_x,   H_(n,k) = w J_xᵀ J_θ,   H_kk = Σ_n w J_θᵀ J_θ
+        g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,   g_k = −Σ_n ψ J_θ      (+ bias, motion, prior)
+    with ψ = ρ'(e) (= w e except for the "nlos" loss, estimator.robust).
+    Users with active[k] False are held fixed (identity block, zero gradient).
+    """
+    params, noise = prob.params, prob.noise
+    n, k_all = prob.range_m.shape
+    p = prob.p
+    mask_kn = prob.mask[:n].T & active[:, None]
+    e, w, rho, jac, psi = _range_terms(prob, x, theta, mask_kn)
+    linked = prob.gps_linked
+    if linked:
+        # Gauss–Markov GPS factors (estimator.gps): diagonal, off-diagonal and gradient terms
+        gt = gps_chain_terms(x, prob.gps_enu_m[:n], prob.gps_phi(), noise.sigma_gps_m, prob.gps_first)
+        inv_g2 = 0.0
+        dgps = np.zeros_like(x)
+        cost = gt.cost + float(rho.sum())
+    else:
+        inv_g2 = 1.0 / noise.sigma_gps_m**2
+        dgps = x - prob.gps_enu_m
+        cost = 0.5 * inv_g2 * float(np.vdot(dgps, dgps)) + float(rho.sum())
+    # J_θ = [−J_x[:d], (J_b)]: every block comes from the 6 distinct products O_ij = w J_x,i J_x,j
+    # (i ≤ j, each (K, n)) and, with a bias, B_i = w J_x,i J_b and w J_b²:
+    #   H_nn = Σ_k O (+ GPS),  H_(n,k) = [−O[:, :d], B],  H_kk = [[Σ_n O[:d, :d], −Σ_n B[:d]], [·, Σ_n w J_b²]]
+    d_u = prob.user_dim
+    # the 6 products, stacked (6, K, n) in the order of _SYM3 (one pass each for all of them)
+    o6 = (jac[_SYM3_I] * w) * jac[_SYM3_J]
+    hxx = np.empty((n, 9))
+    hxx[:, _SYM3_FLAT] = o6.sum(axis=1).T
+    hxx[:, _SYM3_LOWER] = hxx[:, _SYM3_UPPER]
+    hxx = hxx.reshape(n, 3, 3)
+    # H_(n,k)[i, j] = −O_ij (i < 3, j < d): (3, d, K, n) -> (n, 3, K, d), in one pass
+    sel = _SYM3_OF[:, :d_u].ravel()
+    hxu = np.empty((n, 3, k_all, p))
+    np.negative(o6[sel].reshape(3, d_u, k_all, n).transpose(3, 0, 2, 1), out=hxu[..., :d_u])
+    # H_kk[i, j] = Σ_n O_ij (i, j < d)
+    huu_blocks = np.empty((k_all, p, p))
+    huu_blocks[:, :d_u, :d_u] = o6[_SYM3_OF[:d_u, :d_u].ravel()].sum(axis=2).reshape(d_u, d_u, k_all).transpose(2, 0, 1)
+    # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ = [Σ_n ψ J_x[:d], −Σ_n ψ J_b]
+    jpsi = jac[:3] * psi
+    gx = -dgps * inv_g2 - jpsi.sum(axis=1).T
+    gu = np.empty((k_all, p))
+    gu[:, :d_u] = jpsi[:d_u].sum(axis=2).T
+    if params.estimate_bias:
+        jb = jac[-1]
+        wjb = w * jb
+        ob = jac[:3] * wjb  # B_i = w J_x,i J_b, (3, K, n)
+        hxu[..., d_u] = ob.transpose(2, 0, 1)
+        sb_u = ob[:d_u].sum(axis=2).T  # (K, d)
+        huu_blocks[:, :d_u, d_u] = -sb_u
+        huu_blocks[:, d_u, :d_u] = -sb_u
+        huu_blocks[:, d_u, d_u] = (wjb * jb).sum(axis=1)
+        gu[:, d_u] = -(psi * jb).sum(axis=1)
+    hxu = hxu.reshape(n, 3, k_all * p)
+    off = None
+    if linked:
+        hxx.reshape(n, 9)[:, ::4] += gt.diag[:, None]
+        gx -= gt.grad
+        off = gt.off.copy()
+    else:
+        hxx.reshape(n, 9)[:, ::4] += inv_g2
+    if params.estimate_bias:
+        # bias prior e_k = b_k / σ_b,k (σ_b,k tiny where the bias was selected off)
+        sb = params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
+        inv_b2 = np.broadcast_to(1.0 / np.square(sb), (k_all,))
+        bias = theta[:, -1]
+        huu_blocks[:, -1, -1] += inv_b2
+        gu[:, -1] -= bias * inv_b2
+        cost += 0.5 * float(np.sum((inv_b2 * bias * bias)[active]))
+    if not active.all():
+        inactive = ~active
+        huu_blocks[inactive] = np.eye(p)
+        gu[inactive] = 0.0
+    huu = np.zeros((k_all, p, k_all, p))
+    ks = np.arange(k_all)
+    huu[ks, :, ks, :] = huu_blocks  # block diagonal
+    huu = huu.reshape(k_all * p, k_all * p)
+    gu = gu.ravel()
+    if prob.use_motion:
+        inv_m2 = 1.0 / params.motion_sigma_m**2
+        om = prob.odom_mask[1:n]
+        # e_m = (x_n − x_(n−1) − ô_n)/σ_m for linked pairs
+        em = (x[1:] - x[:-1] - prob.odom_enu_m[1:n]) * om[:, None]
+        cost += 0.5 * inv_m2 * float(np.vdot(em, em))
+        add = inv_m2 * om
+        hxx.reshape(n, 9)[1:, ::4] += add[:, None]
+        hxx.reshape(n, 9)[:-1, ::4] += add[:, None]
+        off = -add if off is None else off - add
+        gx[1:] -= inv_m2 * em
+        gx[:-1] += inv_m2 * em
+    if prior is not None:
+        z = theta.ravel()
+        if prior.has_x:
+            z = np.concatenate([x[0], z])
+        dz = z - prior.z0
+        grad = prior.grad + prior.info @ dz
+        cost += float(prior.grad @ dz + 0.5 * dz @ prior.info @ dz)
+        if prior.has_x:
+            hxx[0] += prior.info[:3, :3]
+            hxu[0] += prior.info[:3, 3:]
+            gx[0] -= grad[:3]
+            huu += prior.info[3:, 3:]
+            gu -= grad[3:]
+        else:
+            huu += prior.info
+            gu -= grad
+    return Linearization(cost, hxx, off, hxu, huu, gx, gu, e, w, rho.sum(axis=1))

@@ -1,0 +1,85 @@
+"""Users' marginal covariances from the Schur complement S, and the Estimate of a solve."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator.lm import (
+    _Result,
+)
+from estimator.problem import (
+    Problem,
+    users_from_theta,
+)
+from estimator.solve import (
+    BIAS_OFF_SIGMA_M,
+)
+from estimator.types import Estimate
+
+
+def _covariances(
+    s: np.ndarray | None, active: np.ndarray, k_all: int, p: int, d: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """From S (K·p, K·p): per-user position covariance (K, d, d), position information (K·d, K·d)
+    with any bias marginalized out, and the full joint covariance of the active users' θ."""
+    cov = np.full((k_all, d, d), np.inf)
+    info = np.zeros((k_all * d, k_all * d))
+    if s is None or not np.any(active):
+        return cov, info, None
+    all_active = bool(active.all())
+    s_a = s if all_active else s[np.ix_(np.repeat(active, p), np.repeat(active, p))]
+    try:
+        np.linalg.cholesky(s_a)
+        cov_a = np.linalg.inv(s_a)
+    except np.linalg.LinAlgError:
+        return cov, info, None
+    cov_a = 0.5 * (cov_a + cov_a.T)
+    na = s_a.shape[0] // p
+    cov_a4 = cov_a.reshape(na, p, na, p)
+    ka_ = np.arange(na)
+    blocks = cov_a4[ka_, :d, ka_, :d]  # the diagonal blocks, (na, d, d)
+    if p == d:
+        info_pos = s_a
+    else:
+        info_pos = np.linalg.inv(cov_a4[:, :d, :, :d].reshape(na * d, na * d))
+        info_pos = 0.5 * (info_pos + info_pos.T)
+    if all_active:
+        cov[:] = blocks
+        info[:] = info_pos
+    else:
+        ka = np.flatnonzero(active)
+        cov[ka] = blocks
+        ip = (ka[:, None] * d + np.arange(d)[None, :]).ravel()
+        info[np.ix_(ip, ip)] = info_pos
+    return cov, info, cov_a
+
+
+def _estimate(
+    prob: Problem, res: _Result, active: np.ndarray, mirrors: list, n_ranges: np.ndarray,
+) -> Estimate:
+    k_all, p, d = prob.n_users, prob.p, prob.user_dim
+    users = users_from_theta(res.theta, prob.user_up_m, d)
+    users[~active] = np.nan
+    cov, info, cov_joint = _covariances(res.s, active, k_all, p, d)
+    bias = None
+    if prob.params.estimate_bias:
+        bias = np.where(active, res.theta[:, -1], np.nan)
+    ambiguous = np.zeros(k_all, dtype=bool)
+    mirror = np.full((k_all, 3), np.nan)
+    for k, mt in enumerate(mirrors):
+        if mt is not None and mt.ambiguous:
+            ambiguous[k] = True
+            mirror[k] = users_from_theta(mt.mirror_theta[None, :], prob.user_up_m[k : k + 1], d)[0]
+    extra = {"active": active.copy(), "cov_theta_joint": cov_joint, "lin_cost": res.lin.cost}
+    if prob.nlos_prob_k is not None:
+        extra["nlos_prob_k"] = prob.nlos_prob_k.copy()  # (K,) π_k the "nlos" loss ended with
+    extra["noise_scale"] = (np.ones(k_all) if prob.noise_scale_k is None else prob.noise_scale_k.copy())
+    if prob.params.estimate_bias:
+        # (K,) True where the range bias is estimated (False: selected off, fixed at 0)
+        sb = prob.bias_sigma_k
+        extra["bias_on"] = np.ones(k_all, dtype=bool) if sb is None else sb > BIAS_OFF_SIGMA_M
+    return Estimate(
+        users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias, uav_enu_m=res.x.copy(),
+        ambiguous=ambiguous, mirror_enu_m=mirror, n_ranges=n_ranges.copy(), cost=res.lin.cost,
+        iterations=res.iterations, converged=res.converged, extra=extra,
+    )

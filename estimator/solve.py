@@ -1,0 +1,272 @@
+"""The solve schedule around Levenberg–Marquardt: robust-loss warm starts and the per-user NLoS
+probability (EM), the per-user range-noise scale from the residuals, and the range-bias
+selection (a score test from the bias-free solution)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from estimator.linearize import (
+    Linearization,
+    Prior,
+    _nlos_args,
+    _range_terms,
+    _residuals,
+)
+from estimator.lm import (
+    _Result,
+    levenberg_marquardt,
+)
+from estimator.problem import (
+    Problem,
+)
+from estimator.robust import REDESCENDING, nlos_terms
+
+#: Huber threshold of the warm start before a redescending loss
+HUBER_WARM_SCALE = 1.5
+#: "nlos" loss with nlos_adapt: bounds of the per-user NLoS probability π_k, the most rounds of
+#: (solve, re-estimate π_k), and the change of π_k below which the rounds stop
+NLOS_PROB_MIN = 0.005
+NLOS_PROB_MAX = 0.5
+NLOS_EM_ROUNDS = 10
+NLOS_EM_TOL = 1e-4
+#: step tolerance of the solves while π_k is still being re-estimated [m]
+NLOS_ROUND_STEP_M = 1e-3
+#: per-user range-noise scale (params.estimate_noise_scale): upper bound, fewest degrees of
+#: freedom to estimate it from, relative change below which it is not re-solved, and most rounds
+NOISE_SCALE_MAX = 10.0
+NOISE_SCALE_MIN_DOF = 8
+NOISE_SCALE_RESOLVE = 0.1
+NOISE_SCALE_ROUNDS = 6
+#: bias selection (params.bias_select): a bias below this many of its standard deviations is
+#: fixed at 0 by a prior of BIAS_OFF_SIGMA_M
+BIAS_SELECT_Z = 4.0
+BIAS_OFF_SIGMA_M = 1e-3
+#: ... and kept only when determined to this standard deviation [m] (a bias the geometry barely
+#: separates from the position trades a large position error for a small fit gain)
+BIAS_SELECT_MAX_SD_M = 1.5
+
+
+def nlos_prob_update(prob: Problem, gamma: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """(K,) maximum-likelihood NLoS probability of each user at the residuals where the posterior
+    LoS probabilities gamma (K, n) (0 where no range; Linearization.w) were evaluated.
+
+    With q_i = f(e_i)/φ(e_i) the NLoS/LoS density ratio of range i, the log-likelihood of user
+    k's ranges in π is Σ_i log(1 + π (q_i − 1)) (+ const), concave, with derivative
+
+        D(π) = Σ_i a_i / (1 + π a_i),   D'(π) = −Σ_i (a_i / (1 + π a_i))²,   a_i = q_i − 1,
+
+    solved by Newton's method within [NLOS_PROB_MIN, NLOS_PROB_MAX] (the root, or the bound
+    where D keeps its sign). q is recovered from the posterior LoS probability γ at the
+    current π: γ = (1 − π)/((1 − π) + π q)  ⇒  q = (1 − π)(1 − γ)/(π γ)  (inf where γ
+    underflowed to 0, where the term a/(1 + πa) is 1/π). Inactive users keep their π.
+    """
+    n = gamma.shape[1]
+    use = prob.mask[:n].T & active[:, None]
+    pi0 = prob.nlos_prob_k.copy()
+    gam = gamma
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        q = (1.0 - pi0)[:, None] * (1.0 - gam) / (pi0[:, None] * gam)
+    huge = use & ~np.isfinite(q)
+    a = np.where(use & ~huge, q - 1.0, 0.0)
+    n_huge = huge.sum(axis=1)
+
+    def slope(p: np.ndarray | float, a: np.ndarray, n_huge: np.ndarray, curvature: bool = True) -> tuple:
+        # D(π) and D'(π) of every row of a; p scalar or (rows,)
+        t = a / (1.0 + (p[:, None] if np.ndim(p) else p) * a)
+        d = t.sum(axis=1) + n_huge / p
+        return (d, -(t * t).sum(axis=1) - n_huge / (p * p)) if curvature else (d, None)
+
+    # D is decreasing: D(π_min) ≤ 0 puts the maximum on the lower bound (the LoS case, no
+    # iteration), D(π_max) ≥ 0 on the upper one; Newton's method for the others
+    pi = np.minimum(np.maximum(pi0, NLOS_PROB_MIN), NLOS_PROB_MAX)
+    lo = slope(NLOS_PROB_MIN, a, n_huge, curvature=False)[0] <= 0.0
+    pi[lo] = NLOS_PROB_MIN
+    free = ~lo
+    if free.any():
+        hi = free & (slope(NLOS_PROB_MAX, a, n_huge, curvature=False)[0] >= 0.0)
+        pi[hi] = NLOS_PROB_MAX
+        free &= ~hi
+    if free.any():
+        af, nf, pf = a[free], n_huge[free], pi[free]
+        for _ in range(40):
+            d, dp = slope(pf, af, nf)
+            new = np.clip(pf - d / np.minimum(dp, -1e-300), NLOS_PROB_MIN, NLOS_PROB_MAX)
+            done = float(np.max(np.abs(new - pf))) < 1e-13
+            pf = new
+            if done:
+                break
+        pi[free] = pf
+    pi[~active] = pi0[~active]
+    return pi
+
+
+def noise_scale_update(prob: Problem, lin: Linearization, active: np.ndarray) -> np.ndarray:
+    """(K,) per-user range-noise scale s_k from the residuals of a solve (σ_k(d) = s_k σ(d)).
+
+    With e the whitened residuals at the current scale s_k and w their weights (the LoS
+    posterior of the "nlos" loss, the IRLS weight otherwise; Linearization.w), the maximum-
+    likelihood variance factor of user k's ranges, corrected for its p fitted parameters, is
+
+        s_k'² = s_k² · Σ_n w e² / (Σ_n w − p)
+
+    kept within [1, NOISE_SCALE_MAX]: the assumed σ(d) is a floor (a UE is not taken to be
+    better than configured), and a user with fewer than NOISE_SCALE_MIN_DOF degrees of freedom
+    keeps its scale. Inactive users keep theirs.
+    """
+    old = np.ones(prob.n_users) if prob.noise_scale_k is None else prob.noise_scale_k
+    w, e = lin.w, lin.e
+    n_eff = w.sum(axis=1)
+    dof = n_eff - prob.p
+    chi2 = (w * e * e).sum(axis=1)
+    ok = active & (dof >= NOISE_SCALE_MIN_DOF)
+    new = old.copy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # s'² = s² χ² / dof
+        fit = old * np.sqrt(chi2 / np.maximum(dof, 1e-9))
+    new[ok] = np.clip(fit[ok], 1.0, NOISE_SCALE_MAX)
+    return new
+
+
+def solve_robust(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
+    step_tol_m: float | None = None,
+) -> _Result:
+    """:func:`solve_loss` and, with params.estimate_noise_scale, the per-user range-noise scale
+    re-estimated from the solution's residuals (noise_scale_update, stored in prob.noise_scale_k):
+    the problem is re-solved while a scale moves by more than NOISE_SCALE_RESOLVE (relative), and
+    a smaller last change only re-linearizes at the solution so that the covariance uses it; at
+    most NOISE_SCALE_ROUNDS rounds. A user whose ranges are noisier than the assumed σ(d) then
+    gets a covariance that says so.
+
+    With params.estimate_bias and params.bias_select (and prob.bias_sigma_k not yet chosen) the
+    biases are selected: the problem is solved with every bias fixed at 0 (prior σ
+    BIAS_OFF_SIGMA_M, in prob.bias_sigma_k), then one Gauss–Newton step of the model with free
+    biases from that solution gives each bias b̂_k and its standard deviation sd_k (S⁻¹ there:
+    the score test of b_k = 0; from that solve's S and the ranges' gradient, no new
+    linearization). A user keeps its bias when |b̂_k| ≥ BIAS_SELECT_Z · sd_k and
+    sd_k ≤ BIAS_SELECT_MAX_SD_M, and the problem is solved again with those biases free. A UE
+    without a clock offset pays nothing for the unknown; one with a sawtooth keeps it. (A full
+    solve of the free model instead of the step wanders, where the geometry barely separates a
+    bias from the position, into basins 5–13 m away that fit a little better.)"""
+    params = prob.params
+    if not (params.estimate_bias and params.bias_select and prob.bias_sigma_k is None):
+        return _solve_scaled(prob, x, theta, active, prior, step_tol_m)
+    k_all, d_u = prob.n_users, prob.user_dim
+    # every bias held at 0 by the tight prior σ_off
+    inv_off2 = 1.0 / BIAS_OFF_SIGMA_M**2
+    inv_free2 = 1.0 / params.bias_prior_sigma_m**2
+    prob.bias_sigma_k = np.full(k_all, BIAS_OFF_SIGMA_M)
+    theta = theta.copy()
+    theta[:, -1] = 0.0
+    res = _solve_scaled(prob, x, theta, active, prior, step_tol_m)
+    ib = np.arange(k_all) * prob.p + d_u
+    keep = np.zeros(k_all, dtype=bool)
+    b_step = np.zeros(k_all)
+    if res.s is not None:
+        # the free model at this solution without a new linearization: its Schur complement
+        # differs by the bias priors only (they enter H_uu alone), and its reduced gradient is the
+        # ranges' pull on b, −∂L_ranges/∂b = −Σ_n ψ J_b, minus the free prior's b/σ_b² (the other
+        # parameters' gradient is zero at the optimum)
+        s_free = res.s.copy()
+        s_free[ib, ib] -= inv_off2 - inv_free2
+        n = res.x.shape[0]
+        _, _, _, jac, psi = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
+        g = np.zeros(s_free.shape[0])
+        g[ib] = -(psi * jac[-1]).sum(axis=1) - res.theta[:, -1] * inv_free2
+        try:
+            cov = np.linalg.inv(s_free)
+        except np.linalg.LinAlgError:
+            cov = None
+        if cov is not None and np.all(np.isfinite(cov)):
+            b_step = res.theta[:, -1] + (cov @ g)[ib]
+            sd = np.sqrt(np.maximum(np.diag(cov)[ib], 0.0))
+            keep = active & (np.abs(b_step) >= BIAS_SELECT_Z * sd) & (sd <= BIAS_SELECT_MAX_SD_M)
+    if prob.bias_force_k is not None:
+        keep |= active & prob.bias_force_k
+    if not keep.any():
+        return res
+    prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
+    theta = res.theta.copy()
+    theta[keep, -1] = b_step[keep]
+    return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m)
+
+
+def _solve_scaled(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None,
+    step_tol_m: float | None,
+) -> _Result:
+    """solve_loss, then rounds of noise_scale_update (see solve_robust)."""
+    res = solve_loss(prob, x, theta, active, prior, step_tol_m)
+    if not prob.params.estimate_noise_scale:
+        return res
+    if prob.noise_scale_k is None:
+        prob.noise_scale_k = np.ones(prob.n_users)
+    for _ in range(NOISE_SCALE_ROUNDS):
+        new = noise_scale_update(prob, res.lin, active)
+        ratio = new / prob.noise_scale_k
+        change = float(np.max(np.abs(ratio - 1.0)))
+        if change == 0.0:
+            break
+        prob.noise_scale_k = new
+        if change <= NOISE_SCALE_RESOLVE:
+            # a small change moves the solution by a fraction of its σ: keep it, and scale the
+            # information of user k by 1/s_k (S' = D S D, D = diag(1/ratio_k) per parameter). A
+            # user's information comes mostly from its own ranges, which scale exactly so; the
+            # GPS part scaled too makes S' slightly conservative.
+            if res.s is not None:
+                # (the bias priors do not scale: S' = D (S − B) D + B)
+                dvec = np.repeat(1.0 / ratio, prob.p)
+                prior_b = np.zeros(prob.n_users * prob.p)
+                if prob.params.estimate_bias:
+                    sb = prob.params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
+                    prior_b[prob.user_dim :: prob.p] = 1.0 / np.square(sb)
+                s_new = (res.s - np.diag(prior_b)) * dvec[:, None] * dvec[None, :] + np.diag(prior_b)
+                res = _Result(res.x, res.theta, res.lin, s_new, res.iterations, res.converged)
+            break
+        res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m)
+    return res
+
+
+def solve_loss(
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
+    step_tol_m: float | None = None,
+) -> _Result:
+    """Levenberg–Marquardt with the loss's schedule: a redescending loss starts from a Huber
+    solution; "nlos" with params.nlos_adapt alternates solves with the maximum-likelihood π_k at
+    the solution's residuals (nlos_prob_update, stored in prob.nlos_prob_k) until no π_k moves
+    by more than NLOS_EM_TOL: a joint maximum of the likelihood in (x, θ, π)."""
+    params = prob.params
+    if params.loss in REDESCENDING:
+        # a redescending loss ignores what it deems outliers: start it from the Huber solution
+        warm = replace(prob, params=replace(params, loss="huber", loss_scale=HUBER_WARM_SCALE))
+        pre = levenberg_marquardt(warm, x, theta, active, prior, step_tol_m=step_tol_m)
+        x, theta = pre.x, pre.theta
+    if params.loss != "nlos" or not params.nlos_adapt:
+        return levenberg_marquardt(prob, x, theta, active, prior, step_tol_m=step_tol_m)
+    if prob.nlos_prob_k is None:
+        # π_k from params.nlos_prob re-estimated at the starting residuals (at LoS it drops to
+        # the floor at once, and the solve runs near-quadratic from the first iteration)
+        prob.nlos_prob_k = np.full(prob.n_users, float(params.nlos_prob))
+        mask_kn = prob.mask[: x.shape[0]].T & active[:, None]
+        _, _, sig, _, e, _ = _residuals(prob, x, theta, mask_kn)
+        gamma = nlos_terms(e, *_nlos_args(prob, sig), need_rho=False)[2] * mask_kn
+        prob.nlos_prob_k = nlos_prob_update(prob, gamma, active)
+    tol = params.step_tol_m if step_tol_m is None else step_tol_m
+    # while π_k still moves, solve only to NLOS_ROUND_STEP_M; then to tol (all π_k on the
+    # floor, i.e. LoS: to tol at once)
+    tight = bool(np.all(prob.nlos_prob_k[active] <= NLOS_PROB_MIN))
+    for _ in range(NLOS_EM_ROUNDS):
+        res = levenberg_marquardt(
+            prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M))
+        pi = nlos_prob_update(prob, res.lin.w, active)
+        moved = float(np.max(np.abs(pi - prob.nlos_prob_k)))
+        if moved <= NLOS_EM_TOL:
+            if tight:
+                break
+            tight = True
+        prob.nlos_prob_k = pi
+        x, theta = res.x, res.theta
+    return res

@@ -1,0 +1,276 @@
+"""Honest estimates: Gauss–Markov GPS factors, per-user range bias and noise scale.
+
+Jacobians against central differences, the vectorised GPS chain against the factor objects, the
+Schur solve and covariance against the dense normal equations to 1e-9, online equal to batch
+when nothing is marginalized, and the covariance honest (NEES) on drifting GPS and noisy UEs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from estimator.crlb import crlb_users
+from estimator.factors import dense_normal_equations
+from estimator.gps import GpsFactor, gps_chain_terms, gps_phi
+from estimator.noise import NoiseModel
+from estimator.numdiff import numerical_jacobian
+from estimator.problem import pack_keyframes
+from estimator.schur import schur_solve
+from estimator.simulate import gps_error_m, simulate
+from estimator.slam import OnlineEstimator, linearize, solve_batch
+from estimator.types import SolverParams
+from uavloc.errors import EstimatorError
+
+GM = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, gps_tau_s=60.0)
+GM_DD = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.5, b_per_m=0.01, gps_tau_s=30.0)
+#: fixed model (no bias selection, no noise-scale rounds): the solve is one smooth problem
+FIXED = SolverParams(estimate_bias=True, bias_select=False, estimate_noise_scale=False, track_clock=False)
+
+
+def test_gps_factor_zero_error_at_consistent_values_and_white_limit():
+    f = GpsFactor(np.array([1.0, 2.0, 30.0]), 1.5, 0.8, np.array([0.0, 1.0, 29.0]))
+    np.testing.assert_allclose(f.error(np.array([1.0, 2.0, 30.0]), np.array([0.0, 1.0, 29.0])), 0.0)
+    white = GpsFactor(np.array([1.0, 2.0, 30.0]), 1.5)
+    np.testing.assert_allclose(white.error(np.array([2.5, 2.0, 30.0])), [1.0, 0.0, 0.0])
+
+
+def test_gps_factor_jacobian_matches_central_differences():
+    f = GpsFactor(np.array([1.0, 2.0, 30.0]), 1.5, 0.7, np.array([0.5, 1.0, 29.0]))
+    x, xp = np.array([2.0, -1.0, 33.0]), np.array([0.0, 0.5, 31.0])
+    jx, jp = f.jacobian()
+    np.testing.assert_allclose(jx, numerical_jacobian(lambda v: f.error(v, xp), x), atol=1e-8)
+    np.testing.assert_allclose(jp, numerical_jacobian(lambda v: f.error(x, v), xp), atol=1e-8)
+
+
+@pytest.mark.parametrize("first", [True, False])
+def test_gps_chain_terms_equal_the_sum_of_factor_objects(first):
+    rng = np.random.default_rng(3)
+    n = 7
+    x, gps = rng.normal(size=(n, 3)) * 3, rng.normal(size=(n, 3)) * 3
+    t = np.cumsum(rng.uniform(0.2, 2.0, n))
+    phi = gps_phi(t, 5.0)
+    terms = gps_chain_terms(x, gps, phi, 1.3, first)
+    h = np.zeros((3 * n, 3 * n))
+    g = np.zeros(3 * n)
+    cost = 0.0
+    for i in range(n):
+        if i == 0 and not first:
+            continue
+        f = GpsFactor(gps[i], 1.3, float(phi[i]), gps[i - 1] if i else None)
+        e = f.error(x[i], x[i - 1] if i else None)
+        jx, jp = f.jacobian()
+        j = np.zeros((3, 3 * n))
+        j[:, 3 * i : 3 * i + 3] = jx
+        if i:
+            j[:, 3 * i - 3 : 3 * i] += jp
+        h += j.T @ j
+        g += j.T @ e
+        cost += 0.5 * e @ e
+    assert terms.cost == pytest.approx(cost, rel=1e-12)
+    np.testing.assert_allclose(terms.grad.ravel(), g, rtol=1e-12, atol=1e-12)
+    for i in range(n):
+        np.testing.assert_allclose(h[3 * i : 3 * i + 3, 3 * i : 3 * i + 3], terms.diag[i] * np.eye(3), rtol=1e-12)
+        if i < n - 1:
+            np.testing.assert_allclose(h[3 * i : 3 * i + 3, 3 * i + 3 : 3 * i + 6], terms.off[i] * np.eye(3),
+                                       rtol=1e-12, atol=1e-15)
+
+
+def test_gps_phi_white_and_links():
+    t = np.array([0.0, 1.0, 3.0, 3.0])
+    np.testing.assert_array_equal(gps_phi(t, 0.0), 0.0)
+    phi = gps_phi(t, 10.0)
+    assert phi[0] == 0.0
+    np.testing.assert_allclose(phi[1:3], np.exp(-np.array([1.0, 2.0]) / 10.0))
+    assert phi[3] < 1.0  # two fixes at the same time: floored q, finite weight
+
+
+@pytest.mark.parametrize("noise, scale, gain", [(GM, None, False), (GM_DD, np.array([1.0, 1.7, 2.5]), False),
+                                               (GM, np.array([1.2, 1.0, 1.0]), True)],
+                         ids=["gm", "gm-dd-scale", "gm-clock-gain"])
+def test_gm_bias_scale_solve_and_covariance_match_dense_reference(noise, scale, gain):
+    """At one linearization point: the Schur step and S⁻¹ against np.linalg on the dense normal
+    equations built from the factor objects (GPS chain, ranges with bias and noise scale, bias prior)."""
+    sc = simulate(np.random.default_rng(7), n_users=3, n_keyframes=30, noise=noise, gps_tau_s=noise.gps_tau_s,
+                  bias_m=np.array([0.0, 4.0, 2.0]), p_visible=0.8)
+    params = replace(FIXED, loss="huber")
+    prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, noise, params)
+    prob.noise_scale_k = scale
+    prob.bias_sigma_k = np.array([1e-3, 10.0, 10.0])
+    rng = np.random.default_rng(8)
+    if gain:
+        # user 1's bias is a clock sawtooth's amplitude: r̂ = d + b g, g = frac(t/P − φ)
+        prob.bias_gain = np.ones((30, 3))
+        prob.bias_gain[:, 1] = np.mod(prob.t_s / 7.0 + 0.2, 1.0)
+    x = sc.uav_enu_m + rng.normal(size=sc.uav_enu_m.shape) * 0.5
+    theta = np.column_stack([sc.users_enu_m[:, :2] + rng.normal(size=(3, 2)), [0.1, 3.0, 1.0]])
+    active = np.ones(3, dtype=bool)
+    lin = linearize(prob, x, theta, active)
+    assert lin.off is not None  # the Gauss–Markov links make the keyframe block tridiagonal
+    dx, du, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu)
+    h, g, cost = dense_normal_equations(prob, x, theta, active)
+    dz = np.linalg.solve(h, g)
+    assert lin.cost == pytest.approx(cost, rel=1e-12)
+    np.testing.assert_allclose(dx.ravel(), dz[: 3 * 30], rtol=1e-9, atol=1e-9 * np.abs(dz).max())
+    np.testing.assert_allclose(du, dz[3 * 30 :], rtol=1e-9, atol=1e-9 * np.abs(dz).max())
+    cov_ref = np.linalg.inv(h)[3 * 30 :, 3 * 30 :]
+    np.testing.assert_allclose(np.linalg.inv(s), cov_ref, rtol=1e-9, atol=1e-9 * np.abs(cov_ref).max())
+
+
+def test_batch_covariance_is_the_dense_inverse_at_its_linearization_point():
+    sc = simulate(np.random.default_rng(9), n_users=3, n_keyframes=40, noise=GM, gps_tau_s=60.0,
+                  bias_m=np.array([6.0, 0.0, 0.0]))
+    params = replace(FIXED, step_tol_m=1e-11, step_tol_uav_m=1e-11, step_tol_sigma=0.0)
+    est = solve_batch(sc.keyframes, 3, sc.user_up_m, GM, params)
+    prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, GM, params)
+    prob.nlos_prob_k = est.extra["nlos_prob_k"]
+    theta = np.column_stack([est.users_enu_m[:, :2], est.bias_m])
+    h, g, _ = dense_normal_equations(prob, est.uav_enu_m, theta, np.ones(3, dtype=bool))
+    assert np.abs(g).max() < 1e-6  # a stationary point
+    cov_ref = np.linalg.inv(h)[3 * 40 :, 3 * 40 :].reshape(3, 3, 3, 3)
+    for k in range(3):
+        np.testing.assert_allclose(est.cov_users_m2[k], cov_ref[k, :2, k, :2], rtol=1e-9)
+
+
+@pytest.mark.parametrize("noise", [GM, NoiseModel(gps_tau_s=None)], ids=["gm", "tau-unknown"])
+def test_online_equals_batch_with_gauss_markov_gps_when_nothing_is_marginalized(noise):
+    sc = simulate(np.random.default_rng(21), n_users=3, n_keyframes=60, noise=noise, gps_tau_s=60.0,
+                  bias_m=np.array([5.0, 0.0, 0.0]), p_visible=0.9)
+    tight = replace(FIXED, window=1000, step_tol_m=1e-10, step_tol_uav_m=1e-10, step_tol_sigma=0.0,
+                    online_step_tol_m=1e-10, online_resolve_every=1)
+    batch = solve_batch(sc.keyframes, 3, sc.user_up_m, noise, tight)
+    on = OnlineEstimator(3, sc.user_up_m, noise, tight)
+    for kf in sc.keyframes:
+        est = on.add_keyframe(kf)
+    np.testing.assert_allclose(est.users_enu_m, batch.users_enu_m, atol=1e-6)
+    np.testing.assert_allclose(est.uav_enu_m, batch.uav_enu_m, atol=1e-6)
+    np.testing.assert_allclose(est.bias_m, batch.bias_m, atol=1e-6)
+    np.testing.assert_allclose(est.cov_users_m2, batch.cov_users_m2, rtol=1e-5)
+
+
+def test_online_marginalization_with_gauss_markov_links_stays_close_to_batch():
+    """The link from the oldest keyframe to the next is folded into the prior, not lost: with a
+    window of 50 the online estimate stays near the batch one and keeps its (larger) covariance."""
+    sc = simulate(np.random.default_rng(22), n_users=3, n_keyframes=200, noise=GM, gps_tau_s=60.0)
+    params = SolverParams(window=50, estimate_bias=False, estimate_noise_scale=False)
+    batch = solve_batch(sc.keyframes, 3, sc.user_up_m, GM, params)
+    on = OnlineEstimator(3, sc.user_up_m, GM, params)
+    for kf in sc.keyframes:
+        est = on.add_keyframe(kf)
+        assert est.uav_enu_m.shape[0] <= params.window + params.online_resolve_every
+    sigma = np.sqrt(np.trace(batch.cov_users_m2, axis1=1, axis2=2))
+    assert np.all(np.linalg.norm(est.users_enu_m - batch.users_enu_m, axis=1) < 0.2 * sigma)
+    np.testing.assert_allclose(est.cov_users_m2, batch.cov_users_m2, rtol=0.1)
+    white = solve_batch(sc.keyframes, 3, sc.user_up_m, replace(GM, gps_tau_s=0.0), params)
+    assert np.all(np.trace(batch.cov_users_m2, axis1=1, axis2=2) > 1.5 * np.trace(white.cov_users_m2, axis1=1, axis2=2))
+
+
+def _nees(est, sc) -> np.ndarray:
+    d = est.users_enu_m[:, :2] - sc.users_enu_m[:, :2]
+    return np.einsum("ki,kij,kj->k", d, np.linalg.inv(est.cov_users_m2), d)
+
+
+def test_covariance_honest_on_drifting_gps_and_a_noisier_ue():
+    """Gauss–Markov GPS (τ 120 s) and one UE twice as noisy as assumed: mean NEES near 2 with the
+    model, far above it with the white model and no noise scale."""
+    nees, nees_white, scale = [], [], []
+    for seed in range(6):
+        sc = simulate(np.random.default_rng(300 + seed), n_users=3, n_keyframes=150, gps_tau_s=120.0, dt_s=0.4,
+                      noise_scale=np.array([1.0, 1.0, 2.0]))
+        est = solve_batch(sc.keyframes, 3, sc.user_up_m, NoiseModel(gps_tau_s=120.0))
+        nees.extend(_nees(est, sc))
+        scale.append(est.extra["noise_scale"][2])
+        plain = SolverParams(estimate_bias=False, estimate_noise_scale=False)
+        nees_white.extend(_nees(solve_batch(sc.keyframes, 3, sc.user_up_m, NoiseModel(), plain), sc))
+    assert 1.2 < np.mean(nees) < 3.5, np.mean(nees)
+    assert np.mean(nees_white) > 6.0, np.mean(nees_white)
+    assert 1.6 < np.mean(scale) < 2.4, scale
+
+
+def test_crlb_with_gauss_markov_gps_is_larger_and_needs_times():
+    sc = simulate(np.random.default_rng(2), n_users=2, n_keyframes=100)
+    t = np.arange(100) * 0.5
+    white = crlb_users(sc.uav_enu_m, sc.users_enu_m, sc.visible, NoiseModel(), SolverParams(estimate_bias=False), t)
+    gm = crlb_users(sc.uav_enu_m, sc.users_enu_m, sc.visible, GM, SolverParams(estimate_bias=False), t)
+    assert np.trace(gm) > 2.0 * np.trace(white)
+    with pytest.raises(EstimatorError, match="t_s"):
+        crlb_users(sc.uav_enu_m, sc.users_enu_m, sc.visible, GM, SolverParams(), t[:5])
+
+
+def test_gps_error_model_statistics():
+    err = gps_error_m(np.random.default_rng(1), 20000, 2.0, 50.0, 1.0)
+    assert np.std(err) == pytest.approx(2.0, rel=0.1)
+    lag1 = np.mean(err[1:] * err[:-1]) / np.mean(err * err)
+    assert lag1 == pytest.approx(np.exp(-1.0 / 50.0), abs=0.02)
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), True, "60"])
+def test_bad_gps_tau_rejected(bad):
+    with pytest.raises(EstimatorError, match="gps_tau_s"):
+        NoiseModel(gps_tau_s=bad)
+
+
+def test_noise_log_dict_round_trip_and_unknown_tau():
+    n = NoiseModel(sigma_gps_m=0.8, gps_tau_s=120.0)
+    assert NoiseModel.from_log_dict(n.to_log_dict()) == n
+    unknown = NoiseModel.from_log_dict({"sigma_gps_m": 1.0})
+    assert unknown.gps_tau_s is None and unknown.gps_tau_used_s > 0
+    with pytest.raises(EstimatorError, match="gps_tau_s"):
+        NoiseModel.from_log_dict({"gps_tau_s": "slow"})
+
+
+# --- UE clock sawtooth ----------------------------------------------------------------------------
+
+
+def test_fit_sawtooth_recovers_period_phase_and_drift():
+    from estimator.clock import SawtoothFit, fit_sawtooth
+
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.uniform(3.0, 163.0, 400))
+    truth = SawtoothFit(15.0, 0.3, 12.0, 0.0, 1.0)
+    fit = fit_sawtooth(t, truth.value_m(t) + 2.0 + rng.normal(scale=3.0, size=t.size))
+    assert fit is not None
+    assert fit.period_s == pytest.approx(15.0, rel=0.01)
+    assert fit.amplitude_m == pytest.approx(12.0, abs=1.5)
+    # the fitted sawtooth follows the true one (phase included) up to the noise
+    assert np.sqrt(np.mean((fit.value_m(t) + fit.offset_m - truth.value_m(t) - 2.0) ** 2)) < 1.0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_fit_sawtooth_rejects_white_noise(seed):
+    from estimator.clock import fit_sawtooth
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(400) * 0.4
+    assert fit_sawtooth(t, rng.normal(scale=3.0, size=t.size)) is None
+
+
+def test_batch_tracks_a_clock_sawtooth_and_stays_honest():
+    """Three UEs, one with a 12 m / 15 s sawtooth: the solver finds it, and that user ends near
+    the truth inside its bound; no sawtooth is invented for the others."""
+    sc = simulate(np.random.default_rng(61), n_users=3, n_keyframes=400, dt_s=0.4)
+    t = np.array([kf.t_s for kf in sc.keyframes])
+    saw = 12.0 * np.mod(t / 15.0 + 0.37, 1.0)
+    kfs = [replace(kf, range_m=kf.range_m + np.where(kf.user_idx == 1, saw[i], 0.0))
+           for i, kf in enumerate(sc.keyframes)]
+    est = solve_batch(kfs, 3, sc.user_up_m, NoiseModel())
+    clock = est.extra["clock"]
+    assert clock[0] is None and clock[2] is None
+    assert clock[1] is not None and clock[1].period_s == pytest.approx(15.0, rel=0.01)
+    nees = _nees(est, sc)
+    assert np.all(nees < 9.0), nees
+    assert np.linalg.norm(est.users_enu_m[1, :2] - sc.users_enu_m[1, :2]) < 1.5
+    plain = solve_batch(kfs, 3, sc.user_up_m, NoiseModel(), SolverParams(track_clock=False, estimate_bias=False))
+    assert np.linalg.norm(plain.users_enu_m[1, :2] - sc.users_enu_m[1, :2]) > 3.0
+
+
+def test_range_factor_with_a_clock_gain_jacobian_matches_central_differences():
+    from estimator.factors import RangeFactor
+
+    f = RangeFactor(95.0, GM_DD, 2, 1.5, True, bias_gain=0.37)
+    x, theta = np.array([10.0, -20.0, 35.0]), np.array([60.0, 40.0, 8.0])
+    jx, jt = f.jacobian(x, theta)
+    np.testing.assert_allclose(jx, numerical_jacobian(lambda v: f.error(v, theta), x)[0], atol=1e-8)
+    np.testing.assert_allclose(jt, numerical_jacobian(lambda v: f.error(x, v), theta)[0], atol=1e-8)
