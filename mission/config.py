@@ -158,14 +158,11 @@ class NoiseConfig:
     def noise_model(self) -> NoiseModel:
         """The estimator's :class:`NoiseModel`."""
         return NoiseModel(sigma_gps_m=self.sigma_gps_m, s0_m=self.range_s0_m, a_m=self.range_a_m,
-                          b_per_m=self.range_b_per_m)
+                          b_per_m=self.range_b_per_m, gps_tau_s=self.gps_tau_s)
 
     def header_noise(self) -> dict:
         """The mission log header's `noise` section (DESIGN.md §10), with `gps_tau_s` when known."""
-        out = self.noise_model().to_log_dict()
-        if self.gps_tau_s is not None:
-            out["gps_tau_s"] = self.gps_tau_s
-        return out
+        return self.noise_model().to_log_dict()
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,12 @@ way (DESIGN.md §11): :func:`user_entries` builds that list from plain arrays, a
     cov_en_m2, sigma_east_m, sigma_north_m         east-north covariance [m²] and its √diagonal [m]
     error_bound_95_m                               semi-major axis of the 95 % ellipse [m]
     measurements, ambiguous                        when known
-    bias_m                                         when range biases were estimated
+    bias_m                                         when range biases were estimated (mean range
+                                                   bias [m]; 0 where a user's bias was selected off)
+    clock_sawtooth                                 {period_s, amplitude_m} where a UE clock sawtooth
+                                                   was tracked (then bias_m is its mean, A/2)
+    noise_scale                                    when estimated: how much noisier than the assumed
+                                                   σ(d) this user's ranges were
     error_m, truth                                 when the truth is known (simulation)
 
 Floats are finite or None (JSON has no NaN). Pure: numpy and the origin's pymap3d conversion.
@@ -65,13 +70,17 @@ def user_entries(
     measurements: Sequence[int] | np.ndarray | None = None,
     ambiguous: Sequence[bool] | np.ndarray | None = None,
     bias_m: np.ndarray | None = None,
+    clock_sawtooth: Sequence[dict | None] | None = None,
+    noise_scale: np.ndarray | None = None,
     truth_enu_m: np.ndarray | None = None,
 ) -> list[dict]:
     """The per-user entries (module docstring) of K users.
 
     users_enu_m: (K, 3) ENU about `origin` [m] (NaN rows: not located), or None when nothing is
     estimated (then `origin` may be None too); cov_en_m2: (K, 2, 2) [m²] or None; measurements (K,),
-    ambiguous (K,), bias_m (K,), truth_enu_m (K, 3): optional, their keys appear when given.
+    ambiguous (K,), bias_m (K,), clock_sawtooth (K,) of dicts or None, noise_scale (K,),
+    truth_enu_m (K, 3): optional, their keys appear when given (bias and noise scale None where the
+    user is not located).
     """
     k_users = len(user_ids)
     users = (np.full((k_users, 3), np.nan) if users_enu_m is None or origin is None
@@ -104,8 +113,12 @@ def user_entries(
             entry["measurements"] = int(measurements[k])
         if ambiguous is not None:
             entry["ambiguous"] = bool(ambiguous[k])
+        if noise_scale is not None:
+            entry["noise_scale"] = finite_or_none(noise_scale[k]) if located[k] else None
         if bias_m is not None:
-            entry["bias_m"] = finite_or_none(bias_m[k])
+            entry["bias_m"] = finite_or_none(bias_m[k]) if located[k] else None
+        if clock_sawtooth is not None and clock_sawtooth[k] is not None and located[k]:
+            entry["clock_sawtooth"] = dict(clock_sawtooth[k])
         if err is not None and truth_enu_m is not None:
             entry["error_m"] = finite_or_none(err[k])
             t = np.asarray(truth_enu_m, dtype=float)[k]
@@ -123,9 +136,25 @@ def user_entries_of_estimate(estimate: Any, origin: Origin | None, user_ids: Seq
     if estimate is None:
         return user_entries(user_ids, origin, None, None, truth_enu_m=truth_enu_m)
     k = len(user_ids)
+    bias = None
+    clock_doc: list[dict | None] | None = None
+    if estimate.bias_m is not None:
+        bias = np.array(estimate.bias_m, dtype=float)
+        on = estimate.extra.get("bias_on")
+        clocks = estimate.extra.get("clock") or [None] * k
+        clock_doc = [None] * k
+        for j in range(k):
+            if clocks[j] is not None and np.isfinite(bias[j]):
+                # a tracked clock sawtooth: its amplitude is the estimated b; its mean A/2 the bias
+                clock_doc[j] = {"period_s": float(clocks[j].period_s), "amplitude_m": float(bias[j])}
+                bias[j] *= 0.5
+            elif on is not None and not on[j]:
+                bias[j] = 0.0  # selected off
+    scale = estimate.extra.get("noise_scale")
     return user_entries(
         user_ids, origin, estimate.users_enu_m,
         np.array([estimate.cov_en_m2(j) for j in range(k)]).reshape(k, 2, 2),
-        measurements=estimate.n_ranges, ambiguous=estimate.ambiguous, bias_m=estimate.bias_m,
+        measurements=estimate.n_ranges, ambiguous=estimate.ambiguous, bias_m=bias,
+        clock_sawtooth=clock_doc, noise_scale=None if scale is None else np.asarray(scale, dtype=float),
         truth_enu_m=truth_enu_m,
     )

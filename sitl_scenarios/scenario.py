@@ -208,7 +208,7 @@ class Scenario:
                 descent_mps=self.vehicle.descent_mps, leg_max_m=m.leg_max_m, acceptance_m=m.acceptance_m,
                 planner=m.planner),
             noise=mc.NoiseConfig(sigma_gps_m=n.sigma_gps_m, range_s0_m=n.s0_m, range_a_m=n.a_m,
-                                 range_b_per_m=n.b_per_m, estimate_bias=m.estimate_bias),
+                                 range_b_per_m=n.b_per_m, gps_tau_s=n.gps_tau_s, estimate_bias=m.estimate_bias),
             gnb=mc.GnbSettings(mu=self.radio.mu, fs_hz=self.radio.fs_hz),
             safety=mc.SafetyConfig(battery_rtl_pct=m.battery_rtl_pct,
                                    battery_takeoff_min_pct=max(mc.SafetyConfig.battery_takeoff_min_pct,
