@@ -6,11 +6,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import os
-import shutil
-import signal
-import subprocess
-import time
 import xml.etree.ElementTree as ET
 from dataclasses import replace
 from pathlib import Path
@@ -170,55 +165,9 @@ def test_report_of_a_replayed_log_exports_the_header_fence(tmp_path):
 # ---------------------------------------------------------------------------------------------
 # the real PX4 SITL takes the exported fence through MAVSDK's Geofence plugin
 
-#: the launcher: ../shared/px4-sitl/px4-sitl, or $UAVLOC_PX4_SITL (another copy of the bundle)
-PX4_SITL = Path(os.environ.get("UAVLOC_PX4_SITL")
-                or Path(__file__).resolve().parents[2] / "shared" / "px4-sitl" / "px4-sitl")
-PX4_INSTANCE = 9  # this engineer's instance: MAVSDK link on UDP 14540 + 9
-
-
-def _unusable_px4_command(bundle_bin: Path) -> Path | None:
-    """A PX4 module command (bin/px4-<module>, normally a symlink to px4) that cannot run: a copy
-    that flattened the symlinks into 3-byte files reading "px4" fails every `px4-param` call."""
-    for f in sorted(bundle_bin.glob("px4-*")):
-        if f.suffix != ".sh" and not os.access(f, os.X_OK):
-            return f
-    return None
-
-
-@pytest.fixture
-def px4_sitl(tmp_path):
-    if not PX4_SITL.is_file():
-        pytest.skip(f"PX4 SITL bundle not found at {PX4_SITL}")
-    broken = _unusable_px4_command(PX4_SITL.parent / "bin")
-    if broken is not None:
-        pytest.skip(f"PX4 SITL bundle at {PX4_SITL.parent} is unusable: {broken} is not executable (its "
-                    "symlinks to bin/px4 were copied as plain files); set UAVLOC_PX4_SITL to a working copy")
-    if shutil.which("bc") is None:
-        pytest.skip("PX4 SITL's start-up script needs bc (Debian package bc)")
-    out = open(tmp_path / "px4.log", "w+b")  # noqa: SIM115 - closed below
-    env = {**os.environ, "PX4_GCS_REMOTE_PORT": str(18570 + PX4_INSTANCE)}
-    proc = subprocess.Popen([str(PX4_SITL), "-i", str(PX4_INSTANCE), "-s", "4"], stdout=out,
-                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 120.0  # a generous bound for a loaded machine (not an assertion)
-        while b"Ready for takeoff" not in (tmp_path / "px4.log").read_bytes():
-            if proc.poll() is not None or time.monotonic() > deadline:
-                tail = (tmp_path / "px4.log").read_text(errors="replace")[-3000:]
-                pytest.fail(f"PX4 SITL did not get ready:\n{tail}")
-            time.sleep(0.5)
-        yield f"udpin://0.0.0.0:{14540 + PX4_INSTANCE}"
-    finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        out.close()
-
-
 @pytest.mark.px4
-def test_exported_plan_fence_uploads_to_px4_as_inclusion_and_exclusion_polygons(px4_sitl):
+def test_exported_plan_fence_uploads_to_px4_as_inclusion_and_exclusion_polygons(px4):
+    """The `px4` fixture (tests/conftest.py) starts a working copy of ../shared/px4-sitl."""
     from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
     from mavsdk.asyncio.plugins.geofence import GeofenceAsync
     from mavsdk.plugins.geofence.geofence import FenceType, GeofenceData, Point, Polygon
@@ -231,9 +180,9 @@ def test_exported_plan_fence_uploads_to_px4_as_inclusion_and_exclusion_polygons(
 
     async def run():
         async with Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION)) as m:
-            await m.add_any_connection(px4_sitl)
+            await m.add_any_connection(px4.api_url)
             system = await m.first_autopilot(timeout_s=30.0)
-            assert system is not None, "no autopilot on " + px4_sitl
+            assert system is not None, "no autopilot on " + px4.api_url
             fence = GeofenceAsync(system)
             await fence.upload_geofence(GeofenceData(polygons, []))
             return await fence.download_geofence()
