@@ -63,7 +63,9 @@ from uavloc.errors import (
     EstimatorError,
     GnbError,
     GnbNoMeasurementError,
+    GnbPreflightError,
     GnbProtocolError,
+    GnbUnknownCommandError,
     MissionError,
     PlannerError,
     SafetyError,
@@ -87,6 +89,9 @@ STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne
 #: PX4's default horizontal cruise speed (MPC_XY_CRUISE): what the vehicle flies when a speed
 #: command was refused, so the leg timeouts follow it then
 PX4_DEFAULT_CRUISE_MPS = 5.0
+
+#: consecutive measurement rounds answered with nothing but protocol errors that count as a lost gNB
+PROTOCOL_ERROR_STREAK = 3
 
 #: wall seconds the safe end may spend getting RTL accepted after an error
 SAFE_END_TIMEOUT_S = 60.0
@@ -149,13 +154,24 @@ class ControllerConfig:
     estimator_mode: str = "process"
 
     @classmethod
-    def from_scenario(cls, sc, **overrides) -> ControllerConfig:
-        m, v = sc.mission, sc.vehicle
-        kw = dict(delta_m=m.delta_m, altitude_m=m.altitude_m, target_radius_m=m.target_radius_m,
-                  budget_m=m.budget_m, time_limit_s=m.time_limit_s, acceptance_m=m.acceptance_m,
-                  speed_mps=v.speed_mps, climb_mps=v.climb_mps, descent_mps=v.descent_mps)
+    def from_mission(cls, mission, **overrides) -> ControllerConfig:
+        """From a :class:`mission.config.MissionConfig` (its flight, safety and gNB sections; the
+        per-measurement timeout is `mission.gnb.measure_timeout_s()`); overrides: any field."""
+        f, s = mission.flight, mission.safety
+        kw = dict(delta_m=f.delta_m, altitude_m=f.altitude_m, target_radius_m=f.target_radius_m,
+                  budget_m=f.budget_m, time_limit_s=f.time_limit_s, acceptance_m=f.acceptance_m,
+                  speed_mps=f.cruise_speed_mps, climb_mps=f.climb_mps, descent_mps=f.descent_mps,
+                  link_timeout_s=s.link_timeout_s, link_lost_wait_s=s.link_lost_wait_s,
+                  gnb_lost_wait_s=s.gnb_lost_wait_s, max_refusals=s.max_refusals,
+                  alt_margin_m=s.alt_margin_m, breach_confirm_fixes=s.breach_confirm_fixes,
+                  gnb_timeout_s=mission.gnb.measure_timeout_s())
         kw.update(overrides)
         return cls(**kw)
+
+    @classmethod
+    def from_scenario(cls, sc, **overrides) -> ControllerConfig:
+        """A simulation scenario's: `from_mission(sc.mission_config())`."""
+        return cls.from_mission(sc.mission_config(), **overrides)
 
 
 @dataclass
@@ -187,7 +203,17 @@ class MissionResult:
 
     @property
     def ok(self) -> bool:
-        return self.status in (STATUS_TARGET, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED)
+        """The mission ended normally and located every user (else the command exits non-zero)."""
+        return self.status in (STATUS_TARGET, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED) and not self.not_located()
+
+    def not_located(self) -> list[str]:
+        """Ids of the users without a position estimate, or with one a mirror position explains as
+        well (ambiguous)."""
+        est = self.estimate
+        if est is None:
+            return list(self.user_ids)
+        return [u for k, u in enumerate(self.user_ids)
+                if not np.all(np.isfinite(est.users_enu_m[k])) or bool(est.ambiguous[k])]
 
     def error_m(self) -> np.ndarray | None:
         """(K,) horizontal error of each user [m] when truth is known."""
@@ -383,8 +409,10 @@ class MissionController:
     header_config: the header's `config` section (scenario, planner, …).
     """
 
-    def __init__(self, vehicle: Vehicle, gnb: GnbClient, planner: Planner, users: list[MissionUser],
-                 noise: NoiseModel, limits: SafetyLimits, config: ControllerConfig, log_path: str | Path,
+    def __init__(self, vehicle: Vehicle, gnb: GnbClient, planner: Planner | Callable[[Origin], Planner],
+                 users: list[MissionUser], noise: NoiseModel,
+                 limits: SafetyLimits | Callable[[Origin], SafetyLimits], config: ControllerConfig,
+                 log_path: str | Path,
                  params: SolverParams | None = None, truth: Callable[[Origin], np.ndarray] | None = None,
                  header_config: dict | None = None, radio: dict | None = None):
         if not users:
@@ -396,7 +424,10 @@ class MissionController:
         self.noise = noise
         self.config = config
         self.params = params or SolverParams(delta_m=config.delta_m)
-        self.gate = SafetyGate(limits)
+        # a planner or limits given as a function of home are built once home is known (PREFLIGHT)
+        self._planner_at = None if hasattr(planner, "plan") else planner
+        self._limits_at = None if isinstance(limits, SafetyLimits) else limits
+        self.gate: SafetyGate | None = None if self._limits_at is not None else SafetyGate(limits)
         self._truth = truth
         self.truth_enu_m: np.ndarray | None = None
         self.header_config = header_config or {}
@@ -425,6 +456,8 @@ class MissionController:
         self._link_lost_since: float | None = None
         self._gnb_down_since: float | None = None
         self._gnb_failures = 0
+        self._gnb_problem: str | None = None  # why the gNB is lost, in its own words (status line)
+        self._protocol_streak = 0  # consecutive measurement rounds with nothing but protocol errors
         self._rtl_sent = False
         self._landed = False
         self._gated: GatedVehicle | None = None
@@ -568,12 +601,22 @@ class MissionController:
         """One trigger: measure every user, log the rtt records, queue one keyframe."""
         samples = []
         gnb_failed: str | None = None
+        protocol_errors: list[str] = []
         for k, u in enumerate(self.users):
             t_req = time.monotonic()
             try:
                 async with asyncio.timeout(self.config.gnb_timeout_s):
                     s = await self.gnb.measure(u.rnti)
-            except (GnbNoMeasurementError, GnbProtocolError) as exc:
+            except GnbUnknownCommandError as exc:
+                # the measurement command is gone (module not loaded, gNB restarted without it)
+                gnb_failed = " ".join(str(exc).split())
+                break
+            except GnbProtocolError as exc:
+                self._user_misses[k] += 1
+                protocol_errors.append(f"{u.id}: {' '.join(str(exc).split())}")
+                log.debug("unreadable answer for %s: %s", u.id, exc)
+                continue
+            except GnbNoMeasurementError as exc:
                 self._user_misses[k] += 1
                 log.debug("no measurement for %s: %s", u.id, exc)
                 continue
@@ -586,8 +629,14 @@ class MissionController:
             t_mono = s.t_mono_s if (s.t_mono_s and math.isfinite(s.t_mono_s)) else 0.5 * (t_req + time.monotonic())
             samples.append((k, s, t_mono))
         now = self.now()
+        # answers nobody can read, trigger after trigger, are a lost gNB too
+        self._protocol_streak = self._protocol_streak + 1 if protocol_errors and not samples else 0
+        if gnb_failed is None and self._protocol_streak >= PROTOCOL_ERROR_STREAK:
+            gnb_failed = (f"{self._protocol_streak} measurement rounds in a row answered with protocol errors, "
+                          f"last: {protocol_errors[-1]}")
         if gnb_failed is not None:
             self._gnb_failures += 1
+            self._gnb_problem = gnb_failed
             if self._gnb_down_since is None:
                 self._gnb_down_since = now
                 log.warning("gNB lost: %s", gnb_failed)
@@ -596,6 +645,7 @@ class MissionController:
             self._event(f"gNB restored after {now - self._gnb_down_since:.1f} s", kind="gnb_restored")
             log.info("gNB restored")
             self._gnb_down_since = None
+            self._gnb_problem = None
         if not samples:
             return
         # placing the trigger on the track waits for the next fix: hand it to the placer task so
@@ -675,7 +725,7 @@ class MissionController:
             if reason:
                 self.request_return(reason)
             if self._gnb_down_since is not None and now - self._gnb_down_since > cfg.gnb_lost_wait_s:
-                self.request_return(f"gNB lost for more than {cfg.gnb_lost_wait_s:g} s")
+                self.request_return(f"gNB lost for more than {cfg.gnb_lost_wait_s:g} s: {self._gnb_problem}")
             if now > cfg.time_limit_s:
                 self.request_return(f"mission time limit {cfg.time_limit_s:g} s reached")
 
@@ -687,6 +737,10 @@ class MissionController:
     def status_line(self) -> str:
         """State, metres flown, measurements and each user's estimate and 95 % bound."""
         parts = [f"{self.state:<9} t={self.now():6.1f} s  flown {self.flown_m:6.1f} m  {self.measurements} meas"]
+        if self._gnb_down_since is not None:
+            left = self.config.gnb_lost_wait_s - (self.now() - self._gnb_down_since)
+            then = f"; home in {left:.0f} s" if self.state in (TAKEOFF, SURVEY) and left > 0 else ""
+            parts.append(f"gNB LOST: {self._gnb_problem}{then}")
         est = self.estimate
         if est is not None:
             bound = est.error_bound_95_m()
@@ -845,17 +899,14 @@ class MissionController:
         self._set_state(PREFLIGHT)
         home = await self.vehicle.wait_ready(cfg.ready_timeout_s)
         self.origin = Origin(home.lat_deg, home.lon_deg, home.alt_amsl_m)
+        if self._planner_at is not None:
+            self.planner = self._planner_at(self.origin)
+        if self._limits_at is not None:
+            self.gate = SafetyGate(self._limits_at(self.origin))
         self._gated = GatedVehicle(self.vehicle, self.gate, self.origin, self._event, self._pos_enu_smoothed)
         self._open_log()
         self._event(f"home {home.lat_deg:.7f}, {home.lon_deg:.7f}, {home.alt_amsl_m:.1f} m AMSL", kind="home")
-        try:
-            async with asyncio.timeout(cfg.gnb_timeout_s * 5):
-                rntis = await self.gnb.discover()
-        except TimeoutError as exc:
-            raise GnbError("gNB UE discovery timed out") from exc
-        missing = [u.id for u in self.users if u.rnti not in set(rntis)]
-        self._event(f"gNB reports {len(rntis)} UE(s)" + (f"; not connected: {', '.join(missing)}" if missing else ""),
-                    kind="discover", rntis=[f"{r:04x}" for r in rntis])
+        await self._preflight_gnb()
         for coro, name in ((self._estimator_task(), "estimator"), (self._trigger_task(), "trigger"),
                            (self._placer_task(), "placer"),
                            (self._safety_task(), "safety"), (self._status_task(), "status"),
@@ -885,6 +936,28 @@ class MissionController:
         if self._stop_status is not None:
             return self._stop_status
         return STATUS_RETURNED, "survey ended"
+
+    async def _preflight_gnb(self) -> None:
+        """No take-off unless every configured user is among the gNB's UEs and answers one
+        measurement (passive stock mode: is among them; its random accesses come when they come).
+        The event and the error say which RNTIs the gNB has and what it answered."""
+        from mission.probe import probe_gnb
+
+        rntis = [u.rnti for u in self.users]
+        passive = getattr(getattr(self.gnb, "config", None), "stock_mode", None) == "passive" and (
+            getattr(self.gnb.config, "mode", None) == "stock")
+        try:
+            async with asyncio.timeout(self.config.gnb_timeout_s * (2 + len(rntis))):
+                probe = await probe_gnb(self.gnb, rntis=rntis, count=1)
+        except TimeoutError as exc:
+            raise GnbPreflightError(f"not taking off: the gNB did not finish the preflight probe within "
+                                    f"{self.config.gnb_timeout_s * (2 + len(rntis)):g} s") from exc
+        have = probe.gnb_rntis or []
+        ok = probe.ok or (passive and probe.gnb_rntis is not None and all(r in have for r in rntis))
+        self._event(probe.message(), kind="preflight_gnb", ok=ok, rntis=[f"{r:04x}" for r in have],
+                    probe=probe.to_dict())
+        if not ok:
+            raise GnbPreflightError(f"not taking off: {probe.message()}")
 
     async def _takeoff(self) -> None:
         cfg = self.config
@@ -1076,28 +1149,62 @@ def resolve_planner_name(name: str) -> str:
     return name
 
 
+def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path: str | Path, *,
+                            planner: str | None = None, seed: int = 0, time_scale: float = 1.0,
+                            truth: Callable[[Origin], np.ndarray] | None = None,
+                            header_config: dict | None = None, params: SolverParams | None = None,
+                            constraints: Callable[[Origin], Any] | None = None,
+                            **overrides: Any) -> MissionController:
+    """A :class:`MissionController` flying a :class:`mission.config.MissionConfig` (a mission file).
+
+    planner: planner name (default: the mission's `flight.planner`); seed: planner seed;
+    time_scale: simulator speedup; truth: simulation only (see MissionController); constraints:
+    home -> PlanningConstraints (default `mission.planning_constraints(home)`); overrides:
+    ControllerConfig fields. Geodetic polygons of the mission file become home-ENU once the
+    vehicle's home is known (the planner and the safety limits are built then).
+    """
+    from planner import make_planner
+
+    name = resolve_planner_name(planner or mission.flight.planner)
+    noise = mission.noise_model()
+    make_constraints = constraints or mission.planning_constraints
+
+    def planner_at(home: Origin) -> Planner:
+        return make_planner(name, make_constraints(home), noise, rng_seed=seed)
+
+    def limits_at(home: Origin) -> SafetyLimits:
+        return SafetyLimits.from_mission(mission, home)
+
+    g = mission.geofence
+    if not (g.polygon_lat_lon_deg or g.no_fly_lat_lon_deg):
+        # ENU polygons do not depend on home: build now (a caller may wrap the planner before run)
+        here = Origin(0.0, 0.0, 0.0)
+        planner_obj, limits = planner_at(here), limits_at(here)
+    else:
+        planner_obj, limits = planner_at, limits_at
+    config = ControllerConfig.from_mission(mission, time_scale=time_scale, **overrides)
+    users = [MissionUser(u.id, u.rnti, u.ground_height_m) for u in mission.users]
+    cfg = {"mission": mission.name, "planner": name, "seed": seed, **(header_config or {})}
+    radio = {"mu": mission.gnb.mu, "fs_hz": mission.gnb.fs_hz}
+    if params is None:
+        params = SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
+                              bias_prior_sigma_m=mission.noise.bias_prior_sigma_m)
+    return MissionController(vehicle, gnb, planner_obj, users, noise, limits, config, log_path,
+                             params=params, truth=truth, header_config=cfg, radio=radio)
+
+
 def controller_from_scenario(scenario, vehicle: Vehicle, gnb: GnbClient, log_path: str | Path, *,
                              planner: str | None = None, seed: int | None = None, time_scale: float = 1.0,
                              truth: Callable[[Origin], np.ndarray] | None = None,
                              header_config: dict | None = None, params: SolverParams | None = None,
                              **overrides: Any) -> MissionController:
-    """A :class:`MissionController` for a scenario (positions are offsets from the vehicle's home).
+    """A :class:`MissionController` for a simulation scenario: its mission
+    (`scenario.mission_config()`) flown by :func:`controller_from_mission`, with the planning
+    constraints that also keep clear of the scenario's buildings. seed: default the scenario's."""
+    from planner import PlanningConstraints
 
-    planner: planner name (default: the scenario's `mission.planner`); seed: planner seed (default
-    the scenario's); time_scale: simulator speedup; overrides: ControllerConfig fields.
-    """
-    from planner import PlanningConstraints, make_planner
-
-    name = resolve_planner_name(planner or scenario.mission.planner)
-    seed = scenario.seed if seed is None else seed
-    noise = scenario.noise_model()
-    constraints = PlanningConstraints.from_scenario(scenario)
-    planner_obj = make_planner(name, constraints, noise, rng_seed=seed)
-    config = ControllerConfig.from_scenario(scenario, time_scale=time_scale, **overrides)
-    users = [MissionUser(u.id, u.rnti, u.up_m) for u in scenario.users]
-    cfg = {"scenario": scenario.name, "planner": name, "seed": seed, **(header_config or {})}
-    radio = {"mu": scenario.radio.mu, "fs_hz": scenario.radio.fs_hz}
-    if params is None:
-        params = SolverParams(delta_m=scenario.mission.delta_m, estimate_bias=scenario.mission.estimate_bias)
-    return MissionController(vehicle, gnb, planner_obj, users, noise, SafetyLimits.from_scenario(scenario),
-                             config, log_path, params=params, truth=truth, header_config=cfg, radio=radio)
+    return controller_from_mission(
+        scenario.mission_config(), vehicle, gnb, log_path, planner=planner,
+        seed=scenario.seed if seed is None else seed, time_scale=time_scale, truth=truth,
+        header_config={"scenario": scenario.name, **(header_config or {})}, params=params,
+        constraints=lambda home: PlanningConstraints.from_scenario(scenario), **overrides)
