@@ -168,7 +168,7 @@ def test_the_reader_sees_the_imports_it_must():
     assert "mission.report.inputs" in ours["mission.report.exports"]
     assert "sitl_scenarios.scenario" in ours["planner.types"]  # under TYPE_CHECKING
     assert {"numpy", "pymap3d"} <= others["estimator.geodesy"]
-    assert "asyncio" in others["mission.controller"]
+    assert "asyncio" in others["mission.control.flight"]
 
 
 def test_every_import_goes_down_the_layers(graph):
