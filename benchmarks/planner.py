@@ -178,8 +178,9 @@ def run(sc: Scenario, planner_name: str, **planner_opts) -> Run:
     flown, since_kf, estimate = 0.0, sc.mission.delta_m, None
     pending = list(TARGETS_M)
     while pending and flown < CAP_M:
+        t0 = time.perf_counter()
         res = planner.plan(PlanningState(x, estimate, flown))
-        out.plan_times_s.append(res.solve_time_s)
+        out.plan_times_s.append(time.perf_counter() - t0)
         if res.done:
             out.end = res.reason
             break

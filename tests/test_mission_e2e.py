@@ -24,9 +24,9 @@ import pytest
 from mission.controller import STATUS_RETURNED, STATUS_TARGET
 from mission.log import read_mission_log
 from mission.safety import point_in_polygon, point_on_boundary
-from mission.sim_runner import SimulatedMission
 from planner.types import PlanResult
 from sitl_scenarios.scenario import load_scenario
+from sitl_scenarios.sim_runner import SimulatedMission
 
 SPEEDUP = 20.0
 REPO = Path(__file__).resolve().parents[1]
@@ -286,8 +286,8 @@ def test_uavloc_fly_with_an_external_vehicle_and_gnb(tmp_path):
     the simulated gNB (its own event loop in a thread) stand in for the Pixhawk and the OAI gNB."""
     import threading
 
-    from mission.sim_runner import free_udp_port
     from sitl_scenarios.gnb import SimulatedGnb
+    from sitl_scenarios.sim_runner import free_udp_port
     from sitl_scenarios.vehicle import VehicleSimulator
 
     sc = load_scenario("paper")

@@ -13,8 +13,8 @@ import pytest
 from mission.cli import main
 from mission.controller import STATUS_ABORTED, STATUS_RETURNED
 from mission.log import read_mission_log
-from mission.sim_runner import SimulatedMission
 from sitl_scenarios.scenario import load_scenario
+from sitl_scenarios.sim_runner import SimulatedMission
 from uavloc.errors import GnbPreflightError
 
 SPEEDUP = 20.0

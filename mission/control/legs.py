@@ -9,6 +9,7 @@ but RTL is sent afterwards.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import time
@@ -63,7 +64,10 @@ class SurveyLegs:
         await ctl.pipeline.drain(10.0)
         state = PlanningState(uav_enu_m=pos, estimate=ctl.flight.estimate, flown_m=ctl.flight.flown_m,
                               energy_remaining_m=self.energy_remaining_m())
-        return await asyncio.to_thread(ctl.planner.plan, state)
+        t0 = time.perf_counter()
+        plan = await asyncio.to_thread(ctl.planner.plan, state)
+        # the planner's compute time, for the log (the planner itself has no clock)
+        return dataclasses.replace(plan, solve_time_s=time.perf_counter() - t0)
 
     async def survey(self) -> None:
         ctl, cfg, f = self.ctl, self.ctl.config, self.ctl.flight
