@@ -28,6 +28,9 @@ from planner.types import PlanResult
 from sitl_scenarios.scenario import load_scenario
 from sitl_scenarios.sim_runner import SimulatedMission
 
+#: whole missions on the built-in vehicle and the simulated gNB (in the default run and in CI)
+pytestmark = pytest.mark.sim
+
 SPEEDUP = 20.0
 REPO = Path(__file__).resolve().parents[1]
 
