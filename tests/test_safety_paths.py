@@ -173,3 +173,18 @@ def test_the_planner_is_given_the_energy_the_battery_drain_allows(tmp_path):
         assert 0.0 < s.energy_remaining_m < upper_m, (s.flown_m, s.energy_remaining_m)
     # and it shrinks as the battery drains
     assert known[-1].energy_remaining_m < known[0].energy_remaining_m
+
+
+@pytest.mark.sim
+def test_no_take_off_below_the_take_off_battery_minimum(tmp_path):
+    sc = load_scenario("paper")
+    sc = replace(sc, vehicle=replace(sc.vehicle, battery_start_pct=40.0))  # the mission asks for >= 50 %
+    log_path = tmp_path / "mission.jsonl"
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower") as sim:
+            return await sim.run(), sim.vehicle_sim.state()
+
+    result, final = _run(fly())
+    assert result.status == "aborted" and "battery_takeoff_min_pct 50 %" in result.reason, result.reason
+    assert not final.armed and "arm" not in [e.get("kind") for e in read_mission_log(log_path).events]

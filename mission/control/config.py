@@ -60,7 +60,8 @@ class ControllerConfig:
     noisy fix near the fence is not a breach, mission.safety.BreachWatch);
     position_smooth_s (mission): the position a waypoint's leg is checked from is the mean of
     the fixes over this long (the vehicle hovers when a leg is planned);
-    estimator_mode: "process" (estimator in a child process) or "thread" (see EstimatorWorker).
+    estimator_mode: "process" (estimator in a child process) or "thread" (see EstimatorWorker);
+    battery_takeoff_min_pct: no take-off below this charge [%].
     """
 
     delta_m: float = 2.0
@@ -86,6 +87,7 @@ class ControllerConfig:
     breach_confirm_fixes: int = 3
     position_smooth_s: float = 1.0
     estimator_mode: str = "process"
+    battery_takeoff_min_pct: float = 0.0
 
     @classmethod
     def from_mission(cls, mission, **overrides) -> ControllerConfig:
@@ -98,7 +100,8 @@ class ControllerConfig:
                   link_timeout_s=s.link_timeout_s, link_lost_wait_s=s.link_lost_wait_s,
                   gnb_lost_wait_s=s.gnb_lost_wait_s, max_refusals=s.max_refusals,
                   alt_margin_m=s.alt_margin_m, breach_confirm_fixes=s.breach_confirm_fixes,
-                  gnb_timeout_s=mission.gnb.measure_timeout_s())
+                  gnb_timeout_s=mission.gnb.measure_timeout_s(),
+                  battery_takeoff_min_pct=s.battery_takeoff_min_pct)
         kw.update(overrides)
         return cls(**kw)
 

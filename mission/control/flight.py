@@ -74,7 +74,14 @@ from mission.telemetry import TelemetryBuffer, VehicleClock
 from mission.vehicle import PositionFix, Vehicle
 from planner.stop import targets_reached
 from planner.types import Planner
-from uavloc.errors import EstimatorError, GnbPreflightError, MissionError, UavlocError, VehicleError
+from uavloc.errors import (
+    EstimatorError,
+    GnbPreflightError,
+    MissionError,
+    SafetyError,
+    UavlocError,
+    VehicleError,
+)
 
 log = logging.getLogger(__name__)
 
@@ -214,6 +221,7 @@ class MissionController:
         f.set_phase(PREFLIGHT)
         self._at_home(await self.vehicle.wait_ready(cfg.ready_timeout_s))
         await self._preflight_gnb()
+        self._preflight_battery()
         safety = SafetyMonitor(f, cfg, self.gate, self.vehicle.state, self._buffer.latest, self.now)
         for coro, name in ((self._estimator_task(), "estimator"), (self.pipeline.run_trigger(), "trigger"),
                            (self.pipeline.run_placer(), "placer"), (safety.run(), "safety"),
@@ -278,6 +286,14 @@ class MissionController:
                            probe=probe.to_dict())
         if not ok:
             raise GnbPreflightError(f"not taking off: {probe.message()}")
+
+    def _preflight_battery(self) -> None:
+        """No take-off below battery_takeoff_min_pct (when the vehicle reports its charge)."""
+        pct, floor = self.vehicle.state.battery_pct, self.config.battery_takeoff_min_pct
+        if pct is None:
+            self.journal.event("battery charge unknown before take-off", kind="battery_unknown")
+        elif pct < floor:
+            raise SafetyError(f"not taking off: battery at {pct:g} % is below battery_takeoff_min_pct {floor:g} %")
 
     # -- background tasks -----------------------------------------------------------------------
 
