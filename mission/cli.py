@@ -33,6 +33,7 @@ COMMANDS = {
     "calibrate": "mission.commands.calibrate",
     "import": "mission.commands.importer",
     "gnb": "mission.commands.gnb",
+    "view": "mission.commands.view",
 }
 
 #: the entry-point group other packages add subcommands through

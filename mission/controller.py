@@ -91,6 +91,7 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
                             truth: Callable[[Origin], np.ndarray] | None = None,
                             header_config: dict | None = None, params: SolverParams | None = None,
                             constraints: Callable[[Origin], Any] | None = None,
+                            buildings: Callable[[Origin], list] | None = None,
                             **overrides: Any) -> MissionController:
     """A :class:`MissionController` flying a :class:`mission.config.MissionConfig` (a mission file).
 
@@ -127,21 +128,20 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
         params = SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
                               bias_prior_sigma_m=mission.noise.bias_prior_sigma_m)
     return MissionController(vehicle, gnb, planner_obj, users, noise, limits, config, log_path,
-                             params=params, truth=truth, header_config=cfg, radio=radio)
+                             params=params, truth=truth, header_config=cfg, radio=radio, buildings=buildings)
 
 
 def controller_from_scenario(scenario, vehicle: Vehicle, gnb: GnbClient, log_path: str | Path, *,
                              planner: str | None = None, seed: int | None = None, time_scale: float = 1.0,
                              truth: Callable[[Origin], np.ndarray] | None = None,
                              header_config: dict | None = None, params: SolverParams | None = None,
+                             buildings: Callable[[Origin], list] | None = None,
                              **overrides: Any) -> MissionController:
     """A :class:`MissionController` for a simulation scenario: its mission
     (`scenario.mission_config()`) flown by :func:`controller_from_mission`, with the planning
     constraints that also keep clear of the scenario's buildings. seed: default the scenario's."""
-    from planner import PlanningConstraints
-
     return controller_from_mission(
         scenario.mission_config(), vehicle, gnb, log_path, planner=planner,
         seed=scenario.seed if seed is None else seed, time_scale=time_scale, truth=truth,
         header_config={"scenario": scenario.name, **(header_config or {})}, params=params,
-        constraints=lambda home: PlanningConstraints.from_scenario(scenario), **overrides)
+        constraints=lambda home: scenario.planning_constraints(), buildings=buildings, **overrides)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -39,11 +39,20 @@ class MissionLogWriter:
 
     Every record is one line, written and flushed at once. NaN or infinite numbers are refused
     (JSON has none) with a :class:`MissionLogError`, and nothing is written for that record.
+
+    Listeners (:meth:`subscribe`, e.g. the live view) get each record as written (a dict of plain
+    JSON types) right after its line is flushed; they must be quick and not raise: an exception in
+    a listener is logged and the listener dropped, the mission log goes on.
     """
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self._fh: TextIO | None = None
+        self._listeners: list[Callable[[dict], None]] = []
+
+    def subscribe(self, listener: Callable[[dict], None]) -> None:
+        """Call `listener(record)` with every record written from now on."""
+        self._listeners.append(listener)
 
     def __enter__(self) -> MissionLogWriter:
         self.open()
@@ -69,12 +78,19 @@ class MissionLogWriter:
         if record_type not in RECORD_TYPES:
             raise MissionLogError(f"unknown record type {record_type!r}; known: {', '.join(RECORD_TYPES)}")
         obj = {"type": record_type, "t": round(float(t_s), 6), **fields}
+        plain = _plain(obj)
         try:
-            line = json.dumps(_plain(obj), allow_nan=False, separators=(",", ":"))
+            line = json.dumps(plain, allow_nan=False, separators=(",", ":"))
         except ValueError as exc:
             raise MissionLogError(f"{record_type} record has a NaN or infinite number: {obj!r}") from exc
         self._fh.write(line + "\n")
         self._fh.flush()
+        for listener in list(self._listeners):
+            try:
+                listener(plain)
+            except Exception:
+                log.exception("mission log listener %r failed; it gets no more records", listener)
+                self._listeners.remove(listener)
         return obj
 
     def write_header(
@@ -85,8 +101,10 @@ class MissionLogWriter:
         noise: NoiseModel | None = None,
         config: dict | None = None,
         start_utc: str | None = None,
+        area: dict | None = None,
     ) -> dict:
-        """Write the header line: users as [{"id", "rnti", "ground_alt_m"}], radio {"mu", "fs_hz"}."""
+        """Write the header line: users as [{"id", "rnti", "ground_alt_m"}], radio {"mu", "fs_hz"};
+        `area`: the optional geofence / no-fly / altitude-band / buildings fields (:func:`area_fields`)."""
         fields: dict[str, Any] = {
             "format": FORMAT,
             "start_utc": start_utc or datetime.now(UTC).isoformat(timespec="milliseconds"),
@@ -98,7 +116,41 @@ class MissionLogWriter:
             fields["noise"] = noise.to_log_dict()
         if config is not None:
             fields["config"] = config
+        if area:
+            fields.update(area)
         return self.write("header", 0.0, **fields)
+
+
+def _ring_lat_lon(origin: Origin, ring_en_m) -> list[list[float]]:
+    """(P, 2) east/north ring [m] → [[lat_deg, lon_deg], ...] (open ring, as given)."""
+    ring = np.asarray(ring_en_m, float).reshape(-1, 2)
+    lat, lon, _ = origin.enu_to_lla(np.column_stack([ring, np.zeros(len(ring))]))
+    return [[round(float(a), 9), round(float(b), 9)] for a, b in zip(np.atleast_1d(lat), np.atleast_1d(lon),
+                                                                       strict=True)]
+
+
+def area_fields(origin: Origin, fence_en_m=None, no_fly_en_m=(), alt_min_m: float | None = None,
+                alt_max_m: float | None = None, max_distance_m: float | None = None,
+                buildings: list | None = None) -> dict:
+    """The header's optional area fields from shapes in the ENU frame of `origin`:
+
+    `geofence` [[lat_deg, lon_deg], ...] (open ring) from fence_en_m (P, 2); `no_fly_zones` a list
+    of such rings; `altitude_band_m` {"min_m", "max_m"} above home; `max_distance_m` from home;
+    `buildings` [{"footprint": ring, "height_m"}] from (footprint (Q, 2), height_m) pairs
+    (simulations). Absent inputs give absent fields.
+    """
+    out: dict[str, Any] = {}
+    if fence_en_m is not None and len(fence_en_m):
+        out["geofence"] = _ring_lat_lon(origin, fence_en_m)
+    if no_fly_en_m is not None and len(no_fly_en_m):
+        out["no_fly_zones"] = [_ring_lat_lon(origin, z) for z in no_fly_en_m]
+    if alt_min_m is not None and alt_max_m is not None:
+        out["altitude_band_m"] = {"min_m": float(alt_min_m), "max_m": float(alt_max_m)}
+    if max_distance_m is not None:
+        out["max_distance_m"] = float(max_distance_m)
+    if buildings:
+        out["buildings"] = [{"footprint": _ring_lat_lon(origin, fp), "height_m": float(h)} for fp, h in buildings]
+    return out
 
 
 def _plain(obj: Any) -> Any:
@@ -135,6 +187,14 @@ class LogHeader:
     noise: NoiseModel
     has_noise: bool
     config: dict
+    #: optional area fields (DESIGN.md §10 header; absent in older logs): geofence and each no-fly
+    #: zone as open rings [[lat_deg, lon_deg], ...]; altitude band {"min_m", "max_m"} above home;
+    #: max distance from home [m]; buildings [{"footprint": ring, "height_m"}] (simulations)
+    geofence: list[list[float]] | None = None
+    no_fly_zones: list[list[list[float]]] = field(default_factory=list)
+    altitude_band_m: dict | None = None
+    max_distance_m: float | None = None
+    buildings: list[dict] = field(default_factory=list)
 
     def user_index(self) -> dict[str, int]:
         return {u.id: i for i, u in enumerate(self.users)}
@@ -253,7 +313,53 @@ def _parse_header(obj: dict) -> LogHeader:
     if not isinstance(start, str):
         raise _LineError(f"start_utc must be a string, got {start!r}")
     return LogHeader(start, Origin(lat, lon, alt), users, mu, fs, noise, noise_d is not None,
-                     config if isinstance(config, dict) else {"value": config})
+                     config if isinstance(config, dict) else {"value": config}, **_parse_area(obj))
+
+
+def _ring(v: Any, what: str) -> list[list[float]]:
+    if not isinstance(v, list) or len(v) < 3:
+        raise _LineError(f"{what} must be a list of >= 3 [lat_deg, lon_deg] points, got {v!r}")
+    out = []
+    for i, p in enumerate(v):
+        if not isinstance(p, list) or len(p) != 2:
+            raise _LineError(f"{what}[{i}] must be [lat_deg, lon_deg], got {p!r}")
+        try:
+            out.append([_num({"lat_deg": p[0]}, "lat_deg", -90, 90), _num({"lon_deg": p[1]}, "lon_deg", -180, 180)])
+        except _LineError as exc:
+            raise _LineError(f"{what}[{i}]: {exc}") from None
+    return out
+
+
+def _parse_area(obj: dict) -> dict:
+    """The header's optional area fields, checked (see LogHeader)."""
+    out: dict[str, Any] = {}
+    if "geofence" in obj:
+        out["geofence"] = _ring(obj["geofence"], "geofence")
+    zones = obj.get("no_fly_zones", [])
+    if not isinstance(zones, list):
+        raise _LineError(f"no_fly_zones must be a list of rings, got {zones!r}")
+    out["no_fly_zones"] = [_ring(z, f"no_fly_zones[{i}]") for i, z in enumerate(zones)]
+    if "altitude_band_m" in obj:
+        band = _table(obj, "altitude_band_m")
+        lo, hi = _num(band, "min_m", -1000, 100_000), _num(band, "max_m", -1000, 100_000)
+        if lo > hi:
+            raise _LineError(f"altitude_band_m min_m {lo} is above max_m {hi}")
+        out["altitude_band_m"] = {"min_m": lo, "max_m": hi}
+    if "max_distance_m" in obj:
+        out["max_distance_m"] = _num(obj, "max_distance_m", 0.0, 1e7)
+    blds = obj.get("buildings", [])
+    if not isinstance(blds, list):
+        raise _LineError(f"buildings must be a list, got {blds!r}")
+    out["buildings"] = []
+    for i, b in enumerate(blds):
+        if not isinstance(b, dict):
+            raise _LineError(f"buildings[{i}] must be an object, got {b!r}")
+        try:
+            h = _num(b, "height_m", 0.0, 10_000)
+        except _LineError as exc:
+            raise _LineError(f"buildings[{i}]: {exc}") from None
+        out["buildings"].append({"footprint": _ring(b.get("footprint"), f"buildings[{i}].footprint"), "height_m": h})
+    return out
 
 
 def _rtt_toa(obj: dict, header: LogHeader) -> tuple[float, dict]:

@@ -5,7 +5,8 @@ over the native `mavsdk.asyncio` binding, for PX4 (real or SITL) and for the bui
 alike. Every call has a timeout; every plugin error is turned into a :class:`VehicleCommandError`
 carrying MAVSDK's result code, right where the call is made (the MAVSDK-Python examples' style).
 
-Telemetry (position, home, battery, armed, flight mode, landed state, health, link) flows into one
+Telemetry (position, home, battery, armed, flight mode, landed state, health, status texts, link)
+flows into one
 :class:`VehicleState` owned by the adapter, while :meth:`Vehicle.run_telemetry` runs.
 """
 
@@ -19,7 +20,7 @@ import math
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from uavloc.errors import VehicleError
@@ -75,6 +76,8 @@ class VehicleState:
     home_position_ok: bool = False
     last_rx_mono_s: float = 0.0
     vel_ned_mps: tuple[float, float, float] | None = None
+    #: the autopilot's status texts (MAVLink STATUSTEXT) as (t_mono_s, severity name, text)
+    texts: list[tuple[float, str, str]] = field(default_factory=list)
 
     def age_s(self, now_mono_s: float | None = None) -> float:
         """Wall seconds since anything was last received (inf before the first message)."""
@@ -310,6 +313,9 @@ class MavsdkVehicle:
         def on_mode(m) -> None:
             st.flight_mode = _enum_name(m)
 
+        def on_text(t) -> None:
+            st.texts.append((time.monotonic(), _enum_name(t.type), str(t.text).strip()))
+
         def on_landed(s) -> None:
             st.landed_state = _enum_name(s)
 
@@ -347,6 +353,7 @@ class MavsdkVehicle:
             tg.create_task(follow(tel.subscribe_armed(), on_armed))
             tg.create_task(follow(tel.subscribe_flight_mode(), on_mode))
             tg.create_task(follow(tel.subscribe_landed_state(), on_landed))
+            tg.create_task(follow(tel.subscribe_status_text(), on_text))
             tg.create_task(follow_link())
 
     # -- commands -------------------------------------------------------------------------------

@@ -109,6 +109,17 @@ class SimulatedMission:
         lat, lon, alt = self.scenario.origin_geo.enu_to_lla(users)
         return home.lla_to_enu(lat, lon, alt)
 
+    def _buildings(self, home: Origin) -> list:
+        """The scenario's buildings in the controller's frame (ENU from the vehicle's home)."""
+        out = []
+        for b in self.scenario.buildings:
+            fp = np.asarray(b.footprint_enu_m, float)
+            if self.connect is None:  # the built-in vehicle's world is the scenario's origin
+                lat, lon, alt = self.scenario.origin_geo.enu_to_lla(np.column_stack([fp, np.zeros(len(fp))]))
+                fp = home.lla_to_enu(lat, lon, alt)[:, :2]
+            out.append((fp, b.height_m))
+        return out
+
     # -- lifecycle ------------------------------------------------------------------------------
 
     async def __aenter__(self) -> SimulatedMission:
@@ -140,7 +151,7 @@ class SimulatedMission:
             overrides.setdefault("gnb_timeout_s", 3.0 * self.gnb_request_timeout_s + 0.5)
             self.controller = controller_from_scenario(
                 self.scenario, self.vehicle, self.gnb_client, self.log_path, planner=self.planner,
-                seed=self.seed, time_scale=self.speedup, truth=self._truth,
+                seed=self.seed, time_scale=self.speedup, truth=self._truth, buildings=self._buildings,
                 header_config={"command": "sim", "speedup": self.speedup, "connect": self.connect},
                 **overrides)
         except BaseException:

@@ -181,10 +181,8 @@ def test_imported_vtol_flight_localizes_the_users(tmp_path):
 
 
 def test_replay_of_the_imported_vtol_flight(tmp_path):
-    try:
-        from mission.replay import ReplayOptions, replay
-    except ImportError as exc:  # replay is being written in parallel
-        pytest.skip(f"mission.replay not importable yet: {exc}")
+    from mission.replay import ReplayOptions, replay
+
     path = VTOL
     track = read_tlog_gps(path)
     origin = Origin(*track.home_lla)

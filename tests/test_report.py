@@ -5,7 +5,6 @@ from __future__ import annotations
 import base64
 import json
 import re
-import time
 
 import numpy as np
 import pytest
@@ -135,8 +134,11 @@ def test_bad_figure_name_is_an_error(tmp_path):
 
 
 @pytest.mark.slow
-def test_report_of_5000_keyframes_is_fast(tmp_path):
+def test_report_of_5000_keyframes_is_complete(tmp_path):
+    """A long mission's report has every figure and every keyframe counted. How fast it is written
+    is measured by `python benchmarks/replay_report.py` (5 000 keyframes), not asserted here."""
     inp = make_inputs(n_kf=5000)
-    t0 = time.perf_counter()
-    write_report(inp, tmp_path)
-    assert time.perf_counter() - t0 < 20.0
+    paths = write_report(inp, tmp_path)
+    doc = json.loads(paths["report.json"].read_text())
+    assert doc["keyframes"] == 5000 and doc["measurements"] == len(inp.meas_range_m)
+    assert set(doc["figures"]) == set(FIGURES) and all(paths[name].stat().st_size > 0 for name in FIGURES)

@@ -4,7 +4,6 @@ and the same faults scheduled from a scenario's `[[faults.vehicle]]`."""
 from __future__ import annotations
 
 import asyncio
-import time
 
 import pytest
 from mavsdk.asyncio.plugins.param import ParamAsync
@@ -17,29 +16,27 @@ from uavloc.errors import ScenarioError
 
 
 def test_link_pause_disconnects_then_reconnects() -> None:
-    """MAVSDK declares the link lost after ~3 wall seconds without heartbeats, and back when they
-    resume; meanwhile the vehicle keeps flying (here: sitting) on its own."""
+    """MAVSDK declares the link lost while the vehicle is silent (its timeout is about 3 wall
+    seconds; the pause lasts 6), and back only once the heartbeats resume; meanwhile the vehicle
+    keeps flying (here: sitting) on its own. Checked by the order of events, not by how long each
+    took (a loaded machine delays them all)."""
     speedup = 4.0
 
-    async def run() -> tuple[float, float]:
+    async def run() -> None:
         async with vehicle_link("builtin", speedup=speedup) as link:
             states = link.system.is_connected_state()
             assert await link.system.is_connected()
-            t0 = time.monotonic()
+            t_pause_s = link.sim.state().t_s
             link.sim.pause_link(6.0 * speedup)  # 6 wall seconds
             assert not link.sim.state().link_up
-            await first(states, lambda c: c is False, 8.0)
-            lost_after = time.monotonic() - t0
-            await first(states, lambda c: c is True, 10.0)
-            back_after = time.monotonic() - t0
-            assert link.sim.state().link_up
+            await first(states, lambda c: c is False, 30.0)
+            await first(states, lambda c: c is True, 30.0)
+            state = link.sim.state()
+            assert state.link_up and state.t_s >= t_pause_s + 6.0 * speedup  # only after the pause
             # telemetry flows again
-            await first(link.telemetry.subscribe_position(), lambda p: True, 3.0)
-            return lost_after, back_after
+            await first(link.telemetry.subscribe_position(), lambda p: True, 10.0)
 
-    lost_after, back_after = asyncio.run(run())
-    assert 2.0 < lost_after < 6.0
-    assert 5.5 < back_after < 9.0
+    asyncio.run(run())
 
 
 def test_gps_loss_shows_in_health_and_fix_then_recovers() -> None:

@@ -1,5 +1,5 @@
-"""The built-in vehicle as MAVSDK (mavsdk.asyncio, native binding) sees it, and the same flight
-against a real PX4 SITL when PX4_SITL_URL is set (e.g. `udpin://0.0.0.0:14540`).
+"""The built-in vehicle as MAVSDK (mavsdk.asyncio, native binding) sees it. Real PX4 SITL is flown
+by tests/test_px4_*.py (marker `px4`), started by their fixture.
 
 Loopback only; each test uses its own UDP port so parallel runs do not collide.
 """
@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-import os
 import socket
 import statistics
 import time
@@ -27,13 +26,11 @@ from estimator.geodesy import Origin
 from sitl_scenarios.scenario import VehicleConfig
 from sitl_scenarios.vehicle import VehicleSimulator
 
-PX4_URL = os.environ.get("PX4_SITL_URL")
-PX4_SPEEDUP = float(os.environ.get("PX4_SITL_SPEEDUP", "1"))
 ORIGIN = Origin(43.6143, 7.0716, 150.0)
 SPEEDUP = 25.0
 ACCEPTANCE_M = 2.0
 
-TARGETS = ["builtin", pytest.param("px4", marks=pytest.mark.px4)]
+TARGETS = ["builtin"]
 
 
 def free_udp_port() -> int:
@@ -57,18 +54,13 @@ class Link:
 
 @contextlib.asynccontextmanager
 async def vehicle_link(kind: str, speedup: float = SPEEDUP, **sim_kwargs) -> AsyncIterator[Link]:
-    """MAVSDK connected to the built-in vehicle (started here) or to PX4 SITL at PX4_SITL_URL."""
-    sim = None
-    if kind == "px4":
-        if not PX4_URL:
-            pytest.skip("PX4_SITL_URL not set (e.g. udpin://0.0.0.0:14540)")
-        url, speedup = PX4_URL, PX4_SPEEDUP
-    else:
-        port = free_udp_port()
-        url = f"udpin://127.0.0.1:{port}"
-        sim_kwargs.setdefault("seed", 7)
-        sim = VehicleSimulator(ORIGIN, sim_kwargs.pop("vehicle", VehicleConfig()), speedup=speedup,
-                               target=("127.0.0.1", port), bind=("127.0.0.1", 0), **sim_kwargs)
+    """MAVSDK connected to the built-in vehicle (started here)."""
+    assert kind == "builtin", kind
+    port = free_udp_port()
+    url = f"udpin://127.0.0.1:{port}"
+    sim_kwargs.setdefault("seed", 7)
+    sim = VehicleSimulator(ORIGIN, sim_kwargs.pop("vehicle", VehicleConfig()), speedup=speedup,
+                           target=("127.0.0.1", port), bind=("127.0.0.1", 0), **sim_kwargs)
     mav = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
     try:
         if sim is not None:
@@ -168,10 +160,9 @@ def test_mavsdk_flies_takeoff_goto_rtl(kind: str) -> None:
         async with vehicle_link(kind) as link:
             return await fly_goto_rtl(link)
 
-    timings = asyncio.run(run())
-    if kind == "builtin":
-        # at 25x the whole flight (about 2 minutes of vehicle time) takes seconds
-        assert timings["landed_s"] < 30.0, timings
+    # fly_goto_rtl checks each phase; how long the flight takes on the wall clock is measured by
+    # `python benchmarks/vehicle.py`, not asserted here
+    asyncio.run(run())
 
 
 def test_takeoff_refused_when_disarmed() -> None:

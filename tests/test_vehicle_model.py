@@ -342,3 +342,49 @@ def test_euler_to_quaternion_table(rpy: tuple, q: tuple) -> None:
     from sitl_scenarios.vehicle import _quaternion
 
     assert _quaternion(*rpy) == pytest.approx(q, abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("speedup", "heartbeats", "attitudes"),
+    [
+        (8.0, 16, 50),  # heartbeat 1 Hz vehicle time = 8 Hz wall; ATTITUDE 10 Hz x 8 capped at 25 Hz
+        (0.5, 2, 10),  # heartbeat 0.5 Hz wall raised to 1 Hz wall; ATTITUDE 10 Hz x 0.5 = 5 Hz
+    ],
+)
+def test_stream_schedule_rates_follow_vehicle_time_with_wall_caps(
+    speedup: float, heartbeats: int, attitudes: int
+) -> None:
+    """Two wall seconds of 10 ms ticks on a synthetic clock: streams are timed in vehicle time,
+    capped at 25 Hz on the wire, the heartbeat at least once per wall second."""
+    from collections import Counter
+
+    from sitl_scenarios.vehicle.streams import StreamSchedule
+
+    sched = StreamSchedule(speedup, max_wall_hz=25.0)
+    sent = Counter(m for k in range(200) for m in sched.due(k * 0.01))
+    assert sent[mavlink.MAVLINK_MSG_ID_HEARTBEAT] == heartbeats
+    assert sent[mavlink.MAVLINK_MSG_ID_ATTITUDE] == attitudes
+    assert sent[mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION] == 0  # only on request
+
+
+def test_stream_schedule_set_interval_stop_and_default() -> None:
+    """SET_MESSAGE_INTERVAL semantics (vehicle time): a positive interval [µs] is kept on the
+    synthetic clock, -1 stops the stream, 0 restores the default; unknown messages are refused."""
+    from sitl_scenarios.vehicle.mav import ACCEPTED, UNSUPPORTED
+    from sitl_scenarios.vehicle.streams import DEFAULT_INTERVALS_S, StreamSchedule
+
+    bat = mavlink.MAVLINK_MSG_ID_BATTERY_STATUS
+    sched = StreamSchedule(1.0, max_wall_hz=25.0)
+
+    def count(t0_s: float) -> int:
+        return sum(bat in sched.due(t0_s + k * 0.01) for k in range(100))  # one wall second
+
+    assert sched.set_interval(bat, 100_000) == ACCEPTED and sched.interval_us(bat) == 100_000
+    assert count(0.0) == 10
+    assert sched.set_interval(bat, -1) == ACCEPTED and sched.interval_us(bat) == -1
+    assert count(1.0) == 0
+    assert sched.set_interval(bat, 0) == ACCEPTED
+    assert sched.intervals_s[bat] == DEFAULT_INTERVALS_S[bat] == 1.0
+    assert count(2.0) == 1
+    assert sched.set_interval(31337, 100_000) == UNSUPPORTED
+    assert sched.set_interval(bat, math.nan) == UNSUPPORTED

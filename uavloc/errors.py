@@ -90,3 +90,7 @@ class ScenarioError(UavlocError):
 
 class SimulatorError(UavlocError):
     """The built-in vehicle or gNB simulator failed."""
+
+
+class CampaignError(UavlocError):
+    """A campaign spec that does not follow the schema (unknown key, bad value), or results that cannot be used."""

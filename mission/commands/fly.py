@@ -10,6 +10,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from mission.view.live import add_view_arguments
+
 log = logging.getLogger(__name__)
 
 HELP = "fly a localization mission with a MAVLink vehicle (PX4) and an OAI gNB"
@@ -32,6 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gnb-mode", choices=("rtt", "stock"), help="override the mission's gnb.mode")
     p.add_argument("--gnb-log", type=Path, metavar="FILE", help="override the mission's gnb.log_path (stock mode)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    add_view_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -44,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     from mission.gnb import OaiGnbClient, parse_host_port
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
+    from mission.view.live import live_view
 
     if args.mission is not None:
         mission = load_mission(args.mission)
@@ -79,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
                 mission, vehicle, gnb, log_path, planner=args.planner,
                 header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb})
             held["controller"] = controller
-            return await controller.run()
+            async with live_view(args, controller.log_writer, title="uavloc fly"):
+                return await controller.run()
 
     interrupted = False
     try:

@@ -68,7 +68,7 @@ from mission.control.pipeline import MeasurementPipeline
 from mission.control.safety_monitor import SafetyMonitor
 from mission.control.state import FlightState
 from mission.gnb import GnbClient
-from mission.log import MissionLogWriter
+from mission.log import MissionLogWriter, area_fields
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.telemetry import TelemetryBuffer, VehicleClock
 from mission.vehicle import PositionFix, Vehicle
@@ -94,7 +94,9 @@ class MissionController:
     home -> Planner; users: the users to locate; noise/params: the estimator's model and settings;
     limits: the safety gate's limits (home ENU frame), or home -> SafetyLimits; log_path: the
     mission log; truth: simulation only: home -> (K, 3) true user positions in the home ENU frame
-    [m] (the `truth` record); header_config: the header's `config` section; radio: its `radio`.
+    [m] (the `truth` record); header_config: the header's `config` section; radio: its `radio`;
+    buildings: simulation only: home -> [(footprint (Q, 2) [m, ENU from home], height_m)] for the
+    header's `buildings` (the live view and the exports draw them).
     """
 
     def __init__(self, vehicle: Vehicle, gnb: GnbClient, planner: Planner | Callable[[Origin], Planner],
@@ -102,7 +104,8 @@ class MissionController:
                  limits: SafetyLimits | Callable[[Origin], SafetyLimits], config: ControllerConfig,
                  log_path: str | Path, params: SolverParams | None = None,
                  truth: Callable[[Origin], np.ndarray] | None = None,
-                 header_config: dict | None = None, radio: dict | None = None):
+                 header_config: dict | None = None, radio: dict | None = None,
+                 buildings: Callable[[Origin], list] | None = None):
         if not users:
             raise MissionError("a mission needs at least one user")
         self.vehicle, self.gnb = vehicle, gnb
@@ -115,6 +118,7 @@ class MissionController:
         self._limits_at = None if isinstance(limits, SafetyLimits) else limits
         self.gate: SafetyGate | None = None if self._limits_at is not None else SafetyGate(limits)
         self._truth = truth
+        self._buildings = buildings
         self.truth_enu_m: np.ndarray | None = None
         self.header_config = header_config or {}
         self.radio = radio or {}
@@ -136,8 +140,14 @@ class MissionController:
         self.loop_lag = LoopLagMonitor()
         self.result: MissionResult | None = None  # set when the mission ends (also when cancelled)
         self._rtl_sent = self._landed = self._rtl_gave_up = False
+        self._autopilot_landing = False  # RTL not sent: the autopilot was already landing on its own
 
     # -- what the flight knows, for callers and tests --------------------------------------------
+
+    @property
+    def log_writer(self) -> MissionLogWriter:
+        """The mission log's writer; the live view subscribes to its records."""
+        return self.journal.writer
 
     @property
     def state(self) -> str:
@@ -258,7 +268,10 @@ class MissionController:
         cfg = dict(self.header_config)
         cfg.setdefault("controller", asdict(self.config))
         cfg.setdefault("solver", asdict(self.params))
-        self.journal.open(self.origin, self.radio, self.noise, cfg, self._start_utc)
+        lim = self.gate.limits
+        area = area_fields(self.origin, lim.fence_enu_m, lim.no_fly_enu_m, lim.alt_min_m, lim.alt_max_m,
+                           lim.max_distance_m, self._buildings(self.origin) if self._buildings else None)
+        self.journal.open(self.origin, self.radio, self.noise, cfg, self._start_utc, area=area)
         if self._truth is not None:
             self.truth_enu_m = np.asarray(self._truth(self.origin), float).reshape(len(self.users), 3)
             self.journal.truth(self.origin, self.truth_enu_m)
@@ -304,7 +317,7 @@ class MissionController:
 
         def on_estimate(est: Estimate) -> None:
             f.estimate = est
-            self.journal.estimate(self.origin, est, len(self.pipeline.keyframes))
+            self.journal.estimate(self.origin, est, len(self.pipeline.keyframes), f.flown_m)
             if f.phase == SURVEY and targets_reached(est, self.config.target_radius_m):
                 f.finish_survey(STATUS_TARGET, "target reached")
 
@@ -335,6 +348,12 @@ class MissionController:
         attempt = 0
         while True:
             attempt += 1
+            if self.vehicle.state.flight_mode == "LAND":
+                # the autopilot's own failsafe is landing the vehicle (PX4 after a GPS loss): that is
+                # a safe command already, and RTL would be refused without a position
+                self._autopilot_landing = True
+                self.journal.event(f"RTL not sent: the autopilot is already landing ({reason})", kind="autopilot_land")
+                return True
             try:
                 await self._gated.return_to_launch()
             except VehicleError as exc:
@@ -424,7 +443,7 @@ class MissionController:
                 self.journal.event(f"final batch estimate failed: {exc}", kind="estimator_error")
         if est is not None and self.journal.is_open:
             self.flight.estimate = est
-            self.journal.estimate(self.origin, est, len(keyframes), final=True)
+            self.journal.estimate(self.origin, est, len(keyframes), self.flight.flown_m, final=True)
         self.journal.event(f"mission end: {status} ({reason})", kind="end", status=status)
         self.journal.close()
         self.result = MissionResult(

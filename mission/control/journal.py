@@ -45,11 +45,13 @@ class MissionJournal:
         else:
             self._pending.append((t, rec))
 
-    def open(self, origin: Origin, radio: dict, noise: NoiseModel, config: dict, start_utc: str) -> None:
-        """The header (origin = home), then the events so far."""
+    def open(self, origin: Origin, radio: dict, noise: NoiseModel, config: dict, start_utc: str,
+             area: dict | None = None) -> None:
+        """The header (origin = home; area: its geofence / no-fly / altitude-band / buildings
+        fields, mission.log.area_fields), then the events so far."""
         users = [{"id": u.id, "rnti": u.rnti, "ground_alt_m": origin.alt_m + u.up_m} for u in self.users]
         self.writer.open()
-        self.writer.write_header(origin, users, radio, noise=noise, config=config, start_utc=start_utc)
+        self.writer.write_header(origin, users, radio, noise=noise, config=config, start_utc=start_utc, area=area)
         for t, rec in self._pending:
             self.writer.write("event", t, **rec)
         self._pending.clear()
@@ -61,8 +63,9 @@ class MissionJournal:
             {"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]), "alt_m": float(alt[k])}
             for k, u in enumerate(self.users)])
 
-    def estimate(self, origin: Origin, est: Estimate, keyframes: int, final: bool = False) -> None:
-        """An `estimate` record of the located users."""
+    def estimate(self, origin: Origin, est: Estimate, keyframes: int, flown_m: float, final: bool = False) -> None:
+        """An `estimate` record of the located users (with their ambiguity), the metres flown and
+        the corrected UAV track (the live view's estimated track): the newest keyframe, all at the end."""
         if not self.is_open:
             return
         lat, lon, alt = origin.enu_to_lla(est.users_enu_m)
@@ -72,9 +75,15 @@ class MissionJournal:
             if not (np.all(np.isfinite(est.users_enu_m[k])) and np.all(np.isfinite(cov))):
                 continue
             users.append({"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]),
-                          "alt_m": float(alt[k]), "cov_en_m2": cov.tolist()})
-        extra = {"final": True} if final else {}
-        self.writer.write("estimate", self.now(), users=users, keyframes=keyframes, **extra)
+                          "alt_m": float(alt[k]), "cov_en_m2": cov.tolist(), "ambiguous": bool(est.ambiguous[k])})
+        extra: dict[str, Any] = {"final": True} if final else {}
+        uav = np.asarray(est.uav_enu_m, float).reshape(-1, 3)
+        uav = uav[np.all(np.isfinite(uav), axis=1)]
+        if len(uav):
+            ulat, ulon, ualt = (np.atleast_1d(a) for a in origin.enu_to_lla(uav if final else uav[-1:]))
+            extra["uav_lla"] = np.round(np.column_stack([ulat, ulon, ualt]), 8).tolist()
+        self.writer.write("estimate", self.now(), users=users, keyframes=keyframes, flown_m=round(flown_m, 2),
+                          **extra)
 
     def close(self) -> None:
         self.writer.close()

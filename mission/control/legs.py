@@ -75,6 +75,11 @@ class SurveyLegs:
         refusals = 0
         leg = 0
         while not f.ending:
+            # while the vehicle link is lost, wait (the safety monitor returns home after
+            # link_lost_wait_s) rather than plan from a stale fix and command into the void
+            await self.wait_link()
+            if f.ending:
+                break
             pos = ctl.pos_enu()
             try:
                 plan = await self.plan(pos)

@@ -22,6 +22,12 @@ from mission.control.config import SURVEY, TAKEOFF, ControllerConfig
 from mission.control.state import FlightState
 from mission.safety import BreachWatch, SafetyGate
 
+#: flight modes an autopilot switches to on its own failsafe (PX4: GPS/position loss → LAND, low
+#: battery or data-link loss → RETURN_TO_LAUNCH); the controller never commands LAND
+AUTOPILOT_FAILSAFE_MODES = ("LAND", "RETURN_TO_LAUNCH")
+#: STATUSTEXT severities copied into the mission log as `vehicle_text` events
+LOGGED_TEXT_SEVERITIES = ("WARNING", "ERROR", "CRITICAL", "ALERT", "EMERGENCY")
+
 #: survey metres and battery percent used below which the drain is not yet known
 ENERGY_MIN_FLOWN_M = 50.0
 ENERGY_MIN_USED_PCT = 1.0
@@ -32,7 +38,9 @@ class SafetyView:
     """The mission now, as the safety monitor sees it. Times in mission seconds.
 
     now_s; phase; link_lost_since_s / gnb_down_since_s (None: fine); gnb_problem: the gNB's words;
-    battery_pct (None: unknown); breach: the position limit a confirmed breach broke (None: none).
+    battery_pct (None: unknown); breach: the position limit a confirmed breach broke (None: none);
+    position_lost: the vehicle reports no valid global position; flight_mode: the autopilot's mode
+    (None while the link is lost); vehicle_text: its last warning (PX4's failsafe message).
     """
 
     now_s: float
@@ -42,12 +50,20 @@ class SafetyView:
     gnb_problem: str | None = None
     battery_pct: float | None = None
     breach: str | None = None
+    position_lost: bool = False
+    flight_mode: str | None = None
+    vehicle_text: str | None = None
 
 
 def return_reason(view: SafetyView, cfg: ControllerConfig, gate: SafetyGate) -> str | None:
     """Why the vehicle must return home now, or None. Pure. Only while taking off or surveying."""
     if view.phase not in (TAKEOFF, SURVEY):
         return None
+    if view.position_lost:
+        return "the vehicle lost its global position (GPS)"
+    if view.flight_mode in AUTOPILOT_FAILSAFE_MODES:
+        said = f": {view.vehicle_text}" if view.vehicle_text else ""
+        return f"the autopilot switched to {view.flight_mode} on its own (failsafe{said})"
     if view.link_lost_since_s is not None and view.now_s - view.link_lost_since_s > cfg.link_lost_wait_s:
         return f"vehicle link lost for more than {cfg.link_lost_wait_s:g} s"
     reason = gate.return_reason(None, view.battery_pct) or view.breach
@@ -90,6 +106,19 @@ class SafetyMonitor:
         self.latest_fix, self.now = latest_fix, now
         self.period_s = period_s
         self.breach = BreachWatch(gate, cfg.breach_confirm_fixes)
+        self.texts_logged = 0  # vehicle status texts looked at so far
+        self.last_text: str | None = None
+        self.position_lost = False  # the vehicle reports no valid global position (GPS/estimator)
+
+    def _vehicle_texts(self) -> None:
+        """Copy the vehicle's new warnings and worse (PX4's failsafe messages) into the log."""
+        texts = getattr(self.vehicle_state, "texts", ())
+        while self.texts_logged < len(texts):
+            _, severity, text = texts[self.texts_logged]
+            self.texts_logged += 1
+            if severity in LOGGED_TEXT_SEVERITIES and text:
+                self.last_text = text
+                self.flight.event(f"vehicle {severity.lower()}: {text}", kind="vehicle_text", severity=severity)
 
     def step(self) -> str | None:
         """One look at the mission; the return reason it gave (also requested), or None."""
@@ -97,6 +126,13 @@ class SafetyMonitor:
         now = self.now()
         lost = (not st.connected) or st.age_s() > cfg.link_timeout_s
         f.link(now, lost)
+        self._vehicle_texts()
+        position_ok = bool(getattr(st, "global_position_ok", True))
+        if not lost and position_ok == self.position_lost:
+            self.position_lost = not position_ok
+            f.event("vehicle global position lost (GPS or estimator)" if self.position_lost
+                    else "vehicle global position restored",
+                    kind="position_lost" if self.position_lost else "position_restored")
         breach = None
         latest = None if lost else self.latest_fix()
         if latest is not None and f.phase in (TAKEOFF, SURVEY):
@@ -104,7 +140,8 @@ class SafetyMonitor:
                                         alt_margin_m=cfg.alt_margin_m)
         view = SafetyView(now_s=now, phase=f.phase, link_lost_since_s=f.link_lost_since,
                           gnb_down_since_s=f.gnb_down_since, gnb_problem=f.gnb_problem,
-                          battery_pct=st.battery_pct, breach=breach)
+                          battery_pct=st.battery_pct, breach=breach, position_lost=self.position_lost,
+                          flight_mode=None if lost else getattr(st, "flight_mode", None), vehicle_text=self.last_text)
         reason = return_reason(view, cfg, self.gate)
         if reason:
             f.request_return(reason)

@@ -7,6 +7,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from mission.view.live import add_view_arguments
+
 log = logging.getLogger(__name__)
 
 HELP = "fly a simulated mission (built-in vehicle or PX4 SITL, simulated gNB) and print where the users are"
@@ -26,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", metavar="URL",
                    help="fly a running PX4 SITL instead (e.g. udpin://0.0.0.0:14540); the simulated gNB "
                         "follows it and scenario positions are offsets from its home")
+    add_view_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -33,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
     import tempfile
 
     from mission.status import print_result, write_report
+    from mission.view.live import live_view
     from sitl_scenarios.scenario import load_scenario
     from sitl_scenarios.sim_runner import SimulatedMission
     from uavloc.errors import MissionError
@@ -60,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
         async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
                                     planner=args.planner, connect=args.connect) as sim:
             held["sim"] = sim
-            return await sim.run()
+            async with live_view(args, sim.controller.log_writer, title=f"uavloc sim {scenario.name}"):
+                return await sim.run()
 
     interrupted = False
     try:

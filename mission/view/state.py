@@ -1,0 +1,363 @@
+"""What the live view shows, as a pure model fed with mission-log records (DESIGN.md §10).
+
+:class:`ViewState` takes the records a :class:`mission.log.MissionLogWriter` writes (live, as a
+listener) or a recorded log holds (`uavloc view LOG`), one by one, and keeps what the page draws in
+the ENU frame of the header's origin (east, north, up; metres):
+
+- static: geofence, no-fly zones, buildings, altitude band, max distance, the users, and the true
+  users (simulation only);
+- the GPS track (telemetry) and the estimated track (the estimator's corrected keyframes);
+- the vehicle, the next waypoint and the leg to it;
+- each user's estimate with its 95 % ellipse, σ, ambiguity flag and measurement count;
+- mission state, metres flown, measurements, keyframes, the events (RTL reasons, gNB lost, ...).
+
+:meth:`ViewState.frame` turns it into a JSON-able document. Long series (tracks, events) are sent
+incrementally: a frame carries only what a client's :class:`Cursor` has not seen, so a client
+that skipped frames still ends with the whole picture. No I/O, no clock, no asyncio.
+
+95 % ellipse of a user with east-north covariance Σ (2×2), eigenpairs (λ₁ ≤ λ₂, v₁, v₂):
+
+    semi-axes a = √(χ²₂(0.95)·λ₂), b = √(χ²₂(0.95)·λ₁), major axis along v₂
+
+so `a` is the same r95 as :meth:`estimator.types.Estimate.error_bound_95_m` and the JSON result's
+`error_bound_95_m`.
+"""
+
+from __future__ import annotations
+
+import bisect
+import copy
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pymap3d
+
+from estimator.geodesy import Origin
+from estimator.types import CHI2_2DOF_95
+from mission.telemetry import Odometer
+
+_WGS84 = pymap3d.Ellipsoid.from_name("wgs84")
+
+#: metres flown without a `flown_m` field in the log: odometer dead band [m]
+FALLBACK_DEAD_BAND_M = 5.0
+
+
+def ellipse_95(cov_en_m2) -> dict:
+    """The 95 % error ellipse of a (2, 2) east-north covariance [m²].
+
+    Returns {"a_m": semi-major, "b_m": semi-minor, "angle_deg": major axis from east towards north,
+    "sigma_major_m": √λ₂, "sigma_minor_m": √λ₁}.
+    """
+    cov = np.asarray(cov_en_m2, float).reshape(2, 2)
+    cov = 0.5 * (cov + cov.T)
+    lam, vec = np.linalg.eigh(cov)
+    lam = np.maximum(lam, 0.0)
+    # a = √(χ²·λ₂), b = √(χ²·λ₁); major axis v₂ = vec[:, 1]
+    major = vec[:, 1]
+    return {"a_m": math.sqrt(CHI2_2DOF_95 * lam[1]), "b_m": math.sqrt(CHI2_2DOF_95 * lam[0]),
+            "angle_deg": math.degrees(math.atan2(major[1], major[0])),
+            "sigma_major_m": math.sqrt(lam[1]), "sigma_minor_m": math.sqrt(lam[0])}
+
+
+class Series:
+    """An append-only list that may be replaced as a whole (then its generation changes)."""
+
+    def __init__(self, max_len: int | None = None):
+        self.items: list = []
+        self.generation = 0
+        self.max_len = max_len
+
+    def append(self, item: Any) -> None:
+        self.items.append(item)
+        if self.max_len is not None and len(self.items) > self.max_len:
+            # drop the oldest half at once (a new generation: clients take the whole list again)
+            self.items = self.items[len(self.items) - self.max_len // 2:]
+            self.generation += 1
+
+    def copy(self) -> Series:
+        """An independent copy (the items themselves are never changed once appended)."""
+        new = Series(self.max_len)
+        new.items, new.generation = list(self.items), self.generation
+        return new
+
+    def replace(self, items: list) -> None:
+        self.items = list(items)
+        self.generation += 1
+
+    def since(self, seen: tuple[int, int] | None) -> tuple[dict, tuple[int, int]]:
+        """({"gen", "from", "items"}, new cursor) with what a client that saw `seen` lacks."""
+        start = 0
+        if seen is not None and seen[0] == self.generation and seen[1] <= len(self.items):
+            start = seen[1]
+        return ({"gen": self.generation, "from": start, "items": self.items[start:]},
+                (self.generation, len(self.items)))
+
+
+@dataclass
+class Cursor:
+    """What one client has seen: the static part's version and each series' (generation, length)."""
+
+    static: int = -1
+    series: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+    def key(self) -> tuple:
+        """Hashable: clients with equal keys need the same frame."""
+        return (self.static, tuple(sorted(self.series.items())))
+
+
+def _r(x: float, nd: int = 2) -> float:
+    return round(float(x), nd)
+
+
+class ViewState:
+    """See the module docstring. Feed records with :meth:`apply`; read with :meth:`frame`.
+
+    Records that do not fit (no header yet, unknown user, missing numbers) are skipped: the view
+    shows what it can and never stops the mission log (the log reader is the strict judge).
+    """
+
+    def __init__(self, max_events: int = 500):
+        self.origin: Origin | None = None
+        self.static: dict = {}
+        self.static_version = 0
+        self.t_s = 0.0
+        self.track = Series()  # [t, e, n, u] GPS track
+        self.est_track = Series()  # [e, n, u] corrected keyframes
+        self.events = Series(max_events)  # {"t", "message", "kind", "state"}
+        self.vehicle: dict | None = None
+        self.users: dict[str, dict] = {}
+        self.user_ids: list[str] = []
+        self.meas_per_user: dict[str, int] = {}
+        self.measurements = 0
+        self.keyframes = 0
+        self.waypoint: dict | None = None
+        self.state = "CONNECT"
+        self.status: str | None = None
+        self.final = False
+        self.flown_m = 0.0
+        self._flown_from_log = False
+        self._odometer = Odometer(FALLBACK_DEAD_BAND_M)
+        self.records = 0
+        self.version = 0  # bumps with every record applied
+
+    def copy(self) -> ViewState:
+        """An independent copy. Cheap: records replace the model's values rather than change them,
+        so only the containers are copied."""
+        new = copy.copy(self)
+        new.static = dict(self.static)
+        new.track, new.est_track, new.events = self.track.copy(), self.est_track.copy(), self.events.copy()
+        new.users, new.meas_per_user = dict(self.users), dict(self.meas_per_user)
+        new._odometer = copy.copy(self._odometer)
+        return new
+
+    # -- records --------------------------------------------------------------------------------
+
+    def apply(self, rec: dict) -> None:
+        """Take one mission-log record (a dict as in DESIGN.md §10)."""
+        rtype = rec.get("type")
+        t = rec.get("t")
+        if isinstance(t, int | float) and math.isfinite(t):
+            self.t_s = max(self.t_s, float(t))
+        handler = getattr(self, f"_on_{rtype}", None) if isinstance(rtype, str) else None
+        if handler is None or (rtype != "header" and self.origin is None):
+            return
+        try:
+            handler(rec)
+        except (KeyError, TypeError, ValueError, IndexError):
+            return  # a malformed record: shown as far as it goes (the log reader reports it)
+        self.records += 1
+        self.version += 1
+
+    def _enu(self, d: dict) -> list[float]:
+        # pymap3d.geodetic2enu's own two steps (geodetic → ECEF, ECEF offset → ENU) on plain floats,
+        # with the origin's ECEF computed once (one record at a time, this is 3x faster)
+        o, (x0, y0, z0) = self.origin, self._origin_ecef
+        x, y, z = pymap3d.geodetic2ecef(float(d["lat_deg"]), float(d["lon_deg"]), float(d["alt_m"]),
+                                        ell=_WGS84, deg=True)
+        e, n, u = pymap3d.uvw2enu(x - x0, y - y0, z - z0, o.lat_deg, o.lon_deg, deg=True)
+        return [_r(e), _r(n), _r(u)]
+
+    def _ring(self, ring: list) -> list[list[float]]:
+        pts = np.asarray(ring, float).reshape(-1, 2)
+        enu = self.origin.lla_to_enu(pts[:, 0], pts[:, 1], np.full(len(pts), self.origin.alt_m))
+        return [[_r(e), _r(n)] for e, n in enu[:, :2]]
+
+    def _on_header(self, rec: dict) -> None:
+        o = rec["origin"]
+        self.origin = Origin(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"]))
+        self._origin_ecef = pymap3d.geodetic2ecef(self.origin.lat_deg, self.origin.lon_deg, self.origin.alt_m,
+                                                  ell=_WGS84, deg=True)
+        cfg = rec.get("config") if isinstance(rec.get("config"), dict) else {}
+        ctl = cfg.get("controller") if isinstance(cfg.get("controller"), dict) else {}
+        self.user_ids = [str(u["id"]) for u in rec["users"]]
+        self.meas_per_user = dict.fromkeys(self.user_ids, 0)
+        self.static = {
+            "origin": {"lat_deg": self.origin.lat_deg, "lon_deg": self.origin.lon_deg, "alt_m": self.origin.alt_m},
+            "start_utc": rec.get("start_utc"),
+            "users": [{"id": str(u["id"]), "rnti": u.get("rnti")} for u in rec["users"]],
+            "geofence": self._ring(rec["geofence"]) if rec.get("geofence") else None,
+            "no_fly_zones": [self._ring(z) for z in rec.get("no_fly_zones") or []],
+            "buildings": [{"footprint": self._ring(b["footprint"]), "height_m": float(b["height_m"])}
+                          for b in rec.get("buildings") or []],
+            "altitude_band_m": rec.get("altitude_band_m"),
+            "max_distance_m": rec.get("max_distance_m"),
+            "truth": {},
+            "scenario": cfg.get("scenario"),
+            "planner": cfg.get("planner"),
+            "command": cfg.get("command"),
+            "target_radius_m": ctl.get("target_radius_m"),
+        }
+        self.static_version += 1
+
+    def _on_truth(self, rec: dict) -> None:
+        self.static["truth"] = {str(u["id"]): self._enu(u) for u in rec["users"] if u.get("id") in self.meas_per_user}
+        self.static_version += 1
+
+    def _on_telemetry(self, rec: dict) -> None:
+        p = self._enu(rec)
+        self.track.append([_r(rec["t"], 3), *p])
+        vel = rec.get("vel_ned_mps")
+        vel_en = [_r(vel[1]), _r(vel[0])] if isinstance(vel, list) and len(vel) >= 2 else None
+        self.vehicle = {"t": _r(rec["t"], 3), "enu_m": p, "vel_en_mps": vel_en}
+        if not self._flown_from_log and self.state == "SURVEY":
+            self.flown_m = self._odometer.update(np.asarray(p))
+
+    def _on_rtt(self, rec: dict) -> None:
+        uid = rec["user"]
+        if uid in self.meas_per_user:
+            self.meas_per_user[uid] += 1
+            self.measurements += 1
+
+    def _on_estimate(self, rec: dict) -> None:
+        for u in rec["users"]:
+            uid = str(u["id"])
+            if uid not in self.meas_per_user:
+                continue
+            ell = ellipse_95(u["cov_en_m2"])
+            self.users[uid] = {
+                "id": uid, "t": _r(rec["t"], 3), "enu_m": self._enu(u),
+                "cov_en_m2": [[float(x) for x in row] for row in u["cov_en_m2"]],
+                "r95_m": ell["a_m"], "ellipse": {k: ell[k] for k in ("a_m", "b_m", "angle_deg")},
+                "sigma_m": ell["sigma_major_m"], "ambiguous": bool(u.get("ambiguous", False)),
+            }
+        if isinstance(rec.get("keyframes"), int):
+            self.keyframes = rec["keyframes"]
+        if isinstance(rec.get("flown_m"), int | float):
+            self.flown_m = float(rec["flown_m"])
+            self._flown_from_log = True
+        uav = rec.get("uav_lla")
+        if isinstance(uav, list) and uav:
+            pts = np.asarray(uav, float).reshape(-1, 3)
+            enu = self.origin.lla_to_enu(pts[:, 0], pts[:, 1], pts[:, 2])
+            items = [[_r(e), _r(n), _r(up)] for e, n, up in enu]
+            if rec.get("final") or len(items) > 1:
+                self.est_track.replace(items)  # the whole smoothed track
+            else:
+                self.est_track.append(items[0])
+        if rec.get("final"):
+            self.final = True
+
+    def _on_waypoint(self, rec: dict) -> None:
+        p = self._enu(rec)
+        start = self.vehicle["enu_m"] if self.vehicle is not None else None
+        self.waypoint = {"t": _r(rec["t"], 3), "leg": rec.get("leg"), "enu_m": p, "from_enu_m": start,
+                         "planner": rec.get("planner"), "status": rec.get("status")}
+        if self.state in ("CONNECT", "PREFLIGHT", "TAKEOFF"):
+            self.state = "SURVEY"
+        if self.state == "SURVEY" and start is not None and not self._flown_from_log:
+            self._odometer.start(np.asarray(start))
+
+    def _on_event(self, rec: dict) -> None:
+        msg = str(rec.get("message", ""))
+        kind = rec.get("kind")
+        state = rec.get("state")
+        if isinstance(state, str) and state:
+            self.state = state
+        if kind == "end":
+            self.status = rec.get("status")
+        if kind in ("rtl", "landed"):
+            self.state = "RETURN" if kind == "rtl" else "LANDED"
+            self.waypoint = None
+        self.events.append({"t": _r(rec["t"], 3), "message": msg, "kind": kind, "state": state})
+
+    # -- output ---------------------------------------------------------------------------------
+
+    def users_frame(self) -> list[dict]:
+        out = []
+        for uid in self.user_ids:
+            u = self.users.get(uid)
+            entry = {"id": uid, "measurements": self.meas_per_user.get(uid, 0), "located": u is not None}
+            if u is not None:
+                entry.update(u)
+                truth = self.static.get("truth", {}).get(uid)
+                if truth is not None:
+                    entry["error_m"] = math.hypot(u["enu_m"][0] - truth[0], u["enu_m"][1] - truth[1])
+            out.append(entry)
+        return out
+
+    def frame(self, cursor: Cursor | None = None) -> tuple[dict, Cursor]:
+        """A JSON-able frame with everything `cursor` has not seen (all of it for None), and the
+        client's new cursor."""
+        cursor = cursor or Cursor()
+        new = Cursor(static=self.static_version)
+        doc: dict[str, Any] = {
+            "t": _r(self.t_s, 3), "version": self.version, "state": self.state, "status": self.status,
+            "final": self.final, "flown_m": _r(self.flown_m, 1), "measurements": self.measurements,
+            "keyframes": self.keyframes, "vehicle": self.vehicle, "waypoint": self.waypoint,
+            "users": self.users_frame(),
+        }
+        if cursor.static != self.static_version and self.static:
+            doc["static"] = self.static
+        elif not self.static:
+            new.static = cursor.static
+        for name in ("track", "est_track", "events"):
+            part, new.series[name] = getattr(self, name).since(cursor.series.get(name))
+            doc[name] = part
+        return doc, new
+
+
+class Timeline:
+    """A recorded mission for the time slider: the state after the records up to a mission time.
+
+    records: the log's records in file order. Records are taken as a prefix of the file: those up
+    to the last one whose running maximum of `t` is ≤ the chosen time (an `rtt` record carries its
+    measurement time, which can be slightly before the record written just ahead of it).
+    Moving forward applies only the new records; moving back restarts from the nearest checkpoint
+    (a copy of the state kept every `checkpoint_every` records).
+    """
+
+    def __init__(self, records: list[dict], checkpoint_every: int = 2000):
+        self.records = list(records)
+        t_run = -math.inf
+        self._t_max: list[float] = []
+        for rec in self.records:
+            t = rec.get("t")
+            if isinstance(t, int | float) and math.isfinite(t):
+                t_run = max(t_run, float(t))
+            self._t_max.append(t_run)
+        self.t_end_s = max(0.0, t_run) if self.records else 0.0
+        self._state = ViewState()
+        self._applied = 0
+        self.checkpoint_every = max(1, int(checkpoint_every))
+        self._checkpoints: dict[int, ViewState] = {0: ViewState()}
+
+    def prefix_len(self, t_s: float) -> int:
+        """How many records (from the start) belong to time t_s."""
+        return bisect.bisect_right(self._t_max, float(t_s))
+
+    def state_at(self, t_s: float) -> ViewState:
+        """The ViewState after the records up to t_s (moves forward incrementally, restarts when
+        asked for an earlier time)."""
+        n = self.prefix_len(t_s)
+        start = max(k for k in self._checkpoints if k <= n)
+        if n < self._applied or start > self._applied:  # back in time, or a checkpoint ahead
+            self._state, self._applied = self._checkpoints[start].copy(), start
+        for i in range(self._applied, n):
+            self._state.apply(self.records[i])
+            if (i + 1) % self.checkpoint_every == 0 and (i + 1) not in self._checkpoints:
+                self._checkpoints[i + 1] = self._state.copy()
+        self._applied = n
+        self._state.t_s = min(max(self._state.t_s, float(t_s)), self.t_end_s) if n else 0.0
+        return self._state

@@ -1,0 +1,35 @@
+"""Monte-Carlo campaigns: scenarios × planners × estimators × seeds, run on Dask distributed.
+
+    campaign = load_spec("benchmarks/planner_campaign.toml")      # strict TOML (spec.py)
+    done = run_campaign(campaign, "out/", workers=2)               # LocalCluster, resume, Parquet
+    write_summary(done.records, campaign.targets_m, "out/")        # table and figures
+
+- spec.py: the spec and the RunSpecs it expands to; families.py: generated scenario families;
+- fast.py: a run with a kinematic vehicle and channel (the real estimator and planner in the loop);
+  full.py: a run against the built-in MAVLink vehicle and the simulated gNB;
+- task.py: `run_one`, the pure per-run task; results.py: Parquet parts, resume;
+- execute.py: Dask execution (LocalCluster, an existing scheduler, or in-process);
+- summary.py: the summary table and figures.
+"""
+
+from sitl_scenarios.campaign.execute import CampaignRun, run_campaign
+from sitl_scenarios.campaign.results import ResultsStore, same_value
+from sitl_scenarios.campaign.spec import Campaign, RunSpec, load_spec, spec_from_dict
+from sitl_scenarios.campaign.summary import format_table, summary_rows, write_summary
+from sitl_scenarios.campaign.task import TIMING_FIELDS, run_one
+
+__all__ = [
+    "TIMING_FIELDS",
+    "Campaign",
+    "CampaignRun",
+    "ResultsStore",
+    "RunSpec",
+    "format_table",
+    "load_spec",
+    "run_campaign",
+    "run_one",
+    "same_value",
+    "spec_from_dict",
+    "summary_rows",
+    "write_summary",
+]

@@ -1,0 +1,124 @@
+"""Fast mode: a kinematic vehicle and channel around the real estimator and planner (no MAVLink, no TCP).
+
+The loop (the planner benchmark's, DESIGN.md §5–6): the UAV starts at home at the cruise altitude;
+the planner gives a waypoint; the UAV flies the straight leg at the scenario's cruise speed; every Δ
+metres along it (spacing carried across legs) a keyframe is simulated and fed to the REAL
+estimator (estimator.slam.OnlineEstimator); the planner is called again at the leg end with the
+latest Estimate. The run ends when every accuracy target is reached, when the planner is done, or
+when the scenario's budget is flown.
+
+A keyframe at arc length s (time t = s / speed):
+- GPS fix = truth + the vehicle simulator's GPS error (sitl_scenarios.mavlink_autopilot.GpsError:
+  independent per fix, or Gauss–Markov with the scenario's `vehicle.gps_tau_s`);
+- a range to every user in coverage from the simulated gNB's radio model
+  (sitl_scenarios.radio.RadioModel: σ(d) noise, UE clock sawtooth, NLoS excess behind buildings,
+  TA and SRS quantization), turned into metres by estimator.ranging as the mission does.
+
+Each leg is also checked here, independently of the planner, against the fence, no-fly zones,
+altitude band, distance from home, leg length and budget (`leg_violation`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from estimator.ranging import range_m_from_raw
+from estimator.slam import OnlineEstimator
+from estimator.types import Keyframe, SolverParams
+from planner import PlanningConstraints, PlanningState, make_planner
+from sitl_scenarios.campaign.families import _inside
+from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
+from sitl_scenarios.mavlink_autopilot import GpsError
+from sitl_scenarios.radio import RadioModel
+from sitl_scenarios.scenario import Scenario
+
+
+def leg_violation(c: PlanningConstraints, a: np.ndarray, b: np.ndarray, flown_m: float) -> str | None:
+    """Sample the straight leg a → b (both (3,) ENU [m]) every 0.25 m; name the first constraint it
+    breaks, or None. Independent of planner.geometry on purpose."""
+    length = float(np.linalg.norm(b - a))
+    if length > c.leg_max_m + 1e-6 or flown_m + length > c.budget_m + 1e-6:
+        return f"leg {length:.2f} m"
+    if not c.alt_min_m - 1e-6 <= b[2] <= c.alt_max_m + 1e-6:
+        return f"altitude {b[2]:.2f} m"
+    t = np.linspace(0.0, 1.0, max(2, int(length / 0.25) + 1))[:, None]
+    pts = a[:2] + t * (b[:2] - a[:2])
+    if np.any(np.linalg.norm(pts - c.home_enu_m[:2], axis=1) > c.max_distance_m + 1e-6):
+        return "distance from home"
+    if len(c.fence_enu_m) and not np.all(_inside(pts, c.fence_enu_m)):
+        return f"outside the fence near {pts[~_inside(pts, c.fence_enu_m)][0]}"
+    for zone in c.no_fly_enu_m:
+        if np.any(_inside(pts, zone)):
+            return f"in a no-fly zone near {pts[_inside(pts, zone)][0]}"
+    return None
+
+
+def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
+             targets_m: tuple[float, ...], planner_opts: dict | None = None) -> Outcome:
+    """Fly one scenario in fast mode (see the module docstring); deterministic in (sc, planner, params, seed)."""
+    users = np.array([[u.east_m, u.north_m, u.up_m] for u in sc.users], float)
+    noise = sc.noise_model()
+    c = PlanningConstraints.from_scenario(sc)
+    opts = dict(planner_opts or {})
+    if planner_name == "oracle":
+        opts.setdefault("true_users_enu_m", users)
+    planner = make_planner(planner_name, c, noise, rng_seed=seed, **opts)
+    est = OnlineEstimator(len(users), users[:, 2], noise, params)
+    gps_ss, radio_ss = np.random.SeedSequence([seed, sc.seed]).spawn(2)
+    gps = GpsError(sc.vehicle.gps_sigma_m, sc.vehicle.gps_tau_s, np.random.default_rng(gps_ss))
+    radio = RadioModel(sc, np.random.default_rng(radio_ss))
+    speed_mps = sc.vehicle.speed_mps
+    delta_m = sc.mission.delta_m
+    track = AccuracyTrack(users, targets_m)
+    out = Outcome()
+    all_users = range(len(users))
+    n_ranges = n_nlos = 0
+
+    x = np.array([*c.home_enu_m[:2], c.cruise_alt_m])
+    flown, since_kf, estimate = 0.0, delta_m, None
+    while track.pending and flown < c.budget_m:
+        t0 = time.perf_counter()  # the planner has no clock: its compute time is timed here
+        res = planner.plan(PlanningState(x, estimate, flown))
+        out.plan_times_s.append(time.perf_counter() - t0)
+        if res.done:
+            out.end = res.reason
+            break
+        wp = np.asarray(res.waypoint_enu_m, float)
+        bad = leg_violation(c, x, wp, flown)
+        if bad:
+            out.violations.append(bad)
+        leg = float(np.linalg.norm(wp - x))
+        # keyframes every Δ metres along the path: at arc lengths Δ − since_kf, 2Δ − since_kf, ...
+        s = delta_m - since_kf
+        while s <= leg + 1e-9:
+            pos = x + (wp - x) * (s / leg)
+            t_s = (flown + s) / speed_mps
+            idx, ranges = [], []
+            for k in all_users:
+                raw = radio.measure(k, pos, t_s)
+                if raw is None:  # beyond coverage: no answer
+                    continue
+                idx.append(k)
+                ranges.append(range_m_from_raw(raw.ta, raw.mu, raw.srs_peak, raw.fs_hz))
+                n_nlos += raw.nlos
+            n_ranges += len(idx)
+            estimate = est.add_keyframe(Keyframe(pos + gps.sample(t_s), np.array(idx, dtype=int),
+                                                 np.array(ranges, dtype=float), t_s=t_s))
+            out.keyframes += 1
+            track.update(estimate.users_enu_m[:, :2], estimate.cov_users_m2[:, :2, :2], flown + s)
+            if not track.pending:
+                break
+            s += delta_m
+        if not track.pending:  # stopped mid-leg at the last target
+            flown += s
+            break
+        since_kf = leg - (s - delta_m)
+        flown += leg
+        x = wp
+    if not out.end:
+        out.end = "targets reached" if not track.pending else "budget spent"
+    out.flown_m = flown
+    out.nlos_share = n_nlos / n_ranges if n_ranges else float("nan")
+    return track.fill(out)

@@ -1,0 +1,84 @@
+"""What one run measured, whatever flew it (fast or full mode), and the accuracy bookkeeping both share."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator.types import CHI2_2DOF_95
+
+
+@dataclass
+class Outcome:
+    """One run's measurements.
+
+    metres_to: target [m] → metres flown when the mean over users of the 95 % error bound first
+        reached it (absent: never); error_at: target → mean true horizontal error [m] at that moment;
+    plan_times_s: compute time of every plan() call [s]; violations: constraint breaks found by an
+        independent check of each leg (fast mode); flown_m: metres flown; end: why the run ended;
+    keyframes: keyframes fed to the estimator; final_error_m / final_bound95_m: (K,) per user at the
+        end [m] (NaN where the user was never located); inside95: share of (estimate, user) pairs
+        after a user's first estimate whose true error lies inside its own 95 % ellipse;
+        nlos_share: share of ranges whose line of sight a building blocked.
+    """
+
+    metres_to: dict = field(default_factory=dict)
+    error_at: dict = field(default_factory=dict)
+    plan_times_s: list = field(default_factory=list)
+    violations: list = field(default_factory=list)
+    flown_m: float = 0.0
+    end: str = ""
+    keyframes: int = 0
+    final_error_m: list = field(default_factory=list)
+    final_bound95_m: list = field(default_factory=list)
+    inside95: float = math.nan
+    nlos_share: float = math.nan
+
+
+class AccuracyTrack:
+    """Follows a run's estimates against the truth: target crossings and 95 % ellipse coverage.
+
+    truth_enu_m: (K, 3) true users [m, ENU]; targets_m: accuracy targets [m], descending.
+    """
+
+    def __init__(self, truth_enu_m: np.ndarray, targets_m: tuple[float, ...]):
+        self.truth_en = np.asarray(truth_enu_m, float)[:, :2]
+        self.pending = sorted(targets_m, reverse=True)
+        self.metres_to: dict = {}
+        self.error_at: dict = {}
+        self.inside = 0
+        self.seen = 0
+        self.error_m = np.full(len(self.truth_en), np.nan)
+        self.bound95_m = np.full(len(self.truth_en), np.nan)
+
+    def update(self, users_en_m: np.ndarray, cov_en_m2: np.ndarray, at_m: float) -> None:
+        """One estimate: users_en_m (K, 2) [m] (NaN rows: not located), cov_en_m2 (K, 2, 2) [m²],
+        metres flown when it was made."""
+        users_en_m = np.asarray(users_en_m, float)
+        cov = np.asarray(cov_en_m2, float)
+        ok = np.all(np.isfinite(users_en_m), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+        e = users_en_m - self.truth_en
+        self.error_m = np.where(ok, np.linalg.norm(e, axis=1), np.nan)
+        # r95 = sqrt(χ²₂(0.95) · λ_max(Σ_en)) (Estimate.error_bound_95_m)
+        lam = np.linalg.eigvalsh(np.where(ok[:, None, None], cov, np.eye(2)))[:, -1]
+        self.bound95_m = np.where(ok, np.sqrt(CHI2_2DOF_95 * np.maximum(lam, 0.0)), np.inf)
+        if np.any(ok):
+            # inside the ellipse: eᵀ Σ⁻¹ e ≤ χ²₂(0.95)
+            nees = np.einsum("ki,ki->k", e[ok], np.linalg.solve(cov[ok], e[ok][:, :, None])[:, :, 0])
+            self.inside += int(np.sum(nees <= CHI2_2DOF_95))
+            self.seen += int(np.sum(ok))
+        bound = float(np.mean(self.bound95_m))
+        while self.pending and bound <= self.pending[0]:
+            tgt = self.pending.pop(0)
+            self.metres_to[tgt] = float(at_m)
+            self.error_at[tgt] = float(np.mean(self.error_m))
+        self.bound95_m = np.where(ok, self.bound95_m, np.nan)
+
+    def fill(self, out: Outcome) -> Outcome:
+        out.metres_to, out.error_at = dict(self.metres_to), dict(self.error_at)
+        out.final_error_m = [float(v) for v in self.error_m]
+        out.final_bound95_m = [float(v) for v in self.bound95_m]
+        out.inside95 = self.inside / self.seen if self.seen else math.nan
+        return out

@@ -1,0 +1,328 @@
+"""Campaign specs: strict TOML naming scenarios × planners × estimators × seeds, and the runs they expand to.
+
+A spec (every table and key below; anything else is a :class:`CampaignError` naming the key)::
+
+    [campaign]
+    name = "planners"                 # required
+    mode = "fast"                     # "fast" (kinematic vehicle and channel) or "full" (MAVLink + gNB)
+    seeds = [0, 1, 2]                 # noise seeds: every scenario is flown once per seed
+    planners = ["lawnmower", "casadi"]
+    targets_m = [1.0, 0.6]            # accuracy targets: metres flown until the mean 95 % bound ≤ T
+    speedup = 20.0                    # full mode: simulated seconds per wall second
+
+    [estimators.default]              # named estimator variants: SolverParams fields (default: one, "default")
+    window = 40
+
+    [planner_options.casadi]          # keyword options of a planner's constructor (fast mode)
+    horizon = 2
+
+    [[scenarios]]                     # scenario files: a path (relative to the spec) or a bundled name
+    file = "three_users_nlos"
+    condition = "nlos"                # the condition the summary groups it under (default: its name)
+
+    [[families]]                      # generated scenarios (sitl_scenarios.campaign.families)
+    name = "drift"                    # also the condition
+    count = 20
+    gps_tau_s = [60.0, 300.0]         # a number is fixed; [lo, hi] is drawn uniformly per scenario
+    [families.mission]                # MissionConfig fields over the family's defaults
+    budget_m = 1500.0
+
+The runs are the product scenarios × planners × estimators × seeds; each :class:`RunSpec` carries
+everything a worker needs (the scenario itself, not a path) and a key that changes whenever the run's
+definition does, so a resumed campaign skips exactly the runs it already has.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from estimator.types import SolverParams
+from sitl_scenarios.campaign.families import FamilySpec, generate_scenario, validate_family
+from sitl_scenarios.scenario import Scenario, _build, load_scenario, resolve_scenario_path
+from uavloc.errors import CampaignError, ScenarioError, UavlocError
+
+MODES = ("fast", "full")
+TOP_LEVEL = ("campaign", "estimators", "planner_options", "scenarios", "families")
+
+
+@dataclass(frozen=True)
+class CampaignSection:
+    """The `[campaign]` table (see the module docstring)."""
+
+    name: str
+    mode: str = "fast"
+    seeds: list[int] = field(default_factory=lambda: [0])
+    planners: list[str] = field(default_factory=lambda: ["casadi"])
+    targets_m: list[float] = field(default_factory=lambda: [1.0])
+    speedup: float = 20.0
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class ScenarioFileSpec:
+    """One `[[scenarios]]` entry: a scenario file and the condition it belongs to."""
+
+    file: str
+    condition: str = ""
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: a scenario flown by one planner with one estimator variant and one noise seed.
+
+    key: unique and stable (changes with any part of the definition); condition: the group the
+    summary puts it in (family name or scenario condition); scenario_params: flat description of the
+    scenario for the results table; targets_m: accuracy targets [m], descending.
+    """
+
+    key: str
+    condition: str
+    scenario: Scenario
+    scenario_params: dict
+    planner: str
+    planner_opts: dict
+    estimator: str
+    params: SolverParams
+    seed: int
+    mode: str
+    targets_m: tuple[float, ...]
+    speedup: float = 20.0
+
+
+@dataclass(frozen=True)
+class Campaign:
+    """A loaded spec: its settings and the runs it expands to, in a stable order."""
+
+    name: str
+    path: Path | None
+    section: CampaignSection
+    runs: list[RunSpec]
+
+    @property
+    def targets_m(self) -> tuple[float, ...]:
+        return tuple(sorted(self.section.targets_m, reverse=True))
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _err(where: str, msg: str) -> CampaignError:
+    return CampaignError(f"{where}: {msg}")
+
+
+def _section(cls: type, data: Any, key: str, where: str) -> Any:
+    """Strict table → dataclass, errors re-raised as CampaignError naming the spec and the key."""
+    if not isinstance(data, dict):
+        raise _err(where, f"{key}: expected a table, got {data!r}")
+    try:
+        return _build(cls, data, key)
+    except ScenarioError as exc:
+        raise _err(where, str(exc)) from exc
+
+
+def _solver_params(opts: Any, base: dict, key: str, where: str) -> SolverParams:
+    """SolverParams from a spec table: every key a field, every value of the field's type."""
+    from estimator.problem import check_params
+    from sitl_scenarios.scenario import _convert
+
+    if not isinstance(opts, dict):
+        raise _err(where, f"{key}: expected a table, got {opts!r}")
+    hints = typing.get_type_hints(SolverParams)
+    names = {f.name for f in dataclasses.fields(SolverParams)}
+    kwargs = dict(base)
+    for name, value in opts.items():
+        if name not in names:
+            raise _err(where, f"{key}: unknown key {name!r}; allowed: {', '.join(sorted(names))}")
+        tp = hints[name]
+        if typing.get_origin(tp) is typing.Literal:
+            if value not in typing.get_args(tp):
+                raise _err(where, f"{key}.{name}: must be one of {typing.get_args(tp)}, got {value!r}")
+            kwargs[name] = value
+            continue
+        try:
+            kwargs[name] = _convert(value, tp, f"{key}.{name}")
+        except ScenarioError as exc:
+            raise _err(where, str(exc)) from exc
+    params = SolverParams(**kwargs)
+    try:
+        check_params(params)
+    except UavlocError as exc:
+        raise _err(where, f"{key}: {exc}") from exc
+    return params
+
+
+def _check_section(c: CampaignSection, where: str) -> None:
+    from planner import planner_names
+
+    if not c.name.strip():
+        raise _err(where, "campaign.name must not be empty")
+    if c.mode not in MODES:
+        raise _err(where, f"campaign.mode must be one of {', '.join(MODES)}, got {c.mode!r}")
+    if not c.seeds:
+        raise _err(where, "campaign.seeds must name at least one seed")
+    if len(set(c.seeds)) != len(c.seeds) or any(s < 0 for s in c.seeds):
+        raise _err(where, f"campaign.seeds must be distinct non-negative integers, got {c.seeds}")
+    known = planner_names()
+    if not c.planners:
+        raise _err(where, "campaign.planners must name at least one planner")
+    for p in c.planners:
+        if p not in known:
+            raise _err(where, f"campaign.planners: unknown planner {p!r}; choose from {', '.join(known)}")
+    if c.mode == "full" and "oracle" in c.planners:
+        raise _err(where, "campaign.planners: 'oracle' needs the true users, which full mode's controller never has")
+    if len(set(c.planners)) != len(c.planners):
+        raise _err(where, f"campaign.planners has duplicates: {c.planners}")
+    if not c.targets_m or any(not (math.isfinite(t) and t > 0) for t in c.targets_m):
+        raise _err(where, f"campaign.targets_m must be positive numbers, got {c.targets_m}")
+    if len(set(c.targets_m)) != len(c.targets_m):
+        raise _err(where, f"campaign.targets_m has duplicates: {c.targets_m}")
+    if not (math.isfinite(c.speedup) and 0 < c.speedup <= 1000):
+        raise _err(where, f"campaign.speedup must be in (0, 1000], got {c.speedup}")
+
+
+def _scenario_params(sc: Scenario, kind: str) -> dict:
+    """Flat description of a scenario for the results table (the columns of results.SCENARIO_COLUMNS)."""
+    return {
+        "users": len(sc.users),
+        "buildings": len(sc.buildings),
+        "no_fly": len(sc.geofence.no_fly_enu_m),
+        "fence_vertices": len(sc.geofence.polygon_enu_m),
+        "gps_sigma_m": sc.vehicle.gps_sigma_m,
+        "gps_tau_s": sc.vehicle.gps_tau_s,
+        "sawtooth_max_m": max((u.sawtooth_amplitude_m for u in sc.users), default=0.0),
+        "nlos_excess_mean_m": sc.radio.nlos_excess_mean_m,
+        "range_s0_m": sc.radio.s0_m,
+        "range_a_m": sc.radio.a_m,
+        "source": kind,
+    }
+
+
+def _run_key(condition: str, sc: Scenario, planner: str, opts: dict, estimator: str, params: SolverParams,
+             seed: int, mode: str, targets: tuple[float, ...], speedup: float) -> str:
+    definition = {
+        "scenario": dataclasses.asdict(sc), "planner": planner, "planner_opts": opts,
+        "params": dataclasses.asdict(params), "seed": seed, "mode": mode, "targets_m": list(targets),
+        "speedup": speedup if mode == "full" else None,
+    }
+    digest = hashlib.sha1(json.dumps(definition, sort_keys=True, default=repr).encode()).hexdigest()[:12]
+    return f"{condition}/{sc.name}/{planner}/{estimator}/s{seed}#{digest}"
+
+
+def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None,
+                   path: Path | None = None) -> Campaign:
+    """Validate a parsed spec and expand it to its runs (CampaignError naming the key on anything bad)."""
+    if not isinstance(data, dict):
+        raise _err(where, "a spec is a TOML document")
+    unknown = sorted(set(data) - set(TOP_LEVEL))
+    if unknown:
+        raise _err(where, f"unknown key(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(TOP_LEVEL)}")
+    if "campaign" not in data:
+        raise _err(where, "missing the [campaign] table")
+    section: CampaignSection = _section(CampaignSection, data["campaign"], "campaign", where)
+    _check_section(section, where)
+    targets = tuple(sorted(section.targets_m, reverse=True))
+
+    # estimator variants: name → options (the base values come from each scenario's mission)
+    est_tables = data.get("estimators", {"default": {}})
+    if not isinstance(est_tables, dict) or not est_tables:
+        raise _err(where, "estimators: expected at least one [estimators.NAME] table")
+    for name, opts in est_tables.items():
+        _solver_params(opts, {}, f"estimators.{name}", where)  # fail early, before any scenario
+
+    planner_opts = data.get("planner_options", {})
+    if not isinstance(planner_opts, dict):
+        raise _err(where, f"planner_options: expected a table, got {planner_opts!r}")
+    for name, opts in planner_opts.items():
+        if name not in section.planners:
+            raise _err(where, f"planner_options.{name}: {name!r} is not in campaign.planners {section.planners}")
+        if not isinstance(opts, dict):
+            raise _err(where, f"planner_options.{name}: expected a table, got {opts!r}")
+        if section.mode == "full" and opts:
+            raise _err(where, f"planner_options.{name}: full mode flies each planner with its defaults")
+
+    # scenarios: (condition, scenario, params)
+    scenarios: list[tuple[str, Scenario, dict]] = []
+    files = data.get("scenarios", [])
+    if not isinstance(files, list):
+        raise _err(where, f"scenarios: expected [[scenarios]] entries, got {files!r}")
+    for i, entry in enumerate(files):
+        fs: ScenarioFileSpec = _section(ScenarioFileSpec, entry, f"scenarios[{i}]", where)
+        candidate = (base_dir / fs.file) if base_dir is not None else Path(fs.file)
+        try:
+            sc = load_scenario(candidate if candidate.is_file() else resolve_scenario_path(fs.file))
+        except ScenarioError as exc:
+            raise _err(where, f"scenarios[{i}].file: {exc}") from exc
+        scenarios.append((fs.condition or sc.name, sc, _scenario_params(sc, f"file:{fs.file}")))
+    fams = data.get("families", [])
+    if not isinstance(fams, list):
+        raise _err(where, f"families: expected [[families]] entries, got {fams!r}")
+    for i, entry in enumerate(fams):
+        fam: FamilySpec = _section(FamilySpec, entry, f"families[{i}]", where)
+        try:
+            validate_family(fam, f"families[{i}]")
+            for j in range(fam.count):
+                sc = generate_scenario(fam, j, f"families[{i}]")
+                scenarios.append((fam.name, sc, _scenario_params(sc, f"family:{fam.name}")))
+        except ScenarioError as exc:
+            raise _err(where, str(exc)) from exc
+    if not scenarios:
+        raise _err(where, "a campaign needs [[scenarios]] or [[families]]")
+    names = [(c, sc.name) for c, sc, _ in scenarios]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise _err(where, f"scenario names repeat within a condition: {dup}")
+
+    runs: list[RunSpec] = []
+    for condition, sc, sp in scenarios:
+        base = {"delta_m": sc.mission.delta_m, "estimate_bias": sc.mission.estimate_bias}
+        for planner in section.planners:
+            opts = dict(planner_opts.get(planner, {}))
+            for est_name, est_opts in est_tables.items():
+                params = _solver_params(est_opts, base, f"estimators.{est_name}", where)
+                for seed in section.seeds:
+                    key = _run_key(condition, sc, planner, opts, est_name, params, seed, section.mode, targets,
+                                   section.speedup)
+                    runs.append(RunSpec(key=key, condition=condition, scenario=sc, scenario_params=sp,
+                                        planner=planner, planner_opts=opts, estimator=est_name, params=params,
+                                        seed=seed, mode=section.mode, targets_m=targets,
+                                        speedup=section.speedup))
+    _check_planner_options(section, planner_opts, scenarios[0][1], where)
+    return Campaign(section.name, path, section, runs)
+
+
+def _check_planner_options(section: CampaignSection, planner_opts: dict, sc: Scenario, where: str) -> None:
+    """Build each planner once with its options, so a bad option is an error before any run starts."""
+    from planner import PlanningConstraints, make_planner
+
+    c = PlanningConstraints.from_scenario(sc)
+    truth = [[u.east_m, u.north_m, u.up_m] for u in sc.users]
+    for name in section.planners:
+        opts = dict(planner_opts.get(name, {}))
+        if name == "oracle":
+            opts.setdefault("true_users_enu_m", truth)
+        try:
+            make_planner(name, c, sc.noise_model(), rng_seed=0, **opts)
+        except UavlocError as exc:
+            raise _err(where, f"planner_options.{name}: {exc}") from exc
+        except (TypeError, ValueError) as exc:
+            raise _err(where, f"planner_options.{name}: {exc}") from exc
+
+
+def load_spec(path: str | Path) -> Campaign:
+    """Read a campaign spec file strictly and expand it to its runs."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise CampaignError(f"{p}: not valid TOML: {exc}") from exc
+    except OSError as exc:
+        raise CampaignError(f"{p}: cannot read the spec: {exc}") from exc
+    return spec_from_dict(data, str(p), base_dir=p.resolve().parent, path=p)

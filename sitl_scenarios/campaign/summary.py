@@ -1,0 +1,156 @@
+"""Summary table and figures of a campaign's records.
+
+Per (condition, planner, estimator): runs, failures, and for each accuracy target the runs that
+reached it and the median and 95 % interval (2.5th–97.5th percentile) of the metres flown to it
+(a run that never reached it counts its budget, so a planner that fails is not flattered); the same
+statistics of the final mean true error, the share of estimates inside their own 95 % ellipse, and
+the median replan time. Written to `summary.csv` and `summary.txt`; figures `metres_to_target.png`
+(metres to each target per planner and condition) and `error_vs_bound.png` (each user's final true
+error against its 95 % bound).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _stats(values: list[float]) -> tuple[float, float, float]:
+    """(median, 2.5th percentile, 97.5th percentile) of the finite values, NaN when none."""
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], float)
+    if not len(v):
+        return math.nan, math.nan, math.nan
+    return float(np.median(v)), float(np.percentile(v, 2.5)), float(np.percentile(v, 97.5))
+
+
+def metres_or_budget(rec: dict, i: int) -> float:
+    """Metres flown to target i, or the run's budget when it never got there."""
+    m = rec["metres_to_m"][i]
+    return rec["budget_m"] if m is None or not math.isfinite(m) else m
+
+
+def summary_rows(records: list[dict], targets_m: tuple[float, ...]) -> list[dict]:
+    """One row per (condition, planner, estimator), in the order they first appear."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in records:
+        groups.setdefault((r["condition"], r["planner"], r["estimator"]), []).append(r)
+    rows = []
+    for (cond, planner, est), rs in groups.items():
+        ok = [r for r in rs if r["status"] == "ok"]
+        row = {"condition": cond, "planner": planner, "estimator": est, "runs": len(rs), "failed": len(rs) - len(ok)}
+        for i, t in enumerate(targets_m):
+            row[f"reached@{t:g}"] = sum(math.isfinite(r["metres_to_m"][i]) for r in ok)
+            med, lo, hi = _stats([metres_or_budget(r, i) for r in ok])
+            row.update({f"m@{t:g}_median": med, f"m@{t:g}_lo95": lo, f"m@{t:g}_hi95": hi})
+        med, lo, hi = _stats([r["mean_error_m"] for r in ok])
+        row.update({"error_median_m": med, "error_lo95_m": lo, "error_hi95_m": hi})
+        row["inside95_median"] = _stats([r["inside95"] for r in ok])[0]
+        row["replan_median_ms"] = _stats([1e3 * t for r in ok for t in r["plan_times_s"]])[0]
+        row["violations"] = sum(r["violations"] for r in ok)
+        rows.append(row)
+    return rows
+
+
+def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
+    """A fixed-width text table of summary_rows."""
+    head = f"{'condition':<14} {'planner':<10} {'estimator':<10} {'runs':>4} {'fail':>4}"
+    for t in targets_m:
+        head += f" {'reach@' + format(t, 'g'):>9} {'m@' + format(t, 'g') + ' median [95 %]':>24}"
+    head += f" {'error m median [95 %]':>24} {'in95':>5} {'replan ms':>9} {'viol':>4}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        line = f"{r['condition']:<14} {r['planner']:<10} {r['estimator']:<10} {r['runs']:>4} {r['failed']:>4}"
+        for t in targets_m:
+            k = f"m@{t:g}"
+            ok = r["runs"] - r["failed"]
+            line += f" {r[f'reached@{t:g}']:>5}/{ok:<3} {r[k + '_median']:>7.0f} [{r[k + '_lo95']:>6.0f}, " \
+                    f"{r[k + '_hi95']:>6.0f}]"
+        line += f" {r['error_median_m']:>7.2f} [{r['error_lo95_m']:>5.2f}, {r['error_hi95_m']:>6.2f}]"
+        line += f" {r['inside95_median']:>5.2f} {r['replan_median_ms']:>9.1f} {r['violations']:>4}"
+        lines.append(line)
+    lines.append("")
+    lines.append("m@T: metres flown until the mean 95 % error bound <= T m (a run that never gets there counts its "
+                 "budget); [95 %]: 2.5th-97.5th percentile over runs;")
+    lines.append("error: final mean true error per run; in95: median share of estimates inside their own 95 % "
+                 "ellipse; fail: runs that raised (see the results' error column).")
+    return "\n".join(lines)
+
+
+def write_summary(records: list[dict], targets_m: tuple[float, ...], out_dir: str | Path) -> dict[str, Path]:
+    """summary.csv, summary.txt and the two figures in out_dir; returns their paths."""
+    out = Path(out_dir)
+    rows = summary_rows(records, targets_m)
+    paths = {"csv": out / "summary.csv", "txt": out / "summary.txt"}
+    if rows:
+        with open(paths["csv"], "w", newline="", encoding="utf-8") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    paths["txt"].write_text(format_table(rows, targets_m) + "\n", encoding="utf-8")
+    paths.update(write_figures(records, targets_m, out))
+    return paths
+
+
+def write_figures(records: list[dict], targets_m: tuple[float, ...], out: Path) -> dict[str, Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = [r for r in records if r["status"] == "ok"]
+    if not ok:
+        return {}
+    planners = list(dict.fromkeys(r["planner"] for r in ok))
+    conditions = list(dict.fromkeys(r["condition"] for r in ok))
+    paths = {}
+
+    fig, axes = plt.subplots(1, len(targets_m), figsize=(max(6, 2.2 * len(planners) * len(targets_m)), 4.5),
+                             squeeze=False)
+    width = 0.8 / max(len(conditions), 1)
+    for ax, (i, t) in zip(axes[0], enumerate(targets_m), strict=True):
+        for j, cond in enumerate(conditions):
+            data = [[metres_or_budget(r, i) for r in ok if r["planner"] == p and r["condition"] == cond]
+                    for p in planners]
+            pos = np.arange(len(planners)) + (j - (len(conditions) - 1) / 2) * width
+            keep = [k for k, d in enumerate(data) if d]
+            if keep:
+                bp = ax.boxplot([data[k] for k in keep], positions=pos[keep], widths=width * 0.9,
+                                patch_artist=True, showfliers=True)
+                for box in bp["boxes"]:
+                    box.set_facecolor(f"C{j}")
+                    box.set_alpha(0.6)
+                ax.plot([], [], "s", color=f"C{j}", label=cond)
+        ax.set_xticks(np.arange(len(planners)), planners, rotation=30)
+        ax.set_ylabel(f"metres flown to mean 95 % bound <= {t:g} m")
+        ax.grid(True, axis="y", alpha=0.3)
+    axes[0][-1].legend(title="condition", fontsize=8)
+    fig.tight_layout()
+    paths["metres_to_target"] = out / "metres_to_target.png"
+    fig.savefig(paths["metres_to_target"], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    top = 0.0
+    for j, p in enumerate(planners):
+        err = np.array([e for r in ok if r["planner"] == p for e in r["final_error_m"]], float)
+        bnd = np.array([b for r in ok if r["planner"] == p for b in r["final_bound95_m"]], float)
+        m = np.isfinite(err) & np.isfinite(bnd)
+        if np.any(m):
+            ax.scatter(bnd[m], err[m], s=10, alpha=0.6, color=f"C{j}", label=p)
+            top = max(top, float(np.max(bnd[m])), float(np.max(err[m])))
+    ax.plot([0, top], [0, top], "k--", lw=1, label="error = 95 % bound")
+    ax.set_xlabel("final 95 % error bound of a user [m]")
+    ax.set_ylabel("final true error of the user [m]")
+    ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    paths["error_vs_bound"] = out / "error_vs_bound.png"
+    fig.savefig(paths["error_vs_bound"], dpi=110)
+    plt.close(fig)
+    return paths

@@ -1,0 +1,491 @@
+"""The autopilot behind the built-in vehicle: PX4-like arming, flight modes, failsafes and guidance
+of a multicopter (DESIGN.md §9), PX4's `commander` and position controller in small.
+
+No sockets and no clocks: :class:`Autopilot` advances when :meth:`Autopilot.step` is called with a
+simulated time step, and answers commands with MAV_RESULT codes. The MAVLink side lives in
+:mod:`sitl_scenarios.vehicle.simulator`. Positions are ENU metres from the origin (the vehicle
+starts there); "up" is height above the origin, and the ground is flat at up = 0.
+
+Missions and RTL: :mod:`~sitl_scenarios.vehicle.navigator`; the flight model:
+:mod:`~sitl_scenarios.vehicle.kinematics`; GPS error and battery: :mod:`~sitl_scenarios.vehicle.sensors`.
+Speeds and limits are PX4 parameters (MPC_XY_CRUISE, MPC_Z_V_AUTO_UP, ...), so a ground station
+that sets them changes the flight.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from estimator.geodesy import Origin
+from sitl_scenarios.scenario import VehicleConfig
+from sitl_scenarios.vehicle import kinematics
+from sitl_scenarios.vehicle.kinematics import GROUND_EPS_M, MAX_SUBSTEP_S
+from sitl_scenarios.vehicle.mav import (
+    ACCEPTED,
+    CHARGE_CRITICAL,
+    CHARGE_EMERGENCY,
+    CHARGE_LOW,
+    CHARGE_OK,
+    DENIED,
+    LANDED_IN_AIR,
+    LANDED_LANDING,
+    LANDED_ON_GROUND,
+    LANDED_TAKEOFF,
+    SEV_CRITICAL,
+    SEV_INFO,
+    SEV_WARNING,
+)
+from sitl_scenarios.vehicle.navigator import MissionItem, MissionState, Navigator, RtlState
+from sitl_scenarios.vehicle.params import ParamStore, px4_params
+from sitl_scenarios.vehicle.px4 import FlightMode
+from sitl_scenarios.vehicle.sensors import BATTERY_WARNINGS, GpsError, charge_state, drained_pct
+from sitl_scenarios.vehicle.state import VehicleState
+
+log = logging.getLogger(__name__)
+
+#: COM_LOW_BAT_ACT values (PX4 parameter) that return at a critical / land at an emergency charge
+_LOW_BAT_RTL = (1, 3)
+_LOW_BAT_LAND = (2, 3)
+
+class Autopilot(Navigator):
+    """PX4-flavoured flight logic of a multicopter. Not thread-safe: the owner serializes calls.
+
+    Commands return (MAV_RESULT, reason). :attr:`messages` collects (severity, text) for STATUSTEXT
+    and :attr:`reached` the mission sequence numbers reached; the owner drains both.
+    """
+
+    def __init__(
+        self,
+        origin: Origin,
+        vehicle: VehicleConfig,
+        rng: np.random.Generator,
+        gps_fix_delay_s: float = 2.0,
+    ) -> None:
+        self.origin = origin
+        self.config = vehicle
+        self.params = ParamStore(
+            px4_params(vehicle.speed_mps, vehicle.climb_mps, vehicle.descent_mps, vehicle.accel_mps2)
+        )
+        self.gps_error = GpsError(vehicle.gps_sigma_m, vehicle.gps_tau_s, rng)
+        self.t_s = 0.0
+        self.pos = [0.0, 0.0, 0.0]
+        self.vel = [0.0, 0.0, 0.0]
+        self.acc = [0.0, 0.0, 0.0]  # last commanded acceleration, ENU [m/s²]
+        self.yaw_rad = 0.0
+        self.armed = False
+        self.in_air = False
+        self.landed_state = LANDED_ON_GROUND
+        self.mode = FlightMode.HOLD
+        self.home = [0.0, 0.0, 0.0]
+        self.home_set = False
+        self.battery_pct = float(vehicle.battery_start_pct)
+        self.gps_lost = False
+        self.gps_fix_delay_s = gps_fix_delay_s
+        self.messages: list[tuple[int, str]] = []
+        self.reached: list[int] = []
+        self.mission = MissionState()
+        self.fence: list[MissionItem] = []
+        self.rally: list[MissionItem] = []
+        self._hold = [0.0, 0.0, 0.0]
+        self._speed_override_mps: float | None = None  # DO_CHANGE_SPEED / reposition speed
+        self._takeoff_up_m = 0.0
+        self._land_xy: tuple[float, float] | None = None
+        self._rtl = RtlState()
+        self._landed_since_s: float | None = None  # armed and on the ground since
+        self._has_flown = False  # left the ground since arming
+        self._battery_level = CHARGE_OK
+        self._offboard_pos: list[float] | None = None
+        self._offboard_vel: list[float] | None = None
+        self._offboard_wall_s: float | None = None
+        self._wall_s = 0.0
+
+    # --- derived state ------------------------------------------------------------------------
+    @property
+    def gps_ok(self) -> bool:
+        """A 3-D fix and a valid global position estimate."""
+        return not self.gps_lost and self.t_s >= self.gps_fix_delay_s
+
+    @property
+    def charge_state(self) -> int:
+        return charge_state(self.battery_pct, self.params)
+
+    def enu_to_lla(self, pos_enu_m) -> tuple[float, float, float]:
+        lat, lon, alt = self.origin.enu_to_lla(np.asarray(pos_enu_m, float))
+        return float(lat), float(lon), float(alt)
+
+    def lla_to_enu(self, lat_deg: float, lon_deg: float, alt_m: float) -> list[float]:
+        return [float(v) for v in self.origin.lla_to_enu(lat_deg, lon_deg, alt_m)]
+
+    def estimated_position(self) -> np.ndarray:
+        """What the vehicle's estimator believes: true position + GPS error, (3,) ENU [m]."""
+        return np.asarray(self.pos) + self.gps_error.sample(self.t_s)
+
+    def snapshot(self, link_up: bool) -> VehicleState:
+        lat, lon, alt = self.enu_to_lla(self.pos)
+        hlat, hlon, halt = self.enu_to_lla(self.home)
+        return VehicleState(
+            t_s=self.t_s, pos_enu_m=np.array(self.pos), vel_enu_mps=np.array(self.vel),
+            lat_deg=lat, lon_deg=lon, alt_m=alt, home_enu_m=np.array(self.home),
+            home_lat_deg=hlat, home_lon_deg=hlon, home_alt_m=halt, home_set=self.home_set,
+            armed=self.armed, in_air=self.in_air, landed_state=self.landed_state,
+            mode=self.mode.value, battery_pct=self.battery_pct, gps_ok=self.gps_ok, link_up=link_up,
+        )
+
+    def tilt_rad(self) -> tuple[float, float]:
+        """(roll, pitch) [rad] a multicopter needs for its horizontal acceleration (no wind)."""
+        return kinematics.tilt_rad(self.acc, self.yaw_rad)
+
+    def _say(self, severity: int, text: str) -> None:
+        log.info("vehicle: %s", text)
+        self.messages.append((severity, text[:50]))
+
+    def _cruise_mps(self) -> float:
+        v = self._speed_override_mps or self.params["MPC_XY_CRUISE"]
+        return max(0.1, min(v, self.params["MPC_XY_VEL_MAX"]))
+
+    def _stopping_point(self) -> list[float]:
+        """Where the vehicle comes to rest braking at MPC_ACC_HOR: p + v·|v| / (2a)."""
+        return kinematics.stopping_point(self.pos, self.vel, self.params["MPC_ACC_HOR"])
+
+
+    def _need_position(self, what: str) -> tuple[int, str] | None:
+        if not self.gps_ok:
+            reason = f"{what} denied: no global position"
+            self._say(SEV_CRITICAL, reason)
+            return DENIED, reason
+        return None
+
+    # --- commands -----------------------------------------------------------------------------
+    def arm(self, force: bool = False) -> tuple[int, str]:
+        if self.armed:
+            return ACCEPTED, "already armed"
+        if not force:
+            if not self.gps_ok:
+                return self._deny("Arming denied: no global position")
+            if not self.home_set:
+                return self._deny("Arming denied: home not set")
+            if self.charge_state >= CHARGE_CRITICAL:
+                return self._deny("Arming denied: battery critical")
+            if self.mode is FlightMode.OFFBOARD and not self._offboard_fresh():
+                return self._deny("Arming denied: no offboard setpoints")
+            if self.mode is FlightMode.MISSION and not self.mission.items:
+                return self._deny("Arming denied: no valid mission")
+        self.armed = True
+        self._has_flown = self.in_air
+        self._landed_since_s = self.t_s if not self.in_air else None
+        if not self.in_air:
+            self.home = [self.pos[0], self.pos[1], 0.0]  # PX4 sets home where it arms
+            self.home_set = True
+        self._hold = self._stopping_point()
+        if self.mode is FlightMode.MISSION:
+            self._mission_begin()
+        self._say(SEV_INFO, "Armed by external command")
+        return ACCEPTED, "armed"
+
+    def disarm(self, force: bool = False) -> tuple[int, str]:
+        if not self.armed:
+            return ACCEPTED, "already disarmed"
+        if self.in_air and not force:
+            return self._deny("Disarming denied: not landed")
+        self._disarm("Disarmed by external command")
+        return ACCEPTED, "disarmed"
+
+    def _deny(self, text: str) -> tuple[int, str]:
+        self._say(SEV_CRITICAL, text)
+        return DENIED, text
+
+    def _disarm(self, text: str) -> None:
+        self.armed = False
+        self._landed_since_s = None
+        if self.in_air:  # forced disarm in the air: it falls; here it is put on the ground
+            self.in_air = False
+            self.pos[2] = 0.0
+        self.vel = [0.0, 0.0, 0.0]
+        self.landed_state = LANDED_ON_GROUND
+        self._say(SEV_INFO, text)
+
+    def takeoff(self, alt_amsl_m: float = math.nan) -> tuple[int, str]:
+        """MAV_CMD_NAV_TAKEOFF: param7 AMSL altitude, NaN → home + MIS_TAKEOFF_ALT (PX4)."""
+        if not self.armed:
+            return self._deny("Takeoff denied: disarmed")
+        denied = self._need_position("Takeoff")
+        if denied:
+            return denied
+        if math.isfinite(alt_amsl_m):
+            up = alt_amsl_m - self.origin.alt_m
+        else:
+            up = self.home[2] + self.params["MIS_TAKEOFF_ALT"]
+        if up < self.pos[2] + 1.0 and self.in_air:
+            up = self.pos[2]
+        self._takeoff_up_m = max(up, 1.0)
+        self._hold = [self.pos[0], self.pos[1], self._takeoff_up_m]
+        self._set_mode(FlightMode.TAKEOFF)
+        return ACCEPTED, f"takeoff to {self._takeoff_up_m:.1f} m"
+
+    def land(self, lat_deg: float = math.nan, lon_deg: float = math.nan) -> tuple[int, str]:
+        if math.isfinite(lat_deg) and math.isfinite(lon_deg) and (lat_deg, lon_deg) != (0.0, 0.0):
+            e, n, _ = self.lla_to_enu(lat_deg, lon_deg, self.origin.alt_m)
+            self._land_xy = (e, n)
+        else:
+            sp = self._stopping_point()
+            self._land_xy = (sp[0], sp[1])
+        self._set_mode(FlightMode.LAND)
+        return ACCEPTED, "landing"
+
+    def return_to_launch(self) -> tuple[int, str]:
+        denied = self._need_position("RTL")
+        if denied:
+            return denied
+        if not self.home_set:
+            return self._deny("RTL denied: no home position")
+        self._set_mode(FlightMode.RTL)
+        return ACCEPTED, "returning"
+
+    def reposition(
+        self, lat_deg: float, lon_deg: float, alt_amsl_m: float, speed_mps: float = -1.0
+    ) -> tuple[int, str]:
+        """MAV_CMD_DO_REPOSITION (MAVSDK goto_location): fly there in Hold. NaN keeps a coordinate."""
+        if not self.armed or not self.in_air:
+            return self._deny("Reposition denied: not flying")
+        denied = self._need_position("Reposition")
+        if denied:
+            return denied
+        target = list(self._hold if self.mode is FlightMode.HOLD else self._stopping_point())
+        if math.isfinite(lat_deg) and math.isfinite(lon_deg):
+            e, n, _ = self.lla_to_enu(lat_deg, lon_deg, self.origin.alt_m)
+            target[0], target[1] = e, n
+        if math.isfinite(alt_amsl_m):
+            target[2] = max(alt_amsl_m - self.origin.alt_m, 0.0)
+        if math.isfinite(speed_mps) and speed_mps > 0:
+            self._speed_override_mps = speed_mps
+        self._set_mode(FlightMode.HOLD, keep_hold=True)
+        self._hold = target
+        return ACCEPTED, "repositioning"
+
+    def change_speed(self, speed_mps: float) -> tuple[int, str]:
+        """MAV_CMD_DO_CHANGE_SPEED: ground speed for the current flight; ≤ 0 → cruise default."""
+        if not math.isfinite(speed_mps):
+            return DENIED, "speed must be finite"
+        self._speed_override_mps = speed_mps if speed_mps > 0 else None
+        return ACCEPTED, "speed changed"
+
+    def set_home(self, use_current: bool, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> tuple[int, str]:
+        if use_current:
+            if not self.gps_ok:
+                return self._deny("Set home denied: no global position")
+            self.home = [self.pos[0], self.pos[1], self.pos[2]]
+        else:
+            if not all(math.isfinite(v) for v in (lat_deg, lon_deg, alt_amsl_m)):
+                return DENIED, "home coordinates must be finite"
+            self.home = self.lla_to_enu(lat_deg, lon_deg, alt_amsl_m)
+        self.home_set = True
+        return ACCEPTED, "home set"
+
+    def set_mode(self, mode: FlightMode) -> tuple[int, str]:
+        """MAV_CMD_DO_SET_MODE with a PX4 custom mode the simulator flies."""
+        if mode is self.mode:
+            return ACCEPTED, "mode unchanged"
+        if mode in (FlightMode.MISSION, FlightMode.RTL, FlightMode.TAKEOFF, FlightMode.OFFBOARD):
+            denied = self._need_position(f"Switching to {mode.value}")
+            if denied:
+                return denied
+        if mode is FlightMode.RTL:
+            return self.return_to_launch()
+        if mode is FlightMode.LAND:
+            return self.land()
+        if mode is FlightMode.TAKEOFF:
+            if self.armed:
+                return self.takeoff()
+            self._takeoff_up_m = self.home[2] + self.params["MIS_TAKEOFF_ALT"]
+            self._hold = [self.pos[0], self.pos[1], self._takeoff_up_m]
+            self._set_mode(FlightMode.TAKEOFF)
+            return ACCEPTED, "takeoff mode selected"
+        if mode is FlightMode.OFFBOARD and not self._offboard_fresh():
+            return self._deny("Switching to offboard denied: no setpoints")
+        if mode is FlightMode.MISSION:
+            if not self.mission.items:
+                return self._deny("Switching to mission denied: no mission")
+            self._set_mode(FlightMode.MISSION)
+            if self.armed:
+                self._mission_begin()
+            return ACCEPTED, "mission"
+        self._set_mode(mode)
+        return ACCEPTED, mode.value
+
+
+    def _set_mode(self, mode: FlightMode, keep_hold: bool = False) -> None:
+        if mode is not self.mode:
+            log.debug("vehicle mode %s -> %s", self.mode.value, mode.value)
+        if mode is FlightMode.RTL and self.mode is not FlightMode.RTL:
+            self._rtl = RtlState(return_up_m=self.rtl_return_up_m())
+            if not self.in_air:
+                self._rtl.phase = "land"
+            else:
+                above = self._rtl.return_up_m - self.home[2]
+                self._say(SEV_INFO, f"RTL: start return at {self.origin.alt_m + self._rtl.return_up_m:.0f} m "
+                                    f"({above:.0f} m above destination)")
+        if mode in (FlightMode.HOLD, FlightMode.POSCTL) and not keep_hold:
+            self._hold = self._stopping_point()
+        if mode is not FlightMode.HOLD and self.mode is FlightMode.HOLD:
+            self._speed_override_mps = None if mode is not FlightMode.MISSION else self._speed_override_mps
+        self.mode = mode
+
+    # --- offboard -----------------------------------------------------------------------------
+    def offboard_setpoint(
+        self, pos_enu_m: list[float] | None, vel_enu_mps: list[float] | None, wall_s: float
+    ) -> None:
+        """A SET_POSITION_TARGET_*: position (ENU) or velocity (ENU) setpoint; wall_s: receive time."""
+        self._offboard_pos = pos_enu_m
+        self._offboard_vel = vel_enu_mps if pos_enu_m is None else None
+        self._offboard_wall_s = wall_s
+
+    def _offboard_fresh(self) -> bool:
+        # setpoints arrive in wall time; COM_OF_LOSS_T is applied to wall time (see README)
+        return (
+            self._offboard_wall_s is not None
+            and self._wall_s - self._offboard_wall_s <= self.params["COM_OF_LOSS_T"]
+        )
+
+    # --- faults -------------------------------------------------------------------------------
+    def set_gps_lost(self, lost: bool) -> None:
+        if lost == self.gps_lost:
+            return
+        self.gps_lost = lost
+        if lost:
+            self._say(SEV_CRITICAL, "GPS lost: no global position")
+            if self.in_air and self.mode is not FlightMode.LAND:
+                self._say(SEV_CRITICAL, "Failsafe: no position, descending")
+                sp = self._stopping_point()
+                self._land_xy = (sp[0], sp[1])
+                self._set_mode(FlightMode.LAND)
+        else:
+            self._say(SEV_INFO, "GPS fix regained")
+
+    def set_battery_pct(self, pct: float) -> None:
+        self.battery_pct = min(max(float(pct), 0.0), 100.0)
+
+    # --- simulation ---------------------------------------------------------------------------
+    def step(self, dt_s: float, wall_s: float) -> None:
+        """Advance the simulation by dt_s simulated seconds (sub-stepped); wall_s: wall clock now."""
+        self._wall_s = wall_s
+        while dt_s > 1e-9:
+            h = min(dt_s, MAX_SUBSTEP_S)
+            self._substep(h)
+            dt_s -= h
+
+    def _substep(self, dt: float) -> None:
+        self.t_s += dt
+        if not self.home_set and self.gps_ok:
+            self.home = [self.pos[0], self.pos[1], 0.0]
+            self.home_set = True
+            self._say(SEV_INFO, "Home position set")
+        self._battery(dt)
+        if not self.armed:
+            return
+        target, v_h, vel_cmd, v_dn = self._guidance()
+        self._move(dt, target, v_h, vel_cmd, v_dn)
+        self._land_detector()
+
+    def _battery(self, dt: float) -> None:
+        self.battery_pct = drained_pct(self.battery_pct, dt, self.config.battery_capacity_s, self.armed, self.in_air)
+        level = self.charge_state
+        if level > self._battery_level:
+            self._say(SEV_CRITICAL if level > CHARGE_LOW else SEV_WARNING, BATTERY_WARNINGS[level])
+            act = int(self.params["COM_LOW_BAT_ACT"])
+            if self.in_air and self.armed:
+                if level == CHARGE_EMERGENCY and act in _LOW_BAT_LAND and self.mode is not FlightMode.LAND:
+                    self.land()
+                elif level >= CHARGE_CRITICAL and act in _LOW_BAT_RTL and self.mode not in (
+                    FlightMode.RTL, FlightMode.LAND
+                ):
+                    self.return_to_launch()
+        self._battery_level = level
+
+    def _land_speed(self) -> float:
+        """Descent rate when landing: MPC_Z_V_AUTO_DN above LAND_ALT1, MPC_LAND_SPEED below ALT2."""
+        h = self.pos[2] - self.home[2]
+        v_fast, v_slow = self.params["MPC_Z_V_AUTO_DN"], self.params["MPC_LAND_SPEED"]
+        a1, a2 = self.params["MPC_LAND_ALT1"], self.params["MPC_LAND_ALT2"]
+        if h >= a1:
+            return v_fast
+        if h <= a2 or a1 <= a2:
+            return v_slow
+        return v_slow + (v_fast - v_slow) * (h - a2) / (a1 - a2)
+
+    def _guidance(self) -> tuple[list[float] | None, float, list[float] | None, float]:
+        """(position target ENU or None, horizontal speed, velocity command or None, descent rate)."""
+        v_dn = self.params["MPC_Z_V_AUTO_DN"]
+        mode = self.mode
+        if mode is FlightMode.OFFBOARD:
+            if not self._offboard_fresh():
+                self._say(SEV_CRITICAL, "Failsafe: offboard setpoints lost, holding")
+                self._set_mode(FlightMode.HOLD)
+                return self._hold, self._cruise_mps(), None, v_dn
+            if self._offboard_pos is not None:
+                return list(self._offboard_pos), self.params["MPC_XY_VEL_MAX"], None, v_dn
+            return None, self.params["MPC_XY_VEL_MAX"], list(self._offboard_vel or [0, 0, 0]), v_dn
+        if mode is FlightMode.TAKEOFF:
+            target = [self._hold[0], self._hold[1], self._takeoff_up_m]
+            if self.in_air and abs(self.pos[2] - self._takeoff_up_m) < 0.1:
+                self._say(SEV_INFO, "Takeoff finished, holding")
+                self._set_mode(FlightMode.HOLD, keep_hold=True)
+                self._hold = target
+            return target, self._cruise_mps(), None, v_dn
+        if mode is FlightMode.LAND:
+            xy = self._land_xy or (self.pos[0], self.pos[1])
+            return [xy[0], xy[1], -1.0], self._cruise_mps(), None, self._land_speed()
+        if mode is FlightMode.RTL:
+            return self._rtl_step()
+        if mode is FlightMode.MISSION:
+            if not self.mission.started:
+                self._mission_begin()
+            target, v = self._mission_step()
+            if target is None:  # switched to RTL / LAND
+                return self._guidance()
+            return target, v, None, v_dn
+        return self._hold, self._cruise_mps(), None, v_dn  # HOLD, POSCTL
+
+    def _move(
+        self, dt: float, target: list[float] | None, v_h: float, vel_cmd: list[float] | None, v_dn: float
+    ) -> None:
+        p = self.params
+        v_up = p["MPC_TKO_SPEED"] if self.mode is FlightMode.TAKEOFF else p["MPC_Z_V_AUTO_UP"]
+        self.acc, self.yaw_rad = kinematics.move(
+            self.pos, self.vel, self.yaw_rad, dt, target, v_h, vel_cmd, v_up, v_dn,
+            p["MPC_ACC_HOR"], p["MPC_ACC_UP_MAX"], p["MPC_ACC_DOWN_MAX"], self.in_air)
+
+    def _land_detector(self) -> None:
+        descending_mode = self.mode is FlightMode.LAND or (
+            self.mode is FlightMode.RTL and self._rtl.phase == "land"
+        )
+        if self.in_air:
+            if self.pos[2] <= GROUND_EPS_M and self.vel[2] >= -1e-3:
+                self.in_air = False
+                self.vel = [0.0, 0.0, 0.0]
+                self.landed_state = LANDED_ON_GROUND
+                self._landed_since_s = self.t_s
+                self._say(SEV_INFO, "Landing detected")
+            elif descending_mode:
+                self.landed_state = LANDED_LANDING
+            elif self.mode is FlightMode.TAKEOFF or (self.mode is FlightMode.MISSION and self.mission.takeoff_first):
+                self.landed_state = LANDED_TAKEOFF
+            else:
+                self.landed_state = LANDED_IN_AIR
+        else:
+            if self.pos[2] > GROUND_EPS_M:
+                self.in_air = True
+                self._has_flown = True
+                self._landed_since_s = None
+                self.landed_state = LANDED_TAKEOFF
+                return
+            if self._landed_since_s is None:
+                self._landed_since_s = self.t_s
+            wait = self.params["COM_DISARM_LAND"] if self._has_flown else self.params["COM_DISARM_PRFLT"]
+            if wait >= 0 and self.t_s - self._landed_since_s >= wait:
+                self._disarm("Disarmed after landing" if self._has_flown else "Disarmed: no takeoff")
+
+
+__all__ = ["Autopilot", "VehicleState"]

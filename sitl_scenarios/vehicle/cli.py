@@ -1,0 +1,72 @@
+"""`python -m sitl_scenarios.vehicle`: the built-in vehicle on its own, logging its state."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import time
+from typing import Any
+
+from sitl_scenarios.scenario import load_scenario
+from sitl_scenarios.vehicle.simulator import VehicleSimulator
+from uavloc.errors import ScenarioError, SimulatorError
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = "Built-in MAVLink multicopter that MAVSDK takes for PX4 (DESIGN.md §9)."
+
+
+def _parse_target(parts: list[str]) -> tuple[str, int] | None:
+    text = " ".join(parts).strip()
+    for prefix in ("udp://", "udpout://", "udp "):
+        if text.startswith(prefix):
+            text = text[len(prefix):].strip()
+    if text in ("", "none"):
+        return None
+    host, _, port = text.rpartition(":")
+    try:
+        return (host or "127.0.0.1", int(port))
+    except ValueError as exc:
+        raise SimulatorError(f"--target must be [udp] HOST:PORT, got {' '.join(parts)!r}") from exc
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m sitl_scenarios.vehicle --scenario FILE [--speedup X] [--target udp HOST:PORT]`."""
+    ap = argparse.ArgumentParser(prog="python -m sitl_scenarios.vehicle", description=DESCRIPTION)
+    ap.add_argument("--scenario", default="paper", help="scenario file or bundled name (default: paper)")
+    ap.add_argument("--speedup", type=float, default=1.0, help="simulated seconds per wall second")
+    ap.add_argument("--target", nargs="+", action="append", default=None,
+                    help="where to send before a ground station talks: [udp] HOST:PORT (repeatable; "
+                         "default 127.0.0.1:14540), or none")
+    ap.add_argument("--bind", default="0.0.0.0:0", help="local HOST:PORT (port 0: any)")
+    ap.add_argument("--seed", type=int, default=None, help="GPS noise seed (default: the scenario's)")
+    ap.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    ap.add_argument("-v", "--verbose", action="store_true")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        scenario = load_scenario(args.scenario)
+        bind_host, _, bind_port = args.bind.rpartition(":")
+        targets = [_parse_target(t) for t in (args.target or [["127.0.0.1:14540"]])]
+        kwargs: dict[str, Any] = {"speedup": args.speedup, "target": [t for t in targets if t is not None],
+                                  "bind": (bind_host or "0.0.0.0", int(bind_port))}
+        if args.seed is not None:
+            kwargs["seed"] = args.seed
+        sim = VehicleSimulator.from_scenario(scenario, **kwargs)
+        with sim:
+            t_end = None if args.duration is None else time.monotonic() + args.duration
+            while t_end is None or time.monotonic() < t_end:
+                time.sleep(min(2.0, max(0.0, (t_end or math.inf) - time.monotonic())))
+                s = sim.state()
+                e, n, u = s.pos_enu_m
+                log.info("t=%.1f s %s armed=%s pos_enu=(%.1f, %.1f, %.1f) battery=%.0f%%",
+                         s.t_s, s.mode, s.armed, e, n, u, s.battery_pct)
+    except KeyboardInterrupt:
+        return 0
+    except (ScenarioError, SimulatorError, ValueError) as exc:
+        log.error("%s", exc)
+        return 1
+    return 0

@@ -1,0 +1,88 @@
+"""Sensors of the built-in vehicle: the GPS/EKF position error and the battery (charge state,
+drain, electrics). Pure: the random generator is handed in, time is simulated time."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sitl_scenarios.vehicle.mav import CHARGE_CRITICAL, CHARGE_EMERGENCY, CHARGE_LOW, CHARGE_OK
+from sitl_scenarios.vehicle.params import ParamStore
+
+#: PX4's STATUSTEXT when the charge state drops to a level
+BATTERY_WARNINGS = {
+    CHARGE_LOW: "Low battery level! Return advised",
+    CHARGE_CRITICAL: "Critical battery level!",
+    CHARGE_EMERGENCY: "Emergency battery level! Landing",
+}
+#: a pack's capacity in mAh, for BATTERY_STATUS.current_consumed only
+CAPACITY_MAH = 5000
+
+
+class GpsError:
+    """Position error of the vehicle's GPS/EKF solution, isotropic in 3-D, σ per axis.
+
+    tau_s = 0: independent per fix (the estimator's model, DESIGN.md §5). tau_s > 0: first-order
+    Gauss-Markov, e_k = φ·e_{k-1} + sqrt(1 − φ²)·σ·w, φ = exp(−Δt/τ), stationary σ per axis.
+    """
+
+    def __init__(self, sigma_m: float, tau_s: float, rng: np.random.Generator) -> None:
+        self.sigma_m = float(sigma_m)
+        self.tau_s = float(tau_s)
+        self._rng = rng
+        self._e = rng.normal(0.0, self.sigma_m, 3) if self.sigma_m > 0 else np.zeros(3)
+        self._t_s: float | None = None
+
+    def sample(self, t_s: float) -> np.ndarray:
+        """Error (3,) [m] ENU at simulated time t_s; the same value for the same t_s."""
+        if self._t_s is not None and t_s == self._t_s:
+            return self._e
+        if self.sigma_m <= 0:
+            self._e = np.zeros(3)
+        elif self.tau_s <= 0 or self._t_s is None:
+            self._e = self._rng.normal(0.0, self.sigma_m, 3)
+        else:
+            # e_k = φ e_{k-1} + sqrt(1 − φ²) σ w
+            phi = math.exp(-max(t_s - self._t_s, 0.0) / self.tau_s)
+            self._e = phi * self._e + math.sqrt(1.0 - phi * phi) * self.sigma_m * self._rng.normal(size=3)
+        self._t_s = t_s
+        return self._e
+
+
+
+
+def charge_state(battery_pct: float, params: ParamStore) -> int:
+    """MAV_BATTERY_CHARGE_STATE of a remaining charge [%] against BAT_LOW/CRIT/EMERGEN_THR."""
+    frac = battery_pct / 100.0
+    if frac <= params["BAT_EMERGEN_THR"]:
+        return CHARGE_EMERGENCY
+    if frac <= params["BAT_CRIT_THR"]:
+        return CHARGE_CRITICAL
+    if frac <= params["BAT_LOW_THR"]:
+        return CHARGE_LOW
+    return CHARGE_OK
+
+
+def drained_pct(battery_pct: float, dt_s: float, capacity_s: float, armed: bool, in_air: bool) -> float:
+    """The charge [%] after dt_s: an armed vehicle drains 100 % per capacity_s of flight, a tenth
+    of that on the ground; disarmed it keeps its charge."""
+    if not armed:
+        return battery_pct
+    rate = 100.0 / capacity_s  # % per second of flight
+    return max(battery_pct - rate * dt_s * (1.0 if in_air else 0.1), 0.0)
+
+
+def battery_electrics(battery_pct: float, cells: int, armed: bool, in_air: bool) -> tuple[int, int]:
+    """(voltage [mV], current [cA]) of a LiPo: 3.6 V (empty) .. 4.05 V (full) per cell; 15 A in
+    the air, 1.5 A armed on the ground, 0.5 A disarmed."""
+    v = cells * (3.6 + 0.45 * battery_pct / 100.0)
+    amps = 15.0 if in_air else (1.5 if armed else 0.5)
+    return int(v * 1000), int(amps * 100)
+
+
+def remaining(battery_pct: float, capacity_s: float) -> tuple[int, int]:
+    """(charge used [mAh] of a CAPACITY_MAH pack, flight time left [s]) at a remaining charge [%]."""
+    used_mah = int((100.0 - battery_pct) / 100.0 * CAPACITY_MAH)
+    return used_mah, int(battery_pct / 100.0 * capacity_s)
+

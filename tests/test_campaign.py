@@ -1,0 +1,254 @@
+"""Campaigns on Dask: same records as one by one, failures recorded, resume, strict specs (issue 15)."""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from sitl_scenarios.campaign import (
+    TIMING_FIELDS,
+    ResultsStore,
+    load_spec,
+    run_campaign,
+    run_one,
+    same_value,
+    spec_from_dict,
+)
+from sitl_scenarios.campaign.families import FamilySpec, generate_scenario
+from uavloc.errors import CampaignError
+
+REPO = Path(__file__).resolve().parents[1]
+
+# small fast-mode runs: 1–2 users in a small fence, a 400 m budget, a 3 m target; the channel has a
+# drifting GPS, UE clock sawtooths and NLoS excess behind buildings
+SPEC = {
+    "campaign": {"name": "t", "mode": "fast", "seeds": [0], "planners": ["lawnmower", "greedy"],
+                 "targets_m": [4.0, 3.0]},
+    "estimators": {"default": {"window": 30}},
+    "families": [{"name": "small", "count": 3, "seed": 7, "users": [1, 2], "fence_half_m": [70.0, 90.0],
+                  "no_fly": 0, "buildings": [0, 1], "gps_tau_s": [30.0, 120.0], "sawtooth_amplitude_m": [0.0, 4.0],
+                  "nlos_excess_mean_m": 10.0, "mission": {"budget_m": 400.0}}],
+}
+
+# a scenario whose fence leaves out home: the planner raises when asked to route from there
+OUTSIDE = """
+name = "home_outside_fence"
+[[users]]
+id = "ue1"
+rnti = 17921
+east_m = 150.0
+north_m = 150.0
+[geofence]
+polygon_enu_m = [[100.0, 100.0], [200.0, 100.0], [200.0, 200.0], [100.0, 200.0]]
+"""
+
+
+def deterministic(rec: dict) -> dict:
+    return {k: v for k, v in rec.items() if k not in TIMING_FIELDS}
+
+
+def assert_same_records(a: list[dict], b: list[dict]) -> None:
+    assert [r["key"] for r in a] == [r["key"] for r in b]
+    for ra, rb in zip(a, b, strict=True):
+        da, db = deterministic(ra), deterministic(rb)
+        assert da.keys() == db.keys()
+        bad = [k for k in da if not same_value(da[k], db[k])]
+        assert not bad, f"{ra['key']}: {[(k, da[k], db[k]) for k in bad]}"
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A LocalCluster of 2 single-threaded worker processes, reached by address like an external one."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, scheduler_port=0, dashboard_address=None,
+                      scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                      worker_dashboard_address="127.0.0.1:0") as c:
+        yield c
+
+
+def test_six_runs_on_a_local_cluster_of_two_workers_equal_the_runs_one_by_one(tmp_path):
+    campaign = spec_from_dict(copy.deepcopy(SPEC))
+    assert len(campaign.runs) == 6
+    one_by_one = [run_one(r) for r in campaign.runs]
+    done = run_campaign(campaign, tmp_path, workers=2, progress=False)
+    assert done.where == "LocalCluster(2)" and done.workers == 2
+    assert done.ran == 6 and done.failed == 0
+    assert all(r["status"] == "ok" for r in one_by_one), [r["error"] for r in one_by_one]
+    assert_same_records(one_by_one, done.records)
+    # and what was written to Parquet is what came back
+    order = [r.key for r in campaign.runs]
+    assert_same_records(one_by_one, sorted(ResultsStore(tmp_path).read_records(), key=lambda r: order.index(r["key"])))
+    # the runs measured something: every run located its users to the first target within the budget
+    assert all(r["metres_to_m"][0] > 0 for r in one_by_one)
+    assert all(len(r["final_error_m"]) == r["users"] for r in one_by_one)
+
+
+def test_a_run_that_raises_is_recorded_and_the_others_finish(tmp_path, cluster):
+    (tmp_path / "outside.toml").write_text(OUTSIDE)
+    data = copy.deepcopy(SPEC)
+    data["families"][0]["count"] = 1
+    data["scenarios"] = [{"file": "outside.toml", "condition": "broken"}]
+    (tmp_path / "spec.toml").write_text(_toml(data))
+    campaign = load_spec(tmp_path / "spec.toml")
+    done = run_campaign(campaign, tmp_path / "out", scheduler=cluster.scheduler_address, progress=False)
+    assert done.ran == 4 and done.failed == 2
+    by_status = {r["condition"]: r["status"] for r in done.records}
+    assert by_status == {"broken": "error", "small": "ok"}
+    for r in done.records:
+        if r["condition"] == "broken":
+            assert r["error"].startswith("PlannerError: ") and "outside the fence" in r["error"]
+            assert "Traceback" in r["traceback"]
+        else:
+            assert r["error"] == "" and r["replans"] > 0
+    stored = ResultsStore(tmp_path / "out").read_records()
+    assert sorted(r["status"] for r in stored) == ["error", "error", "ok", "ok"]
+    assert (tmp_path / "out" / "summary.csv").exists() is False  # the summary is the command's job
+
+
+def test_a_second_run_of_the_same_spec_skips_what_is_done(tmp_path, cluster):
+    data = copy.deepcopy(SPEC)
+    data["families"][0]["count"] = 1
+    first = run_campaign(spec_from_dict(data), tmp_path, scheduler=cluster.scheduler_address, progress=False)
+    assert (first.ran, first.skipped) == (2, 0)
+    again = run_campaign(spec_from_dict(data), tmp_path, scheduler=cluster.scheduler_address, progress=False)
+    assert (again.ran, again.skipped) == (0, 2)
+    assert_same_records(first.records, again.records)
+    # a torn write (a part never renamed into place) is not a result
+    (tmp_path / "results" / "part-9.tmp").write_bytes(b"PAR1 torn")
+    # one more seed: only its runs are new; a changed run definition is a new run
+    data["campaign"]["seeds"] = [0, 1]
+    more = run_campaign(spec_from_dict(data), tmp_path, scheduler=cluster.scheduler_address, progress=False)
+    assert (more.ran, more.skipped) == (2, 2)
+    assert sorted(r["seed"] for r in more.records) == [0, 0, 1, 1]
+    data["estimators"]["default"]["window"] = 31
+    changed = run_campaign(spec_from_dict(data), tmp_path, workers=0, progress=False)
+    assert (changed.ran, changed.skipped) == (4, 0)
+    assert len(ResultsStore(tmp_path).parts()) == 1  # merged once complete
+
+
+def _toml(data: dict) -> str:
+    """A minimal TOML writer for the specs of these tests (tables, arrays of tables, scalars, lists)."""
+    def value(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return '"' + v + '"'
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return repr(v)
+
+    lines = []
+
+    def table(name, d):
+        scalars = {k: v for k, v in d.items() if not isinstance(v, dict)}
+        lines.extend([f"[{name}]"] + [f"{k} = {value(v)}" for k, v in scalars.items()])
+        for k, v in d.items():
+            if isinstance(v, dict):
+                table(f"{name}.{k}", v)
+
+    for key, v in data.items():
+        if isinstance(v, list):
+            for item in v:
+                lines.append(f"[[{key}]]")
+                lines.extend(f"{k} = {value(x)}" for k, x in item.items() if not isinstance(x, dict))
+                for k, x in item.items():
+                    if isinstance(x, dict):
+                        lines.append(f"[{key}.{k}]")
+                        lines.extend(f"{kk} = {value(xx)}" for kk, xx in x.items())
+        else:
+            table(key, v)
+    text = "\n".join(lines) + "\n"
+    assert tomllib.loads(text) == data  # the writer is only trusted where it round-trips
+    return text
+
+
+def _with(path: tuple, value) -> dict:
+    data = copy.deepcopy(SPEC)
+    d = data
+    for p in path[:-1]:
+        d = d[p]
+    if value is _DELETE:
+        del d[path[-1]]
+    else:
+        d[path[-1]] = value
+    return data
+
+
+_DELETE = object()
+
+
+@pytest.mark.parametrize("path, value, named", [
+    (("campaign", "colour"), "red", "'colour'"),
+    (("extra",), {}, "'extra'"),
+    (("campaign", "mode"), "slow", "campaign.mode"),
+    (("campaign", "planners"), ["lawnmower", "teleport"], "campaign.planners"),
+    (("campaign", "seeds"), [0, 0], "campaign.seeds"),
+    (("campaign", "seeds"), "0", "campaign.seeds"),
+    (("campaign", "targets_m"), [1.0, float("nan")], "campaign.targets_m"),
+    (("campaign", "name"), _DELETE, "'name'"),
+    (("estimators", "default", "windw"), 40, "estimators.default"),
+    (("estimators", "default", "loss"), "l1", "estimators.default.loss"),
+    (("estimators", "default", "window"), 4.5, "estimators.default.window"),
+    (("planner_options",), {"casadi": {"horizon": 2}}, "planner_options.casadi"),
+    (("planner_options",), {"greedy": {"no_such_option": 1}}, "planner_options.greedy"),
+    (("families", 0, "users"), [3, 1], "families[0].users"),
+    (("families", 0, "gps_tau_s"), [0.0, 1.0, 2.0], "families[0].gps_tau_s"),
+    (("families", 0, "sawtooth_amplitude_m"), -1.0, "families[0].sawtooth_amplitude_m"),
+    (("families", 0, "buidlings"), 2, "'buidlings'"),
+    (("families", 0, "mission"), {"budget_m": -5.0}, "mission.budget_m"),
+    (("families", 0, "mission"), {"budgt_m": 5.0}, "'budgt_m'"),
+    (("scenarios",), [{"file": "no_such_scenario"}], "scenarios[0].file"),
+])
+def test_a_bad_spec_is_a_clear_error_naming_the_key(path, value, named):
+    with pytest.raises(CampaignError) as err:
+        spec_from_dict(_with(path, value), "spec.toml")
+    assert named in str(err.value) and str(err.value).startswith("spec.toml: ")
+
+
+def test_a_spec_file_that_is_not_toml_names_the_file(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[campaign\nname = 1\n")
+    with pytest.raises(CampaignError, match="bad.toml: not valid TOML"):
+        load_spec(bad)
+
+
+def test_conditions_never_move_a_family_s_geometry():
+    plain = FamilySpec(name="f", seed=3)
+    drifting = FamilySpec(name="f", seed=3, gps_tau_s=[60.0, 300.0], sawtooth_amplitude_m=[2.0, 8.0],
+                          nlos_excess_mean_m=[5.0, 20.0])
+    for j in range(4):
+        a, b = generate_scenario(plain, j), generate_scenario(drifting, j)
+        assert a.geofence == b.geofence and a.buildings == b.buildings
+        assert [(u.east_m, u.north_m) for u in a.users] == [(u.east_m, u.north_m) for u in b.users]
+        assert a.vehicle.gps_tau_s == 0.0 and 60.0 <= b.vehicle.gps_tau_s <= 300.0
+        assert all(2.0 <= u.sawtooth_amplitude_m <= 8.0 for u in b.users)
+
+
+def test_the_planner_benchmark_spec_loads():
+    campaign = load_spec(REPO / "benchmarks" / "planner_campaign.toml")
+    assert len(campaign.runs) == 30 * 6 and campaign.targets_m == (1.0, 0.6)
+    assert {r.params.window for r in campaign.runs} == {40}
+
+
+def test_the_command_writes_results_summary_and_figures_and_exits_non_zero_on_failed_runs(tmp_path, capsys):
+    from mission.cli import main
+
+    (tmp_path / "outside.toml").write_text(OUTSIDE)
+    data = copy.deepcopy(SPEC)
+    data["campaign"]["planners"] = ["lawnmower"]
+    data["families"][0]["count"] = 1
+    (tmp_path / "spec.toml").write_text(_toml(data))
+    out = tmp_path / "out"
+    assert main(["campaign", str(tmp_path / "spec.toml"), "--workers", "0", "--out", str(out), "--no-progress"]) == 0
+    for name in ("summary.csv", "summary.txt", "metres_to_target.png", "error_vs_bound.png"):
+        assert (out / name).stat().st_size > 0, name
+    printed = capsys.readouterr().out
+    assert "small" in printed and "lawnmower" in printed and "1 run now on local" in printed
+    data["scenarios"] = [{"file": "outside.toml"}]
+    (tmp_path / "spec.toml").write_text(_toml(data))
+    assert main(["campaign", str(tmp_path / "spec.toml"), "--workers", "0", "--out", str(out), "--no-progress"]) == 1
+    assert "1 already done, 1 failed" in capsys.readouterr().out

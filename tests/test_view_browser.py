@@ -1,0 +1,423 @@
+"""The live view in a real browser: Debian's Chromium driven by Playwright (marker `browser`).
+
+One simulated mission (`uavloc sim paper --view 127.0.0.1:0 --json --out DIR`, a subprocess) is
+watched by a page from the first frame to the last; the tests then check what the page showed:
+no console errors, user markers and ellipses that changed during the mission, and at the end the
+ellipse radius equal to the JSON result's `error_bound_95_m`. `uavloc view LOG` on the same
+mission's log: the slider shows the estimate of the chosen time.
+
+Set UAVLOC_VIEW_SCREENSHOTS=DIR to keep screenshots of the page mid-mission and at the end.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import re
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.geodesy import Origin
+from estimator.types import CHI2_2DOF_95
+
+pytestmark = pytest.mark.browser
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+#: guards against a hung subprocess or page, not timing assertions
+HANG_GUARD_S = 300.0
+
+
+def _chromium() -> str | None:
+    for cand in (os.environ.get("UAVLOC_CHROMIUM"), "/usr/bin/chromium", shutil.which("chromium"),
+                 shutil.which("chromium-browser")):
+        if cand and Path(cand).exists():
+            return cand
+    return None
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    exe = _chromium()
+    if exe is None:
+        pytest.skip("no Chromium found (Debian package `chromium`; or set UAVLOC_CHROMIUM)")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("playwright is not installed (pip install -e '.[test]')")
+    profile = tmp_path_factory.mktemp("chromium-profile")
+    with sync_playwright() as pw:
+        ctx = pw.chromium.launch_persistent_context(str(profile), executable_path=exe, headless=True,
+                                                    args=CHROMIUM_ARGS, viewport={"width": 1280, "height": 800})
+        try:
+            yield ctx
+        finally:
+            ctx.close()
+
+
+def _screens_dir(tmp_path: Path) -> Path:
+    d = os.environ.get("UAVLOC_VIEW_SCREENSHOTS")
+    return Path(d) if d else tmp_path
+
+
+class _Proc:
+    """A uavloc subprocess whose stderr is read in a thread (the URL line is picked out)."""
+
+    def __init__(self, args: list[str]):
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.p = subprocess.Popen([sys.executable, "-m", "mission", *args], cwd=REPO, env=env,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.lines: list[str] = []
+        self.urls: queue.Queue[str] = queue.Queue()
+        self._t = threading.Thread(target=self._read, daemon=True)
+        self._t.start()
+
+    def _read(self) -> None:
+        for line in self.p.stderr:
+            self.lines.append(line)
+            m = re.search(r" at (http://\S+)", line)
+            if m and "uavloc:" in line:
+                self.urls.put(m.group(1))
+
+    def url(self) -> str:
+        try:
+            return self.urls.get(timeout=HANG_GUARD_S)
+        except queue.Empty:
+            self.stop()
+            raise AssertionError("no view URL printed:\n" + "".join(self.lines[-30:])) from None
+
+    def stop(self) -> None:
+        if self.p.poll() is None:
+            self.p.terminate()
+            try:
+                self.p.wait(10)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+
+
+def _watch(page) -> list[str]:
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+    page.on("pageerror", lambda e: errors.append(f"page error: {e}"))
+    return errors
+
+
+JS_SNAPSHOT = """() => ({
+  conn: document.getElementById('conn').textContent,
+  state: document.getElementById('m-state').textContent,
+  frames: Number(document.body.dataset.frames || 0),
+  ellipses: [...document.querySelectorAll('#ellipses ellipse')].map(e => ({
+     id: e.dataset.user, rx: Number(e.getAttribute('rx')), ry: Number(e.getAttribute('ry')),
+     cx: Number(e.getAttribute('cx')), cy: Number(e.getAttribute('cy')), r95: Number(e.dataset.r95M)})),
+  markers: [...document.querySelectorAll('#markers [data-marker]')].map(
+     m => [m.getAttribute('cx'), m.getAttribute('cy')]),
+  r95_text: Object.fromEntries([...document.querySelectorAll('#users tbody tr')].map(
+     tr => [tr.dataset.user, tr.querySelector('.r95').textContent])),
+  vehicle: (document.getElementById('vehicle') || {getAttribute: () => null}).getAttribute('transform'),
+})"""
+
+
+@pytest.fixture(scope="module")
+def live_mission(browser, tmp_path_factory):
+    """Fly `sim paper` with --view and watch it from a page until the mission ends."""
+    tmp = tmp_path_factory.mktemp("live")
+    screens = _screens_dir(tmp)
+    out = tmp / "out"
+    proc = _Proc(["sim", "paper", "--json", "--out", str(out), "--view", "127.0.0.1:0"])
+    page = browser.new_page()
+    errors = _watch(page)
+    snapshots = []
+    mid_shot = None
+    try:
+        page.goto(proc.url())
+        deadline = time.monotonic() + HANG_GUARD_S
+        while time.monotonic() < deadline:
+            snap = page.evaluate(JS_SNAPSHOT)
+            last = snapshots[-1] if snapshots else None
+            if last is None or snap["ellipses"] != last["ellipses"] or snap["vehicle"] != last["vehicle"]:
+                snapshots.append(snap)
+            n_distinct = len({json.dumps(s["ellipses"]) for s in snapshots if s["ellipses"]})
+            if mid_shot is None and n_distinct >= 4 and snap["state"].startswith("SURVEY"):
+                mid_shot = screens / "view-live-mid.png"
+                page.screenshot(path=str(mid_shot))
+            if "mission ended" in snap["conn"] or "connection lost" in snap["conn"]:
+                break
+            page.wait_for_timeout(150)
+        final = page.evaluate(JS_SNAPSHOT)
+        end_shot = screens / "view-live-end.png"
+        page.screenshot(path=str(end_shot))
+        stdout, _ = proc.p.communicate(timeout=HANG_GUARD_S)
+    finally:
+        page.close()
+        proc.stop()
+    return {"snapshots": snapshots, "final": final, "errors": errors, "doc": json.loads(stdout),
+            "log": out / "mission.jsonl", "stderr": "".join(proc.lines), "rc": proc.p.returncode,
+            "mid_shot": mid_shot, "end_shot": end_shot}
+
+
+def test_live_page_loads_and_runs_without_console_errors(live_mission):
+    assert live_mission["rc"] == 0, live_mission["stderr"][-3000:]
+    assert live_mission["errors"] == []
+    assert "mission ended" in live_mission["final"]["conn"]
+    assert live_mission["final"]["frames"] >= 3
+
+
+def test_user_marker_and_ellipse_update_during_the_mission(live_mission):
+    snaps = [s for s in live_mission["snapshots"] if s["ellipses"]]
+    radii = {round(s["ellipses"][0]["rx"], 6) for s in snaps}
+    centres = {(round(s["ellipses"][0]["cx"], 3), round(s["ellipses"][0]["cy"], 3)) for s in snaps}
+    markers = {json.dumps(s["markers"]) for s in snaps}
+    vehicles = {s["vehicle"] for s in live_mission["snapshots"] if s["vehicle"]}
+    assert len(radii) >= 3 and len(centres) >= 3 and len(markers) >= 3, snaps[-3:]
+    assert len(vehicles) >= 5
+    # the uncertainty shrank from the first ellipse shown to the last
+    assert snaps[-1]["ellipses"][0]["rx"] < snaps[0]["ellipses"][0]["rx"]
+    assert live_mission["mid_shot"] is not None and live_mission["mid_shot"].exists()
+
+
+def test_ellipse_radius_shown_at_the_end_is_the_json_results_bound(live_mission):
+    doc = live_mission["doc"]
+    final = live_mission["final"]
+    assert doc["status"] == "target_reached"
+    for u in doc["users"]:
+        shown = [e for e in final["ellipses"] if e["id"] == u["id"]]
+        assert len(shown) == 1
+        # the drawn ellipse (world units are metres) and the number in the panel
+        assert shown[0]["rx"] == pytest.approx(u["error_bound_95_m"], rel=1e-9)
+        assert shown[0]["r95"] == pytest.approx(u["error_bound_95_m"], rel=1e-9)
+        assert final["r95_text"][u["id"]] == f"{u['error_bound_95_m']:.2f}"
+        # and the centre is the JSON result's position
+        assert [shown[0]["cx"], shown[0]["cy"]] == pytest.approx(u["enu_m"][:2], abs=0.006)
+
+
+def test_the_missions_log_header_carries_the_scenarios_area(live_mission):
+    """What the page and the exports draw: the fence and the altitude band of the scenario."""
+    from mission.log import read_mission_log
+    from sitl_scenarios.scenario import load_scenario
+
+    sc = load_scenario("paper")
+    h = read_mission_log(live_mission["log"]).header
+    ring = np.array(h.geofence)
+    back = h.origin.lla_to_enu(ring[:, 0], ring[:, 1], h.origin.alt_m)[:, :2]
+    np.testing.assert_allclose(back, sc.geofence.polygon_enu_m, atol=0.01)
+    assert h.altitude_band_m == {"min_m": sc.mission.alt_min_m, "max_m": sc.mission.alt_max_m}
+    assert h.max_distance_m == sc.geofence.max_distance_m and h.buildings == [] and h.no_fly_zones == []
+
+
+@contextlib.contextmanager
+def _view_log(log_path: Path):
+    proc = _Proc(["view", str(log_path), "--port", "0"])
+    try:
+        yield proc.url()
+    finally:
+        proc.stop()
+
+
+def test_view_log_slider_shows_the_estimate_of_the_chosen_time(live_mission, browser, tmp_path):
+    log_path = live_mission["log"]
+    records = [json.loads(line) for line in log_path.read_text().splitlines()]
+    origin = Origin(**records[0]["origin"])
+    estimates = [r for r in records if r["type"] == "estimate" and not r.get("final")]
+    assert len(estimates) >= 10
+    # the mid-mission estimate, and a time just after it (before the next record of any kind)
+    i_rec = records.index(estimates[len(estimates) // 2])
+    chosen = records[i_rec]
+    t_next = min(r["t"] for r in records[i_rec + 1:])
+    t_pick = round(chosen["t"] + 0.4 * (t_next - chosen["t"]), 6) if t_next > chosen["t"] else chosen["t"]
+    assert all(r["t"] <= t_pick for r in records[:i_rec + 1])
+    u = chosen["users"][0]
+    expect_en = origin.lla_to_enu(u["lat_deg"], u["lon_deg"], u["alt_m"])[:2]
+    expect_r95 = float(np.sqrt(CHI2_2DOF_95 * np.linalg.eigvalsh(np.array(u["cov_en_m2"]))[-1]))
+
+    with _view_log(log_path) as url:
+        page = browser.new_page()
+        errors = _watch(page)
+        try:
+            page.goto(url)
+            page.wait_for_function("() => document.body.dataset.sliderT !== undefined")
+            page.evaluate("""(t) => { const s = document.getElementById('slider');
+                                      s.value = String(t); s.dispatchEvent(new Event('input')); }""", t_pick)
+            page.wait_for_function("(t) => Math.abs(Number(document.body.dataset.sliderT) - t) < 1e-9", arg=t_pick)
+            snap = page.evaluate(JS_SNAPSHOT)
+            page.screenshot(path=str(_screens_dir(tmp_path) / "view-log-slider.png"))
+        finally:
+            page.close()
+    assert errors == []
+    (shown,) = [e for e in snap["ellipses"] if e["id"] == u["id"]]
+    assert [shown["cx"], shown["cy"]] == pytest.approx(expect_en, abs=0.006)
+    assert shown["rx"] == pytest.approx(expect_r95, rel=1e-9)
+    # not the final answer: the slider really went back in time
+    final = live_mission["doc"]["users"][0]["error_bound_95_m"]
+    assert abs(shown["rx"] - final) > 1e-6
+
+
+@contextlib.contextmanager
+def _server_in_thread(feed, **kw):
+    """A ViewServer on its own event loop in a thread (the test thread drives the browser)."""
+    import asyncio
+
+    from mission.view.server import ViewServer
+
+    started: queue.Queue = queue.Queue()
+    loop = asyncio.new_event_loop()
+    stop = asyncio.Event()
+
+    async def main():
+        async with ViewServer(feed, "127.0.0.1", 0, **kw) as server:
+            started.put(server)
+            await stop.wait()
+
+    t = threading.Thread(target=loop.run_until_complete, args=(main(),), daemon=True)
+    t.start()
+    server = started.get(timeout=30)
+    try:
+        yield server
+    finally:
+        loop.call_soon_threadsafe(stop.set)
+        t.join(30)
+        loop.close()
+
+
+def test_a_page_opened_before_the_mission_starts_draws_it_when_records_come(browser, tmp_path):
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import write_mission
+
+    records = write_mission(tmp_path / "m.jsonl")
+    feed = LiveFeed()
+    with _server_in_thread(feed) as server:
+        page = browser.new_page()
+        errors = _watch(page)
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => document.getElementById('conn').textContent === 'live'")
+            page.wait_for_function("() => Number(document.body.dataset.frames || 0) >= 1")
+            for rec in records:
+                feed.on_record(rec)  # from this thread: handed over to the server's loop
+            page.wait_for_function("() => document.getElementById('m-state').textContent.startsWith('LANDED')")
+            snap = page.evaluate(JS_SNAPSHOT)
+            n_buildings = page.evaluate("() => document.querySelectorAll('#buildings polygon').length")
+            n_nofly = page.evaluate("() => document.querySelectorAll('#area polygon.nofly').length")
+        finally:
+            page.close()
+    assert errors == []
+    assert n_buildings == 1 and n_nofly == 1
+    assert sorted(e["id"] for e in snap["ellipses"]) == ["ue1", "ue2"]
+
+
+# a 1x1 PNG (a map tile)
+_PNG = bytes.fromhex("89504e470d0a1a0a0000000d4948445200000001000000010806000000"
+                     "1f15c4890000000d49444154789c6360f8cfc0f01f0005000201e2f2"
+                     "0d2d0000000049454e44ae426082")
+
+
+@contextlib.contextmanager
+def _tile_server():
+    """A local tile server that records the tiles asked for."""
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    asked: list[str] = []
+
+    class Tiles(BaseHTTPRequestHandler):
+        def do_GET(self):
+            asked.append(self.path)
+            self.send_response(200)
+            self.send_header("Content-Type", "image/png")
+            self.send_header("Content-Length", str(len(_PNG)))
+            self.end_headers()
+            self.wfile.write(_PNG)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Tiles)
+    t = threading.Thread(target=httpd.serve_forever, daemon=True)
+    t.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_port}/tiles/{{z}}/{{x}}/{{y}}.png", asked
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+@pytest.mark.parametrize("with_tiles", [False, True])
+def test_the_page_loads_nothing_but_its_own_files_and_the_tiles_it_was_given(browser, tmp_path, with_tiles):
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import write_mission
+
+    records = write_mission(tmp_path / "m.jsonl")
+    feed = LiveFeed()
+    for rec in records:
+        feed.state.apply(rec)
+    with _tile_server() as (tiles_url, asked), \
+            _server_in_thread(feed, tiles_url=tiles_url if with_tiles else None) as server:
+        page = browser.new_page()
+        errors = _watch(page)
+        requests: list[str] = []
+        page.on("request", lambda r: requests.append(r.url))
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => document.getElementById('m-state').textContent.startsWith('LANDED')")
+            if with_tiles:
+                page.wait_for_function("() => document.querySelectorAll('#tiles image').length > 0")
+                page.wait_for_timeout(300)
+            n_images = page.evaluate("() => document.querySelectorAll('#tiles image').length")
+        finally:
+            page.close()
+    assert errors == []
+    own = f"http://127.0.0.1:{server.port}/"
+    foreign = [u for u in requests if not u.startswith(own)]
+    if with_tiles:
+        assert n_images > 0 and asked
+        assert foreign and all(u.startswith(tiles_url.split("/tiles/")[0] + "/tiles/") for u in foreign)
+        # the tiles asked for cover the mission area: zoom level and indices around the origin
+        z, x, y = (int(v) for v in asked[0].removesuffix(".png").split("/")[-3:])
+        lat, lon = np.radians(43.6143), 7.0716
+        assert abs(x - (lon + 180) / 360 * 2**z) < 4
+        assert abs(y - (1 - np.log(np.tan(lat) + 1 / np.cos(lat)) / np.pi) / 2 * 2**z) < 4
+    else:
+        assert n_images == 0 and foreign == [] and asked == []
+
+
+@pytest.mark.parametrize("corr, inside, outside", [(4.0, (1, 1), (-1, 1)), (-4.0, (-1, 1), (1, 1))])
+def test_an_ellipse_is_drawn_along_its_major_axis_north_up(browser, corr, inside, outside):
+    """Σ = [[5, ±4], [±4, 5]]: the major axis points north-east (+) or north-west (−); on the
+    page north is up, so a point 0.8 a along the major axis is on the ellipse, across it is not."""
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import ORIGIN, USERS, lla
+
+    feed = LiveFeed()
+    est = {"id": "ue1", **lla(0, 0), "cov_en_m2": [[5, corr], [corr, 5]]}
+    feed.state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS[:1]})
+    feed.state.apply({"type": "estimate", "t": 1, "users": [est]})
+    with _server_in_thread(feed) as server:
+        page = browser.new_page()
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => document.querySelectorAll('#ellipses ellipse').length === 1")
+            hits = page.evaluate("""([inside, outside]) => {
+                const e = document.querySelector('#ellipses ellipse');
+                const a = Number(e.getAttribute('rx'));
+                const origin = document.querySelector('#markers .home').getBoundingClientRect();
+                const cx = origin.x + origin.width / 2, cy = origin.y + origin.height / 2;
+                const world = document.getElementById('world').getCTM();  // metres -> pixels
+                const hit = ([de, dn]) => {
+                    const k = 0.8 * a / Math.SQRT2;
+                    const x = cx + world.a * de * k, y = cy + world.d * dn * k;
+                    return document.elementsFromPoint(x, y).includes(e);
+                };
+                return [hit(inside), hit(outside), world.d < 0];
+            }""", [list(inside), list(outside)])
+        finally:
+            page.close()
+    assert hits == [True, False, True]

@@ -1,0 +1,305 @@
+"""The live view's state model (mission/view/state.py) and the mission-log parts it relies on:
+the writer's listeners and the header's optional area fields. Pure: no server, no browser."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from estimator.geodesy import Origin
+from estimator.types import CHI2_2DOF_95, Estimate
+from mission.log import MissionLogWriter, area_fields, read_mission_log
+from mission.view.state import Cursor, Timeline, ViewState, ellipse_95
+from uavloc.errors import MissionLogError
+
+ORIGIN = Origin(43.6143, 7.0716, 150.0)
+USERS = [{"id": "ue1", "rnti": 17921, "ground_alt_m": 150.0}, {"id": "ue2", "rnti": 17922, "ground_alt_m": 150.0}]
+FENCE_EN_M = np.array([[-100.0, -100.0], [200.0, -100.0], [200.0, 150.0], [-100.0, 150.0]])
+NOFLY_EN_M = [np.array([[50.0, 50.0], [80.0, 50.0], [65.0, 90.0]])]
+BUILDING_EN_M = np.array([[10.0, 10.0], [30.0, 10.0], [30.0, 25.0], [10.0, 25.0]])
+
+
+def lla(e, n, u=0.0) -> dict:
+    lat, lon, alt = ORIGIN.enu_to_lla(np.array([e, n, u], float))
+    return {"lat_deg": float(lat), "lon_deg": float(lon), "alt_m": float(alt)}
+
+
+def write_mission(path, listener=None, n_tel: int = 50) -> list[dict]:
+    """A small mission log written by the real writer; returns the records as written."""
+    seen: list[dict] = []
+    with MissionLogWriter(path) as w:
+        w.subscribe(seen.append)
+        if listener is not None:
+            w.subscribe(listener)
+        w.write_header(ORIGIN, USERS, {"mu": 1, "fs_hz": 46.08e6},
+                       config={"scenario": "t", "controller": {"target_radius_m": 2.5}},
+                       area=area_fields(ORIGIN, FENCE_EN_M, NOFLY_EN_M, 10.0, 120.0, 500.0,
+                                        [(BUILDING_EN_M, 12.0)]))
+        w.write("truth", 0.1, users=[{"id": "ue1", **lla(40, 30)}, {"id": "ue2", **lla(-20, 60)}])
+        w.write("event", 0.2, message="armed", kind="arm", state="TAKEOFF")
+        for i in range(n_tel):
+            w.write("telemetry", 1.0 + 0.2 * i, **lla(0.5 * i, 0.1 * i, 30.0), vel_ned_mps=[0.5, 2.5, 0.0])
+            if i == 5:
+                w.write("waypoint", 2.05, leg=1, **lla(60, 10, 30), enu_m=[60, 10, 30], planner="casadi",
+                        status="ok")
+            if i % 5 == 4:
+                w.write("rtt", 1.0 + 0.2 * i - 0.05, user="ue1", uav=lla(0.5 * i, 0.1 * i, 30.0), toa_s=2e-7)
+                if i > 20:
+                    w.write("rtt", 1.0 + 0.2 * i - 0.05, user="ue2", uav=lla(0.5 * i, 0.1 * i, 30.0), toa_s=2e-7)
+            if i in (10, 30):
+                s = 1.0 if i == 10 else 0.5
+                users = [{"id": "ue1", **lla(40 + s, 30 - s), "cov_en_m2": [[4 * s, s], [s, 2 * s]],
+                          "ambiguous": i == 10}]
+                if i == 30:
+                    users.append({"id": "ue2", **lla(-19, 61), "cov_en_m2": [[9.0, 0.0], [0.0, 1.0]]})
+                w.write("estimate", 1.0 + 0.2 * i + 0.01, users=users, keyframes=i // 5, flown_m=float(i),
+                        uav_lla=[list(lla(0.5 * i, 0.1 * i, 30).values())])
+        w.write("event", 12.0, message="RTL: target reached", kind="rtl", state="RETURN")
+        w.write("estimate", 12.5, users=[{"id": "ue1", **lla(40.2, 29.9), "cov_en_m2": [[0.5, 0.1], [0.1, 0.4]]}],
+                keyframes=9, flown_m=55.0, final=True,
+                uav_lla=[list(lla(0.5 * i, 0.1 * i, 30).values()) for i in range(0, n_tel, 5)])
+        w.write("event", 13.0, message="mission end: target_reached (target reached)", kind="end",
+                status="target_reached", state="LANDED")
+    return seen
+
+
+# -- the ellipse ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cov", [
+    [[4.0, 0.0], [0.0, 1.0]],
+    [[1.0, 0.0], [0.0, 4.0]],
+    [[2.0, 1.2], [1.2, 1.0]],
+    [[0.3, -0.2], [-0.2, 0.9]],
+    [[1.0, 0.0], [0.0, 1.0]],
+])
+def test_ellipse_semi_major_is_the_estimates_r95_and_its_boundary_is_the_chi2_contour(cov):
+    cov = np.array(cov)
+    ell = ellipse_95(cov)
+    est = Estimate(users_enu_m=np.zeros((1, 3)), cov_users_m2=cov[None], info_users=np.eye(2),
+                   bias_m=None, uav_enu_m=np.zeros((0, 3)), ambiguous=np.zeros(1, bool),
+                   mirror_enu_m=np.full((1, 3), np.nan), n_ranges=np.zeros(1, int))
+    assert ell["a_m"] == pytest.approx(est.error_bound_95_m()[0], rel=1e-12)
+    assert ell["a_m"] >= ell["b_m"]
+    # points on the drawn ellipse (axes a, b, rotated by angle) have Mahalanobis d² = χ²₂(0.95)
+    th = math.radians(ell["angle_deg"])
+    rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    for phi in np.linspace(0, 2 * np.pi, 7):
+        p = rot @ np.array([ell["a_m"] * math.cos(phi), ell["b_m"] * math.sin(phi)])
+        assert p @ np.linalg.solve(cov, p) == pytest.approx(CHI2_2DOF_95, rel=1e-9)
+
+
+# -- the model ----------------------------------------------------------------------------------
+
+
+def test_state_from_the_records_the_writer_hands_its_listeners(tmp_path):
+    state = ViewState()
+    write_mission(tmp_path / "m.jsonl", state.apply)
+    doc, _ = state.frame()
+    st = doc["static"]
+    assert [u["id"] for u in st["users"]] == ["ue1", "ue2"]
+    np.testing.assert_allclose(st["geofence"], FENCE_EN_M, atol=0.01)
+    np.testing.assert_allclose(st["no_fly_zones"][0], NOFLY_EN_M[0], atol=0.01)
+    np.testing.assert_allclose(st["buildings"][0]["footprint"], BUILDING_EN_M, atol=0.01)
+    assert st["buildings"][0]["height_m"] == 12.0
+    assert st["altitude_band_m"] == {"min_m": 10.0, "max_m": 120.0}
+    assert st["target_radius_m"] == 2.5
+    np.testing.assert_allclose(st["truth"]["ue2"], [-20, 60, 0], atol=0.01)
+    assert len(doc["track"]["items"]) == 50
+    np.testing.assert_allclose(doc["track"]["items"][-1][1:], [24.5, 4.9, 30.0], atol=0.01)
+    assert doc["vehicle"]["vel_en_mps"] == [2.5, 0.5]
+    u1, u2 = doc["users"]
+    assert u1["measurements"] == 10 and u2["measurements"] == 6 and doc["measurements"] == 16
+    np.testing.assert_allclose(u1["enu_m"][:2], [40.2, 29.9], atol=0.01)
+    assert u1["r95_m"] == pytest.approx(ellipse_95([[0.5, 0.1], [0.1, 0.4]])["a_m"])
+    assert u1["error_m"] == pytest.approx(math.hypot(0.2, 0.1), abs=0.02)
+    assert u2["r95_m"] == pytest.approx(3.0 * math.sqrt(CHI2_2DOF_95))
+    assert not u1["ambiguous"]
+    assert doc["state"] == "LANDED" and doc["status"] == "target_reached" and doc["final"]
+    assert doc["flown_m"] == 55.0 and doc["keyframes"] == 9
+    assert doc["waypoint"] is None  # cleared at RTL
+    # the final estimate replaces the estimated track with the whole smoothed one
+    assert len(doc["est_track"]["items"]) == 10
+    assert [e["kind"] for e in doc["events"]["items"]] == ["arm", "rtl", "end"]
+
+
+def test_waypoint_leg_starts_where_the_vehicle_was_and_ambiguity_is_shown(tmp_path):
+    records = write_mission(tmp_path / "m.jsonl")
+    state = ViewState()
+    for rec in records:
+        state.apply(rec)
+        if rec["type"] == "estimate":
+            break
+    doc, _ = state.frame()
+    assert doc["state"] == "SURVEY"
+    assert doc["waypoint"]["leg"] == 1
+    np.testing.assert_allclose(doc["waypoint"]["from_enu_m"], [2.5, 0.5, 30.0], atol=0.01)
+    np.testing.assert_allclose(doc["waypoint"]["enu_m"], [60, 10, 30], atol=0.01)
+    assert doc["users"][0]["ambiguous"] is True
+    assert doc["users"][1]["located"] is False
+
+
+def test_flown_metres_without_the_field_come_from_the_survey_track():
+    state = ViewState()
+    state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS[:1]})
+    state.apply({"type": "waypoint", "t": 1, "leg": 1, **lla(100, 0, 30)})
+    for i in range(11):
+        state.apply({"type": "telemetry", "t": 1 + i, **lla(10.0 * i, 0, 30)})
+    assert state.frame()[0]["flown_m"] == pytest.approx(100.0, abs=0.1)
+
+
+def test_incremental_frames_add_up_to_the_whole_picture_whichever_frames_a_client_skips(tmp_path):
+    records = write_mission(tmp_path / "m.jsonl")
+    rng = np.random.default_rng(3)
+    for _trial in range(5):
+        state = ViewState()
+        cursor: Cursor | None = None
+        local: dict[str, list] = {}
+        for rec in records:
+            state.apply(rec)
+            if rng.random() < 0.2:  # this client took a frame now; it skipped the others
+                doc, cursor = state.frame(cursor)
+                for name in ("track", "est_track", "events"):
+                    part = doc[name]
+                    if part["from"] == 0:
+                        local[name] = list(part["items"])
+                    else:
+                        assert len(local[name]) == part["from"]
+                        local[name] += part["items"]
+        doc, cursor = state.frame(cursor)
+        full, _ = state.frame(None)
+        for name in ("track", "est_track", "events"):
+            part = doc[name]
+            merged = list(part["items"]) if part["from"] == 0 else local[name] + part["items"]
+            assert merged == full[name]["items"]
+        assert "static" not in state.frame(cursor)[0]  # seen already
+
+
+def test_events_beyond_the_cap_drop_the_oldest_and_clients_start_over():
+    state = ViewState(max_events=10)
+    state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS[:1]})
+    _, cur = state.frame()
+    for i in range(25):
+        state.apply({"type": "event", "t": i, "message": f"e{i}", "kind": "x"})
+    doc, _ = state.frame(cur)
+    assert doc["events"]["from"] == 0 and doc["events"]["items"][-1]["message"] == "e24"
+    assert len(doc["events"]["items"]) <= 10
+
+
+def test_malformed_records_are_skipped_not_raised():
+    state = ViewState()
+    state.apply({"type": "telemetry", "t": 1, **lla(1, 1)})  # before the header: ignored
+    state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS})
+    state.apply({"type": "telemetry", "t": 2, "lat_deg": "x"})
+    state.apply({"type": "estimate", "t": 3, "users": [{"id": "nobody", **lla(0, 0), "cov_en_m2": [[1, 0], [0, 1]]}]})
+    state.apply({"type": "rtt", "t": 4, "user": "nobody"})
+    state.apply({"type": "bogus", "t": 5})
+    doc, _ = state.frame()
+    assert doc["track"]["items"] == [] and doc["measurements"] == 0
+    assert not any(u["located"] for u in doc["users"])
+
+
+def test_timeline_shows_the_estimate_of_the_chosen_time_forwards_and_backwards(tmp_path):
+    records = write_mission(tmp_path / "m.jsonl")
+    tl = Timeline(records)
+    assert tl.t_end_s == 13.0
+    est_t = [r["t"] for r in records if r["type"] == "estimate"]
+    # just after the first estimate: its numbers; before it: nothing located
+    for t, expect in ((est_t[1] + 0.01, 0.5), (est_t[0] + 0.01, 1.0), (est_t[0] - 0.01, None),
+                      (est_t[1] + 0.01, 0.5)):
+        u1 = tl.state_at(t).frame()[0]["users"][0]
+        if expect is None:
+            assert not u1["located"]
+        else:
+            np.testing.assert_allclose(u1["enu_m"][:2], [40 + expect, 30 - expect], atol=0.01)
+            assert u1["r95_m"] == pytest.approx(ellipse_95([[4 * expect, expect], [expect, 2 * expect]])["a_m"])
+    assert tl.state_at(1e9).frame()[0]["final"]
+
+
+def test_timeline_checkpoints_give_the_same_state_as_a_fresh_replay(tmp_path):
+    records = write_mission(tmp_path / "m.jsonl")
+    tl = Timeline(records, checkpoint_every=7)
+    rng = np.random.default_rng(5)
+    for t in [13.0, *rng.uniform(0, 13.5, 12)]:
+        got = tl.state_at(t).frame()[0]
+        fresh = Timeline(records).state_at(t).frame()[0]
+        assert json.dumps(got, sort_keys=True) == json.dumps(fresh, sort_keys=True)
+
+
+# -- the mission log's parts ----------------------------------------------------------------------
+
+
+def test_a_failing_listener_is_dropped_and_the_log_goes_on(tmp_path, caplog):
+    calls = []
+
+    def bad(rec):
+        calls.append(rec["type"])
+        raise RuntimeError("boom")
+
+    p = tmp_path / "m.jsonl"
+    with MissionLogWriter(p) as w:
+        w.subscribe(bad)
+        w.write_header(ORIGIN, USERS, {"mu": 1})
+        w.write("telemetry", 1.0, **lla(0, 0))
+    assert calls == ["header"]
+    assert len(p.read_text().splitlines()) == 2
+    assert "listener" in caplog.text
+
+
+def test_header_area_fields_round_trip_and_old_logs_still_read(tmp_path):
+    p = tmp_path / "m.jsonl"
+    write_mission(p)
+    h = read_mission_log(p).header
+    assert len(h.geofence) == 4 and len(h.no_fly_zones) == 1 and len(h.buildings) == 1
+    back = ORIGIN.lla_to_enu(np.array(h.geofence)[:, 0], np.array(h.geofence)[:, 1], ORIGIN.alt_m)[:, :2]
+    np.testing.assert_allclose(back, FENCE_EN_M, atol=1e-3)
+    assert h.altitude_band_m == {"min_m": 10.0, "max_m": 120.0} and h.max_distance_m == 500.0
+    assert h.buildings[0]["height_m"] == 12.0
+    # a header without them (older logs, other tools)
+    lines = p.read_text().splitlines()
+    head = json.loads(lines[0])
+    for k in ("geofence", "no_fly_zones", "buildings", "altitude_band_m", "max_distance_m"):
+        head.pop(k)
+    p2 = tmp_path / "old.jsonl"
+    p2.write_text(json.dumps(head) + "\n" + "\n".join(lines[1:]) + "\n")
+    h2 = read_mission_log(p2).header
+    assert h2.geofence is None and h2.no_fly_zones == [] and h2.buildings == [] and h2.altitude_band_m is None
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("geofence", [[43.6, 7.0], [43.7, 7.0]], "geofence must be a list of >= 3"),
+    ("geofence", [[43.6, 7.0], [43.7, 7.0], [95.0, 7.1]], r"geofence\[2\]"),
+    ("no_fly_zones", [[[43.6, 7.0], [43.7, 7.0], [43.7, "x"]]], r"no_fly_zones\[0\]\[2\]"),
+    ("altitude_band_m", {"min_m": 50, "max_m": 10}, "above max_m"),
+    ("buildings", [{"footprint": [[43.6, 7.0], [43.7, 7.0], [43.7, 7.1]]}], r"buildings\[0\].*height_m"),
+])
+def test_bad_area_fields_name_the_line_and_the_field(tmp_path, field, value, match):
+    head = {"type": "header", "t": 0, "format": "uavloc-mission/1", "origin": ORIGIN.to_dict(), "users": USERS,
+            field: value}
+    p = tmp_path / "bad.jsonl"
+    p.write_text(json.dumps(head) + "\n")
+    with pytest.raises(MissionLogError, match=rf"bad.jsonl:1: .*{match}"):
+        read_mission_log(p)
+
+
+def test_simulated_buildings_reach_the_header_in_the_home_frame(tmp_path):
+    """The built-in vehicle's world is the scenario origin; the log's frame is the reported home
+    (a little off): the buildings land at the same geodetic place either way."""
+    from sitl_scenarios.scenario import load_scenario
+    from sitl_scenarios.sim_runner import SimulatedMission
+
+    sc = load_scenario("three_users_nlos")
+    sim = SimulatedMission(sc, tmp_path / "m.jsonl")
+    world = sc.origin_geo
+    home = Origin(*world.enu_to_lla(np.array([3.0, -2.0, 0.5])))
+    blds = sim._buildings(home)
+    assert len(blds) == len(sc.buildings) == 3
+    area = area_fields(home, buildings=blds)
+    for b, cfg in zip(area["buildings"], sc.buildings, strict=True):
+        ring = np.array(b["footprint"])
+        back = world.lla_to_enu(ring[:, 0], ring[:, 1], world.alt_m)[:, :2]
+        np.testing.assert_allclose(back, cfg.footprint_enu_m, atol=0.01)
+        assert b["height_m"] == cfg.height_m
