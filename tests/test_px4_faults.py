@@ -122,7 +122,7 @@ def test_vehicle_link_paused_waits_then_resumes_or_returns(px4, tmp_path, pause_
     async def pause(gcs, sim):
         ctl = sim.controller
         relay.pause()
-        await wait_until(lambda: ctl._link_lost_since is not None, 30, "uavloc sees the link lost")
+        await wait_until(lambda: ctl.flight.link_lost_since is not None, 30, "uavloc sees the link lost")
         await asyncio.sleep(pause_s)
         marks["measurements_at_resume"] = ctl.measurements
         relay.resume()
