@@ -188,3 +188,34 @@ def test_no_take_off_below_the_take_off_battery_minimum(tmp_path):
     result, final = _run(fly())
     assert result.status == "aborted" and "battery_takeoff_min_pct 50 %" in result.reason, result.reason
     assert not final.armed and "arm" not in [e.get("kind") for e in read_mission_log(log_path).events]
+
+
+def test_monitor_returns_on_a_switch_into_a_failsafe_mode_not_on_a_leftover_one():
+    """A vehicle still in the RTL mode of its last landing when the mission takes off has decided
+    nothing (seen: a second `uavloc fly` against the same built-in vehicle turned back at once);
+    a switch into RTL or LAND during the flight is the autopilot's failsafe."""
+    import time
+
+    from mission.control.safety_monitor import SafetyMonitor
+    from mission.control.state import FlightState
+    from mission.vehicle import VehicleState
+
+    events = []
+    flight = FlightState(event=lambda msg, **kw: events.append(kw.get("kind")))
+    flight.phase = TAKEOFF
+    st = VehicleState(connected=True, global_position_ok=True, flight_mode="RETURN_TO_LAUNCH", battery_pct=90.0,
+                      last_rx_mono_s=time.monotonic() + 1e6)  # always fresh: the link is not what is tested
+    clock = {"t": 10.0}
+    mon = SafetyMonitor(flight, CFG, GATE, st, lambda: None, lambda: clock["t"])
+    assert mon.step() is None                      # leftover RTL at take-off
+    st.flight_mode = "TAKEOFF"
+    assert mon.step() is None
+    flight.phase = SURVEY
+    st.flight_mode = "HOLD"
+    assert mon.step() is None
+    st.texts.append((0.0, "WARNING", "Failsafe: low battery, returning"))
+    st.flight_mode = "RETURN_TO_LAUNCH"
+    reason = mon.step()
+    assert reason == ("the autopilot switched to RETURN_TO_LAUNCH on its own "
+                      "(failsafe: Failsafe: low battery, returning)")
+    assert flight.return_reason == reason and "vehicle_text" in events and "return" in events

@@ -39,8 +39,8 @@ class SafetyView:
 
     now_s; phase; link_lost_since_s / gnb_down_since_s (None: fine); gnb_problem: the gNB's words;
     battery_pct (None: unknown); breach: the position limit a confirmed breach broke (None: none);
-    position_lost: the vehicle reports no valid global position; flight_mode: the autopilot's mode
-    (None while the link is lost); vehicle_text: its last warning (PX4's failsafe message).
+    position_lost: the vehicle reports no valid global position; flight_mode: a failsafe mode the
+    autopilot switched to by itself (None: none); vehicle_text: its last warning (PX4's failsafe message).
     """
 
     now_s: float
@@ -109,6 +109,8 @@ class SafetyMonitor:
         self.texts_logged = 0  # vehicle status texts looked at so far
         self.last_text: str | None = None
         self.position_lost = False  # the vehicle reports no valid global position (GPS/estimator)
+        self.prev_mode: str | None = None
+        self.failsafe_mode: str | None = None  # a failsafe mode the autopilot switched to by itself
 
     def _vehicle_texts(self) -> None:
         """Copy the vehicle's new warnings and worse (PX4's failsafe messages) into the log."""
@@ -133,6 +135,14 @@ class SafetyMonitor:
             f.event("vehicle global position lost (GPS or estimator)" if self.position_lost
                     else "vehicle global position restored",
                     kind="position_lost" if self.position_lost else "position_restored")
+        # a switch INTO a failsafe mode is the autopilot's own decision; a vehicle still in the RTL
+        # mode of its last landing when this mission starts has decided nothing
+        mode = None if lost else getattr(st, "flight_mode", None)
+        if mode is not None:
+            if mode in AUTOPILOT_FAILSAFE_MODES and self.prev_mode is not None and (
+                    self.prev_mode not in AUTOPILOT_FAILSAFE_MODES):
+                self.failsafe_mode = mode
+            self.prev_mode = mode
         breach = None
         latest = None if lost else self.latest_fix()
         if latest is not None and f.phase in (TAKEOFF, SURVEY):
@@ -141,7 +151,7 @@ class SafetyMonitor:
         view = SafetyView(now_s=now, phase=f.phase, link_lost_since_s=f.link_lost_since,
                           gnb_down_since_s=f.gnb_down_since, gnb_problem=f.gnb_problem,
                           battery_pct=st.battery_pct, breach=breach, position_lost=self.position_lost,
-                          flight_mode=None if lost else getattr(st, "flight_mode", None), vehicle_text=self.last_text)
+                          flight_mode=self.failsafe_mode, vehicle_text=self.last_text)
         reason = return_reason(view, cfg, self.gate)
         if reason:
             f.request_return(reason)
