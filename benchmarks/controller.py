@@ -152,8 +152,8 @@ async def _mission_lag(scenario, viewers: int, seed: int) -> tuple[dict, dict | 
     """One simulated mission in this loop; with `viewers`, the live view and N viewer clients."""
     import tempfile
 
-    from mission.sim_runner import SimulatedMission
     from mission.view.server import LiveFeed, ViewServer
+    from sitl_scenarios.sim_runner import SimulatedMission
 
     class TimedFeed(LiveFeed):
         """LiveFeed that adds up the time spent taking records."""

@@ -34,7 +34,6 @@ sys.path[:] = [str(REPO)] + [p for p in sys.path if Path(p or ".").resolve() != 
 import numpy as np  # noqa: E402
 
 from estimator.geodesy import Origin  # noqa: E402
-from mission.sim_runner import SimulatedMission  # noqa: E402
 from sitl_scenarios.px4_sitl import (  # noqa: E402
     DEFAULT_BUNDLE,
     Px4Sitl,
@@ -43,6 +42,7 @@ from sitl_scenarios.px4_sitl import (  # noqa: E402
     missing_requirement,
 )
 from sitl_scenarios.scenario import load_scenario  # noqa: E402
+from sitl_scenarios.sim_runner import SimulatedMission  # noqa: E402
 
 #: relative agreement asked of the built-in vehicle against PX4
 TOLERANCE = 0.20

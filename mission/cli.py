@@ -1,7 +1,9 @@
 """`uavloc` command line: a thin dispatcher (DESIGN.md §11).
 
-Each subcommand lives in `mission/commands/<name>.py` with `HELP`, `add_arguments(parser)` and
-`run(args) -> int`; heavy imports happen inside `run`. This is the one place where a
+Each subcommand is a module with `HELP`, `add_arguments(parser)` and `run(args) -> int`; heavy
+imports happen inside `run`. The mission's own live in `mission/commands/<name>.py`; other
+packages add theirs through the `uavloc.commands` entry-point group (pyproject.toml: `sim` is
+`sitl_scenarios.commands.sim`), read at run time, so mission never imports the simulators. This is the one place where a
 :class:`UavlocError` becomes a message on stderr and an exit code, and the one place that
 configures logging.
 """
@@ -24,17 +26,18 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 log = logging.getLogger("uavloc")
 
-#: subcommand -> module implementing it
+#: the mission's own subcommands -> module implementing each
 COMMANDS = {
-    "sim": "mission.commands.sim",
     "fly": "mission.commands.fly",
     "replay": "mission.commands.replay",
     "calibrate": "mission.commands.calibrate",
     "import": "mission.commands.importer",
     "gnb": "mission.commands.gnb",
-    "campaign": "sitl_scenarios.commands.campaign",
     "view": "mission.commands.view",
 }
+
+#: the entry-point group other packages add subcommands through
+ENTRY_POINT_GROUP = "uavloc.commands"
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -51,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors on stderr")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name, modname in COMMANDS.items():
+    for name, modname in all_commands().items():
         try:
             mod = importlib.import_module(modname)
         except ModuleNotFoundError as exc:
@@ -62,6 +65,18 @@ def build_parser() -> argparse.ArgumentParser:
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser
+
+
+def all_commands() -> dict[str, str]:
+    """{subcommand: module}: the entry points of the `uavloc.commands` group first (in name order),
+    then the mission's own. An installed uavloc without the group (an old editable install)
+    prints how to fix it."""
+    from importlib.metadata import entry_points
+
+    found = {ep.name: ep.value for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name)}
+    if not found:
+        log.debug("no %r entry points: reinstall uavloc (pip install -e .) for `uavloc sim`", ENTRY_POINT_GROUP)
+    return {**found, **COMMANDS}
 
 
 def configure_logging(verbose: int, quiet: bool) -> None:

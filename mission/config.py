@@ -169,14 +169,19 @@ class NoiseConfig:
 class GnbSettings:
     """How to measure with the gNB (DESIGN.md §8; the address is given on the command line).
 
-    mode: "rtt" (the RTT telnet module) or "stock" (`ci force_reestab` + the Msg2 line of log_path);
-    rtt_module, rtt_command: the RTT command's names; discovery: "auto", "o1" or "single";
-    mu, fs_hz: numerology and sampling rate of the gNB (the log header's `radio`);
-    log_path: the gNB log followed in stock mode; request_timeout_s, connect_timeout_s,
-    msg2_timeout_s: timeouts [s]; retries: reconnect attempts after a lost connection.
+    mode: "rtt" (the RTT telnet module) or "stock" (the Msg2 lines of log_path); stock_mode:
+    "active" (trigger a random access with `ci force_reestab`, then wait for its Msg2) or "passive"
+    (only the random accesses that happen anyway); rtt_module, rtt_command: the RTT command's
+    names; discovery: "auto", "o1" or "single"; mu, fs_hz: numerology and sampling rate of the gNB
+    (the log header's `radio`); log_path: the gNB log followed in stock mode; request_timeout_s,
+    connect_timeout_s: per request / connection attempt [s]; msg2_timeout_s: active stock mode, how
+    long to wait for the UE's random access after the trigger [s] (real OAI: about 5 s of log time,
+    and the rfsimulator may run at 0.4x real time, hence 15 s); retries: reconnect attempts after a
+    lost connection. :meth:`measure_timeout_s` is what the controller allows one measurement.
     """
 
     mode: Literal["rtt", "stock"] = "rtt"
+    stock_mode: Literal["active", "passive"] = "active"
     rtt_module: str = "rtt"
     rtt_command: str = "pdcch_order"
     discovery: Literal["auto", "o1", "single"] = "auto"
@@ -185,8 +190,32 @@ class GnbSettings:
     log_path: str | None = None
     request_timeout_s: float = 2.0
     connect_timeout_s: float = 2.0
-    msg2_timeout_s: float = 3.0
+    msg2_timeout_s: float = 15.0
     retries: int = 3
+
+    def measure_timeout_s(self) -> float:
+        """The controller's bound on one measurement [s]: the adapter's own request timeout and one
+        reconnect, plus (active stock mode) the wait for the Msg2, so that the adapter, not the
+        controller, is the one to say what went wrong.
+
+            T = 2 · (connect_timeout_s + request_timeout_s) + 0.5 [+ msg2_timeout_s]
+        """
+        t = 2.0 * (self.connect_timeout_s + self.request_timeout_s) + 0.5
+        if self.mode == "stock" and self.stock_mode == "active":
+            t += self.msg2_timeout_s
+        return t
+
+    def client_config(self, host: str, port: int, **overrides: Any) -> Any:
+        """The :class:`mission.gnb_config.GnbConfig` of the gNB adapter at host:port."""
+        from mission.gnb_config import GnbConfig
+
+        kw = dict(host=host, port=port, mode=self.mode, stock_mode=self.stock_mode, rtt_module=self.rtt_module,
+                  rtt_command=self.rtt_command, discovery=self.discovery,
+                  request_timeout_s=self.request_timeout_s, connect_timeout_s=self.connect_timeout_s,
+                  retries=self.retries, log_path=None if self.log_path is None else Path(self.log_path),
+                  msg2_timeout_s=self.msg2_timeout_s, mu=self.mu)
+        kw.update(overrides)
+        return GnbConfig(**kw)
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from estimator.ranging import C_MPS
 from estimator.slam import OnlineEstimator, solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.log import MissionLog
+from mission.result import horizontal_error_m, user_entries_of_estimate
 from mission.telemetry import odometer_dead_band_m, odometer_m
 from uavloc.errors import MissionLogError
 
@@ -171,11 +172,6 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyf
     return keyframes
 
 
-def horizontal_error_m(users_enu_m: np.ndarray, truth_enu_m: np.ndarray) -> np.ndarray:
-    """(K,) ||(e, n) estimate − (e, n) truth|| [m]; NaN where either is unknown."""
-    return np.linalg.norm(users_enu_m[..., :2] - truth_enu_m[..., :2], axis=-1)
-
-
 def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
            progress: Callable[[int, int], None] | None = None) -> ReplayResult:
     """Re-run the estimator over a parsed log. `progress(done, total)` is called per keyframe."""
@@ -233,46 +229,6 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
     )
 
 
-def users_document(estimate: Estimate, origin, user_ids: list[str],
-                   error_m: np.ndarray | None = None) -> list[dict]:
-    """Per-user entries of the DESIGN.md §11 JSON document (None where a user is not located)."""
-    users = []
-    lat, lon, alt = origin.enu_to_lla(estimate.users_enu_m)
-    bound = estimate.error_bound_95_m()
-    for k, uid in enumerate(user_ids):
-        located = bool(np.all(np.isfinite(estimate.users_enu_m[k])))
-        cov = estimate.cov_en_m2(k)
-        entry = {
-            "id": uid,
-            "lat_deg": float(lat[k]) if located else None,
-            "lon_deg": float(lon[k]) if located else None,
-            "alt_m": float(alt[k]) if located else None,
-            "enu_m": [float(x) for x in estimate.users_enu_m[k]] if located else None,
-            "cov_en_m2": cov.tolist() if np.all(np.isfinite(cov)) else None,
-            "error_bound_95_m": float(bound[k]) if np.isfinite(bound[k]) else None,
-            "ambiguous": bool(estimate.ambiguous[k]),
-            "measurements": int(estimate.n_ranges[k]),
-        }
-        scale = estimate.extra.get("noise_scale")
-        if scale is not None:
-            # the factor by which this user's ranges were noisier than the assumed σ(d)
-            entry["noise_scale"] = float(scale[k]) if located else None
-        if estimate.bias_m is not None:
-            on = estimate.extra.get("bias_on")
-            b = float(estimate.bias_m[k]) if located and np.isfinite(estimate.bias_m[k]) else None
-            clock = (estimate.extra.get("clock") or [None] * len(user_ids))[k]
-            if clock is not None and b is not None:
-                # a tracked clock sawtooth: its amplitude is the estimated b; its mean A/2 the bias
-                entry["clock_sawtooth"] = {"period_s": float(clock.period_s), "amplitude_m": b}
-                b = 0.5 * b
-            # None where the user is not located; 0 where its bias was selected off
-            entry["bias_m"] = b if (on is None or not located or on[k]) else 0.0
-        if error_m is not None:
-            entry["error_m"] = float(error_m[k]) if np.isfinite(error_m[k]) else None
-        users.append(entry)
-    return users
-
-
 def result_status(estimate: Estimate) -> str:
     """"ok" when every user is located without ambiguity; "ambiguous" or "incomplete" otherwise."""
     if not np.all(np.isfinite(estimate.users_enu_m)):
@@ -286,8 +242,8 @@ def result_document(result: ReplayResult) -> dict:
     """The JSON document of DESIGN.md §11 for a replay."""
     return {
         "status": result_status(result.estimate),
-        "users": users_document(result.estimate, result.log.header.origin,
-                                [u.id for u in result.log.header.users], result.error_m),
+        "users": user_entries_of_estimate(result.estimate, result.log.header.origin,
+                                          [u.id for u in result.log.header.users], result.truth_enu_m),
         "flown_m": result.flown_m,
         "measurements": result.n_measurements,
         "keyframes": len(result.keyframes),

@@ -48,6 +48,9 @@ def print_result(result: MissionResult, as_json: bool, stream: TextIO | None = N
         out.write(format_users_table({"users": users}) + "\n")
         if result.log_path is not None:
             out.write(f"mission log: {result.log_path}\n")
+    missing = result.not_located()
+    if missing and result.status != "interrupted":
+        log.error("not located: %s (the mission exits non-zero)", ", ".join(missing))
     out.flush()
     return doc
 

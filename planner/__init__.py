@@ -1,14 +1,14 @@
 """Active planning: choose the next waypoint that shrinks the users' uncertainty fastest (DESIGN.md §6).
 
-Pure numpy + CasADi: no asyncio, sockets, files or clocks (a perf counter only times our own
-compute for `PlanResult.solve_time_s`).
+Pure numpy + CasADi: no asyncio, sockets, files or clocks (the caller times `plan` for
+`PlanResult.solve_time_s`).
 
 How the mission controller uses it
 ----------------------------------
 Once per mission::
 
-    constraints = PlanningConstraints.from_scenario(scenario, home_enu_m=home)
-    planner = make_planner(scenario.mission.planner, constraints, scenario.noise_model(), rng_seed=seed)
+    constraints = mission.planning_constraints(home)     # a mission.config.MissionConfig
+    planner = make_planner(mission.flight.planner, constraints, mission.noise_model(), rng_seed=seed)
 
 At takeoff and at every leg end::
 

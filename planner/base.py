@@ -9,7 +9,6 @@ return a waypoint that violates a constraint.
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -98,7 +97,7 @@ class BasePlanner:
         ok = legs_feasible(c, state.uav_enu_m, ring, cap, state.energy_remaining_m)
         return ring[ok]
 
-    def _done(self, state: PlanningState, reason: str, t0: float) -> PlanResult:
+    def _done(self, state: PlanningState, reason: str) -> PlanResult:
         log.info("%s planner: done (%s) at %s after %.0f m", self.name, reason, state.uav_enu_m, state.flown_m)
         return PlanResult(
             waypoint_enu_m=state.uav_enu_m.copy(),
@@ -106,13 +105,10 @@ class BasePlanner:
             done=True,
             reason=reason,
             status=self.name,
-            solve_time_s=time.perf_counter() - t0,
         )
 
     def plan(self, state: PlanningState) -> PlanResult:
         """Next waypoint, or done (target reached / budget spent / no feasible leg)."""
-        # perf_counter only measures our own compute time for the report; no decision depends on it
-        t0 = time.perf_counter()
         c = self.constraints
         if not bool(in_free_space(state.uav_enu_m[:2], c)):
             raise PlannerError(
@@ -121,7 +117,7 @@ class BasePlanner:
             )
         reason = stop_reason(c, state)
         if reason is not None:
-            return self._done(state, reason, t0)
+            return self._done(state, reason)
         cap = self.leg_cap_m(state)
         wp, status, objective = self._propose(state, cap)
         wp = np.asarray(wp, dtype=float).reshape(3)
@@ -131,7 +127,7 @@ class BasePlanner:
             ring = self.feasible_ring(state)
             if len(ring) == 0:
                 log.warning("%s planner: no feasible leg from %s", self.name, state.uav_enu_m)
-                return self._done(state, REASON_NO_LEG, t0)
+                return self._done(state, REASON_NO_LEG)
             log.info("%s planner: proposal %s fails %s; nearest feasible ring candidate instead",
                      self.name, wp, bad or ["min_leg"])
             wp = ring[int(np.argmin(np.linalg.norm(ring - wp, axis=1)))]
@@ -146,6 +142,5 @@ class BasePlanner:
             done=False,
             objective=float(objective),
             status=status,
-            solve_time_s=time.perf_counter() - t0,
             extra={"leg_m": length},
         )

@@ -4,7 +4,7 @@ Plain dataclasses on numpy arrays, all positions in the mission's local ENU fram
 
 - :class:`PlanningConstraints`: what may be flown (fence, no-fly zones, altitude band, leg length,
   distance from home, survey budget); built once per mission, e.g. with
-  :meth:`PlanningConstraints.from_scenario`.
+  `mission.config.MissionConfig.planning_constraints(home)`.
 - :class:`PlanningState`: where the UAV is and what the estimator knows, at one leg end.
 - :class:`PlanResult`: the next waypoint (or `done` with a reason), with diagnostics.
 - :class:`Planner`: anything with ``plan(state) -> PlanResult``.
@@ -13,15 +13,12 @@ Plain dataclasses on numpy arrays, all positions in the mission's local ENU fram
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from estimator.types import Estimate
 from uavloc.errors import PlannerError
-
-if TYPE_CHECKING:  # the planner never imports the scenario package at run time
-    from sitl_scenarios.scenario import Scenario
 
 #: `PlanResult.reason` values when `done` is True.
 REASON_TARGET = "target reached"
@@ -105,46 +102,10 @@ class PlanningConstraints:
         return e0, e1
 
     @classmethod
-    def from_scenario(
-        cls,
-        scenario: Scenario,
-        home_enu_m=(0.0, 0.0, 0.0),
-        building_clearance_m: float = 5.0,
-        **overrides,
-    ) -> PlanningConstraints:
-        """Constraints of a scenario's mission and geofence.
-
-        Altitudes in the scenario are above home; here they become ENU `up` (home up + value).
-        Buildings: the UAV overflies every building whose height + `building_clearance_m` fits in the
-        altitude band (the band's floor is raised to clear the tallest of them); a building too tall
-        for the band becomes a no-fly zone. `overrides` replace any field (e.g. margin_m=3.0).
-        """
-        m, g = scenario.mission, scenario.geofence
-        home = np.asarray(home_enu_m, dtype=float).reshape(3)
-        alt_min, alt_max = m.alt_min_m, m.alt_max_m
-        no_fly = [np.asarray(p, dtype=float) for p in g.no_fly_enu_m]
-        for b in scenario.buildings:
-            top = b.height_m + building_clearance_m
-            if top <= alt_max:
-                alt_min = max(alt_min, top)
-            else:
-                no_fly.append(np.asarray(b.footprint_enu_m, dtype=float))
-        kwargs = dict(
-            home_enu_m=home,
-            fence_enu_m=np.asarray(g.polygon_enu_m, dtype=float).reshape(-1, 2),
-            no_fly_enu_m=tuple(no_fly),
-            alt_min_m=home[2] + alt_min,
-            alt_max_m=home[2] + alt_max,
-            cruise_alt_m=home[2] + min(max(m.altitude_m, alt_min), alt_max),
-            leg_max_m=m.leg_max_m,
-            max_distance_m=g.max_distance_m,
-            budget_m=m.budget_m,
-            delta_m=m.delta_m,
-            target_radius_m=m.target_radius_m,
-            min_leg_m=min(10.0, m.leg_max_m),
-        )
-        kwargs.update(overrides)
-        return cls(**kwargs)
+    def from_scenario(cls, scenario: Any, **kwargs: Any) -> PlanningConstraints:
+        """A simulation scenario's constraints: `scenario.planning_constraints(**kwargs)`
+        (sitl_scenarios.scenario.Scenario; kept for callers, the planner imports no simulator)."""
+        return scenario.planning_constraints(**kwargs)
 
 
 @dataclass(frozen=True)
@@ -178,7 +139,8 @@ class PlanResult:
     done: stop the survey and return home; reason: REASON_TARGET, REASON_BUDGET or REASON_NO_LEG.
     objective: the planner's predicted objective for the chosen leg (nan for fixed patterns).
     status: how the waypoint was found ("ipopt", "ring", "explore", "lawnmower", ...).
-    solve_time_s: compute time of the call [s] (diagnostic only; never used in a decision).
+    solve_time_s: compute time of the call [s], measured by the caller (the planner is pure: no
+    clock); diagnostic only, never used in a decision.
     """
 
     waypoint_enu_m: np.ndarray

@@ -43,6 +43,7 @@ import argparse
 import asyncio
 import collections
 import contextlib
+import dataclasses
 import json
 import logging
 import random
@@ -309,9 +310,14 @@ class SimulatedGnb:
             return self._ci_with_rnti(cmd, args)
         if module == "o1" and cmd == "stats":
             return self._o1_stats(args)
-        if module == self.rtt_module.lower() and cmd == self.rtt_command.lower():
+        if module == self.rtt_module.lower() and cmd == self.rtt_command.lower() and not self.rtt_module_lost():
             return self._rtt(args)
         return unknown_command_text(buf)
+
+    def rtt_module_lost(self) -> bool:
+        """The fault `rtt_module_lost_at_s`: the RTT module is gone from this simulation time on."""
+        t = self.faults.rtt_module_lost_at_s
+        return t is not None and self.clock() >= t
 
     def _uav(self) -> np.ndarray | None:
         pos = self.position()
@@ -516,7 +522,9 @@ async def _run(args: argparse.Namespace) -> None:
             position = static_position(args.static_enu or (0.0, 0.0, scenario.mission.altitude_m))
         gnb = await stack.enter_async_context(SimulatedGnb(
             scenario, position, host=args.host, port=args.port, log_path=args.log, seed=args.seed,
-            rtt_module=args.rtt_module, rtt_command=args.rtt_command, stock_reaction=args.stock_reaction))
+            rtt_module=args.rtt_module, rtt_command=args.rtt_command, stock_reaction=args.stock_reaction,
+            faults=None if args.rtt_module_lost_after is None else dataclasses.replace(
+                GnbFaults.from_scenario(scenario), rtt_module_lost_at_s=args.rtt_module_lost_after)))
         print(f"simulated gNB for scenario {scenario.name!r} on {args.host}:{gnb.port}", file=sys.stderr)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -544,6 +552,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stock-reaction", choices=("reestablish", "crnti_then_idle", "none"), default="reestablish",
                    help="what a UE does after `ci force_reestab`: reestablish (a UE with traffic), a C-RNTI "
                         "random access then an idle re-attach (the recorded OAI), or nothing (no traffic)")
+    p.add_argument("--rtt-module-lost-after", type=float, metavar="S",
+                   help="fault: the RTT module is gone S seconds after the server started")
     p.add_argument("-v", "--verbose", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,

@@ -21,7 +21,9 @@ class GnbFaults:
     numbers), still followed by the prompt; drop_rate: probability the connection is closed
     instead of answering; refuse_rate: probability a new connection is closed at once;
     busy_mode: how a second concurrent client is treated, "silent" (accepted, unanswered until the
-    first one leaves, as OAI does) or "close".
+    first one leaves, as OAI does) or "close"; rtt_module_lost_at_s: from this simulation time
+    [s] on the RTT telnet module is gone (its command answers `... is not a softmodem command`, as
+    a gNB restarted without it would); absent: never.
     """
 
     delay_s: float = 0.0
@@ -30,6 +32,7 @@ class GnbFaults:
     drop_rate: float = 0.0
     refuse_rate: float = 0.0
     busy_mode: str = "silent"
+    rtt_module_lost_at_s: float | None = None
 
     @classmethod
     def from_table(cls, table: dict[str, Any], where: str = "faults.gnb") -> GnbFaults:

@@ -17,8 +17,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
+from planner.types import PlanningConstraints
 from uavloc.errors import ScenarioError
 
 if typing.TYPE_CHECKING:
@@ -184,6 +187,43 @@ class Scenario:
         s0 = r.s0_m if m.range_s0_m is None else m.range_s0_m
         tau = self.vehicle.gps_tau_s if m.gps_tau_s is None else m.gps_tau_s
         return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m, gps_tau_s=float(tau))
+
+    def planning_constraints(self, home_enu_m=(0.0, 0.0, 0.0), building_clearance_m: float = 5.0,
+                             **overrides: Any) -> PlanningConstraints:
+        """The planner's constraints of this scenario's mission and geofence.
+
+        Altitudes in the scenario are above home; here they become ENU `up` (home up + value).
+        Buildings: the UAV overflies every building whose height + `building_clearance_m` fits in the
+        altitude band (the band's floor is raised to clear the tallest of them); a building too tall
+        for the band becomes a no-fly zone. `overrides` replace any field (e.g. margin_m=3.0).
+        """
+        scenario = self
+        m, g = scenario.mission, scenario.geofence
+        home = np.asarray(home_enu_m, dtype=float).reshape(3)
+        alt_min, alt_max = m.alt_min_m, m.alt_max_m
+        no_fly = [np.asarray(p, dtype=float) for p in g.no_fly_enu_m]
+        for b in scenario.buildings:
+            top = b.height_m + building_clearance_m
+            if top <= alt_max:
+                alt_min = max(alt_min, top)
+            else:
+                no_fly.append(np.asarray(b.footprint_enu_m, dtype=float))
+        kwargs = dict(
+            home_enu_m=home,
+            fence_enu_m=np.asarray(g.polygon_enu_m, dtype=float).reshape(-1, 2),
+            no_fly_enu_m=tuple(no_fly),
+            alt_min_m=home[2] + alt_min,
+            alt_max_m=home[2] + alt_max,
+            cruise_alt_m=home[2] + min(max(m.altitude_m, alt_min), alt_max),
+            leg_max_m=m.leg_max_m,
+            max_distance_m=g.max_distance_m,
+            budget_m=m.budget_m,
+            delta_m=m.delta_m,
+            target_radius_m=m.target_radius_m,
+            min_leg_m=min(10.0, m.leg_max_m),
+        )
+        kwargs.update(overrides)
+        return PlanningConstraints(**kwargs)
 
     def mission_config(self) -> mission_config.MissionConfig:
         """The mission part of this scenario as a :class:`mission.config.MissionConfig` (what a real

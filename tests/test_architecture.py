@@ -20,15 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 #: a package may import only packages of its own or a lower layer
 LAYERS = {"uavloc": 0, "estimator": 1, "planner": 2, "mission": 3, "sitl_scenarios": 4}
 
-#: modules that import a higher layer today (module → the higher package). Phase 2 (mission file in
-#: `uavloc fly --mission`, sim runner moved to sitl_scenarios, from_scenario adapters gone) removes
-#: them: then set this to {} and the full rule holds.
-KNOWN_UPWARD_IMPORTS: dict[str, str] = {
-    "mission.commands.fly": "sitl_scenarios",   # load_scenario: a real flight configured by a scenario
-    "mission.commands.sim": "sitl_scenarios",   # the sim command lives in mission
-    "mission.sim_runner": "sitl_scenarios",     # the sim runner lives in mission
-    "planner.types": "sitl_scenarios",          # PlanningConstraints.from_scenario (a type-only import)
-}
+#: modules that import a higher layer (module → the higher package): none. Issue 12 phase 2 emptied
+#: the list (mission file for `uavloc fly --mission`, sim runner and `sim` command in sitl_scenarios,
+#: found through the `uavloc.commands` entry point, PlanningConstraints.from_scenario a delegate).
+KNOWN_UPWARD_IMPORTS: dict[str, str] = {}
 
 #: pure packages (DESIGN.md §2): no asyncio, sockets, files, clocks, processes or threads
 PURE_PACKAGES = ("estimator", "planner")
@@ -38,9 +33,8 @@ IMPURE_MODULES = frozenset({
     "urllib", "http", "sqlite3", "pickle", "mavsdk", "pymavlink", "matplotlib", "shapely", "random",
 })
 IMPURE_BUILTINS = frozenset({"open", "print", "input", "exec", "eval", "breakpoint"})
-#: (module, impure module) pairs that hold today; phase 2 moves the planner's compute-time clock to
-#: its caller (the controller times `planner.plan(...)`), then this is empty.
-KNOWN_IMPURE: frozenset[tuple[str, str]] = frozenset({("planner.base", "time")})
+#: (module, impure module) pairs allowed: none (the controller times `planner.plan(...)`).
+KNOWN_IMPURE: frozenset[tuple[str, str]] = frozenset()
 
 
 def project_modules() -> dict[str, Path]:
@@ -166,9 +160,10 @@ def test_the_reader_sees_the_imports_it_must():
     assert "estimator.geodesy" in ours["mission.config"] and "uavloc.errors" in ours["mission.config"]
     assert "mission.geometry" in ours["mission.safety"]       # `from mission import geometry`
     assert "mission.report.inputs" in ours["mission.report.exports"]
-    assert "sitl_scenarios.scenario" in ours["planner.types"]  # under TYPE_CHECKING
+    assert "planner.types" in ours["sitl_scenarios.scenario"]
+    assert "mission.config" in ours["sitl_scenarios.scenario"]  # under TYPE_CHECKING
     assert {"numpy", "pymap3d"} <= others["estimator.geodesy"]
-    assert "asyncio" in others["mission.controller"]
+    assert "asyncio" in others["mission.control.flight"]
 
 
 def test_every_import_goes_down_the_layers(graph):

@@ -56,28 +56,59 @@ async def _solve_all(keyframes, mode: str):
     return estimates, monitor.summary()
 
 
-async def _solve_inline(keyframes):
-    online = OnlineEstimator(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams())
-    monitor = LoopLagMonitor(0.01)
-    async with asyncio.TaskGroup() as tg:
-        mon = tg.create_task(monitor.run())
-        await asyncio.sleep(0.02)
-        for kf in keyframes:
-            online.add_keyframe(kf)
-            await asyncio.sleep(0)
-        mon.cancel()
-    return monitor.summary()
-
-
 @pytest.mark.slow
-def test_event_loop_lag_stays_low_while_the_estimator_works(survey):
-    estimates, lag = asyncio.run(_solve_all(survey.keyframes, "process"))
-    inline = asyncio.run(_solve_inline(survey.keyframes))
-    assert len(estimates) == len(survey.keyframes)
-    # the machine is shared: the p99 is the robust figure (benchmarks/controller.py prints the max)
-    assert lag["samples"] > 20 and lag["p99_s"] < 0.020, lag
-    # and the measurement can tell: solving on the loop itself stalls it
-    assert inline["max_s"] > lag["p99_s"], (inline, lag)
+def test_the_estimator_solves_in_a_child_process_off_the_event_loop(survey):
+    """The loop never runs the numpy work in process mode (the lag it saves is measured by
+    benchmarks/controller.py, not asserted here: no wall-clock bounds in tests)."""
+    import os
+
+    async def go():
+        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="process")
+        got = []
+        async with asyncio.TaskGroup() as tg:
+            run = tg.create_task(worker.run(got.append))
+            await worker.ready.wait()
+            for kf in survey.keyframes[:20]:
+                worker.queue.put_nowait(kf)
+            await asyncio.wait_for(worker.queue.join(), 120)
+            run.cancel()
+        return worker, got
+
+    worker, got = asyncio.run(go())
+    assert worker.mode == "process" and worker.child_pid not in (None, os.getpid())
+    assert len(got) == 20
+
+
+def test_estimator_child_dying_mid_mission_falls_back_to_a_thread_with_every_keyframe(survey):
+    """The estimator worker dying: its child is killed between keyframes; the worker solves on in
+    a thread, re-fed with the keyframes so far, and its estimates stay those of one online estimator."""
+    import os
+    import signal
+
+    kfs = survey.keyframes[:30]
+
+    async def go():
+        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="process")
+        got = []
+        async with asyncio.TaskGroup() as tg:
+            run = tg.create_task(worker.run(got.append))
+            await worker.ready.wait()
+            for kf in kfs[:15]:
+                worker.queue.put_nowait(kf)
+            await asyncio.wait_for(worker.queue.join(), 120)
+            os.kill(worker.child_pid, signal.SIGKILL)
+            for kf in kfs[15:]:
+                worker.queue.put_nowait(kf)
+            await asyncio.wait_for(worker.queue.join(), 120)
+            run.cancel()
+        return worker, got
+
+    worker, got = asyncio.run(go())
+    assert worker.mode == "thread" and len(got) == len(kfs)
+    online = OnlineEstimator(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams())
+    direct = [online.add_keyframe(kf) for kf in kfs]
+    for a, c in zip(got, direct, strict=True):
+        np.testing.assert_allclose(a.users_enu_m, c.users_enu_m, rtol=1e-9, atol=1e-9)
 
 
 def test_worker_process_and_thread_give_the_estimates_of_the_online_estimator(survey):

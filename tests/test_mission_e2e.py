@@ -24,9 +24,12 @@ import pytest
 from mission.controller import STATUS_RETURNED, STATUS_TARGET
 from mission.log import read_mission_log
 from mission.safety import point_in_polygon, point_on_boundary
-from mission.sim_runner import SimulatedMission
 from planner.types import PlanResult
 from sitl_scenarios.scenario import load_scenario
+from sitl_scenarios.sim_runner import SimulatedMission
+
+#: whole missions on the built-in vehicle and the simulated gNB (in the default run and in CI)
+pytestmark = pytest.mark.sim
 
 SPEEDUP = 20.0
 REPO = Path(__file__).resolve().parents[1]
@@ -286,13 +289,20 @@ def test_uavloc_fly_with_an_external_vehicle_and_gnb(tmp_path):
     the simulated gNB (its own event loop in a thread) stand in for the Pixhawk and the OAI gNB."""
     import threading
 
-    from mission.sim_runner import free_udp_port
+    from mission.config import example_mission_path, load_mission
     from sitl_scenarios.gnb import SimulatedGnb
+    from sitl_scenarios.sim_runner import free_udp_port
     from sitl_scenarios.vehicle import VehicleSimulator
 
     sc = load_scenario("paper")
     port = free_udp_port()
     log_path = tmp_path / "fly.jsonl"
+    # the shipped example mission file, with the paper scenario's one user (0x4601) only
+    text = example_mission_path().read_text(encoding="utf-8")
+    start = text.index('[[users]]\nid = "ue2"')
+    mission = tmp_path / "flight.toml"
+    mission.write_text(text[:start] + text[text.index("\n#", start) + 1:], encoding="utf-8")
+    assert [u.rnti for u in load_mission(mission).users] == [u.rnti for u in sc.users]
     with VehicleSimulator.from_scenario(sc, speedup=SPEEDUP, target=("127.0.0.1", port), bind=("127.0.0.1", 0),
                                         max_stream_wall_hz=100.0) as veh:
         started = threading.Event()
@@ -317,7 +327,7 @@ def test_uavloc_fly_with_an_external_vehicle_and_gnb(tmp_path):
         try:
             proc = subprocess.run(
                 [sys.executable, "-m", "mission", "-q", "fly", "--connect", f"udpin://127.0.0.1:{port}",
-                 "--gnb", f"127.0.0.1:{gnb_port['port']}", "--scenario", "paper", "--planner", "lawnmower",
+                 "--gnb", f"127.0.0.1:{gnb_port['port']}", "--mission", str(mission), "--planner", "lawnmower",
                  "--log", str(log_path), "--json"],
                 cwd=REPO, capture_output=True, text=True, timeout=180)
         finally:

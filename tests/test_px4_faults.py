@@ -15,9 +15,9 @@ from mavsdk.plugins.failure import FailureError, FailureType, FailureUnit
 
 from mission.controller import STATUS_RETURNED, STATUS_TARGET
 from mission.log import read_mission_log
-from mission.sim_runner import SimulatedMission, free_udp_port
 from sitl_scenarios.px4_sitl import UdpRelay
 from sitl_scenarios.scenario import load_scenario
+from sitl_scenarios.sim_runner import SimulatedMission, free_udp_port
 from tests.px4 import GcsClient, wait_until
 
 pytestmark = pytest.mark.px4
@@ -122,7 +122,7 @@ def test_vehicle_link_paused_waits_then_resumes_or_returns(px4, tmp_path, pause_
     async def pause(gcs, sim):
         ctl = sim.controller
         relay.pause()
-        await wait_until(lambda: ctl._link_lost_since is not None, 30, "uavloc sees the link lost")
+        await wait_until(lambda: ctl.flight.link_lost_since is not None, 30, "uavloc sees the link lost")
         await asyncio.sleep(pause_s)
         marks["measurements_at_resume"] = ctl.measurements
         relay.resume()

@@ -20,8 +20,8 @@ import pytest
 
 from mission.controller import STATUS_TARGET
 from mission.log import read_mission_log
-from mission.sim_runner import SimulatedMission
 from sitl_scenarios.scenario import load_scenario
+from sitl_scenarios.sim_runner import SimulatedMission
 from tests.px4 import GcsClient, wait_until
 
 pytestmark = pytest.mark.px4

@@ -42,9 +42,12 @@ def test_uavloc_sim_exits_with_its_result_when_mavsdk_wedges(tmp_path: Path) -> 
     except subprocess.TimeoutExpired as exc:
         raise AssertionError(f"uavloc sim did not return: {str(exc.stderr)[-3000:]}") from exc
     # the controller sends nothing but RTL after MAVSDK's UNKNOWN; the vehicle returns home
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    # ... and exits 1: it came home without locating anyone (issue 12: a mission that ends without
+    # locating a user exits non-zero), after printing its result
+    assert proc.returncode == 1, proc.stderr[-3000:]
     doc = json.loads(proc.stdout)
     assert doc["status"] == "returned" and "UNKNOWN" in doc["reason"], doc
+    assert "not located" in proc.stderr
     lines = (out / "mission.jsonl").read_text().splitlines()
     records = [json.loads(line) for line in lines]  # every line complete
     events = [r for r in records if r["type"] == "event"]

@@ -201,9 +201,9 @@ def test_fly_view_follows_a_flight_to_the_end(tmp_path):
     LANDED; the last frame's users are the JSON result's; a real flight draws no truth, no buildings."""
     import threading
 
-    from mission.sim_runner import free_udp_port
     from sitl_scenarios.gnb import SimulatedGnb
     from sitl_scenarios.scenario import load_scenario
+    from sitl_scenarios.sim_runner import free_udp_port
     from sitl_scenarios.vehicle import VehicleSimulator
     from tests.test_view_browser import _Proc
 

@@ -288,8 +288,8 @@ def test_bad_area_fields_name_the_line_and_the_field(tmp_path, field, value, mat
 def test_simulated_buildings_reach_the_header_in_the_home_frame(tmp_path):
     """The built-in vehicle's world is the scenario origin; the log's frame is the reported home
     (a little off): the buildings land at the same geodetic place either way."""
-    from mission.sim_runner import SimulatedMission
     from sitl_scenarios.scenario import load_scenario
+    from sitl_scenarios.sim_runner import SimulatedMission
 
     sc = load_scenario("three_users_nlos")
     sim = SimulatedMission(sc, tmp_path / "m.jsonl")

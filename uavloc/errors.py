@@ -59,6 +59,10 @@ class GnbUnknownCommandError(GnbProtocolError):
     """The gNB answered `... is not a softmodem command` (telnet module not loaded or misnamed)."""
 
 
+class GnbPreflightError(GnbError):
+    """Before take-off, a configured user is not among the gNB's UEs or did not answer a measurement."""
+
+
 class GnbNoMeasurementError(GnbError):
     """The gNB answered, but without a measurement (an `error ...` line, UE unknown or out of coverage)."""
 

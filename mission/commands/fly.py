@@ -1,4 +1,8 @@
-"""`uavloc fly --connect URL --gnb HOST:PORT --scenario FILE [--out DIR]`: fly a real mission."""
+"""`uavloc fly --mission FILE --connect URL --gnb HOST:PORT [--out DIR]`: fly a real mission.
+
+The mission file (mission/config.py; example: mission/examples/flight.toml) holds everything the
+flight needs and no true position. `--scenario FILE` is a deprecated alias that flies the mission
+part of a simulation scenario (its true positions are ignored)."""
 
 from __future__ import annotations
 
@@ -17,32 +21,48 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", required=True, metavar="URL",
                    help="MAVSDK connection URL of the vehicle, e.g. udpin://0.0.0.0:14540 or serial:///dev/ttyACM0:57600")
     p.add_argument("--gnb", required=True, metavar="HOST:PORT", help="the gNB's telnet server (default port 9090)")
-    p.add_argument("--scenario", required=True, metavar="FILE",
-                   help="mission settings: users (RNTIs), geofence, altitudes, Δ, target "
-                   "(positions are offsets from home)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--mission", metavar="FILE",
+                     help="mission file: users (id, RNTI), geofence, altitudes, Δ, target, noise, gNB and "
+                     "safety settings (example: mission/examples/flight.toml)")
+    src.add_argument("--scenario", metavar="FILE",
+                     help="deprecated: fly the mission part of a simulation scenario (use --mission)")
     p.add_argument("--out", type=Path, metavar="DIR", help="write the mission log and a report here")
     p.add_argument("--log", type=Path, metavar="FILE", help="mission log path (default: DIR/mission.jsonl or "
                    "./uavloc-mission-<UTC>.jsonl)")
-    p.add_argument("--planner", metavar="NAME", help="planner (default: the scenario's, casadi when available)")
-    p.add_argument("--gnb-mode", choices=("rtt", "stock"), default="rtt",
-                   help="rtt: the RTT command set; stock: ci force_reestab + Msg2 lines of --gnb-log")
-    p.add_argument("--gnb-log", type=Path, metavar="FILE", help="gNB log file to follow (stock mode)")
+    p.add_argument("--planner", metavar="NAME", help="planner (default: the mission's, casadi when available)")
+    p.add_argument("--gnb-mode", choices=("rtt", "stock"), help="override the mission's gnb.mode")
+    p.add_argument("--gnb-log", type=Path, metavar="FILE", help="override the mission's gnb.log_path (stock mode)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     add_view_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
+    import dataclasses
     from datetime import UTC, datetime
 
-    from mission.controller import controller_from_scenario
-    from mission.gnb import GnbConfig, OaiGnbClient, parse_host_port
+    from mission.config import load_mission, validate_mission
+    from mission.controller import controller_from_mission
+    from mission.gnb import OaiGnbClient, parse_host_port
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
     from mission.view.live import live_view
-    from sitl_scenarios.scenario import load_scenario
 
-    scenario = load_scenario(args.scenario)
+    if args.mission is not None:
+        mission = load_mission(args.mission)
+    else:
+        log.warning("--scenario is deprecated for fly: write a mission file (--mission; see "
+                    "mission/examples/flight.toml); the scenario's true positions are ignored")
+        mission = _scenario_mission(args.scenario)
+    gnb_over = {}
+    if args.gnb_mode is not None:
+        gnb_over["mode"] = args.gnb_mode
+    if args.gnb_log is not None:
+        gnb_over["log_path"] = str(args.gnb_log)
+    if gnb_over:
+        mission = dataclasses.replace(mission, gnb=dataclasses.replace(mission.gnb, **gnb_over))
+        validate_mission(mission, "command line")
     host, port = parse_host_port(args.gnb)
     if args.log is not None:
         log_path = args.log
@@ -57,10 +77,10 @@ def run(args: argparse.Namespace) -> int:
     held: dict = {}
 
     async def main():
-        gnb_cfg = GnbConfig(host=host, port=port, mode=args.gnb_mode, log_path=args.gnb_log, mu=scenario.radio.mu)
+        gnb_cfg = mission.gnb.client_config(host, port)
         async with MavsdkVehicle(args.connect) as vehicle, OaiGnbClient(gnb_cfg) as gnb:
-            controller = controller_from_scenario(
-                scenario, vehicle, gnb, log_path, planner=args.planner,
+            controller = controller_from_mission(
+                mission, vehicle, gnb, log_path, planner=args.planner,
                 header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb})
             held["controller"] = controller
             async with live_view(args, controller.log_writer, title="uavloc fly"):
@@ -83,3 +103,18 @@ def run(args: argparse.Namespace) -> int:
     code = EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
     runner.exit_if_stuck(code)
     return code
+
+
+def _scenario_mission(name: str):
+    """The mission part of a simulation scenario (the deprecated `--scenario`). The scenario
+    loader is found through the `uavloc.scenarios` entry point, so mission never imports
+    sitl_scenarios."""
+    from importlib.metadata import entry_points
+
+    from uavloc.errors import MissionConfigError
+
+    eps = [ep for ep in entry_points(group="uavloc.scenarios") if ep.name == "load"]
+    if not eps:
+        raise MissionConfigError("--scenario needs the simulation package (sitl_scenarios) installed; "
+                                 "use --mission FILE")
+    return eps[0].load()(name).mission_config()

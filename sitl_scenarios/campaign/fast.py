@@ -20,6 +20,8 @@ altitude band, distance from home, leg length and budget (`leg_violation`).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from estimator.ranging import range_m_from_raw
@@ -77,8 +79,9 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     x = np.array([*c.home_enu_m[:2], c.cruise_alt_m])
     flown, since_kf, estimate = 0.0, delta_m, None
     while track.pending and flown < c.budget_m:
+        t0 = time.perf_counter()  # the planner has no clock: its compute time is timed here
         res = planner.plan(PlanningState(x, estimate, flown))
-        out.plan_times_s.append(res.solve_time_s)
+        out.plan_times_s.append(time.perf_counter() - t0)
         if res.done:
             out.end = res.reason
             break

@@ -30,7 +30,7 @@ def fly_full(sc: Scenario, planner_name: str, params: SolverParams, seed: int, t
              speedup: float) -> Outcome:
     """Fly one scenario with the built-in vehicle and simulated gNB; the Outcome of its mission log."""
     from mission.log import read_mission_log
-    from mission.sim_runner import SimulatedMission
+    from sitl_scenarios.sim_runner import SimulatedMission
 
     with tempfile.TemporaryDirectory(prefix="uavloc-campaign-") as tmp:
         log_path = Path(tmp) / "mission.jsonl"

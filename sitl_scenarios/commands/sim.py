@@ -35,10 +35,10 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
     import tempfile
 
-    from mission.sim_runner import SimulatedMission
     from mission.status import print_result, write_report
     from mission.view.live import live_view
     from sitl_scenarios.scenario import load_scenario
+    from sitl_scenarios.sim_runner import SimulatedMission
     from uavloc.errors import MissionError
 
     scenario = load_scenario(args.scenario)

@@ -1,0 +1,1 @@
+"""The mission controller, split by responsibility (see mission/controller.py for the map)."""

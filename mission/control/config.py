@@ -1,0 +1,166 @@
+"""The mission controller's configuration and result: what a flight is asked to do and what it
+found (DESIGN.md §7, §11). Plain data, no I/O."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from estimator.geodesy import Origin
+from estimator.types import Estimate
+from mission.result import horizontal_error_m, user_entries_of_estimate
+
+CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
+    "CONNECT", "PREFLIGHT", "TAKEOFF", "SURVEY", "RETURN", "LANDED", "ABORT")
+
+#: MissionResult.status values
+STATUS_TARGET = "target_reached"
+STATUS_BUDGET = "budget_spent"
+STATUS_NO_LEG = "no_feasible_leg"
+STATUS_RETURNED = "returned"  # a safety condition ended the survey early
+STATUS_ABORTED = "aborted"  # an error ended the mission (RTL sent when airborne)
+STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne)
+
+#: PX4's default horizontal cruise speed (MPC_XY_CRUISE): what the vehicle flies when a speed
+#: command was refused, so the leg timeouts follow it then
+PX4_DEFAULT_CRUISE_MPS = 5.0
+
+#: wall seconds the safe end may spend getting RTL accepted after an error
+SAFE_END_TIMEOUT_S = 60.0
+#: ... and after Ctrl-C (the user waits; a second Ctrl-C exits at once, mission.runtime)
+INTERRUPT_SAFE_END_TIMEOUT_S = 20.0
+
+
+@dataclass(frozen=True)
+class MissionUser:
+    """A user to locate: id, RNTI and ground height `up_m` in the home ENU frame [m]."""
+
+    id: str
+    rnti: int
+    up_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Mission settings. Times marked (mission) are mission seconds; (wall) are real seconds.
+
+    delta_m: keyframe spacing Δ; altitude_m: survey height above home; target_radius_m: stop rule;
+    budget_m: survey metres; time_limit_s (mission); acceptance_m: arrival radius; speed_mps,
+    climb_mps, descent_mps: vehicle speeds used for leg and landing timeouts.
+    time_scale: mission seconds per wall second (simulator speedup).
+    link_timeout_s (wall): no vehicle data for this long counts as a lost link;
+    link_lost_wait_s (mission): wait this long for the link before returning home;
+    gnb_lost_wait_s (mission): keep flying without measurements this long before returning home;
+    gnb_timeout_s (wall): per measurement request; telemetry_log_hz (mission): telemetry records;
+    status_interval_s (wall): progress lines; max_refusals: consecutive refused waypoints before
+    returning home; alt_margin_m: tolerance of the altitude-band check while surveying;
+    breach_confirm_fixes: consecutive fixes outside a position limit before returning home (one
+    noisy fix near the fence is not a breach, mission.safety.BreachWatch);
+    position_smooth_s (mission): the position a waypoint's leg is checked from is the mean of
+    the fixes over this long (the vehicle hovers when a leg is planned);
+    estimator_mode: "process" (estimator in a child process) or "thread" (see EstimatorWorker);
+    battery_takeoff_min_pct: no take-off below this charge [%].
+    """
+
+    delta_m: float = 2.0
+    altitude_m: float = 30.0
+    target_radius_m: float = 2.0
+    budget_m: float = 2000.0
+    time_limit_s: float = 1200.0
+    acceptance_m: float = 2.0
+    speed_mps: float = 10.0
+    climb_mps: float = 3.0
+    descent_mps: float = 1.5
+    time_scale: float = 1.0
+    connect_timeout_s: float = 30.0
+    ready_timeout_s: float = 60.0
+    link_timeout_s: float = 3.0
+    link_lost_wait_s: float = 10.0
+    gnb_lost_wait_s: float = 20.0
+    gnb_timeout_s: float = 2.0
+    telemetry_log_hz: float = 5.0
+    status_interval_s: float = 2.0
+    max_refusals: int = 3
+    alt_margin_m: float = 5.0
+    breach_confirm_fixes: int = 3
+    position_smooth_s: float = 1.0
+    estimator_mode: str = "process"
+    battery_takeoff_min_pct: float = 0.0
+
+    @classmethod
+    def from_mission(cls, mission, **overrides) -> ControllerConfig:
+        """From a :class:`mission.config.MissionConfig` (its flight, safety and gNB sections; the
+        per-measurement timeout is `mission.gnb.measure_timeout_s()`); overrides: any field."""
+        f, s = mission.flight, mission.safety
+        kw = dict(delta_m=f.delta_m, altitude_m=f.altitude_m, target_radius_m=f.target_radius_m,
+                  budget_m=f.budget_m, time_limit_s=f.time_limit_s, acceptance_m=f.acceptance_m,
+                  speed_mps=f.cruise_speed_mps, climb_mps=f.climb_mps, descent_mps=f.descent_mps,
+                  link_timeout_s=s.link_timeout_s, link_lost_wait_s=s.link_lost_wait_s,
+                  gnb_lost_wait_s=s.gnb_lost_wait_s, max_refusals=s.max_refusals,
+                  alt_margin_m=s.alt_margin_m, breach_confirm_fixes=s.breach_confirm_fixes,
+                  gnb_timeout_s=mission.gnb.measure_timeout_s(),
+                  battery_takeoff_min_pct=s.battery_takeoff_min_pct)
+        kw.update(overrides)
+        return cls(**kw)
+
+    @classmethod
+    def from_scenario(cls, sc, **overrides) -> ControllerConfig:
+        """A simulation scenario's: `from_mission(sc.mission_config())`."""
+        return cls.from_mission(sc.mission_config(), **overrides)
+
+
+@dataclass
+class MissionResult:
+    """How a mission ended, and what it found.
+
+    status: one of the STATUS_* values; reason: why; estimate: final (batch) estimate or None;
+    origin: home (the log's ENU origin) or None if never known; truth_enu_m (K, 3) when known;
+    flown_m: survey metres flown; measurements: rtt records logged; keyframes: keyframes used.
+    """
+
+    status: str
+    reason: str
+    user_ids: list[str]
+    estimate: Estimate | None = None
+    origin: Origin | None = None
+    truth_enu_m: np.ndarray | None = None
+    flown_m: float = 0.0
+    measurements: int = 0
+    keyframes: int = 0
+    log_path: Path | None = None
+    mission_s: float = 0.0
+    wall_s: float = 0.0
+    rtl_sent: bool = False
+    landed: bool = False
+    refusals: int = 0
+    events: list[str] = field(default_factory=list)
+    loop_lag: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        """The mission ended normally and located every user (else the command exits non-zero)."""
+        return self.status in (STATUS_TARGET, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED) and not self.not_located()
+
+    def not_located(self) -> list[str]:
+        """Ids of the users without a position estimate, or with one a mirror position explains as
+        well (ambiguous)."""
+        est = self.estimate
+        if est is None:
+            return list(self.user_ids)
+        return [u for k, u in enumerate(self.user_ids)
+                if not np.all(np.isfinite(est.users_enu_m[k])) or bool(est.ambiguous[k])]
+
+    def error_m(self) -> np.ndarray | None:
+        """(K,) horizontal error of each user [m] when truth is known."""
+        if self.estimate is None or self.truth_enu_m is None:
+            return None
+        return horizontal_error_m(self.estimate.users_enu_m, self.truth_enu_m)
+
+    def to_document(self) -> dict:
+        """The DESIGN.md §11 JSON document (plus `reason`)."""
+        users = user_entries_of_estimate(self.estimate if self.origin is not None else None, self.origin,
+                                         self.user_ids, self.truth_enu_m)
+        return {"status": self.status, "reason": self.reason, "users": users,
+                "flown_m": round(self.flown_m, 3), "measurements": self.measurements}

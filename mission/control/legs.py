@@ -1,0 +1,194 @@
+"""Take-off and the survey's legs (DESIGN.md §7): plan a waypoint, pass it through the safety
+gate, command the cruise speed, fly it until arrival, a stop or return request, or its timeout.
+
+Refused waypoints: max_refusals in a row (by the gate or the vehicle) request a return home;
+MAVSDK's UNKNOWN answer (the 4.1 wedge after PX4's MAV_RESULT 9) requests it at once, so nothing
+but RTL is sent afterwards.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from mission.control.config import PX4_DEFAULT_CRUISE_MPS, STATUS_BUDGET, STATUS_NO_LEG, STATUS_TARGET, TAKEOFF
+from mission.control.safety_monitor import energy_remaining_m
+from mission.telemetry import Odometer, odometer_dead_band_m
+from planner.types import PlanningState, PlanResult
+from uavloc.errors import PlannerError, SafetyError, VehicleError
+
+log = logging.getLogger(__name__)
+
+
+class SurveyLegs:
+    """The flying part of a :class:`MissionController` (its vehicle, gate, planner and state)."""
+
+    def __init__(self, ctl: Any):  # a mission.control.flight.MissionController (no import: no cycle)
+        self.ctl = ctl
+        self.odometer = Odometer(odometer_dead_band_m(ctl.noise.sigma_gps_m))
+        self.leg_speed_mps = PX4_DEFAULT_CRUISE_MPS  # what the vehicle flies legs at (commanded or default)
+        self.speed_refusals = 0
+        self.battery_start_pct: float | None = None
+
+    async def takeoff(self) -> None:
+        ctl, cfg, f = self.ctl, self.ctl.config, self.ctl.flight
+        f.set_phase(TAKEOFF)
+        await ctl._gated.arm()
+        ctl.journal.event("armed", kind="arm")
+        await ctl._gated.takeoff(cfg.altitude_m)
+        ctl.journal.event(f"takeoff to {cfg.altitude_m:g} m above home", kind="takeoff")
+        deadline = time.monotonic() + ctl.wall(2.0 * cfg.altitude_m / cfg.climb_mps + 30.0)
+        while f.return_reason is None:
+            pos = ctl.pos_enu()
+            if pos is not None and pos[2] >= cfg.altitude_m - max(1.5, cfg.acceptance_m):
+                return
+            if time.monotonic() > deadline:
+                raise VehicleError(f"takeoff to {cfg.altitude_m:g} m not reached in time (at "
+                                   f"{'?' if pos is None else f'{pos[2]:.1f}'} m)")
+            await f.wake.wait(0.2)
+
+    def energy_remaining_m(self) -> float:
+        """Metres the battery still allows (down to the RTL threshold), from the drain so far."""
+        return energy_remaining_m(self.ctl.flight.flown_m, self.battery_start_pct, self.ctl.vehicle.state.battery_pct,
+                                  self.ctl.gate.limits.battery_rtl_pct)
+
+    async def plan(self, pos: np.ndarray) -> PlanResult:
+        """The planner's next leg from `pos`, with the estimate of every keyframe measured so far."""
+        ctl = self.ctl
+        await ctl.pipeline.drain(10.0)
+        state = PlanningState(uav_enu_m=pos, estimate=ctl.flight.estimate, flown_m=ctl.flight.flown_m,
+                              energy_remaining_m=self.energy_remaining_m())
+        t0 = time.perf_counter()
+        plan = await asyncio.to_thread(ctl.planner.plan, state)
+        # the planner's compute time, for the log (the planner itself has no clock)
+        return dataclasses.replace(plan, solve_time_s=time.perf_counter() - t0)
+
+    async def survey(self) -> None:
+        ctl, cfg, f = self.ctl, self.ctl.config, self.ctl.flight
+        self.battery_start_pct = ctl.vehicle.state.battery_pct
+        refusals = 0
+        leg = 0
+        while not f.ending:
+            # while the vehicle link is lost, wait (the safety monitor returns home after
+            # link_lost_wait_s) rather than plan from a stale fix and command into the void
+            await self.wait_link()
+            if f.ending:
+                break
+            pos = ctl.pos_enu()
+            try:
+                plan = await self.plan(pos)
+            except PlannerError as exc:
+                f.request_return(f"planner failed: {exc}")
+                break
+            if plan.done:
+                status = {"target reached": STATUS_TARGET, "budget spent": STATUS_BUDGET}.get(
+                    plan.reason, STATUS_NO_LEG)
+                f.finish_survey(status, plan.reason or "planner done")
+                break
+            if f.ending:
+                break
+            wp = np.asarray(plan.waypoint_enu_m, float)
+            lat, lon, alt = (float(x) for x in ctl.origin.enu_to_lla(wp))
+            leg += 1
+            ctl.journal.writer.write(
+                "waypoint", ctl.now(), leg=leg, lat_deg=lat, lon_deg=lon, alt_m=alt, enu_m=wp.tolist(),
+                planner=getattr(ctl.planner, "name", "?"), status=plan.status,
+                objective=plan.objective if math.isfinite(plan.objective) else None, solve_time_s=plan.solve_time_s)
+            await self.command_speed()
+            try:
+                await ctl._gated.goto_enu(wp)
+            except SafetyError:
+                refusals += 1
+                if refusals >= cfg.max_refusals:
+                    f.request_return(f"{refusals} waypoints in a row refused by the safety gate")
+                continue
+            except VehicleError as exc:
+                # a lost link or a refusal: the safety monitor decides about the link; here wait for
+                # it and replan from wherever the vehicle is then
+                refusals += 1
+                ctl.journal.event(f"goto failed: {exc}", kind="goto_failed")
+                if getattr(exc, "result", None) == "UNKNOWN":
+                    # MAVSDK 4.1's answer to a MAV_RESULT it does not know (PX4's 9 to a reposition):
+                    # it stops delivering telemetry and may crash on later calls, so send nothing but RTL
+                    f.request_return(f"the vehicle library answered UNKNOWN: {exc}")
+                elif refusals >= cfg.max_refusals:
+                    f.request_return(f"{refusals} gotos in a row failed: {exc}")
+                await self.wait_link()
+                continue
+            refusals = 0
+            await self.fly_leg(pos, wp)
+        if self.budget_spent():
+            f.finish_survey(STATUS_BUDGET, "budget spent")
+
+    async def command_speed(self) -> None:
+        """Command the mission's cruise speed before every leg (PX4 keeps it over repositions, but a
+        mode change resets it); the leg timeouts follow what the vehicle then flies."""
+        ctl, cfg = self.ctl, self.ctl.config
+        try:
+            await ctl.vehicle.set_speed(cfg.speed_mps)
+        except VehicleError as exc:
+            self.speed_refusals += 1
+            self.leg_speed_mps = min(cfg.speed_mps, PX4_DEFAULT_CRUISE_MPS)
+            if self.speed_refusals == 1:
+                ctl.journal.event(f"speed {cfg.speed_mps:g} m/s not accepted ({exc}): legs timed for "
+                                  f"{self.leg_speed_mps:g} m/s", kind="speed_refused")
+            return
+        if self.leg_speed_mps != cfg.speed_mps:
+            ctl.journal.event(f"cruise speed {cfg.speed_mps:g} m/s commanded", kind="speed", speed_mps=cfg.speed_mps)
+        self.leg_speed_mps = cfg.speed_mps
+
+    async def wait_link(self) -> None:
+        """While the vehicle link is lost (and the survey goes on), wait."""
+        f = self.ctl.flight
+        while f.link_lost_since is not None and not f.ending:
+            await asyncio.sleep(0.05)
+
+    def budget_spent(self) -> bool:
+        return self.ctl.flight.flown_m >= self.ctl.config.budget_m
+
+    async def fly_leg(self, start: np.ndarray, wp: np.ndarray) -> None:
+        """Wait for arrival within the acceptance radius, a stop/return request, or the leg timeout;
+        the Δ-trigger measures while the leg is flown."""
+        f = self.ctl.flight
+        f.on_leg = True
+        try:
+            await self._fly_leg_until_done(start, wp)
+        finally:
+            f.on_leg = False
+
+    async def _fly_leg_until_done(self, start: np.ndarray, wp: np.ndarray) -> None:
+        ctl, cfg, f = self.ctl, self.ctl.config, self.ctl.flight
+        dist = float(np.linalg.norm(wp - start))
+        deadline = time.monotonic() + ctl.wall(2.0 * dist / self.leg_speed_mps + 20.0)
+        # metres flown: an odometer whose dead band (max(5 m, 8 σ_gps)) GPS noise does not cross
+        self.odometer.start(start)
+        while True:
+            pos = ctl.pos_enu()
+            f.flown_m = self.odometer.update(pos)
+            if np.linalg.norm(pos - wp) <= cfg.acceptance_m:
+                f.flown_m = self.odometer.finish(pos)
+                return
+            if f.ending:
+                return
+            if self.budget_spent():
+                f.finish_survey(STATUS_BUDGET, "budget spent")
+                return
+            if time.monotonic() > deadline:
+                ctl.journal.event(f"leg to ({wp[0]:.1f}, {wp[1]:.1f}, {wp[2]:.1f}) m timed out", kind="leg_timeout")
+                return
+            await f.wake.wait(0.2)
+
+    def return_timeout_s(self) -> float:
+        """Mission seconds the return home and landing may take: twice the flight at the vehicle's
+        return speed (PX4: MPC_XY_CRUISE unless changed) and descent, plus 60 s."""
+        ctl = self.ctl
+        pos = ctl.pos_enu()
+        dist = 0.0 if pos is None else float(np.hypot(pos[0], pos[1]))
+        height = ctl.config.altitude_m if pos is None else max(float(pos[2]), 0.0)
+        return 2.0 * (dist / min(self.leg_speed_mps, PX4_DEFAULT_CRUISE_MPS) + height / ctl.config.descent_mps) + 60.0

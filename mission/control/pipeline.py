@@ -1,0 +1,166 @@
+"""The measurement pipeline (DESIGN.md §3, §7): Δ-trigger → placer → keyframe queue.
+
+- the **trigger** (:meth:`MeasurementPipeline.run_trigger`): while a survey leg is flown, when the
+  UAV has moved Δ since the last keyframe (`KeyframeSelector`), measure every user through the
+  gNB (not while hovering to replan, where GPS noise alone would move the fix by Δ) and put the
+  round on the place queue; a round that fails for the gNB as a whole (no answer, an unknown
+  command, or PROTOCOL_ERROR_STREAK rounds of nothing but unreadable answers) marks the gNB lost
+  in the :class:`FlightState`, in the gNB's own words;
+- the **placer** (:meth:`MeasurementPipeline.run_placer`): places each round at the telemetry
+  interpolated to the mean time of its measurements, logs its `rtt` records (one UAV position per
+  round: how replay groups them back into the same keyframe) and puts its keyframe on the
+  keyframe queue, in trigger order. Placing waits for the next fix, so the trigger is ready for
+  the next Δ at once.
+
+The pipeline owns both queues; the estimator worker reads `keyframes_out`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from estimator.geodesy import Origin
+from estimator.keyframes import KeyframeSelector
+from estimator.ranging import C_MPS
+from estimator.types import Keyframe
+from mission.control.config import MissionUser
+from mission.control.state import FlightState
+from mission.gnb import GnbClient
+from mission.log import MissionLogWriter
+from mission.telemetry import TelemetryBuffer
+from uavloc.errors import GnbError, GnbNoMeasurementError, GnbProtocolError, GnbUnknownCommandError, MissionError
+
+log = logging.getLogger(__name__)
+
+#: consecutive measurement rounds answered with nothing but protocol errors that count as a lost gNB
+PROTOCOL_ERROR_STREAK = 3
+
+
+class MeasurementPipeline:
+    """See the module docstring.
+
+    gnb, users: whom to measure; delta_m: keyframe spacing; gnb_timeout_s: bound of one measurement
+    (wall) [s]; flight: the shared state; buffer: the telemetry (mission time, ENU); origin: () ->
+    home; writer: the mission log; now / mission_t: mission seconds now / of a monotonic time.
+    """
+
+    def __init__(self, gnb: GnbClient, users: list[MissionUser], delta_m: float, gnb_timeout_s: float,
+                 flight: FlightState, buffer: TelemetryBuffer, origin: Callable[[], Origin | None],
+                 writer: MissionLogWriter, now: Callable[[], float], mission_t: Callable[[float], float]):
+        self.gnb, self.users = gnb, users
+        self.delta_m, self.gnb_timeout_s = delta_m, gnb_timeout_s
+        self.flight, self.buffer, self.origin, self.writer = flight, buffer, origin, writer
+        self.now, self.mission_t = now, mission_t
+        self.place_queue: asyncio.Queue[list] = asyncio.Queue()
+        self.keyframes_out: asyncio.Queue[Keyframe] = asyncio.Queue()
+        self.keyframes: list[Keyframe] = []
+        self.user_misses = np.zeros(len(users), int)
+        self.protocol_streak = 0
+
+    # -- trigger --------------------------------------------------------------------------------
+
+    async def run_trigger(self) -> None:
+        f = self.flight
+        selector = KeyframeSelector(self.delta_m)
+        while True:
+            latest = self.buffer.latest()
+            if f.on_leg and not f.ending and latest is not None and selector.accept(latest[1]):
+                await self.measure_round()
+                continue  # check the newest fix at once: fixes arrived while measuring
+            await f.wake.wait(1.0)
+
+    async def measure_round(self) -> None:
+        """One trigger: measure every user; queue the round for placing."""
+        samples = []
+        gnb_failed: str | None = None
+        protocol_errors: list[str] = []
+        for k, u in enumerate(self.users):
+            t_req = time.monotonic()
+            try:
+                async with asyncio.timeout(self.gnb_timeout_s):
+                    s = await self.gnb.measure(u.rnti)
+            except GnbUnknownCommandError as exc:
+                # the measurement command is gone (module not loaded, gNB restarted without it)
+                gnb_failed = " ".join(str(exc).split())
+                break
+            except GnbProtocolError as exc:
+                self.user_misses[k] += 1
+                protocol_errors.append(f"{u.id}: {' '.join(str(exc).split())}")
+                log.debug("unreadable answer for %s: %s", u.id, exc)
+                continue
+            except GnbNoMeasurementError as exc:
+                self.user_misses[k] += 1
+                log.debug("no measurement for %s: %s", u.id, exc)
+                continue
+            except TimeoutError:
+                gnb_failed = f"gNB did not answer within {self.gnb_timeout_s:g} s"
+                break
+            except GnbError as exc:
+                gnb_failed = str(exc)
+                break
+            t_mono = s.t_mono_s if (s.t_mono_s and math.isfinite(s.t_mono_s)) else 0.5 * (t_req + time.monotonic())
+            samples.append((k, s, t_mono))
+        now = self.now()
+        # answers nobody can read, round after round, are a lost gNB too
+        self.protocol_streak = self.protocol_streak + 1 if protocol_errors and not samples else 0
+        if gnb_failed is None and self.protocol_streak >= PROTOCOL_ERROR_STREAK:
+            gnb_failed = (f"{self.protocol_streak} measurement rounds in a row answered with protocol errors, "
+                          f"last: {protocol_errors[-1]}")
+        if gnb_failed is not None:
+            self.flight.gnb_failed(now, gnb_failed)
+        else:
+            self.flight.gnb_answered(now)
+        if samples:
+            self.place_queue.put_nowait(samples)
+
+    # -- placer ---------------------------------------------------------------------------------
+
+    async def run_placer(self) -> None:
+        while True:
+            samples = await self.place_queue.get()
+            try:
+                await self.place(samples)
+            finally:
+                self.place_queue.task_done()
+
+    async def position_at(self, t_s: float) -> np.ndarray:
+        """UAV position at mission time t_s: waits briefly for the fix after it, then interpolates."""
+        deadline = time.monotonic() + 1.0
+        while not self.buffer.covers(t_s) and time.monotonic() < deadline:
+            await self.flight.wake.wait(0.2)
+        return self.buffer.at(t_s, max_extrapolate_s=0.5)
+
+    async def place(self, samples: list) -> None:
+        origin = self.origin()
+        t_meas = float(np.mean([self.mission_t(tm) for _, _, tm in samples]))
+        try:
+            pos = await self.position_at(t_meas)
+        except MissionError as exc:
+            self.flight.event(f"measurements dropped: {exc}", kind="dropped")
+            return
+        lat, lon, alt = (float(x) for x in origin.enu_to_lla(pos))
+        uav = {"lat_deg": lat, "lon_deg": lon, "alt_m": alt}
+        for k, s, tm in samples:
+            self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
+        self.flight.measurements += len(samples)
+        # the keyframe from the logged numbers, exactly as replay rebuilds it
+        gps = origin.lla_to_enu(lat, lon, alt)
+        kf = Keyframe(gps_enu_m=np.asarray(gps, float), user_idx=np.array([k for k, _, _ in samples]),
+                      range_m=np.array([C_MPS * s.toa_s for _, s, _ in samples]),
+                      t_s=round(self.mission_t(samples[0][2]), 6))  # as logged (the GPS links use it)
+        self.keyframes.append(kf)
+        self.keyframes_out.put_nowait(kf)
+
+    async def drain(self, timeout_s: float) -> None:
+        """Wait until every round so far is placed and solved (bounded)."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                await self.place_queue.join()
+                await self.keyframes_out.join()

@@ -1,0 +1,163 @@
+"""The safety monitor (DESIGN.md §7): a pure decision over the mission's state, and a thin loop.
+
+:func:`return_reason` says whether the survey must end and the vehicle return home, from a
+:class:`SafetyView` of the mission now: the vehicle link (lost longer than link_lost_wait_s), the
+battery (below the RTL threshold), the position (outside the geofence / a no-fly zone / the
+altitude band for breach_confirm_fixes fixes in a row, :class:`mission.safety.BreachWatch`), the gNB
+(lost longer than gnb_lost_wait_s) and the mission time limit. :func:`energy_remaining_m` is the
+battery's range the planner is given in real flights. :class:`SafetyMonitor` samples the view
+every `period_s` and reports through the :class:`FlightState`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from mission.control.config import SURVEY, TAKEOFF, ControllerConfig
+from mission.control.state import FlightState
+from mission.safety import BreachWatch, SafetyGate
+
+#: flight modes an autopilot switches to on its own failsafe (PX4: GPS/position loss → LAND, low
+#: battery or data-link loss → RETURN_TO_LAUNCH); the controller never commands LAND
+AUTOPILOT_FAILSAFE_MODES = ("LAND", "RETURN_TO_LAUNCH")
+#: STATUSTEXT severities copied into the mission log as `vehicle_text` events
+LOGGED_TEXT_SEVERITIES = ("WARNING", "ERROR", "CRITICAL", "ALERT", "EMERGENCY")
+
+#: survey metres and battery percent used below which the drain is not yet known
+ENERGY_MIN_FLOWN_M = 50.0
+ENERGY_MIN_USED_PCT = 1.0
+
+
+@dataclass(frozen=True)
+class SafetyView:
+    """The mission now, as the safety monitor sees it. Times in mission seconds.
+
+    now_s; phase; link_lost_since_s / gnb_down_since_s (None: fine); gnb_problem: the gNB's words;
+    battery_pct (None: unknown); breach: the position limit a confirmed breach broke (None: none);
+    position_lost: the vehicle reports no valid global position; flight_mode: a failsafe mode the
+    autopilot switched to by itself (None: none); vehicle_text: its last warning (PX4's failsafe message).
+    """
+
+    now_s: float
+    phase: str
+    link_lost_since_s: float | None = None
+    gnb_down_since_s: float | None = None
+    gnb_problem: str | None = None
+    battery_pct: float | None = None
+    breach: str | None = None
+    position_lost: bool = False
+    flight_mode: str | None = None
+    vehicle_text: str | None = None
+
+
+def return_reason(view: SafetyView, cfg: ControllerConfig, gate: SafetyGate) -> str | None:
+    """Why the vehicle must return home now, or None. Pure. Only while taking off or surveying."""
+    if view.phase not in (TAKEOFF, SURVEY):
+        return None
+    if view.position_lost:
+        return "the vehicle lost its global position (GPS)"
+    if view.flight_mode in AUTOPILOT_FAILSAFE_MODES:
+        said = f": {view.vehicle_text}" if view.vehicle_text else ""
+        return f"the autopilot switched to {view.flight_mode} on its own (failsafe{said})"
+    if view.link_lost_since_s is not None and view.now_s - view.link_lost_since_s > cfg.link_lost_wait_s:
+        return f"vehicle link lost for more than {cfg.link_lost_wait_s:g} s"
+    reason = gate.return_reason(None, view.battery_pct) or view.breach
+    if reason:
+        return reason
+    if view.gnb_down_since_s is not None and view.now_s - view.gnb_down_since_s > cfg.gnb_lost_wait_s:
+        return f"gNB lost for more than {cfg.gnb_lost_wait_s:g} s: {view.gnb_problem}"
+    if view.now_s > cfg.time_limit_s:
+        return f"mission time limit {cfg.time_limit_s:g} s reached"
+    return None
+
+
+def energy_remaining_m(flown_m: float, battery_start_pct: float | None, battery_pct: float | None,
+                       battery_rtl_pct: float) -> float:
+    """Survey metres the battery still allows down to the RTL threshold, from the drain so far [m];
+    inf while the drain is unknown (no battery reading, < 50 m flown or < 1 % used).
+
+        m_left = (pct_now − pct_rtl) · flown_m / (pct_start − pct_now)    (≥ 0)
+    """
+    if battery_pct is None or battery_start_pct is None or flown_m < ENERGY_MIN_FLOWN_M:
+        return math.inf
+    used = battery_start_pct - battery_pct
+    if used < ENERGY_MIN_USED_PCT:
+        return math.inf
+    return max(0.0, (battery_pct - battery_rtl_pct) * flown_m / used)
+
+
+class SafetyMonitor:
+    """The loop: every period_s, note the link's condition, build the view, request a return when
+    :func:`return_reason` gives one.
+
+    vehicle_state: the vehicle's `state` (connected, age_s(), battery_pct); latest_fix: () -> (t_s,
+    pos_enu_m (3,)) or None; now: mission seconds."""
+
+    def __init__(self, flight: FlightState, cfg: ControllerConfig, gate: SafetyGate, vehicle_state,
+                 latest_fix: Callable[[], tuple[float, np.ndarray] | None], now: Callable[[], float],
+                 period_s: float = 0.05):
+        self.flight, self.cfg, self.gate = flight, cfg, gate
+        self.vehicle_state = vehicle_state
+        self.latest_fix, self.now = latest_fix, now
+        self.period_s = period_s
+        self.breach = BreachWatch(gate, cfg.breach_confirm_fixes)
+        self.texts_logged = 0  # vehicle status texts looked at so far
+        self.last_text: str | None = None
+        self.position_lost = False  # the vehicle reports no valid global position (GPS/estimator)
+        self.prev_mode: str | None = None
+        self.failsafe_mode: str | None = None  # a failsafe mode the autopilot switched to by itself
+
+    def _vehicle_texts(self) -> None:
+        """Copy the vehicle's new warnings and worse (PX4's failsafe messages) into the log."""
+        texts = getattr(self.vehicle_state, "texts", ())
+        while self.texts_logged < len(texts):
+            _, severity, text = texts[self.texts_logged]
+            self.texts_logged += 1
+            if severity in LOGGED_TEXT_SEVERITIES and text:
+                self.last_text = text
+                self.flight.event(f"vehicle {severity.lower()}: {text}", kind="vehicle_text", severity=severity)
+
+    def step(self) -> str | None:
+        """One look at the mission; the return reason it gave (also requested), or None."""
+        f, st, cfg = self.flight, self.vehicle_state, self.cfg
+        now = self.now()
+        lost = (not st.connected) or st.age_s() > cfg.link_timeout_s
+        f.link(now, lost)
+        self._vehicle_texts()
+        position_ok = bool(getattr(st, "global_position_ok", True))
+        if not lost and position_ok == self.position_lost:
+            self.position_lost = not position_ok
+            f.event("vehicle global position lost (GPS or estimator)" if self.position_lost
+                    else "vehicle global position restored",
+                    kind="position_lost" if self.position_lost else "position_restored")
+        # a switch INTO a failsafe mode is the autopilot's own decision; a vehicle still in the RTL
+        # mode of its last landing when this mission starts has decided nothing
+        mode = None if lost else getattr(st, "flight_mode", None)
+        if mode is not None:
+            if mode in AUTOPILOT_FAILSAFE_MODES and self.prev_mode is not None and (
+                    self.prev_mode not in AUTOPILOT_FAILSAFE_MODES):
+                self.failsafe_mode = mode
+            self.prev_mode = mode
+        breach = None
+        latest = None if lost else self.latest_fix()
+        if latest is not None and f.phase in (TAKEOFF, SURVEY):
+            breach = self.breach.update(latest[0], latest[1], check_altitude=f.phase == SURVEY,
+                                        alt_margin_m=cfg.alt_margin_m)
+        view = SafetyView(now_s=now, phase=f.phase, link_lost_since_s=f.link_lost_since,
+                          gnb_down_since_s=f.gnb_down_since, gnb_problem=f.gnb_problem,
+                          battery_pct=st.battery_pct, breach=breach, position_lost=self.position_lost,
+                          flight_mode=self.failsafe_mode, vehicle_text=self.last_text)
+        reason = return_reason(view, cfg, self.gate)
+        if reason:
+            f.request_return(reason)
+        return reason
+
+    async def run(self) -> None:
+        while True:
+            await asyncio.sleep(self.period_s)
+            self.step()

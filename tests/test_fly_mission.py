@@ -1,0 +1,76 @@
+"""`uavloc fly --mission`: the controller configured from a mission file (no simulator schema)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from estimator.geodesy import Origin
+from mission.config import example_mission_path, load_mission, mission_from_dict
+from mission.controller import ControllerConfig, controller_from_mission
+from mission.safety import SafetyLimits
+from sitl_scenarios.scenario import load_scenario
+from uavloc.errors import MissionConfigError
+
+
+def test_controller_config_from_the_example_mission_file():
+    m = load_mission(example_mission_path())
+    cfg = ControllerConfig.from_mission(m, time_scale=2.0)
+    f, s = m.flight, m.safety
+    assert (cfg.delta_m, cfg.altitude_m, cfg.target_radius_m, cfg.budget_m, cfg.time_limit_s) == (
+        f.delta_m, f.altitude_m, f.target_radius_m, f.budget_m, f.time_limit_s)
+    assert (cfg.speed_mps, cfg.climb_mps, cfg.descent_mps, cfg.acceptance_m) == (
+        f.cruise_speed_mps, f.climb_mps, f.descent_mps, f.acceptance_m)
+    assert (cfg.link_timeout_s, cfg.link_lost_wait_s, cfg.gnb_lost_wait_s, cfg.max_refusals) == (
+        s.link_timeout_s, s.link_lost_wait_s, s.gnb_lost_wait_s, s.max_refusals)
+    assert cfg.gnb_timeout_s == m.gnb.measure_timeout_s() and cfg.time_scale == 2.0
+
+
+def test_scenario_config_is_its_mission_parts():
+    sc = load_scenario("three_users_nlos")
+    assert ControllerConfig.from_scenario(sc, time_scale=20.0) == ControllerConfig.from_mission(
+        sc.mission_config(), time_scale=20.0)
+    assert ControllerConfig.from_scenario(sc).speed_mps == sc.vehicle.speed_mps
+
+
+def test_active_stock_mode_waits_longer_per_measurement_than_for_the_msg2():
+    m = load_mission(example_mission_path())
+    rtt = m.gnb
+    active = dataclasses.replace(rtt, mode="stock", stock_mode="active", log_path="gnb.log")
+    passive = dataclasses.replace(active, stock_mode="passive")
+    assert active.msg2_timeout_s == 15.0  # real OAI: ~5 s of log time, the rfsimulator at 0.4x
+    assert active.measure_timeout_s() > active.msg2_timeout_s + active.request_timeout_s
+    assert rtt.measure_timeout_s() < rtt.msg2_timeout_s  # the Msg2 wait is not part of an RTT request
+    assert passive.measure_timeout_s() == rtt.measure_timeout_s()
+    c = active.client_config("10.0.0.2", 9090)
+    assert (c.host, c.port, c.mode, c.stock_mode, c.msg2_timeout_s, str(c.log_path)) == (
+        "10.0.0.2", 9090, "stock", "active", 15.0, "gnb.log")
+
+
+def test_stock_mode_is_checked():
+    base = {"name": "m", "users": [{"id": "a", "rnti": "0x4601"}]}
+    with pytest.raises(MissionConfigError, match=r"gnb.stock_mode.*'active', 'passive'"):
+        mission_from_dict({**base, "gnb": {"mode": "stock", "stock_mode": "sometimes", "log_path": "g.log"}}, "f.toml")
+    m = mission_from_dict({**base, "gnb": {"mode": "stock", "stock_mode": "passive", "log_path": "g.log"}}, "f.toml")
+    assert m.gnb.stock_mode == "passive"
+
+
+def test_geodetic_fence_is_placed_once_home_is_known(tmp_path):
+    """A fence given in degrees cannot be turned into home-ENU before home is known: the controller
+    gets a planner and limits as functions of home (built in PREFLIGHT)."""
+    home = Origin(43.6143, 7.0716, 150.0)
+    ring = [[-100.0, -100.0], [150.0, -100.0], [150.0, 150.0], [-100.0, 150.0]]
+    lla = np.array([home.enu_to_lla([e, n, 0.0]) for e, n in ring])
+    m = mission_from_dict({"name": "geo", "users": [{"id": "a", "rnti": "0x4601"}],
+                           "geofence": {"polygon_lat_lon_deg": lla[:, :2].tolist()},
+                           "flight": {"planner": "lawnmower"}}, "geo.toml")
+    ctl = controller_from_mission(m, None, None, tmp_path / "m.jsonl")
+    assert ctl.planner is None and ctl.gate is None  # not before home
+    ctl._at_home(type("Home", (), {"lat_deg": home.lat_deg, "lon_deg": home.lon_deg,
+                                   "alt_amsl_m": home.alt_m})())
+    assert ctl.planner is not None and ctl.planner.constraints.fence_enu_m == pytest.approx(np.array(ring), abs=1e-6)
+    want = SafetyLimits.from_mission(m, home)
+    assert ctl.gate.limits.fence_enu_m == pytest.approx(want.fence_enu_m)
+    ctl.journal.close()

@@ -1,0 +1,136 @@
+"""Failures surface (issue 12): a gNB that cannot measure the configured users stops the take-off
+with the reason; a measurement module that disappears in flight sends the vehicle home after
+gnb_lost_wait_s with the gNB's own words in the log; a bad mission file is refused by `uavloc fly`
+before anything connects. End to end on the built-in vehicle and the simulated gNB."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from mission.cli import main
+from mission.controller import STATUS_ABORTED, STATUS_RETURNED
+from mission.log import read_mission_log
+from sitl_scenarios.scenario import load_scenario
+from sitl_scenarios.sim_runner import SimulatedMission
+from uavloc.errors import GnbPreflightError
+
+SPEEDUP = 20.0
+
+
+def _run(coro, timeout_s: float = 120.0):
+    async def guarded():
+        async with asyncio.timeout(timeout_s):
+            return await coro
+
+    return asyncio.run(guarded())
+
+
+async def _wait(predicate, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.02)
+
+
+def _fly_with(tmp_path, prepare, **kw):
+    """Fly `paper` after `prepare(sim)` changed the simulated gNB; (result, final vehicle state, log)."""
+    sc = load_scenario("paper")
+    log_path = tmp_path / "mission.jsonl"
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower", **kw) as sim:
+            prepare(sim)
+            result = await sim.run()
+            return result, sim.vehicle_sim.state()
+
+    result, final = _run(fly())
+    return result, final, read_mission_log(log_path)
+
+
+@pytest.mark.sim
+def test_no_take_off_when_the_gnb_lacks_the_rtt_module(tmp_path):
+    def no_module(sim):
+        sim.gnb_sim.rtt_module = "other"  # the gNB runs without the RTT telnet module
+
+    result, final, mlog = _fly_with(tmp_path, no_module)
+    assert result.status == STATUS_ABORTED and result.reason.startswith("not taking off"), result.reason
+    assert "4601" in result.reason and "is not a softmodem command" in result.reason, result.reason
+    assert not result.ok and result.not_located() == ["ue1"]
+    kinds = [e.get("kind") for e in mlog.events]
+    assert "arm" not in kinds and "takeoff" not in kinds and not final.armed and not final.in_air
+    pre = next(e for e in mlog.events if e.get("kind") == "preflight_gnb")
+    assert pre["ok"] is False and pre["rntis"] == ["4601"]
+
+
+@pytest.mark.sim
+def test_no_take_off_when_the_gnb_has_other_ues(tmp_path):
+    def other_ue(sim):
+        sim.gnb_sim.current_rnti[0] = 0x1234  # the UE the gNB serves is not the configured one
+
+    result, final, mlog = _fly_with(tmp_path, other_ue)
+    assert result.status == STATUS_ABORTED, result.reason
+    assert "[1234]" in result.reason and "UE 4601 is not among them" in result.reason, result.reason
+    assert not final.armed and "arm" not in [e.get("kind") for e in mlog.events]
+    assert GnbPreflightError.__name__ in [e.get("error") for e in mlog.events if e.get("kind") == "abort"]
+
+
+@pytest.mark.sim
+def test_rtt_module_disappearing_in_flight_sends_the_vehicle_home_with_the_reason(tmp_path):
+    wait_s = 10.0
+    sc = load_scenario("paper")
+    log_path = tmp_path / "mission.jsonl"
+
+    async def fly():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower",
+                                    controller_overrides={"gnb_lost_wait_s": wait_s}) as sim:
+            task = asyncio.create_task(sim.run())
+            await _wait(lambda: sim.controller.measurements >= 5, 60, "5 measurements")
+            t_gone = sim.gnb_sim.clock()
+            sim.gnb_sim.faults.rtt_module_lost_at_s = t_gone  # the module is gone from now on
+            result = await task
+            return result, t_gone
+
+    result, t_gone = _run(fly())
+    assert result.status == STATUS_RETURNED and "gNB lost" in result.reason, result.reason
+    assert "is not a softmodem command" in result.reason  # the gNB's own words
+    assert result.landed and result.rtl_sent
+    mlog = read_mission_log(log_path)
+    ev = {e.get("kind"): e for e in mlog.events}
+    assert "is not a softmodem command" in ev["gnb_lost"]["message"]
+    assert ev["gnb_lost"]["t"] >= t_gone - 1.0
+    # it flew on for gnb_lost_wait_s (mission seconds), then returned: nothing measured since
+    assert ev["return"]["t"] - ev["gnb_lost"]["t"] >= wait_s
+    assert ev["rtl"]["t"] >= ev["return"]["t"]
+    # nothing measured since, but the round placed as the gNB went (its stamp is the measurement's
+    # mission time, which the vehicle clock's mapping can put a few ms after the event's)
+    assert sum(1 for t in mlog.rtt_t_s if t > ev["gnb_lost"]["t"]) <= len(sc.users)
+
+
+@pytest.mark.parametrize(("extra", "words"), [
+    ('[[users]]\nid = "ue9"\nrnti = "0x4609"\neast_m = 10.0\n', ["users[2].east_m", "never holds true positions"]),
+    ('[flight]\nbudget_km = 1.0\n', ["flight.budget_km", "wrong unit", "'budget_m'"]),
+    ('[radio]\nmu = 1\n', ["'radio'", "simulated world"]),
+])
+def test_fly_refuses_a_bad_mission_file_before_connecting(tmp_path, capsys, extra, words):
+    from mission.config import example_mission_path
+
+    text = example_mission_path().read_text(encoding="utf-8")
+    if extra.startswith("[flight]"):
+        text = text.replace("[flight]\n", "[flight]\nbudget_km = 1.0\n")
+    elif extra.startswith("[["):
+        text = text.replace("# Positions are offsets", extra + "\n# Positions are offsets")
+    else:
+        text += "\n" + extra
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text, encoding="utf-8")
+    # nothing listens on these: the mission file is refused before any connection is tried
+    code = main(["fly", "--mission", str(bad), "--connect", "udpin://127.0.0.1:9", "--gnb", "127.0.0.1:9"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert str(bad) in err
+    for w in words:
+        assert w in err, err
