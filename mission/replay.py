@@ -141,8 +141,10 @@ def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
 def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyframe]:
     """Group the log's rtt records into keyframes, optionally re-selected at Δ spacing.
 
-    range = C · toa_s for every record; a group is consecutive records within GROUP_RADIUS_M and
-    GROUP_WINDOW_S of its first record, with no user twice.
+    range = C · toa_s for every record; a group is consecutive records with no user twice that
+    share their first record's UAV position exactly (uavloc writes one position per trigger, however
+    long the trigger's measurements took in vehicle seconds), or, in logs of other tools, lie within
+    GROUP_RADIUS_M and GROUP_WINDOW_S of it.
     """
     if len(mlog.rtt_t_s) == 0:
         return []
@@ -154,9 +156,10 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyf
         if groups:
             g = groups[-1]
             first = g[0]
-            if (np.linalg.norm(pos[i] - pos[first]) <= GROUP_RADIUS_M
-                    and abs(mlog.rtt_t_s[i] - mlog.rtt_t_s[first]) <= GROUP_WINDOW_S
-                    and mlog.rtt_user[i] not in mlog.rtt_user[g]):
+            same_uav = bool(np.array_equal(mlog.rtt_uav_lla[i], mlog.rtt_uav_lla[first]))
+            near = (np.linalg.norm(pos[i] - pos[first]) <= GROUP_RADIUS_M
+                    and abs(mlog.rtt_t_s[i] - mlog.rtt_t_s[first]) <= GROUP_WINDOW_S)
+            if (same_uav or near) and mlog.rtt_user[i] not in mlog.rtt_user[g]:
                 g.append(i)
                 continue
         groups.append([i])
@@ -164,7 +167,10 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyf
     keyframes = []
     for g in groups:
         idx = np.asarray(g)
-        gps = pos[idx].mean(axis=0)
+        # a trigger's records share one position: take it as logged (the mean of equal numbers can
+        # differ in the last bit, and the controller's keyframe has the logged position exactly)
+        same = bool(np.all(mlog.rtt_uav_lla[idx] == mlog.rtt_uav_lla[idx[0]]))
+        gps = pos[idx[0]].copy() if same else pos[idx].mean(axis=0)
         if selector is not None and not selector.accept(gps):
             continue
         keyframes.append(Keyframe(gps_enu_m=gps, user_idx=mlog.rtt_user[idx].copy(),

@@ -71,6 +71,34 @@ def test_triggers_group_all_users_at_one_position(tmp_path):
     assert all(len(set(k.user_idx.tolist())) == len(k.user_idx) for k in kfs)
 
 
+def test_a_trigger_slower_than_the_group_window_is_one_keyframe_at_its_logged_position(tmp_path):
+    """uavloc writes one UAV position per trigger; on a loaded machine at a high speedup its records
+    can span several vehicle seconds. They are still one keyframe, at exactly the logged position
+    (the controller's keyframe), so replay reproduces the mission's estimate to the bit."""
+    sc = scenario_from_dict(THREE_USERS)
+    src = tmp_path / "three.jsonl"
+    generate(sc, src, radius_m=40.0)
+    out = [json.loads(line) for line in src.read_text().splitlines()]
+    # space the records of a trigger 2.5 s apart (more than GROUP_WINDOW_S), keeping their order
+    seen: dict[str, int] = {}
+    for obj in out:
+        if obj["type"] == "rtt":
+            key = json.dumps(obj["uav"], sort_keys=True)
+            seen[key] = seen.get(key, -1) + 1
+            obj["t"] = round(obj["t"] + 2.5 * seen[key], 6)
+    stretched = tmp_path / "stretched.jsonl"
+    stretched.write_text("".join(json.dumps(o) + "\n" for o in out))
+    mlog = read_mission_log(stretched)
+    kfs = build_keyframes(mlog)
+    assert len(kfs) == len(build_keyframes(read_mission_log(src)))
+    assert max(len(k.user_idx) for k in kfs) == 3
+    origin = mlog.header.origin
+    logged = origin.lla_to_enu(mlog.rtt_uav_lla[:, 0], mlog.rtt_uav_lla[:, 1], mlog.rtt_uav_lla[:, 2])
+    starts = np.cumsum([0] + [len(k.user_idx) for k in kfs[:-1]])
+    for k, i in zip(kfs, starts, strict=True):
+        assert np.array_equal(k.gps_enu_m, logged[i])  # bit for bit, not a mean of equal numbers
+
+
 def test_replay_localizes_every_user_near_truth(tmp_path):
     sc = scenario_from_dict(THREE_USERS)
     out = tmp_path / "three.jsonl"
