@@ -49,7 +49,7 @@ VEHICLE_LAG_S = 0.1
 #: not feed forward, so that its integral term takes it over slowly: fitted to PX4 SITL (v1.18-dev
 #: SIH quadrotor) on 15-300 m legs at 10 m/s (benchmarks/px4_legs.py), where PX4 reaches about 7.5
 #: m/s in 5 s, then creeps to 9.7 m/s over 20 s more
-VEHICLE_DRAG_PER_S = 1.2
+VEHICLE_DRAG_PER_S = 1.0
 
 
 @dataclass(frozen=True)
