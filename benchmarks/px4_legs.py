@@ -134,11 +134,15 @@ def run_px4(legs: list[float], speed_mps: float, speed: float, instance: int, wo
         _cmd_long(m, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, math.nan, 0, 0, math.nan, math.nan, math.nan,
                   home.alt_m + HEIGHT_M)
         climbed = False
+        t_takeoff_ms = None
         while True:
             lp = m.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=10)
             if lp is None:
                 raise SystemExit("px4 legs: no LOCAL_POSITION_NED")
-            if -lp.z > HEIGHT_M - 0.3 and abs(lp.vz) < 0.1:
+            t_takeoff_ms = lp.time_boot_ms if t_takeoff_ms is None else t_takeoff_ms
+            if lp.time_boot_ms - t_takeoff_ms > 120_000:
+                raise SystemExit(f"px4 legs: not at {HEIGHT_M:g} m after 120 s (at {-lp.z:.1f} m)")
+            if -lp.z > HEIGHT_M - 1.0 and abs(lp.vz) < 0.1:
                 break
             if not climbed and -lp.z > 1.5 and abs(lp.vz) < 0.1:  # takeoff done below HEIGHT_M
                 climbed = True
