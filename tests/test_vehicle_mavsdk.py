@@ -123,13 +123,15 @@ async def fly_goto_rtl(link: Link) -> dict:
         return horizontal_m((e, n), (0.0, 100.0)) < ACCEPTANCE_M
 
     await first(tel.subscribe_position(), near_goal, link.wall(60))
-    # it stays there: the median reported distance of the next fixes is inside the radius
+    # once it has come to rest (PX4 and the built-in vehicle overshoot by a metre or so first) it
+    # stays there: the median reported distance of the next 50 fixes (GPS error) is inside the radius
+    await first(tel.subscribe_velocity_ned(), lambda v: math.hypot(v.north_m_s, v.east_m_s) < 0.2, link.wall(60))
     dists, alts = [], []
     async for p in tel.subscribe_position():
         e, n, _ = home_origin.lla_to_enu(p.latitude_deg, p.longitude_deg, p.absolute_altitude_m)
         dists.append(horizontal_m((e, n), (0.0, 100.0)))
         alts.append(p.relative_altitude_m)
-        if len(dists) >= 10:
+        if len(dists) >= 50:
             break
     assert statistics.median(dists) < ACCEPTANCE_M
     assert statistics.median(alts) == pytest.approx(20.0, abs=3.0)

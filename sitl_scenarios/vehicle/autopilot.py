@@ -74,6 +74,7 @@ class Autopilot(Navigator):
         self.pos = [0.0, 0.0, 0.0]
         self.vel = [0.0, 0.0, 0.0]
         self.acc = [0.0, 0.0, 0.0]  # last commanded acceleration, ENU [m/s²]
+        self._setpoint: kinematics.Setpoint | None = None  # PX4's smoothed trajectory setpoint
         self.yaw_rad = 0.0
         self.armed = False
         self.in_air = False
@@ -204,6 +205,8 @@ class Autopilot(Navigator):
             self.in_air = False
             self.pos[2] = 0.0
         self.vel = [0.0, 0.0, 0.0]
+        self.acc = [0.0, 0.0, 0.0]
+        self._setpoint = None
         self.landed_state = LANDED_ON_GROUND
         self._say(SEV_INFO, text)
 
@@ -319,6 +322,7 @@ class Autopilot(Navigator):
     def _set_mode(self, mode: FlightMode, keep_hold: bool = False) -> None:
         if mode is not self.mode:
             log.debug("vehicle mode %s -> %s", self.mode.value, mode.value)
+            self._setpoint = None  # a new flight task starts its trajectory at the vehicle's state
         if mode is FlightMode.RTL and self.mode is not FlightMode.RTL:
             self._rtl = RtlState(return_up_m=self.rtl_return_up_m())
             if not self.in_air:
@@ -453,9 +457,12 @@ class Autopilot(Navigator):
     ) -> None:
         p = self.params
         v_up = p["MPC_TKO_SPEED"] if self.mode is FlightMode.TAKEOFF else p["MPC_Z_V_AUTO_UP"]
-        self.acc, self.yaw_rad = kinematics.move(
+        trk = kinematics.Tracking(p["MPC_JERK_AUTO"], p["MPC_XY_ERR_MAX"], p["MPC_XY_P"], p["MPC_XY_VEL_P_ACC"],
+                                  vel_int=p["MPC_XY_VEL_I_ACC"])
+        self.acc, self.yaw_rad, self._setpoint = kinematics.move(
             self.pos, self.vel, self.yaw_rad, dt, target, v_h, vel_cmd, v_up, v_dn,
-            p["MPC_ACC_HOR"], p["MPC_ACC_UP_MAX"], p["MPC_ACC_DOWN_MAX"], self.in_air)
+            p["MPC_ACC_HOR"], p["MPC_ACC_UP_MAX"], p["MPC_ACC_DOWN_MAX"], self.in_air,
+            self.acc, self._setpoint, trk)
 
     def _land_detector(self) -> None:
         descending_mode = self.mode is FlightMode.LAND or (
@@ -465,6 +472,8 @@ class Autopilot(Navigator):
             if self.pos[2] <= GROUND_EPS_M and self.vel[2] >= -1e-3:
                 self.in_air = False
                 self.vel = [0.0, 0.0, 0.0]
+                self.acc = [0.0, 0.0, 0.0]
+                self._setpoint = None
                 self.landed_state = LANDED_ON_GROUND
                 self._landed_since_s = self.t_s
                 self._say(SEV_INFO, "Landing detected")

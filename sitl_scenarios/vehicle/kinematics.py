@@ -1,19 +1,40 @@
-"""Kinematics of the built-in multicopter: bounded-acceleration point mass, stopping point, the
-tilt a multicopter needs for its acceleration, Euler angles to a quaternion. Pure functions on
-ENU lists (metres, m/s, m/s²); no clocks.
+"""Kinematics of the built-in multicopter: a point mass flying PX4's auto-mode trajectory
+(jerk-limited horizontally), stopping point, the tilt a multicopter needs for its acceleration,
+Euler angles to a quaternion. Pure functions on ENU lists (metres, m/s, m/s²); no clocks.
 
-Flight model (per axis group, time step dt):
+Horizontal flight towards a position target, after PX4's FlightTaskAuto: a smoothed trajectory
+setpoint sp (PositionSmoothing / VelocitySmoothing) and a vehicle that tracks it through PX4's
+position and velocity controllers. Time step dt, d = horizontal distance sp → target:
 
-    v_des = dir · min(v_max, sqrt(2·a·d), d/dt)      horizontal, d = distance to target
-    v    += clip(v_des − v, |Δv| ≤ a·dt)               bounded acceleration
-    p    += v·dt
+    stretch = 1 − clip(|sp.p − p| / e_max, 0, 1)        if the vehicle lags behind sp, else 1
+    h       = dt · stretch                               the trajectory waits for a lagging vehicle
+    v_des   = dir · min(v_max, v_brake(d))               a speed that can still stop at the target
+    v_brake(d): v² + (4a²/j)·v − 2·a·d = 0               PX4 TrajMath computeMaxSpeedFromDistance
+    e       = v_des − sp.v
+    a_des   = ê · min(a, sqrt(2·j·|e|), |e|/τ)          the acceleration from which a ramp at jerk j
+                                                         ends at zero acceleration exactly on v_des
+    Δa      = clip(a_des − sp.a, |Δa| ≤ j·h)             jerk-limited: |sp.a| ≤ a, |d sp.a/dt| ≤ j
+    sp.v   += (sp.a + Δa/2)·h ;  sp.a += Δa ;  sp.p += sp.v·h
+    v_sp    = sp.v + K_p·(sp.p − p)                      position controller (MPC_XY_P)
+    a_cmd   = sp.a + K_v·(v_sp − v) + K_i·∫(v_sp − v)dt  velocity controller (MPC_XY_VEL_P/I_ACC)
+    acc    += (a_cmd − c_d·v − acc)·dt / T_lag           drag c_d, attitude response T_lag
+    v      += acc·dt ;  p += v·dt
 
-the same vertically with the climb / descent limits.
+(a = MPC_ACC_HOR, j = MPC_JERK_AUTO, e_max = MPC_XY_ERR_MAX, τ = max(0.1 s, 2·h) a short linear
+zone against chatter; the discrete a_des is the exact form of sqrt(2·j·|e|) for this step, see
+:func:`smooth_velocity`; c_d = :data:`VEHICLE_DRAG_PER_S` and T_lag = :data:`VEHICLE_LAG_S`).
+The drag, which PX4's velocity controller does not feed forward, is what makes PX4 SITL slow on
+short legs: its speed follows the smooth trajectory to about 7.5 m/s and then creeps up as the
+integral term builds. A velocity command (offboard) and the vertical axis keep a bounded-
+acceleration model without jerk limit, drag or lag:
+
+    v_des = dir · min(v_max, sqrt(2·a·d), d/dt) ;  v += clip(v_des − v, |Δv| ≤ a·dt) ;  p += v·dt
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 #: longest simulation sub-step [simulated s]
 MAX_SUBSTEP_S = 0.05
@@ -21,6 +42,100 @@ MAX_SUBSTEP_S = 0.05
 GROUND_EPS_M = 0.05
 #: gravity [m/s²]
 G_MPS2 = 9.81
+#: time constant [s] of the acceleration following the velocity controller's command (attitude
+#: and thrust response)
+VEHICLE_LAG_S = 0.1
+#: effective linear drag [1/s] (acceleration −drag·velocity) that PX4's velocity controller does
+#: not feed forward, so that its integral term takes it over slowly: fitted to PX4 SITL (v1.18-dev
+#: SIH quadrotor) on 15-300 m legs at 10 m/s (benchmarks/px4_legs.py), where PX4 reaches about 7.5
+#: m/s in 5 s, then creeps to 9.7 m/s over 20 s more
+VEHICLE_DRAG_PER_S = 1.0
+
+
+@dataclass(frozen=True)
+class Tracking:
+    """PX4 parameters of the auto-mode trajectory and its tracking (horizontal)."""
+
+    jerk_mps3: float = 4.0  # MPC_JERK_AUTO
+    err_max_m: float = 2.0  # MPC_XY_ERR_MAX
+    pos_gain: float = 0.95  # MPC_XY_P [1/s]
+    vel_gain: float = 1.8  # MPC_XY_VEL_P_ACC [1/s]
+    lag_s: float = VEHICLE_LAG_S
+    vel_int: float = 0.4  # MPC_XY_VEL_I_ACC [1/s²]
+    drag_per_s: float = VEHICLE_DRAG_PER_S
+
+
+@dataclass
+class Setpoint:
+    """PX4's smoothed horizontal trajectory setpoint: position, velocity, acceleration, each (2,)
+    ENU [m, m/s, m/s²]."""
+
+    pos: list[float]
+    vel: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    acc: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    #: the velocity controller's integral term (2,) [m/s²]
+    integ: list[float] = field(default_factory=lambda: [0.0, 0.0])
+
+
+def max_speed_from_distance(jerk: float, accel: float, distance_m: float, final_speed: float = 0.0) -> float:
+    """The largest speed [m/s] from which braking at `accel`, reached after a delay of 2·accel/jerk,
+    still arrives at `final_speed` within `distance_m` (PX4 TrajMath computeMaxSpeedFromDistance):
+
+        v² = v_f² + 2·a·(d − v·2a/j)   ⇔   v = (−b + sqrt(b² + 4·(2·a·d + v_f²))) / 2,  b = 4a²/j
+    """
+    b = 4.0 * accel * accel / jerk
+    c = 2.0 * accel * max(distance_m, 0.0) + final_speed * final_speed
+    return 0.5 * (-b + math.sqrt(b * b + 4.0 * c))
+
+
+def smooth_velocity(
+    vel: list[float], acc: list[float], v_des: tuple[float, float], a_max: float, j_max: float, dt: float
+) -> None:
+    """One jerk-limited step of the horizontal velocity (vel, acc: ENU lists, x/y used, in place)
+    towards v_des (2,) [m/s]: see the module docstring. |acc| ≤ a_max and |Δacc| ≤ j_max·dt always."""
+    ex, ey = v_des[0] - vel[0], v_des[1] - vel[1]
+    e = math.hypot(ex, ey)
+    tau = max(0.1, 2.0 * dt)
+    # a_des = ê · min(a, a_j, |e| / τ), a_j the discrete form of sqrt(2 j |e|): this step's gain
+    # (acc·ê + a_j)/2·dt plus the ramp down a_j²/(2j) make |e|, so the ramp never overshoots
+    if e > 1e-9:
+        a_par = (acc[0] * ex + acc[1] * ey) / e
+        jd = 0.5 * j_max * dt
+        a_j = -jd + math.sqrt(jd * jd + 2.0 * j_max * max(e - 0.5 * a_par * dt, 0.0))
+        k = min(a_max, a_j, e / tau) / e
+    else:
+        k = 0.0
+    dax, day = ex * k - acc[0], ey * k - acc[1]
+    da = math.hypot(dax, day)
+    lim = j_max * dt
+    if da > lim:
+        dax, day = dax * lim / da, day * lim / da
+    # v += (acc_before + acc_after) / 2 · dt: exact for a linear acceleration ramp
+    vel[0] += (acc[0] + 0.5 * dax) * dt
+    vel[1] += (acc[1] + 0.5 * day) * dt
+    acc[0] += dax
+    acc[1] += day
+
+
+def step_setpoint(
+    sp: Setpoint, pos: list[float], target: list[float], v_h: float, a_h: float, trk: Tracking, dt: float
+) -> None:
+    """Advance the trajectory setpoint sp in place by dt towards target (x, y used): the first
+    block of the module docstring (time stretch, v_brake, jerk-limited smoothing)."""
+    ex, ey = sp.pos[0] - pos[0], sp.pos[1] - pos[1]
+    stretch = 1.0
+    if trk.err_max_m > 0 and ex * sp.vel[0] + ey * sp.vel[1] >= 0:
+        stretch = 1.0 - min(max(math.hypot(ex, ey) / trk.err_max_m, 0.0), 1.0)
+    h = dt * stretch
+    if h <= 0:
+        return
+    dx, dy = target[0] - sp.pos[0], target[1] - sp.pos[1]
+    d = math.hypot(dx, dy)
+    s = min(v_h, max_speed_from_distance(trk.jerk_mps3, a_h, d)) if d > 1e-6 else 0.0
+    v_des = (dx / d * s, dy / d * s) if d > 1e-6 else (0.0, 0.0)
+    smooth_velocity(sp.vel, sp.acc, v_des, a_h, trk.jerk_mps3, h)
+    sp.pos[0] += sp.vel[0] * h
+    sp.pos[1] += sp.vel[1] * h
 
 
 def move(
@@ -37,13 +152,20 @@ def move(
     a_up: float,
     a_down: float,
     in_air: bool,
-) -> tuple[list[float], float]:
+    acc_prev: list[float],
+    sp: Setpoint | None,
+    trk: Tracking,
+) -> tuple[list[float], float, Setpoint | None]:
     """Advance pos, vel (3,) ENU in place by dt towards a position target or at a velocity command.
 
     target: (3,) ENU position or None with vel_cmd: (3,) ENU velocity; v_h: horizontal speed limit,
     v_up / v_dn: climb / descent limits [m/s]; a_h, a_up, a_down: acceleration limits [m/s²]
-    (MPC_ACC_HOR, MPC_ACC_UP_MAX, MPC_ACC_DOWN_MAX). On the ground a climb starts vertically.
-    Returns (acceleration (3,) ENU applied [m/s²], heading [rad] from north, clockwise).
+    (MPC_ACC_HOR, MPC_ACC_UP_MAX, MPC_ACC_DOWN_MAX); acc_prev: (3,) ENU acceleration of the
+    previous step; sp: the trajectory setpoint towards a position target (None: starts at the
+    vehicle's state, as PX4 resets it when a flight task starts); trk: its PX4 parameters.
+    On the ground a climb starts vertically.
+    Returns (acceleration (3,) ENU applied [m/s²], heading [rad] from north clockwise, setpoint:
+    None when flying a velocity command or on the ground).
     """
     if not in_air and target is not None and target[2] > GROUND_EPS_M:
         target = [pos[0], pos[1], target[2]] if target[2] - pos[2] > 0.5 else target
@@ -51,31 +173,42 @@ def move(
         vh = math.hypot(vel_cmd[0], vel_cmd[1])
         k = min(1.0, v_h / vh) if vh > 0 else 1.0
         des = [vel_cmd[0] * k, vel_cmd[1] * k, min(max(vel_cmd[2], -v_dn), v_up)]
+        # v += clip(v_des − v, |Δv| ≤ a dt)
+        dvx, dvy = des[0] - vel[0], des[1] - vel[1]
+        dvh = math.hypot(dvx, dvy)
+        lim = a_h * dt
+        if dvh > lim:
+            dvx, dvy = dvx * lim / dvh, dvy * lim / dvh
+        acc = [dvx / dt, dvy / dt, 0.0]
+        vel[0] += dvx
+        vel[1] += dvy
+        sp = None
     else:
         assert target is not None
-        dx, dy = target[0] - pos[0], target[1] - pos[1]
-        d = math.hypot(dx, dy)
-        # v_des = dir · min(v_max, sqrt(2 a d), d / dt)
-        s = min(v_h, math.sqrt(2 * a_h * d), d / dt) if d > 1e-6 else 0.0
-        des = [dx / d * s if d > 1e-6 else 0.0, dy / d * s if d > 1e-6 else 0.0, 0.0]
+        if sp is None:  # the integral term starts holding the drag of the current velocity
+            sp = Setpoint([pos[0], pos[1]], [vel[0], vel[1]], [acc_prev[0], acc_prev[1]],
+                          [trk.drag_per_s * vel[0], trk.drag_per_s * vel[1]])
+        step_setpoint(sp, pos, target, v_h, a_h, trk, dt)
+        k = min(1.0, dt / trk.lag_s) if trk.lag_s > 0 else 1.0
+        # v_sp = sp.v + K_p (sp.p − p) ; a_cmd = sp.a + K_v (v_sp − v) + K_i ∫(v_sp − v) dt
+        # acc += (a_cmd − c_d v − acc) · dt / T_lag
+        acc = [0.0, 0.0, 0.0]
+        for i in range(2):
+            v_sp = sp.vel[i] + trk.pos_gain * (sp.pos[i] - pos[i])
+            sp.integ[i] += trk.vel_int * (v_sp - vel[i]) * dt
+            a_cmd = sp.acc[i] + trk.vel_gain * (v_sp - vel[i]) + sp.integ[i]
+            acc[i] = acc_prev[i] + (a_cmd - trk.drag_per_s * vel[i] - acc_prev[i]) * k
+            vel[i] += acc[i] * dt
         dz = target[2] - pos[2]
         # braking a climb needs downward acceleration and vice versa
         a_z = a_down if dz > 0 else a_up
         sz = min(math.sqrt(2 * a_z * abs(dz)), abs(dz) / dt)
-        des[2] = min(sz, v_up) if dz > 0 else -min(sz, v_dn)
-    # v += clip(v_des − v, |Δv| ≤ a dt)
-    dvx, dvy = des[0] - vel[0], des[1] - vel[1]
-    dvh = math.hypot(dvx, dvy)
-    lim = a_h * dt
-    if dvh > lim:
-        dvx, dvy = dvx * lim / dvh, dvy * lim / dvh
-    vel[0] += dvx
-    vel[1] += dvy
+        des = [0.0, 0.0, min(sz, v_up) if dz > 0 else -min(sz, v_dn)]
     dvz = des[2] - vel[2]
     lim_z = (a_up if dvz > 0 else a_down) * dt
     dvz = min(max(dvz, -lim_z), lim_z)
     vel[2] += dvz
-    acc = [dvx / dt, dvy / dt, dvz / dt]
+    acc[2] = dvz / dt
     for k in range(3):
         pos[k] += vel[k] * dt
     if math.hypot(vel[0], vel[1]) > 0.3:
@@ -85,7 +218,9 @@ def move(
         vel[2] = max(vel[2], 0.0)
         if not in_air:
             vel[0] = vel[1] = 0.0
-    return acc, yaw_rad
+            acc[0] = acc[1] = 0.0
+            sp = None
+    return acc, yaw_rad, sp
 
 
 def stopping_point(pos: list[float], vel: list[float], a_h: float) -> list[float]:
