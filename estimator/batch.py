@@ -26,6 +26,7 @@ from estimator.problem import (
     users_from_theta,
 )
 from estimator.solve import (
+    observed_s,
     solve_robust,
 )
 from estimator.types import Estimate, Keyframe, SolverParams
@@ -86,7 +87,7 @@ def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Pri
         theta = res.theta.copy()
         for k in flip:
             theta[k] = mirrors[k].mirror_theta
-        res2 = levenberg_marquardt(prob, res.x, theta, active, prior)
+        res2 = observed_s(prob, levenberg_marquardt(prob, res.x, theta, active, prior), active, prior)
         if res2.lin.cost < res.lin.cost:
             res = res2
             mirrors = _mirror_all(prob, res.theta, active)

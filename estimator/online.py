@@ -37,6 +37,7 @@ from estimator.problem import (
 from estimator.robust import loss_psi_weight, nlos_args
 from estimator.schur import sym3_cofactors
 from estimator.solve import (
+    observed_s,
     solve_robust,
 )
 from estimator.types import Estimate, Keyframe, SolverParams
@@ -463,6 +464,7 @@ class OnlineEstimator:
             if trial.lin.cost < res.lin.cost:
                 res, self._prior, flipped = trial, prior, True
         if flipped:
+            res = observed_s(prob, res, self._active, self._prior)
             self._x[: self._n] = res.x
             self._theta = res.theta
             mirrors = _mirror_all(prob, res.theta, self._active)
