@@ -26,6 +26,7 @@ from estimator.problem import (
     users_from_theta,
 )
 from estimator.solve import (
+    observed_s,
     solve_robust,
 )
 from estimator.types import Estimate, Keyframe, SolverParams
@@ -86,7 +87,7 @@ def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Pri
         theta = res.theta.copy()
         for k in flip:
             theta[k] = mirrors[k].mirror_theta
-        res2 = levenberg_marquardt(prob, res.x, theta, active, prior)
+        res2 = observed_s(prob, levenberg_marquardt(prob, res.x, theta, active, prior), active, prior)
         if res2.lin.cost < res.lin.cost:
             res = res2
             mirrors = _mirror_all(prob, res.theta, active)
@@ -150,10 +151,6 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
     t = prob.t_s[:n]
     gain = np.ones((n, prob.n_users))
     for _ in range(CLOCK_ROUNDS):
-        users = users_from_theta(res.theta, prob.user_up_m, prob.user_dim)
-        d = np.linalg.norm(res.x[:, None, :] - users[None, :, :], axis=2)
-        sig = prob.noise.range_sigma_m(d)
-        bias = res.theta[:, -1] if prob.params.estimate_bias else np.zeros(prob.n_users)
         # only ranges the loss keeps (weight ≥ ½): an NLoS excess is no sawtooth
         kept = res.lin.w.T >= 0.5
         if not any(fits):
@@ -167,6 +164,10 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
             rms = np.sqrt((((e - mean[:, None]) ** 2) * wk).sum(axis=1) / cnt)
             if not np.any(active & (rms >= CLOCK_TRIGGER_SCALE) & (cnt >= CLOCK_MIN_RANGES)):
                 break
+        users = users_from_theta(res.theta, prob.user_up_m, prob.user_dim)
+        d = np.linalg.norm(res.x[:, None, :] - users[None, :, :], axis=2)
+        sig = prob.noise.range_sigma_m(d)
+        bias = res.theta[:, -1] if prob.params.estimate_bias else np.zeros(prob.n_users)
         changed = False
         for k in np.flatnonzero(active):
             rows = prob.mask[:n, k] & kept[:, k]

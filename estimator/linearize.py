@@ -17,7 +17,7 @@ from estimator.problem import (
     Problem,
     users_from_theta,
 )
-from estimator.robust import loss_psi_weight
+from estimator.robust import loss_psi_weight, nlos_curvature
 
 #: the 6 distinct entries (i ≤ j) of a symmetric 3×3: row and column indices, their flat index,
 #: the flat index of their mirror (i > j) and of the entry they copy; _SYM3_OF[i, j]: which of
@@ -93,7 +93,7 @@ def _nlos_args(prob: Problem, sig: np.ndarray | float) -> tuple:
 
 
 def _range_terms(
-    prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray
+    prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray, observed: float | None = None,
 ) -> tuple[np.ndarray, ...]:
     """Whitened range residuals and Jacobians (see estimator.factors.RangeFactor), user-major.
 
@@ -108,6 +108,10 @@ def _range_terms(
     diff, d, sig, r, e, full = _residuals(prob, x, theta, mask_kn)
     nl = _nlos_args(prob, sig) if params.loss == "nlos" else None
     rho, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl)
+    if observed is not None and nl is not None:
+        # the observed information ψ'(e) instead of the EM weight γ (robust.nlos_curvature),
+        # floored at observed (a float) when the unfloored one is not positive definite
+        w = np.maximum(nlos_curvature(e, *nl), observed)
     if not full:
         w = w * mask_kn
         psi = psi * mask_kn
@@ -136,7 +140,8 @@ def _range_terms(
 
 
 def linearize(
-    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None
+    prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
+    observed: float | None = None,
 ) -> Linearization:
     """IRLS-weighted normal equations H Δ = g (g = −∇L) at (x (N, 3), Θ (K, p)).
 
@@ -145,12 +150,14 @@ def linearize(
         g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,   g_k = −Σ_n ψ J_θ      (+ bias, motion, prior)
     with ψ = ρ'(e) (= w e except for the "nlos" loss, estimator.robust).
     Users with active[k] False are held fixed (identity block, zero gradient).
+    observed: None for the IRLS weight w; else (the "nlos" loss only) w = max(ψ'(e), observed),
+    the observed information (robust.nlos_curvature) for the covariance, −inf for no floor.
     """
     params, noise = prob.params, prob.noise
     n, k_all = prob.range_m.shape
     p = prob.p
     mask_kn = prob.mask[:n].T & active[:, None]
-    e, w, rho, jac, psi = _range_terms(prob, x, theta, mask_kn)
+    e, w, rho, jac, psi = _range_terms(prob, x, theta, mask_kn, observed)
     linked = prob.gps_linked
     if linked:
         # Gauss–Markov GPS factors (estimator.gps): diagonal, off-diagonal and gradient terms

@@ -37,6 +37,7 @@ from estimator.problem import (
 from estimator.robust import loss_psi_weight, nlos_args
 from estimator.schur import sym3_cofactors
 from estimator.solve import (
+    observed_s,
     solve_robust,
 )
 from estimator.types import Estimate, Keyframe, SolverParams
@@ -48,6 +49,16 @@ _SQRT_HALF = math.sqrt(0.5)
 ONLINE_MIN_RANGES = 8
 #: ... taken from fixes spread over at least this much ground [m]
 ONLINE_MIN_EXTENT_M = 10.0
+#: the checks of params.online_check_every (re-initialization and mirror tests, bias selection)
+#: back off: after a check that changed nothing and left every mirror clearly worse
+#: (Δχ² > ONLINE_CHECK_MARGIN · χ²_amb), the interval to the next one doubles, up to
+#: ONLINE_CHECK_BACKOFF_MAX · online_check_every; it returns to online_check_every when a user
+#: starts, a check flips, selects a different set of biases or finds a close mirror, or a user's
+#: noise scale or NLoS probability moved by more than ONLINE_CHECK_EVIDENCE (relative) since the
+#: last check
+ONLINE_CHECK_MARGIN = 4.0
+ONLINE_CHECK_BACKOFF_MAX = 8
+ONLINE_CHECK_EVIDENCE = 0.1
 
 
 def _inv3_sym(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float) -> np.ndarray:
@@ -108,6 +119,9 @@ class OnlineEstimator:
         self._s: np.ndarray | None = None  # users' information S at the last solution
         self._cost = float("nan")
         self._last_check = 0
+        self._check_interval = max(int(params.online_check_every), 1)
+        self._check_state: tuple | None = None  # (noise scale, π, biases on) at the last check
+        self._flipped = False  # the last check moved a user
         self._inv_g2 = 1.0 / noise.sigma_gps_m**2
         self._diag3 = np.diag_indices(3)
         self._arange_p = np.arange(self._p)[None, :]
@@ -198,8 +212,8 @@ class OnlineEstimator:
         for k, th in _grid_init(prob, self._x[: self._n], start).items():
             self._theta[k] = th
             self._active[k] = newly[k] = True
-        check_every = max(int(self._params.online_check_every), 1)
-        if np.any(newly) or self._seen // check_every > self._last_check // check_every:
+        check = self._check_due(newly)
+        if check:
             prob.bias_sigma_k = None  # choose again which biases to estimate
         res = solve_robust(
             prob, self._x[: self._n].copy(), self._theta, self._active, self._prior,
@@ -213,18 +227,19 @@ class OnlineEstimator:
             self._scale = prob.noise_scale_k.copy()
             self._scale_list = self._scale.tolist()
         self._bias_sigma = prob.bias_sigma_k
-        check_every = max(int(self._params.online_check_every), 1)
-        if np.any(newly) or self._seen // check_every > self._last_check // check_every:
+        if check:
             res = self._check_mirrors(prob, res)
             self._last_check = self._seen
+            self._after_check(newly, self._flipped)
         est = _estimate(prob, res, self._active, self._mirrors, self._n_ranges)
         self._users = users_from_theta(self._theta, self._up, self._params.user_dim)
         self._all_active = bool(self._active.all())
         self._nlos_pi_list = self._nlos_pi.tolist()
         self._s = res.s
         self._cost = res.lin.cost
-        while self._n > self._params.window:
-            self._marginalize_oldest()
+        if self._n > self._params.window and not self._marginalize_block(self._n - self._params.window):
+            while self._n > self._params.window:
+                self._marginalize_oldest()
         return est
 
     def _filter_step(self, n: int, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> Estimate | None:
@@ -417,6 +432,37 @@ class OnlineEstimator:
             x = x + np.linalg.solve(h, g)
         return x
 
+    def _check_due(self, newly: np.ndarray) -> bool:
+        """Whether this full update re-runs the checks (ONLINE_CHECK_BACKOFF_MAX docstring)."""
+        if np.any(newly):
+            return True
+        if self._check_state is not None:
+            scale0, pi0, _ = self._check_state
+            moved = max(float(np.max(np.abs(self._scale / scale0 - 1.0))),
+                        float(np.max(np.abs(self._nlos_pi / pi0 - 1.0))))
+            if moved > ONLINE_CHECK_EVIDENCE:
+                self._check_interval = max(int(self._params.online_check_every), 1)
+        # the first full update past a multiple of the interval
+        return self._seen // self._check_interval > self._last_check // self._check_interval
+
+    def _after_check(self, newly: np.ndarray, flipped: bool) -> None:
+        """Next check interval: doubled after an uneventful check, else online_check_every."""
+        every = max(int(self._params.online_check_every), 1)
+        chi2 = self._params.ambiguity_chi2
+        close = any(
+            mt is not None and mt.mirror_theta is not None
+            and (mt.ambiguous or mt.delta_chi2 <= ONLINE_CHECK_MARGIN * chi2)
+            for mt in self._mirrors
+        )
+        bias_on = None if self._bias_sigma is None else self._bias_sigma.copy()
+        prev = self._check_state
+        bias_changed = prev is not None and not (
+            (prev[2] is None and bias_on is None)
+            or (prev[2] is not None and bias_on is not None and np.array_equal(prev[2], bias_on)))
+        quiet = not (np.any(newly) or flipped or close or bias_changed)
+        self._check_interval = min(2 * self._check_interval, ONLINE_CHECK_BACKOFF_MAX * every) if quiet else every
+        self._check_state = (self._scale.copy(), self._nlos_pi.copy(), bias_on)
+
     def _check_mirrors(self, prob: Problem, res: _Result) -> _Result:
         """Re-initialization and mirror tests on the window.
 
@@ -462,7 +508,9 @@ class OnlineEstimator:
             trial = levenberg_marquardt(prob, res.x, theta, self._active, prior)
             if trial.lin.cost < res.lin.cost:
                 res, self._prior, flipped = trial, prior, True
+        self._flipped = flipped
         if flipped:
+            res = observed_s(prob, res, self._active, self._prior)
             self._x[: self._n] = res.x
             self._theta = res.theta
             mirrors = _mirror_all(prob, res.theta, self._active)
@@ -500,6 +548,56 @@ class OnlineEstimator:
         z0 = pr.z0.copy()
         z0[off : off + 2] = ctr + refl2 @ (z0[off : off + 2] - ctr)
         return Prior(pr.has_x, z0, r.T @ pr.info @ r, r.T @ pr.grad)
+
+    def _marginalize_block(self, m: int) -> bool:
+        """Fold the m oldest keyframes into the prior at once when nothing links them to each
+        other or to the rest (white GPS, no motion links, a prior on the users only); False
+        (nothing done) otherwise. Each keyframe i is then independent given Θ, so the sequential
+        _marginalize_oldest at the same point sums to
+
+            Λ = Λ_prior + Σ_i (H_θθ,i − H_θi H_ii⁻¹ H_iθ),   c = ∇_prior + Σ_i (∇_θ,i − H_θi H_ii⁻¹ ∇_i)
+
+        with H_ii = I/σ_gps² + Σ_k w J_x J_xᵀ, H_iθ = w J_x J_θᵀ (user k's columns),
+        H_θθ,i = w J_θ J_θᵀ, ∇_i = (x_i − x̂_i)/σ_gps² + Σ_k ψ J_x, ∇_θ,i = ψ J_θ."""
+        prob = self._problem()
+        pr = self._prior
+        if prob.gps_linked or (pr is not None and pr.has_x) or (
+                prob.use_motion and bool(self._odom_mask[1 : m + 1].any())):
+            return False
+        k_all, p = self._k, self._p
+        pu = k_all * p
+        x = self._x[:m]
+        theta = self._theta
+        mask = prob.mask[:m].T & self._active[:, None]
+        _e, w, _rho, jac, psi = _range_terms(prob, x, theta, mask)
+        jx, jt = jac[:3], jac[3:]  # (3, K, m), (p, K, m)
+        inv_g2 = 1.0 / self._noise.sigma_gps_m**2
+        # H_ii (m, 3, 3), H_iθ (m, 3, K, p), ∇_i (m, 3)
+        wjx = jx * w
+        h_ii = np.einsum("akm,bkm->mab", wjx, jx) + np.eye(3) * inv_g2
+        h_it = np.einsum("akm,ckm->makc", wjx, jt).reshape(m, 3, pu)
+        g_i = (x - prob.gps_enu_m[:m]) * inv_g2 + np.einsum("akm,km->ma", jx, psi)
+        info = np.zeros((pu, pu))
+        blocks = np.einsum("akm,bkm->kab", jt * w, jt)  # (K, p, p)
+        for k in range(k_all):
+            info[k * p : (k + 1) * p, k * p : (k + 1) * p] = blocks[k]
+        cvec = np.einsum("akm,km->ka", jt, psi).ravel()
+        # minus Σ_i H_θi H_ii⁻¹ [H_iθ | ∇_i]
+        sol = np.linalg.solve(h_ii, np.concatenate([h_it, g_i[:, :, None]], axis=2))  # (m, 3, pu + 1)
+        info -= np.einsum("mai,maj->ij", h_it, sol[:, :, :pu])
+        cvec -= np.einsum("mai,ma->i", h_it, sol[:, :, pu])
+        if pr is not None:
+            z = theta.ravel()
+            info += pr.info
+            cvec += pr.grad + pr.info @ (z - pr.z0)
+        self._prior = Prior(False, theta.ravel().copy(), 0.5 * (info + info.T), cvec)
+        n = self._n
+        self._win_count -= prob.mask[:m].sum(axis=0)
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x, self._t):
+            arr[: n - m] = arr[m:n]
+        self._odom_mask[0] = False
+        self._n = n - m
+        return True
 
     def _marginalize_oldest(self) -> None:
         """Fold keyframe 0 of the window into the prior at the current estimate, then drop it."""

@@ -110,6 +110,34 @@ def nlos_terms(
     return rho, psi, gamma
 
 
+def nlos_curvature(
+    e: np.ndarray, prob: np.ndarray | float = NLOS_PROB, mean_w: np.ndarray | float = NLOS_MEAN_WHITENED,
+) -> np.ndarray:
+    """ψ'(e) = ρ''(e) of the "nlos" loss at whitened residuals e (shape of e): the observed
+    information of one range, where the IRLS weight γ is the complete-data (EM) information.
+
+    With h = t + 1/M(t) (the LoS score e minus the NLoS score e − h) and the NLoS term's own
+    curvature c_N = 1/M² + t/M (−log f = ½e² − log M(t) + const, (log M)' = 1/M + t):
+
+        ψ' = γ + (1 − γ) c_N − γ (1 − γ) h²
+
+    the last term being the missing information of the unknown LoS/NLoS label (Louis 1982). It is
+    negative for ranges the mixture cannot tell apart (e ≈ 2–4), which the EM weight counts as half
+    a LoS range: a covariance from γ is too optimistic under NLoS.
+    """
+    e = np.asarray(e, dtype=float)
+    inv_m = 1.0 / mean_w
+    t = e - inv_m
+    mills = _mills(t)
+    q = (prob * inv_m) * mills
+    g = (1.0 - prob) + q
+    gamma = (1.0 - prob) / g
+    inv_mills = 1.0 / mills
+    h = t + inv_mills
+    # ψ' = γ + (1 − γ)(1/M² + t/M) − γ(1 − γ)h²
+    return gamma + (1.0 - gamma) * (inv_mills * (inv_mills + t) - gamma * h * h)
+
+
 def loss_rho(e: np.ndarray, loss: str, c: float, nlos: tuple | None = None) -> np.ndarray:
     """ρ(e) of whitened residuals `e` (any shape), same shape.
 

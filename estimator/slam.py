@@ -17,6 +17,10 @@ ranges (+ priors) Schur-complemented over keyframes. Under a robust loss this is
 the estimate actually uses: a range the loss discounts (an NLoS outlier) contributes with its
 weight w < 1 instead of full weight, so the reported covariance does not claim information from
 data the estimator has rejected (GTSAM's Marginals on a robust graph report the same matrix).
+Except where the "nlos" loss found NLoS (some π_k above its floor; solve.observed_s): there the
+EM weight γ overstates the information of ranges the mixture cannot classify, and S is the
+observed information instead — ψ'(e) per range (robust.nlos_curvature, negative for ambiguous
+ranges) with each free π_k marginalized, since it is estimated too.
 
 Online (fixed-lag smoothing): keyframes are kept in a window; when it holds more than
 `params.window`, the oldest keyframe is marginalized at the current estimate into a Gaussian prior
@@ -30,7 +34,9 @@ exact at the linearization point z₀; each update then costs O(window · K²), 
 Between window solves (every params.online_resolve_every keyframes) a new keyframe is folded in by
 one information-filter step: linearized at its GPS fix and the current users, eliminated at once
 into the users' information S (OnlineEstimator._filter_step), O(K²) plus the (K·p)³ inverse for
-the covariance. The window is re-solved and marginalized at the next full update.
+the covariance. The window is re-solved and marginalized at the next full update (unlinked
+keyframes in one block, OnlineEstimator._marginalize_block). The re-initialization, mirror and
+bias-selection checks back off while they find nothing (estimator.online.ONLINE_CHECK_BACKOFF_MAX).
 """
 
 from __future__ import annotations

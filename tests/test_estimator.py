@@ -630,3 +630,29 @@ def test_online_on_a_line_with_nlos_and_gaps_stays_on_truth_or_flagged_mirror(se
     assert est.ambiguous.all()
     err = np.minimum(_user_errors(est, sc), np.linalg.norm(est.mirror_enu_m[:, :2] - sc.users_enu_m[:, :2], axis=1))
     assert np.all(err < 10.0), err
+
+
+def test_online_block_marginalization_equals_one_keyframe_at_a_time():
+    """Unlinked keyframes (white GPS, no odometry) folded into the prior at once give the prior
+    of folding them one by one at the same point (a prior already present, users with and
+    without ranges in the dropped keyframes)."""
+    import copy
+
+    sc = simulate(np.random.default_rng(44), n_users=4, n_keyframes=160, p_visible=0.8, p_nlos=0.1)
+    params = SolverParams(window=60, online_resolve_every=7)
+    on = OnlineEstimator(4, sc.user_up_m, NOISE, params)
+    for kf in sc.keyframes[:130]:
+        on.add_keyframe(kf)
+    assert on._prior is not None and on._n > 60
+    m = on._n - 60
+    seq, blk = copy.deepcopy(on), copy.deepcopy(on)
+    for _ in range(m):
+        seq._marginalize_oldest()
+    assert blk._marginalize_block(m)
+    ps, pb = seq._prior, blk._prior
+    for a, b in ((ps.info, pb.info), (ps.grad, pb.grad), (ps.z0, pb.z0)):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-9 * np.abs(a).max())
+    assert seq._n == blk._n == 60
+    np.testing.assert_array_equal(seq._win_count, blk._win_count)
+    np.testing.assert_array_equal(seq._x[:60], blk._x[:60])
+    np.testing.assert_array_equal(seq._rng[:60], blk._rng[:60])

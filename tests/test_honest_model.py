@@ -7,6 +7,7 @@ when nothing is marginalized, and the covariance honest (NEES) on drifting GPS a
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -274,3 +275,82 @@ def test_range_factor_with_a_clock_gain_jacobian_matches_central_differences():
     jx, jt = f.jacobian(x, theta)
     np.testing.assert_allclose(jx, numerical_jacobian(lambda v: f.error(v, theta), x)[0], atol=1e-8)
     np.testing.assert_allclose(jt, numerical_jacobian(lambda v: f.error(x, v), theta)[0], atol=1e-8)
+
+
+def _mixture_nll(e: float, pi: float, m: float) -> float:
+    """−log of the LoS/NLoS mixture density of a whitened residual, written out with scipy.stats
+    (independent of estimator.robust): (1 − π) φ(e) + π (1/m) exp(1/(2m²) − e/m) Φ(e − 1/m)."""
+    from scipy.stats import norm
+
+    f = math.exp(1.0 / (2 * m * m) - e / m) * norm.cdf(e - 1.0 / m) / m
+    return -math.log((1.0 - pi) * norm.pdf(e) + pi * f)
+
+
+def test_nlos_covariance_is_the_observed_information_with_pi_estimated_dense_reference():
+    """Under NLoS the users' S is the observed information of the mixture likelihood with every
+    user's NLoS probability π_k estimated too: against the dense Hessian in (x, θ, π) of
+    Σ GPS + Σ −log p(e; π) (second derivatives in e and π by central differences of the density
+    above, range Jacobians from RangeFactor objects), θ's block of its inverse."""
+    from estimator.factors import RangeFactor
+    from estimator.solve import NLOS_PROB_MAX, NLOS_PROB_MIN
+
+    noise = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
+    n, k_all = 60, 2
+    sc = simulate(np.random.default_rng(8), n_users=k_all, n_keyframes=n, noise=noise, p_nlos=0.3)
+    params = SolverParams(estimate_bias=False, estimate_noise_scale=False, track_clock=False,
+                          step_tol_m=1e-10, step_tol_uav_m=1e-10, step_tol_sigma=0.0)
+    est = solve_batch(sc.keyframes, k_all, sc.user_up_m, noise, params)
+    pi = est.extra["nlos_prob_k"]
+    assert np.all((pi > NLOS_PROB_MIN) & (pi < NLOS_PROB_MAX)), pi  # both π free
+    dim = 3 * n + 2 * k_all + k_all
+    h = np.zeros((dim, dim))
+    h[: 3 * n, : 3 * n] = np.eye(3 * n) / noise.sigma_gps_m**2
+    m = params.nlos_mean_m / noise.s0_m
+    de, dp = 1e-4, 1e-5
+    for i, kf in enumerate(sc.keyframes):
+        x = est.uav_enu_m[i]
+        for k, r in zip(kf.user_idx, kf.range_m, strict=True):
+            f = RangeFactor(float(r), noise, 2, float(sc.user_up_m[k]))
+            th = est.users_enu_m[k, :2]
+            e = f.error(x, th)
+            jx, jt = f.jacobian(x, th)
+            p_k = float(pi[k])
+
+            def nll(ee, pp):
+                return _mixture_nll(ee, pp, m)
+
+            d2e = (nll(e + de, p_k) - 2 * nll(e, p_k) + nll(e - de, p_k)) / de**2
+            dep = (nll(e + de, p_k + dp) - nll(e + de, p_k - dp) - nll(e - de, p_k + dp)
+                   + nll(e - de, p_k - dp)) / (4 * de * dp)
+            d2p = (nll(e, p_k + dp) - 2 * nll(e, p_k) + nll(e, p_k - dp)) / dp**2
+            j = np.zeros(dim)
+            j[3 * i : 3 * i + 3] = jx
+            j[3 * n + 2 * k : 3 * n + 2 * k + 2] = jt
+            ip = 3 * n + 2 * k_all + int(k)
+            h += d2e * np.outer(j, j)
+            h[ip, :] += dep * j
+            h[:, ip] += dep * j
+            h[ip, ip] += d2p
+    cov_ref = np.linalg.inv(h)[3 * n : 3 * n + 2 * k_all, 3 * n : 3 * n + 2 * k_all]
+    for k in range(k_all):
+        np.testing.assert_allclose(est.cov_users_m2[k], cov_ref[2 * k : 2 * k + 2, 2 * k : 2 * k + 2], rtol=2e-4)
+    # and it is larger than the EM-weight covariance of the same solution (π known, γ weights)
+    prob = pack_keyframes(sc.keyframes, k_all, sc.user_up_m, noise, params)
+    prob.nlos_prob_k = pi
+    lin = linearize(prob, est.uav_enu_m, est.users_enu_m[:, :2], np.ones(k_all, dtype=bool))
+    _, _, s_em = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
+    cov_em = np.linalg.inv(s_em)
+    for k in range(k_all):
+        assert np.trace(est.cov_users_m2[k]) > 1.05 * np.trace(cov_em[2 * k : 2 * k + 2, 2 * k : 2 * k + 2])
+
+
+@pytest.mark.parametrize("pi, m", [(0.2, 20.0 / 3.0), (0.05, 3.0), (0.4, 10.0)])
+def test_nlos_curvature_is_the_derivative_of_psi(pi, m):
+    from estimator.robust import nlos_curvature, nlos_terms
+
+    e = np.linspace(-4.0, 60.0, 801)
+    h = 1e-5
+    fd = (nlos_terms(e + h, pi, m)[1] - nlos_terms(e - h, pi, m)[1]) / (2 * h)
+    c = nlos_curvature(e, pi, m)
+    np.testing.assert_allclose(c, fd, atol=1e-8)
+    assert c.min() < 0.0  # ranges the mixture cannot classify carry negative curvature
