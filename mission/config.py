@@ -181,7 +181,7 @@ class GnbSettings:
     """
 
     mode: Literal["rtt", "stock"] = "rtt"
-    stock_mode: Literal["active", "passive"] = "active"
+    stock_mode: Literal["active", "passive"] = "passive"
     rtt_module: str = "rtt"
     rtt_command: str = "pdcch_order"
     discovery: Literal["auto", "o1", "single"] = "auto"

@@ -13,6 +13,8 @@ from uavloc.errors import GnbError
 
 #: `ci` commands never sent: they release the UE, and crash stock OAI with an RNTI it no longer has
 FORBIDDEN_CI = ("force_ue_release", "force_ul_failure")
+#: `ci` commands that act on one UE: sent only with an RNTI a fresh discovery listed
+UE_CI = ("force_reestab", "get_current_bwp")
 
 
 @dataclass(frozen=True)
@@ -21,8 +23,10 @@ class GnbConfig:
 
     host, port: the gNB telnet server (`--telnetsrv.listenport`, default 9090); prompt: what ends
     an answer; mode: "rtt" (RTT command set) or "stock" (Msg2 lines of the gNB log); stock_mode:
-    "active" (trigger with `ci force_reestab`, then wait) or "passive" (only the random accesses
-    that happen anyway); rtt_module, rtt_command: the RTT command's names; discovery: "o1",
+    "passive" (only the random accesses that happen anyway; the default) or "active" (trigger with
+    `ci force_reestab`, then wait: on OAI 2025.w36 a discovery a few seconds after the trigger
+    killed the gNB with SIGFPE in our runs, so this is an explicit choice); rtt_module,
+    rtt_command: the RTT command's names; discovery: "o1",
     "single" or "auto" (o1 stats, falling back to ci get_single_rnti when the o1 module is not
     loaded); request_timeout_s, connect_timeout_s: per request / connection attempt [s]; retries:
     reconnect attempts after a lost connection; backoff_initial_s, backoff_max_s: jittered
@@ -37,7 +41,7 @@ class GnbConfig:
     port: int = 9090
     prompt: str = PROMPT_GNB
     mode: Literal["rtt", "stock"] = "rtt"
-    stock_mode: Literal["active", "passive"] = "active"
+    stock_mode: Literal["active", "passive"] = "passive"
     rtt_module: str = "rtt"
     rtt_command: str = "pdcch_order"
     discovery: Literal["auto", "o1", "single"] = "auto"
@@ -92,8 +96,9 @@ def parse_host_port(text: str, default_port: int = 9090) -> tuple[str, int]:
 def check_ci_line(line: str, guarded: bool = False) -> None:
     """Refuse a `ci` request that could crash or release a UE on stock OAI (GnbError).
 
-    Never `force_ue_release` / `force_ul_failure`; a `ci` command with an argument (an RNTI) only
-    when `guarded` (sent by OaiGnbClient.guarded_ci right after a fresh discovery).
+    Never `force_ue_release` / `force_ul_failure`; a `ci` command acting on a UE never without its
+    RNTI (UE_CI); a `ci` command with an argument (an RNTI) only when `guarded` (sent by
+    OaiGnbClient.guarded_ci right after a fresh discovery).
     """
     parts = line.split()
     if not parts or parts[0].lower() != "ci":
@@ -102,6 +107,10 @@ def check_ci_line(line: str, guarded: bool = False) -> None:
     if cmd in FORBIDDEN_CI:
         raise GnbError(f"refusing to send {line!r}: `ci {cmd}` releases the UE, and with an RNTI the gNB "
                        f"no longer has it crashes stock OAI (2025.w36)")
+    if cmd in UE_CI and len(parts) < 3:
+        raise GnbError(f"refusing to send {line!r}: without an RNTI stock OAI picks a UE itself, which is "
+                       f"unchecked (the gNB may hold a stale context after a re-attach, and the real gNB died "
+                       f"under this command in our tests); name an RNTI that a fresh `o1 stats` lists")
     if len(parts) > 2 and not guarded:
         raise GnbError(f"refusing to send {line!r}: a `ci` command naming an RNTI is sent only right after "
                        f"a fresh `o1 stats` lists it (OaiGnbClient.guarded_ci); stock OAI crashes on an "

@@ -195,7 +195,8 @@ def test_stock_fallback_force_reestab_and_msg2_log(tmp_path: Path):
     async def body():
         async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
                                 msg2_delay_s=0.02) as gnb, \
-                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=1.0)) as c:
+                OaiGnbClient(client_config(gnb, mode="stock", stock_mode="active", log_path=log_path,
+                                           msg2_timeout_s=1.0)) as c:
             await c.discover()
             return [await c.measure(r) for r in (0x4601, 0xB0B2, 0x4601)]
 
@@ -217,7 +218,8 @@ def test_stock_active_without_random_access_is_a_clear_no_measurement(tmp_path: 
         # a UE without traffic: force_reestab is answered, no random access follows (OAI, no core)
         async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
                                 stock_reaction="none") as gnb, \
-                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=0.2)) as c:
+                OaiGnbClient(client_config(gnb, mode="stock", stock_mode="active", log_path=log_path,
+                                           msg2_timeout_s=0.2)) as c:
             with pytest.raises(GnbNoRandomAccessError, match="no random access proven to be UE 4601"):
                 await c.measure(0x4601)
             with pytest.raises(GnbNoMeasurementError, match="not sending `ci force_reestab ffff`"):
@@ -496,7 +498,8 @@ def test_stock_active_follows_a_new_rnti_only_through_the_reestablishment_line(t
     async def body():
         async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
                                 msg2_delay_s=0.01) as gnb, \
-                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=2.0)) as c:
+                OaiGnbClient(client_config(gnb, mode="stock", stock_mode="active", log_path=log_path,
+                                           msg2_timeout_s=2.0)) as c:
             first = await c.measure(0x4601)
             alias1 = dict(c.rnti_alias)
             second = await c.measure(0x4601)  # triggers the UE under its new RNTI
@@ -519,7 +522,8 @@ def test_stock_active_rejects_the_connected_mode_access_and_an_unproven_new_ue(t
     async def body():
         async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
                                 stock_reaction="crnti_then_idle", msg2_delay_s=0.01, reattach_delay_s=0.05) as gnb, \
-                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=0.5)) as c:
+                OaiGnbClient(client_config(gnb, mode="stock", stock_mode="active", log_path=log_path,
+                                           msg2_timeout_s=0.5)) as c:
             with pytest.raises(GnbNoRandomAccessError) as info:
                 await c.measure(0x4601)
             kinds = [ra.kind for ra in c.recent_accesses]
@@ -684,7 +688,8 @@ def test_probe_says_what_is_wrong_with_the_setup(tmp_path: Path):
         log_path.write_text("12.000001 [NR_MAC] I Frame.Slot 128.0\n")  # `time` stamps: monotonic
         async with SimulatedGnb(scenario(), static_position(UAV), port=0, log_path=log_path,
                                 stock_reaction="none") as gnb, \
-                OaiGnbClient(client_config(gnb, mode="stock", log_path=log_path, msg2_timeout_s=0.1)) as c:
+                OaiGnbClient(client_config(gnb, mode="stock", stock_mode="active", log_path=log_path,
+                                           msg2_timeout_s=0.1)) as c:
             out["stock"] = await probe_gnb(c, rntis=[0x4601])
         return out
 

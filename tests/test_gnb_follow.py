@@ -130,7 +130,8 @@ def test_standalone_entry_point_serves_the_adapter(tmp_path: Path):
         assert port, "no listening banner from the simulated gNB"
 
         async def body():
-            cfg = GnbConfig(port=port, mode="stock", log_path=tmp_path / "gnb.log", msg2_timeout_s=2.0)
+            cfg = GnbConfig(port=port, mode="stock", stock_mode="active", log_path=tmp_path / "gnb.log",
+                            msg2_timeout_s=2.0)
             async with OaiGnbClient(cfg) as c:
                 rntis = await c.discover()
                 s = await c.measure(rntis[0])

@@ -26,7 +26,7 @@ import pytest
 
 from estimator.ranging import one_way_m_per_ta_step
 from mission.gnb import GnbConfig, OaiGnbClient
-from mission.oai import PROMPT_UE, parse_force_reestab, parse_rfsim_distance
+from mission.oai import PROMPT_UE, parse_rfsim_distance
 from mission.oai_ra import RandomAccess, log_time_format
 from uavloc.errors import (
     GnbBusyError,
@@ -102,7 +102,7 @@ def _read_until_ready(run: OaiRun, deadline_s: float) -> None:
         time.sleep(0.1)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def oai(tmp_path_factory):
     if not LAUNCHER.is_file():
         pytest.skip(f"the OAI bundle is not at {BUNDLE}")
@@ -187,38 +187,37 @@ def test_discovery_and_the_rtt_command_set_is_refused(oai):
     assert log_time_format(oai.gnb_log.read_text().splitlines()) == "wall_clock"
 
 
-def test_active_stock_mode_on_a_ue_without_traffic_times_out_clearly(oai):
+def test_stock_mode_is_passive_by_default_and_sends_no_ci_command(oai):
+    """Active stock mode (`ci force_reestab` on the connected UE) is never the default: on this gNB
+    (OAI 2025.w36, no core) a discovery a few seconds after the trigger killed nr-softmodem with
+    SIGFPE (exit 136) in our runs (README, gNB section), so the trigger is an explicit choice."""
     ue = int(oai.info["UE_RNTI"], 16)
 
     async def body():
-        async with OaiGnbClient(cfg(oai, mode="stock", msg2_timeout_s=3.0)) as c:
-            with pytest.raises(GnbNoRandomAccessError, match=f"no random access proven to be UE {ue:04x}"):
+        async with OaiGnbClient(cfg(oai, mode="stock")) as c:
+            assert c.config.stock_mode == "passive"
+            with contextlib.suppress(GnbNoMeasurementError):
                 await c.measure(ue)
             return c.ci_sent
 
-    assert run(body()) == [f"ci force_reestab {ue:04x}"]
-    t_end = time.monotonic() + 20  # the gNB's stdout (its log) is block-buffered
-    while f"ci force_reestab {ue:04x}" not in (sent := oai.commands_received()) and time.monotonic() < t_end:
-        time.sleep(0.2)
-    k = sent.index(f"ci force_reestab {ue:04x}")
-    assert sent[k - 1] == "o1 stats"
+    assert run(body()) == []
+    assert not [s for s in oai.commands_received() if s.startswith("ci force_reestab")]
 
 
 def test_bad_rntis_never_reach_the_gnb(oai):
     async def body():
-        async with OaiGnbClient(cfg(oai, mode="stock", msg2_timeout_s=1.0)) as c:
+        # active mode, the one that sends `ci force_reestab`: the guard stops it before the gNB
+        async with OaiGnbClient(cfg(oai, mode="stock", stock_mode="active", msg2_timeout_s=1.0)) as c:
             for bad in (0x1234, 0xFFFD, 0xFFFF):
                 with pytest.raises(GnbNoMeasurementError, match="not sending"):
                     await c.measure(bad)
+            # ... nor a command acting on a UE without naming it (OAI would pick one itself)
             for line in ("ci force_reestab 1234", "ci force_ue_release", "ci force_ue_release 1234",
-                         "ci get_current_bwp 1234"):
+                         "ci get_current_bwp 1234", "ci force_reestab", "ci get_current_bwp"):
                 with pytest.raises(GnbError, match="refusing"):
                     await c.request(line)
-            # without an RNTI OAI picks the single UE itself, or answers its two-line failure
-            return parse_force_reestab(await c.request("ci force_reestab"))
 
-    rep = run(body())
-    assert rep.rnti is None or rep.rnti == int(oai.info["UE_RNTI"], 16)
+    run(body())
     sent = oai.commands_received()
     assert not [s for s in sent if s.startswith("ci ") and s.split()[1:2] != ["get_single_rnti"]
                 and len(s.split()) > 2 and s.split()[2] in ("1234", "fffd", "ffff")]

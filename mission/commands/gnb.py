@@ -54,9 +54,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     q.add_argument("--gnb", required=True, metavar="HOST:PORT", help="the gNB's telnet server (default port 9090)")
     q.add_argument("--mode", choices=("rtt", "stock"), default="rtt",
                    help="rtt: the RTT command set of a modified gNB; stock: Msg2 lines of --gnb-log")
-    q.add_argument("--stock", choices=("active", "passive"), default="active",
-                   help="stock mode: active triggers `ci force_reestab` and waits for the UE's random access; "
-                        "passive only reads the random accesses that happen anyway (default: active)")
+    q.add_argument("--stock", choices=("active", "passive"), default="passive",
+                   help="stock mode: passive only reads the random accesses that happen anyway (default); "
+                        "active triggers `ci force_reestab` and waits for the UE's random access (it killed "
+                        "OAI 2025.w36 with SIGFPE when a discovery followed a few seconds later: README)")
     q.add_argument("--gnb-log", type=Path, metavar="FILE", help="the gNB's log file (stock mode)")
     q.add_argument("--count", type=_count, default=3, metavar="N", help="measurements per UE (default 3)")
     q.add_argument("--rnti", type=_rnti, action="append", metavar="HEX",
