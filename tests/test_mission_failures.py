@@ -6,7 +6,6 @@ before anything connects. End to end on the built-in vehicle and the simulated g
 from __future__ import annotations
 
 import asyncio
-import time
 
 import pytest
 
@@ -15,25 +14,12 @@ from mission.controller import STATUS_ABORTED, STATUS_RETURNED
 from mission.log import read_mission_log
 from sitl_scenarios.scenario import load_scenario
 from sitl_scenarios.sim_runner import SimulatedMission
+from tests.test_mission_e2e import _run, _wait
 from uavloc.errors import GnbPreflightError
 
 SPEEDUP = 20.0
 
 
-def _run(coro, timeout_s: float = 120.0):
-    async def guarded():
-        async with asyncio.timeout(timeout_s):
-            return await coro
-
-    return asyncio.run(guarded())
-
-
-async def _wait(predicate, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.02)
 
 
 def _fly_with(tmp_path, prepare, **kw):
