@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import shutil
 import sys
 import tempfile
@@ -33,7 +32,7 @@ sys.path[:] = [str(REPO)] + [p for p in sys.path if Path(p or ".").resolve() != 
 
 import numpy as np  # noqa: E402
 
-from estimator.geodesy import Origin  # noqa: E402
+from mission.log import read_mission_log  # noqa: E402
 from sitl_scenarios.px4_sitl import (  # noqa: E402
     DEFAULT_BUNDLE,
     Px4Sitl,
@@ -57,27 +56,14 @@ def flight_figures(log_path: Path) -> dict:
     rtl_height_m: highest telemetry point above the origin (home) after the `rtl` event (NaN
     without one).
     """
-    tel_t, tel_alt, tel_v = [], [], []
-    rtt_t: list[float] = []
-    t_rtl = None
-    origin = None
-    for line in log_path.read_text().splitlines():
-        obj = json.loads(line)
-        kind = obj.get("type")
-        if kind == "header":
-            o = obj["origin"]
-            origin = Origin(o["lat_deg"], o["lon_deg"], o["alt_m"])
-        elif kind == "telemetry":
-            tel_t.append(obj["t"])
-            tel_alt.append(obj["alt_m"])
-            v = obj.get("vel_ned_mps")
-            tel_v.append(np.hypot(v[0], v[1]) if v else np.nan)
-        elif kind == "rtt":
-            rtt_t.append(obj["t"])
-        elif kind == "event" and obj.get("kind") == "rtl" and t_rtl is None:
-            t_rtl = obj["t"]
-    t, alt, v = np.array(tel_t), np.array(tel_alt), np.array(tel_v)
-    survey = (t >= min(rtt_t)) & (t <= max(rtt_t)) & np.isfinite(v) if rtt_t else np.zeros(len(t), bool)
+    mlog = read_mission_log(log_path)
+    t, alt = mlog.tel_t_s, mlog.tel_lla[:, 2]
+    vel = mlog.tel_vel_ned_mps if mlog.tel_vel_ned_mps is not None else np.full((len(t), 3), np.nan)
+    v = np.hypot(vel[:, 0], vel[:, 1])  # NaN where a record has no velocity
+    rtt_t = mlog.rtt_t_s
+    t_rtl = next((e["t"] for e in mlog.events if e.get("kind") == "rtl"), None)
+    origin = mlog.header.origin
+    survey = (t >= rtt_t.min()) & (t <= rtt_t.max()) & np.isfinite(v) if len(rtt_t) else np.zeros(len(t), bool)
     cruise = float(np.percentile(v[survey], 99)) if survey.any() else float("nan")
     mean = float(np.mean(v[survey])) if survey.any() else float("nan")
     after = t >= t_rtl if t_rtl is not None else np.zeros(len(t), bool)
