@@ -59,6 +59,23 @@ def _kinds(path: Path) -> list[str]:
     return [e.get("kind", "") for e in _events(path)]
 
 
+def assert_log_replays_to_the_result(log_path: Path, result) -> None:
+    """`uavloc replay LOG --json` gives the mission's own users (to 1e-6 m, covariances to 1e-9 m²)
+    and measurement count."""
+    from mission.cli import main
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["-q", "replay", str(log_path), "--json", "--no-history"]) == 0
+    doc = json.loads(out.getvalue())
+    mine = result.to_document()
+    assert [u["id"] for u in doc["users"]] == [u["id"] for u in mine["users"]]
+    for a, b in zip(doc["users"], mine["users"], strict=True):
+        assert a["enu_m"] == pytest.approx(b["enu_m"], abs=1e-6)
+        assert np.asarray(a["cov_en_m2"]) == pytest.approx(np.asarray(b["cov_en_m2"]), abs=1e-9)
+    assert doc["measurements"] == result.measurements
+
+
 @pytest.mark.slow
 def test_simulated_mission_localizes_every_user_and_replays_to_the_same_estimates(tmp_path):
     sc = load_scenario("paper")
@@ -81,19 +98,7 @@ def test_simulated_mission_localizes_every_user_and_replays_to_the_same_estimate
     for kind in ("home", "arm", "takeoff", "stop", "rtl", "landed", "end"):
         assert kind in kinds, kind
 
-    # the log replays to the same estimates with `uavloc replay`
-    from mission.cli import main
-
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        assert main(["-q", "replay", str(log_path), "--json", "--no-history"]) == 0
-    doc = json.loads(out.getvalue())
-    mine = result.to_document()
-    assert [u["id"] for u in doc["users"]] == [u["id"] for u in mine["users"]]
-    for a, b in zip(doc["users"], mine["users"], strict=True):
-        assert a["enu_m"] == pytest.approx(b["enu_m"], abs=1e-6)
-        assert np.asarray(a["cov_en_m2"]) == pytest.approx(np.asarray(b["cov_en_m2"]), abs=1e-9)
-    assert doc["measurements"] == result.measurements
+    assert_log_replays_to_the_result(log_path, result)
 
 
 @pytest.mark.slow

@@ -8,8 +8,6 @@ vehicle's side is checked from PX4's own reports, not from uavloc's.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import io
 import json
 import signal
 import sys
@@ -23,6 +21,7 @@ from mission.log import read_mission_log
 from sitl_scenarios.scenario import load_scenario
 from sitl_scenarios.sim_runner import SimulatedMission
 from tests.px4 import GcsClient, wait_until
+from tests.test_mission_e2e import assert_log_replays_to_the_result
 
 pytestmark = pytest.mark.px4
 
@@ -71,18 +70,7 @@ def test_three_user_mission_on_px4_reaches_the_target_and_replays(px4, tmp_path)
         assert kind in kinds, kind
 
     # the log replays to the same estimates (`uavloc replay`)
-    from mission.cli import main
-
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        assert main(["-q", "replay", str(log_path), "--json", "--no-history"]) == 0
-    doc = json.loads(out.getvalue())
-    mine = result.to_document()
-    assert [u["id"] for u in doc["users"]] == [u["id"] for u in mine["users"]]
-    for a, b in zip(doc["users"], mine["users"], strict=True):
-        assert a["enu_m"] == pytest.approx(b["enu_m"], abs=1e-6)
-        assert np.asarray(a["cov_en_m2"]) == pytest.approx(np.asarray(b["cov_en_m2"]), abs=1e-9)
-    assert doc["measurements"] == result.measurements
+    assert_log_replays_to_the_result(log_path, result)
 
 
 def test_ctrl_c_mid_survey_sends_px4_home_and_closes_the_log(px4, tmp_path):
