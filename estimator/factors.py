@@ -153,6 +153,8 @@ def dense_normal_equations(
                 h[c1 : c1 + j1.shape[1], c2 : c2 + j2.shape[1]] += w * j1.T @ j2
 
     phi = prob.gps_phi() if prob.gps_linked else np.zeros(n)
+    # σ_m,n of each keyframe's motion factor (Problem.odom_weight: 0 where none)
+    wm = prob.odom_weight() if prob.use_motion else np.zeros(n)
     scale = np.ones(k_all) if prob.noise_scale_k is None else prob.noise_scale_k
     for i in range(n):
         if i > 0 or prob.gps_first or not prob.gps_linked:
@@ -162,8 +164,8 @@ def dense_normal_equations(
             cost += 0.5 * float(e @ e)
             jx, jprev = gf.jacobian()
             add([(3 * i, jx)] + ([(3 * (i - 1), jprev)] if phi[i] != 0.0 else []), e, 1.0)
-        if prob.odom_mask[i] and params.motion_sigma_m is not None:
-            m = MotionFactor(prob.odom_enu_m[i], params.motion_sigma_m)
+        if wm[i] > 0:
+            m = MotionFactor(prob.odom_enu_m[i], float(1.0 / np.sqrt(wm[i])))
             e = m.error(uav_enu_m[i - 1], uav_enu_m[i])
             j0, j1 = m.jacobian(uav_enu_m[i - 1], uav_enu_m[i])
             cost += 0.5 * float(e @ e)

@@ -227,17 +227,17 @@ def linearize(
     huu = huu.reshape(k_all * p, k_all * p)
     gu = gu.ravel()
     if prob.use_motion:
-        inv_m2 = 1.0 / params.motion_sigma_m**2
-        om = prob.odom_mask[1:n]
-        # e_m = (x_n − x_(n−1) − ô_n)/σ_m for linked pairs
-        em = (x[1:] - x[:-1] - prob.odom_enu_m[1:n]) * om[:, None]
-        cost += 0.5 * inv_m2 * float(np.vdot(em, em))
-        add = inv_m2 * om
+        # W_n = 1/σ_m,n² for linked pairs, 0 elsewhere (σ per keyframe: Problem.odom_weight)
+        add = prob.odom_weight()[1:n]
+        # e_m = (x_n − x_(n−1) − ô_n)/σ_m,n; cost ½ Σ W_n ||δ_n||², δ_n = x_n − x_(n−1) − ô_n
+        em = (x[1:] - x[:-1] - prob.odom_enu_m[1:n]) * (add > 0)[:, None]
+        wem = em * add[:, None]
+        cost += 0.5 * float(np.vdot(wem, em))
         hxx.reshape(n, 9)[1:, ::4] += add[:, None]
         hxx.reshape(n, 9)[:-1, ::4] += add[:, None]
         off = -add if off is None else off - add
-        gx[1:] -= inv_m2 * em
-        gx[:-1] += inv_m2 * em
+        gx[1:] -= wem
+        gx[:-1] += wem
     if prior is not None:
         z = theta.ravel()
         if prior.has_x:
