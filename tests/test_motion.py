@@ -3,6 +3,8 @@ the solvers (dense reference, online against batch), and what replay builds from
 
 from __future__ import annotations
 
+import contextlib
+import io
 import itertools
 import json
 import math
@@ -48,7 +50,7 @@ def test_integration_is_exact_for_velocity_linear_between_records():
         return out
 
     tk = np.sort(rng.uniform(t[0], t[-1], 12))
-    disp, ok = integrate_velocity(t, v, tk)
+    disp, ok, _ = integrate_velocity(t, v, tk)
     assert not ok[0] and ok[1:].all()
     ref = np.array([position(b) - position(a) for a, b in itertools.pairwise(tk)])
     np.testing.assert_allclose(disp[1:], ref, atol=1e-12)
@@ -58,7 +60,7 @@ def test_integration_of_a_smooth_velocity_converges_to_the_displacement():
     t = np.arange(0.0, 20.0, 0.2)
     v = np.column_stack([5 * np.cos(t / 12), 5 * np.sin(t / 12), 0.1 * np.ones_like(t)])
     tk = np.arange(0.3, 19.5, 0.4)
-    disp, ok = integrate_velocity(t, v, tk)
+    disp, ok, _ = integrate_velocity(t, v, tk)
     exact = np.column_stack([60 * np.sin(tk / 12), -60 * np.cos(tk / 12), 0.1 * tk])
     assert ok[1:].all()
     np.testing.assert_allclose(disp[1:], np.diff(exact, axis=0), atol=2e-4)
@@ -69,7 +71,7 @@ def test_no_displacement_where_records_are_missing_or_far_apart():
     v = np.ones((t.size, 3))
     v[20:30] = np.nan  # 4.0 .. 5.8 s: no velocity (a stretch longer than MAX_VEL_GAP_S)
     tk = np.array([-1.0, 1.0, 2.0, 4.5, 7.0, 7.05, 9.0, 12.0])
-    disp, ok = integrate_velocity(t, v, tk)
+    disp, ok, _ = integrate_velocity(t, v, tk)
     # before the first record / across the hole / beyond the last record: none
     assert ok.tolist() == [False, False, True, False, False, True, True, False]
     np.testing.assert_allclose(disp[2], [1.0, 1.0, 1.0])
@@ -77,13 +79,13 @@ def test_no_displacement_where_records_are_missing_or_far_apart():
     assert np.all(disp[~ok] == 0.0)
     # a gap just within MAX_VEL_GAP_S is bridged
     t2 = np.array([0.0, MAX_VEL_GAP_S, 2 * MAX_VEL_GAP_S])
-    _, ok2 = integrate_velocity(t2, np.ones((3, 3)), np.array([0.1, 1.9]))
+    _, ok2, _ = integrate_velocity(t2, np.ones((3, 3)), np.array([0.1, 1.9]))
     assert ok2[1]
 
 
 def test_no_displacement_over_a_keyframe_gap_longer_than_the_limit():
     t = np.arange(0.0, 100.0, 0.2)
-    _, ok = integrate_velocity(t, np.zeros((t.size, 3)), np.array([1.0, 2.0, 90.0]), max_dt_s=60.0)
+    _, ok, _ = integrate_velocity(t, np.zeros((t.size, 3)), np.array([1.0, 2.0, 90.0]), max_dt_s=60.0)
     assert ok.tolist() == [False, True, False]
 
 
@@ -218,3 +220,60 @@ def test_online_marginalizes_per_keyframe_motion_links_close_to_batch():
     sigma = np.sqrt(np.trace(batch.cov_users_m2, axis1=1, axis2=2))
     assert np.all(np.linalg.norm(est.users_enu_m - batch.users_enu_m, axis=1) < 0.2 * sigma)
     np.testing.assert_allclose(est.cov_users_m2, batch.cov_users_m2, rtol=0.1)
+
+
+def test_discretization_variance_counts_the_velocity_change_inside_the_gap():
+    # records 1 s apart; the velocity turns by (0, 4, 0) m/s between t = 2 and 3, constant elsewhere
+    t = np.arange(0.0, 6.0)
+    v = np.zeros((6, 3))
+    v[:, 0] = 5.0
+    v[3:, 1] = 4.0
+    _, ok, disc = integrate_velocity(t, v, np.array([0.5, 1.5, 2.25, 2.75, 4.5]))
+    assert ok[1:].all()
+    # (o |Δv|)² / 12 for the part o of the turning interval [2, 3] inside each gap
+    np.testing.assert_allclose(disc, [0.0, 0.0, 0.25**2 * 16 / 12, 0.5**2 * 16 / 12, 0.25**2 * 16 / 12],
+                               atol=1e-15)
+    # a smooth turn at 5 Hz leaves millimetres
+    t5 = np.arange(0.0, 10.0, 0.2)
+    v5 = np.column_stack([5 * np.cos(t5 / 12), 5 * np.sin(t5 / 12), np.zeros_like(t5)])
+    _, _, d5 = integrate_velocity(t5, v5, np.arange(0.1, 9.5, 0.4))
+    assert np.sqrt(d5.max()) < 0.01
+
+
+# --- replay ------------------------------------------------------------------------------------------
+
+
+def test_replay_links_keyframes_by_the_logged_velocity_and_not_otherwise(tmp_path):
+    from mission.cli import main
+    from mission.log import read_mission_log
+    from mission.replay import ReplayOptions, build_keyframes, replay
+    from tests.test_replay_honest import _write
+
+    with_vel, without = tmp_path / "v.jsonl", tmp_path / "n.jsonl"
+    noise = NoiseModel(gps_tau_s=0.0, vel_sigma_mps=0.05, vel_tau_s=0.5)
+    truth = _write(with_vel, noise, 0.0, with_vel=True)
+    _write(without, noise, 0.0, with_vel=False)
+    kfs = build_keyframes(read_mission_log(with_vel))
+    assert kfs[0].odom_enu_m is None and all(kf.odom_enu_m is not None for kf in kfs[1:])
+    # 0.4 s apart on a circle at 5 m/s: 2 m, with the header's σ_v, τ_v
+    np.testing.assert_allclose([np.linalg.norm(kf.odom_enu_m) for kf in kfs[1:]], 2.0, rtol=1e-3)
+    np.testing.assert_allclose([kf.odom_sigma_m for kf in kfs[1:]], motion_sigma_m(0.4, noise), rtol=0.05)
+    assert all(kf.odom_enu_m is None for kf in build_keyframes(read_mission_log(with_vel), velocity=False))
+    assert all(kf.odom_enu_m is None for kf in build_keyframes(read_mission_log(without)))
+
+    on = replay(read_mission_log(with_vel), ReplayOptions(history=False))
+    off = replay(read_mission_log(with_vel), ReplayOptions(history=False, velocity=False))
+    plain = replay(read_mission_log(without), ReplayOptions(history=False))
+    # the velocity smooths the white GPS out of the track: the users' covariance shrinks
+    assert np.all(np.linalg.det(on.estimate.cov_users_m2) < np.linalg.det(off.estimate.cov_users_m2))
+    np.testing.assert_array_equal(off.estimate.users_enu_m, plain.estimate.users_enu_m)
+    assert np.all(np.linalg.norm(on.estimate.users_enu_m[:, :2] - truth[:, :2], axis=1) < 2.0)
+    # the command line's switch
+    out = []
+    for flag in ([], ["--no-velocity"]):
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            assert main(["-q", "replay", str(with_vel), "--json", *flag]) == 0
+        out.append(json.loads(buf.getvalue())["users"][0]["enu_m"])
+    assert out[0] == pytest.approx(on.estimate.users_enu_m[0].tolist(), abs=1e-9)
+    assert out[1] == pytest.approx(off.estimate.users_enu_m[0].tolist(), abs=1e-9)
