@@ -277,3 +277,100 @@ def test_replay_links_keyframes_by_the_logged_velocity_and_not_otherwise(tmp_pat
         out.append(json.loads(buf.getvalue())["users"][0]["enu_m"])
     assert out[0] == pytest.approx(on.estimate.users_enu_m[0].tolist(), abs=1e-9)
     assert out[1] == pytest.approx(off.estimate.users_enu_m[0].tolist(), abs=1e-9)
+
+
+# --- in flight ----------------------------------------------------------------------------------------
+
+
+def test_flight_pipeline_keyframes_carry_the_velocity_displacement_replay_rebuilds(tmp_path):
+    """The pipeline integrates the telemetry velocity as logged, between the rounds' position times,
+    under the header's noise model: the keyframes it hands the estimator are replay's."""
+    import asyncio
+
+    from estimator.geodesy import Origin
+    from mission.control.config import MissionUser
+    from mission.control.pipeline import MeasurementPipeline
+    from mission.control.state import FlightState
+    from mission.log import MissionLogWriter, read_mission_log
+    from mission.oai import RttSample
+    from mission.replay import build_keyframes
+    from mission.telemetry import TelemetryBuffer
+
+    origin = Origin(43.6143, 7.0716, 150.0)
+    users = [MissionUser("ue1", 0x4601), MissionUser("ue2", 0x4602)]
+    path = tmp_path / "m.jsonl"
+    noise = NoiseModel(gps_tau_s=30.0, vel_sigma_mps=0.04, vel_tau_s=0.8)
+    rng = np.random.default_rng(12)
+
+    async def fly():
+        writer = MissionLogWriter(path)
+        writer.open()
+        buf = TelemetryBuffer(256)
+        flight = FlightState(event=lambda *a, **k: None)
+        pipe = MeasurementPipeline(None, users, 2.0, 1.0, flight, buf, lambda: origin, writer,
+                                   now=lambda: 0.0, mission_t=lambda t: t)
+        writer.write_header(origin, [{"id": u.id, "rnti": u.rnti, "ground_alt_m": 150.0} for u in users],
+                            {"mu": 1, "fs_hz": 46.08e6}, noise=noise)
+        t_tel = 0.0
+
+        def telemetry_until(t_end):
+            nonlocal t_tel
+            while t_tel <= t_end + 1e-9:
+                a = t_tel / 12.0
+                pos = np.array([60 * np.cos(a), 60 * np.sin(a), 35.0]) + rng.normal(size=3) * 0.5
+                v = (-5 * np.sin(a), 5 * np.cos(a), 0.0)
+                buf.append(t_tel, pos)
+                lat, lon, alt = (float(x) for x in origin.enu_to_lla(pos))
+                # a stretch of 2 s without velocity (records without vel_ned_mps)
+                extra = {} if 6.0 < t_tel < 8.0 else {"vel_ned_mps": [v[1] + 0.01, v[0], -v[2]]}
+                writer.write("telemetry", t_tel, lat_deg=lat, lon_deg=lon, alt_m=alt, **extra)
+                t_tel = round(t_tel + 0.2, 6)
+
+        for i in range(20):
+            t = 0.45 + 0.5 * i
+            telemetry_until(t + 1.2)  # the logged records after the round are there when it is placed
+            samples = [(k, RttSample(users[k].rnti, 100, 1, 3.5, 46.08e6, None, 1e-7 * (k + 1), t + 0.01 * k),
+                        t + 0.01 * k) for k in range(2)]
+            await pipe.place(samples)
+        writer.close()
+        return pipe.keyframes
+
+    flown = asyncio.run(fly())
+    rebuilt = build_keyframes(read_mission_log(path))
+    assert len(flown) == len(rebuilt) == 20
+    has = [kf.odom_enu_m is not None for kf in flown]
+    assert has == [kf.odom_enu_m is not None for kf in rebuilt]
+    # none for the first keyframe and across the stretch without velocity
+    assert not has[0] and has[1] and not all(has[11:16]) and has[-1]
+    for a, b in zip(flown, rebuilt, strict=True):
+        assert a.t_s == b.t_s
+        if a.odom_enu_m is not None:
+            np.testing.assert_allclose(a.odom_enu_m, b.odom_enu_m, rtol=0, atol=1e-12)
+            assert a.odom_sigma_m == pytest.approx(b.odom_sigma_m, rel=1e-12)
+            assert a.odom_sigma_m > motion_sigma_m(0.5, noise) * 0.999
+
+
+# --- the built-in vehicle's velocity -----------------------------------------------------------------
+
+
+def test_simulated_velocity_error_is_small_and_forgets_itself_and_leaves_the_gps_error_alone():
+    from sitl_scenarios.vehicle.sensors import VEL_SIGMA_MPS, VEL_TAU_S, GpsError, VelocityError
+
+    rng_a, rng_b = np.random.default_rng(4), np.random.default_rng(4)
+    gps_a = GpsError(1.0, 120.0, rng_a)
+    vel = VelocityError(rng_a)
+    gps_b = GpsError(1.0, 120.0, rng_b)
+    t = np.arange(0.0, 2000.0, 0.1)
+    e = np.array([vel.sample(float(s)) for s in t])
+    # the GPS error draws what it drew without the velocity error
+    np.testing.assert_array_equal([gps_a.sample(float(s)) for s in t[:200]], [gps_b.sample(float(s)) for s in t[:200]])
+    assert np.std(e) == pytest.approx(VEL_SIGMA_MPS, rel=0.1)
+    # correlation exp(−lag/τ): about e⁻¹ at τ, gone at 5τ
+    lag = round(VEL_TAU_S / 0.1)
+    corr = [float(np.mean(e[:-k] * e[k:]) / np.mean(e * e)) for k in (lag, 5 * lag)]
+    assert corr[0] == pytest.approx(math.exp(-1.0), abs=0.08) and abs(corr[1]) < 0.06
+    # integrated over 40 s it errs like the random walk the estimator assumes, well inside its default σ_m
+    span = round(40.0 / 0.1)
+    drift = np.array([e[i : i + span].sum(axis=0) * 0.1 for i in range(0, len(e) - span, span)])
+    assert np.std(drift) < motion_sigma_m(40.0, NoiseModel()) * 0.8
+    assert np.std(drift) == pytest.approx(math.sqrt(2 * VEL_SIGMA_MPS**2 * VEL_TAU_S * 40.0), rel=0.3)
