@@ -17,6 +17,12 @@ estimate reaches is checked by the batch before anyone acts on it), at most ever
 CONFIRM_MIN_KEYFRAMES keyframes. Between refreshes the last batch estimate stands (it lags by
 at most REFRESH_SHARE of the keyframes); before the first one, the online estimate.
 
+A refresh is warm (estimator.batch._warm_solve: started from the last refresh, keeping its NLoS
+probabilities, noise scales, bias selection and clock sawtooths: one robust solve) except when the
+keyframes have grown by COLD_GROWTH since the last cold one, or a user started since: then cold
+(every choice re-made, as in the final answer). The cold refreshes cost
+Σ cost(n_j) ≤ cost(n) · COLD_GROWTH / (COLD_GROWTH − 1) over a mission.
+
 Keyframes that queued up while the estimator was busy are added together and published once
 (`add_keyframes`): at most one refresh for all of them, so an estimator that falls behind (a
 loaded machine, a sped-up simulation) catches up instead of lagging further.
@@ -42,6 +48,8 @@ from uavloc.errors import EstimatorError
 #: a batch refresh every ⌊REFRESH_SHARE · n⌋ keyframes, REFRESH_MIN_KEYFRAMES at least
 REFRESH_SHARE = 0.05
 REFRESH_MIN_KEYFRAMES = 3
+#: a refresh is cold when the keyframes have grown by this factor since the last cold one
+COLD_GROWTH = 1.5
 #: a refresh asked for by `confirm` comes at most this often [keyframes]
 CONFIRM_MIN_KEYFRAMES = 2
 
@@ -54,8 +62,7 @@ class RefreshedEstimator:
 
     add_keyframe(kf, confirm=None) -> the Estimate to act on. The online estimator runs on every
     keyframe (its estimate is `online_estimate`; online=False leaves it out: no confirm then, and
-    every keyframe is a refresh until the schedule spaces them); the batch solve is warm-started at the last batch
-    solution (mirror tests and clock tracking run as in the final answer's solve).
+    the first keyframe is a refresh); the batch solves are warm or cold (module docstring).
     """
 
     def __init__(
@@ -73,8 +80,10 @@ class RefreshedEstimator:
         self._keyframes: list[Keyframe] = []
         self._batch: Estimate | None = None
         self._batch_at = 0  # keyframes seen at the last refresh
+        self._cold_at = 0  # ... at the last cold one
         self._confirm_at = -CONFIRM_MIN_KEYFRAMES
         self.n_refreshes = 0
+        self.n_cold = 0
 
     @property
     def online_estimate(self) -> Estimate | None:
@@ -149,10 +158,15 @@ class RefreshedEstimator:
     def refresh(self) -> Estimate:
         """Solve the batch over every keyframe seen now; return (and keep) its estimate."""
         n_users, up, noise, params = self._args
+        n = len(self._keyframes)
+        warm = None if self._batch is None or n >= COLD_GROWTH * self._cold_at else self._batch
         init = None if self._batch is None else self._batch.users_enu_m
-        est = solve_batch(self._keyframes, n_users, up, noise, params, init_users_enu_m=init)
-        self._batch = _tagged(est, SOURCE_BATCH, len(self._keyframes))
-        self._batch_at = len(self._keyframes)
+        est = solve_batch(self._keyframes, n_users, up, noise, params, init_users_enu_m=init, warm=warm)
+        if not est.extra.get("warm_started"):
+            self._cold_at = n
+            self.n_cold += 1
+        self._batch = _tagged(est, SOURCE_BATCH, n)
+        self._batch_at = n
         self.n_refreshes += 1
         return self._batch
 

@@ -122,3 +122,36 @@ def test_bad_keyframe_rejected_without_online_part():
         ref.add_keyframe(Keyframe(gps_enu_m=np.array([np.nan, 0.0, 0.0]), user_idx=np.array([0]),
                                   range_m=np.array([10.0])))
     assert ref.n_keyframes_seen == 0
+
+
+def test_warm_batch_solve_keeps_the_choices_and_lands_on_the_cold_answer(sawtooth_survey):
+    """solve_batch(warm=answer for a prefix): one robust solve from there, keeping π, the noise
+    scales, the bias selection and the clock sawtooth; it lands where the cold solve does."""
+    sc, kfs = sawtooth_survey
+    prefix = solve_batch(kfs[:280], 3, sc.user_up_m, NoiseModel())
+    assert prefix.extra["clock"][1] is not None and not prefix.extra["warm_started"]
+    warm = solve_batch(kfs[:300], 3, sc.user_up_m, NoiseModel(), warm=prefix)
+    cold = solve_batch(kfs[:300], 3, sc.user_up_m, NoiseModel())
+    assert warm.extra["warm_started"] and warm.extra["clock"][1] is prefix.extra["clock"][1]
+    np.testing.assert_array_equal(warm.extra["bias_on"], prefix.extra["bias_on"])
+    # the cold solve refits the sawtooth's period and phase on 20 more keyframes: the clock user
+    # moves by a tenth of its bound (0.1 m of 1.05 m), the others by millimetres
+    shift = np.linalg.norm(warm.users_enu_m[:, :2] - cold.users_enu_m[:, :2], axis=1)
+    assert np.all(shift <= [0.01, 0.15, 0.01] * cold.error_bound_95_m()), (shift, cold.error_bound_95_m())
+    np.testing.assert_allclose(warm.error_bound_95_m(), cold.error_bound_95_m(), rtol=0.05)
+    assert warm.iterations < cold.iterations or warm.iterations <= 3
+
+
+def test_warm_batch_solve_falls_back_to_cold_when_a_user_started_since(sawtooth_survey):
+    sc, kfs = sawtooth_survey
+    # user 2 heard only from keyframe 40 on: the prefix of 30 keyframes has not started it
+    late = [replace(kf, user_idx=kf.user_idx[kf.user_idx != 2], range_m=kf.range_m[kf.user_idx != 2])
+            if i < 40 else kf for i, kf in enumerate(kfs[:120])]
+    prefix = solve_batch(late[:30], 3, sc.user_up_m, NoiseModel())
+    assert not prefix.extra["active"][2]
+    est = solve_batch(late, 3, sc.user_up_m, NoiseModel(), warm=prefix)
+    assert not est.extra["warm_started"] and est.extra["active"][2]
+    cold = solve_batch(late, 3, sc.user_up_m, NoiseModel())
+    np.testing.assert_allclose(est.users_enu_m, cold.users_enu_m, atol=1e-9)
+    # an answer for more keyframes than given is no warm start either
+    assert not solve_batch(kfs[:100], 3, sc.user_up_m, NoiseModel(), warm=cold).extra["warm_started"]
