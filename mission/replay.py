@@ -6,8 +6,8 @@ mission's ENU frame. By default every trigger in the log is a keyframe (the cont
 spaced them Δ apart); `delta_m` re-selects keyframes at a spacing of Δ metres.
 
 The final estimate is the batch solution over all keyframes; the history (error bound, and error
-when the log holds `truth`, against metres flown) comes from the online estimator, as it would
-have evolved during the flight.
+when the log holds `truth`, against metres flown) is the estimate a mission acts on as it would
+have evolved during the flight: the batch refreshed on estimator.refresh's schedule.
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ from estimator.keyframes import KeyframeSelector
 from estimator.motion import integrate_velocity, motion_sigma_m, velocity_enu_of_ned
 from estimator.noise import NoiseModel
 from estimator.ranging import C_MPS
-from estimator.slam import OnlineEstimator, solve_batch
+from estimator.refresh import RefreshedEstimator
+from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.log import MissionLog
 from mission.result import horizontal_error_m, user_entries_of_estimate
@@ -41,10 +42,10 @@ GROUP_WINDOW_S = 1.0
 class ReplayOptions:
     """How to replay. `params` None: the solver settings logged in the header (see
     :func:`solver_params_from_header`). `delta_m` None: keep every trigger of the log as a keyframe.
-    `noise` None: the header's noise model (defaults when absent). `history`: also run the
-    online estimator to record how the error bound fell with metres flown. `velocity`: link
-    consecutive keyframes by relative-motion factors integrated from the telemetry's
-    `vel_ned_mps` where the log has it (estimator.motion; False: GPS alone)."""
+    `noise` None: the header's noise model (defaults when absent). `history`: also record how
+    the error bound fell with metres flown (estimator.refresh's schedule of batch solves).
+    `velocity`: link consecutive keyframes by relative-motion factors integrated from the
+    telemetry's `vel_ned_mps` where the log has it (estimator.motion; False: GPS alone)."""
 
     params: SolverParams | None = None
     delta_m: float | None = None
@@ -55,8 +56,8 @@ class ReplayOptions:
 
 @dataclass(frozen=True)
 class ReplayHistory:
-    """Online estimate after each keyframe: flown_m (H,), t_s (H,), bound_95_m (H, K),
-    error_m (H, K) when truth is known (else None), users_enu_m (H, K, 3)."""
+    """The estimate a mission acts on after each keyframe (estimator.refresh): flown_m (H,),
+    t_s (H,), bound_95_m (H, K), error_m (H, K) when truth is known (else None), users_enu_m (H, K, 3)."""
 
     flown_m: np.ndarray
     t_s: np.ndarray
@@ -246,11 +247,11 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
     history = None
     total = len(keyframes) + 1
     if options.history:
-        online = OnlineEstimator(n_users, user_up_m, noise, params)
+        refreshed = RefreshedEstimator(n_users, user_up_m, noise, params, online=False)
         bounds = np.full((len(keyframes), n_users), np.inf)
         users_hist = np.full((len(keyframes), n_users, 3), np.nan)
         for i, kf in enumerate(keyframes):
-            est = online.add_keyframe(kf)
+            est = refreshed.add_keyframe(kf)
             bounds[i] = est.error_bound_95_m()
             users_hist[i] = est.users_enu_m
             if progress is not None:
