@@ -114,28 +114,47 @@ def integrate_velocity(
     if tt.size < 2 or n < 2:
         return disp, ok, disc
     h = np.diff(tt)
-    cum = np.zeros((tt.size, 3))
-    np.cumsum(0.5 * (vv[1:] + vv[:-1]) * h[:, None], axis=0, out=cum[1:])
     inside = np.isfinite(tk) & (tk >= tt[0]) & (tk <= tt[-1])
     tc = np.clip(np.where(np.isfinite(tk), tk, tt[0]), tt[0], tt[-1])
     # interval j = [t_j, t_(j+1)] holding each time (the last time falls in the last interval)
     j = np.clip(np.searchsorted(tt, tc, side="right") - 1, 0, tt.size - 2)
-    s = (tc - tt[j])[:, None]
-    pos = cum[j] + vv[j] * s + (vv[j + 1] - vv[j]) * (s * s) / (2.0 * h[j][:, None])
     # records more than max_gap_s apart among the intervals j_(n−1) .. j_n
     big = np.concatenate([[0], np.cumsum(h > max_gap_s)])
     gaps = big[j[1:] + 1] - big[j[:-1]]
     dt = tk[1:] - tk[:-1]
     ok[1:] = inside[1:] & inside[:-1] & (gaps == 0) & (dt >= 0) & (dt <= max_dt_s)
-    disp[1:] = np.where(ok[1:, None], pos[1:] - pos[:-1], 0.0)
-    # σ_disc²: whole intervals between the two ends by a cumulative sum, the two partial ends apart
-    dv2 = np.sum(np.square(np.diff(vv, axis=0)), axis=1) / 12.0  # |Δv_j|²/12
-    cum_full = np.concatenate([[0.0], np.cumsum(h * h * dv2)])
+    # Each gap from its own records only (no running sum from the first record), so that the
+    # flight, which keeps the recent records, gets the same bits as replay over the whole log:
+    # F_j(s) = v_j s + (v_(j+1) − v_j) s²/(2 h_j) is the integral over [t_j, t_j + s], F_j(h_j) the
+    # trapezoid T_j; a gap from a ∈ interval j_a to b ∈ interval j_b:
+    #   j_a = j_b: F(s_b) − F(s_a);  else (T_(j_a) − F_(j_a)(s_a)) + Σ_(j_a < j < j_b) T_j + F_(j_b)(s_b)
+    trap = 0.5 * (vv[1:] + vv[:-1]) * h[:, None]
+    s_k = (tc - tt[j])[:, None]
+    f_k = vv[j] * s_k + (vv[j + 1] - vv[j]) * (s_k * s_k) / (2.0 * h[j][:, None])
     ja, jb = j[:-1], j[1:]
+    same = (ja == jb)[:, None]
+    full = _segment_sums(trap, ja + 1, jb)
+    disp[1:] = np.where(same, f_k[1:] - f_k[:-1], (trap[ja] - f_k[:-1]) + full + f_k[1:])
+    disp[~ok] = 0.0
+    # σ_disc²: the two partial ends and the whole intervals between them
+    dv2 = np.sum(np.square(np.diff(vv, axis=0)), axis=1) / 12.0  # |Δv_j|²/12
     a_t, b_t = tc[:-1], tc[1:]
-    same = ja == jb
-    o_a = np.where(same, b_t - a_t, tt[ja + 1] - a_t)
-    o_b = np.where(same, 0.0, b_t - tt[jb])
-    mid = np.where(same, 0.0, cum_full[jb] - cum_full[np.minimum(ja + 1, jb)])
+    same1 = same[:, 0]
+    o_a = np.where(same1, b_t - a_t, tt[ja + 1] - a_t)
+    o_b = np.where(same1, 0.0, b_t - tt[jb])
+    mid = _segment_sums(h * h * dv2, ja + 1, jb)
     disc[1:] = np.where(ok[1:], o_a * o_a * dv2[ja] + o_b * o_b * dv2[jb] + mid, 0.0)
     return disp, ok, disc
+
+
+def _segment_sums(values: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """Σ values[start_g:stop_g] along axis 0 for each g, each segment summed on its own (0 where
+    start ≥ stop). values (J, ...); start, stop (G,) ints in [0, J]."""
+    padded = np.concatenate([values, np.zeros((1, *values.shape[1:]))])
+    idx = np.empty(2 * start.size, dtype=np.intp)
+    idx[0::2] = np.minimum(start, values.shape[0])
+    idx[1::2] = np.minimum(np.maximum(stop, start), values.shape[0])
+    sums = np.add.reduceat(padded, idx, axis=0)[0::2]
+    empty = stop <= start
+    sums[empty] = 0.0
+    return sums
