@@ -37,6 +37,12 @@ NLOS_EM_ROUNDS = 10
 NLOS_EM_TOL = 1e-4
 #: step tolerance of the solves while π_k is still being re-estimated [m]
 NLOS_ROUND_STEP_M = 1e-3
+#: while some π_k still moves by more than NLOS_PARTIAL_MOVED, a round is a partial M-step of at
+#: most NLOS_PARTIAL_ITERATIONS Levenberg–Marquardt iterations (at most NLOS_PARTIAL_ROUNDS such
+#: rounds; they do not count against NLOS_EM_ROUNDS)
+NLOS_PARTIAL_MOVED = 1e-3
+NLOS_PARTIAL_ITERATIONS = 2
+NLOS_PARTIAL_ROUNDS = 20
 #: per-user range-noise scale (params.estimate_noise_scale): upper bound, fewest degrees of
 #: freedom to estimate it from, relative change below which it is not re-solved, and most rounds
 NOISE_SCALE_MAX = 10.0
@@ -342,17 +348,28 @@ def solve_loss(
         prob.nlos_prob_k = nlos_prob_update(prob, gamma, active)
     tol = params.step_tol_m if step_tol_m is None else step_tol_m
     # while π_k still moves, solve only to NLOS_ROUND_STEP_M; then to tol (all π_k on the
-    # floor, i.e. LoS: to tol at once)
+    # floor, i.e. LoS: to tol at once). While it moves a lot, a round is a partial M-step (a few
+    # iterations, generalized EM: the likelihood still rises every round), so that the slow
+    # (linear) convergence of π does not cost a full solve per round; the rounds that decide
+    # convergence are full solves.
     tight = bool(np.all(prob.nlos_prob_k[active] <= NLOS_PROB_MIN))
-    for _ in range(NLOS_EM_ROUNDS):
+    moved = np.inf
+    n_full = n_partial = 0
+    while True:
+        partial = not tight and moved > NLOS_PARTIAL_MOVED and n_partial < NLOS_PARTIAL_ROUNDS
         res = levenberg_marquardt(
-            prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M))
+            prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M),
+            max_iterations=NLOS_PARTIAL_ITERATIONS if partial else None)
+        n_partial += partial
+        n_full += not partial
         pi = nlos_prob_update(prob, res.lin.w, active)
         moved = float(np.max(np.abs(pi - prob.nlos_prob_k)))
-        if moved <= NLOS_EM_TOL:
+        if not partial and moved <= NLOS_EM_TOL:
             if tight:
                 break
             tight = True
         prob.nlos_prob_k = pi
         x, theta = res.x, res.theta
+        if n_full >= NLOS_EM_ROUNDS:
+            break
     return res
