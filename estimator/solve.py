@@ -245,7 +245,7 @@ def _solve_robust(
     bias from the position, into basins 5–13 m away that fit a little better.)"""
     params = prob.params
     if not (params.estimate_bias and params.bias_select and prob.bias_sigma_k is None):
-        return _solve_scaled(prob, x, theta, active, prior, step_tol_m)
+        return _solve_scaled(prob, x, theta, active, prior, step_tol_m)[0]
     k_all, d_u = prob.n_users, prob.user_dim
     # every bias held at 0 by the tight prior σ_off
     inv_off2 = 1.0 / BIAS_OFF_SIGMA_M**2
@@ -253,7 +253,7 @@ def _solve_robust(
     prob.bias_sigma_k = np.full(k_all, BIAS_OFF_SIGMA_M)
     theta = theta.copy()
     theta[:, -1] = 0.0
-    res = _solve_scaled(prob, x, theta, active, prior, step_tol_m)
+    res, rescaled = _solve_scaled(prob, x, theta, active, prior, step_tol_m)
     ib = np.arange(k_all) * prob.p + d_u
     keep = np.zeros(k_all, dtype=bool)
     b_step = np.zeros(k_all)
@@ -264,10 +264,17 @@ def _solve_robust(
         # parameters' gradient is zero at the optimum)
         s_free = res.s.copy()
         s_free[ib, ib] -= inv_off2 - inv_free2
-        n = res.x.shape[0]
-        _, _, _, jac, psi = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
         g = np.zeros(s_free.shape[0])
-        g[ib] = -(psi * jac[-1]).sum(axis=1) - res.theta[:, -1] * inv_free2
+        if res.gn_step:
+            # after the Gauss–Newton step the linear model's gradient of the bias-off problem is
+            # zero: the ranges' pull −Σ ψ J_b there balances the tight prior's b/σ_off², so
+            # −Σ ψ J_b − b/σ_b² = b (1/(ρ_k² σ_off²) − 1/σ_b²) without evaluating the ranges
+            # again (ρ_k: the noise scale's last change if it only rescaled S; ψ J_b ∝ 1/ρ_k²)
+            g[ib] = res.theta[:, -1] * (inv_off2 / np.square(rescaled) - inv_free2)
+        else:
+            n = res.x.shape[0]
+            _, _, _, jac, psi = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
+            g[ib] = -(psi * jac[-1]).sum(axis=1) - res.theta[:, -1] * inv_free2
         try:
             cov = np.linalg.inv(s_free)
         except np.linalg.LinAlgError:
@@ -283,17 +290,20 @@ def _solve_robust(
     prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
     theta = res.theta.copy()
     theta[keep, -1] = b_step[keep]
-    return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m)
+    return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m)[0]
 
 
 def _solve_scaled(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None,
     step_tol_m: float | None,
-) -> _Result:
-    """solve_loss, then rounds of noise_scale_update (see solve_robust)."""
+) -> tuple[_Result, np.ndarray]:
+    """solve_loss, then rounds of noise_scale_update (see solve_robust). Returns (result, (K,)
+    ratio of the noise scales to those of the last solve: ≠ 1 where a last small change only
+    rescaled S)."""
     res = solve_loss(prob, x, theta, active, prior, step_tol_m)
+    ones = np.ones(prob.n_users)
     if not prob.params.estimate_noise_scale:
-        return res
+        return res, ones
     if prob.noise_scale_k is None:
         prob.noise_scale_k = np.ones(prob.n_users)
     for _ in range(NOISE_SCALE_ROUNDS):
@@ -316,10 +326,10 @@ def _solve_scaled(
                     sb = prob.params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
                     prior_b[prob.user_dim :: prob.p] = 1.0 / np.square(sb)
                 s_new = (res.s - np.diag(prior_b)) * dvec[:, None] * dvec[None, :] + np.diag(prior_b)
-                res = _Result(res.x, res.theta, res.lin, s_new, res.iterations, res.converged)
-            break
+                res = _Result(res.x, res.theta, res.lin, s_new, res.iterations, res.converged, res.gn_step)
+            return res, ratio
         res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m)
-    return res
+    return res, ones
 
 
 def solve_loss(
