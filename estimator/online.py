@@ -60,6 +60,14 @@ ONLINE_MIN_EXTENT_M = 10.0
 #: noise scale or NLoS probability moved by more than ONLINE_CHECK_EVIDENCE (relative) since the
 #: last check
 ONLINE_CHECK_MARGIN = 4.0
+#: Levenberg–Marquardt iterations of one online full update (each run of the schedule) when
+#: filter steps come in between (online_resolve_every > 1): a solve that needs more (a user just
+#: started, known from a short arc, in a curved valley of the cost) goes on at the next update,
+#: with more ranges, instead of costing tens of iterations at once
+ONLINE_MAX_ITERATIONS = 4
+#: a filter step may move a parameter by this many of its standard deviations (or by
+#: params.online_max_step_m, whichever is larger) before the window is re-solved instead
+ONLINE_STEP_SIGMA = 0.5
 ONLINE_CHECK_BACKOFF_MAX = 8
 ONLINE_CHECK_EVIDENCE = 0.1
 
@@ -220,9 +228,14 @@ class OnlineEstimator:
         check = self._check_due(newly)
         if check:
             prob.bias_sigma_k = None  # choose again which biases to estimate
+        # with filter steps in between (online_resolve_every > 1) a solve is amortized over the
+        # updates: capped iterations, one round of the NLoS-probability and noise-scale estimates
+        # (the next update goes on from here); online_resolve_every = 1 solves fully every time
+        amortize = int(self._params.online_resolve_every) > 1
         res = solve_robust(
             prob, self._x[: self._n].copy(), self._theta, self._active, self._prior,
-            step_tol_m=self._params.online_step_tol_m,
+            step_tol_m=self._params.online_step_tol_m, max_iterations=ONLINE_MAX_ITERATIONS if amortize else None,
+            rounds=1 if amortize else None,
         )
         self._x[: self._n] = res.x
         self._theta = res.theta
@@ -388,7 +401,7 @@ class OnlineEstimator:
         except np.linalg.LinAlgError:
             return None
         dth = cov @ g_add if full else cov[:, cols] @ g_add
-        if not (np.abs(dth).max() <= params.online_max_step_m):
+        if not self._step_ok(dth, cov):
             return None
         # Δx_n = H_nn⁻¹ (g_n − H_nθ Δθ)
         self._x[n] = gps + hg - hb @ (dth if full else dth[cols])
@@ -413,7 +426,7 @@ class OnlineEstimator:
             dx_l, dx_n, dth, s_aug, cov = chain_step(self._s_aug, phi, w_gps, *ranges)
         except np.linalg.LinAlgError:
             return None
-        if p_all and not (np.abs(dth).max() <= self._params.online_max_step_m):
+        if p_all and not self._step_ok(dth, cov):
             return None
         self._x[n - 1] += dx_l
         self._x[n] = x0 + dx_n
@@ -424,6 +437,19 @@ class OnlineEstimator:
         s_nt = s_aug[:3, 3:]
         self._s = s_aug[3:, 3:] - s_nt.T @ np.linalg.solve(s_aug[:3, :3], s_nt)
         return self._filter_estimate(self._s, cov)
+
+    def _step_ok(self, dth: np.ndarray, cov: np.ndarray) -> bool:
+        """A filter step ΔΘ (P,) is kept when no parameter moves by more than the larger of
+        params.online_max_step_m and, where that is at least twice as large, ONLINE_STEP_SIGMA of
+        its standard deviation (from the step's covariance cov (P, P)): a user still known to
+        several metres or worse (just started, few ranges from a short arc) moves metres per
+        keyframe, within its uncertainty, without a re-solve."""
+        step = np.abs(dth)
+        lim = self._params.online_max_step_m
+        if step.max() <= lim:
+            return True
+        rel = ONLINE_STEP_SIGMA * np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return bool(np.all(step <= np.where(rel >= 2.0 * lim, rel, lim)))
 
     def _blockdiag_index(self, m: int) -> np.ndarray:
         """Flat indices of the m diagonal p×p blocks of an (m·p, m·p) matrix, block-row-major."""
