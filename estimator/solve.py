@@ -303,12 +303,12 @@ def _solve_scaled(
     """solve_loss, then rounds of noise_scale_update (see solve_robust). Returns (result, (K,)
     ratio of the noise scales to those of the last solve: ≠ 1 where a last change only rescaled
     S: a small one, or any in the last of `rounds` rounds)."""
-    res = solve_loss(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)
     ones = np.ones(prob.n_users)
+    if prob.params.estimate_noise_scale and prob.noise_scale_k is None:
+        prob.noise_scale_k = ones.copy()
+    res = solve_loss(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)
     if not prob.params.estimate_noise_scale:
         return res, ones
-    if prob.noise_scale_k is None:
-        prob.noise_scale_k = np.ones(prob.n_users)
     n_rounds = NOISE_SCALE_ROUNDS if rounds is None else rounds
     for r in range(n_rounds):
         new = noise_scale_update(prob, res.lin, active)
@@ -377,6 +377,10 @@ def solve_loss(
         n_partial += partial
         n_full += not partial
         pi = nlos_prob_update(prob, res.lin.w, active)
+        if partial and params.estimate_noise_scale and prob.noise_scale_k is not None:
+            # the noise scale (solve_robust) moves with π: re-estimated with it while π moves a
+            # lot, so that its own rounds (_solve_scaled) start near their fixed point
+            prob.noise_scale_k = noise_scale_update(prob, res.lin, active)
         moved = float(np.max(np.abs(pi - prob.nlos_prob_k)))
         if not partial and moved <= NLOS_EM_TOL:
             if tight:
