@@ -26,6 +26,7 @@ from estimator.problem import (
     users_from_theta,
 )
 from estimator.solve import (
+    BIAS_OFF_SIGMA_M,
     observed_s,
     solve_robust,
 )
@@ -97,6 +98,7 @@ def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Pri
 def solve_batch(
     keyframes: Sequence[Keyframe], n_users: int, user_up_m: np.ndarray, noise: NoiseModel,
     params: SolverParams = SolverParams(), init_users_enu_m: np.ndarray | None = None,  # noqa: B008
+    warm: Estimate | None = None,
 ) -> Estimate:
     """Estimate users and UAV keyframes from all keyframes at once.
 
@@ -105,12 +107,18 @@ def solve_batch(
         the initial value in 3-D mode); init_users_enu_m: optional (K, 3) starts [m, ENU], rows
         with NaN are initialised by grid search.
     Users with fewer than p + 1 ranges (p unknowns) are not estimated: NaN rows, inf covariance.
+    warm: an Estimate solve_batch returned for a prefix of these keyframes (a refresh,
+        estimator.refresh): see _warm_solve; extra["warm_started"] says whether it was used.
     Raises EstimatorError on malformed input, naming the offending value.
     """
     prob = pack_keyframes(keyframes, n_users, user_up_m, noise, params)
     k_all, p = prob.n_users, prob.p
     n_ranges = prob.mask.sum(axis=0)
     active = n_ranges >= prob.min_ranges()
+    if warm is not None:
+        est = _warm_solve(prob, warm, active, n_ranges)
+        if est is not None:
+            return est
     theta = np.zeros((k_all, p))
     theta[:, :2] = np.nan
     given = None
@@ -136,6 +144,61 @@ def solve_batch(
     res, mirrors = _resolve_mirrors(prob, res, active)
     est = _estimate(prob, res, active, mirrors, n_ranges)
     est.extra["clock"] = clocks
+    est.extra["warm_started"] = False
+    return est
+
+
+def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.ndarray) -> Estimate | None:
+    """The batch solve started from `warm`, the answer for the first N' < N keyframes, keeping its
+    model choices: the UAV track and the users (θ with the biases) start where it left them (new
+    keyframes at their GPS fixes), and the per-user NLoS probabilities π_k, noise scales s_k, bias
+    selection and clock sawtooths (period and phase; the amplitude A_k is re-estimated with the
+    positions, r̂ = d + A_k · frac(t/P_k − φ_k) extended to the new keyframes) are the warm
+    answer's. One robust solve and the mirror tests then replace the cold solve's bias selection,
+    clock detection and their re-solves (estimator.refresh: a cold solve re-makes the choices as
+    the data grow). None — solve cold — when the warm answer does not fit: another size, fewer
+    keyframes, a user it had not started, or choices it does not carry."""
+    n, k_all, p = prob.n_keyframes, prob.n_users, prob.p
+    x_prev = np.asarray(warm.uav_enu_m, dtype=float)
+    ex = warm.extra or {}
+    warm_active = np.asarray(ex.get("active", np.zeros(k_all, dtype=bool)), dtype=bool)
+    clocks = ex.get("clock")
+    if (
+        warm.n_users != k_all or x_prev.ndim != 2 or not 0 < x_prev.shape[0] <= n
+        or warm_active.shape != (k_all,) or np.any(active & ~warm_active)
+        or clocks is None or len(clocks) != k_all or "noise_scale" not in ex
+        or (prob.params.estimate_bias and (warm.bias_m is None or "bias_on" not in ex))
+        or (prob.params.loss == "nlos" and prob.params.nlos_adapt and "nlos_prob_k" not in ex)
+    ):
+        return None
+    x = prob.gps_enu_m.copy()
+    x[: x_prev.shape[0]] = x_prev
+    theta = np.zeros((k_all, p))
+    theta[:, : prob.user_dim] = np.asarray(warm.users_enu_m, dtype=float)[:, : prob.user_dim]
+    if prob.params.estimate_bias:
+        theta[:, -1] = np.nan_to_num(np.asarray(warm.bias_m, dtype=float))
+        prob.bias_sigma_k = np.where(np.asarray(ex["bias_on"], dtype=bool), prob.params.bias_prior_sigma_m,
+                                     BIAS_OFF_SIGMA_M)
+        if any(c is not None for c in clocks):
+            t = prob.t_s[:n]
+            gain = np.ones((n, k_all))
+            for k, fit in enumerate(clocks):
+                if fit is not None:
+                    gain[:, k] = fit.value_m(t) / fit.amplitude_m
+            prob.bias_gain = gain
+            prob.bias_force_k = np.array([c is not None for c in clocks])
+    theta[~active] = 0.0
+    if not np.all(np.isfinite(theta[active])):
+        return None
+    if "nlos_prob_k" in ex:
+        prob.nlos_prob_k = np.asarray(ex["nlos_prob_k"], dtype=float).copy()
+    if prob.params.estimate_noise_scale:
+        prob.noise_scale_k = np.asarray(ex["noise_scale"], dtype=float).copy()
+    res = solve_robust(prob, x, theta, active)
+    res, mirrors = _resolve_mirrors(prob, res, active)
+    est = _estimate(prob, res, active, mirrors, n_ranges)
+    est.extra["clock"] = list(clocks) if prob.params.estimate_bias else [None] * k_all
+    est.extra["warm_started"] = True
     return est
 
 

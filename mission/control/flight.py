@@ -28,6 +28,7 @@ flights). Request timeouts stay in wall seconds.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
 import time
@@ -40,6 +41,7 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
+from estimator.refresh import SOURCE_BATCH
 from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.control.config import (
@@ -312,13 +314,17 @@ class MissionController:
 
     async def _estimator_task(self) -> None:
         f = self.flight
+        # the stop rule is judged on batch estimates only: a target the online estimate reaches
+        # asks the worker for a batch refresh first (estimator.refresh)
+        reached = functools.partial(targets_reached, target_radius_m=self.config.target_radius_m)
         worker = EstimatorWorker(len(self.users), np.array([u.up_m for u in self.users]), self.noise,
-                                 self.params, self.pipeline.keyframes_out, mode=self.config.estimator_mode)
+                                 self.params, self.pipeline.keyframes_out, mode=self.config.estimator_mode,
+                                 confirm=reached)
 
         def on_estimate(est: Estimate) -> None:
             f.estimate = est
             self.journal.estimate(self.origin, est, len(self.pipeline.keyframes), f.flown_m)
-            if f.phase == SURVEY and targets_reached(est, self.config.target_radius_m):
+            if f.phase == SURVEY and est.extra.get("source") == SOURCE_BATCH and reached(est):
                 f.finish_survey(STATUS_TARGET, "target reached")
 
         def on_error(exc: EstimatorError) -> None:
