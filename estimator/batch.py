@@ -146,23 +146,9 @@ def solve_batch(
     res, mirrors = _resolve_mirrors(prob, res, active)
     est = _estimate(prob, res, active, mirrors, n_ranges)
     est.extra["clock"] = clocks
-    est.extra["clock_triggered"] = _clock_trigger(prob, res, active)
+    est.extra["clock_triggered"] = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
     est.extra["warm_started"] = False
     return est
-
-
-def _clock_trigger(prob: Problem, res: _Result, active: np.ndarray) -> np.ndarray:
-    """(K,) users whose range residuals at `res` would start a clock-sawtooth fit
-    (_track_clocks): RMS of the whitened residuals about their mean, the noise scale undone, over
-    the ranges the loss keeps (weight ≥ ½), ≥ CLOCK_TRIGGER_SCALE with CLOCK_MIN_RANGES of them."""
-    n = prob.n_keyframes
-    wk = (res.lin.w >= 0.5) & prob.mask[:n].T
-    cnt = wk.sum(axis=1)
-    sc = np.ones(prob.n_users) if prob.noise_scale_k is None else prob.noise_scale_k
-    e = res.lin.e * sc[:, None]
-    mean = (e * wk).sum(axis=1) / np.maximum(cnt, 1)
-    rms = np.sqrt((((e - mean[:, None]) ** 2) * wk).sum(axis=1) / np.maximum(cnt, 1))
-    return active & (rms >= CLOCK_TRIGGER_SCALE) & (cnt >= CLOCK_MIN_RANGES)
 
 
 def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.ndarray) -> Estimate | None:
@@ -213,7 +199,7 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
     if prob.params.estimate_noise_scale:
         prob.noise_scale_k = np.asarray(ex["noise_scale"], dtype=float).copy()
     res = solve_robust(prob, x, theta, active)
-    triggered = _clock_trigger(prob, res, active)
+    triggered = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
     if prob.params.track_clock and prob.params.estimate_bias:
         # a user without a sawtooth whose residuals now call for one (more periods seen since the
         # cold solve, which did not test it): the clock detection needs the cold solve
