@@ -195,11 +195,12 @@ def linearize(
     if params.estimate_bias:
         # bias prior e_k = b_k / σ_b,k (σ_b,k tiny where the bias was selected off)
         sb = params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
-        inv_b2 = np.broadcast_to(1.0 / np.square(sb), (k_all,))
+        inv_b2 = 1.0 / np.square(sb)  # scalar or (K,)
         bias = theta[:, -1]
         huu_blocks[:, -1, -1] += inv_b2
         gu[:, -1] -= bias * inv_b2
-        cost += 0.5 * float(np.sum((inv_b2 * bias * bias)[active]))
+        bb = inv_b2 * bias * bias
+        cost += 0.5 * float(bb.sum() if active.all() else bb[active].sum())
     if not active.all():
         inactive = ~active
         huu_blocks[inactive] = np.eye(p)

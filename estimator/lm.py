@@ -31,6 +31,9 @@ class _Result:
     s: np.ndarray | None
     iterations: int
     converged: bool
+    #: the last step was the undamped Gauss–Newton step of `lin` (whose S is `s`): the gradient of
+    #: the linear model at (x, θ) is zero
+    gn_step: bool = False
 
 
 def levenberg_marquardt(
@@ -53,7 +56,7 @@ def levenberg_marquardt(
     lin = linearize(prob, x, theta, active, prior)
     lam = 0.0
     s_final = None
-    converged = False
+    converged = gn_step = False
     prev: tuple[float, float] | None = None  # (user, keyframe) sizes of the last undamped step
     it = 0
     while it < max_it:
@@ -87,7 +90,7 @@ def levenberg_marquardt(
             x = x + dx
             theta = theta + du
             s_final = s if lam == 0.0 else None
-            converged = True
+            converged, gn_step = True, lam == 0.0
             break
         x_t, th_t = x + dx, theta + du
         lin_t = linearize(prob, x_t, th_t, active, prior)
@@ -105,4 +108,4 @@ def levenberg_marquardt(
             _, _, s_final = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
         except (np.linalg.LinAlgError, EstimatorError):
             s_final = None
-    return _Result(x, theta, lin, s_final, it, converged)
+    return _Result(x, theta, lin, s_final, it, converged, gn_step)

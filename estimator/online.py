@@ -4,6 +4,7 @@ Gaussian prior, and information-filter steps between window solves (estimator.sl
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from scipy.special import erfcx
@@ -12,11 +13,12 @@ from estimator.batch import (
     _grid_init,
     _mirror_all,
 )
-from estimator.gps import gps_chain_terms
+from estimator.gps import gps_chain_terms, gps_phi
 from estimator.init import init_user, user_cost
 from estimator.linearize import (
     Prior,
     _range_terms,
+    linearize,
 )
 from estimator.lm import (
     _Result,
@@ -27,6 +29,7 @@ from estimator.marginals import (
     _estimate,
 )
 from estimator.noise import NoiseModel
+from estimator.online_chain import chain_marginal_prior, chain_step, last_keyframe_information
 from estimator.problem import (
     Problem,
     check_keyframe,
@@ -57,6 +60,14 @@ ONLINE_MIN_EXTENT_M = 10.0
 #: noise scale or NLoS probability moved by more than ONLINE_CHECK_EVIDENCE (relative) since the
 #: last check
 ONLINE_CHECK_MARGIN = 4.0
+#: Levenberg–Marquardt iterations of one online full update (each run of the schedule) when
+#: filter steps come in between (online_resolve_every > 1): a solve that needs more (a user just
+#: started, known from a short arc, in a curved valley of the cost) goes on at the next update,
+#: with more ranges, instead of costing tens of iterations at once
+ONLINE_MAX_ITERATIONS = 4
+#: a filter step may move a parameter by this many of its standard deviations (or by
+#: params.online_max_step_m, whichever is larger) before the window is re-solved instead
+ONLINE_STEP_SIGMA = 0.5
 ONLINE_CHECK_BACKOFF_MAX = 8
 ONLINE_CHECK_EVIDENCE = 0.1
 
@@ -118,6 +129,8 @@ class OnlineEstimator:
         self._win_count = np.zeros(self._k, dtype=int)  # ranges per user in the window
         self._min_start = max(self._p + 1, ONLINE_MIN_RANGES)
         self._s: np.ndarray | None = None  # users' information S at the last solution
+        # information of [last window keyframe, Θ] (Gauss–Markov GPS filter steps), or None
+        self._s_aug: np.ndarray | None = None
         self._cost = float("nan")
         self._last_check = 0
         self._check_interval = max(int(params.online_check_every), 1)
@@ -183,7 +196,7 @@ class OnlineEstimator:
         every = int(self._params.online_resolve_every)
         if (
             every > 1 and self._s is not None and not self._odom_mask[n] and self._n < self._cap
-            and not self._gps_linked
+            and (not self._gps_linked or (self._s_aug is not None and n > 0))
             and self._seen % every != 0
             and (self._all_active or not (~self._active[idx] & (self._win_count[idx] >= self._min_start)).any())
         ):
@@ -219,9 +232,14 @@ class OnlineEstimator:
         check = self._check_due(newly)
         if check:
             prob.bias_sigma_k = None  # choose again which biases to estimate
+        # with filter steps in between (online_resolve_every > 1) a solve is amortized over the
+        # updates: capped iterations, one round of the NLoS-probability and noise-scale estimates
+        # (the next update goes on from here); online_resolve_every = 1 solves fully every time
+        amortize = int(self._params.online_resolve_every) > 1
         res = solve_robust(
             prob, self._x[: self._n].copy(), self._theta, self._active, self._prior,
-            step_tol_m=self._params.online_step_tol_m,
+            step_tol_m=self._params.online_step_tol_m, max_iterations=ONLINE_MAX_ITERATIONS if amortize else None,
+            rounds=1 if amortize else None,
         )
         self._x[: self._n] = res.x
         self._theta = res.theta
@@ -240,10 +258,16 @@ class OnlineEstimator:
         self._all_active = bool(self._active.all())
         self._nlos_pi_list = self._nlos_pi.tolist()
         self._s = res.s
+        self._s_aug = None
+        if self._gps_linked and res.s is not None and int(self._params.online_resolve_every) > 1:
+            # the summary of the Gauss–Markov filter steps (estimator.online_chain)
+            self._s_aug = last_keyframe_information(res.lin, res.s)
         self._cost = res.lin.cost
-        if self._n > self._params.window and not self._marginalize_block(self._n - self._params.window):
-            while self._n > self._params.window:
-                self._marginalize_oldest()
+        if self._n > self._params.window:
+            m = self._n - self._params.window
+            if not (self._marginalize_block(m) or self._marginalize_chain(m)):
+                while self._n > self._params.window:
+                    self._marginalize_oldest()
         return est
 
     def _filter_step(self, n: int, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> Estimate | None:
@@ -266,15 +290,22 @@ class OnlineEstimator:
         for the update plus O((K·p)³) for S⁻¹ (the covariance), independent of N and window.
         """
         params, noise = self._params, self._noise
-        self._x[n] = gps
+        linked = self._gps_linked
+        if linked:
+            # the Gauss–Markov prediction x_n⁰ = x̂_n + φ_n (x_l − x̂_l): the GPS factor's residual is 0
+            phi = float(gps_phi(self._t[n - 1 : n + 1], noise.gps_tau_used_s)[1])
+            x0 = gps + phi * (self._x[n - 1] - self._gps[n - 1])
+        else:
+            x0 = gps
+            self._x[n] = gps
         if self._all_active:
             if idx.size == 0:
-                return self._filter_estimate(self._s, None)
+                return self._chain_step(n, x0, phi, None) if linked else self._filter_estimate(self._s, None)
             ka, r_list = idx, rng.tolist()
         else:
             use = self._active[idx]
             if not use.any():
-                return self._filter_estimate(self._s, None)
+                return self._chain_step(n, x0, phi, None) if linked else self._filter_estimate(self._s, None)
             ka, r_list = idx[use], rng[use].tolist()
         ka_list = ka.tolist()
         # every user ranged, in order: S_add covers all of S
@@ -282,7 +313,7 @@ class OnlineEstimator:
         p, d_u = self._p, params.user_dim
         with_bias = params.estimate_bias
         # per range, in Python floats (m ≤ K small): geometry, residual, Jacobian factors
-        gx, gy, gz = gps.tolist()
+        gx, gy, gz = x0.tolist()
         users = self._users[ka].tolist()
         biases = self._theta[ka, -1].tolist() if with_bias else None
         sig_dd = noise.a_m != 0.0 and noise.b_per_m != 0.0
@@ -318,7 +349,8 @@ class OnlineEstimator:
             psi, w = psi_a.tolist(), w_a.tolist()
         # J_x = −α û, J_θ = [α û_(:d), (−1/σ)]: H_nn = I/σ_gps² + Σ w J_xᵀJ_x, g_n = −Σ ψ J_x,
         # B = H_nθ (3, m·p) with blocks w J_xᵀ J_θ, blockdiag H_θθ = w J_θᵀ J_θ, g_θ = −ψ J_θ
-        ig = self._inv_g2
+        # (the GPS factor of a linked keyframe enters in _chain_step)
+        ig = 0.0 if linked else self._inv_g2
         h00 = h11 = h22 = ig
         h01 = h02 = h12 = 0.0
         g0 = g1 = g2 = 0.0
@@ -333,7 +365,6 @@ class OnlineEstimator:
             g0 += pj * vx
             g1 += pj * vy
             g2 += pj * vz
-        hinv = _inv3_sym(h00, h01, h02, h11, h12, h22)
         m = ka.size
         u_a = np.array(us)  # α û, (m, 3)
         w_a = np.array(w)
@@ -344,6 +375,15 @@ class OnlineEstimator:
         # B[i, (j, c)] = w_j J_x,ji J_θ,jc = −w_j α û_ji J_θ,jc
         b = ((u_a * w_a[:, None]).T[:, :, None] * jt[None, :, :]).reshape(3, m * p)
         np.negative(b, out=b)
+        if linked:
+            h_nn = np.array([[h00, h01, h02], [h01, h11, h12], [h02, h12, h22]])
+            cols = (ka[:, None] * p + self._arange_p).ravel()
+            h_tt = np.zeros((m * p, m * p))
+            h_tt.ravel()[self._blockdiag_index(m)] = ((jt * w_a[:, None])[:, :, None] * jt[:, None, :]).ravel()
+            g_t = (jt * np.array(psi)[:, None]).ravel()
+            np.negative(g_t, out=g_t)
+            return self._chain_step(n, x0, phi, (h_nn, np.array([g0, g1, g2]), b, cols, h_tt, g_t))
+        hinv = _inv3_sym(h00, h01, h02, h11, h12, h22)
         hb = hinv @ b  # H_nn⁻¹ H_nθ
         hg = hinv @ np.array([g0, g1, g2])
         # S_add = blockdiag(w J_θᵀ J_θ) − Bᵀ H_nn⁻¹ B;  g_add = −ψ J_θ − Bᵀ H_nn⁻¹ g_n
@@ -365,7 +405,7 @@ class OnlineEstimator:
         except np.linalg.LinAlgError:
             return None
         dth = cov @ g_add if full else cov[:, cols] @ g_add
-        if not (np.abs(dth).max() <= params.online_max_step_m):
+        if not self._step_ok(dth, cov):
             return None
         # Δx_n = H_nn⁻¹ (g_n − H_nθ Δθ)
         self._x[n] = gps + hg - hb @ (dth if full else dth[cols])
@@ -373,6 +413,47 @@ class OnlineEstimator:
         self._users[:, :d_u] = self._theta[:, :d_u]
         self._s = s_new
         return self._filter_estimate(s_new, cov)
+
+    def _chain_step(self, n: int, x0: np.ndarray, phi: float, ranges: tuple | None) -> Estimate | None:
+        """The filter step of a keyframe linked to the last one by its Gauss–Markov GPS factor
+        (estimator.online_chain): the window summarized by Ŝ, the information of [x_l, Θ]; x_l
+        moves with the step, the older keyframes keep their positions until the next full solve.
+        ranges: the new keyframe's range terms at x0 (online_chain.chain_step), None without any.
+        None when the step is larger than params.online_max_step_m or J is not positive definite."""
+        p_all = self._k * self._p
+        if ranges is None:
+            ranges = (np.zeros((3, 3)), np.zeros(3), np.zeros((3, 0)), np.zeros(0, dtype=np.intp),
+                      np.zeros((0, 0)), np.zeros(0))
+        # W_n = 1/(σ_gps² (1 − φ²))
+        w_gps = 1.0 / (self._noise.sigma_gps_m**2 * (1.0 - phi * phi))
+        try:
+            dx_l, dx_n, dth, s_aug, cov = chain_step(self._s_aug, phi, w_gps, *ranges)
+        except np.linalg.LinAlgError:
+            return None
+        if p_all and not self._step_ok(dth, cov):
+            return None
+        self._x[n - 1] += dx_l
+        self._x[n] = x0 + dx_n
+        self._theta = self._theta + dth.reshape(self._k, self._p)
+        self._users[:, : self._params.user_dim] = self._theta[:, : self._params.user_dim]
+        self._s_aug = s_aug
+        # the users' information: Ŝ' with x_n eliminated
+        s_nt = s_aug[:3, 3:]
+        self._s = s_aug[3:, 3:] - s_nt.T @ np.linalg.solve(s_aug[:3, :3], s_nt)
+        return self._filter_estimate(self._s, cov)
+
+    def _step_ok(self, dth: np.ndarray, cov: np.ndarray) -> bool:
+        """A filter step ΔΘ (P,) is kept when no parameter moves by more than the larger of
+        params.online_max_step_m and, where that is at least twice as large, ONLINE_STEP_SIGMA of
+        its standard deviation (from the step's covariance cov (P, P)): a user still known to
+        several metres or worse (just started, few ranges from a short arc) moves metres per
+        keyframe, within its uncertainty, without a re-solve."""
+        step = np.abs(dth)
+        lim = self._params.online_max_step_m
+        if step.max() <= lim:
+            return True
+        rel = ONLINE_STEP_SIGMA * np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return bool(np.all(step <= np.where(rel >= 2.0 * lim, rel, lim)))
 
     def _blockdiag_index(self, m: int) -> np.ndarray:
         """Flat indices of the m diagonal p×p blocks of an (m·p, m·p) matrix, block-row-major."""
@@ -601,6 +682,43 @@ class OnlineEstimator:
             arr[: n - m] = arr[m:n]
         self._odom_mask[0] = False
         self._odom_sigma[0] = np.nan
+        self._n = n - m
+        return True
+
+    def _marginalize_chain(self, m: int) -> bool:
+        """Fold the m oldest keyframes into a prior on [x_m, Θ] at once when Gauss–Markov GPS
+        factors chain them (online_chain.chain_marginal_prior); False (nothing done) otherwise.
+        The same prior as m calls of _marginalize_oldest at the same point."""
+        prob = self._problem()
+        if not prob.gps_linked or not 1 <= m < self._n:
+            return False
+        # the factors touching keyframes 0..m−1: all but keyframe m's ranges
+        n1 = m + 1
+        rng = prob.range_m[:n1].copy()
+        rng[m] = np.nan
+        sub = replace(prob, gps_enu_m=prob.gps_enu_m[:n1], range_m=rng, mask=~np.isnan(rng),
+                      odom_enu_m=prob.odom_enu_m[:n1], odom_mask=prob.odom_mask[:n1], t_s=prob.t_s[:n1])
+        lin = linearize(sub, self._x[:n1], self._theta, self._active, self._prior)
+        # linearize adds the bias priors and an identity block for inactive users: factors of the
+        # window, not of these keyframes
+        p, k_all = self._p, self._k
+        blocks = lin.huu.reshape(k_all, p, k_all, p)
+        if self._params.estimate_bias:
+            sb = self._params.bias_prior_sigma_m if self._bias_sigma is None else self._bias_sigma
+            inv_b2 = np.broadcast_to(1.0 / np.square(sb), (k_all,))
+            act = np.flatnonzero(self._active)
+            blocks[act, -1, act, -1] -= inv_b2[act]
+            lin.gu.reshape(k_all, p)[act, -1] += self._theta[act, -1] * inv_b2[act]
+        for k in np.flatnonzero(~self._active):
+            blocks[k, :, k, :] -= np.eye(p)
+        info, grad = chain_marginal_prior(lin, m)
+        self._prior = Prior(True, np.concatenate([self._x[m], self._theta.ravel()]), info, grad)
+        n = self._n
+        self._win_count -= prob.mask[:m].sum(axis=0)
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x, self._t):
+            arr[: n - m] = arr[m:n]
+        self._odom_mask[0] = False
+        self._gps_first = False  # keyframe m's link to m − 1 now lives in the prior
         self._n = n - m
         return True
 

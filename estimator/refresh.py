@@ -49,7 +49,7 @@ from uavloc.errors import EstimatorError
 REFRESH_SHARE = 0.05
 REFRESH_MIN_KEYFRAMES = 3
 #: a refresh is cold when the keyframes have grown by this factor since the last cold one
-COLD_GROWTH = 1.5
+COLD_GROWTH = 2.0
 #: a refresh asked for by `confirm` comes at most this often [keyframes]
 CONFIRM_MIN_KEYFRAMES = 2
 

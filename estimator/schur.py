@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.linalg import solveh_banded
+from scipy.linalg.lapack import dposv as _dposv
 
 from uavloc.errors import EstimatorError
 
@@ -103,20 +104,22 @@ def schur_solve(
         bg[:, :, p] = gx
         ay = np.matmul(hinv, bg).reshape(3 * n, p + 1)
         b2 = bg[:, :, :p].reshape(3 * n, p)
-        a2 = ay[:, :p]
-        y2 = ay[:, p]
     else:
         # banded solve in keyframe-major order (row 3n + i)
-        b_nm = hxu.reshape(3 * n, p)
-        sol = solveh_banded(_banded(hxx, off), np.column_stack([b_nm, gx.reshape(-1)]), lower=False)
-        b2, a2, y2 = b_nm, sol[:, :p], sol[:, p]
+        b2 = hxu.reshape(3 * n, p)
+        ay = solveh_banded(_banded(hxx, off), np.column_stack([b2, gx.reshape(-1)]), lower=False)
+    a2, y2 = ay[:, :p], ay[:, p]
+    # H_ux H_xx⁻¹ [H_xu | g_x] in one product
+    bay = b2.T @ ay
     # S = H_uu − H_ux H_xx⁻¹ H_xu
-    s = huu - b2.T @ a2
+    s = huu - bay[:, :p]
     s = 0.5 * (s + s.T)
     # S Δθ = g_u − H_ux H_xx⁻¹ g_x
-    rhs = gu - b2.T @ y2
-    np.linalg.cholesky(s)  # raises LinAlgError unless S is positive definite
-    du = np.linalg.solve(s, rhs)
+    rhs = gu - bay[:, p]
+    # Cholesky factorization and solve in one LAPACK call; info > 0: S not positive definite
+    _, du, info = _dposv(s, rhs)
+    if info != 0:
+        raise np.linalg.LinAlgError("Schur complement S is not positive definite")
     # Δx = H_xx⁻¹ (g_x − H_xu Δθ) = y − A Δθ
     dx = (y2 - a2 @ du).reshape(n, 3)
     return dx, du, s

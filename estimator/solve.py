@@ -37,6 +37,12 @@ NLOS_EM_ROUNDS = 10
 NLOS_EM_TOL = 1e-4
 #: step tolerance of the solves while π_k is still being re-estimated [m]
 NLOS_ROUND_STEP_M = 1e-3
+#: while some π_k still moves by more than NLOS_PARTIAL_MOVED, a round is a partial M-step of at
+#: most NLOS_PARTIAL_ITERATIONS Levenberg–Marquardt iterations (at most NLOS_PARTIAL_ROUNDS such
+#: rounds; they do not count against NLOS_EM_ROUNDS)
+NLOS_PARTIAL_MOVED = 1e-3
+NLOS_PARTIAL_ITERATIONS = 2
+NLOS_PARTIAL_ROUNDS = 20
 #: per-user range-noise scale (params.estimate_noise_scale): upper bound, fewest degrees of
 #: freedom to estimate it from, relative change below which it is not re-solved, and most rounds
 NOISE_SCALE_MAX = 10.0
@@ -135,11 +141,14 @@ def noise_scale_update(prob: Problem, lin: Linearization, active: np.ndarray) ->
 
 def solve_robust(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
-    step_tol_m: float | None = None,
+    step_tol_m: float | None = None, max_iterations: int | None = None, rounds: int | None = None,
 ) -> _Result:
     """:func:`_solve_robust` (the schedule: loss, noise scale, bias selection), with S from the
-    observed information when the "nlos" loss found NLoS (observed_s)."""
-    res = _solve_robust(prob, x, theta, active, prior, step_tol_m)
+    observed information when the "nlos" loss found NLoS (observed_s). max_iterations: of each
+    Levenberg–Marquardt run (None: params.max_iterations). rounds: the most solves of the
+    NLoS-probability (EM) and noise-scale re-estimation (None: NLOS_EM_ROUNDS, NOISE_SCALE_ROUNDS);
+    the online estimator passes 1 and goes on at its next update (the estimates are kept in prob)."""
+    res = _solve_robust(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)
     return observed_s(prob, res, active, prior)
 
 
@@ -218,7 +227,7 @@ def _nlos_prob_blocks(
 
 def _solve_robust(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
-    step_tol_m: float | None = None,
+    step_tol_m: float | None = None, max_iterations: int | None = None, rounds: int | None = None,
 ) -> _Result:
     """:func:`solve_loss` and, with params.estimate_noise_scale, the per-user range-noise scale
     re-estimated from the solution's residuals (noise_scale_update, stored in prob.noise_scale_k):
@@ -239,7 +248,7 @@ def _solve_robust(
     bias from the position, into basins 5–13 m away that fit a little better.)"""
     params = prob.params
     if not (params.estimate_bias and params.bias_select and prob.bias_sigma_k is None):
-        return _solve_scaled(prob, x, theta, active, prior, step_tol_m)
+        return _solve_scaled(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)[0]
     k_all, d_u = prob.n_users, prob.user_dim
     # every bias held at 0 by the tight prior σ_off
     inv_off2 = 1.0 / BIAS_OFF_SIGMA_M**2
@@ -247,7 +256,7 @@ def _solve_robust(
     prob.bias_sigma_k = np.full(k_all, BIAS_OFF_SIGMA_M)
     theta = theta.copy()
     theta[:, -1] = 0.0
-    res = _solve_scaled(prob, x, theta, active, prior, step_tol_m)
+    res, rescaled = _solve_scaled(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)
     ib = np.arange(k_all) * prob.p + d_u
     keep = np.zeros(k_all, dtype=bool)
     b_step = np.zeros(k_all)
@@ -258,10 +267,17 @@ def _solve_robust(
         # parameters' gradient is zero at the optimum)
         s_free = res.s.copy()
         s_free[ib, ib] -= inv_off2 - inv_free2
-        n = res.x.shape[0]
-        _, _, _, jac, psi = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
         g = np.zeros(s_free.shape[0])
-        g[ib] = -(psi * jac[-1]).sum(axis=1) - res.theta[:, -1] * inv_free2
+        if res.gn_step:
+            # after the Gauss–Newton step the linear model's gradient of the bias-off problem is
+            # zero: the ranges' pull −Σ ψ J_b there balances the tight prior's b/σ_off², so
+            # −Σ ψ J_b − b/σ_b² = b (1/(ρ_k² σ_off²) − 1/σ_b²) without evaluating the ranges
+            # again (ρ_k: the noise scale's last change if it only rescaled S; ψ J_b ∝ 1/ρ_k²)
+            g[ib] = res.theta[:, -1] * (inv_off2 / np.square(rescaled) - inv_free2)
+        else:
+            n = res.x.shape[0]
+            _, _, _, jac, psi = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
+            g[ib] = -(psi * jac[-1]).sum(axis=1) - res.theta[:, -1] * inv_free2
         try:
             cov = np.linalg.inv(s_free)
         except np.linalg.LinAlgError:
@@ -277,27 +293,31 @@ def _solve_robust(
     prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
     theta = res.theta.copy()
     theta[keep, -1] = b_step[keep]
-    return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m)
+    return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m, max_iterations, rounds)[0]
 
 
 def _solve_scaled(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None,
-    step_tol_m: float | None,
-) -> _Result:
-    """solve_loss, then rounds of noise_scale_update (see solve_robust)."""
-    res = solve_loss(prob, x, theta, active, prior, step_tol_m)
+    step_tol_m: float | None, max_iterations: int | None = None, rounds: int | None = None,
+) -> tuple[_Result, np.ndarray]:
+    """solve_loss, then rounds of noise_scale_update (see solve_robust). Returns (result, (K,)
+    ratio of the noise scales to those of the last solve: ≠ 1 where a last change only rescaled
+    S: a small one, or any in the last of `rounds` rounds)."""
+    ones = np.ones(prob.n_users)
+    if prob.params.estimate_noise_scale and prob.noise_scale_k is None:
+        prob.noise_scale_k = ones.copy()
+    res = solve_loss(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)
     if not prob.params.estimate_noise_scale:
-        return res
-    if prob.noise_scale_k is None:
-        prob.noise_scale_k = np.ones(prob.n_users)
-    for _ in range(NOISE_SCALE_ROUNDS):
+        return res, ones
+    n_rounds = NOISE_SCALE_ROUNDS if rounds is None else rounds
+    for r in range(n_rounds):
         new = noise_scale_update(prob, res.lin, active)
         ratio = new / prob.noise_scale_k
         change = float(np.max(np.abs(ratio - 1.0)))
         if change == 0.0:
             break
         prob.noise_scale_k = new
-        if change <= NOISE_SCALE_RESOLVE:
+        if change <= NOISE_SCALE_RESOLVE or (rounds is not None and r == n_rounds - 1):
             # a small change moves the solution by a fraction of its σ: keep it, and scale the
             # information of user k by 1/s_k (S' = D S D, D = diag(1/ratio_k) per parameter). A
             # user's information comes mostly from its own ranges, which scale exactly so; the
@@ -310,15 +330,15 @@ def _solve_scaled(
                     sb = prob.params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
                     prior_b[prob.user_dim :: prob.p] = 1.0 / np.square(sb)
                 s_new = (res.s - np.diag(prior_b)) * dvec[:, None] * dvec[None, :] + np.diag(prior_b)
-                res = _Result(res.x, res.theta, res.lin, s_new, res.iterations, res.converged)
-            break
-        res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m)
-    return res
+                res = _Result(res.x, res.theta, res.lin, s_new, res.iterations, res.converged, res.gn_step)
+            return res, ratio
+        res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m, max_iterations, rounds)
+    return res, ones
 
 
 def solve_loss(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
-    step_tol_m: float | None = None,
+    step_tol_m: float | None = None, max_iterations: int | None = None, rounds: int | None = None,
 ) -> _Result:
     """Levenberg–Marquardt with the loss's schedule: a redescending loss starts from a Huber
     solution; "nlos" with params.nlos_adapt alternates solves with the maximum-likelihood π_k at
@@ -328,10 +348,10 @@ def solve_loss(
     if params.loss in REDESCENDING:
         # a redescending loss ignores what it deems outliers: start it from the Huber solution
         warm = replace(prob, params=replace(params, loss="huber", loss_scale=HUBER_WARM_SCALE))
-        pre = levenberg_marquardt(warm, x, theta, active, prior, step_tol_m=step_tol_m)
+        pre = levenberg_marquardt(warm, x, theta, active, prior, max_iterations, step_tol_m=step_tol_m)
         x, theta = pre.x, pre.theta
     if params.loss != "nlos" or not params.nlos_adapt:
-        return levenberg_marquardt(prob, x, theta, active, prior, step_tol_m=step_tol_m)
+        return levenberg_marquardt(prob, x, theta, active, prior, max_iterations, step_tol_m=step_tol_m)
     if prob.nlos_prob_k is None:
         # π_k from params.nlos_prob re-estimated at the starting residuals (at LoS it drops to
         # the floor at once, and the solve runs near-quadratic from the first iteration)
@@ -342,17 +362,32 @@ def solve_loss(
         prob.nlos_prob_k = nlos_prob_update(prob, gamma, active)
     tol = params.step_tol_m if step_tol_m is None else step_tol_m
     # while π_k still moves, solve only to NLOS_ROUND_STEP_M; then to tol (all π_k on the
-    # floor, i.e. LoS: to tol at once)
+    # floor, i.e. LoS: to tol at once). While it moves a lot, a round is a partial M-step (a few
+    # iterations, generalized EM: the likelihood still rises every round), so that the slow
+    # (linear) convergence of π does not cost a full solve per round; the rounds that decide
+    # convergence are full solves.
     tight = bool(np.all(prob.nlos_prob_k[active] <= NLOS_PROB_MIN))
-    for _ in range(NLOS_EM_ROUNDS):
+    moved = np.inf
+    n_full = n_partial = 0
+    while True:
+        partial = rounds is None and not tight and moved > NLOS_PARTIAL_MOVED and n_partial < NLOS_PARTIAL_ROUNDS
         res = levenberg_marquardt(
-            prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M))
+            prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M),
+            max_iterations=NLOS_PARTIAL_ITERATIONS if partial else max_iterations)
+        n_partial += partial
+        n_full += not partial
         pi = nlos_prob_update(prob, res.lin.w, active)
+        if partial and params.estimate_noise_scale and prob.noise_scale_k is not None:
+            # the noise scale (solve_robust) moves with π: re-estimated with it while π moves a
+            # lot, so that its own rounds (_solve_scaled) start near their fixed point
+            prob.noise_scale_k = noise_scale_update(prob, res.lin, active)
         moved = float(np.max(np.abs(pi - prob.nlos_prob_k)))
-        if moved <= NLOS_EM_TOL:
+        if not partial and moved <= NLOS_EM_TOL:
             if tight:
                 break
             tight = True
         prob.nlos_prob_k = pi
         x, theta = res.x, res.theta
+        if n_full >= (NLOS_EM_ROUNDS if rounds is None else rounds):
+            break
     return res

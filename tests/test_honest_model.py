@@ -354,3 +354,139 @@ def test_nlos_curvature_is_the_derivative_of_psi(pi, m):
     c = nlos_curvature(e, pi, m)
     np.testing.assert_allclose(c, fd, atol=1e-8)
     assert c.min() < 0.0  # ranges the mixture cannot classify carry negative curvature
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_fft_periodogram_peak_matches_the_direct_sum(seed):
+    """estimator.clock.peak_frequency_hz (FFT on a uniform grid) against the direct periodogram
+    sum on a 4×-oversampled grid: the same peak within a quarter of the resolution 1/span."""
+    from estimator.clock import peak_frequency_hz, periodogram
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(150, 2500))
+    t = np.cumsum(rng.uniform(0.2, 0.6, n))
+    t -= t[0]
+    x = rng.uniform(4, 14) * np.mod(t / rng.uniform(5, 40) - rng.uniform(), 1) + rng.normal(scale=3.0, size=n)
+    x -= x.mean()
+    span = float(t.max())
+    f_min, f_max = 2.0 / span, 1.0 / (4.0 * float(np.median(np.diff(t))))
+    freqs = np.linspace(f_min, f_max, math.ceil(4.0 * (f_max - f_min) * span) + 1)
+    f_direct = freqs[int(np.argmax(periodogram(t, x, freqs)))]
+    assert abs(peak_frequency_hz(t, x, f_min, f_max) - f_direct) * span <= 0.25 + 1e-9
+
+
+def _dense_window_information(lin) -> np.ndarray:
+    """The window's normal matrix (3N + P, 3N + P) from its blocks, keyframe-major then Θ."""
+    n, p_all = lin.hxu.shape[0], lin.huu.shape[0]
+    h = np.zeros((3 * n + p_all, 3 * n + p_all))
+    for i in range(n):
+        h[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = lin.hxx[i]
+        if lin.off is not None and i < n - 1:
+            h[3 * i : 3 * i + 3, 3 * i + 3 : 3 * i + 6] = h[3 * i + 3 : 3 * i + 6, 3 * i : 3 * i + 3] = (
+                np.eye(3) * lin.off[i])
+    h[: 3 * n, 3 * n :] = lin.hxu.reshape(3 * n, p_all)
+    h[3 * n :, : 3 * n] = h[: 3 * n, 3 * n :].T
+    h[3 * n :, 3 * n :] = lin.huu
+    return h
+
+
+def test_last_keyframe_information_equals_the_dense_marginal():
+    """Ŝ of the Gauss–Markov filter steps: the information of [x_last, Θ] with every other
+    keyframe eliminated, against inverting the dense window matrix."""
+    from estimator.online_chain import last_keyframe_information
+
+    sc = simulate(np.random.default_rng(21), n_users=3, n_keyframes=60, noise=GM, gps_tau_s=60.0)
+    prob = pack_keyframes(sc.keyframes[:40], 3, sc.user_up_m, GM, FIXED)
+    theta = np.column_stack([sc.users_enu_m[:, :2], np.zeros(3)])
+    lin = linearize(prob, prob.gps_enu_m, theta, np.ones(3, dtype=bool))
+    s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu)[2]
+    h = _dense_window_information(lin)
+    n = prob.n_keyframes
+    sel = np.r_[3 * n - 3 : h.shape[0]]
+    ref = np.linalg.inv(np.linalg.inv(h)[np.ix_(sel, sel)])
+    got = last_keyframe_information(lin, s)
+    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("loss", ["nlos", "huber"])
+def test_online_gauss_markov_filter_step_matches_dense_elimination(loss):
+    """One filter step with a Gauss–Markov GPS link against the dense reference: variables
+    v = [x_l (3), x_n (3), Θ (K·p)], H = Ŝ on (x_l, Θ) + the GPS factor (GpsFactor) and the new
+    ranges (RangeFactor) linearized at the Gauss–Markov prediction x_n⁰ = x̂_n + φ (x_l − x̂_l)
+    and the previous Θ, Δv = H⁻¹ g; the new Ŝ is the Schur complement over x_l."""
+    from estimator.factors import RangeFactor
+    from estimator.robust import loss_psi_weight
+
+    sc = simulate(np.random.default_rng(31), n_users=3, n_keyframes=60, noise=GM, gps_tau_s=60.0, p_visible=0.8)
+    params = SolverParams(loss=loss, online_resolve_every=1000, window=1000, online_max_step_m=100.0,
+                          estimate_noise_scale=False)
+    j = next(i for i in range(40, 60) if 0 < sc.keyframes[i].user_idx.size < 3)
+    on = OnlineEstimator(3, sc.user_up_m, GM, params)
+    for kf in sc.keyframes[:j]:
+        est = on.add_keyframe(kf)
+    assert est.extra["active"].all()
+    last = sc.keyframes[j - 1]
+    on._full_update(on._n - 1, last.gps_enu_m, last.user_idx, last.range_m, None)
+    theta0, s_aug, pi = on._theta.copy(), on._s_aug.copy(), on._nlos_pi.copy()
+    x_l, g_l = on._x[on._n - 1].copy(), last.gps_enu_m
+    kf = sc.keyframes[j]
+    est = on.add_keyframe(kf)
+    assert est.extra.get("filter_step")
+    p, k_all = on._p, 3
+    dim = 6 + k_all * p
+    h = np.zeros((dim, dim))
+    g = np.zeros(dim)
+    sel = np.r_[0:3, 6:dim]
+    h[np.ix_(sel, sel)] = s_aug
+    phi = float(gps_phi(np.array([last.t_s, kf.t_s]), GM.gps_tau_s)[1])
+    x0 = kf.gps_enu_m + phi * (x_l - g_l)
+    gf = GpsFactor(kf.gps_enu_m, GM.sigma_gps_m, phi, g_l)
+    np.testing.assert_allclose(gf.error(x0, x_l), 0.0, atol=1e-12)
+    jn, jl = gf.jacobian()
+    jg = np.zeros((3, dim))
+    jg[:, 0:3], jg[:, 3:6] = jl, jn
+    h += jg.T @ jg
+    for k, r in zip(kf.user_idx, kf.range_m, strict=True):
+        f = RangeFactor(float(r), GM, params.user_dim, float(sc.user_up_m[k]), params.estimate_bias)
+        e = f.error(x0, theta0[k])
+        jx, jt = f.jacobian(x0, theta0[k])
+        sig = float(GM.range_sigma_m(np.linalg.norm(x0 - f._user(theta0[k])[0])))
+        _, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi[k], params.nlos_mean_m / sig))
+        jr = np.zeros(dim)
+        jr[3:6] = jx
+        jr[6 + k * p : 6 + (k + 1) * p] = jt
+        h += w[0] * np.outer(jr, jr)
+        g -= psi[0] * jr
+    dv = np.linalg.solve(h, g)
+    np.testing.assert_allclose(on._theta.ravel() - theta0.ravel(), dv[6:], rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(est.uav_enu_m[-1], x0 + dv[3:6], rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(est.uav_enu_m[-2], x_l + dv[:3], rtol=1e-9, atol=1e-11)
+    s_ref = h[3:, 3:] - h[3:, :3] @ np.linalg.solve(h[:3, :3], h[:3, 3:])
+    np.testing.assert_allclose(on._s_aug, s_ref, rtol=1e-9, atol=1e-12 * np.abs(s_ref).max())
+    cov_ref = np.linalg.inv(s_ref)[3:, 3:].reshape(k_all, p, k_all, p)
+    for k in range(k_all):
+        np.testing.assert_allclose(est.cov_users_m2[k], cov_ref[k, :2, k, :2], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("params", [FIXED, SolverParams()], ids=["fixed", "default"])
+def test_online_chain_block_marginalization_equals_one_keyframe_at_a_time(params):
+    """Folding m Gauss–Markov-linked keyframes into the prior at once gives the prior that m
+    single-keyframe marginalizations at the same point give (and the same window after)."""
+    import copy
+
+    sc = simulate(np.random.default_rng(23), n_users=3, n_keyframes=80, noise=GM, gps_tau_s=60.0, p_visible=0.8)
+    on = OnlineEstimator(3, sc.user_up_m, GM, replace(params, window=1000))
+    for kf in sc.keyframes[:50]:
+        on.add_keyframe(kf)
+    on._marginalize_oldest()  # a prior that already holds a keyframe
+    one = copy.deepcopy(on)
+    assert on._marginalize_chain(7)
+    for _ in range(7):
+        one._marginalize_oldest()
+    assert on._n == one._n and on._prior.has_x and one._prior.has_x
+    np.testing.assert_allclose(on._prior.z0, one._prior.z0, rtol=0, atol=1e-12)
+    scale = np.abs(one._prior.info).max()
+    np.testing.assert_allclose(on._prior.info, one._prior.info, rtol=1e-9, atol=1e-9 * scale)
+    np.testing.assert_allclose(on._prior.grad, one._prior.grad, rtol=1e-7, atol=1e-9 * scale)
+    np.testing.assert_array_equal(on._win_count, one._win_count)
+    np.testing.assert_array_equal(on._x[: on._n], one._x[: one._n])

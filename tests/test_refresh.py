@@ -139,7 +139,6 @@ def test_warm_batch_solve_keeps_the_choices_and_lands_on_the_cold_answer(sawtoot
     shift = np.linalg.norm(warm.users_enu_m[:, :2] - cold.users_enu_m[:, :2], axis=1)
     assert np.all(shift <= [0.01, 0.15, 0.01] * cold.error_bound_95_m()), (shift, cold.error_bound_95_m())
     np.testing.assert_allclose(warm.error_bound_95_m(), cold.error_bound_95_m(), rtol=0.05)
-    assert warm.iterations < cold.iterations or warm.iterations <= 3
 
 
 def test_warm_batch_solve_falls_back_to_cold_when_a_user_started_since(sawtooth_survey):
