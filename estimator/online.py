@@ -195,7 +195,8 @@ class OnlineEstimator:
         self._n = n + 1
         every = int(self._params.online_resolve_every)
         if (
-            every > 1 and self._s is not None and not self._odom_mask[n] and self._n < self._cap
+            every > 1 and self._s is not None and self._n < self._cap
+            and (not self._odom_mask[n] or (self._s_aug is not None and n > 0))
             and (not self._gps_linked or (self._s_aug is not None and n > 0))
             and self._seen % every != 0
             and (self._all_active or not (~self._active[idx] & (self._win_count[idx] >= self._min_start)).any())
@@ -259,7 +260,8 @@ class OnlineEstimator:
         self._nlos_pi_list = self._nlos_pi.tolist()
         self._s = res.s
         self._s_aug = None
-        if self._gps_linked and res.s is not None and int(self._params.online_resolve_every) > 1:
+        if ((self._gps_linked or bool(self._odom_mask[: self._n].any())) and res.s is not None
+                and int(self._params.online_resolve_every) > 1):
             # the summary of the Gauss–Markov filter steps (estimator.online_chain)
             self._s_aug = last_keyframe_information(res.lin, res.s)
         self._cost = res.lin.cost
@@ -290,14 +292,18 @@ class OnlineEstimator:
         for the update plus O((K·p)³) for S⁻¹ (the covariance), independent of N and window.
         """
         params, noise = self._params, self._noise
-        linked = self._gps_linked
-        if linked:
+        # a Gauss–Markov GPS link or a motion factor ties x_n to the last keyframe: the chain step
+        linked = self._gps_linked or bool(self._odom_mask[n])
+        phi = 0.0
+        if self._gps_linked:
             # the Gauss–Markov prediction x_n⁰ = x̂_n + φ_n (x_l − x̂_l): the GPS factor's residual is 0
             phi = float(gps_phi(self._t[n - 1 : n + 1], noise.gps_tau_used_s)[1])
             x0 = gps + phi * (self._x[n - 1] - self._gps[n - 1])
         else:
             x0 = gps
             self._x[n] = gps
+            if not linked:
+                self._s_aug = None  # no longer the summary of the last keyframe
         if self._all_active:
             if idx.size == 0:
                 return self._chain_step(n, x0, phi, None) if linked else self._filter_estimate(self._s, None)
@@ -416,18 +422,23 @@ class OnlineEstimator:
 
     def _chain_step(self, n: int, x0: np.ndarray, phi: float, ranges: tuple | None) -> Estimate | None:
         """The filter step of a keyframe linked to the last one by its Gauss–Markov GPS factor
-        (estimator.online_chain): the window summarized by Ŝ, the information of [x_l, Θ]; x_l
-        moves with the step, the older keyframes keep their positions until the next full solve.
+        and/or a relative-motion factor (estimator.online_chain): the window summarized by Ŝ, the
+        information of [x_l, Θ]; x_l moves with the step, the older keyframes keep their positions
+        until the next full solve.
         ranges: the new keyframe's range terms at x0 (online_chain.chain_step), None without any.
         None when the step is larger than params.online_max_step_m or J is not positive definite."""
         p_all = self._k * self._p
         if ranges is None:
             ranges = (np.zeros((3, 3)), np.zeros(3), np.zeros((3, 0)), np.zeros(0, dtype=np.intp),
                       np.zeros((0, 0)), np.zeros(0))
-        # W_n = 1/(σ_gps² (1 − φ²))
+        # W_n = 1/(σ_gps² (1 − φ²)); a motion factor W_m = 1/σ_m², δ = x_n⁰ − x_l − ô_n
         w_gps = 1.0 / (self._noise.sigma_gps_m**2 * (1.0 - phi * phi))
+        w_m, delta_m = 0.0, None
+        if self._odom_mask[n]:
+            w_m = 1.0 / float(self._odom_sigma[n]) ** 2
+            delta_m = x0 - self._x[n - 1] - self._odom[n]
         try:
-            dx_l, dx_n, dth, s_aug, cov = chain_step(self._s_aug, phi, w_gps, *ranges)
+            dx_l, dx_n, dth, s_aug, cov = chain_step(self._s_aug, phi, w_gps, *ranges, w_m=w_m, delta_m=delta_m)
         except np.linalg.LinAlgError:
             return None
         if p_all and not self._step_ok(dth, cov):

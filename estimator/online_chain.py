@@ -61,7 +61,7 @@ def last_keyframe_information(lin: Linearization, s: np.ndarray) -> np.ndarray:
 
 def chain_step(
     s_aug: np.ndarray, phi: float, w_gps: float, h_nn: np.ndarray, g_n: np.ndarray, b: np.ndarray,
-    cols: np.ndarray, h_tt: np.ndarray, g_t: np.ndarray,
+    cols: np.ndarray, h_tt: np.ndarray, g_t: np.ndarray, w_m: float = 0.0, delta_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One keyframe onto the chain summary (module docstring).
 
@@ -71,6 +71,11 @@ def chain_step(
     h_tt (m, m) their H_θθ, g_t (m,) −Σ ψ J_θ. The GPS factor (zero residual at x_n⁰) adds
 
         H_nn += W I,  H_ll += φ² W I,  H_nl = −φ W I
+
+    and a relative-motion factor linking x_n to x_l (w_m = 1/σ_m² > 0; delta_m (3,) its residual
+    δ = x_n⁰ − x_l − ô_n at the linearization point), ½ W_m ||x_n − x_l − ô_n||², adds
+
+        H_nn += W_m I,  H_ll += W_m I,  H_nl −= W_m I,  g_n −= W_m δ,  g_l += W_m δ
 
     Returns (Δx_l (3,), Δx_n (3,), ΔΘ (P,), Ŝ' (3 + P, 3 + P) the information of [x_n, Θ],
     cov (P, P) the users' covariance, (Ŝ'⁻¹)_ΘΘ). Raises numpy.linalg.LinAlgError when J is not
@@ -96,6 +101,13 @@ def chain_step(
     g = np.zeros(dim)
     g[3:6] = g_n
     g[c6] = g_t
+    if w_m:
+        jm[d, d] += w_m
+        jm[d + 3, d + 3] += w_m
+        jm[d, d + 3] -= w_m
+        jm[d + 3, d] -= w_m
+        g[:3] += w_m * delta_m
+        g[3:6] -= w_m * delta_m
     chol = np.linalg.cholesky(jm)
     dv = np.linalg.solve(chol.T, np.linalg.solve(chol, g))
     # Ŝ' = J_kk − J_kl J_ll⁻¹ J_lk over k = [x_n, Θ]
