@@ -222,13 +222,16 @@ def test_online_equals_batch_with_per_keyframe_motion_sigma():
     np.testing.assert_allclose(est.cov_users_m2, batch.cov_users_m2, rtol=1e-5)
 
 
-def test_online_marginalizes_per_keyframe_motion_links_close_to_batch():
+@pytest.mark.parametrize("tau_s", [0.0, 60.0], ids=["white-gps", "gauss-markov-gps"])
+def test_online_marginalizes_per_keyframe_motion_links_close_to_batch(tau_s):
     rng = np.random.default_rng(10)
-    sc = simulate(np.random.default_rng(9), n_users=3, n_keyframes=200, odom_sigma_m=0.05)
+    noise = replace(NOISE, gps_tau_s=tau_s)
+    sc = simulate(np.random.default_rng(9), n_users=3, n_keyframes=200, odom_sigma_m=0.05, noise=noise,
+                  gps_tau_s=tau_s, dt_s=0.4)
     kfs = _with_own_sigma(sc.keyframes, rng)
     params = SolverParams(window=40, estimate_bias=False, estimate_noise_scale=False)
-    batch = solve_batch(kfs, 3, sc.user_up_m, NOISE, params)
-    on = OnlineEstimator(3, sc.user_up_m, NOISE, params)
+    batch = solve_batch(kfs, 3, sc.user_up_m, noise, params)
+    on = OnlineEstimator(3, sc.user_up_m, noise, params)
     for kf in kfs:
         est = on.add_keyframe(kf)
     sigma = np.sqrt(np.trace(batch.cov_users_m2, axis1=1, axis2=2))
