@@ -717,9 +717,10 @@ class OnlineEstimator:
         self._prior = Prior(True, np.concatenate([self._x[m], self._theta.ravel()]), info, grad)
         n = self._n
         self._win_count -= prob.mask[:m].sum(axis=0)
-        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x, self._t):
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._odom_sigma, self._x, self._t):
             arr[: n - m] = arr[m:n]
         self._odom_mask[0] = False
+        self._odom_sigma[0] = np.nan
         self._gps_first = False  # keyframe m's link to m − 1 now lives in the prior
         self._n = n - m
         return True
