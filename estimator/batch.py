@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -26,15 +25,19 @@ from estimator.problem import (
     users_from_theta,
 )
 from estimator.solve import (
+    BIAS_OFF_SIGMA_M,
     observed_s,
     solve_robust,
 )
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
-#: clock tracking (params.track_clock): a user is tested for a sawtooth when its residuals' RMS
-#: exceeds CLOCK_TRIGGER_SCALE σ(d) and it has CLOCK_MIN_RANGES ranges; rounds of fit + re-solve
+#: clock tracking (params.track_clock): a user is tested for a sawtooth when it has
+#: CLOCK_MIN_RANGES ranges and its whitened residuals' RMS exceeds CLOCK_TRIGGER_SCALE or their
+#: lag-one autocorrelation exceeds CLOCK_TRIGGER_Z of its standard deviation under white noise;
+#: rounds of fit + re-solve
 CLOCK_TRIGGER_SCALE = 1.08
+CLOCK_TRIGGER_Z = 2.0
 CLOCK_MIN_RANGES = 40
 CLOCK_ROUNDS = 3
 
@@ -97,6 +100,7 @@ def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Pri
 def solve_batch(
     keyframes: Sequence[Keyframe], n_users: int, user_up_m: np.ndarray, noise: NoiseModel,
     params: SolverParams = SolverParams(), init_users_enu_m: np.ndarray | None = None,  # noqa: B008
+    warm: Estimate | None = None,
 ) -> Estimate:
     """Estimate users and UAV keyframes from all keyframes at once.
 
@@ -105,12 +109,18 @@ def solve_batch(
         the initial value in 3-D mode); init_users_enu_m: optional (K, 3) starts [m, ENU], rows
         with NaN are initialised by grid search.
     Users with fewer than p + 1 ranges (p unknowns) are not estimated: NaN rows, inf covariance.
+    warm: an Estimate solve_batch returned for a prefix of these keyframes (a refresh,
+        estimator.refresh): see _warm_solve; extra["warm_started"] says whether it was used.
     Raises EstimatorError on malformed input, naming the offending value.
     """
     prob = pack_keyframes(keyframes, n_users, user_up_m, noise, params)
     k_all, p = prob.n_users, prob.p
     n_ranges = prob.mask.sum(axis=0)
     active = n_ranges >= prob.min_ranges()
+    if warm is not None:
+        est = _warm_solve(prob, warm, active, n_ranges)
+        if est is not None:
+            return est
     theta = np.zeros((k_all, p))
     theta[:, :2] = np.nan
     given = None
@@ -136,13 +146,108 @@ def solve_batch(
     res, mirrors = _resolve_mirrors(prob, res, active)
     est = _estimate(prob, res, active, mirrors, n_ranges)
     est.extra["clock"] = clocks
+    est.extra["clock_triggered"] = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
+    est.extra["warm_started"] = False
     return est
 
 
+def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.ndarray) -> Estimate | None:
+    """The batch solve started from `warm`, the answer for the first N' < N keyframes, keeping its
+    model choices: the UAV track and the users (θ with the biases) start where it left them (new
+    keyframes at their GPS fixes), and the per-user NLoS probabilities π_k, noise scales s_k, bias
+    selection and clock sawtooths (period and phase; the amplitude A_k is re-estimated with the
+    positions, r̂ = d + A_k · frac(t/P_k − φ_k) extended to the new keyframes) are the warm
+    answer's. One robust solve and the mirror tests then replace the cold solve's bias selection,
+    clock detection and their re-solves (estimator.refresh: a cold solve re-makes the choices as
+    the data grow). None — solve cold — when the warm answer does not fit: another size, fewer
+    keyframes, a user it had not started, choices it does not carry, or a user without a sawtooth
+    whose residuals now trigger the clock test (_clock_trigger) and did not in the cold solve."""
+    n, k_all, p = prob.n_keyframes, prob.n_users, prob.p
+    x_prev = np.asarray(warm.uav_enu_m, dtype=float)
+    ex = warm.extra or {}
+    warm_active = np.asarray(ex.get("active", np.zeros(k_all, dtype=bool)), dtype=bool)
+    clocks = ex.get("clock")
+    if (
+        warm.n_users != k_all or x_prev.ndim != 2 or not 0 < x_prev.shape[0] <= n
+        or warm_active.shape != (k_all,) or np.any(active & ~warm_active)
+        or clocks is None or len(clocks) != k_all or "noise_scale" not in ex
+        or (prob.params.estimate_bias and (warm.bias_m is None or "bias_on" not in ex))
+        or (prob.params.loss == "nlos" and prob.params.nlos_adapt and "nlos_prob_k" not in ex)
+    ):
+        return None
+    x = prob.gps_enu_m.copy()
+    x[: x_prev.shape[0]] = x_prev
+    theta = np.zeros((k_all, p))
+    theta[:, : prob.user_dim] = np.asarray(warm.users_enu_m, dtype=float)[:, : prob.user_dim]
+    if prob.params.estimate_bias:
+        theta[:, -1] = np.nan_to_num(np.asarray(warm.bias_m, dtype=float))
+        prob.bias_sigma_k = np.where(np.asarray(ex["bias_on"], dtype=bool), prob.params.bias_prior_sigma_m,
+                                     BIAS_OFF_SIGMA_M)
+        if any(c is not None for c in clocks):
+            t = prob.t_s[:n]
+            gain = np.ones((n, k_all))
+            for k, fit in enumerate(clocks):
+                if fit is not None:
+                    gain[:, k] = fit.value_m(t) / fit.amplitude_m
+            prob.bias_gain = gain
+            prob.bias_force_k = np.array([c is not None for c in clocks])
+    theta[~active] = 0.0
+    if not np.all(np.isfinite(theta[active])):
+        return None
+    if "nlos_prob_k" in ex:
+        prob.nlos_prob_k = np.asarray(ex["nlos_prob_k"], dtype=float).copy()
+    if prob.params.estimate_noise_scale:
+        prob.noise_scale_k = np.asarray(ex["noise_scale"], dtype=float).copy()
+    res = solve_robust(prob, x, theta, active)
+    triggered = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
+    if prob.params.track_clock and prob.params.estimate_bias:
+        # a user without a sawtooth whose residuals now call for one (more periods seen since the
+        # cold solve, which did not test it): the clock detection needs the cold solve
+        tested = np.asarray(ex.get("clock_triggered", np.zeros(k_all, dtype=bool)), dtype=bool)
+        untracked = np.array([c is None for c in clocks])
+        if np.any(triggered & untracked & ~tested):
+            return None
+    res, mirrors = _resolve_mirrors(prob, res, active)
+    est = _estimate(prob, res, active, mirrors, n_ranges)
+    est.extra["clock"] = list(clocks) if prob.params.estimate_bias else [None] * k_all
+    est.extra["clock_triggered"] = triggered | np.asarray(ex.get("clock_triggered", triggered), dtype=bool)
+    est.extra["warm_started"] = True
+    return est
+
+
+def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """(K,) users to test for a clock sawtooth: active, with CLOCK_MIN_RANGES kept ranges
+    (kept (n, K)), and whose whitened residuals e (the noise scale undone: the test is against
+    the assumed σ(d)) about their mean ē are too large or too smooth for white noise:
+
+        RMS = √(Σ (e − ē)² / m) ≥ CLOCK_TRIGGER_SCALE,   or
+        z = ρ₁ √m₁ ≥ CLOCK_TRIGGER_Z,   ρ₁ = Σ (e_i − ē)(e_(i+1) − ē) / Σ (e − ē)²
+
+    over the m kept ranges and the m₁ pairs of consecutive keyframes both kept (ρ₁ ~ N(0, 1/m₁)
+    for white residuals: z ≥ 2 for ~2 % of users without a sawtooth, which costs them a fit that
+    the fit's own test then rejects). A sawtooth sampled many times per period is smooth (ρ₁ ≈ its share of
+    the variance); its variance alone hides in the noise of a short log (an 8 m sawtooth at
+    σ = 3 m over 120 ranges slipped under the RMS test in 4 of 40 logs, 4–6 m off)."""
+    n = prob.n_keyframes
+    wk = kept.T & prob.mask[:n].T
+    cnt = wk.sum(axis=1)
+    sc = np.ones(prob.n_users) if prob.noise_scale_k is None else prob.noise_scale_k
+    e = res.lin.e * sc[:, None]
+    mean = (e * wk).sum(axis=1) / np.maximum(cnt, 1)
+    dev = (e - mean[:, None]) * wk
+    ss = (dev * dev).sum(axis=1)
+    rms = np.sqrt(ss / np.maximum(cnt, 1))
+    # ρ₁ over consecutive kept pairs (dev is 0 where not kept)
+    pairs = (wk[:, 1:] & wk[:, :-1]).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(ss > 0, (dev[:, 1:] * dev[:, :-1]).sum(axis=1) / ss, 0.0) * np.sqrt(pairs)
+    return active & (cnt >= CLOCK_MIN_RANGES) & ((rms >= CLOCK_TRIGGER_SCALE) | (z >= CLOCK_TRIGGER_Z))
+
+
 def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Result, list]:
-    """Fit a clock sawtooth (estimator.clock) to each user whose range residuals are noisier than
-    its σ(d) by CLOCK_TRIGGER_SCALE; an accepted fit turns the user's bias into the sawtooth's
-    amplitude, r̂ = d + A_k · frac(t/P_k − φ_k) (prob.bias_gain, the bias kept free), so that A_k is
+    """Fit a clock sawtooth (estimator.clock) to each user whose range residuals are noisier or
+    smoother than white noise of its σ(d) (_clock_trigger); an accepted fit turns the user's bias
+    into the sawtooth's amplitude, r̂ = d + A_k · frac(t/P_k − φ_k) (prob.bias_gain, the bias kept free), so that A_k is
     estimated with the positions and its uncertainty enters their covariance; then solve again.
     CLOCK_ROUNDS rounds, each refitting (P, φ) on the residuals of the last solution.
     Returns (result, [SawtoothFit or None] per user)."""
@@ -153,32 +258,18 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
     for _ in range(CLOCK_ROUNDS):
         # only ranges the loss keeps (weight ≥ ½): an NLoS excess is no sawtooth
         kept = res.lin.w.T >= 0.5
-        if not any(fits):
-            # the trigger for all users at once: RMS of the whitened residuals about their mean
-            # (the noise scale undone: the test is against the assumed σ(d))
-            wk = kept.T & prob.mask[:n].T
-            cnt = np.maximum(wk.sum(axis=1), 1)
-            sc = np.ones(prob.n_users) if prob.noise_scale_k is None else prob.noise_scale_k
-            e = res.lin.e * sc[:, None]
-            mean = (e * wk).sum(axis=1) / cnt
-            rms = np.sqrt((((e - mean[:, None]) ** 2) * wk).sum(axis=1) / cnt)
-            if not np.any(active & (rms >= CLOCK_TRIGGER_SCALE) & (cnt >= CLOCK_MIN_RANGES)):
-                break
+        trig = _clock_trigger(prob, res, kept, active)
+        if not any(fits) and not trig.any():
+            break
         users = users_from_theta(res.theta, prob.user_up_m, prob.user_dim)
         d = np.linalg.norm(res.x[:, None, :] - users[None, :, :], axis=2)
-        sig = prob.noise.range_sigma_m(d)
-        bias = res.theta[:, -1] if prob.params.estimate_bias else np.zeros(prob.n_users)
         changed = False
         for k in np.flatnonzero(active):
             rows = prob.mask[:n, k] & kept[:, k]
-            if int(rows.sum()) < CLOCK_MIN_RANGES:
+            if int(rows.sum()) < CLOCK_MIN_RANGES or (fits[k] is None and not trig[k]):
                 continue
             # r̂ − d: the sawtooth (or bias) and the noise
             r = prob.range_m[rows, k] - d[rows, k]
-            if fits[k] is None:
-                dev = r - bias[k] - np.mean(r - bias[k])
-                if math.sqrt(float(np.mean((dev / sig[rows, k]) ** 2))) < CLOCK_TRIGGER_SCALE:
-                    continue
             fit = fit_sawtooth(t[rows], r)
             if fit is None:
                 continue

@@ -28,14 +28,17 @@ from uavloc.errors import EstimatorError
 def crlb_users(
     uav_enu_m: np.ndarray, users_enu_m: np.ndarray, visible: np.ndarray, noise: NoiseModel,
     params: SolverParams = SolverParams(),  # noqa: B008
-    t_s: np.ndarray | None = None,
+    t_s: np.ndarray | None = None, bias_gain: np.ndarray | None = None,
 ) -> np.ndarray:
     """(K·d, K·d) lower bound on the joint covariance of the users' coordinates [m²].
 
     uav_enu_m: (N, 3) true keyframe positions [m, ENU]; users_enu_m: (K, 3) true users [m, ENU];
     visible: (N, K) bool, which ranges are measured; d = params.user_dim; t_s: (N,) keyframe
-    times [s], needed for Gauss–Markov GPS factors (noise.gps_tau_s > 0; None: GPS white). Coordinates are ordered
-    user by user (east, north[, up]). Users that no range sees get inf on their diagonal.
+    times [s], needed for Gauss–Markov GPS factors (noise.gps_tau_s > 0; None: GPS white);
+    bias_gain: (N, K) gain g_nk of user k's bias in range n, r̂ = d + b_k g_nk (Problem.bias_gain:
+    a tracked clock sawtooth's shape, b_k its amplitude; needs params.estimate_bias; None: 1).
+    Coordinates are ordered user by user (east, north[, up]). Users that no range sees get inf on
+    their diagonal.
     """
     check_params(params)
     if not isinstance(noise, NoiseModel):
@@ -65,8 +68,15 @@ def crlb_users(
     times = None if t_s is None else np.asarray(t_s, dtype=float)
     if times is not None and times.shape != (n,):
         raise EstimatorError(f"t_s must have shape ({n},), got {times.shape}")
+    gain = None
+    if bias_gain is not None:
+        gain = np.asarray(bias_gain, dtype=float)
+        if not params.estimate_bias:
+            raise EstimatorError("bias_gain needs params.estimate_bias")
+        if gain.shape != (n, k_all) or not np.all(np.isfinite(gain)):
+            raise EstimatorError(f"bias_gain must be finite with shape ({n}, {k_all}), got {gain.shape}")
     prob = Problem(uav, rng, vis, odom, odom_mask, users[:, 2].copy(), noise, replace(params, loss="none"),
-                   t_s=times)
+                   t_s=times, bias_gain=gain)
     theta = np.zeros((k_all, p))
     theta[:, :d_u] = users[:, :d_u]
     active = vis.sum(axis=0) > 0

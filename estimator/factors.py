@@ -97,6 +97,92 @@ class RangeFactor:
         return j_x, np.concatenate(j_theta)
 
 
+def range_residuals(
+    diff_enu_m: np.ndarray, range_m: np.ndarray | None, bias_m: np.ndarray | float, noise: NoiseModel,
+    scale: np.ndarray | None = None, gps_var_m2: float = 0.0, mask: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | float, np.ndarray, np.ndarray]:
+    """The range factor's error, vectorised: the one source of the range model for the batch and
+    online linearization (estimator.linearize), initialization and the mirror test (estimator.init)
+    and the planner's predicted information (planner.information). RangeFactor is the same factor
+    one range at a time, for the dense reference.
+
+        d = max(||x − u||, 1e-9),  σ = √((s σ(d))² + σ_gps²),  r = r̂ − d − b,  e = r / σ
+
+    diff_enu_m: (3, ...) x − u, coordinates first (numpy's inner loops then run over the long
+        axes) [m]; range_m: (...) measured ranges r̂ [m], or None for the noise-free prediction
+        (r = 0); bias_m: b (times its gain), broadcastable to (...) [m], or 0.0; scale: per-user
+        noise scale s broadcastable to (...), or None (1); gps_var_m2: σ_gps² folded into the range
+        variance where the UAV is held at its fix (initialization, planner), 0 where it is a
+        variable of the solve; mask: (...) bool, ranges to use (r and e are 0 elsewhere), or None.
+    Returns d (...) [m]; σ [m], a scalar (or s alone) when it does not depend on d (a = 0), else
+    (...); r (...) [m]; e (...).
+    """
+    d = np.sqrt(diff_enu_m[0] * diff_enu_m[0] + diff_enu_m[1] * diff_enu_m[1] + diff_enu_m[2] * diff_enu_m[2])
+    np.maximum(d, 1e-9, out=d)
+    # σ(d) = s0 + a·exp(b·d): a scalar when it does not depend on d (a cheaper loss evaluation)
+    sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
+    if scale is not None:
+        sig = sig * scale
+    if gps_var_m2:
+        # σ_eff = √(σ² + σ_gps²)
+        sig = np.sqrt(sig * sig + gps_var_m2)
+    if range_m is None:
+        r = np.zeros_like(d)
+    else:
+        r = range_m - d
+        if not (np.isscalar(bias_m) and bias_m == 0.0):
+            r -= bias_m
+        if mask is not None:
+            r[~mask] = 0.0
+    return d, sig, r, r / sig
+
+
+def range_alpha(
+    d: np.ndarray, sig: np.ndarray | float, r: np.ndarray, noise: NoiseModel, scale: np.ndarray | None = None,
+    gps_var_m2: float = 0.0, mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """α = −∂e/∂d of the range factor (shapes as returned by range_residuals; a scalar when σ is one
+    and there is no mask), 0 where not mask:
+
+        α = 1/σ + r σ'/σ²,   σ' = dσ/dd = s a b exp(b d) · sσ(d)/σ   (σ_gps folded: σ = √((sσ(d))² + σ_gps²))
+    """
+    if noise.a_m != 0.0 and noise.b_per_m != 0.0:
+        dsig = noise.range_sigma_dd(d)
+        if scale is not None:
+            dsig = dsig * scale
+        if gps_var_m2:
+            # d√(σ² + σ_gps²)/dd = σ σ' / σ_eff with σ = s σ(d)
+            base = noise.range_sigma_m(d) * (1.0 if scale is None else scale)
+            dsig = dsig * base / sig
+        alpha = 1.0 / sig + r * dsig / sig**2
+        if mask is not None:
+            alpha *= mask
+        return alpha
+    return 1.0 / sig if mask is None else mask / sig
+
+
+def range_jacobian(
+    diff_enu_m: np.ndarray, d: np.ndarray, alpha: np.ndarray, sig: np.ndarray | float, user_dim: int,
+    with_bias: bool, gain: np.ndarray | None = None, mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """(3 + p, ...) [∂e/∂x; ∂e/∂θ] of the range factor, θ = [east, north, (up), (bias)], p = user_dim
+    (+ 1 with_bias); shapes as in range_residuals, gain the bias's gain g (None: 1):
+
+        ∂e/∂x = −α û,   ∂e/∂u = α û (its first user_dim coordinates),   ∂e/∂b = −g/σ
+    """
+    p = user_dim + (1 if with_bias else 0)
+    jac = np.empty((3 + p, *d.shape))
+    np.multiply(diff_enu_m, np.divide(-alpha, d), out=jac[:3])
+    np.negative(jac[:user_dim], out=jac[3 : 3 + user_dim])
+    if with_bias:
+        np.divide(-1.0, sig, out=jac[-1])
+        if gain is not None:
+            jac[-1] *= gain
+        if mask is not None:
+            jac[-1] *= mask
+    return jac
+
+
 @dataclass(frozen=True)
 class BiasPriorFactor:
     """Weak zero-mean prior on a range bias: e = b / σ_b."""
@@ -153,6 +239,8 @@ def dense_normal_equations(
                 h[c1 : c1 + j1.shape[1], c2 : c2 + j2.shape[1]] += w * j1.T @ j2
 
     phi = prob.gps_phi() if prob.gps_linked else np.zeros(n)
+    # σ_m,n of each keyframe's motion factor (Problem.odom_weight: 0 where none)
+    wm = prob.odom_weight() if prob.use_motion else np.zeros(n)
     scale = np.ones(k_all) if prob.noise_scale_k is None else prob.noise_scale_k
     for i in range(n):
         if i > 0 or prob.gps_first or not prob.gps_linked:
@@ -162,8 +250,8 @@ def dense_normal_equations(
             cost += 0.5 * float(e @ e)
             jx, jprev = gf.jacobian()
             add([(3 * i, jx)] + ([(3 * (i - 1), jprev)] if phi[i] != 0.0 else []), e, 1.0)
-        if prob.odom_mask[i] and params.motion_sigma_m is not None:
-            m = MotionFactor(prob.odom_enu_m[i], params.motion_sigma_m)
+        if wm[i] > 0:
+            m = MotionFactor(prob.odom_enu_m[i], float(1.0 / np.sqrt(wm[i])))
             e = m.error(uav_enu_m[i - 1], uav_enu_m[i])
             j0, j1 = m.jacobian(uav_enu_m[i - 1], uav_enu_m[i])
             cost += 0.5 * float(e @ e)

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimator.factors import range_jacobian, range_residuals
 from estimator.noise import NoiseModel
 from estimator.robust import loss_psi_weight, loss_rho, nlos_args
 from estimator.types import SolverParams
@@ -94,9 +95,8 @@ def user_cost(
     loss = params.loss if loss is None else loss
     scale = params.loss_scale if scale is None else scale
     u, b = _theta_to_user(theta, params.user_dim, up_m)
-    d = np.linalg.norm(uav_enu_m - u, axis=1)
-    sig = _sigma_eff(noise, d)
-    e = (range_m - d - b) / sig
+    # e = (r̂ − d − b) / σ_eff(d): the range factor with the UAV at its fix (estimator.factors)
+    _, sig, _, e = range_residuals((uav_enu_m - u).T, range_m, b, noise, gps_var_m2=noise.sigma_gps_m**2)
     cost = float(np.sum(loss_rho(e, loss, scale, nlos_args(params, sig))))
     if params.estimate_bias:
         cost += 0.5 * (b / params.bias_prior_sigma_m) ** 2
@@ -116,18 +116,16 @@ def refine_user(
     d_u = params.user_dim
     theta = np.array(theta0, dtype=float)
     cost = user_cost(uav_enu_m, range_m, theta, up_m, noise, params, loss, scale)
+    gps_var = noise.sigma_gps_m**2
     for _ in range(iterations):
         u, b = _theta_to_user(theta, d_u, up_m)
-        diff = uav_enu_m - u
-        d = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
-        sig = np.broadcast_to(_sigma_eff(noise, d), d.shape)
-        e = (range_m - d - b) / sig
+        diff = (uav_enu_m - u).T
+        # the range factor with the UAV at its fix (estimator.factors), σ_eff held fixed in the
+        # Jacobian (α = 1/σ_eff): ∂e/∂u = û/σ, ∂e/∂b = −1/σ
+        d, sig, _, e = range_residuals(diff, range_m, b, noise, gps_var_m2=gps_var)
+        sig = np.broadcast_to(sig, d.shape)
         _, psi, w = loss_psi_weight(e, loss, scale, nlos_args(params, sig), need_rho=False)
-        # ∂e/∂u = û/σ, ∂e/∂b = −1/σ
-        cols = [diff[:, :d_u] / (d * sig)[:, None]]
-        if params.estimate_bias:
-            cols.append(-1.0 / sig[:, None])
-        j = np.hstack(cols)
+        j = range_jacobian(diff, d, 1.0 / sig, sig, d_u, params.estimate_bias)[3:].T
         h = (j * w[:, None]).T @ j
         g = -j.T @ psi
         if params.estimate_bias:
@@ -571,9 +569,9 @@ def mirror_tests(
     d_track = _distances(track, pos)
     sep = np.sum(((d_track[:k_n] - d_track[k_n:]) / _sigma_eff(noise, d_track[:k_n])) ** 2, axis=1)
     # cost Σ ρ(e_i) (+ bias prior) of each hypothesis, as user_cost
-    d = _distances(uav_enu_m, pos)
-    sig = _sigma_eff(noise, d)
-    e = (np.concatenate([range_m.T, range_m.T]) - d - bias) / sig
+    diff = uav_enu_m.T[:, None, :] - pos.T[:, :, None]  # (3, 2K, M)
+    _, sig, _, e = range_residuals(diff, np.concatenate([range_m.T, range_m.T]), bias, noise,
+                                   gps_var_m2=noise.sigma_gps_m**2)
     cost = np.sum(loss_rho(e, params.loss, params.loss_scale, nlos_args(params, sig)), axis=1)
     if params.estimate_bias:
         cost += 0.5 * (both[:, params.user_dim] / params.bias_prior_sigma_m) ** 2

@@ -1,9 +1,11 @@
 """Linearization of the SLAM cost (DESIGN.md §5): the IRLS-weighted normal equations at a point.
 
-Every factor's vectorised error and Jacobian enters here once: the range factor (_range_terms,
-the same model as estimator.factors.RangeFactor), the GPS factors (estimator.gps), the bias
-priors, the relative-motion factors and the marginalization prior. The batch solver, the online
-window and its marginalization, and the CRLB (estimator.crlb) all call it.
+Every factor's vectorised error and Jacobian enters here once: the range factor (_range_terms on
+estimator.factors.range_residuals / range_alpha / range_jacobian, the one source of the range
+model that initialization and the planner's prediction also call; RangeFactor one at a time),
+the GPS factors (estimator.gps), the bias priors, the relative-motion factors and the
+marginalization prior. The batch solver, the online window and its marginalization, and the CRLB
+(estimator.crlb) all call it.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimator.factors import range_alpha, range_jacobian, range_residuals
 from estimator.gps import gps_chain_terms
 from estimator.problem import (
     Problem,
@@ -63,27 +66,21 @@ def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndar
     """Range residuals, user-major: (diff (3, K, n) = x_i − u_k, d (K, n), σ (K, n) or scalar,
     r = r̂ − d − b (K, n), e = r/σ (K, n), full), r and e zero where mask_kn (K, n) is False;
     full: mask_kn is all True. Shapes as in `_range_terms`."""
-    noise = prob.noise
     n = x.shape[0]
     users = users_from_theta(theta, prob.user_up_m, prob.user_dim)
     # diff_i = x_i − u_i, (3, K, n)
     diff = np.ascontiguousarray(x.T)[:, None, :] - users.T[:, :, None]
-    d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
-    np.maximum(d, 1e-9, out=d)
-    # σ_k(d) = s_k σ(d); a scalar (or (K, 1)) when it does not depend on d (cheaper loss evaluation)
-    sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
-    if prob.noise_scale_k is not None:
-        sig = sig * prob.noise_scale_k[:, None]
     # every user ranged from every keyframe (the common case): no masking passes
     full = bool(mask_kn.all())
-    r = prob.range_m[:n].T - d
+    # b_k g_nk: the bias, or a tracked clock sawtooth's amplitude times its shape
+    bias = 0.0
     if prob.params.estimate_bias:
-        # b_k g_nk: the bias, or a tracked clock sawtooth's amplitude times its shape
-        r -= theta[:, -1:] if prob.bias_gain is None else theta[:, -1:] * prob.bias_gain[:n].T
-    if not full:
-        r[~mask_kn] = 0.0
-    # e = (r̂ − d − b) / σ(d)
-    return diff, d, sig, r, r / sig, full
+        bias = theta[:, -1:] if prob.bias_gain is None else theta[:, -1:] * prob.bias_gain[:n].T
+    # e = (r̂ − d − b) / σ_k(d), σ_k(d) = s_k σ(d) (a scalar or (K, 1) when it does not depend on d)
+    d, sig, r, e = range_residuals(diff, prob.range_m[:n].T, bias, prob.noise,
+                                   None if prob.noise_scale_k is None else prob.noise_scale_k[:, None],
+                                   mask=None if full else mask_kn)
+    return diff, d, sig, r, e, full
 
 
 def _nlos_args(prob: Problem, sig: np.ndarray | float) -> tuple:
@@ -116,26 +113,12 @@ def _range_terms(
         w = w * mask_kn
         psi = psi * mask_kn
         rho = rho * mask_kn
-    # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −1/σ
-    if noise.a_m != 0.0 and noise.b_per_m != 0.0:
-        dsig = noise.range_sigma_dd(d)
-        if prob.noise_scale_k is not None:
-            dsig = dsig * prob.noise_scale_k[:, None]
-        alpha = 1.0 / sig + r * dsig / sig**2
-        if not full:
-            alpha *= mask_kn
-    else:
-        alpha = 1.0 / sig if full else mask_kn / sig
-    jac = np.empty((3 + prob.p, prob.n_users, n))
-    np.multiply(diff, np.divide(-alpha, d), out=jac[:3])
-    np.negative(jac[:d_u], out=jac[3 : 3 + d_u])
-    if params.estimate_bias:
-        # ∂e/∂b = −g/σ
-        np.divide(-1.0, sig, out=jac[-1])
-        if prob.bias_gain is not None:
-            jac[-1] *= prob.bias_gain[:n].T
-        if not full:
-            jac[-1] *= mask_kn
+    # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −g/σ (estimator.factors)
+    scale = None if prob.noise_scale_k is None else prob.noise_scale_k[:, None]
+    mask = None if full else mask_kn
+    alpha = range_alpha(d, sig, r, noise, scale, mask=mask)
+    jac = range_jacobian(diff, d, alpha, sig, d_u, params.estimate_bias,
+                         None if prob.bias_gain is None else prob.bias_gain[:n].T, mask)
     return e, w, rho, jac, psi
 
 
@@ -228,17 +211,17 @@ def linearize(
     huu = huu.reshape(k_all * p, k_all * p)
     gu = gu.ravel()
     if prob.use_motion:
-        inv_m2 = 1.0 / params.motion_sigma_m**2
-        om = prob.odom_mask[1:n]
-        # e_m = (x_n − x_(n−1) − ô_n)/σ_m for linked pairs
-        em = (x[1:] - x[:-1] - prob.odom_enu_m[1:n]) * om[:, None]
-        cost += 0.5 * inv_m2 * float(np.vdot(em, em))
-        add = inv_m2 * om
+        # W_n = 1/σ_m,n² for linked pairs, 0 elsewhere (σ per keyframe: Problem.odom_weight)
+        add = prob.odom_weight()[1:n]
+        # e_m = (x_n − x_(n−1) − ô_n)/σ_m,n; cost ½ Σ W_n ||δ_n||², δ_n = x_n − x_(n−1) − ô_n
+        em = (x[1:] - x[:-1] - prob.odom_enu_m[1:n]) * (add > 0)[:, None]
+        wem = em * add[:, None]
+        cost += 0.5 * float(np.vdot(wem, em))
         hxx.reshape(n, 9)[1:, ::4] += add[:, None]
         hxx.reshape(n, 9)[:-1, ::4] += add[:, None]
         off = -add if off is None else off - add
-        gx[1:] -= inv_m2 * em
-        gx[:-1] += inv_m2 * em
+        gx[1:] -= wem
+        gx[:-1] += wem
     if prior is not None:
         z = theta.ravel()
         if prior.has_x:

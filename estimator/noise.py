@@ -14,6 +14,11 @@ from uavloc.errors import EstimatorError
 
 #: GPS correlation time [s] assumed when a log does not say (NoiseModel.gps_tau_s None)
 DEFAULT_GPS_TAU_S = 60.0
+#: the autopilot's velocity error assumed when a log does not say (NoiseModel.vel_sigma_mps,
+#: vel_tau_s None): σ_v per axis [m/s] and correlation time τ_v [s] (estimator.motion); an EKF's
+#: velocity is good to a few cm/s, these are on the safe side
+DEFAULT_VEL_SIGMA_MPS = 0.1
+DEFAULT_VEL_TAU_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -26,6 +31,9 @@ class NoiseModel:
         first-order Gauss–Markov, β(t + Δt) = e^(−Δt/τ) β(t) + w, stationary σ_gps per axis (an
         autopilot's EKF output drifts like this); None unknown (a log without it): the estimator
         then assumes DEFAULT_GPS_TAU_S (replay first tries to estimate it from the log).
+    vel_sigma_mps, vel_tau_s: σ_v per axis [m/s] and correlation time τ_v [s] of the error of the
+        autopilot's velocity, for the relative-motion factors (estimator.motion); None unknown:
+        DEFAULT_VEL_SIGMA_MPS, DEFAULT_VEL_TAU_S.
     """
 
     sigma_gps_m: float = 1.0
@@ -33,6 +41,8 @@ class NoiseModel:
     a_m: float = 0.0
     b_per_m: float = 0.0
     gps_tau_s: float | None = 0.0
+    vel_sigma_mps: float | None = None
+    vel_tau_s: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("sigma_gps_m", "s0_m", "a_m", "b_per_m"):
@@ -43,6 +53,11 @@ class NoiseModel:
         if tau is not None and (isinstance(tau, bool) or not isinstance(tau, int | float)
                                 or not math.isfinite(tau) or tau < 0):
             raise EstimatorError(f"gps_tau_s must be a finite number >= 0 or None, got {tau!r}")
+        for name in ("vel_sigma_mps", "vel_tau_s"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int | float)
+                                      or not math.isfinite(value) or value <= 0):
+                raise EstimatorError(f"{name} must be a positive number or None, got {value!r}")
         if self.sigma_gps_m <= 0:
             raise EstimatorError(f"sigma_gps_m must be positive, got {self.sigma_gps_m}")
         if self.s0_m <= 0:
@@ -54,6 +69,16 @@ class NoiseModel:
     def gps_tau_used_s(self) -> float:
         """τ the estimator uses: gps_tau_s, or DEFAULT_GPS_TAU_S when unknown (None)."""
         return DEFAULT_GPS_TAU_S if self.gps_tau_s is None else float(self.gps_tau_s)
+
+    @property
+    def vel_sigma_used_mps(self) -> float:
+        """σ_v the motion factors use: vel_sigma_mps, or DEFAULT_VEL_SIGMA_MPS when unknown."""
+        return DEFAULT_VEL_SIGMA_MPS if self.vel_sigma_mps is None else float(self.vel_sigma_mps)
+
+    @property
+    def vel_tau_used_s(self) -> float:
+        """τ_v the motion factors use: vel_tau_s, or DEFAULT_VEL_TAU_S when unknown."""
+        return DEFAULT_VEL_TAU_S if self.vel_tau_s is None else float(self.vel_tau_s)
 
     def range_sigma_m(self, d_m: np.ndarray | float) -> np.ndarray:
         """σ(d) = s0 + a·exp(b·d) [m]; `d_m` any shape, result the same shape."""
@@ -74,8 +99,11 @@ class NoiseModel:
             return cls()
         rs = noise.get("range_sigma_m", {}) or {}
         tau = noise.get("gps_tau_s")
-        if tau is not None and (isinstance(tau, bool) or not isinstance(tau, int | float)):
-            raise EstimatorError(f"noise gps_tau_s must be a number, got {tau!r}")
+        for key in ("gps_tau_s", "vel_sigma_mps", "vel_tau_s"):
+            v = noise.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int | float)):
+                raise EstimatorError(f"noise {key} must be a number, got {v!r}")
+        vs, vt = noise.get("vel_sigma_mps"), noise.get("vel_tau_s")
         try:
             return cls(
                 sigma_gps_m=float(noise.get("sigma_gps_m", 1.0)),
@@ -83,6 +111,8 @@ class NoiseModel:
                 a_m=float(rs.get("a", 0.0)),
                 b_per_m=float(rs.get("b", 0.0)),
                 gps_tau_s=None if tau is None else float(tau),
+                vel_sigma_mps=None if vs is None else float(vs),
+                vel_tau_s=None if vt is None else float(vt),
             )
         except (TypeError, ValueError, AttributeError) as exc:
             raise EstimatorError(f"noise section is malformed: {noise!r}") from exc
@@ -92,5 +122,9 @@ class NoiseModel:
         out: dict = {"sigma_gps_m": self.sigma_gps_m}
         if self.gps_tau_s is not None:
             out["gps_tau_s"] = self.gps_tau_s
+        if self.vel_sigma_mps is not None:
+            out["vel_sigma_mps"] = self.vel_sigma_mps
+        if self.vel_tau_s is not None:
+            out["vel_tau_s"] = self.vel_tau_s
         out["range_sigma_m"] = {"s0": self.s0_m, "a": self.a_m, "b": self.b_per_m}
         return out

@@ -114,6 +114,7 @@ class OnlineEstimator:
         self._rng = np.full((cap, self._k), np.nan)
         self._odom = np.zeros((cap, 3))
         self._odom_mask = np.zeros(cap, dtype=bool)
+        self._odom_sigma = np.full(cap, np.nan)  # σ_m of each keyframe's motion factor [m], NaN where none
         self._x = np.zeros((cap, 3))
         self._n = 0
         self._theta = np.zeros((self._k, self._p))
@@ -167,7 +168,7 @@ class OnlineEstimator:
             self._gps[:n], rng, ~np.isnan(rng), self._odom[:n], self._odom_mask[:n], self._up,
             self._noise, self._params, self._nlos_pi, t_s=self._t[:n], gps_first=self._gps_first,
             noise_scale_k=self._scale if self._params.estimate_noise_scale else None,
-            bias_sigma_k=self._bias_sigma,
+            bias_sigma_k=self._bias_sigma, odom_sigma_m=self._odom_sigma[:n],
         )
 
     def add_keyframe(self, kf: Keyframe) -> Estimate:
@@ -182,7 +183,10 @@ class OnlineEstimator:
         self._gps[n] = gps
         self._rng[n] = np.nan
         self._rng[n, idx] = rng
-        self._odom_mask[n] = odom is not None and n + self._seen > 0 and self._params.motion_sigma_m is not None
+        # a motion factor where the keyframe carries a displacement and its σ (own, else the params')
+        sm = kf.odom_sigma_m if kf.odom_sigma_m is not None else self._params.motion_sigma_m
+        self._odom_mask[n] = odom is not None and n + self._seen > 0 and sm is not None
+        self._odom_sigma[n] = float(sm) if self._odom_mask[n] else np.nan
         self._t[n] = float(kf.t_s)
         self._odom[n] = odom if odom is not None else 0.0
         self._win_count[idx] += 1
@@ -674,9 +678,10 @@ class OnlineEstimator:
         self._prior = Prior(False, theta.ravel().copy(), 0.5 * (info + info.T), cvec)
         n = self._n
         self._win_count -= prob.mask[:m].sum(axis=0)
-        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x, self._t):
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._odom_sigma, self._x, self._t):
             arr[: n - m] = arr[m:n]
         self._odom_mask[0] = False
+        self._odom_sigma[0] = np.nan
         self._n = n - m
         return True
 
@@ -720,7 +725,7 @@ class OnlineEstimator:
     def _marginalize_oldest(self) -> None:
         """Fold keyframe 0 of the window into the prior at the current estimate, then drop it."""
         prob = self._problem()
-        params, noise = self._params, self._noise
+        noise = self._noise
         k_all, p = self._k, self._p
         pu = k_all * p
         x = self._x[: self._n]
@@ -754,7 +759,7 @@ class OnlineEstimator:
             h[:3, :3] += np.eye(3) * inv_g2
             grad[:3] += (x[0] - prob.gps_enu_m[0]) * inv_g2
         if motion_link:
-            inv_m2 = 1.0 / params.motion_sigma_m**2
+            inv_m2 = 1.0 / float(self._odom_sigma[1]) ** 2
             em = x[1] - x[0] - prob.odom_enu_m[1]
             h[:3, :3] += np.eye(3) * inv_m2
             h[3:6, 3:6] += np.eye(3) * inv_m2
@@ -783,9 +788,10 @@ class OnlineEstimator:
         # drop keyframe 0
         n = self._n
         self._win_count -= prob.mask[0]
-        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x, self._t):
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._odom_sigma, self._x, self._t):
             arr[: n - 1] = arr[1:n]
         self._odom_mask[0] = False
+        self._odom_sigma[0] = np.nan
         if gps_link:
             self._gps_first = False  # its link to the dropped keyframe now lives in the prior
         self._n = n - 1

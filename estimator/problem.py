@@ -7,6 +7,7 @@ Keyframes arrive as a list of :class:`estimator.types.Keyframe`; the solver work
     mask        (N, K)  True where a range exists
     odom_enu_m  (N, 3)  displacement from keyframe n−1 to n [m, ENU] (row 0 unused)
     odom_mask   (N,)    True where a relative-motion factor links n−1 and n
+    odom_sigma_m (N,)   its per-axis σ [m] (NaN where none; None: params.motion_sigma_m)
 
 User parameters are packed per user as θ_k = [east, north, (up if 3-D), (bias if estimated)], an
 array Θ of shape (K, p) with p = d + (1 if bias). In 2-D mode `up` is the known ground height.
@@ -115,6 +116,10 @@ def check_keyframe(kf: Keyframe, n_users: int, index: int | None = None) -> tupl
         odom = np.asarray(kf.odom_enu_m, dtype=float)
         if odom.shape != (3,) or not np.isfinite(odom).all():
             raise EstimatorError(f"{where}: odom_enu_m must be 3 finite numbers, got {np.ravel(odom).tolist()}")
+    sm = kf.odom_sigma_m
+    if sm is not None and (isinstance(sm, bool) or not isinstance(sm, int | float | np.floating | np.integer)
+                           or not (np.isfinite(sm) and sm > 0)):
+        raise EstimatorError(f"{where}: odom_sigma_m must be a positive number or None, got {sm!r}")
     return gps, idx, rng, odom
 
 
@@ -148,6 +153,16 @@ class Problem:
     #: (N, K) gain g_nk of user k's bias in range n, r̂ = d + b_k g_nk (None: 1 everywhere); a
     #: tracked clock sawtooth (estimator.clock) makes b_k its amplitude and g its shape
     bias_gain: np.ndarray | None = None
+    #: (N,) per-axis σ of each keyframe's motion factor [m] where odom_mask (None: params.motion_sigma_m)
+    odom_sigma_m: np.ndarray | None = None
+
+    def odom_weight(self) -> np.ndarray:
+        """(N,) weight 1/σ_m,n² of the motion factor linking keyframe n−1 to n; 0 where none."""
+        if self.odom_sigma_m is None:
+            sm = self.params.motion_sigma_m
+            return self.odom_mask / (sm * sm) if sm is not None else np.zeros(self.n_keyframes)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.odom_mask, 1.0 / np.square(self.odom_sigma_m), 0.0)
 
     def gps_phi(self) -> np.ndarray:
         """(N,) Gauss–Markov links φ_n of the GPS factors (estimator.gps.gps_phi); 0 when white."""
@@ -185,7 +200,9 @@ class Problem:
 
     @property
     def use_motion(self) -> bool:
-        return self.params.motion_sigma_m is not None and bool(np.any(self.odom_mask))
+        """Motion factors link some keyframes (odom_mask is only set where a σ is known)."""
+        return (self.params.motion_sigma_m is not None or self.odom_sigma_m is not None) and bool(
+            np.any(self.odom_mask))
 
     def min_ranges(self) -> int:
         """Ranges a user needs before it is estimated: one more than its unknowns."""
@@ -209,8 +226,9 @@ def pack_keyframes(
         if not all(isinstance(kf, Keyframe) for kf in keyframes):
             raise ValueError
         # the fields of all keyframes in one pass
-        gps_l, ui, rr, odoms, ts = zip(
-            *[(kf.gps_enu_m, kf.user_idx, kf.range_m, kf.odom_enu_m, kf.t_s) for kf in keyframes], strict=True)
+        gps_l, ui, rr, odoms, ts, osig = zip(
+            *[(kf.gps_enu_m, kf.user_idx, kf.range_m, kf.odom_enu_m, kf.t_s, kf.odom_sigma_m) for kf in keyframes],
+            strict=True)
         t_s = np.array(ts, dtype=float)
         gps = np.array(gps_l, dtype=float)
         # len() raises TypeError on a 0-d value; concatenate raises ValueError on mixed ndim
@@ -233,8 +251,12 @@ def pack_keyframes(
             ok = int(np.bincount(kf_of * n_users + idx, minlength=n * n_users).max()) <= 1
         has_odom = any(o is not None for o in odoms)
         if ok and has_odom:
-            for o in odoms:
+            for o, sm in zip(odoms, osig, strict=True):
                 if o is not None and (np.shape(o) != (3,) or not np.isfinite(np.asarray(o, float)).all()):
+                    ok = False
+                    break
+                if sm is not None and (isinstance(sm, bool) or not isinstance(sm, int | float | np.number)
+                                       or not (np.isfinite(sm) and sm > 0)):
                     ok = False
                     break
     except (ValueError, TypeError):
@@ -247,14 +269,17 @@ def pack_keyframes(
     rng[kf_of, idx.astype(np.intp)] = r
     odom = np.zeros((n, 3))
     odom_mask = np.zeros(n, dtype=bool)
+    odom_sigma = None
     if has_odom:
-        for i, o in enumerate(odoms):
+        # σ_m,n: the keyframe's own, else params.motion_sigma_m; no factor where neither is known
+        default = np.nan if params.motion_sigma_m is None else float(params.motion_sigma_m)
+        odom_sigma = np.full(n, np.nan)
+        for i, (o, sm) in enumerate(zip(odoms, osig, strict=True)):
             if o is not None and i > 0:
                 odom[i] = o
-                odom_mask[i] = True
-    if params.motion_sigma_m is None:
-        odom_mask[:] = False
-    return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params, t_s=t_s)
+                odom_sigma[i] = default if sm is None else float(sm)
+        odom_mask = ~np.isnan(odom_sigma)
+    return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params, t_s=t_s, odom_sigma_m=odom_sigma)
 
 
 def users_from_theta(theta: np.ndarray, user_up_m: np.ndarray, user_dim: int) -> np.ndarray:

@@ -45,8 +45,10 @@ class SolverParams:
         residuals, σ_k(d) = s_k σ(d) (estimator.slam.noise_scale_update), so that a UE noisier
         than the assumed σ(d) gets an honest covariance. Reported as Estimate.extra["noise_scale"].
     user_dim: 2 (east, north; up fixed at the known ground height) or 3.
-    motion_sigma_m: per-axis σ of the relative-motion factor between consecutive keyframes
-        (None: no motion factors).
+    motion_sigma_m: per-axis σ of the relative-motion factor of a keyframe that carries a
+        displacement (Keyframe.odom_enu_m) without its own σ (None: such keyframes get no motion
+        factor). A keyframe with its own Keyframe.odom_sigma_m (replay and the flight integrate
+        the autopilot's velocity, estimator.motion) always gets its factor with that σ.
     delta_m: keyframe spacing Δ [m] (paper: 2 m).
     window: keyframes kept in the online estimator before the oldest are marginalized (a full
         solve marginalizes down to `window`; the filter steps between full solves may add up to
@@ -111,9 +113,10 @@ class Keyframe:
 
     gps_enu_m: (3,) GPS fix interpolated to the measurement time [m, ENU].
     user_idx: (m,) int indices into the user list; range_m: (m,) measured ranges [m].
-    odom_enu_m: (3,) optional displacement from the previous keyframe measured by the autopilot's
-        local position [m, ENU] (None: no relative-motion factor).
+    odom_enu_m: (3,) optional displacement from the previous keyframe measured by the autopilot
+        (its velocity integrated, estimator.motion) [m, ENU] (None: no relative-motion factor).
     t_s: seconds since mission start.
+    odom_sigma_m: per-axis σ of odom_enu_m [m] (None: SolverParams.motion_sigma_m).
     """
 
     gps_enu_m: np.ndarray
@@ -121,6 +124,7 @@ class Keyframe:
     range_m: np.ndarray
     odom_enu_m: np.ndarray | None = None
     t_s: float = 0.0
+    odom_sigma_m: float | None = None
 
 
 @dataclass(frozen=True)

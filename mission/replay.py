@@ -6,8 +6,8 @@ mission's ENU frame. By default every trigger in the log is a keyframe (the cont
 spaced them Δ apart); `delta_m` re-selects keyframes at a spacing of Δ metres.
 
 The final estimate is the batch solution over all keyframes; the history (error bound, and error
-when the log holds `truth`, against metres flown) comes from the online estimator, as it would
-have evolved during the flight.
+when the log holds `truth`, against metres flown) is the estimate a mission acts on as it would
+have evolved during the flight: the batch refreshed on estimator.refresh's schedule.
 """
 
 from __future__ import annotations
@@ -20,9 +20,11 @@ import numpy as np
 
 from estimator.gps import estimate_gps_tau_s
 from estimator.keyframes import KeyframeSelector
+from estimator.motion import integrate_velocity, motion_sigma_m, velocity_enu_of_ned
 from estimator.noise import NoiseModel
 from estimator.ranging import C_MPS
-from estimator.slam import OnlineEstimator, solve_batch
+from estimator.refresh import RefreshedEstimator
+from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.log import MissionLog
 from mission.result import horizontal_error_m, user_entries_of_estimate
@@ -40,19 +42,22 @@ GROUP_WINDOW_S = 1.0
 class ReplayOptions:
     """How to replay. `params` None: the solver settings logged in the header (see
     :func:`solver_params_from_header`). `delta_m` None: keep every trigger of the log as a keyframe.
-    `noise` None: the header's noise model (defaults when absent). `history`: also run the
-    online estimator to record how the error bound fell with metres flown."""
+    `noise` None: the header's noise model (defaults when absent). `history`: also record how
+    the error bound fell with metres flown (estimator.refresh's schedule of batch solves).
+    `velocity`: link consecutive keyframes by relative-motion factors integrated from the
+    telemetry's `vel_ned_mps` where the log has it (estimator.motion; False: GPS alone)."""
 
     params: SolverParams | None = None
     delta_m: float | None = None
     noise: NoiseModel | None = None
     history: bool = True
+    velocity: bool = True
 
 
 @dataclass(frozen=True)
 class ReplayHistory:
-    """Online estimate after each keyframe: flown_m (H,), t_s (H,), bound_95_m (H, K),
-    error_m (H, K) when truth is known (else None), users_enu_m (H, K, 3)."""
+    """The estimate a mission acts on after each keyframe (estimator.refresh): flown_m (H,),
+    t_s (H,), bound_95_m (H, K), error_m (H, K) when truth is known (else None), users_enu_m (H, K, 3)."""
 
     flown_m: np.ndarray
     t_s: np.ndarray
@@ -138,13 +143,20 @@ def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
     return replace(noise, gps_tau_s=tau)
 
 
-def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyframe]:
+def build_keyframes(mlog: MissionLog, delta_m: float | None = None, noise: NoiseModel | None = None,
+                    velocity: bool = True) -> list[Keyframe]:
     """Group the log's rtt records into keyframes, optionally re-selected at Δ spacing.
 
     range = C · toa_s for every record; a group is consecutive records with no user twice that
     share their first record's UAV position exactly (uavloc writes one position per trigger, however
     long the trigger's measurements took in vehicle seconds), or, in logs of other tools, lie within
     GROUP_RADIUS_M and GROUP_WINDOW_S of it.
+
+    With `velocity` and telemetry that carries `vel_ned_mps`, each keyframe also gets the
+    displacement from the one before (estimator.motion.integrate_velocity between the times of
+    their positions, the mean time of each group's records: where the controller interpolated the
+    position) and its σ (motion_sigma_m under `noise`, the header's when None); none where the
+    records do not cover the gap.
     """
     if len(mlog.rtt_t_s) == 0:
         return []
@@ -165,6 +177,7 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyf
         groups.append([i])
     selector = KeyframeSelector(delta_m) if delta_m else None
     keyframes = []
+    t_pos = []
     for g in groups:
         idx = np.asarray(g)
         # a trigger's records share one position: take it as logged (the mean of equal numbers can
@@ -175,7 +188,29 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None) -> list[Keyf
             continue
         keyframes.append(Keyframe(gps_enu_m=gps, user_idx=mlog.rtt_user[idx].copy(),
                                   range_m=range_m[idx].copy(), t_s=float(mlog.rtt_t_s[idx[0]])))
+        t_pos.append(position_time_s(mlog.rtt_t_s[idx]))
+    vel = mlog.tel_vel_ned_mps
+    if velocity and vel is not None and len(keyframes) > 1 and np.isfinite(vel).all(axis=1).any():
+        keyframes = with_velocity_odometry(keyframes, np.asarray(t_pos), mlog.tel_t_s, velocity_enu_of_ned(vel),
+                                           noise if noise is not None else mlog.header.noise)
     return keyframes
+
+
+def position_time_s(record_t_s: np.ndarray) -> float:
+    """Time [s] of a trigger's UAV position: the mean of its records' (logged) times, where the
+    controller interpolated the telemetry (mission.control.pipeline)."""
+    return float(np.mean(np.asarray(record_t_s, dtype=float)))
+
+
+def with_velocity_odometry(keyframes: list[Keyframe], t_pos_s: np.ndarray, tel_t_s: np.ndarray,
+                           vel_enu_mps: np.ndarray, noise: NoiseModel) -> list[Keyframe]:
+    """The keyframes with the displacement from the previous one integrated from velocity records
+    (tel_t_s (T,), vel_enu_mps (T, 3), NaN rows skipped) between their position times t_pos_s (N,)
+    and its σ, where the records cover the gap (estimator.motion); the others unchanged."""
+    disp, ok, disc = integrate_velocity(tel_t_s, vel_enu_mps, t_pos_s)
+    sig = motion_sigma_m(np.diff(t_pos_s, prepend=t_pos_s[:1]), noise, disc)
+    return [replace(kf, odom_enu_m=disp[i].copy(), odom_sigma_m=float(sig[i])) if ok[i] else kf
+            for i, kf in enumerate(keyframes)]
 
 
 def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
@@ -185,7 +220,7 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
     params = options.params if options.params is not None else solver_params_from_header(mlog)
     if options.delta_m is not None:
         params = replace(params, delta_m=options.delta_m)
-    keyframes = build_keyframes(mlog, options.delta_m)
+    keyframes = build_keyframes(mlog, options.delta_m, noise, options.velocity)
     if not keyframes:
         raise MissionLogError(f"{mlog.path}: no rtt records to replay")
     n_users = mlog.n_users
@@ -212,11 +247,11 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
     history = None
     total = len(keyframes) + 1
     if options.history:
-        online = OnlineEstimator(n_users, user_up_m, noise, params)
+        refreshed = RefreshedEstimator(n_users, user_up_m, noise, params, online=False)
         bounds = np.full((len(keyframes), n_users), np.inf)
         users_hist = np.full((len(keyframes), n_users, 3), np.nan)
         for i, kf in enumerate(keyframes):
-            est = online.add_keyframe(kf)
+            est = refreshed.add_keyframe(kf)
             bounds[i] = est.error_bound_95_m()
             users_hist[i] = est.users_enu_m
             if progress is not None:

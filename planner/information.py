@@ -49,6 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimator.factors import range_jacobian, range_residuals
 from estimator.noise import NoiseModel
 from estimator.types import Estimate
 
@@ -255,24 +256,23 @@ def predicted_information(
     I = P + Σ_legs (ℓ/(ΔQ)) Σ_q g gᵀ / ((s_k σ(d))² + σ_gps²)   (p = d), or with range biases
     J = P + Σ_legs (ℓ/(ΔQ)) Σ_q h hᵀ / ((s_k σ(d))² + σ_gps²),  h = [−g; 1]  (p = d + 1;
     :func:`position_information` reduces J to the position information); s_k the user's noise
-    scale (hyp.noise_scale).
+    scale (hyp.noise_scale). h/σ_eff is (minus) the range factor's Jacobian on (u, b) with the
+    UAV at its fix, computed by the solvers' range model (estimator.factors.range_residuals,
+    range_jacobian); g differs from the unit vector of `d` only by the 1e-9 m floor of d.
     """
     pts, lengths = quadrature_points(start_enu_m, waypoints_enu_m, n_quad)
-    d = hyp.dim
     n_meas = np.repeat(lengths / (delta_m * n_quad), n_quad, axis=1)  # (C, H·Q)
-    diff = pts[:, None, None, :, :] - hyp.users_enu_m[None, :, :, None, :]  # (C, K, M, HQ, 3)
-    dist = np.sqrt(np.sum(diff**2, axis=-1) + 1e-9)
-    g = diff[..., :d] / dist[..., None]
-    # σ_eff² = (s_k σ(d))² + σ_gps²
-    sig = noise.range_sigma_m(dist)
-    if hyp.noise_scale is not None:
-        sig = sig * hyp.noise_scale[None, :, None, None]
-    var = sig**2 + noise.sigma_gps_m**2
-    wq = n_meas[:, None, None, :] / var
-    if hyp.bias:
-        # Jacobian of r = |m − u| + b on (u, b): h = [−g; 1]
-        g = np.concatenate([-g, np.ones((*g.shape[:-1], 1))], axis=-1)
-    info = hyp.prior_info[None] + np.einsum("ckmq,ckmqi,ckmqj->ckmij", wq, g, g)
+    # x − u coordinates first, (3, C, K, M, HQ)
+    diff = pts.transpose(2, 0, 1)[:, :, None, None, :] - hyp.users_enu_m.transpose(2, 0, 1)[:, None, :, :, None]
+    # the range factor's Jacobian on θ_k = (u, [b]) at the noise-free prediction (r = 0, so α = 1/σ_eff),
+    # UAV at its fix: σ_eff² = (s_k σ(d))² + σ_gps² (estimator.factors, the solvers' range model)
+    scale = None if hyp.noise_scale is None else hyp.noise_scale[None, :, None, None]
+    dist, sig, _, _ = range_residuals(diff, None, 0.0, noise, scale, noise.sigma_gps_m**2)
+    sig = np.broadcast_to(sig, dist.shape)
+    j_theta = range_jacobian(diff, dist, 1.0 / sig, sig, hyp.dim, hyp.bias)[3:]  # (p, C, K, M, HQ)
+    # I = P + Σ_q n_q J_θ J_θᵀ  (J_θ = [û/σ_eff; −1/σ_eff] = −h/σ_eff)
+    info = hyp.prior_info[None] + np.einsum("ckmq,ickmq,jckmq->ckmij", np.broadcast_to(
+        n_meas[:, None, None, :], dist.shape), j_theta, j_theta)
     return info, lengths
 
 

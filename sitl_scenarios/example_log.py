@@ -66,15 +66,15 @@ class GpsError:
         return self._beta.copy()
 
 
-def path_direction(path_enu_m: np.ndarray, p_enu_m: np.ndarray) -> np.ndarray:
-    """(3,) unit direction of the path segment nearest to the point p (zeros on a zero-length one)."""
-    a, b = path_enu_m[:-1], path_enu_m[1:]
-    ab = b - a
-    ll = np.maximum((ab * ab).sum(axis=1), 1e-12)
-    s = np.clip(((p_enu_m - a) * ab).sum(axis=1) / ll, 0.0, 1.0)
-    i = int(np.argmin(np.linalg.norm(a + s[:, None] * ab - p_enu_m, axis=1)))
-    n = float(np.linalg.norm(ab[i]))
-    return ab[i] / n if n > 1e-9 else np.zeros(3)
+def path_direction(path_enu_m: np.ndarray, s_m: float) -> np.ndarray:
+    """(3,) unit direction of the path at arc length s_m (the segment that starts at or before it;
+    zeros on a zero-length one). By arc length, not by the nearest segment: the way out and the way
+    back of the path overlap, and the nearest segment there may be the one flown the other way."""
+    ab = np.diff(path_enu_m, axis=0)
+    seg = np.linalg.norm(ab, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    i = int(np.clip(np.searchsorted(cum, s_m, side="right") - 1, 0, len(seg) - 1))
+    return ab[i] / seg[i] if seg[i] > 1e-9 else np.zeros(3)
 
 
 def densify(path_enu_m: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -97,7 +97,7 @@ def generate(scenario: Scenario, out: Path, seed: int | None = None, radius_m: f
     sigma_gps = scenario.vehicle.gps_sigma_m
     tau_s = scenario.vehicle.gps_tau_s
     path = survey_path_enu_m(scenario, radius_m, n_turns)
-    tel_pts, tel_s = densify(path, speed * 1.0)  # telemetry at 1 Hz
+    tel_pts, tel_s = densify(path, speed * 0.2)  # telemetry at 5 Hz (the controller's telemetry_log_hz)
     kf_pts, kf_s = densify(path, scenario.mission.delta_m)
     out = Path(out)
     if out.exists():
@@ -119,16 +119,16 @@ def generate(scenario: Scenario, out: Path, seed: int | None = None, radius_m: f
             {"id": u.id, "lat_deg": float(truth_lat[k]), "lon_deg": float(truth_lon[k]), "alt_m": float(truth_alt[k])}
             for k, u in enumerate(scenario.users)])
         w.write("event", 0.0, message="takeoff")
-        events = sorted([(s / speed, "tel", p) for s, p in zip(tel_s, tel_pts, strict=True)]
-                        + [(s / speed, "kf", p) for s, p in zip(kf_s, kf_pts, strict=True) if p[2] > 1.0],
+        events = sorted([(s / speed, "tel", p, s) for s, p in zip(tel_s, tel_pts, strict=True)]
+                        + [(s / speed, "kf", p, s) for s, p in zip(kf_s, kf_pts, strict=True) if p[2] > 1.0],
                         key=lambda e: e[0])
         gps_err = GpsError(sigma_gps, tau_s, rng)
-        for t, kind, p in events:
+        for t, kind, p, s_m in events:
             gps = p + gps_err.at(t)
             lat, lon, alt = (float(x) for x in origin.enu_to_lla(gps))
             if kind == "tel":
                 # the autopilot's velocity: speed along the path (north, east, down)
-                v = speed * path_direction(path, p)
+                v = speed * path_direction(path, s_m)
                 w.write("telemetry", t, lat_deg=lat, lon_deg=lon, alt_m=alt,
                         vel_ned_mps=[round(float(v[1]), 3), round(float(v[0]), 3), round(float(-v[2]), 3)])
                 continue

@@ -120,3 +120,18 @@ def test_fly_refuses_a_bad_mission_file_before_connecting(tmp_path, capsys, extr
     assert str(bad) in err
     for w in words:
         assert w in err, err
+
+
+def test_fly_refuses_a_log_that_already_holds_a_mission_before_any_connection(tmp_path, capsys):
+    """A log holds one mission: appending a second would make it unreadable for replay, and
+    overwriting would lose the first. Refused before anything connects; the old log is untouched."""
+    from mission.cli import main
+    from mission.config import example_mission_path
+
+    old = tmp_path / "mission.jsonl"
+    old.write_text('{"type":"header","t":0.0}\n', encoding="utf-8")
+    code = main(["fly", "--mission", str(example_mission_path()), "--connect", "udpin://127.0.0.1:9",
+                 "--gnb", "127.0.0.1:9", "--log", str(old)])
+    err = capsys.readouterr().err
+    assert code == 1 and "already holds a mission" in err and str(old) in err, err
+    assert old.read_text(encoding="utf-8") == '{"type":"header","t":0.0}\n'

@@ -330,3 +330,25 @@ def test_bind_failure_is_a_simulator_error() -> None:
         sim = VehicleSimulator(ORIGIN, target=None, bind=taken.getsockname())
         with pytest.raises(SimulatorError, match="cannot bind"):
             sim.start()
+
+
+@pytest.mark.parametrize(("parts", "want"), [
+    (["udp", "127.0.0.1:14540"], [("127.0.0.1", 14540)]),
+    (["udp://10.0.0.2:14550"], [("10.0.0.2", 14550)]),
+    (["127.0.0.1:14540", "127.0.0.1:14541"], [("127.0.0.1", 14540), ("127.0.0.1", 14541)]),
+    (["udp", ":14600"], [("127.0.0.1", 14600)]),
+    (["none"], []),
+])
+def test_vehicle_cli_targets(parts, want):
+    from sitl_scenarios.vehicle.cli import _parse_targets
+
+    assert _parse_targets(parts) == want
+
+
+@pytest.mark.parametrize("parts", [["udp", "localhost"], ["127.0.0.1:0"], ["127.0.0.1:70000"], ["host:port"]])
+def test_vehicle_cli_bad_target_names_it(parts):
+    from sitl_scenarios.vehicle.cli import _parse_targets
+    from uavloc.errors import SimulatorError
+
+    with pytest.raises(SimulatorError, match="--target must be"):
+        _parse_targets(parts)

@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
     from mission.view.live import live_view
+    from uavloc.errors import MissionError
 
     if args.mission is not None:
         mission = load_mission(args.mission)
@@ -70,6 +71,11 @@ def run(args: argparse.Namespace) -> int:
         log_path = args.out / "mission.jsonl"
     else:
         log_path = Path(f"uavloc-mission-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}.jsonl")
+    if log_path.exists() and log_path.stat().st_size > 0:
+        # a log holds one mission (a second header makes it unreadable for replay); never
+        # overwrite one either
+        raise MissionError(f"mission log {log_path} already holds a mission: give another --log or --out, "
+                           "or move it away (not taking off)")
 
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 

@@ -26,6 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bias", action=argparse.BooleanOptionalAction, default=None,
                    help="estimate a range bias per user (default: as the mission did)")
     p.add_argument("--sigma-gps", type=float, metavar="M", help="override the header's GPS sigma [m]")
+    p.add_argument("--no-velocity", action="store_true",
+                   help="ignore the telemetry's velocity (by default consecutive keyframes are linked by the "
+                        "displacement integrated from vel_ned_mps where the log has it)")
     p.add_argument("--no-history", action="store_true",
                    help="with --out: skip the online pass (faster; no history figure); without --out there is none")
 
@@ -59,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     check_loss(params.loss, params.loss_scale)
     # the online pass feeds only the report's history figure
     options = ReplayOptions(params=params, delta_m=args.delta, noise=noise,
-                            history=args.out is not None and not args.no_history)
+                            history=args.out is not None and not args.no_history, velocity=not args.no_velocity)
     log.info("replaying %s: %d users, %d rtt records", args.log, mlog.n_users, len(mlog.rtt_t_s))
     bar = Progress("replay", len(mlog.rtt_t_s) // max(mlog.n_users, 1) + 1, min_total=1000)
     try:

@@ -1,5 +1,5 @@
-"""The estimator worker: `OnlineEstimator.add_keyframe` off the event loop (a child process, or a
-thread), fed from a queue of keyframes."""
+"""The estimator worker: `RefreshedEstimator.add_keyframe` (the online estimator with batch refreshes,
+estimator.refresh) off the event loop (a child process, or a thread), fed from a queue of keyframes."""
 
 from __future__ import annotations
 
@@ -10,25 +10,29 @@ import logging
 import os
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from estimator.noise import NoiseModel
-from estimator.slam import OnlineEstimator
+from estimator.refresh import RefreshedEstimator
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError, MissionError
 
 log = logging.getLogger(__name__)
 
 
-#: the child process's estimator (EstimatorWorker in process mode)
-_CHILD_ONLINE: OnlineEstimator | None = None
+#: the child process's estimator and its confirm predicate (EstimatorWorker in process mode)
+_CHILD_ESTIMATOR: RefreshedEstimator | None = None
+_CHILD_CONFIRM: Callable[[Estimate], bool] | None = None
 
 
-def _child_init(n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams) -> None:
-    global _CHILD_ONLINE
+def _child_init(n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams,
+                confirm: Callable[[Estimate], bool] | None = None) -> None:
+    global _CHILD_ESTIMATOR, _CHILD_CONFIRM
     _die_with_parent()
-    _CHILD_ONLINE = OnlineEstimator(n_users, user_up_m, noise, params)
+    _CHILD_ESTIMATOR = RefreshedEstimator(n_users, user_up_m, noise, params)
+    _CHILD_CONFIRM = confirm
 
 
 def _die_with_parent() -> None:
@@ -51,24 +55,29 @@ def _child_ping() -> int:
     return os.getpid()
 
 
-def _child_add(kf: Keyframe) -> Estimate:
-    return _CHILD_ONLINE.add_keyframe(kf)
+def _child_add(keyframes: list[Keyframe]) -> tuple[Estimate | None, list[EstimatorError]]:
+    return _CHILD_ESTIMATOR.add_keyframes(keyframes, _CHILD_CONFIRM)
 
 
 class EstimatorWorker:
-    """Feeds keyframes from a queue to an online estimator that runs off the event loop.
+    """Feeds keyframes from a queue to the mission's estimator (estimator.refresh), off the event loop.
 
-    `OnlineEstimator.add_keyframe` is numpy work of milliseconds (up to a few hundred when it
-    (re)initializes users). mode "process" (default) runs the estimator in a child process (spawn),
-    so the event loop neither waits on it nor competes with it for the GIL; mode "thread" runs it
-    through `asyncio.to_thread`. Keyframes are solved one at a time in arrival order.
+    `RefreshedEstimator.add_keyframes` is numpy work of milliseconds (up to a few hundred when it
+    (re)initializes users or refreshes the batch). `confirm` (picklable, e.g. a functools.partial
+    of a module-level function) is the predicate on the online estimate that asks for a batch
+    refresh at once (the stop rule: estimator.refresh). mode "process" (default) runs the estimator
+    in a child process (spawn), so the event loop neither waits on it nor competes with it for the
+    GIL; mode "thread" runs it through `asyncio.to_thread`. Keyframes are solved in arrival order;
+    those that queued up while the estimator was busy go together, with one estimate for all.
     """
 
     def __init__(self, n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams,
-                 queue: asyncio.Queue | None = None, mode: str = "process"):
+                 queue: asyncio.Queue | None = None, mode: str = "process",
+                 confirm: Callable[[Estimate], bool] | None = None):
         if mode not in ("process", "thread"):
             raise MissionError(f"estimator worker mode must be 'process' or 'thread', got {mode!r}")
-        self.args = (int(n_users), np.asarray(user_up_m, float), noise, params)
+        self.args: tuple[Any, ...] = (int(n_users), np.asarray(user_up_m, float), noise, params)
+        self.confirm = confirm
         self.mode = mode
         self.queue: asyncio.Queue[Keyframe] = queue if queue is not None else asyncio.Queue()
         self.solve_s: list[float] = []
@@ -77,7 +86,8 @@ class EstimatorWorker:
 
     async def run(self, on_estimate: Callable[[Estimate], None],
                   on_error: Callable[[EstimatorError], None] | None = None) -> None:
-        """Until cancelled: take a keyframe, solve it off the loop, hand the estimate over.
+        """Until cancelled: take the keyframes queued, solve them off the loop, hand the estimate
+        over (and each malformed keyframe's EstimatorError to on_error; raised without it).
 
         If the child process cannot start or dies (e.g. a caller's unguarded `__main__` under
         spawn), the worker falls back to thread mode and re-feeds the keyframes seen so far."""
@@ -88,12 +98,15 @@ class EstimatorWorker:
         fed: list[Keyframe] = []
 
         def thread_solver(history: list[Keyframe]):
-            online = OnlineEstimator(*self.args)
+            estimator = RefreshedEstimator(*self.args)
 
-            def replay_then_add(kf: Keyframe) -> Estimate:
-                while history:
-                    online.add_keyframe(history.pop(0))
-                return online.add_keyframe(kf)
+            def replay_then_add(keyframes: list[Keyframe]) -> tuple[Estimate | None, list[EstimatorError]]:
+                # the keyframes so far one at a time (a malformed one fails again, quietly), so
+                # that the refreshes come where they came in the child when it was fed so
+                for kf in history:
+                    estimator.add_keyframes([kf])
+                history.clear()
+                return estimator.add_keyframes(keyframes, self.confirm)
 
             return functools.partial(asyncio.to_thread, replay_then_add)
 
@@ -102,7 +115,7 @@ class EstimatorWorker:
             from concurrent.futures import ProcessPoolExecutor
 
             pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                       initializer=_child_init, initargs=self.args)
+                                       initializer=_child_init, initargs=(*self.args, self.confirm))
             solve = functools.partial(loop.run_in_executor, pool, _child_add)
         else:
             solve = thread_solver([])
@@ -117,26 +130,31 @@ class EstimatorWorker:
                     pool, solve, self.mode = None, thread_solver([]), "thread"
             self.ready.set()
             while True:
-                kf = await self.queue.get()
+                batch = [await self.queue.get()]
+                while not self.queue.empty():
+                    batch.append(self.queue.get_nowait())
                 try:
                     t0 = time.perf_counter()
                     try:
-                        est = await solve(kf)
+                        est, errors = await solve(batch)
                     except BrokenProcessPool:
                         log.warning("estimator child process died; solving in a thread from now on")
                         pool.shutdown(wait=False, cancel_futures=True)
                         pool, solve, self.mode = None, thread_solver(list(fed)), "thread"
-                        est = await solve(kf)
-                    fed.append(kf)
+                        est, errors = await solve(batch)
+                    fed.extend(batch)
                     self.solve_s.append(time.perf_counter() - t0)
-                except EstimatorError as exc:
-                    if on_error is None:
-                        raise
-                    on_error(exc)
-                    continue
+                except EstimatorError as exc:  # the solve itself failed
+                    est, errors = None, [exc]
                 finally:
-                    self.queue.task_done()
-                on_estimate(est)
+                    for _ in batch:
+                        self.queue.task_done()
+                for exc in errors:
+                    if on_error is None:
+                        raise exc
+                    on_error(exc)
+                if est is not None:
+                    on_estimate(est)
         finally:
             if pool is not None:
                 # never block the loop on the child: it finishes its keyframe and exits by itself

@@ -28,6 +28,7 @@ flights). Request timeouts stay in wall seconds.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
 import time
@@ -40,6 +41,7 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
+from estimator.refresh import SOURCE_BATCH
 from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.control.config import (
@@ -78,6 +80,7 @@ from uavloc.errors import (
     EstimatorError,
     GnbPreflightError,
     MissionError,
+    MissionLogError,
     SafetyError,
     UavlocError,
     VehicleError,
@@ -312,13 +315,17 @@ class MissionController:
 
     async def _estimator_task(self) -> None:
         f = self.flight
+        # the stop rule is judged on batch estimates only: a target the online estimate reaches
+        # asks the worker for a batch refresh first (estimator.refresh)
+        reached = functools.partial(targets_reached, target_radius_m=self.config.target_radius_m)
         worker = EstimatorWorker(len(self.users), np.array([u.up_m for u in self.users]), self.noise,
-                                 self.params, self.pipeline.keyframes_out, mode=self.config.estimator_mode)
+                                 self.params, self.pipeline.keyframes_out, mode=self.config.estimator_mode,
+                                 confirm=reached)
 
         def on_estimate(est: Estimate) -> None:
             f.estimate = est
             self.journal.estimate(self.origin, est, len(self.pipeline.keyframes), f.flown_m)
-            if f.phase == SURVEY and targets_reached(est, self.config.target_radius_m):
+            if f.phase == SURVEY and est.extra.get("source") == SOURCE_BATCH and reached(est):
                 f.finish_survey(STATUS_TARGET, "target reached")
 
         def on_error(exc: EstimatorError) -> None:
@@ -431,16 +438,35 @@ class MissionController:
             log.error("RTL could not be sent: the vehicle is left to its own failsafe")
             self.journal.event("RTL could not be sent: the vehicle is left to its own failsafe", kind="rtl_failed")
 
+    def _final_estimate_from_log(self) -> Estimate:
+        """The batch estimate `uavloc replay LOG` computes, from the log as written so far (the
+        header holds the mission's noise model and solver settings)."""
+        from mission.log import read_mission_log
+        from mission.replay import ReplayOptions, replay
+
+        mlog = read_mission_log(self.journal.writer.path)  # flushed line by line
+        if mlog.skipped_torn_line is not None:
+            raise MissionLogError(f"{self.journal.writer.path}: a torn line ({mlog.skipped_torn_line})")
+        return replay(mlog, ReplayOptions(history=False)).estimate
+
     def _close(self, status: str, reason: str, t_wall: float) -> MissionResult:
         est = self.flight.estimate
         keyframes = self.pipeline.keyframes
         if keyframes:
-            # the final answer is the batch solution over every keyframe (what replay computes)
+            # the final answer is the batch solution over every keyframe, as `uavloc replay`
+            # computes it from the log: the keyframes read back from the log as written (the
+            # pipeline's own copies differ from them by float rounding, ~1e-14 m in the velocity
+            # displacements, which the discrete choices of the solve — bias selection, clock fit —
+            # can turn into centimetres); the pipeline's keyframes if the log cannot be read back
             try:
-                est = solve_batch(keyframes, len(self.users), np.array([u.up_m for u in self.users]),
-                                  self.noise, self.params)
-            except EstimatorError as exc:
-                self.journal.event(f"final batch estimate failed: {exc}", kind="estimator_error")
+                est = self._final_estimate_from_log()
+            except (MissionLogError, EstimatorError) as exc:
+                log.warning("final estimate from the pipeline's keyframes: the log could not be replayed: %s", exc)
+                try:
+                    est = solve_batch(keyframes, len(self.users), np.array([u.up_m for u in self.users]),
+                                      self.noise, self.params)
+                except EstimatorError as exc2:
+                    self.journal.event(f"final batch estimate failed: {exc2}", kind="estimator_error")
         if est is not None and self.journal.is_open:
             self.flight.estimate = est
             self.journal.estimate(self.origin, est, len(keyframes), self.flight.flown_m, final=True)

@@ -10,7 +10,13 @@
   interpolated to the mean time of its measurements, logs its `rtt` records (one UAV position per
   round: how replay groups them back into the same keyframe) and puts its keyframe on the
   keyframe queue, in trigger order. Placing waits for the next fix, so the trigger is ready for
-  the next Δ at once.
+  the next Δ at once;
+- the **velocity**: the keyframe carries the displacement from the previous one integrated from
+  the autopilot's velocity (estimator.motion), taken from the telemetry records *as logged* (the
+  pipeline listens to the mission log), between the two rounds' position times, under the header's
+  noise model: exactly what replay rebuilds from the log (mission.replay.build_keyframes). Placing
+  waits briefly for the logged record after the round; without one (or without velocity) the
+  keyframe has no motion factor.
 
 The pipeline owns both queues; the estimator worker reads `keyframes_out`.
 """
@@ -28,12 +34,15 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.keyframes import KeyframeSelector
+from estimator.motion import MAX_VEL_GAP_S, integrate_velocity, motion_sigma_m
+from estimator.noise import NoiseModel
 from estimator.ranging import C_MPS
 from estimator.types import Keyframe
 from mission.control.config import MissionUser
 from mission.control.state import FlightState
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter
+from mission.replay import position_time_s
 from mission.telemetry import TelemetryBuffer
 from uavloc.errors import GnbError, GnbNoMeasurementError, GnbProtocolError, GnbUnknownCommandError, MissionError
 
@@ -41,6 +50,9 @@ log = logging.getLogger(__name__)
 
 #: consecutive measurement rounds answered with nothing but protocol errors that count as a lost gNB
 PROTOCOL_ERROR_STREAK = 3
+#: how long placing waits (wall) at most for the logged velocity record after a round [s] (the
+#: record is due within 1/telemetry_log_hz of mission time; the bound only matters when telemetry stops)
+VELOCITY_WAIT_S = 5.0
 
 
 class MeasurementPipeline:
@@ -63,6 +75,58 @@ class MeasurementPipeline:
         self.keyframes: list[Keyframe] = []
         self.user_misses = np.zeros(len(users), int)
         self.protocol_streak = 0
+        # logged telemetry velocity (mission t [s], ENU [m/s]) since shortly before the last keyframe,
+        # the header's noise model, and the last keyframe's position time
+        self._vel_t: list[float] = []
+        self._vel_enu: list[tuple[float, float, float]] = []
+        self._noise = NoiseModel()
+        self._last_pos_t: float | None = None
+        self._tel_last_t = -np.inf  # the last telemetry record's t, with or without velocity
+        writer.subscribe(self._on_record)
+
+    # -- the log, as written --------------------------------------------------------------------
+
+    def _on_record(self, rec: dict) -> None:
+        """Keep the velocity of each telemetry record as logged, and the header's noise model."""
+        kind = rec.get("type")
+        if kind == "telemetry":
+            self._tel_last_t = float(rec["t"])
+            v = rec.get("vel_ned_mps")
+            if v is not None:
+                self._vel_t.append(float(rec["t"]))
+                self._vel_enu.append((float(v[1]), float(v[0]), -float(v[2])))
+        elif kind == "header" and isinstance(rec.get("noise"), dict):
+            self._noise = NoiseModel.from_log_dict(rec["noise"])
+
+    async def _velocity_covers(self, t_s: float) -> bool:
+        """Wait for a logged velocity record at or after t_s. False at once without velocity, and as
+        soon as the log shows the gap replay would refuse (a telemetry record MAX_VEL_GAP_S after the
+        last velocity record, none at or after t_s); at most VELOCITY_WAIT_S wall."""
+        deadline = time.monotonic() + VELOCITY_WAIT_S
+        while not (self._vel_t and self._vel_t[-1] >= t_s):
+            if (not self._vel_t or self._tel_last_t > self._vel_t[-1] + MAX_VEL_GAP_S
+                    or time.monotonic() >= deadline):
+                return False
+            await self.flight.wake.wait(0.05)
+        return True
+
+    def odometry(self, t_prev_s: float | None, t_s: float) -> tuple[np.ndarray | None, float | None]:
+        """(displacement (3,) [m, ENU], σ [m]) from position time t_prev_s to t_s, integrated from the
+        logged velocity (mission.replay.with_velocity_odometry on the same records), or (None, None)."""
+        if t_prev_s is None or len(self._vel_t) < 2:
+            return None, None
+        times = np.array([t_prev_s, t_s])
+        disp, ok, disc = integrate_velocity(np.asarray(self._vel_t), np.asarray(self._vel_enu), times)
+        if not ok[1]:
+            return None, None
+        return disp[1].copy(), float(motion_sigma_m(t_s - t_prev_s, self._noise, disc[1]))
+
+    def _forget_velocity_before(self, t_s: float) -> None:
+        """Drop velocity records no longer needed: those before the last one at or before t_s − MAX_VEL_GAP_S."""
+        i = int(np.searchsorted(np.asarray(self._vel_t), t_s - MAX_VEL_GAP_S, side="right")) - 1
+        if i > 0:
+            del self._vel_t[:i]
+            del self._vel_enu[:i]
 
     # -- trigger --------------------------------------------------------------------------------
 
@@ -147,14 +211,23 @@ class MeasurementPipeline:
             return
         lat, lon, alt = (float(x) for x in origin.enu_to_lla(pos))
         uav = {"lat_deg": lat, "lon_deg": lon, "alt_m": alt}
+        logged_t = []
         for k, s, tm in samples:
-            self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
+            rec = self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
+            logged_t.append(rec["t"])
         self.flight.measurements += len(samples)
         # the keyframe from the logged numbers, exactly as replay rebuilds it
         gps = origin.lla_to_enu(lat, lon, alt)
+        t_pos = position_time_s(np.array(logged_t))
+        odom, odom_sigma = None, None
+        if self._last_pos_t is not None and await self._velocity_covers(t_pos):
+            odom, odom_sigma = self.odometry(self._last_pos_t, t_pos)
+        self._last_pos_t = t_pos
+        self._forget_velocity_before(t_pos)
         kf = Keyframe(gps_enu_m=np.asarray(gps, float), user_idx=np.array([k for k, _, _ in samples]),
                       range_m=np.array([C_MPS * s.toa_s for _, s, _ in samples]),
-                      t_s=round(self.mission_t(samples[0][2]), 6))  # as logged (the GPS links use it)
+                      t_s=float(logged_t[0]),  # as logged (the GPS links use it)
+                      odom_enu_m=odom, odom_sigma_m=odom_sigma)
         self.keyframes.append(kf)
         self.keyframes_out.put_nowait(kf)
 

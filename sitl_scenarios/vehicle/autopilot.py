@@ -41,7 +41,7 @@ from sitl_scenarios.vehicle.mav import (
 from sitl_scenarios.vehicle.navigator import MissionItem, MissionState, Navigator, RtlState
 from sitl_scenarios.vehicle.params import ParamStore, px4_params
 from sitl_scenarios.vehicle.px4 import FlightMode
-from sitl_scenarios.vehicle.sensors import BATTERY_WARNINGS, GpsError, charge_state, drained_pct
+from sitl_scenarios.vehicle.sensors import BATTERY_WARNINGS, GpsError, VelocityError, charge_state, drained_pct
 from sitl_scenarios.vehicle.state import VehicleState
 
 log = logging.getLogger(__name__)
@@ -70,6 +70,7 @@ class Autopilot(Navigator):
             px4_params(vehicle.speed_mps, vehicle.climb_mps, vehicle.descent_mps, vehicle.accel_mps2)
         )
         self.gps_error = GpsError(vehicle.gps_sigma_m, vehicle.gps_tau_s, rng)
+        self.vel_error = VelocityError(rng)
         self.t_s = 0.0
         self.pos = [0.0, 0.0, 0.0]
         self.vel = [0.0, 0.0, 0.0]
@@ -123,6 +124,13 @@ class Autopilot(Navigator):
     def estimated_position(self) -> np.ndarray:
         """What the vehicle's estimator believes: true position + GPS error, (3,) ENU [m]."""
         return np.asarray(self.pos) + self.gps_error.sample(self.t_s)
+
+    def estimated_velocity(self) -> np.ndarray:
+        """What the vehicle's estimator reports as velocity: true velocity + a small EKF error, (3,) ENU
+        [m/s] (zero on the ground, where PX4 reports the vehicle at rest)."""
+        if not self.in_air:
+            return np.asarray(self.vel, dtype=float)
+        return np.asarray(self.vel) + self.vel_error.sample(self.t_s)
 
     def snapshot(self, link_up: bool) -> VehicleState:
         lat, lon, alt = self.enu_to_lla(self.pos)

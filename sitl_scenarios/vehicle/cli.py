@@ -18,18 +18,27 @@ log = logging.getLogger(__name__)
 DESCRIPTION = "Built-in MAVLink multicopter that MAVSDK takes for PX4 (DESIGN.md §9)."
 
 
-def _parse_target(parts: list[str]) -> tuple[str, int] | None:
-    text = " ".join(parts).strip()
-    for prefix in ("udp://", "udpout://", "udp "):
-        if text.startswith(prefix):
-            text = text[len(prefix):].strip()
-    if text in ("", "none"):
-        return None
-    host, _, port = text.rpartition(":")
-    try:
-        return (host or "127.0.0.1", int(port))
-    except ValueError as exc:
-        raise SimulatorError(f"--target must be [udp] HOST:PORT, got {' '.join(parts)!r}") from exc
+def _parse_targets(parts: list[str]) -> list[tuple[str, int]]:
+    """The targets of one --target: `[udp] HOST:PORT [HOST:PORT …]`, `udp://HOST:PORT`, or `none`."""
+    words = [w for w in " ".join(parts).split() if w != "udp"]
+    out = []
+    for word in words:
+        text = word
+        for prefix in ("udp://", "udpout://"):
+            if text.startswith(prefix):
+                text = text[len(prefix):]
+        if text == "none":
+            continue
+        host, _, port = text.rpartition(":")
+        try:
+            port_n = int(port)
+        except ValueError:
+            port_n = -1
+        if not 0 < port_n < 65536:
+            raise SimulatorError(f"--target must be [udp] HOST:PORT (port 1-65535), got {word!r} "
+                                 f"in {' '.join(parts)!r}")
+        out.append((host or "127.0.0.1", port_n))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,8 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="paper", help="scenario file or bundled name (default: paper)")
     ap.add_argument("--speedup", type=float, default=1.0, help="simulated seconds per wall second")
     ap.add_argument("--target", nargs="+", action="append", default=None,
-                    help="where to send before a ground station talks: [udp] HOST:PORT (repeatable; "
-                         "default 127.0.0.1:14540), or none")
+                    help="where to send before a ground station talks: [udp] HOST:PORT [HOST:PORT …] "
+                         "(repeatable; default 127.0.0.1:14540), or none")
     ap.add_argument("--bind", default="0.0.0.0:0", help="local HOST:PORT (port 0: any)")
     ap.add_argument("--seed", type=int, default=None, help="GPS noise seed (default: the scenario's)")
     ap.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
@@ -50,8 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scenario = load_scenario(args.scenario)
         bind_host, _, bind_port = args.bind.rpartition(":")
-        targets = [_parse_target(t) for t in (args.target or [["127.0.0.1:14540"]])]
-        kwargs: dict[str, Any] = {"speedup": args.speedup, "target": [t for t in targets if t is not None],
+        targets = [t for parts in (args.target or [["127.0.0.1:14540"]]) for t in _parse_targets(parts)]
+        kwargs: dict[str, Any] = {"speedup": args.speedup, "target": targets,
                                   "bind": (bind_host or "0.0.0.0", int(bind_port))}
         if args.seed is not None:
             kwargs["seed"] = args.seed

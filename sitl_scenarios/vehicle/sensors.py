@@ -1,5 +1,5 @@
-"""Sensors of the built-in vehicle: the GPS/EKF position error and the battery (charge state,
-drain, electrics). Pure: the random generator is handed in, time is simulated time."""
+"""Sensors of the built-in vehicle: the GPS/EKF position and velocity errors and the battery (charge
+state, drain, electrics). Pure: the random generator is handed in, time is simulated time."""
 
 from __future__ import annotations
 
@@ -50,6 +50,42 @@ class GpsError:
         return self._e
 
 
+#: the built-in vehicle's velocity error (EKF output): σ per axis [m/s] and correlation time [s].
+#: Below the estimator's default assumption (estimator.noise.DEFAULT_VEL_SIGMA_MPS 0.1 m/s, τ 1 s:
+#: a random-walk intensity 2σ²τ four times this one's), as a real autopilot's should be.
+VEL_SIGMA_MPS = 0.05
+VEL_TAU_S = 1.0
+
+
+class VelocityError:
+    """Error of the vehicle's EKF velocity, isotropic in 3-D: first-order Gauss–Markov with σ per axis
+    and a short correlation time, ε_k = φ ε_(k−1) + √(1 − φ²) σ w, φ = exp(−Δt/τ).
+
+    An EKF observes velocity directly (GPS Doppler, IMU), so its error stays small and forgets itself
+    within about a second; it does not drift like the position (GpsError), and it is independent of
+    the position error here. Its own generator, spawned from the seed of the one handed in (no draw
+    is taken from it, so the GPS error sequence is unchanged).
+    """
+
+    def __init__(self, rng: np.random.Generator, sigma_mps: float = VEL_SIGMA_MPS, tau_s: float = VEL_TAU_S) -> None:
+        self.sigma_mps, self.tau_s = float(sigma_mps), float(tau_s)
+        seq = getattr(rng.bit_generator, "seed_seq", None)
+        self._rng = np.random.default_rng(seq.spawn(1)[0] if seq is not None else 0)
+        self._e = self._rng.normal(0.0, self.sigma_mps, 3) if self.sigma_mps > 0 else np.zeros(3)
+        self._t_s: float | None = None
+
+    def sample(self, t_s: float) -> np.ndarray:
+        """Error (3,) [m/s] ENU at simulated time t_s; the same value for the same t_s."""
+        if self._t_s is not None and t_s == self._t_s:
+            return self._e
+        if self.sigma_mps <= 0:
+            self._e = np.zeros(3)
+        elif self._t_s is not None:
+            # ε_k = φ ε_(k−1) + √(1 − φ²) σ w
+            phi = math.exp(-max(t_s - self._t_s, 0.0) / self.tau_s)
+            self._e = phi * self._e + math.sqrt(1.0 - phi * phi) * self.sigma_mps * self._rng.normal(size=3)
+        self._t_s = t_s
+        return self._e
 
 
 def charge_state(battery_pct: float, params: ParamStore) -> int:

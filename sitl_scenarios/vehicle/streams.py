@@ -156,16 +156,17 @@ class StreamEncoder:
                 return None  # no global position estimate: PX4 stops publishing it
             est = ap.estimated_position()
             lat, lon, alt = ap.enu_to_lla(est)
+            vel = ap.estimated_velocity()  # the EKF's velocity: small error, no drift (sensors.VelocityError)
             return M.MAVLink_global_position_int_message(
                 t_ms, round(lat * 1e7), round(lon * 1e7), int(alt * 1000),
-                int((est[2] - ap.home[2]) * 1000), int(ap.vel[1] * 100), int(ap.vel[0] * 100),
-                int(-ap.vel[2] * 100), int((math.degrees(ap.yaw_rad) % 360) * 100))
+                int((est[2] - ap.home[2]) * 1000), round(vel[1] * 100), round(vel[0] * 100),
+                round(-vel[2] * 100), int((math.degrees(ap.yaw_rad) % 360) * 100))
         elif msg_id == M.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             if not ap.gps_ok:
                 return None
             est = ap.estimated_position()
-            return M.MAVLink_local_position_ned_message(
-                t_ms, est[1], est[0], -est[2], ap.vel[1], ap.vel[0], -ap.vel[2])
+            vel = ap.estimated_velocity()
+            return M.MAVLink_local_position_ned_message(t_ms, est[1], est[0], -est[2], vel[1], vel[0], -vel[2])
         elif msg_id == M.MAVLINK_MSG_ID_ATTITUDE:
             roll, pitch = ap.tilt_rad()
             return M.MAVLink_attitude_message(t_ms, roll, pitch, wrap_pi(ap.yaw_rad), 0.0, 0.0, 0.0)

@@ -1,0 +1,177 @@
+"""The estimate a mission acts on: the online estimator, refreshed by batch solves over every
+keyframe seen.
+
+The online estimator (estimator.online) costs constant time a keyframe, but what it has
+marginalized stays linearized where it was, and it does not track a UE's clock sawtooth (a fit needs
+the residuals of whole periods; estimator.batch._track_clocks). On a commercial UE its estimate can
+sit metres from the batch answer with an ellipse that excludes it, and the stop rule, the planner
+and the operator would all act on that ellipse. So the estimate a mission publishes is the batch
+solution (what `uavloc replay` and the mission's final answer compute), refreshed
+
+    every max(REFRESH_MIN_KEYFRAMES, ⌊REFRESH_SHARE · n⌋) keyframes (n: keyframes seen so far),
+
+so that the refreshes cost O(1/REFRESH_SHARE) batch-keyframe-solves per keyframe (a batch over n
+keyframes costs O(n): amortized constant time per keyframe), and at once whenever the caller's
+`confirm` predicate holds on the online estimate (e.g. the stop rule: a target that only the online
+estimate reaches is checked by the batch before anyone acts on it), at most every
+CONFIRM_MIN_KEYFRAMES keyframes. Between refreshes the last batch estimate stands (it lags by
+at most REFRESH_SHARE of the keyframes); before the first one, the online estimate.
+
+A refresh is warm (estimator.batch._warm_solve: started from the last refresh, keeping its NLoS
+probabilities, noise scales, bias selection and clock sawtooths: one robust solve) except when the
+keyframes have grown by COLD_GROWTH since the last cold one, or a user started since: then cold
+(every choice re-made, as in the final answer). The cold refreshes cost
+Σ cost(n_j) ≤ cost(n) · COLD_GROWTH / (COLD_GROWTH − 1) over a mission.
+
+Keyframes that queued up while the estimator was busy are added together and published once
+(`add_keyframes`): at most one refresh for all of them, so an estimator that falls behind (a
+loaded machine, a sped-up simulation) catches up instead of lagging further.
+
+Each published Estimate says which it is: extra["source"] is "batch" or "online", and
+extra["keyframes_used"] the number of keyframes it is the answer for.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from estimator.batch import solve_batch
+from estimator.noise import NoiseModel
+from estimator.online import OnlineEstimator
+from estimator.problem import check_keyframe
+from estimator.types import Estimate, Keyframe, SolverParams
+from uavloc.errors import EstimatorError
+
+#: a batch refresh every ⌊REFRESH_SHARE · n⌋ keyframes, REFRESH_MIN_KEYFRAMES at least
+REFRESH_SHARE = 0.05
+REFRESH_MIN_KEYFRAMES = 3
+#: a refresh is cold when the keyframes have grown by this factor since the last cold one
+COLD_GROWTH = 2.0
+#: a refresh asked for by `confirm` comes at most this often [keyframes]
+CONFIRM_MIN_KEYFRAMES = 2
+
+SOURCE_BATCH = "batch"
+SOURCE_ONLINE = "online"
+
+
+class RefreshedEstimator:
+    """OnlineEstimator plus batch refreshes (module docstring).
+
+    add_keyframe(kf, confirm=None) -> the Estimate to act on. The online estimator runs on every
+    keyframe (its estimate is `online_estimate`; online=False leaves it out: no confirm then, and
+    the first keyframe is a refresh); the batch solves are warm or cold (module docstring).
+    """
+
+    def __init__(
+        self, n_users: int, user_up_m: np.ndarray, noise: NoiseModel,
+        params: SolverParams = SolverParams(),  # noqa: B008
+        refresh_share: float = REFRESH_SHARE, online: bool = True,
+    ):
+        if not (isinstance(refresh_share, int | float) and 0.0 <= refresh_share <= 1.0):
+            raise EstimatorError(f"refresh_share must be within [0, 1], got {refresh_share!r}")
+        # without the online estimator (online=False: nobody asks to confirm, e.g. a replay's
+        # history) every keyframe is only validated and kept
+        self._online = OnlineEstimator(n_users, user_up_m, noise, params) if online else None
+        self._args = (int(n_users), np.asarray(user_up_m, dtype=float), noise, params)
+        self._share = float(refresh_share)
+        self._keyframes: list[Keyframe] = []
+        self._batch: Estimate | None = None
+        self._batch_at = 0  # keyframes seen at the last refresh
+        self._cold_at = 0  # ... at the last cold one
+        self._confirm_at = -CONFIRM_MIN_KEYFRAMES
+        self.n_refreshes = 0
+        self.n_cold = 0
+
+    @property
+    def online_estimate(self) -> Estimate | None:
+        return None if self._online is None else self._online.estimate
+
+    @property
+    def batch_estimate(self) -> Estimate | None:
+        """The last batch refresh, None before the first."""
+        return self._batch
+
+    @property
+    def n_keyframes_seen(self) -> int:
+        return len(self._keyframes)
+
+    def refresh_due(self) -> bool:
+        """True when the schedule asks for a batch refresh now."""
+        n = len(self._keyframes)
+        return n > 0 and n - self._batch_at >= max(REFRESH_MIN_KEYFRAMES, math.floor(self._share * n))
+
+    def add_keyframe(self, kf: Keyframe, confirm: Callable[[Estimate], bool] | None = None) -> Estimate:
+        """Add one keyframe; return the estimate to act on (module docstring).
+
+        confirm(online_estimate) -> True asks for a refresh now (rate-limited). Raises
+        EstimatorError on a malformed keyframe (nothing is added)."""
+        self._add(kf)
+        return self._publish(confirm)
+
+    def add_keyframes(
+        self, keyframes: Sequence[Keyframe], confirm: Callable[[Estimate], bool] | None = None,
+    ) -> tuple[Estimate | None, list[EstimatorError]]:
+        """Add keyframes that queued up while the estimator was busy, then publish once: at most one
+        refresh however many arrived, so an estimator that falls behind catches up. A malformed
+        keyframe is left out and its error returned; the others are added.
+
+        Returns (the estimate to act on, or None when nothing was added and none exists yet;
+        [EstimatorError] of the keyframes left out)."""
+        errors: list[EstimatorError] = []
+        added = 0
+        for kf in keyframes:
+            try:
+                self._add(kf)
+                added += 1
+            except EstimatorError as exc:
+                errors.append(exc)
+        if added == 0:
+            return self._batch, errors
+        return self._publish(confirm), errors
+
+    def _add(self, kf: Keyframe) -> None:
+        if self._online is not None:
+            self._online.add_keyframe(kf)  # validates kf
+        else:
+            check_keyframe(kf, self._args[0])
+        self._keyframes.append(kf)
+
+    def _publish(self, confirm: Callable[[Estimate], bool] | None) -> Estimate:
+        n = len(self._keyframes)
+        online = self.online_estimate
+        due = self.refresh_due()
+        may_confirm = n - self._confirm_at >= CONFIRM_MIN_KEYFRAMES and n > self._batch_at
+        if not due and online is not None and confirm is not None and may_confirm and confirm(online):
+            self._confirm_at = n
+            due = True
+        if due:
+            return self.refresh()
+        if self._batch is not None:
+            return self._batch
+        if online is None:  # no online part: the first refresh comes early
+            return self.refresh()
+        return _tagged(online, SOURCE_ONLINE, n)
+
+    def refresh(self) -> Estimate:
+        """Solve the batch over every keyframe seen now; return (and keep) its estimate."""
+        n_users, up, noise, params = self._args
+        n = len(self._keyframes)
+        warm = None if self._batch is None or n >= COLD_GROWTH * self._cold_at else self._batch
+        init = None if self._batch is None else self._batch.users_enu_m
+        est = solve_batch(self._keyframes, n_users, up, noise, params, init_users_enu_m=init, warm=warm)
+        if not est.extra.get("warm_started"):
+            self._cold_at = n
+            self.n_cold += 1
+        self._batch = _tagged(est, SOURCE_BATCH, n)
+        self._batch_at = n
+        self.n_refreshes += 1
+        return self._batch
+
+
+def _tagged(est: Estimate, source: str, n_keyframes: int) -> Estimate:
+    est.extra["source"] = source
+    est.extra["keyframes_used"] = int(n_keyframes)
+    return est
