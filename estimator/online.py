@@ -697,7 +697,8 @@ class OnlineEstimator:
         rng = prob.range_m[:n1].copy()
         rng[m] = np.nan
         sub = replace(prob, gps_enu_m=prob.gps_enu_m[:n1], range_m=rng, mask=~np.isnan(rng),
-                      odom_enu_m=prob.odom_enu_m[:n1], odom_mask=prob.odom_mask[:n1], t_s=prob.t_s[:n1])
+                      odom_enu_m=prob.odom_enu_m[:n1], odom_mask=prob.odom_mask[:n1], t_s=prob.t_s[:n1],
+                      odom_sigma_m=None if prob.odom_sigma_m is None else prob.odom_sigma_m[:n1])
         lin = linearize(sub, self._x[:n1], self._theta, self._active, self._prior)
         # linearize adds the bias priors and an identity block for inactive users: factors of the
         # window, not of these keyframes
@@ -715,9 +716,10 @@ class OnlineEstimator:
         self._prior = Prior(True, np.concatenate([self._x[m], self._theta.ravel()]), info, grad)
         n = self._n
         self._win_count -= prob.mask[:m].sum(axis=0)
-        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._x, self._t):
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._odom_sigma, self._x, self._t):
             arr[: n - m] = arr[m:n]
         self._odom_mask[0] = False
+        self._odom_sigma[0] = np.nan
         self._gps_first = False  # keyframe m's link to m − 1 now lives in the prior
         self._n = n - m
         return True
