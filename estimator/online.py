@@ -698,7 +698,8 @@ class OnlineEstimator:
         rng[m] = np.nan
         sub = replace(prob, gps_enu_m=prob.gps_enu_m[:n1], range_m=rng, mask=~np.isnan(rng),
                       odom_enu_m=prob.odom_enu_m[:n1], odom_mask=prob.odom_mask[:n1], t_s=prob.t_s[:n1],
-                      odom_sigma_m=None if prob.odom_sigma_m is None else prob.odom_sigma_m[:n1])
+                      odom_sigma_m=None if prob.odom_sigma_m is None else prob.odom_sigma_m[:n1],
+                      bias_gain=None if prob.bias_gain is None else prob.bias_gain[:n1])
         lin = linearize(sub, self._x[:n1], self._theta, self._active, self._prior)
         # linearize adds the bias priors and an identity block for inactive users: factors of the
         # window, not of these keyframes

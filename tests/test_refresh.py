@@ -154,3 +154,23 @@ def test_warm_batch_solve_falls_back_to_cold_when_a_user_started_since(sawtooth_
     np.testing.assert_allclose(est.users_enu_m, cold.users_enu_m, atol=1e-9)
     # an answer for more keyframes than given is no warm start either
     assert not solve_batch(kfs[:100], 3, sc.user_up_m, NoiseModel(), warm=cold).extra["warm_started"]
+
+
+def test_online_marginalizes_a_gauss_markov_chain_with_per_keyframe_motion_sigmas():
+    """The online window folding a Gauss–Markov GPS chain whose keyframes carry their own motion
+    σ (velocity factors) into its prior: the sub-problem of the folded keyframes takes their σ
+    too (it broke on the first fold: shapes (2,) and (N,)), and the result stays near the batch."""
+    from estimator.types import SolverParams
+
+    noise = NoiseModel(gps_tau_s=60.0)
+    sc = simulate(np.random.default_rng(12), n_users=2, n_keyframes=160, noise=noise, gps_tau_s=60.0,
+                  odom_sigma_m=0.2, dt_s=0.4)
+    kfs = [replace(kf, odom_sigma_m=None if kf.odom_enu_m is None else 0.2 + 0.001 * i)
+           for i, kf in enumerate(sc.keyframes)]
+    params = SolverParams(window=40)
+    on = OnlineEstimator(2, sc.user_up_m, noise, params)
+    for kf in kfs:
+        est = on.add_keyframe(kf)
+    batch = solve_batch(kfs, 2, sc.user_up_m, noise, params)
+    shift = np.linalg.norm(est.users_enu_m[:, :2] - batch.users_enu_m[:, :2], axis=1)
+    assert np.all(shift <= 0.5 * batch.error_bound_95_m()), (shift, batch.error_bound_95_m())
