@@ -64,7 +64,7 @@ ONLINE_CHECK_MARGIN = 4.0
 #: filter steps come in between (online_resolve_every > 1): a solve that needs more (a user just
 #: started, known from a short arc, in a curved valley of the cost) goes on at the next update,
 #: with more ranges, instead of costing tens of iterations at once
-ONLINE_MAX_ITERATIONS = 4
+ONLINE_MAX_ITERATIONS = 3
 #: a filter step may move a parameter by this many of its standard deviations (or by
 #: params.online_max_step_m, whichever is larger) before the window is re-solved instead
 ONLINE_STEP_SIGMA = 0.5

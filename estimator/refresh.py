@@ -33,6 +33,8 @@ extra["keyframes_used"] the number of keyframes it is the answer for.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 from collections.abc import Callable, Sequence
 
@@ -45,6 +47,8 @@ from estimator.problem import check_keyframe
 from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
+log = logging.getLogger(__name__)
+
 #: a batch refresh every ⌊REFRESH_SHARE · n⌋ keyframes, REFRESH_MIN_KEYFRAMES at least
 REFRESH_SHARE = 0.05
 REFRESH_MIN_KEYFRAMES = 3
@@ -55,6 +59,10 @@ CONFIRM_MIN_KEYFRAMES = 2
 
 SOURCE_BATCH = "batch"
 SOURCE_ONLINE = "online"
+
+
+class _OnlineFailed(EstimatorError):
+    """The online part failed on a keyframe that was kept (RefreshedEstimator._add)."""
 
 
 class RefreshedEstimator:
@@ -83,6 +91,7 @@ class RefreshedEstimator:
         self._cold_at = 0  # ... at the last cold one
         self._confirm_at = -CONFIRM_MIN_KEYFRAMES
         self.n_refreshes = 0
+        self.online_failure: str | None = None
         self.n_cold = 0
 
     @property
@@ -108,7 +117,8 @@ class RefreshedEstimator:
 
         confirm(online_estimate) -> True asks for a refresh now (rate-limited). Raises
         EstimatorError on a malformed keyframe (nothing is added)."""
-        self._add(kf)
+        with contextlib.suppress(_OnlineFailed):  # logged; the keyframe is kept
+            self._add(kf)
         return self._publish(confirm)
 
     def add_keyframes(
@@ -126,6 +136,9 @@ class RefreshedEstimator:
             try:
                 self._add(kf)
                 added += 1
+            except _OnlineFailed as exc:  # the keyframe is kept
+                added += 1
+                errors.append(exc)
             except EstimatorError as exc:
                 errors.append(exc)
         if added == 0:
@@ -133,11 +146,22 @@ class RefreshedEstimator:
         return self._publish(confirm), errors
 
     def _add(self, kf: Keyframe) -> None:
-        if self._online is not None:
-            self._online.add_keyframe(kf)  # validates kf
-        else:
-            check_keyframe(kf, self._args[0])
+        """Validate and keep kf (EstimatorError: nothing kept), then feed the online part. A failure
+        of the online part (a bug, a numerical breakdown) must not cost the mission its estimate:
+        the online part is dropped, the batch refreshes go on (no confirm from then on), and the
+        failure is raised once as an EstimatorError after the keyframe was kept."""
+        check_keyframe(kf, self._args[0])
         self._keyframes.append(kf)
+        if self._online is None:
+            return
+        try:
+            self._online.add_keyframe(kf)
+        except Exception as exc:  # any failure of the online part: degrade, report
+            self._online = None
+            self.online_failure = (f"online estimator failed at keyframe {len(self._keyframes)} "
+                                   f"({type(exc).__name__}: {exc}); batch refreshes only from now on")
+            log.warning("%s", self.online_failure)
+            raise _OnlineFailed(self.online_failure) from exc
 
     def _publish(self, confirm: Callable[[Estimate], bool] | None) -> Estimate:
         n = len(self._keyframes)

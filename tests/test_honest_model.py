@@ -468,13 +468,15 @@ def test_online_gauss_markov_filter_step_matches_dense_elimination(loss):
         np.testing.assert_allclose(est.cov_users_m2[k], cov_ref[k, :2, k, :2], rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize("params", [FIXED, SolverParams()], ids=["fixed", "default"])
+@pytest.mark.parametrize("params", [FIXED, SolverParams(), replace(FIXED, motion_sigma_m=0.2)],
+                         ids=["fixed", "default", "motion"])
 def test_online_chain_block_marginalization_equals_one_keyframe_at_a_time(params):
-    """Folding m Gauss–Markov-linked keyframes into the prior at once gives the prior that m
-    single-keyframe marginalizations at the same point give (and the same window after)."""
+    """Folding m Gauss–Markov-linked keyframes (and motion links) into the prior at once gives the
+    prior that m single-keyframe marginalizations at the same point give (and the same window)."""
     import copy
 
-    sc = simulate(np.random.default_rng(23), n_users=3, n_keyframes=80, noise=GM, gps_tau_s=60.0, p_visible=0.8)
+    sc = simulate(np.random.default_rng(23), n_users=3, n_keyframes=80, noise=GM, gps_tau_s=60.0, p_visible=0.8,
+                  odom_sigma_m=0.1)
     on = OnlineEstimator(3, sc.user_up_m, GM, replace(params, window=1000))
     for kf in sc.keyframes[:50]:
         on.add_keyframe(kf)
@@ -490,3 +492,4 @@ def test_online_chain_block_marginalization_equals_one_keyframe_at_a_time(params
     np.testing.assert_allclose(on._prior.grad, one._prior.grad, rtol=1e-7, atol=1e-9 * scale)
     np.testing.assert_array_equal(on._win_count, one._win_count)
     np.testing.assert_array_equal(on._x[: on._n], one._x[: one._n])
+    np.testing.assert_array_equal(on._odom_sigma[: on._n], one._odom_sigma[: one._n])

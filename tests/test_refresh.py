@@ -159,14 +159,16 @@ def test_warm_batch_solve_falls_back_to_cold_when_a_user_started_since(sawtooth_
 def test_online_marginalizes_a_gauss_markov_chain_with_per_keyframe_motion_sigmas():
     """The online window folding a Gauss–Markov GPS chain whose keyframes carry their own motion
     σ (velocity factors) into its prior: the sub-problem of the folded keyframes takes their σ
-    too (it broke on the first fold: shapes (2,) and (N,)), and the result stays near the batch."""
+    too (it broke on the first fold: shapes (2,) and (N,)) and shifts them with the window (a
+    keyframe without one then took a neighbour's NaN: NaN in H), and the result stays near the batch."""
     from estimator.types import SolverParams
 
     noise = NoiseModel(gps_tau_s=60.0)
     sc = simulate(np.random.default_rng(12), n_users=2, n_keyframes=160, noise=noise, gps_tau_s=60.0,
                   odom_sigma_m=0.2, dt_s=0.4)
-    kfs = [replace(kf, odom_sigma_m=None if kf.odom_enu_m is None else 0.2 + 0.001 * i)
-           for i, kf in enumerate(sc.keyframes)]
+    # every 7th keyframe without a motion factor (a hole in the telemetry velocity)
+    kfs = [replace(kf, odom_enu_m=None, odom_sigma_m=None) if kf.odom_enu_m is None or i % 7 == 0
+           else replace(kf, odom_sigma_m=0.2 + 0.001 * i) for i, kf in enumerate(sc.keyframes)]
     params = SolverParams(window=40)
     on = OnlineEstimator(2, sc.user_up_m, noise, params)
     for kf in kfs:
@@ -174,3 +176,28 @@ def test_online_marginalizes_a_gauss_markov_chain_with_per_keyframe_motion_sigma
     batch = solve_batch(kfs, 2, sc.user_up_m, noise, params)
     shift = np.linalg.norm(est.users_enu_m[:, :2] - batch.users_enu_m[:, :2], axis=1)
     assert np.all(shift <= 0.5 * batch.error_bound_95_m()), (shift, batch.error_bound_95_m())
+
+
+def test_a_failing_online_part_is_dropped_and_the_batch_refreshes_go_on(sawtooth_survey, monkeypatch, caplog):
+    """A bug or a numerical breakdown in the online estimator must not cost the mission its
+    estimate: the keyframe is kept, the failure reported once, the batch refreshes go on."""
+    sc, kfs = sawtooth_survey
+    ref = RefreshedEstimator(3, sc.user_up_m, NoiseModel())
+    for kf in kfs[:30]:
+        ref.add_keyframe(kf)
+
+    def broken(kf):
+        raise ValueError("array must not contain infs or NaNs")
+
+    monkeypatch.setattr(ref._online, "add_keyframe", broken)
+    est, errors = ref.add_keyframes(kfs[30:33])
+    assert len(errors) == 1 and "online estimator failed at keyframe 31" in str(errors[0])
+    assert "ValueError" in str(errors[0]) and isinstance(errors[0], EstimatorError)
+    assert ref.n_keyframes_seen == 33 and ref.online_estimate is None
+    assert est.extra["source"] == SOURCE_BATCH and est.extra["keyframes_used"] == 33
+    for kf in kfs[33:60]:
+        est = ref.add_keyframe(kf, confirm=lambda e: True)  # no online estimate to confirm on
+    assert est.extra["keyframes_used"] >= 57 and ref.online_failure is not None
+    cold = solve_batch(kfs[: est.extra["keyframes_used"]], 3, sc.user_up_m, NoiseModel())
+    assert np.all(np.linalg.norm(est.users_enu_m[:, :2] - cold.users_enu_m[:, :2], axis=1)
+                  <= 0.15 * cold.error_bound_95_m())

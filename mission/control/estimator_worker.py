@@ -146,6 +146,9 @@ class EstimatorWorker:
                     self.solve_s.append(time.perf_counter() - t0)
                 except EstimatorError as exc:  # the solve itself failed
                     est, errors = None, [exc]
+                except Exception as exc:  # a bug in the estimator: report it, keep the mission
+                    log.exception("estimator failed on %d keyframe(s)", len(batch))
+                    est, errors = None, [EstimatorError(f"estimator failed: {type(exc).__name__}: {exc}")]
                 finally:
                     for _ in batch:
                         self.queue.task_done()

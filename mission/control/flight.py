@@ -460,13 +460,15 @@ class MissionController:
             # can turn into centimetres); the pipeline's keyframes if the log cannot be read back
             try:
                 est = self._final_estimate_from_log()
-            except (MissionLogError, EstimatorError) as exc:
+            except Exception as exc:  # also a bug in replay: fall back, never lose the result
                 log.warning("final estimate from the pipeline's keyframes: the log could not be replayed: %s", exc)
                 try:
                     est = solve_batch(keyframes, len(self.users), np.array([u.up_m for u in self.users]),
                                       self.noise, self.params)
-                except EstimatorError as exc2:
-                    self.journal.event(f"final batch estimate failed: {exc2}", kind="estimator_error")
+                except Exception as exc2:  # a bug must not cost the mission its log or its last estimate
+                    log.exception("final batch estimate failed")
+                    self.journal.event(f"final batch estimate failed: {type(exc2).__name__}: {exc2}",
+                                       kind="estimator_error")
         if est is not None and self.journal.is_open:
             self.flight.estimate = est
             self.journal.estimate(self.origin, est, len(keyframes), self.flight.flown_m, final=True)
