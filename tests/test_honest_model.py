@@ -493,3 +493,28 @@ def test_online_chain_block_marginalization_equals_one_keyframe_at_a_time(params
     np.testing.assert_array_equal(on._win_count, one._win_count)
     np.testing.assert_array_equal(on._x[: on._n], one._x[: one._n])
     np.testing.assert_array_equal(on._odom_sigma[: on._n], one._odom_sigma[: one._n])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_sawtooth_grid_by_prefix_sums_matches_the_dense_grid(seed):
+    """estimator.clock._fit_grid (sorted phases and prefix sums) against _fit_grid_dense (frac on
+    the whole (P, Φ, n) grid): the same residual sum of squares and the same fitted sawtooth at
+    the samples (phases between two samples' phases tie: either is the fit)."""
+    from estimator.clock import _fit_grid, _fit_grid_dense
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(50, 800))
+    t = np.sort(rng.uniform(0.0, 300.0, n))
+    period = rng.uniform(5.0, 40.0)
+    r = rng.uniform(3.0, 12.0) * np.mod(t / period - rng.uniform(), 1.0) + rng.normal(scale=3.0, size=n) + 2.0
+    periods = 1.0 / np.linspace(1.0 / (1.05 * period), 1.0 / (0.95 * period), 31)
+
+    def fitted(res):
+        _, p, ph, a, c, _ = res
+        u = t / p - ph
+        return c + a * (u - np.floor(u))
+
+    for phases in (np.arange(48) / 48, rng.uniform() + np.linspace(-1.0, 1.0, 21) / 48):
+        fast, dense = _fit_grid(t, r, periods, phases), _fit_grid_dense(t, r, periods, phases)
+        assert fast[0] == pytest.approx(dense[0], rel=1e-9)
+        np.testing.assert_allclose(fitted(fast), fitted(dense), atol=1e-9)
