@@ -82,7 +82,9 @@ def peak_frequency_hz(t_s: np.ndarray, x: np.ndarray, f_min_hz: float, f_max_hz:
     h = 1.0 / (16.0 * f_max_hz)
     idx = np.rint(np.asarray(t_s, dtype=float) / h).astype(np.int64)
     grid = np.bincount(idx, weights=x)
-    m = max(math.ceil(oversample * grid.size), grid.size)
+    # a power of two at least `oversample` × the grid (a length with a large prime factor sends
+    # the FFT to Bluestein's algorithm: 3188 = 4 · 797 took 0.37 ms, 4096 takes 0.02 ms)
+    m = 1 << max(math.ceil(oversample * grid.size), grid.size, 2).bit_length()
     power = np.abs(np.fft.rfft(grid, n=m)) ** 2
     freqs = np.fft.rfftfreq(m, d=h)
     sel = (freqs >= f_min_hz) & (freqs <= f_max_hz)
