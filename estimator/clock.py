@@ -31,6 +31,10 @@ CLOCK_MIN_SAMPLES_PER_PERIOD = 4.0
 #: each): a short log (n = 60: 0.33) no longer finds a sawtooth in noise; n ≥ 134 unchanged
 CLOCK_MIN_EXPLAINED = 0.15
 CLOCK_NULL_EXPLAINED_N = 20.0
+#: the coarse (P, φ) grid's best fit must explain this share of that already, or no refinement
+#: is tried (a sawtooth's coarse fit explains ≥ 0.9 of its refined share: the coarse grid is
+#: 7.5° in phase and a third of a frequency bin in period)
+CLOCK_COARSE_SHARE = 0.6
 #: phases tried per period, periods tried around the periodogram peak
 _N_PHASE = 48
 _N_PERIOD = 31
@@ -189,13 +193,17 @@ def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray) -> SawtoothFit | None:
     periods = 1.0 / np.linspace(max(f0 - 1.5 * df, f_min * 0.5), f0 + 1.5 * df, _N_PERIOD)
     phases = np.arange(_N_PHASE) / _N_PHASE
     rss, p_best, ph_best, _, _, _ = _fit_grid(t, r, periods, phases)
+    total = float(np.sum(rc * rc))
+    need = max(CLOCK_MIN_EXPLAINED, CLOCK_NULL_EXPLAINED_N / t.size)
+    if total <= 0 or 1.0 - rss / total < CLOCK_COARSE_SHARE * need:
+        # the refinement (± one coarse step) cannot make up for that much: no sawtooth
+        return None
     dp = float(np.max(np.abs(np.diff(periods))))
     periods = p_best + np.linspace(-dp, dp, 21)
     phases = ph_best + np.linspace(-1.0, 1.0, 21) / _N_PHASE
     rss, p_best, ph_best, amp, off, _ = _fit_grid(t, r, periods, phases)
-    total = float(np.sum(rc * rc))
-    explained = 1.0 - rss / total if total > 0 else 0.0
-    if explained < max(CLOCK_MIN_EXPLAINED, CLOCK_NULL_EXPLAINED_N / t.size):
+    explained = 1.0 - rss / total
+    if explained < need:
         return None
     # back to absolute time: frac((t − t0)/P − φ) = frac(t/P − (φ + t0/P))
     phase = (ph_best + t0 / p_best) % 1.0
