@@ -76,11 +76,13 @@ from estimator.marginals import (  # noqa: F401
     _estimate,
 )
 from estimator.online import (  # noqa: F401
-    _SQRT_HALF,
-    _SQRT_HALF_PI,
     ONLINE_MIN_EXTENT_M,
     ONLINE_MIN_RANGES,
     OnlineEstimator,
+)
+from estimator.online_filter import (  # noqa: F401
+    _SQRT_HALF,
+    _SQRT_HALF_PI,
     _inv3_sym,
 )
 from estimator.solve import (  # noqa: F401
