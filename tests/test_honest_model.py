@@ -410,62 +410,30 @@ def test_last_keyframe_information_equals_the_dense_marginal():
 
 @pytest.mark.parametrize("loss", ["nlos", "huber"])
 def test_online_gauss_markov_filter_step_matches_dense_elimination(loss):
-    """One filter step with a Gauss–Markov GPS link against the dense reference: variables
-    v = [x_l (3), x_n (3), Θ (K·p)], H = Ŝ on (x_l, Θ) + the GPS factor (GpsFactor) and the new
-    ranges (RangeFactor) linearized at the Gauss–Markov prediction x_n⁰ = x̂_n + φ (x_l − x̂_l)
-    and the previous Θ, Δv = H⁻¹ g; the new Ŝ is the Schur complement over x_l."""
-    from estimator.factors import RangeFactor
-    from estimator.robust import loss_psi_weight
+    """One filter step with a Gauss–Markov GPS link against the dense reference
+    (tests.dense_filter): v = [x_l (3), x_n (3), Θ (K·p)], H = Ŝ on (x_l, Θ) + the GPS factor
+    (GpsFactor) and the new ranges (RangeFactor) linearized at the Gauss–Markov prediction
+    x_n⁰ = x̂_n + φ (x_l − x̂_l) and the previous Θ, Δv = H⁻¹ g; the new Ŝ is the Schur
+    complement over x_l."""
+    from tests.dense_filter import add_ranges, assert_step_matches, step_to_dense
 
     sc = simulate(np.random.default_rng(31), n_users=3, n_keyframes=60, noise=GM, gps_tau_s=60.0, p_visible=0.8)
     params = SolverParams(loss=loss, online_resolve_every=1000, window=1000, online_max_step_m=100.0,
                           estimate_noise_scale=False)
     j = next(i for i in range(40, 60) if 0 < sc.keyframes[i].user_idx.size < 3)
     on = OnlineEstimator(3, sc.user_up_m, GM, params)
-    for kf in sc.keyframes[:j]:
-        est = on.add_keyframe(kf)
-    assert est.extra["active"].all()
-    last = sc.keyframes[j - 1]
-    on._full_update(on._n - 1, last.gps_enu_m, last.user_idx, last.range_m, None)
-    theta0, s_aug, pi = on._theta.copy(), on._s_aug.copy(), on._nlos_pi.copy()
-    x_l, g_l = on._x[on._n - 1].copy(), last.gps_enu_m
-    kf = sc.keyframes[j]
-    est = on.add_keyframe(kf)
-    assert est.extra.get("filter_step")
-    p, k_all = on._p, 3
-    dim = 6 + k_all * p
-    h = np.zeros((dim, dim))
-    g = np.zeros(dim)
-    sel = np.r_[0:3, 6:dim]
-    h[np.ix_(sel, sel)] = s_aug
-    phi = float(gps_phi(np.array([last.t_s, kf.t_s]), GM.gps_tau_s)[1])
+    est, theta0, pi, x_l, h, g = step_to_dense(on, sc.keyframes, j)
+    kf, g_l = sc.keyframes[j], sc.keyframes[j - 1].gps_enu_m
+    phi = float(gps_phi(np.array([sc.keyframes[j - 1].t_s, kf.t_s]), GM.gps_tau_s)[1])
     x0 = kf.gps_enu_m + phi * (x_l - g_l)
     gf = GpsFactor(kf.gps_enu_m, GM.sigma_gps_m, phi, g_l)
     np.testing.assert_allclose(gf.error(x0, x_l), 0.0, atol=1e-12)
     jn, jl = gf.jacobian()
-    jg = np.zeros((3, dim))
+    jg = np.zeros((3, h.shape[0]))
     jg[:, 0:3], jg[:, 3:6] = jl, jn
     h += jg.T @ jg
-    for k, r in zip(kf.user_idx, kf.range_m, strict=True):
-        f = RangeFactor(float(r), GM, params.user_dim, float(sc.user_up_m[k]), params.estimate_bias)
-        e = f.error(x0, theta0[k])
-        jx, jt = f.jacobian(x0, theta0[k])
-        sig = float(GM.range_sigma_m(np.linalg.norm(x0 - f._user(theta0[k])[0])))
-        _, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi[k], params.nlos_mean_m / sig))
-        jr = np.zeros(dim)
-        jr[3:6] = jx
-        jr[6 + k * p : 6 + (k + 1) * p] = jt
-        h += w[0] * np.outer(jr, jr)
-        g -= psi[0] * jr
-    dv = np.linalg.solve(h, g)
-    np.testing.assert_allclose(on._theta.ravel() - theta0.ravel(), dv[6:], rtol=1e-9, atol=1e-11)
-    np.testing.assert_allclose(est.uav_enu_m[-1], x0 + dv[3:6], rtol=1e-9, atol=1e-11)
-    np.testing.assert_allclose(est.uav_enu_m[-2], x_l + dv[:3], rtol=1e-9, atol=1e-11)
-    s_ref = h[3:, 3:] - h[3:, :3] @ np.linalg.solve(h[:3, :3], h[:3, 3:])
-    np.testing.assert_allclose(on._s_aug, s_ref, rtol=1e-9, atol=1e-12 * np.abs(s_ref).max())
-    cov_ref = np.linalg.inv(s_ref)[3:, 3:].reshape(k_all, p, k_all, p)
-    for k in range(k_all):
-        np.testing.assert_allclose(est.cov_users_m2[k], cov_ref[k, :2, k, :2], rtol=1e-9, atol=1e-12)
+    add_ranges(h, g, on, kf, x0, theta0, pi, sc.user_up_m)
+    assert_step_matches(on, est, h, g, theta0, x_l, x0)
 
 
 @pytest.mark.parametrize("params", [FIXED, SolverParams(), replace(FIXED, motion_sigma_m=0.2)],

@@ -398,11 +398,11 @@ def test_simulated_velocity_error_is_small_and_forgets_itself_and_leaves_the_gps
 @pytest.mark.parametrize("tau_s", [0.0, 60.0], ids=["white-gps", "gauss-markov-gps"])
 def test_online_filter_step_with_a_motion_factor_matches_dense_elimination(tau_s):
     """A keyframe linked by a motion factor is folded by the chain filter step (estimator.online_chain)
-    instead of a window re-solve; against the dense reference: v = [x_l, x_n, Θ], H = Ŝ on (x_l, Θ)
-    + the GPS factor + the motion factor + the new ranges, all at x_n⁰ and the previous Θ."""
-    from estimator.factors import RangeFactor
+    instead of a window re-solve; against the dense reference (tests.dense_filter): v = [x_l, x_n, Θ],
+    H = Ŝ on (x_l, Θ) + the GPS factor + the motion factor + the new ranges, all at x_n⁰ and the
+    previous Θ."""
     from estimator.gps import GpsFactor, gps_phi
-    from estimator.robust import loss_psi_weight
+    from tests.dense_filter import add_ranges, assert_step_matches, step_to_dense
 
     noise = replace(NOISE, gps_tau_s=tau_s)
     sc = simulate(np.random.default_rng(31), n_users=3, n_keyframes=60, noise=noise, gps_tau_s=tau_s,
@@ -411,28 +411,15 @@ def test_online_filter_step_with_a_motion_factor_matches_dense_elimination(tau_s
     params = SolverParams(online_resolve_every=1000, window=1000, online_max_step_m=100.0, estimate_noise_scale=False)
     j = next(i for i in range(40, 60) if 0 < kfs[i].user_idx.size < 3)
     on = OnlineEstimator(3, sc.user_up_m, noise, params)
-    for kf in kfs[:j]:
-        est = on.add_keyframe(kf)
-    assert est.extra["active"].all()
-    last = kfs[j - 1]
-    on._full_update(on._n - 1, last.gps_enu_m, last.user_idx, last.range_m, last.odom_enu_m)
-    theta0, s_aug, pi = on._theta.copy(), on._s_aug.copy(), on._nlos_pi.copy()
-    x_l, g_l = on._x[on._n - 1].copy(), last.gps_enu_m
-    kf = kfs[j]
-    est = on.add_keyframe(kf)
-    assert est.extra.get("filter_step")
-    p, k_all = on._p, 3
-    dim = 6 + k_all * p
-    h, g = np.zeros((dim, dim)), np.zeros(dim)
-    sel = np.r_[0:3, 6:dim]
-    h[np.ix_(sel, sel)] = s_aug
-    phi = float(gps_phi(np.array([last.t_s, kf.t_s]), tau_s)[1]) if tau_s else 0.0
+    est, theta0, pi, x_l, h, g = step_to_dense(on, kfs, j)
+    kf, g_l = kfs[j], kfs[j - 1].gps_enu_m
+    phi = float(gps_phi(np.array([kfs[j - 1].t_s, kf.t_s]), tau_s)[1]) if tau_s else 0.0
     x0 = kf.gps_enu_m + phi * (x_l - g_l)
+    dim = h.shape[0]
 
     def add(jac, e):  # H += JᵀJ, g −= Jᵀe
-        nonlocal h, g
-        h += jac.T @ jac
-        g -= jac.T @ e
+        h[:] += jac.T @ jac
+        g[:] -= jac.T @ e
 
     gf = GpsFactor(kf.gps_enu_m, noise.sigma_gps_m, phi, g_l)
     jn, jl = gf.jacobian()
@@ -444,23 +431,5 @@ def test_online_filter_step_with_a_motion_factor_matches_dense_elimination(tau_s
     jm = np.zeros((3, dim))
     jm[:, 0:3], jm[:, 3:6] = j0, j1
     add(jm, mf.error(x_l, x0))
-    for k, r in zip(kf.user_idx, kf.range_m, strict=True):
-        f = RangeFactor(float(r), noise, params.user_dim, float(sc.user_up_m[k]), params.estimate_bias)
-        e = f.error(x0, theta0[k])
-        jx, jt = f.jacobian(x0, theta0[k])
-        sig = float(noise.range_sigma_m(np.linalg.norm(x0 - f._user(theta0[k])[0])))
-        _, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi[k], params.nlos_mean_m / sig))
-        jr = np.zeros(dim)
-        jr[3:6] = jx
-        jr[6 + k * p : 6 + (k + 1) * p] = jt
-        h += w[0] * np.outer(jr, jr)
-        g -= psi[0] * jr
-    dv = np.linalg.solve(h, g)
-    np.testing.assert_allclose(on._theta.ravel() - theta0.ravel(), dv[6:], rtol=1e-9, atol=1e-11)
-    np.testing.assert_allclose(est.uav_enu_m[-1], x0 + dv[3:6], rtol=1e-9, atol=1e-11)
-    np.testing.assert_allclose(est.uav_enu_m[-2], x_l + dv[:3], rtol=1e-9, atol=1e-11)
-    s_ref = h[3:, 3:] - h[3:, :3] @ np.linalg.solve(h[:3, :3], h[:3, 3:])
-    np.testing.assert_allclose(on._s_aug, s_ref, rtol=1e-9, atol=1e-12 * np.abs(s_ref).max())
-    cov_ref = np.linalg.inv(s_ref)[3:, 3:].reshape(k_all, p, k_all, p)
-    for k in range(k_all):
-        np.testing.assert_allclose(est.cov_users_m2[k], cov_ref[k, :2, k, :2], rtol=1e-9, atol=1e-12)
+    add_ranges(h, g, on, kf, x0, theta0, pi, sc.user_up_m)
+    assert_step_matches(on, est, h, g, theta0, x_l, x0)
