@@ -14,6 +14,7 @@ from estimator.linearize import (
     linearize,
 )
 from estimator.online_chain import chain_marginal_prior
+from estimator.problem import Problem
 
 
 class WindowMarginalization:
@@ -61,13 +62,7 @@ class WindowMarginalization:
             info += pr.info
             cvec += pr.grad + pr.info @ (z - pr.z0)
         self._prior = Prior(False, theta.ravel().copy(), 0.5 * (info + info.T), cvec)
-        n = self._n
-        self._win_count -= prob.mask[:m].sum(axis=0)
-        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._odom_sigma, self._x, self._t):
-            arr[: n - m] = arr[m:n]
-        self._odom_mask[0] = False
-        self._odom_sigma[0] = np.nan
-        self._n = n - m
+        self._drop_oldest(m, prob)
         return True
 
     def _marginalize_chain(self, m: int) -> bool:
@@ -100,14 +95,8 @@ class WindowMarginalization:
             blocks[k, :, k, :] -= np.eye(p)
         info, grad = chain_marginal_prior(lin, m)
         self._prior = Prior(True, np.concatenate([self._x[m], self._theta.ravel()]), info, grad)
-        n = self._n
-        self._win_count -= prob.mask[:m].sum(axis=0)
-        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._odom_sigma, self._x, self._t):
-            arr[: n - m] = arr[m:n]
-        self._odom_mask[0] = False
-        self._odom_sigma[0] = np.nan
+        self._drop_oldest(m, prob)
         self._gps_first = False  # keyframe m's link to m − 1 now lives in the prior
-        self._n = n - m
         return True
 
     def _marginalize_oldest(self) -> None:
@@ -174,12 +163,17 @@ class WindowMarginalization:
             info, cvec, z0 = info[3:, 3:], cvec[3:], z0[3:]
         self._prior = Prior(link, z0, 0.5 * (info + info.T), cvec)
         # drop keyframe 0
-        n = self._n
-        self._win_count -= prob.mask[0]
-        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._odom_sigma, self._x, self._t):
-            arr[: n - 1] = arr[1:n]
-        self._odom_mask[0] = False
-        self._odom_sigma[0] = np.nan
+        self._drop_oldest(1, prob)
         if gps_link:
             self._gps_first = False  # its link to the dropped keyframe now lives in the prior
-        self._n = n - 1
+
+    def _drop_oldest(self, m: int, prob: Problem) -> None:
+        """Drop the m oldest keyframes of the window (their factors now live in the prior): every
+        per-keyframe array shifts with the window, the new keyframe 0 has no motion factor."""
+        n = self._n
+        self._win_count -= prob.mask[:m].sum(axis=0)
+        for arr in (self._gps, self._rng, self._odom, self._odom_mask, self._odom_sigma, self._x, self._t):
+            arr[: n - m] = arr[m:n]
+        self._odom_mask[0] = False
+        self._odom_sigma[0] = np.nan
+        self._n = n - m
