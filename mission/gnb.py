@@ -71,6 +71,14 @@ __all__ = ["FORBIDDEN_CI", "GnbClient", "GnbConfig", "LogFollower", "OaiGnbClien
 
 log = logging.getLogger(__name__)
 
+#: at least this long between two `o1 stats` to one gNB from this process [s]: OAI 2025.w36's
+#: nr-softmodem dies with SIGFPE (exit 136) on an `o1 stats` that follows another within a few
+#: milliseconds (measured on the real gNB: back to back it died on the 2nd pair; 5 ms and 20 ms
+#: apart, 20 pairs each, it lived); README, gNB section
+O1_MIN_INTERVAL_S = 0.1
+#: (host, port) -> monotonic time of the last `o1 stats` sent there, shared by every client
+_O1_LAST_SENT: dict[tuple[str, int], float] = {}
+
 @runtime_checkable
 class GnbClient(Protocol):
     """What the mission controller needs from a gNB.
@@ -305,6 +313,7 @@ class OaiGnbClient:
         mode = self.config.discovery
         rntis: list[int] | None = None
         if mode in ("auto", "o1"):
+            await self._o1_spacing()
             body = await self._request_locked("o1 stats", self.config.retries)
             try:
                 rntis = parse_o1_stats(check_known_command(body, "o1 stats")).rntis
@@ -323,6 +332,17 @@ class OaiGnbClient:
         self.known_rntis = sorted(rntis)
         log.debug("gNB reports %d UE(s): %s", len(rntis), ", ".join(f"{r:04x}" for r in self.known_rntis))
         return list(self.known_rntis)
+
+    async def _o1_spacing(self) -> None:
+        """Wait until O1_MIN_INTERVAL_S has passed since this process's last `o1 stats` to this gNB
+        (by the real monotonic clock: the hazard is in the gNB's time), then note this one."""
+        key = (self.config.host, int(self.config.port))
+        last = _O1_LAST_SENT.get(key)
+        if last is not None:
+            wait_s = O1_MIN_INTERVAL_S - (time.monotonic() - last)
+            if wait_s > 0:
+                await asyncio.sleep(wait_s)
+        _O1_LAST_SENT[key] = time.monotonic()
 
     async def guarded_ci(self, command: str, rnti: int) -> str:
         """Send `ci <command> <rnti hex>` only if a discovery taken just before it, on the same

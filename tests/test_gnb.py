@@ -81,6 +81,39 @@ def test_discovery_by_o1_stats_lists_users_in_coverage():
     assert run(body()) == IN_COVERAGE
 
 
+def test_back_to_back_o1_stats_crash_the_simulated_gnb_as_they_crash_oai():
+    """OAI 2025.w36 dies with SIGFPE on an `o1 stats` a few ms after the previous one (back to back
+    on the real gNB: exit 136); the simulated gNB does too, and the client spaces its `o1 stats`
+    (mission.gnb.O1_MIN_INTERVAL_S) across connections and clients, so discovering again and again
+    from new clients leaves the gNB alive."""
+    from mission.gnb import O1_MIN_INTERVAL_S
+
+    async def raw(gnb):
+        reader, writer = await asyncio.open_connection("127.0.0.1", gnb.port)
+        writer.write(b"o1 stats\no1 stats\n")  # the second arrives within microseconds
+        await writer.drain()
+        data = await reader.read()  # the crash closes the connection
+        writer.close()
+        return data
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            await raw(gnb)
+            back_to_back = gnb.crashed
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            t0 = asyncio.get_running_loop().time()
+            for _ in range(3):
+                async with OaiGnbClient(client_config(gnb, discovery="o1")) as c:
+                    await c.discover()
+                    await c.discover()
+            return back_to_back, gnb.crashed, asyncio.get_running_loop().time() - t0
+
+    back_to_back, spaced, took_s = run(body())
+    assert back_to_back is not None and "SIGFPE" in back_to_back
+    assert spaced is None
+    assert took_s >= 5 * O1_MIN_INTERVAL_S * 0.9  # six discoveries, five gaps
+
+
 def test_discovery_single_rnti_and_auto_fallback_when_o1_missing():
     one = [USERS[0]]
 
