@@ -86,6 +86,7 @@ from mission.replay import ReplayOptions, replay
 
 try:  # optional (the `bench` extra)
     import gtsam
+    from gtsam_gm import gm_link_factor  # benchmarks/ is this script's folder
 
     GTSAM_MISSING = ""
 except ImportError as exc:  # pragma: no cover
@@ -210,20 +211,6 @@ def write_log(path: Path, row: Row, seed: int) -> dict:
 # --- GTSAM ----------------------------------------------------------------------------------------
 
 
-def _gm_factor(key_prev, key, gps_prev, gps, phi, model):
-    """CustomFactor e = (x − x̂) − φ (x_prev − x̂_prev) (whitened by `model`)."""
-
-    def error(this, values, jacobians):
-        xp = values.atPoint3(key_prev)
-        x = values.atPoint3(key)
-        if jacobians is not None:
-            jacobians[0] = -phi * np.eye(3)
-            jacobians[1] = np.eye(3)
-        return (x - gps) - phi * (xp - gps_prev)
-
-    return gtsam.CustomFactor(model, [key_prev, key], error)
-
-
 def gtsam_solve(keyframes, n_users: int, noise: NoiseModel, tau_s: float, init: np.ndarray):
     """(users (K, 3), cov (K, 2, 2)) from GTSAM LM + Marginals."""
     X, L = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
@@ -244,7 +231,7 @@ def gtsam_solve(keyframes, n_users: int, noise: NoiseModel, tau_s: float, init: 
         else:
             phi = math.exp(-max(kf.t_s - keyframes[n - 1].t_s, 0.0) / tau_s)
             model = gtsam.noiseModel.Isotropic.Sigma(3, sig * math.sqrt(max(1.0 - phi * phi, 1e-4)))
-            graph.add(_gm_factor(X(n - 1), X(n), np.asarray(keyframes[n - 1].gps_enu_m), np.asarray(kf.gps_enu_m),
+            graph.add(gm_link_factor(X(n - 1), X(n), np.asarray(keyframes[n - 1].gps_enu_m), np.asarray(kf.gps_enu_m),
                                  phi, model))
         for k, r in zip(kf.user_idx, kf.range_m, strict=True):
             graph.add(gtsam.RangeFactor3(X(n), L(int(k)), float(r), huber))

@@ -11,9 +11,10 @@ system, from the OS: getrusage of the reaped child), imports and parsing include
   marginals; no history pass);
 - baseline: this file with `--gtsam LOG`, a plain script: json, pymap3d and GTSAM only. It groups
   the rtt records into keyframes, chains the GPS fixes by the same Gauss–Markov factor
-  (CustomFactor), adds one Huber range factor per measurement, starts the users at their true
-  positions (the `truth` record: fewer iterations than a real start, which favours the baseline),
-  and runs Levenberg–Marquardt and Marginals.
+  (a CustomFactor from benchmarks/gtsam_gm.py, as in honesty.py's GTSAM column), adds one Huber
+  range factor per measurement, starts the users at their true positions (the `truth` record:
+  fewer iterations than a real start, which favours the baseline), and runs Levenberg–Marquardt
+  and Marginals.
 
 The log is benchmarks/honesty.py's (UAV on a 60 m circle, 3 users, GPS Gauss–Markov τ 120 s,
 velocity logged), written once into --work. Each command runs --repeat times; the best time of
@@ -41,6 +42,7 @@ def gtsam_script(log_path: str, white: bool = False) -> None:
     import gtsam
     import numpy as np
     import pymap3d
+    from gtsam_gm import gm_link_factor  # benchmarks/ is this script's folder
 
     header, truth, rtt = None, None, []
     with open(log_path, encoding="utf-8") as fh:
@@ -85,7 +87,7 @@ def gtsam_script(log_path: str, white: bool = False) -> None:
             phi = math.exp(-max(t - kfs[i - 1][0], 0.0) / tau)
             model = gtsam.noiseModel.Isotropic.Sigma(3, sigma_gps * math.sqrt(max(1.0 - phi * phi, 1e-4)))
 
-            graph.add(gtsam.CustomFactor(model, [X(i - 1), X(i)], _gm_error(X(i - 1), X(i), gps, gps_prev, phi)))
+            graph.add(gm_link_factor(X(i - 1), X(i), gps_prev, gps, phi, model))
         for k, r in ranges:
             graph.add(gtsam.RangeFactor3(X(i), L(k), float(r), huber))
         gps_prev = gps
@@ -95,19 +97,6 @@ def gtsam_script(log_path: str, white: bool = False) -> None:
     marg = gtsam.Marginals(graph, result)
     print(json.dumps({"users": [list(result.atPoint3(L(k))) for k in range(len(ids))],
                       "cov_en_m2": [marg.marginalCovariance(L(k))[:2, :2].tolist() for k in range(len(ids))]}))
-
-
-def _gm_error(key_prev, key, gps, gps_prev, phi):
-    """The Gauss–Markov GPS link e = (x − x̂) − φ (x_prev − x̂_prev) as a CustomFactor error."""
-    import numpy as np
-
-    def error(this, vals, jac):
-        if jac is not None:
-            jac[0] = -phi * np.eye(3)
-            jac[1] = np.eye(3)
-        return (vals.atPoint3(key) - gps) - phi * (vals.atPoint3(key_prev) - gps_prev)
-
-    return error
 
 
 def cpu_s(cmd: list[str]) -> float:
