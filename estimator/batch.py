@@ -188,7 +188,7 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
             gain = np.ones((n, k_all))
             for k, fit in enumerate(clocks):
                 if fit is not None:
-                    gain[:, k] = fit.value_m(t) / fit.amplitude_m
+                    gain[:, k] = fit.gain(t)
             prob.bias_gain = gain
             prob.bias_force_k = np.array([c is not None for c in clocks])
     theta[~active] = 0.0
@@ -275,7 +275,7 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
                 continue
             fits[k] = fit
             all_k = prob.mask[:n, k]
-            gain[all_k, k] = fit.value_m(t[all_k]) / fit.amplitude_m
+            gain[all_k, k] = fit.gain(t[all_k])
             res.theta[k, -1] = fit.amplitude_m
             changed = True
         if not changed or not prob.params.estimate_bias:

@@ -59,6 +59,11 @@ class SawtoothFit:
         u = np.asarray(t_s, dtype=float) / self.period_s - self.phase
         return self.amplitude_m * (u - np.floor(u))
 
+    def gain(self, t_s: np.ndarray) -> np.ndarray:
+        """The gain of the user's bias (its amplitude) in its ranges at t_s, saw(t)/A (any shape):
+        the estimator's r̂ = d + A · gain (Problem.bias_gain)."""
+        return self.value_m(t_s) / self.amplitude_m
+
 
 def periodogram(t_s: np.ndarray, x: np.ndarray, freqs_hz: np.ndarray, chunk: int = 256) -> np.ndarray:
     """(F,) power |Σ_n x_n e^(−2πi f t_n)|² / n of a zero-mean series at uneven times (the classic
