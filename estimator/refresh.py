@@ -92,7 +92,6 @@ class RefreshedEstimator:
         self._confirm_at = -CONFIRM_MIN_KEYFRAMES
         self.n_refreshes = 0
         self.online_failure: str | None = None
-        self.n_cold = 0
 
     @property
     def online_estimate(self) -> Estimate | None:
@@ -188,7 +187,6 @@ class RefreshedEstimator:
         est = solve_batch(self._keyframes, n_users, up, noise, params, init_users_enu_m=init, warm=warm)
         if not est.extra.get("warm_started"):
             self._cold_at = n
-            self.n_cold += 1
         self._batch = _tagged(est, SOURCE_BATCH, n)
         self._batch_at = n
         self.n_refreshes += 1
