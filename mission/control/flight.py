@@ -70,7 +70,8 @@ from mission.control.pipeline import MeasurementPipeline
 from mission.control.safety_monitor import SafetyMonitor
 from mission.control.state import FlightState
 from mission.gnb import GnbClient
-from mission.log import MissionLogWriter, area_fields
+from mission.log import MissionLogWriter, area_fields, read_mission_log
+from mission.replay import ReplayOptions, replay
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.telemetry import TelemetryBuffer, VehicleClock
 from mission.vehicle import PositionFix, Vehicle
@@ -441,9 +442,6 @@ class MissionController:
     def _final_estimate_from_log(self) -> Estimate:
         """The batch estimate `uavloc replay LOG` computes, from the log as written so far (the
         header holds the mission's noise model and solver settings)."""
-        from mission.log import read_mission_log
-        from mission.replay import ReplayOptions, replay
-
         mlog = read_mission_log(self.journal.writer.path)  # flushed line by line
         if mlog.skipped_torn_line is not None:
             raise MissionLogError(f"{self.journal.writer.path}: a torn line ({mlog.skipped_torn_line})")
