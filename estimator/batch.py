@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from estimator.clock import fit_sawtooth
+from estimator.clock import fit_sawtooth, refine_sawtooth
 from estimator.init import init_users, mirror_tests
 from estimator.linearize import (
     Prior,
@@ -199,6 +199,8 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
     if prob.params.estimate_noise_scale:
         prob.noise_scale_k = np.asarray(ex["noise_scale"], dtype=float).copy()
     res = solve_robust(prob, x, theta, active)
+    if prob.params.estimate_bias and any(c is not None for c in clocks):
+        res, clocks = _refine_clocks(prob, res, active, clocks)
     triggered = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
     if prob.params.track_clock and prob.params.estimate_bias:
         # a user without a sawtooth whose residuals now call for one (more periods seen since the
@@ -244,6 +246,46 @@ def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.nda
     return active & (cnt >= CLOCK_MIN_RANGES) & ((rms >= CLOCK_TRIGGER_SCALE) | (z >= CLOCK_TRIGGER_Z))
 
 
+def _clock_residuals(prob: Problem, res: _Result) -> tuple[np.ndarray, np.ndarray]:
+    """What a clock fit sees at a solution: r̂ − d (n, K) (the sawtooth or bias, and the noise)
+    and the range's gradient in the user's position ∂d/∂u = (u − x)/d (n, K, user_dim), the
+    nuisance columns of the fit (a solve without the sawtooth moved the user to absorb part of
+    it, and the fit takes that back)."""
+    n = prob.n_keyframes
+    users = users_from_theta(res.theta, prob.user_up_m, prob.user_dim)
+    diff = res.x[:, None, :] - users[None, :, :]
+    d = np.linalg.norm(diff, axis=2)
+    return prob.range_m[:n] - d, -diff[:, :, : prob.user_dim] / d[:, :, None]
+
+
+def _refine_clocks(prob: Problem, res: _Result, active: np.ndarray, clocks: list) -> tuple[_Result, list]:
+    """A warm solve's tracked sawtooths re-fitted near their (P, φ) on its residuals
+    (estimator.clock.refine_sawtooth: more periods seen since the cold solve that found them
+    pin them down better), and the problem solved again when any moved."""
+    n = prob.n_keyframes
+    t = prob.t_s[:n]
+    kept = res.lin.w.T >= 0.5
+    r_all, grad_all = _clock_residuals(prob, res)
+    out = list(clocks)
+    gain = prob.bias_gain.copy()
+    moved = False
+    for k, fit in enumerate(clocks):
+        rows = prob.mask[:n, k] & kept[:, k]
+        if fit is None or not active[k] or int(rows.sum()) < CLOCK_MIN_RANGES:
+            continue
+        new = refine_sawtooth(t[rows], r_all[rows, k], fit, grad_all[rows, k])
+        if new.period_s == fit.period_s and new.phase == fit.phase:
+            continue
+        out[k] = new
+        all_k = prob.mask[:n, k]
+        gain[all_k, k] = new.gain(t[all_k])
+        moved = True
+    if not moved:
+        return res, clocks
+    prob.bias_gain = gain
+    return solve_robust(prob, res.x, res.theta, active), out
+
+
 def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Result, list]:
     """Fit a clock sawtooth (estimator.clock) to each user whose range residuals are noisier or
     smoother than white noise of its σ(d) (_clock_trigger); an accepted fit turns the user's bias
@@ -261,16 +303,13 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
         trig = _clock_trigger(prob, res, kept, active)
         if not any(fits) and not trig.any():
             break
-        users = users_from_theta(res.theta, prob.user_up_m, prob.user_dim)
-        d = np.linalg.norm(res.x[:, None, :] - users[None, :, :], axis=2)
+        r_all, grad_all = _clock_residuals(prob, res)
         changed = False
         for k in np.flatnonzero(active):
             rows = prob.mask[:n, k] & kept[:, k]
             if int(rows.sum()) < CLOCK_MIN_RANGES or (fits[k] is None and not trig[k]):
                 continue
-            # r̂ − d: the sawtooth (or bias) and the noise
-            r = prob.range_m[rows, k] - d[rows, k]
-            fit = fit_sawtooth(t[rows], r)
+            fit = fit_sawtooth(t[rows], r_all[rows, k], grad_all[rows, k])
             if fit is None:
                 continue
             fits[k] = fit

@@ -35,9 +35,20 @@ CLOCK_NULL_EXPLAINED_N = 20.0
 #: is tried (a sawtooth's coarse fit explains ≥ 0.9 of its refined share: the coarse grid is
 #: 7.5° in phase and a third of a frequency bin in period)
 CLOCK_COARSE_SHARE = 0.6
-#: phases tried per period, periods tried around the periodogram peak
+#: the period is searched around this many periodogram peaks, each also as the 2nd … (1 +
+#: CLOCK_SUBHARMONICS)th harmonic of the fundamental
+CLOCK_PEAKS = 3
+CLOCK_SUBHARMONICS = 2
+#: refine_sawtooth's grid: ± this many quarter frequency bins around the last period, ± this
+#: many cycles around its phase
+CLOCK_REFINE_BINS = 4
+CLOCK_REFINE_PHASE = 0.06
+#: the scan of the candidates: periods per candidate (± 1.5 quarter frequency bins), phases;
+#: then the coarse grid around the best: periods (± one scan step), phases
+_N_PERIOD_SCAN = 7
+_N_PHASE_SCAN = 24
+_N_PERIOD = 9
 _N_PHASE = 48
-_N_PERIOD = 31
 
 
 @dataclass(frozen=True)
@@ -77,11 +88,12 @@ def periodogram(t_s: np.ndarray, x: np.ndarray, freqs_hz: np.ndarray, chunk: int
     return out
 
 
-def peak_frequency_hz(t_s: np.ndarray, x: np.ndarray, f_min_hz: float, f_max_hz: float,
-                      oversample: float = 4.0) -> float:
-    """Frequency [Hz] of the highest peak in [f_min_hz, f_max_hz] of the periodogram of
-    :func:`periodogram` (zero-mean series x (n,) at times t_s (n,), t_s ≥ 0), on a grid
-    `oversample` × finer than the resolution 1/span, by FFT in O(M log M), M = 16·span·f_max:
+def peak_frequencies_hz(t_s: np.ndarray, x: np.ndarray, f_min_hz: float, f_max_hz: float,
+                        n_peaks: int = 1, oversample: float = 4.0) -> np.ndarray:
+    """Frequencies [Hz] of the `n_peaks` highest local maxima in [f_min_hz, f_max_hz] of the
+    periodogram of :func:`periodogram` (zero-mean series x (n,) at times t_s (n,), t_s ≥ 0),
+    highest first, on a grid `oversample` × finer than the resolution 1/span, by FFT in
+    O(M log M), M = 16·span·f_max:
 
         P(f) = |Σ_n x_n e^(−2πi f t_n)|² / n,   t_n ≈ h · round(t_n / h),  h = 1 / (16 f_max)
 
@@ -96,50 +108,82 @@ def peak_frequency_hz(t_s: np.ndarray, x: np.ndarray, f_min_hz: float, f_max_hz:
     m = 1 << max(math.ceil(oversample * grid.size), grid.size, 2).bit_length()
     power = np.abs(np.fft.rfft(grid, n=m)) ** 2
     freqs = np.fft.rfftfreq(m, d=h)
-    sel = (freqs >= f_min_hz) & (freqs <= f_max_hz)
-    if not sel.any():
-        return float(0.5 * (f_min_hz + f_max_hz))
-    return float(freqs[sel][int(np.argmax(power[sel]))])
+    sel = np.flatnonzero((freqs >= f_min_hz) & (freqs <= f_max_hz))
+    if sel.size == 0:
+        return np.array([0.5 * (f_min_hz + f_max_hz)])
+    p = power[sel]
+    # local maxima (the band's ends count when they rise towards them)
+    left = np.r_[True, p[1:] > p[:-1]]
+    right = np.r_[p[:-1] >= p[1:], True]
+    peaks = np.flatnonzero(left & right)
+    top = peaks[np.argsort(p[peaks], kind="stable")[::-1][:n_peaks]]
+    return freqs[sel][top]
 
 
-def _fit_grid_dense(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndarray) -> tuple:
-    """:func:`_fit_grid` the obvious way, on the whole (P, Φ, n) array of frac(t/P − φ): the slow
-    reference of the tests."""
+def peak_frequency_hz(t_s: np.ndarray, x: np.ndarray, f_min_hz: float, f_max_hz: float,
+                      oversample: float = 4.0) -> float:
+    """Frequency [Hz] of the highest peak of :func:`peak_frequencies_hz`."""
+    return float(peak_frequencies_hz(t_s, x, f_min_hz, f_max_hz, 1, oversample)[0])
+
+
+def _basis(n: int, nuisance: np.ndarray | None) -> np.ndarray:
+    """(n, q) orthonormal basis of the constant and the nuisance columns (n, m) (QR; columns
+    that add nothing new are dropped)."""
+    cols = np.ones((n, 1)) if nuisance is None else np.column_stack([np.ones(n), nuisance])
+    q, rdiag = np.linalg.qr(cols)
+    keep = np.abs(np.diag(rdiag)) > 1e-9 * max(1.0, float(np.max(np.abs(np.diag(rdiag)))))
+    return q[:, keep]
+
+
+def _fit_grid_dense(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndarray,
+                    nuisance: np.ndarray | None = None) -> tuple:
+    """:func:`_fit_grid` the obvious way, on the whole (P, Φ, n) array of frac(t/P − φ) projected
+    off the constant and the nuisance columns: the slow reference of the tests."""
     u = t[None, None, :] / periods[:, None, None] - phases[None, :, None]
     s = u - np.floor(u)
-    n = t.size
-    sm = s.mean(axis=2)
-    rm = r.mean()
-    sc = s - sm[..., None]
-    sxx = np.einsum("pfn,pfn->pf", sc, sc)
-    sxy = np.einsum("pfn,n->pf", sc, r - rm)
-    return _grid_best(r, rm, sm, sxx, sxy, periods, phases, n)
+    q = _basis(t.size, nuisance)
+    rq = r - q @ (q.T @ r)
+    sp = s - np.einsum("pfq,nq->pfn", np.einsum("pfn,nq->pfq", s, q), q)
+    sxx = np.einsum("pfn,pfn->pf", sp, sp)
+    sxy = np.einsum("pfn,n->pf", sp, rq)
+    return _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance)
 
 
-def _grid_best(r, rm, sm, sxx, sxy, periods, phases, n) -> tuple:
+def _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance) -> tuple:
+    """The best (P, φ) of a grid from S_xx, S_xy (P, Φ) of the projected sawtooth and the
+    projected residuals rq: (rss, P, φ, A, c, n), c the constant of the least-squares fit of
+    r − A·s on [1, nuisance]."""
     with np.errstate(divide="ignore", invalid="ignore"):
         a = np.where(sxx > 1e-12, sxy / sxx, 0.0)
-    # rss = Σ (r − r̄)² − A² Sxx
-    rss = float(np.sum((r - rm) ** 2)) - a * a * sxx
+    # rss = Σ rq² − A² Sxx
+    rss = float(rq @ rq) - a * a * sxx
     i, j = np.unravel_index(int(np.argmin(rss)), rss.shape)
-    amp = float(a[i, j])
-    return float(rss[i, j]), float(periods[i]), float(phases[j]), amp, float(rm - amp * sm[i, j]), n
+    amp, period, phase = float(a[i, j]), float(periods[i]), float(phases[j])
+    u = t / period - phase
+    rest = r - amp * (u - np.floor(u))
+    cols = np.ones((t.size, 1)) if nuisance is None else np.column_stack([np.ones(t.size), nuisance])
+    coef = np.linalg.lstsq(cols, rest, rcond=None)[0]
+    return float(rss[i, j]), period, phase, amp, float(coef[0]), t.size
 
 
-def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndarray) -> tuple:
-    """Least squares r ≈ c + A·frac(t/P − φ) over the (P, φ) grid; (rss, P, φ, A, c, n) of the best.
+def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndarray,
+              nuisance: np.ndarray | None = None) -> tuple:
+    """Least squares r ≈ c + A·frac(t/P − φ) + Z β over the (P, φ) grid (Z: the (n, m) nuisance
+    columns, or none); (rss, P, φ, A, c, n) of the best.
 
+    With Q (n, q) an orthonormal basis of [1, Z] (_basis), the sawtooth s and r projected off it,
+    ř = r − Q Qᵀ r:  A = S_xy / S_xx,  S_xy = sᵀ ř,  S_xx = sᵀ s − |Qᵀ s|²,  rss = |ř|² − A² S_xx.
     Per period, with u_n = frac(t_n/P) sorted and k(φ) = #{u_n < φ} (phases in [0, 1)):
-    s_n = frac(u_n − φ) = u_n − φ + [u_n < φ], so with ř = r − r̄ and prefix sums U_k = Σ_(i<k) u_(i),
-    Ř_k = Σ_(i<k) ř_(i) over the sorted order,
+    s_n = frac(u_n − φ) = u_n − φ + [u_n < φ], so with prefix sums over the sorted order
+    U_k = Σ_(i<k) u_(i), Ř_k = Σ_(i<k) ř_(i), Q_k = Σ_(i<k) q_(i) (Σ ř = 0: ř ⊥ 1),
 
-        Σ s = Σu − nφ + k,   Σ s² = Σu² − 2φΣu + nφ² + 2(U_k − kφ) + k,   Σ s ř = Σ u ř + Ř_k
+        Σ s² = Σu² − 2φΣu + nφ² + 2(U_k − kφ) + k,   sᵀ ř = Σ u ř + Ř_k,   Qᵀ s = Σ u q − φ Σ q + Q_k
 
-    and S_xx = Σ s² − (Σ s)²/n, S_xy = Σ s ř, A = S_xy/S_xx: O(P·(n log n + Φ)) instead of the
-    O(P·Φ·n) of frac on the whole grid (_fit_grid_dense, the same numbers up to rounding)."""
+    O(P·(q + 1)·(n log n + Φ)) instead of the O(P·Φ·n·q) of frac on the whole grid
+    (_fit_grid_dense, the same numbers up to rounding)."""
     n = t.size
-    rm = r.mean()
-    rc = r - rm
+    q = _basis(n, nuisance)
+    rq = r - q @ (q.T @ r)
     ph = np.mod(np.asarray(phases, dtype=float), 1.0)
     n_p = periods.size
     rows = np.arange(n_p)[:, None]
@@ -147,36 +191,52 @@ def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndar
     u -= np.floor(u)
     order = np.argsort(u, axis=1, kind="stable")
     us = np.take_along_axis(u, order, axis=1)
-    rs = rc[order]
     cu = np.zeros((n_p, n + 1))
     np.cumsum(us, axis=1, out=cu[:, 1:])
-    cr = np.zeros((n_p, n + 1))
-    np.cumsum(rs, axis=1, out=cr[:, 1:])
     # k(φ) per period by one search: row i's sorted u shifted by i keeps the whole array sorted
     k = np.searchsorted((us + rows).ravel(), (ph[None, :] + rows).ravel(), side="left").reshape(n_p, -1)
     k = np.clip(k - rows * n, 0, n)
     su = cu[:, -1:]
     su2 = np.einsum("pn,pn->p", us, us)[:, None]
-    sur = np.einsum("pn,pn->p", us, rs)[:, None]
-    s1 = su - n * ph[None, :] + k
     s2 = su2 - 2.0 * ph[None, :] * su + n * ph[None, :] ** 2 + 2.0 * (np.take_along_axis(cu, k, axis=1) - k * ph) + k
-    sm = s1 / n
-    sxx = s2 - s1 * s1 / n
-    sxy = sur + np.take_along_axis(cr, k, axis=1)
-    return _grid_best(r, rm, sm, sxx, sxy, periods, phases, n)
+    # sᵀ ř and Qᵀ s, the columns [ř, Q] sorted and summed together
+    cols = np.column_stack([rq, q])[order]  # (P, n, 1 + q)
+    cc = np.zeros((n_p, n + 1, cols.shape[2]))
+    np.cumsum(cols, axis=1, out=cc[:, 1:])
+    suc = np.einsum("pn,pnc->pc", us, cols)  # Σ u ř, Σ u q
+    tot = cc[:, -1, :]  # Σ ř (0), Σ q
+    kc = np.take_along_axis(cc, k[:, :, None], axis=1)  # (P, Φ, 1 + q)
+    proj = suc[:, None, :] - ph[None, :, None] * tot[:, None, :] + kc
+    sxy = proj[:, :, 0]
+    sxx = s2 - np.einsum("pfq,pfq->pf", proj[:, :, 1:], proj[:, :, 1:])
+    return _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance)
 
 
-def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray) -> SawtoothFit | None:
+def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | None = None) -> SawtoothFit | None:
     """Fit a clock sawtooth to one user's range residuals.
 
     t_s: (n,) measurement times [s]; resid_m: (n,) measured minus modelled range [m] (no bias
-    removed). Returns None when the times cover fewer than CLOCK_MIN_PERIODS of any period with
-    CLOCK_MIN_SAMPLES_PER_PERIOD samples, or when the best sawtooth explains less than
-    max(CLOCK_MIN_EXPLAINED, CLOCK_NULL_EXPLAINED_N / n) of the residual variance.
+    removed); nuisance: optional (n, m) columns the residuals may also hold, fitted with the
+    sawtooth (the estimator passes the range's gradient in the user's position: a sawtooth seen
+    through a position the solve moved to absorb part of it). Returns None when the times cover
+    fewer than CLOCK_MIN_PERIODS of any period with CLOCK_MIN_SAMPLES_PER_PERIOD samples, or when
+    the best sawtooth explains less than max(CLOCK_MIN_EXPLAINED, CLOCK_NULL_EXPLAINED_N / n) of
+    the residual variance (after the constant and the nuisance columns).
+
+    The period is searched around CLOCK_PEAKS periodogram peaks and their CLOCK_SUBHARMONICS
+    subharmonics: a sawtooth's fundamental is its strongest line in theory, but over a hundred
+    unevenly timed samples its second harmonic (or a slow wander of the position's error) can
+    outshine it (seen on simulated missions: P = 7.5 s and 8.5 s fitted for a 15 s sawtooth, the
+    user 3–11 m off).
     """
     t = np.asarray(t_s, dtype=float)
     r = np.asarray(resid_m, dtype=float)
     ok = np.isfinite(t) & np.isfinite(r)
+    z = None
+    if nuisance is not None:
+        z = np.asarray(nuisance, dtype=float).reshape(t.size, -1)
+        ok &= np.all(np.isfinite(z), axis=1)
+        z = z[ok]
     t, r = t[ok], r[ok]
     if t.size < 16:
         return None
@@ -190,26 +250,74 @@ def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray) -> SawtoothFit | None:
     f_max = 1.0 / (CLOCK_MIN_SAMPLES_PER_PERIOD * dt)
     if f_max <= f_min:
         return None
-    # the periodogram's peak on a grid 4× finer than the frequency resolution 1/span
-    rc = r - r.mean()
-    f0 = peak_frequency_hz(t, rc, f_min, f_max)
-    # (P, φ) grid around the peak: ± one frequency bin, then a finer grid around the best
+    q = _basis(t.size, z)
+    rq = r - q @ (q.T @ r)
+    total = float(rq @ rq)
+    if total <= 0:
+        return None
+    # candidate fundamentals: the periodogram's highest peaks (grid 4× finer than the frequency
+    # resolution 1/span) and their subharmonics, each with a (P, φ) grid of ± 1.5 steps df
     df = 1.0 / (4.0 * span)
-    periods = 1.0 / np.linspace(max(f0 - 1.5 * df, f_min * 0.5), f0 + 1.5 * df, _N_PERIOD)
+    peaks = peak_frequencies_hz(t, rq, f_min, f_max, CLOCK_PEAKS)
+    cands: list[float] = []
+    for f in (f0 / h for f0 in peaks for h in range(1, CLOCK_SUBHARMONICS + 2)):
+        if f >= f_min - df and all(abs(f - c) > 2.0 * df for c in cands):
+            cands.append(f)
+    # a scan of every candidate on a coarser grid, then the coarse grid around the best of them
+    periods = np.concatenate([1.0 / np.linspace(max(f - 1.5 * df, 0.5 * f_min), f + 1.5 * df, _N_PERIOD_SCAN)
+                              for f in cands])
+    _, p_scan, _, _, _, _ = _fit_grid(t, r, periods, np.arange(_N_PHASE_SCAN) / _N_PHASE_SCAN, z)
+    f_scan = 1.0 / p_scan
+    step = 3.0 * df / (_N_PERIOD_SCAN - 1)
+    periods = 1.0 / np.linspace(max(f_scan - step, 0.5 * f_min), f_scan + step, _N_PERIOD)
     phases = np.arange(_N_PHASE) / _N_PHASE
-    rss, p_best, ph_best, _, _, _ = _fit_grid(t, r, periods, phases)
-    total = float(np.sum(rc * rc))
+    rss, p_best, ph_best, _, _, _ = _fit_grid(t, r, periods, phases, z)
     need = max(CLOCK_MIN_EXPLAINED, CLOCK_NULL_EXPLAINED_N / t.size)
-    if total <= 0 or 1.0 - rss / total < CLOCK_COARSE_SHARE * need:
+    if 1.0 - rss / total < CLOCK_COARSE_SHARE * need:
         # the refinement (± one coarse step) cannot make up for that much: no sawtooth
         return None
-    dp = float(np.max(np.abs(np.diff(periods))))
+    dp = 2.0 * step * p_best**2 / (_N_PERIOD - 1)
     periods = p_best + np.linspace(-dp, dp, 21)
     phases = ph_best + np.linspace(-1.0, 1.0, 21) / _N_PHASE
-    rss, p_best, ph_best, amp, off, _ = _fit_grid(t, r, periods, phases)
+    rss, p_best, ph_best, amp, off, _ = _fit_grid(t, r, periods, phases, z)
     explained = 1.0 - rss / total
     if explained < need:
         return None
     # back to absolute time: frac((t − t0)/P − φ) = frac(t/P − (φ + t0/P))
     phase = (ph_best + t0 / p_best) % 1.0
     return SawtoothFit(p_best, phase, amp, off, explained)
+
+
+def refine_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, prev: SawtoothFit,
+                    nuisance: np.ndarray | None = None) -> SawtoothFit:
+    """Re-fit a tracked sawtooth near its last (P, φ) on new residuals (more samples, a moved
+    solution): a (P, φ) grid of ± CLOCK_REFINE_BINS quarter frequency bins 1/(4·span) around
+    prev.period_s and ± CLOCK_REFINE_PHASE cycles around its phase at the samples' middle time,
+    then the finer grid of fit_sawtooth around the best. Shapes and nuisance as in fit_sawtooth;
+    prev itself (with its amplitude re-fitted) when the samples are too few. explained: as in
+    fit_sawtooth (no acceptance test: the user's sawtooth was accepted when first fitted)."""
+    t = np.asarray(t_s, dtype=float)
+    r = np.asarray(resid_m, dtype=float)
+    z = None if nuisance is None else np.asarray(nuisance, dtype=float).reshape(t.size, -1)
+    if t.size < 16:
+        return prev
+    tm = 0.5 * float(t.min() + t.max())
+    tc = t - tm
+    span = float(t.max() - t.min())
+    p0 = prev.period_s
+    # the phase at the middle time: frac(t/P − φ) = frac((t − tm)/P − (φ − tm/P))
+    ph0 = (prev.phase - tm / p0) % 1.0
+    df = 1.0 / (4.0 * max(span, p0))
+    periods = 1.0 / np.linspace(1.0 / p0 - CLOCK_REFINE_BINS * df, 1.0 / p0 + CLOCK_REFINE_BINS * df,
+                                2 * CLOCK_REFINE_BINS + 1)
+    phases = ph0 + np.linspace(-CLOCK_REFINE_PHASE, CLOCK_REFINE_PHASE, 25)
+    q = _basis(t.size, z)
+    rq = r - q @ (q.T @ r)
+    total = float(rq @ rq)
+    _, p_best, ph_best, _, _, _ = _fit_grid(tc, r, periods, phases, z)
+    dp = float(np.max(np.abs(np.diff(periods))))
+    periods = p_best + np.linspace(-dp, dp, 11)
+    phases = ph_best + np.linspace(-1.0, 1.0, 11) * (2.0 * CLOCK_REFINE_PHASE / 24)
+    rss, p_best, ph_best, amp, off, _ = _fit_grid(tc, r, periods, phases, z)
+    explained = 1.0 - rss / total if total > 0 else 0.0
+    return SawtoothFit(p_best, (ph_best + tm / p_best) % 1.0, amp, off, explained)

@@ -54,7 +54,9 @@ def assert_step_matches(on, est, h, g, theta0, x_l, x0) -> None:
     """The estimator's step, Ŝ and user covariances against Δv = H⁻¹ g and H's Schur complement."""
     k_all, p = on._k, on._p
     dv = np.linalg.solve(h, g)
-    np.testing.assert_allclose(on._theta.ravel() - theta0.ravel(), dv[6:], rtol=1e-9, atol=1e-11)
+    # to 1e-9 of the step (a user with a free bias under its weak prior conditions H less well:
+    # 4e-11 m on a 0.5 m step)
+    np.testing.assert_allclose(on._theta.ravel() - theta0.ravel(), dv[6:], rtol=1e-9, atol=1e-9 * np.abs(dv).max())
     np.testing.assert_allclose(est.uav_enu_m[-1], x0 + dv[3:6], rtol=1e-9, atol=1e-11)
     np.testing.assert_allclose(est.uav_enu_m[-2], x_l + dv[:3], rtol=1e-9, atol=1e-11)
     s_ref = h[3:, 3:] - h[3:, :3] @ np.linalg.solve(h[:3, :3], h[:3, 3:])

@@ -50,14 +50,18 @@ def test_refresh_schedule_and_each_refresh_is_the_batch_answer_for_its_keyframes
     assert refreshed_at[:4] == [1, 4, 7, 10]
     assert all(g == max(3, int(0.05 * a)) for a, g in zip(refreshed_at[1:], gaps, strict=True))
     assert ref.n_refreshes == len(refreshed_at) < len(kfs)
-    # the refresh (warm: the sawtooth's period and phase from the last cold solve) lands near the
-    # cold batch solve of the same keyframes: the clock user within a tenth of its bound (the cold
-    # solve refits the sawtooth on more periods), the others within millimetres
+    # the refresh (warm: the sawtooth found by the last cold solve, 35 keyframes earlier, refined
+    # near its period and phase) lands near the cold batch solve of the same keyframes: the
+    # others within millimetres; the clock user within its bound, both inside their 95 % ellipse
+    # (over 2.5 periods the period is loose: the warm refresh keeps 15.4 s where the cold solve
+    # finds 15.2 s, and its bound is ~15 % wider)
     cold = solve_batch(kfs[: refreshed_at[-1]], 3, sc.user_up_m, NoiseModel())
     warm = ref.batch_estimate
     shift = np.linalg.norm(warm.users_enu_m[:, :2] - cold.users_enu_m[:, :2], axis=1)
-    assert np.all(shift <= [0.01, 0.15, 0.01] * cold.error_bound_95_m()), (shift, cold.error_bound_95_m())
-    np.testing.assert_allclose(warm.error_bound_95_m(), cold.error_bound_95_m(), rtol=0.05)
+    assert np.all(shift <= [0.01, 1.0, 0.01] * cold.error_bound_95_m()), (shift, cold.error_bound_95_m())
+    np.testing.assert_allclose(warm.error_bound_95_m()[[0, 2]], cold.error_bound_95_m()[[0, 2]], rtol=0.05)
+    np.testing.assert_allclose(warm.error_bound_95_m()[1], cold.error_bound_95_m()[1], rtol=0.2)
+    assert _inside_95(warm, sc.users_enu_m, 1) and _inside_95(cold, sc.users_enu_m, 1)
 
 
 def test_confirm_asks_for_a_batch_refresh_at_once_rate_limited(sawtooth_survey):
@@ -132,7 +136,11 @@ def test_warm_batch_solve_keeps_the_choices_and_lands_on_the_cold_answer(sawtoot
     assert prefix.extra["clock"][1] is not None and not prefix.extra["warm_started"]
     warm = solve_batch(kfs[:300], 3, sc.user_up_m, NoiseModel(), warm=prefix)
     cold = solve_batch(kfs[:300], 3, sc.user_up_m, NoiseModel())
-    assert warm.extra["warm_started"] and warm.extra["clock"][1] is prefix.extra["clock"][1]
+    # the sawtooth kept, refined near its period and phase on the 20 more keyframes
+    before, after = prefix.extra["clock"][1], warm.extra["clock"][1]
+    assert warm.extra["warm_started"] and after is not None
+    assert after.period_s == pytest.approx(before.period_s, rel=0.01)
+    assert abs((after.phase - before.phase + 0.5) % 1.0 - 0.5) < 0.05
     np.testing.assert_array_equal(warm.extra["bias_on"], prefix.extra["bias_on"])
     # the cold solve refits the sawtooth's period and phase on 20 more keyframes: the clock user
     # moves by a tenth of its bound (0.1 m of 1.05 m), the others by millimetres
