@@ -33,10 +33,11 @@ from estimator.types import Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
 #: clock tracking (params.track_clock): a user is tested for a sawtooth when it has
-#: CLOCK_MIN_RANGES ranges and its whitened residuals' RMS exceeds CLOCK_TRIGGER_SCALE or their
-#: lag-one autocorrelation exceeds CLOCK_TRIGGER_Z of its standard deviation under white noise;
-#: rounds of fit + re-solve
+#: CLOCK_MIN_RANGES ranges and its whitened residuals' RMS exceeds CLOCK_TRIGGER_SCALE and
+#: CLOCK_TRIGGER_RMS_Z of its standard deviation 1/√(2m) under white noise, or their lag-one
+#: autocorrelation exceeds CLOCK_TRIGGER_Z of its standard deviation; rounds of fit + re-solve
 CLOCK_TRIGGER_SCALE = 1.08
+CLOCK_TRIGGER_RMS_Z = 2.5
 CLOCK_TRIGGER_Z = 2.0
 CLOCK_MIN_RANGES = 40
 CLOCK_ROUNDS = 3
@@ -222,14 +223,16 @@ def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.nda
     (kept (n, K)), and whose whitened residuals e (the noise scale undone: the test is against
     the assumed σ(d)) about their mean ē are too large or too smooth for white noise:
 
-        RMS = √(Σ (e − ē)² / m) ≥ CLOCK_TRIGGER_SCALE,   or
+        RMS = √(Σ (e − ē)² / m) ≥ max(CLOCK_TRIGGER_SCALE, 1 + CLOCK_TRIGGER_RMS_Z / √(2m)),   or
         z = ρ₁ √m₁ ≥ CLOCK_TRIGGER_Z,   ρ₁ = Σ (e_i − ē)(e_(i+1) − ē) / Σ (e − ē)²
 
     over the m kept ranges and the m₁ pairs of consecutive keyframes both kept (ρ₁ ~ N(0, 1/m₁)
     for white residuals: z ≥ 2 for ~2 % of users without a sawtooth, which costs them a fit that
     the fit's own test then rejects). A sawtooth sampled many times per period is smooth (ρ₁ ≈ its share of
     the variance); its variance alone hides in the noise of a short log (an 8 m sawtooth at
-    σ = 3 m over 120 ranges slipped under the RMS test in 4 of 40 logs, 4–6 m off)."""
+    σ = 3 m over 120 ranges slipped under the RMS test in 4 of 40 logs, 4–6 m off). The RMS of m
+    white residuals has a standard deviation of about 1/√(2m): a fixed 1.08 alone is 1.6 of it at
+    m = 200 (it fired on 4 % of white users there, each costing a fit) and 0.7 at m = 40."""
     n = prob.n_keyframes
     wk = kept.T & prob.mask[:n].T
     cnt = wk.sum(axis=1)
@@ -243,7 +246,8 @@ def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.nda
     pairs = (wk[:, 1:] & wk[:, :-1]).sum(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(ss > 0, (dev[:, 1:] * dev[:, :-1]).sum(axis=1) / ss, 0.0) * np.sqrt(pairs)
-    return active & (cnt >= CLOCK_MIN_RANGES) & ((rms >= CLOCK_TRIGGER_SCALE) | (z >= CLOCK_TRIGGER_Z))
+    rms_min = np.maximum(CLOCK_TRIGGER_SCALE, 1.0 + CLOCK_TRIGGER_RMS_Z / np.sqrt(2.0 * np.maximum(cnt, 1)))
+    return active & (cnt >= CLOCK_MIN_RANGES) & ((rms >= rms_min) | (z >= CLOCK_TRIGGER_Z))
 
 
 def _clock_residuals(prob: Problem, res: _Result) -> tuple[np.ndarray, np.ndarray]:

@@ -102,8 +102,10 @@ def test_clock_trigger_statistics_match_a_loop():
     got = batch._clock_trigger(prob, res, kept, np.ones(3, dtype=bool))
     want = []
     for k in range(3):
-        rms, z = _trigger_reference(e[k] * prob.noise_scale_k[k], kept[:, k] & prob.mask[:, k])
-        want.append(rms >= batch.CLOCK_TRIGGER_SCALE or z >= batch.CLOCK_TRIGGER_Z)
+        use = kept[:, k] & prob.mask[:, k]
+        rms, z = _trigger_reference(e[k] * prob.noise_scale_k[k], use)
+        rms_min = max(batch.CLOCK_TRIGGER_SCALE, 1.0 + batch.CLOCK_TRIGGER_RMS_Z / np.sqrt(2.0 * use.sum()))
+        want.append(rms >= rms_min or z >= batch.CLOCK_TRIGGER_Z)
     assert got.tolist() == want == [False, True, True]
     assert not batch._clock_trigger(prob, res, kept, np.array([True, False, False])).any()
 
