@@ -142,12 +142,17 @@ def solve_batch(
     theta[~active] = 0.0
     res = solve_robust(prob, x, theta, active)
     clocks: list = [None] * k_all
-    if params.track_clock and prob.t_s is not None:
-        res, clocks = _track_clocks(prob, res, active)
+    triggered = None
+    if params.track_clock and params.estimate_bias and prob.t_s is not None:
+        # (a sawtooth is carried by the bias: its amplitude)
+        res, clocks, triggered = _track_clocks(prob, res, active)
+    solved = res
     res, mirrors = _resolve_mirrors(prob, res, active)
     est = _estimate(prob, res, active, mirrors, n_ranges)
     est.extra["clock"] = clocks
-    est.extra["clock_triggered"] = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
+    if triggered is None or res is not solved:
+        triggered = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
+    est.extra["clock_triggered"] = triggered
     est.extra["warm_started"] = False
     return est
 
@@ -290,13 +295,15 @@ def _refine_clocks(prob: Problem, res: _Result, active: np.ndarray, clocks: list
     return solve_robust(prob, res.x, res.theta, active), out
 
 
-def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Result, list]:
+def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Result, list, np.ndarray | None]:
     """Fit a clock sawtooth (estimator.clock) to each user whose range residuals are noisier or
     smoother than white noise of its σ(d) (_clock_trigger); an accepted fit turns the user's bias
     into the sawtooth's amplitude, r̂ = d + A_k · frac(t/P_k − φ_k) (prob.bias_gain, the bias kept free), so that A_k is
     estimated with the positions and its uncertainty enters their covariance; then solve again.
     CLOCK_ROUNDS rounds, each refitting (P, φ) on the residuals of the last solution.
-    Returns (result, [SawtoothFit or None] per user)."""
+    Returns (result, [SawtoothFit or None] per user, the (K,) clock trigger at that result or None
+    when the last round re-solved after computing it). Needs params.estimate_bias (the amplitude
+    is the user's bias)."""
     n = prob.n_keyframes
     fits: list = [None] * prob.n_users
     t = prob.t_s[:n]
@@ -319,12 +326,16 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
             fits[k] = fit
             all_k = prob.mask[:n, k]
             gain[all_k, k] = fit.gain(t[all_k])
-            res.theta[k, -1] = fit.amplitude_m
             changed = True
-        if not changed or not prob.params.estimate_bias:
-            break
+        if not changed:
+            # res is the one the trigger was computed at
+            return res, fits, trig
+        theta = res.theta.copy()
+        for k, fit in enumerate(fits):
+            if fit is not None:
+                theta[k, -1] = fit.amplitude_m
         prob.bias_gain = gain.copy()
         prob.noise_scale_k, prob.bias_sigma_k = None, None
         prob.bias_force_k = np.array([f is not None for f in fits])
-        res = solve_robust(prob, res.x, res.theta, active)
-    return res, fits
+        res = solve_robust(prob, res.x, theta, active)
+    return res, fits, None

@@ -120,6 +120,27 @@ def test_fit_sawtooth_rejects_white_noise_in_a_short_log(seed):
     assert fit_sawtooth(t, rng.normal(scale=3.0, size=t.size)) is None
 
 
+def test_no_clock_tracking_without_a_bias_to_carry_it():
+    """A sawtooth's amplitude is the user's bias: with estimate_bias=False the batch solver tracks
+    no clock and answers as with track_clock=False (a fit once wrote its amplitude over the
+    user's north coordinate there)."""
+    from dataclasses import replace
+
+    from estimator.slam import solve_batch
+
+    sc = simulate(np.random.default_rng(7), n_users=2, n_keyframes=300, dt_s=0.4, noise=NoiseModel())
+    t = np.array([kf.t_s for kf in sc.keyframes])
+    saw = 12.0 * np.mod(t / 15.0 + 0.3, 1.0)
+    kfs = [replace(kf, range_m=kf.range_m + saw[i]) for i, kf in enumerate(sc.keyframes)]
+    off = SolverParams(estimate_bias=False)
+    est = solve_batch(kfs, 2, sc.user_up_m, NoiseModel(), off)
+    ref = solve_batch(kfs, 2, sc.user_up_m, NoiseModel(), replace(off, track_clock=False))
+    assert est.extra["clock"] == [None, None]
+    np.testing.assert_array_equal(est.users_enu_m, ref.users_enu_m)
+    # with the bias the same log's sawtooth is tracked
+    assert all(c is not None for c in solve_batch(kfs, 2, sc.user_up_m, NoiseModel()).extra["clock"])
+
+
 def test_batch_finds_a_weak_sawtooth_in_a_short_log():
     """An 8 m sawtooth at σ = 3 m over 120 keyframes (48 s, 3.2 periods): its variance barely
     shows (the RMS test alone missed it in 4 of 40 such logs, 4–6 m off, NEES > 100), its
