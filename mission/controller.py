@@ -136,12 +136,14 @@ def controller_from_scenario(scenario, vehicle: Vehicle, gnb: GnbClient, log_pat
                              truth: Callable[[Origin], np.ndarray] | None = None,
                              header_config: dict | None = None, params: SolverParams | None = None,
                              buildings: Callable[[Origin], list] | None = None,
+                             external_vehicle: bool = False,
                              **overrides: Any) -> MissionController:
     """A :class:`MissionController` for a simulation scenario: its mission
-    (`scenario.mission_config()`) flown by :func:`controller_from_mission`, with the planning
-    constraints that also keep clear of the scenario's buildings. seed: default the scenario's."""
+    (`scenario.mission_config(external_vehicle)`: an external autopilot's GPS error is not the
+    built-in vehicle's) flown by :func:`controller_from_mission`, with the planning constraints
+    that also keep clear of the scenario's buildings. seed: default the scenario's."""
     return controller_from_mission(
-        scenario.mission_config(), vehicle, gnb, log_path, planner=planner,
+        scenario.mission_config(external_vehicle), vehicle, gnb, log_path, planner=planner,
         seed=scenario.seed if seed is None else seed, time_scale=time_scale, truth=truth,
         header_config={"scenario": scenario.name, **(header_config or {})}, params=params,
         constraints=lambda home: scenario.planning_constraints(), buildings=buildings, **overrides)

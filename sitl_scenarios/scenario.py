@@ -114,7 +114,9 @@ class VehicleConfig:
     descent_mps: float = 1.5
     accel_mps2: float = 3.0
     gps_sigma_m: float = 1.0
-    gps_tau_s: float = 3.0  # EKF2-like drift (PX4 SITL: error correlation ~2-3 s); 0 on request only
+    # the built-in vehicle's own error; an external autopilot's is not this one (Scenario.noise_model):
+    # PX4 SITL's (SIH) EKF output drifts far slower, its increments say tau ~ 120-220 s at sigma 1 m
+    gps_tau_s: float = 3.0
     battery_capacity_s: float = 1800.0
     battery_start_pct: float = 100.0
 
@@ -134,7 +136,9 @@ class MissionConfig:
     when the UEs add error the radio's σ(d) leaves out, e.g. a clock sawtooth of amplitude A adds a
     spread of A/√12 around its mean.
     gps_tau_s: correlation time of the GPS error the estimator assumes [s] (0 white; default: the
-    vehicle section's, i.e. the built-in vehicle's truth; set it for a real autopilot).
+    vehicle section's, i.e. the built-in vehicle's truth, when the built-in vehicle flies, and
+    unknown when an external autopilot does: the log then omits it, the flight assumes
+    estimator.noise.DEFAULT_GPS_TAU_S and replay estimates it from the telemetry velocity).
     """
 
     delta_m: float = 2.0
@@ -180,13 +184,18 @@ class Scenario:
         # σ_gps does not enter the radio; a GPS-noise-free vehicle (gps_sigma_m = 0) still needs a valid model
         return NoiseModel(sigma_gps_m=self.vehicle.gps_sigma_m or 1.0, s0_m=r.s0_m, a_m=r.a_m, b_per_m=r.b_per_m)
 
-    def noise_model(self) -> NoiseModel:
+    def noise_model(self, external_vehicle: bool = False) -> NoiseModel:
         """The noise model the estimator and planner assume: σ_gps and (when given) s0 from the
-        mission section, the rest of σ(d) from the radio section."""
+        mission section, the rest of σ(d) from the radio section; the GPS correlation time from
+        the mission section, else the built-in vehicle's (unknown, None, with external_vehicle:
+        PX4's EKF output is not the built-in vehicle's and drifts ~50 times slower)."""
         r, m = self.radio, self.mission
         s0 = r.s0_m if m.range_s0_m is None else m.range_s0_m
-        tau = self.vehicle.gps_tau_s if m.gps_tau_s is None else m.gps_tau_s
-        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m, gps_tau_s=float(tau))
+        tau = m.gps_tau_s
+        if tau is None and not external_vehicle:
+            tau = self.vehicle.gps_tau_s
+        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m,
+                          gps_tau_s=None if tau is None else float(tau))
 
     def planning_constraints(self, home_enu_m=(0.0, 0.0, 0.0), building_clearance_m: float = 5.0,
                              **overrides: Any) -> PlanningConstraints:
@@ -225,14 +234,14 @@ class Scenario:
         kwargs.update(overrides)
         return PlanningConstraints(**kwargs)
 
-    def mission_config(self) -> mission_config.MissionConfig:
+    def mission_config(self, external_vehicle: bool = False) -> mission_config.MissionConfig:
         """The mission part of this scenario as a :class:`mission.config.MissionConfig` (what a real
         flight would be configured with: users without their positions, fence, limits, the noise
-        the estimator assumes, the gNB's numerology). The bridge until scenarios are written as a
-        mission plus a world (see mission/config.py)."""
+        the estimator assumes (noise_model(external_vehicle)), the gNB's numerology). The bridge
+        until scenarios are written as a mission plus a world (see mission/config.py)."""
         from mission import config as mc
 
-        m, g, n = self.mission, self.geofence, self.noise_model()
+        m, g, n = self.mission, self.geofence, self.noise_model(external_vehicle)
         out = mc.MissionConfig(
             name=self.name,
             description=self.description,

@@ -152,6 +152,7 @@ class SimulatedMission:
             self.controller = controller_from_scenario(
                 self.scenario, self.vehicle, self.gnb_client, self.log_path, planner=self.planner,
                 seed=self.seed, time_scale=self.speedup, truth=self._truth, buildings=self._buildings,
+                external_vehicle=self.connect is not None,
                 header_config={"command": "sim", "speedup": self.speedup, "connect": self.connect},
                 **overrides)
         except BaseException:

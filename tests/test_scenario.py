@@ -98,3 +98,17 @@ def test_estimator_noise_can_differ_from_the_radio_truth():
     assert scenario_from_dict(BASE).noise_model().s0_m == 3.0
     with pytest.raises(ScenarioError, match="range_s0_m must be positive"):
         scenario_from_dict(with_(["mission", "range_s0_m"], 0.0))
+
+
+def test_an_external_autopilot_does_not_get_the_builtin_vehicles_gps_drift():
+    """The built-in vehicle's GPS error (Gauss–Markov, τ = vehicle.gps_tau_s) is what the estimator
+    assumes when that vehicle flies; PX4 SITL's EKF output drifts far slower (its increments give
+    τ ≈ 120–220 s at σ 1 m), so with an external autopilot τ is unknown (the log omits it; replay
+    estimates it from the telemetry) unless the mission section sets it."""
+    sc = scenario_from_dict(BASE)
+    assert sc.noise_model().gps_tau_s == sc.vehicle.gps_tau_s == 3.0
+    assert sc.noise_model(external_vehicle=True).gps_tau_s is None
+    assert sc.mission_config(external_vehicle=True).noise.gps_tau_s is None
+    assert "gps_tau_s" not in sc.mission_config(external_vehicle=True).noise.header_noise()
+    given = scenario_from_dict(with_(["mission", "gps_tau_s"], 150.0))
+    assert given.noise_model(external_vehicle=True).gps_tau_s == given.noise_model().gps_tau_s == 150.0

@@ -123,4 +123,5 @@ def _scenario_mission(name: str):
     if not eps:
         raise MissionConfigError("--scenario needs the simulation package (sitl_scenarios) installed; "
                                  "use --mission FILE")
-    return eps[0].load()(name).mission_config()
+    # flown by a real autopilot: the built-in vehicle's GPS error model is not its
+    return eps[0].load()(name).mission_config(external_vehicle=True)
