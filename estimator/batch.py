@@ -39,6 +39,9 @@ from uavloc.errors import EstimatorError
 CLOCK_TRIGGER_SCALE = 1.08
 CLOCK_TRIGGER_RMS_Z = 2.5
 CLOCK_TRIGGER_Z = 2.0
+#: ... or when the NLoS mixture calls more than this share of its ranges NLoS (the tops of a
+#: sawtooth no bias explains look like NLoS excess, and the kept ones then look white enough)
+CLOCK_TRIGGER_NLOS_PROB = 0.1
 CLOCK_MIN_RANGES = 40
 CLOCK_ROUNDS = 3
 
@@ -233,8 +236,10 @@ def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.nda
 
     over the m kept ranges and the m₁ pairs of consecutive keyframes both kept (ρ₁ ~ N(0, 1/m₁)
     for white residuals: z ≥ 2 for ~2 % of users without a sawtooth, which costs them a fit that
-    the fit's own test then rejects). A sawtooth sampled many times per period is smooth (ρ₁ ≈ its share of
-    the variance); its variance alone hides in the noise of a short log (an 8 m sawtooth at
+    the fit's own test then rejects); or whose NLoS probability π_k exceeds
+    CLOCK_TRIGGER_NLOS_PROB (seen: π 0.2–0.3 for a 12 m sawtooth, the kept ranges' RMS 1.1).
+    A sawtooth sampled many times per period is smooth (ρ₁ ≈ its share of the variance); its
+    variance alone hides in the noise of a short log (an 8 m sawtooth at
     σ = 3 m over 120 ranges slipped under the RMS test in 4 of 40 logs, 4–6 m off). The RMS of m
     white residuals has a standard deviation of about 1/√(2m): a fixed 1.08 alone is 1.6 of it at
     m = 200 (it fired on 4 % of white users there, each costing a fit) and 0.7 at m = 40."""
@@ -252,7 +257,10 @@ def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(ss > 0, (dev[:, 1:] * dev[:, :-1]).sum(axis=1) / ss, 0.0) * np.sqrt(pairs)
     rms_min = np.maximum(CLOCK_TRIGGER_SCALE, 1.0 + CLOCK_TRIGGER_RMS_Z / np.sqrt(2.0 * np.maximum(cnt, 1)))
-    return active & (cnt >= CLOCK_MIN_RANGES) & ((rms >= rms_min) | (z >= CLOCK_TRIGGER_Z))
+    nlos = np.zeros(prob.n_users, dtype=bool)
+    if prob.nlos_prob_k is not None:
+        nlos = prob.nlos_prob_k > CLOCK_TRIGGER_NLOS_PROB
+    return active & (cnt >= CLOCK_MIN_RANGES) & ((rms >= rms_min) | (z >= CLOCK_TRIGGER_Z) | nlos)
 
 
 def _clock_residuals(prob: Problem, res: _Result) -> tuple[np.ndarray, np.ndarray]:
@@ -267,30 +275,47 @@ def _clock_residuals(prob: Problem, res: _Result) -> tuple[np.ndarray, np.ndarra
     return prob.range_m[:n] - d, -diff[:, :, : prob.user_dim] / d[:, :, None]
 
 
-def _refine_clocks(prob: Problem, res: _Result, active: np.ndarray, clocks: list) -> tuple[_Result, list]:
-    """A warm solve's tracked sawtooths re-fitted near their (P, φ) on its residuals
-    (estimator.clock.refine_sawtooth: more periods seen since the cold solve that found them
-    pin them down better), and the problem solved again when any moved."""
+def _fit_clocks(prob: Problem, res: _Result, users: np.ndarray, gain: np.ndarray, fit_one) -> list:
+    """Fit each of `users` (indices) with fit_one(k, t, r, grad) -> SawtoothFit | None on the
+    ranges the loss keeps (weight ≥ ½: an NLoS excess is no sawtooth), given CLOCK_MIN_RANGES of
+    them (_clock_residuals: r and grad); a fit's gain written into gain (n, K) at all of the
+    user's ranges. Returns [(k, fit)] of the users fitted."""
     n = prob.n_keyframes
     t = prob.t_s[:n]
     kept = res.lin.w.T >= 0.5
     r_all, grad_all = _clock_residuals(prob, res)
-    out = list(clocks)
-    gain = prob.bias_gain.copy()
-    moved = False
-    for k, fit in enumerate(clocks):
+    out = []
+    for k in users:
         rows = prob.mask[:n, k] & kept[:, k]
-        if fit is None or not active[k] or int(rows.sum()) < CLOCK_MIN_RANGES:
+        if int(rows.sum()) < CLOCK_MIN_RANGES:
             continue
-        new = refine_sawtooth(t[rows], r_all[rows, k], fit, grad_all[rows, k])
-        if new.period_s == fit.period_s and new.phase == fit.phase:
+        fit = fit_one(k, t[rows], r_all[rows, k], grad_all[rows, k])
+        if fit is None:
             continue
-        out[k] = new
         all_k = prob.mask[:n, k]
-        gain[all_k, k] = new.gain(t[all_k])
-        moved = True
+        gain[all_k, k] = fit.gain(t[all_k])
+        out.append((k, fit))
+    return out
+
+
+def _refine_clocks(prob: Problem, res: _Result, active: np.ndarray, clocks: list) -> tuple[_Result, list]:
+    """A warm solve's tracked sawtooths re-fitted near their (P, φ) on its residuals
+    (estimator.clock.refine_sawtooth: more periods seen since the cold solve that found them
+    pin them down better), and the problem solved again when any moved."""
+
+    def refine(k, t, r, grad):
+        new = refine_sawtooth(t, r, clocks[k], grad)
+        moved = new.period_s != clocks[k].period_s or new.phase != clocks[k].phase
+        return new if moved else None
+
+    gain = prob.bias_gain.copy()
+    tracked = np.array([k for k, c in enumerate(clocks) if c is not None and active[k]], dtype=np.intp)
+    moved = _fit_clocks(prob, res, tracked, gain, refine)
     if not moved:
         return res, clocks
+    out = list(clocks)
+    for k, fit in moved:
+        out[k] = fit
     prob.bias_gain = gain
     return solve_robust(prob, res.x, res.theta, active), out
 
@@ -304,36 +329,19 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
     Returns (result, [SawtoothFit or None] per user, the (K,) clock trigger at that result or None
     when the last round re-solved after computing it). Needs params.estimate_bias (the amplitude
     is the user's bias)."""
-    n = prob.n_keyframes
     fits: list = [None] * prob.n_users
-    t = prob.t_s[:n]
-    gain = np.ones((n, prob.n_users))
+    gain = np.ones((prob.n_keyframes, prob.n_users))
     for _ in range(CLOCK_ROUNDS):
-        # only ranges the loss keeps (weight ≥ ½): an NLoS excess is no sawtooth
-        kept = res.lin.w.T >= 0.5
-        trig = _clock_trigger(prob, res, kept, active)
-        if not any(fits) and not trig.any():
-            break
-        r_all, grad_all = _clock_residuals(prob, res)
-        changed = False
-        for k in np.flatnonzero(active):
-            rows = prob.mask[:n, k] & kept[:, k]
-            if int(rows.sum()) < CLOCK_MIN_RANGES or (fits[k] is None and not trig[k]):
-                continue
-            fit = fit_sawtooth(t[rows], r_all[rows, k], grad_all[rows, k])
-            if fit is None:
-                continue
-            fits[k] = fit
-            all_k = prob.mask[:n, k]
-            gain[all_k, k] = fit.gain(t[all_k])
-            changed = True
-        if not changed:
+        trig = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
+        users = np.flatnonzero(active & (trig | np.array([f is not None for f in fits])))
+        found = _fit_clocks(prob, res, users, gain, lambda k, t, r, grad: fit_sawtooth(t, r, grad))
+        if not found:
             # res is the one the trigger was computed at
             return res, fits, trig
         theta = res.theta.copy()
-        for k, fit in enumerate(fits):
-            if fit is not None:
-                theta[k, -1] = fit.amplitude_m
+        for k, fit in found:
+            fits[k] = fit
+            theta[k, -1] = fit.amplitude_m
         prob.bias_gain = gain.copy()
         prob.noise_scale_k, prob.bias_sigma_k = None, None
         prob.bias_force_k = np.array([f is not None for f in fits])
