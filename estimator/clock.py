@@ -27,13 +27,14 @@ CLOCK_MIN_PERIODS = 2.0
 CLOCK_MIN_SAMPLES_PER_PERIOD = 4.0
 #: ... and accepted when it removes this share of the residual variance at least, and at least
 #: CLOCK_NULL_EXPLAINED_N / n of n residuals: the best sawtooth of the (P, φ) search fitted to
-#: white noise explains about 13/n (median) and 23/n (99th percentile; n = 120–1000, 300 draws
-#: each): a short log (n = 60: 0.33) no longer finds a sawtooth in noise; n ≥ 134 unchanged
+#: white noise explains about 15/n (median) and 24/n (99th percentile) at n = 120–200, 19/n and
+#: 28/n at n = 400 (300 draws each; the search over several peaks and their subharmonics adds
+#: about 1/n to the single-peak search's): a short log (n = 60: 0.33) finds no sawtooth in noise
 CLOCK_MIN_EXPLAINED = 0.15
 CLOCK_NULL_EXPLAINED_N = 20.0
 #: the coarse (P, φ) grid's best fit must explain this share of that already, or no refinement
 #: is tried (a sawtooth's coarse fit explains ≥ 0.9 of its refined share: the coarse grid is
-#: 7.5° in phase and a third of a frequency bin in period)
+#: 7.5° in phase and 1/32 of a frequency bin in period)
 CLOCK_COARSE_SHARE = 0.6
 #: the period is searched around this many periodogram peaks, each also as the 2nd … (1 +
 #: CLOCK_SUBHARMONICS)th harmonic of the fundamental
@@ -293,9 +294,9 @@ def refine_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, prev: SawtoothFit,
     """Re-fit a tracked sawtooth near its last (P, φ) on new residuals (more samples, a moved
     solution): a (P, φ) grid of ± CLOCK_REFINE_BINS quarter frequency bins 1/(4·span) around
     prev.period_s and ± CLOCK_REFINE_PHASE cycles around its phase at the samples' middle time,
-    then the finer grid of fit_sawtooth around the best. Shapes and nuisance as in fit_sawtooth;
-    prev itself (with its amplitude re-fitted) when the samples are too few. explained: as in
-    fit_sawtooth (no acceptance test: the user's sawtooth was accepted when first fitted)."""
+    then a finer grid around the best. Shapes and nuisance as in fit_sawtooth; prev itself when
+    there are fewer than 16 samples. explained: as in fit_sawtooth (no acceptance test: the
+    user's sawtooth was accepted when first fitted)."""
     t = np.asarray(t_s, dtype=float)
     r = np.asarray(resid_m, dtype=float)
     z = None if nuisance is None else np.asarray(nuisance, dtype=float).reshape(t.size, -1)

@@ -517,6 +517,27 @@ def test_fit_sawtooth_takes_back_what_the_position_absorbed():
     assert np.sqrt(np.mean((d - d.mean()) ** 2)) < 1.0
 
 
+def test_refine_sawtooth_moves_a_stale_fit_to_the_data():
+    """A warm refresh's sawtooth found by a cold solve on the first 80 s (15.15 s, its resets
+    right at 40 s, the middle of those data) refined on 160 s of a 15 s, 12 m sawtooth: back
+    within 0.05 s and 0.01 cycles of the truth at the samples' middle, the amplitude within 1 m."""
+    from estimator.clock import SawtoothFit, refine_sawtooth
+
+    rng = np.random.default_rng(9)
+    t = np.sort(rng.uniform(0.0, 160.0, 400))
+    truth = SawtoothFit(15.0, 0.3, 12.0, 0.0, 1.0)
+    r = truth.value_m(t) + rng.normal(scale=3.0, size=t.size)
+    # frac(40/15.15 − φ) = frac(40/15 − 0.3)
+    stale = SawtoothFit(15.15, (40.0 / 15.15 - 40.0 / 15.0 + 0.3) % 1.0, 10.0, 0.0, 0.5)
+    fit = refine_sawtooth(t, r, stale)
+    assert fit.period_s == pytest.approx(15.0, abs=0.05)
+    assert fit.amplitude_m == pytest.approx(12.0, abs=1.0)
+    # the resets where the truth has them: frac(t/P − φ) agrees at the samples' middle time
+    tm = 80.0
+    assert abs(((tm / fit.period_s - fit.phase) - (tm / 15.0 - 0.3) + 0.5) % 1.0 - 0.5) < 0.01
+    assert refine_sawtooth(t[:10], r[:10], stale) is stale
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_sawtooth_grid_by_prefix_sums_matches_the_dense_grid(seed):
     """estimator.clock._fit_grid (sorted phases and prefix sums) against _fit_grid_dense (frac on
