@@ -44,7 +44,9 @@ CLOCK_SUBHARMONICS = 2
 #: many cycles around its phase
 CLOCK_REFINE_BINS = 4
 CLOCK_REFINE_PHASE = 0.06
-#: the scan of the candidates: periods per candidate (± 1.5 quarter frequency bins), phases;
+#: the scan of the candidates: at most this many samples (every k-th of a longer log), ...
+CLOCK_SCAN_MAX_SAMPLES = 2000
+#: ... periods per candidate (± 1.5 quarter frequency bins), phases;
 #: then the coarse grid around the best: periods (± one scan step), phases
 _N_PERIOD_SCAN = 7
 _N_PHASE_SCAN = 24
@@ -264,10 +266,13 @@ def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | No
     for f in (f0 / h for f0 in peaks for h in range(1, CLOCK_SUBHARMONICS + 2)):
         if f >= f_min - df and all(abs(f - c) > 2.0 * df for c in cands):
             cands.append(f)
-    # a scan of every candidate on a coarser grid, then the coarse grid around the best of them
+    # a scan of every candidate on a coarser grid (on every ⌈n / CLOCK_SCAN_MAX_SAMPLES⌉-th
+    # sample: it only picks the candidate), then the coarse grid around the best of them
     periods = np.concatenate([1.0 / np.linspace(max(f - 1.5 * df, 0.5 * f_min), f + 1.5 * df, _N_PERIOD_SCAN)
                               for f in cands])
-    _, p_scan, _, _, _, _ = _fit_grid(t, r, periods, np.arange(_N_PHASE_SCAN) / _N_PHASE_SCAN, z)
+    sub = slice(None, None, -(-t.size // CLOCK_SCAN_MAX_SAMPLES))
+    _, p_scan, _, _, _, _ = _fit_grid(t[sub], r[sub], periods, np.arange(_N_PHASE_SCAN) / _N_PHASE_SCAN,
+                                      None if z is None else z[sub])
     f_scan = 1.0 / p_scan
     step = 3.0 * df / (_N_PERIOD_SCAN - 1)
     periods = 1.0 / np.linspace(max(f_scan - step, 0.5 * f_min), f_scan + step, _N_PERIOD)
