@@ -280,6 +280,8 @@ def _fit_clocks(prob: Problem, res: _Result, users: np.ndarray, gain: np.ndarray
     ranges the loss keeps (weight ≥ ½: an NLoS excess is no sawtooth), given CLOCK_MIN_RANGES of
     them (_clock_residuals: r and grad); a fit's gain written into gain (n, K) at all of the
     user's ranges. Returns [(k, fit)] of the users fitted."""
+    if len(users) == 0:  # the common case of a cold solve: no residuals to compute
+        return []
     n = prob.n_keyframes
     t = prob.t_s[:n]
     kept = res.lin.w.T >= 0.5
