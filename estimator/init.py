@@ -213,22 +213,30 @@ _ZOOM_OFF = np.stack(np.meshgrid(np.linspace(-1.0, 1.0, 7), np.linspace(-1.0, 1.
 _NEIGHBOURS = [(de, dn) for de in (-1, 0, 1) for dn in (-1, 0, 1) if de or dn]
 
 
-def _search_box(uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, noise: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
+def _search_box(
+    uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, noise: NoiseModel, sig: np.ndarray | float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Where each of K users can be: (lo, hi) corners (K, 2) [m, ENU] of the box.
 
     The user lies within the horizontal range ρ_i = √(r̂_i² − Δz_i²) (+ 4 σ_eff + 2 m) of every
     fix: the intersection of those boxes, or their union where they do not intersect (outliers).
-    uav: (M, 3); rng: (K, M); up_m: (K,).
+    uav: (M, 3); rng: (K, M); up_m: (K,); sig: σ_eff(r̂) when already at hand.
     """
     dz = uav[None, :, 2] - up_m[:, None]
     rho = np.sqrt(np.maximum(rng**2 - dz**2, 0.0))
-    reach = (rho + 4.0 * _sigma_eff(noise, rng) + 2.0)[:, :, None]
-    lo = np.max(uav[None, :, :2] - reach, axis=1)
-    hi = np.min(uav[None, :, :2] + reach, axis=1)
+    reach = rho + 4.0 * (_sigma_eff(noise, rng) if sig is None else sig) + 2.0  # (K, M)
+    # per coordinate c: lo_c = max_i (h_i,c − reach_i), hi_c = min_i (h_i,c + reach_i), (K, M) each
+    lo, hi = np.empty((rng.shape[0], 2)), np.empty((rng.shape[0], 2))
+    below = [uav[:, c] - reach for c in (0, 1)]
+    above = [uav[:, c] + reach for c in (0, 1)]
+    for c in (0, 1):
+        lo[:, c] = below[c].max(axis=1)
+        hi[:, c] = above[c].min(axis=1)
     empty = ~(hi > lo).all(axis=1)
     if empty.any():
-        lo[empty] = np.min(uav[None, :, :2] - reach[empty], axis=1)
-        hi[empty] = np.max(uav[None, :, :2] + reach[empty], axis=1)
+        for c in (0, 1):
+            lo[empty, c] = below[c][empty].min(axis=1)
+            hi[empty, c] = above[c][empty].max(axis=1)
     return lo, hi
 
 
@@ -307,20 +315,21 @@ def _truncated_terms(
 
 def _refine_starts(
     uav: np.ndarray, rng: np.ndarray, up_m: np.ndarray, start: np.ndarray, noise: NoiseModel, iterations: int = 2,
-    terms: tuple | None = None,
+    terms: tuple | None = None, sig: np.ndarray | float | None = None,
 ) -> np.ndarray:
     """Gauss–Newton on the truncated quadratic Σ_i min(e_i², c²) of each of K users from the same
     fixes, UAV held at the fixes (ranges beyond c get no weight); a user's step is kept only
     where it lowers that cost.
 
-    uav: (M, 3); rng: (K, M); up_m: (K,); start: (K, 2); terms: `_truncated_terms` at start,
-    when already at hand. Returns (K, 2) [m, ENU].
+    uav: (M, 3); rng: (K, M); up_m: (K,); start: (K, 2); terms: `_truncated_terms` at start and
+    sig: σ_eff(rng), when already at hand. Returns (K, 2) [m, ENU].
 
     e_i = (r_i − d_i)/σ_eff(r_i),  ∂e_i/∂u = −(u − h_i)/(d_i σ_eff(r_i)),
     Δu = −(Σ w jjᵀ)⁻¹ Σ w j e,  w_i = [|e_i| ≤ c].
     """
     u = start.copy()
-    sig = _sigma_eff(noise, rng)  # fixed: it depends on the measured ranges only
+    if sig is None:
+        sig = _sigma_eff(noise, rng)  # fixed: it depends on the measured ranges only
     cost, de, dn, d, e, w = _truncated_terms(uav, rng, up_m, u, noise, sig) if terms is None else terms
     for _ in range(iterations):
         # j = ∂e/∂u = −(u − h)/(d σ);  H = Σ w j jᵀ, g = Σ w j e
@@ -402,10 +411,11 @@ def init_users(
     cost = np.full(k_n, np.inf)
     lin = _linear_starts(uav_r, rng_r, up)
     lin_terms = None
+    sig_r = _sigma_eff(noise, rng_r)  # of the measured ranges: shared by the checks and the refinement
     if lin is not None and np.all(np.isfinite(lin)):
-        lin_terms = _truncated_terms(uav_r, rng_r, up, lin, noise)
+        lin_terms = _truncated_terms(uav_r, rng_r, up, lin, noise, sig_r)
         lin_cost = lin_terms[0]
-        lo, hi = _search_box(uav_r, rng_r, up, noise)
+        lo, hi = _search_box(uav_r, rng_r, up, noise, sig_r)
         good = (lin_cost <= LINEAR_INIT_MAX_COST * rng_r.shape[1]) & np.all((lin >= lo) & (lin <= hi), axis=1)
         start[good], cost[good] = lin[good], lin_cost[good]
     search = np.flatnonzero(~np.isfinite(cost))
@@ -417,7 +427,7 @@ def init_users(
         start[search], cost[search] = starts[rows, best], costs[rows, best]
     # a few Gauss–Newton steps: the joint solve then starts where the users' NLoS probabilities,
     # estimated at its first residuals, are what they will be at the solution
-    start = _refine_starts(uav_r, rng_r, up, start, noise, terms=lin_terms if search.size == 0 else None)
+    start = _refine_starts(uav_r, rng_r, up, start, noise, terms=lin_terms if search.size == 0 else None, sig=sig_r)
     out = []
     for k in range(k_n):
         theta0 = np.zeros(params.user_dim + (1 if params.estimate_bias else 0))

@@ -162,10 +162,11 @@ def linearize(
     hxx[:, _SYM3_FLAT] = o6.sum(axis=1).T
     hxx[:, _SYM3_LOWER] = hxx[:, _SYM3_UPPER]
     hxx = hxx.reshape(n, 3, 3)
-    # H_(n,k)[i, j] = −O_ij (i < 3, j < d): (3, d, K, n) -> (n, 3, K, d), in one pass
+    # H_(n,k)[i, j] = −O_ij (i < 3, j < d), and B_i (j = d) with a bias: staged (3, p, K, n), the
+    # layout of the products, then one transposing copy to (n, 3, K, p)
     sel = _SYM3_OF[:, :d_u].ravel()
-    hxu = np.empty((n, 3, k_all, p))
-    np.negative(o6[sel].reshape(3, d_u, k_all, n).transpose(3, 0, 2, 1), out=hxu[..., :d_u])
+    hxu_s = np.empty((3, p, k_all, n))
+    np.negative(o6[sel].reshape(3, d_u, k_all, n), out=hxu_s[:, :d_u])
     # H_kk[i, j] = Σ_n O_ij (i, j < d)
     huu_blocks = np.empty((k_all, p, p))
     huu_blocks[:, :d_u, :d_u] = o6[_SYM3_OF[:d_u, :d_u].ravel()].sum(axis=2).reshape(d_u, d_u, k_all).transpose(2, 0, 1)
@@ -177,14 +178,13 @@ def linearize(
     if params.estimate_bias:
         jb = jac[-1]
         wjb = w * jb
-        ob = jac[:3] * wjb  # B_i = w J_x,i J_b, (3, K, n)
-        hxu[..., d_u] = ob.transpose(2, 0, 1)
+        ob = np.multiply(jac[:3], wjb, out=hxu_s[:, d_u])  # B_i = w J_x,i J_b, (3, K, n)
         sb_u = ob[:d_u].sum(axis=2).T  # (K, d)
         huu_blocks[:, :d_u, d_u] = -sb_u
         huu_blocks[:, d_u, :d_u] = -sb_u
         huu_blocks[:, d_u, d_u] = (wjb * jb).sum(axis=1)
         gu[:, d_u] = -(psi * jb).sum(axis=1)
-    hxu = hxu.reshape(n, 3, k_all * p)
+    hxu = hxu_s.transpose(3, 0, 2, 1).reshape(n, 3, k_all * p)  # (a copy: the axes are not adjacent)
     off = None
     if linked:
         hxx.reshape(n, 9)[:, ::4] += gt.diag[:, None]
