@@ -35,6 +35,7 @@ import asyncio
 import collections
 import contextlib
 import logging
+import math
 import random
 import time
 from collections.abc import Callable
@@ -78,6 +79,18 @@ log = logging.getLogger(__name__)
 O1_MIN_INTERVAL_S = 0.1
 #: (host, port) -> monotonic time of the last `o1 stats` sent there, shared by every client
 _O1_LAST_SENT: dict[tuple[str, int], float] = {}
+#: (host, port) -> when the connection was opened (monotonic [s]) on which this process sent an
+#: `o1 stats` whose answer it never read (a timeout, a lost connection, a cancel; the newest such
+#: connection). OAI serves one client at a time, in the order they connected, and runs what a
+#: queued client sent when it gets to it, even after that client left
+#: (shared/data/oai-2025.w36/04_two_clients.txt); so such a request may run at any later moment,
+#: and an `o1 stats` queued behind it would run microseconds after it (the SIGFPE above). A
+#: connection opened after that one first asks O1_SETTLE_REQUEST: the gNB answers it only after
+#: it has run every request queued before it; the spacing then counts from that answer. (An older
+#: connection is served before the stale request: its `o1 stats` is safe, and proves nothing.)
+_O1_UNANSWERED: dict[tuple[str, int], float] = {}
+#: the harmless request that proves a stale `o1 stats` has run (read-only, answered at once)
+O1_SETTLE_REQUEST = "ci get_single_rnti"
 
 @runtime_checkable
 class GnbClient(Protocol):
@@ -119,6 +132,7 @@ class OaiGnbClient:
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._fresh = True  # no answer received yet on the current connection
+        self._connected_at = -math.inf  # when the current connection was opened (monotonic [s])
         self._lock = asyncio.Lock()
         self._stock_lock = asyncio.Lock()
         self._prompt = self.config.prompt.encode()
@@ -144,11 +158,21 @@ class OaiGnbClient:
     async def aclose(self) -> None:
         """Say `exit` (OAI closes on input starting with `ex`) and close the connection."""
         if self._writer is not None:
+            await self._space_before_leaving()
             with contextlib.suppress(ConnectionError, OSError):
                 self._writer.write(b"exit\n")
-        await self._close()
+        await self._close(spaced=True)
 
-    async def _close(self) -> None:
+    async def _space_before_leaving(self) -> None:
+        """An `o1 stats` this process left queued behind this connection (_O1_UNANSWERED) runs as
+        soon as the connection ends: not within O1_MIN_INTERVAL_S of the last one (maybe this
+        connection's own, answered just before)."""
+        if self._writer is not None and _O1_UNANSWERED.get(self._key, -math.inf) > self._connected_at:
+            await self._o1_spacing()
+
+    async def _close(self, spaced: bool = False) -> None:
+        if not spaced:
+            await self._space_before_leaving()
         w, self._writer, self._reader = self._writer, None, None
         if w is not None:
             w.close()
@@ -179,6 +203,7 @@ class OaiGnbClient:
             raise GnbError(f"cannot connect to the gNB telnet server at {cfg.host}:{cfg.port}: {exc} "
                            f"(is nr-softmodem running with --telnetsrv?)") from exc
         self._fresh = True
+        self._connected_at = time.monotonic()
         log.debug("connected to gNB %s:%d", cfg.host, cfg.port)
 
     async def _backoff(self, attempt: int) -> None:
@@ -248,9 +273,17 @@ class OaiGnbClient:
                     log.info("gNB reconnect attempt %d failed: %s", attempt, exc)
                     continue
             fresh = self._fresh
+            o1 = line == "o1 stats"
+            answered = False
             try:
                 async with asyncio.timeout(cfg.request_timeout_s):
+                    if o1:
+                        await self._settle_o1()
+                        fresh = self._fresh
                     data = await self._exchange(line)
+                    answered = True
+                    if o1:  # it ran before its answer: the spacing counts from the later time
+                        _O1_LAST_SENT[self._key] = time.monotonic()
             except TimeoutError:
                 await self._close()
                 if fresh:
@@ -270,6 +303,9 @@ class OaiGnbClient:
                 refused += fresh
                 log.info("gNB request %r: %s (attempt %d of %d)", line, exc, attempt + 1, retries + 1)
                 continue
+            finally:
+                if o1 and not answered:  # sent, perhaps, and not answered: it may still run
+                    _O1_UNANSWERED[self._key] = max(_O1_UNANSWERED.get(self._key, -math.inf), self._connected_at)
             self._fresh = False
             body, late = split_async_lines(decode_reply(data, cfg.prompt))
             for ln in late:
@@ -333,16 +369,37 @@ class OaiGnbClient:
         log.debug("gNB reports %d UE(s): %s", len(rntis), ", ".join(f"{r:04x}" for r in self.known_rntis))
         return list(self.known_rntis)
 
+    @property
+    def _key(self) -> tuple[str, int]:
+        return (self.config.host, int(self.config.port))
+
     async def _o1_spacing(self) -> None:
         """Wait until O1_MIN_INTERVAL_S has passed since this process's last `o1 stats` to this gNB
         (by the real monotonic clock: the hazard is in the gNB's time), then note this one."""
-        key = (self.config.host, int(self.config.port))
-        last = _O1_LAST_SENT.get(key)
+        last = _O1_LAST_SENT.get(self._key)
         if last is not None:
             wait_s = O1_MIN_INTERVAL_S - (time.monotonic() - last)
             if wait_s > 0:
                 await asyncio.sleep(wait_s)
-        _O1_LAST_SENT[key] = time.monotonic()
+        _O1_LAST_SENT[self._key] = time.monotonic()
+
+    async def _settle_o1(self) -> None:
+        """Before an `o1 stats` (on the current connection, under the lock): when an earlier one to
+        this gNB went unanswered on a connection opened before this one (_O1_UNANSWERED), ask
+        O1_SETTLE_REQUEST, whose answer comes after the stale request has run, and wait
+        O1_MIN_INTERVAL_S from that answer."""
+        stale_conn_s = _O1_UNANSWERED.get(self._key)
+        if stale_conn_s is None or self._connected_at <= stale_conn_s:
+            return
+        log.info("an earlier `o1 stats` to %s:%d went unanswered and may still run: asking %r first",
+                 *self._key, O1_SETTLE_REQUEST)
+        _, late = split_async_lines(decode_reply(await self._exchange(O1_SETTLE_REQUEST), self.config.prompt))
+        self.late_lines.extend(late)
+        self._fresh = False
+        if _O1_UNANSWERED.get(self._key) == stale_conn_s:
+            del _O1_UNANSWERED[self._key]
+        _O1_LAST_SENT[self._key] = time.monotonic()
+        await self._o1_spacing()
 
     async def guarded_ci(self, command: str, rnti: int) -> str:
         """Send `ci <command> <rnti hex>` only if a discovery taken just before it, on the same

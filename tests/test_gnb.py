@@ -369,6 +369,39 @@ def test_fault_drop_every_time_gives_up_with_clear_error():
     run(body())
 
 
+@pytest.mark.parametrize("first_discovers_again", [False, True])
+def test_an_abandoned_o1_stats_is_settled_before_the_next_one(first_discovers_again):
+    """OAI serves one client at a time and runs what a queued client sent when the first one leaves,
+    even when that client gave up and left (shared/data/oai-2025.w36/04_two_clients.txt). A client
+    that abandoned an `o1 stats` and discovers again from a new connection queued behind it must not
+    let its new `o1 stats` run microseconds after the stale one (the SIGFPE): it asks
+    O1_SETTLE_REQUEST first and spaces from its answer. Without that step the simulated gNB crashes
+    here on every run (both requests are queued when the first client leaves). The first client's
+    own discovery meanwhile is served before the stale request, so it proves nothing: the next
+    connection still settles."""
+
+    async def body():
+        faults = GnbFaults(busy_mode="silent")
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0, faults=faults) as gnb:
+            first = OaiGnbClient(client_config(gnb, discovery="o1"))
+            await first.__aenter__()
+            await first.discover()
+            async with OaiGnbClient(client_config(gnb, discovery="o1", request_timeout_s=0.5, retries=0)) as second:
+                with pytest.raises(GnbBusyError, match="one client at a time"):
+                    await second.discover()  # queued behind `first`, abandoned
+                if first_discovers_again:
+                    await first.discover()
+                again = asyncio.create_task(second.discover())  # a new connection, queued too
+                await asyncio.sleep(0.1)
+                await first.aclose()  # the gNB now runs the stale request, then the new connection's
+                rntis = await again
+            return rntis, gnb.crashed
+
+    rntis, crashed = run(body())
+    assert crashed is None
+    assert rntis == sorted(IN_COVERAGE)
+
+
 def test_refused_connections_are_reported_busy():
     async def body():
         async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
