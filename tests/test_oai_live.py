@@ -19,6 +19,7 @@ import socket
 import subprocess
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,10 +49,11 @@ TA_STEP_M = one_way_m_per_ta_step(1)  # 39.03 m at 30 kHz SCS
 class OaiRun:
     """A running oai-rfsim launcher and what it printed (KEY=VALUE lines)."""
 
-    proc: subprocess.Popen
     workdir: Path
+    proc: subprocess.Popen | None = None
     info: dict[str, str] = field(default_factory=dict)
     exited: list[str] = field(default_factory=list)
+    launches: int = 0
 
     @property
     def gnb_log(self) -> Path:
@@ -75,6 +77,32 @@ class OaiRun:
             return False
         return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
 
+    def launch(self) -> None:
+        """Start the launcher in a new run folder and wait until the UE is attached (READY=1)."""
+        self.launches += 1
+        self.info, self.exited = {}, []
+        self.proc = subprocess.Popen([str(LAUNCHER), "--workdir", str(self.workdir / f"run{self.launches}")],
+                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        _read_until_ready(self, deadline_s=240.0)
+        if self.info.get("READY") != "1":
+            pytest.fail(f"oai-rfsim did not attach the UE: {self.info.get('ERROR', 'no READY line')} "
+                        f"(exit status {self.proc.poll()})")
+
+    def stop(self) -> None:
+        """SIGTERM to the launcher, which stops both OAI processes."""
+        proc = self.proc
+        if proc is None:
+            return
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
+        if proc.stdout is not None:
+            proc.stdout.close()
+
     def commands_received(self) -> list[str]:
         """The telnet commands the gNB logged (`[TELNETSRV] Command received: ... "<line>"`)."""
         out = []
@@ -88,12 +116,15 @@ def _read_until_ready(run: OaiRun, deadline_s: float) -> None:
     assert run.proc.stdout is not None
     lines: list[str] = []
 
+    # this launch's own stdout and records (a relaunch replaces them: OaiRun.launch)
+    stdout, info, exited = run.proc.stdout, run.info, run.exited
+
     def reader() -> None:
-        for line in run.proc.stdout:  # type: ignore[union-attr]
+        for line in stdout:
             k, _, v = line.strip().partition("=")
-            run.info[k] = v
+            info[k] = v
             if k == "EXITED":
-                run.exited.append(v)
+                exited.append(v)
             lines.append(line)
 
     threading.Thread(target=reader, daemon=True).start()
@@ -110,27 +141,13 @@ def oai(tmp_path_factory):
     if check.returncode != 0:
         missing = [ln for ln in check.stdout.splitlines() if ln.startswith("MISSING_PACKAGES")]
         pytest.skip(f"oai-rfsim --check failed ({check.returncode}): {missing or check.stderr.strip()[-300:]}")
-    workdir = tmp_path_factory.mktemp("oai-rfsim")
-    proc = subprocess.Popen([str(LAUNCHER), "--workdir", str(workdir / "run")], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
-    run = OaiRun(proc=proc, workdir=workdir)
+    run = OaiRun(workdir=tmp_path_factory.mktemp("oai-rfsim"))
     try:
-        _read_until_ready(run, deadline_s=240.0)
-        if run.info.get("READY") != "1":
-            pytest.fail(f"oai-rfsim did not attach the UE: {run.info.get('ERROR', 'no READY line')} "
-                        f"(exit status {proc.poll()})")
+        run.launch()
         yield run
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)  # the launcher stops both OAI processes
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10)
-        if proc.stdout is not None:
-            proc.stdout.close()
-        shutil.rmtree(workdir, ignore_errors=True)
+        run.stop()
+        shutil.rmtree(run.workdir, ignore_errors=True)
 
 
 def run(coro, timeout_s: float = 90.0):
@@ -229,12 +246,13 @@ def test_timeouts_and_a_silent_second_client(oai):
         async with OaiGnbClient(cfg(oai)) as first:
             await first.discover()
             async with OaiGnbClient(cfg(oai, request_timeout_s=1.5, retries=0)) as second:
-                # `help`, not a discovery: the gNB runs a waiting client's request when the client
-                # before it leaves, abandoned or not, and a stale `o1 stats` run then lands within
-                # milliseconds of the next client's (OAI 2025.w36: SIGFPE, mission/gnb.py
-                # O1_MIN_INTERVAL_S); this gNB died after this test in 2 of 8 runs
+                # the gNB runs a waiting client's request when the client before it leaves,
+                # abandoned or not: this `o1 stats` runs when `first` leaves, and the next client's
+                # would land within milliseconds of it (OAI 2025.w36: SIGFPE) had that client not
+                # settled it first (mission/gnb.py _O1_UNANSWERED; with `help` here instead, as
+                # before that, and without the settling, this gNB died after this test in 2 of 8 runs)
                 with pytest.raises(GnbBusyError, match="one client at a time"):
-                    await second.request("help")
+                    await second.discover()
             after = await first.discover()
         # an answer later than the request timeout: the connection is dropped, the next one works
         async with OaiGnbClient(cfg(oai, request_timeout_s=1e-4, retries=0)) as c:
@@ -261,15 +279,30 @@ def test_a_client_leaving_in_the_middle_of_an_answer(oai):
         assert oai.gnb_process_alive()
 
 
+class UeLost(Exception):
+    """OAI's nrUE died or dropped off the rfsim link on its own (not the gNB, not our client)."""
+
+
 @pytest.mark.parametrize("distance_m", [300.0, 600.0, 450.0])
 def test_set_distance_and_a_fresh_initial_access_give_the_range(oai, distance_m):
+    """The range from a fresh initial access after `rfsimu setdistance` on both sides.
+
+    OAI 2025.w36's nrUE itself sometimes dies (SIGSEGV, EXIT_STATUS 139) while it re-syncs after
+    `ciUE force_RRC_IDLE`, or is off the rfsim link when the distance is set (the gNB prints no
+    distance line): 1 of 6 `pytest -m oai` runs of the code before this test retried, 2 of 9
+    after it, on 2026-12-02, the gNB alive each time. That is the UE's own fault, not the adapter's
+    nor the gNB's: the bundle is then started again and the test runs once more (reported as a
+    warning); a second loss fails it."""
+
     async def body():
         passive = cfg(oai, mode="stock", stock_mode="passive")
         ue_cfg = GnbConfig(port=oai.ue_port, prompt=PROMPT_UE, request_timeout_s=5.0, retries=1)
         async with OaiGnbClient(passive) as g, OaiGnbClient(ue_cfg) as ue:
             before = await g.discover()
-            gnb_side = parse_rfsim_distance(
-                await g.request_late(f"rfsimu setdistance rfsimu_channel_ue0 {distance_m:g}", 10.0))
+            answer = await g.request_late(f"rfsimu setdistance rfsimu_channel_ue0 {distance_m:g}", 10.0)
+            if not answer.strip():
+                raise UeLost("the gNB printed no rfsimu distance line: no UE on the rfsim link")
+            gnb_side = parse_rfsim_distance(answer)
             await ue.request_late(f"rfsimu setdistance rfsimu_channel_enB0 {distance_m:g}", 10.0)
             ue_side = parse_rfsim_distance(await ue.request_late("rfsimu getdistance rfsimu_channel_enB0", 10.0))
             g.feed_log()
@@ -279,6 +312,8 @@ def test_set_distance_and_a_fresh_initial_access_give_the_range(oai, distance_m)
             await ue.request("ciUE force_RRC_IDLE")
             new: RandomAccess | None = None
             while new is None:
+                if "ue" in oai.exited:
+                    raise UeLost(f"nrUE exited with status {oai.info.get('EXIT_STATUS')} after force_RRC_IDLE")
                 for ev in g.feed_log():
                     if isinstance(ev, RandomAccess) and ev.kind == "initial" and ev.t_s and ev.t_s > t_idle:
                         new = ev
@@ -289,7 +324,17 @@ def test_set_distance_and_a_fresh_initial_access_give_the_range(oai, distance_m)
                 await g.measure(before[0])  # nothing proves the old RNTI is the new UE
             return gnb_side, ue_side, new, sample, before, await g.discover()
 
-    gnb_side, ue_side, new, sample, before, after = run(body())
+    try:
+        gnb_side, ue_side, new, sample, before, after = run(body())
+    except (UeLost, GnbError, TimeoutError) as exc:
+        if not (isinstance(exc, UeLost) or oai.exited == ["ue"]):
+            raise
+        assert oai.gnb_process_alive() or oai.exited == ["ue"], f"the gNB died: {oai.exited}"
+        warnings.warn(f"OAI's nrUE was lost ({exc}): the bundle is started again and the test runs once more",
+                      stacklevel=1)
+        oai.stop()
+        oai.launch()
+        gnb_side, ue_side, new, sample, before, after = run(body())
     assert gnb_side.offset_samples == ue_side.offset_samples
     exact_m = gnb_side.distance_m
     assert abs(sample.range_m - exact_m) <= TA_STEP_M, (sample.range_m, exact_m, new.line)
