@@ -30,7 +30,8 @@ class NoiseModel:
     gps_tau_s: correlation time τ of the GPS error [s]: 0 independent per fix (white); > 0
         first-order Gauss–Markov, β(t + Δt) = e^(−Δt/τ) β(t) + w, stationary σ_gps per axis (an
         autopilot's EKF output drifts like this); None unknown (a log without it): the estimator
-        then assumes DEFAULT_GPS_TAU_S (replay first tries to estimate it from the log).
+        then assumes DEFAULT_GPS_TAU_S (replay, and a flight from its take-off, first try to
+        estimate it from the telemetry: estimator.gps.estimate_gps_tau_s).
     vel_sigma_mps, vel_tau_s: σ_v per axis [m/s] and correlation time τ_v [s] of the error of the
         autopilot's velocity, for the relative-motion factors (estimator.motion); None unknown:
         DEFAULT_VEL_SIGMA_MPS, DEFAULT_VEL_TAU_S.

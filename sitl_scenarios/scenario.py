@@ -137,8 +137,9 @@ class MissionConfig:
     spread of A/√12 around its mean.
     gps_tau_s: correlation time of the GPS error the estimator assumes [s] (0 white; default: the
     vehicle section's, i.e. the built-in vehicle's truth, when the built-in vehicle flies, and
-    unknown when an external autopilot does: the log then omits it, the flight assumes
-    estimator.noise.DEFAULT_GPS_TAU_S and replay estimates it from the telemetry velocity).
+    unknown when an external autopilot does: the log then omits it, and the flight (from the
+    take-off's telemetry) and replay (from the whole log's) estimate it from the telemetry
+    velocity, else assume estimator.noise.DEFAULT_GPS_TAU_S).
     """
 
     delta_m: float = 2.0

@@ -242,3 +242,72 @@ def test_worker_takes_queued_keyframes_together_with_one_estimate(survey):
     assert len(got) == 1 and got[0].extra["source"] == SOURCE_BATCH and got[0].extra["keyframes_used"] == 50
     cold = solve_batch(kfs, N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams())
     np.testing.assert_allclose(got[0].users_enu_m, cold.users_enu_m, atol=1e-9)
+
+
+def _fly_fixes(ctl, tau_s: float, seconds: float, seed: int = 4) -> None:
+    """Feed the controller fixes of a UAV flying east at 5 m/s, 20 Hz, whose GPS error drifts
+    (Gauss–Markov, σ 1 m per axis, correlation time tau_s), with the exact velocity."""
+    from mission.vehicle import PositionFix
+
+    rng = np.random.default_rng(seed)
+    dt = 0.05
+    phi = np.exp(-dt / tau_s)
+    err = rng.normal(0.0, 1.0, 2)
+    for i in range(int(seconds / dt)):
+        err = phi * err + np.sqrt(1.0 - phi**2) * rng.normal(0.0, 1.0, 2)
+        enu = np.array([5.0 * i * dt + err[0], err[1], 40.0])
+        lat, lon, alt = (float(v) for v in ctl.origin.enu_to_lla(enu))
+        ctl._on_fix(PositionFix(ctl._t0_mono + i * dt, lat, lon, alt, 40.0, (0.0, 5.0, 0.0)))
+
+
+@pytest.mark.parametrize("tau_s", [20.0, 150.0])
+def test_flight_estimates_an_unknown_gps_correlation_time_from_the_take_off_telemetry(tmp_path, tau_s):
+    """With an external autopilot the mission leaves τ_gps unknown (PX4's EKF output drifts for
+    minutes, the built-in vehicle's for seconds); the flight's estimator then uses τ estimated from
+    the telemetry logged before the survey — the estimate replay makes from the same records — not
+    the estimator's fixed default, so that the live stop rule and the final answer agree."""
+    from estimator.gps import estimate_gps_tau_s
+    from mission.controller import controller_from_scenario
+    from mission.log import read_mission_log
+    from mission.vehicle import GeoFix
+
+    sc = load_scenario("paper")
+    ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower",
+                                   external_vehicle=True)
+    assert ctl.noise.gps_tau_s is None
+    ctl._at_home(GeoFix(43.6143, 7.0716, 150.0))
+    _fly_fixes(ctl, tau_s, 60.0)
+    noise = ctl._flight_noise()
+    mlog = read_mission_log(tmp_path / "m.jsonl")
+    pos = ctl.origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
+    vel = mlog.tel_vel_ned_mps
+    from_log = estimate_gps_tau_s(mlog.tel_t_s, pos, np.column_stack([vel[:, 1], vel[:, 0], -vel[:, 2]]), 1.0)
+    assert noise.gps_tau_s == from_log
+    assert 0.5 * tau_s <= noise.gps_tau_s <= 2.0 * tau_s, noise.gps_tau_s
+    (ev,) = [e for e in mlog.events if e.get("kind") == "gps_tau"]
+    assert ev["gps_tau_s"] == noise.gps_tau_s
+    assert f"estimated from {len(mlog.tel_t_s)} telemetry records" in ev["message"] and len(mlog.tel_t_s) > 200
+    assert ctl._flight_noise() is ctl.noise  # once: the records are dropped
+
+
+def test_flight_keeps_the_default_gps_correlation_time_without_telemetry_to_estimate_it(tmp_path):
+    from mission.controller import controller_from_scenario
+    from mission.log import read_mission_log
+    from mission.vehicle import GeoFix
+
+    sc = load_scenario("paper")
+    ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower",
+                                   external_vehicle=True)
+    ctl._at_home(GeoFix(43.6143, 7.0716, 150.0))
+    _fly_fixes(ctl, 100.0, 2.0)  # 10 records: too few
+    assert ctl._flight_noise() is ctl.noise and ctl.noise.gps_tau_used_s == 60.0
+    (ev,) = [e for e in read_mission_log(tmp_path / "m.jsonl").events if e.get("kind") == "gps_tau"]
+    assert "assuming 60 s" in ev["message"]
+
+
+def test_flight_uses_a_known_gps_correlation_time_as_given(tmp_path):
+    from mission.controller import controller_from_scenario
+
+    sc = load_scenario("paper")
+    ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower")
+    assert ctl.noise.gps_tau_s == sc.vehicle.gps_tau_s and ctl._flight_noise() is ctl.noise

@@ -69,6 +69,10 @@ def test_three_user_mission_on_px4_reaches_the_target_and_replays(px4, tmp_path)
     # PX4's GPS error is not the built-in vehicle's: its correlation time is left to replay to
     # estimate from the telemetry (tens to hundreds of seconds, not the built-in vehicle's 3 s)
     assert "gps_tau_s" not in read_mission_log(log_path).header.noise.to_log_dict()
+    # ... and the flight estimates it from the take-off's telemetry for its own estimator (PX4's
+    # EKF output is smooth at the telemetry rate: seconds at least, not white)
+    (tau,) = [e for e in _events(log_path) if e.get("kind") == "gps_tau"]
+    assert tau.get("gps_tau_s", 0.0) > 10.0, tau
     kinds = [e.get("kind") for e in _events(log_path)]
     for kind in ("home", "arm", "takeoff", "speed", "stop", "rtl", "landed", "end"):
         assert kind in kinds, kind

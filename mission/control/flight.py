@@ -33,13 +33,14 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
 from estimator.geodesy import Origin
+from estimator.gps import estimate_gps_tau_s
 from estimator.noise import NoiseModel
 from estimator.refresh import SOURCE_BATCH
 from estimator.slam import solve_batch
@@ -133,6 +134,11 @@ class MissionController:
         self._start_utc = datetime.now(UTC).isoformat(timespec="milliseconds")
         self._buffer = TelemetryBuffer(4096)
         self._last_tel_log_t = -math.inf
+        # the telemetry records as logged (t [s], ENU [m], velocity ENU [m/s]) until the survey, for
+        # the GPS correlation time when the noise model leaves it unknown (_flight_noise)
+        self._tau_records: list[tuple[float, np.ndarray, np.ndarray]] | None = (
+            [] if noise.gps_tau_s is None else None)
+        self._takeoff_over = asyncio.Event()
         self.journal = MissionJournal(MissionLogWriter(self.log_path), self.users, self.now, lambda: self.flight.phase)
         self.flight = FlightState(event=self.journal.event)
         self.pipeline = MeasurementPipeline(gnb, self.users, config.delta_m, config.gnb_timeout_s, self.flight,
@@ -218,8 +224,13 @@ class MissionController:
         if t - self._last_tel_log_t >= 1.0 / self.config.telemetry_log_hz and self.journal.is_open:
             self._last_tel_log_t = t
             extra = {"vel_ned_mps": list(fix.vel_ned_mps)} if fix.vel_ned_mps is not None else {}
-            self.journal.writer.write("telemetry", t, lat_deg=fix.lat_deg, lon_deg=fix.lon_deg,
-                                      alt_m=fix.alt_amsl_m, **extra)
+            rec = self.journal.writer.write("telemetry", t, lat_deg=fix.lat_deg, lon_deg=fix.lon_deg,
+                                            alt_m=fix.alt_amsl_m, **extra)
+            if self._tau_records is not None and fix.vel_ned_mps is not None:
+                # the numbers as logged, so that replay's estimate from the same records agrees
+                vn, ve, vd = rec["vel_ned_mps"]
+                enu = self.origin.lla_to_enu(rec["lat_deg"], rec["lon_deg"], rec["alt_m"])
+                self._tau_records.append((rec["t"], np.asarray(enu, float), np.array([ve, vn, -vd])))
         self.flight.wake.pulse()
 
     # -- the flight -----------------------------------------------------------------------------
@@ -243,6 +254,7 @@ class MissionController:
             background.append(tg.create_task(coro, name=name))
         try:
             await self.legs.takeoff()
+            self._takeoff_over.set()
             if f.return_reason is None:
                 f.set_phase(SURVEY)
                 await self.legs.survey()
@@ -314,12 +326,36 @@ class MissionController:
 
     # -- background tasks -----------------------------------------------------------------------
 
+    def _flight_noise(self) -> NoiseModel:
+        """The noise model the flight's estimator uses: the mission's, with the GPS error's
+        correlation time estimated from the telemetry logged so far (take-off) when the mission
+        leaves it unknown (an external autopilot: PX4's EKF output drifts with τ of minutes), as
+        replay estimates it from the whole log; the estimator's default when too little was logged."""
+        records, self._tau_records = self._tau_records, None
+        if records is None:
+            return self.noise
+        tau = None
+        if len(records) > 1:
+            t, pos, vel = (np.array(c) for c in zip(*records, strict=True))
+            tau = estimate_gps_tau_s(t, pos, vel, self.noise.sigma_gps_m)
+        if tau is None:
+            self.journal.event(f"GPS error correlation time unknown and too little telemetry to estimate it "
+                               f"({len(records)} records): assuming {self.noise.gps_tau_used_s:g} s", kind="gps_tau")
+            return self.noise
+        self.journal.event(f"GPS error correlation time estimated from {len(records)} telemetry records: "
+                           f"{tau:.0f} s", kind="gps_tau", gps_tau_s=tau)
+        return replace(self.noise, gps_tau_s=tau)
+
     async def _estimator_task(self) -> None:
         f = self.flight
+        if self._tau_records is not None:
+            # the first keyframe comes with the survey: estimate τ from the take-off's telemetry
+            await self._takeoff_over.wait()
+        noise = self._flight_noise()
         # the stop rule is judged on batch estimates only: a target the online estimate reaches
         # asks the worker for a batch refresh first (estimator.refresh)
         reached = functools.partial(targets_reached, target_radius_m=self.config.target_radius_m)
-        worker = EstimatorWorker(len(self.users), np.array([u.up_m for u in self.users]), self.noise,
+        worker = EstimatorWorker(len(self.users), np.array([u.up_m for u in self.users]), noise,
                                  self.params, self.pipeline.keyframes_out, mode=self.config.estimator_mode,
                                  confirm=reached)
 
