@@ -89,8 +89,12 @@ _O1_LAST_SENT: dict[tuple[str, int], float] = {}
 #: it has run every request queued before it; the spacing then counts from that answer. (An older
 #: connection is served before the stale request: its `o1 stats` is safe, and proves nothing.)
 _O1_UNANSWERED: dict[tuple[str, int], float] = {}
-#: the harmless request that proves a stale `o1 stats` has run (read-only, answered at once)
-O1_SETTLE_REQUEST = "ci get_single_rnti"
+#: the request sent before an `o1 stats` on a connection not yet served, or after one left
+#: unanswered: a line of one character, which OAI never parses and answers with the bare prompt
+#: (shared/data/oai-2025.w36/02_noue_probe.txt). What a busy gNB queues, and what runs into a
+#: closed socket if we give up waiting, is then nothing at all: a stale `o1 stats` answered into
+#: a closed socket aborted the real gNB (EXIT_STATUS 134) once in ~20 runs of test_oai_live.
+O1_SETTLE_REQUEST = "e"
 
 @runtime_checkable
 class GnbClient(Protocol):
@@ -274,12 +278,13 @@ class OaiGnbClient:
                     continue
             fresh = self._fresh
             o1 = line == "o1 stats"
-            answered = False
+            sent = answered = False
             try:
                 async with asyncio.timeout(cfg.request_timeout_s):
                     if o1:
                         await self._settle_o1()
                         fresh = self._fresh
+                    sent = True
                     data = await self._exchange(line)
                     answered = True
                     if o1:  # it ran before its answer: the spacing counts from the later time
@@ -304,7 +309,7 @@ class OaiGnbClient:
                 log.info("gNB request %r: %s (attempt %d of %d)", line, exc, attempt + 1, retries + 1)
                 continue
             finally:
-                if o1 and not answered:  # sent, perhaps, and not answered: it may still run
+                if o1 and sent and not answered:  # sent, perhaps, and not answered: it may still run
                     _O1_UNANSWERED[self._key] = max(_O1_UNANSWERED.get(self._key, -math.inf), self._connected_at)
             self._fresh = False
             body, late = split_async_lines(decode_reply(data, cfg.prompt))
@@ -384,22 +389,27 @@ class OaiGnbClient:
         _O1_LAST_SENT[self._key] = time.monotonic()
 
     async def _settle_o1(self) -> None:
-        """Before an `o1 stats` (on the current connection, under the lock): when an earlier one to
-        this gNB went unanswered on a connection opened before this one (_O1_UNANSWERED), ask
-        O1_SETTLE_REQUEST, whose answer comes after the stale request has run, and wait
-        O1_MIN_INTERVAL_S from that answer."""
+        """Before an `o1 stats` (on the current connection, under the lock), ask O1_SETTLE_REQUEST
+        first when the gNB has not answered anything on this connection yet (it may be serving
+        another client: the `o1 stats` must not be what waits in its queue), or when an earlier
+        `o1 stats` to this gNB went unanswered on a connection opened before this one
+        (_O1_UNANSWERED): the answer comes after that stale request has run; then wait
+        O1_MIN_INTERVAL_S from it."""
         stale_conn_s = _O1_UNANSWERED.get(self._key)
-        if stale_conn_s is None or self._connected_at <= stale_conn_s:
+        stale = stale_conn_s is not None and self._connected_at > stale_conn_s
+        if not (self._fresh or stale):
             return
-        log.info("an earlier `o1 stats` to %s:%d went unanswered and may still run: asking %r first",
-                 *self._key, O1_SETTLE_REQUEST)
+        if stale:
+            log.info("an earlier `o1 stats` to %s:%d went unanswered and may still run: asking %r first",
+                     *self._key, O1_SETTLE_REQUEST)
         _, late = split_async_lines(decode_reply(await self._exchange(O1_SETTLE_REQUEST), self.config.prompt))
         self.late_lines.extend(late)
         self._fresh = False
-        if _O1_UNANSWERED.get(self._key) == stale_conn_s:
-            del _O1_UNANSWERED[self._key]
-        _O1_LAST_SENT[self._key] = time.monotonic()
-        await self._o1_spacing()
+        if stale:
+            if _O1_UNANSWERED.get(self._key) == stale_conn_s:
+                del _O1_UNANSWERED[self._key]
+            _O1_LAST_SENT[self._key] = time.monotonic()
+            await self._o1_spacing()
 
     async def guarded_ci(self, command: str, rnti: int) -> str:
         """Send `ci <command> <rnti hex>` only if a discovery taken just before it, on the same

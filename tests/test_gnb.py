@@ -369,20 +369,33 @@ def test_fault_drop_every_time_gives_up_with_clear_error():
     run(body())
 
 
+def _record_lines(gnb) -> list[str]:
+    """Every request line the simulated gNB gets from now on, in order."""
+    lines: list[str] = []
+    process = gnb.process
+
+    def recording(line: str):
+        lines.append(line)
+        return process(line)
+
+    gnb.process = recording
+    return lines
+
+
 @pytest.mark.parametrize("first_discovers_again", [False, True])
-def test_an_abandoned_o1_stats_is_settled_before_the_next_one(first_discovers_again):
-    """OAI serves one client at a time and runs what a queued client sent when the first one leaves,
-    even when that client gave up and left (shared/data/oai-2025.w36/04_two_clients.txt). A client
-    that abandoned an `o1 stats` and discovers again from a new connection queued behind it must not
-    let its new `o1 stats` run microseconds after the stale one (the SIGFPE): it asks
-    O1_SETTLE_REQUEST first and spaces from its answer. Without that step the simulated gNB crashes
-    here on every run (both requests are queued when the first client leaves). The first client's
-    own discovery meanwhile is served before the stale request, so it proves nothing: the next
-    connection still settles."""
+def test_a_busy_gnb_queues_only_a_bare_line_from_a_new_connection(first_discovers_again):
+    """OAI serves one client at a time and runs what a queued client sent when the client before it
+    leaves, even after the queued one gave up and left (shared/data/oai-2025.w36/04_two_clients.txt).
+    A new connection's first `o1 stats` is preceded by O1_SETTLE_REQUEST, a line OAI never parses
+    and answers with the bare prompt: a client that gives up on a busy gNB leaves that queued, not
+    an `o1 stats` to run microseconds before the next one (the SIGFPE) or into a closed socket (a
+    SIGABRT of the real gNB)."""
+    from mission.gnb import O1_SETTLE_REQUEST
 
     async def body():
         faults = GnbFaults(busy_mode="silent")
         async with SimulatedGnb(scenario(), static_position(UAV), port=0, faults=faults) as gnb:
+            lines = _record_lines(gnb)
             first = OaiGnbClient(client_config(gnb, discovery="o1"))
             await first.__aenter__()
             await first.discover()
@@ -393,13 +406,42 @@ def test_an_abandoned_o1_stats_is_settled_before_the_next_one(first_discovers_ag
                     await first.discover()
                 again = asyncio.create_task(second.discover())  # a new connection, queued too
                 await asyncio.sleep(0.1)
-                await first.aclose()  # the gNB now runs the stale request, then the new connection's
+                await first.aclose()  # the gNB now runs the abandoned connection's line, then the new one's
                 rntis = await again
-            return rntis, gnb.crashed
+            return rntis, gnb.crashed, lines
 
-    rntis, crashed = run(body())
+    rntis, crashed, lines = run(body())
     assert crashed is None
     assert rntis == sorted(IN_COVERAGE)
+    # the first client (its later discovery on a served connection goes straight), then, once it
+    # left, the abandoned connection's bare line and the new connection's
+    first = [O1_SETTLE_REQUEST, "o1 stats"] + (["o1 stats"] if first_discovers_again else [])
+    assert lines == [*first, "exit", O1_SETTLE_REQUEST, O1_SETTLE_REQUEST, "o1 stats", "exit"]
+
+
+def test_an_o1_stats_abandoned_while_served_is_settled_before_the_next_one():
+    """An `o1 stats` the gNB was slow to answer (here a delayed answer) and the client gave up on may
+    still be running; a new connection asks O1_SETTLE_REQUEST first (answered only after it) and
+    waits O1_MIN_INTERVAL_S from that answer before its own `o1 stats`."""
+    from mission.gnb import O1_MIN_INTERVAL_S, O1_SETTLE_REQUEST
+
+    async def body():
+        async with SimulatedGnb(scenario(), static_position(UAV), port=0) as gnb:
+            lines = _record_lines(gnb)
+            async with OaiGnbClient(client_config(gnb, discovery="o1", request_timeout_s=0.3, retries=0)) as c:
+                await c.discover()
+                gnb.inject("delay", delay_s=1.0)
+                with pytest.raises(GnbTimeoutError):
+                    await c.discover()
+                t0 = asyncio.get_running_loop().time()
+                rntis = await c.discover()  # reconnects
+                took_s = asyncio.get_running_loop().time() - t0
+            return rntis, lines, took_s, gnb.crashed
+
+    rntis, lines, took_s, crashed = run(body())
+    assert crashed is None and rntis == sorted(IN_COVERAGE)
+    assert lines == [O1_SETTLE_REQUEST, "o1 stats", "o1 stats", O1_SETTLE_REQUEST, "o1 stats", "exit"]
+    assert took_s >= O1_MIN_INTERVAL_S
 
 
 def test_refused_connections_are_reported_busy():
@@ -653,7 +695,7 @@ def test_ci_commands_that_crash_stock_oai_are_refused_by_the_client():
             return answer, gnb.crashed, gnb.requests
 
     answer, crashed, requests = run(body())
-    assert answer.startswith("UE 4601 DL BWP") and crashed is None and requests == 2  # o1 stats + the ci
+    assert answer.startswith("UE 4601 DL BWP") and crashed is None and requests == 3  # bare line, o1 stats, ci
 
 
 def test_simulated_gnb_crashes_like_oai_on_an_unknown_rnti():
