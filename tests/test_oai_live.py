@@ -247,10 +247,11 @@ def test_timeouts_and_a_silent_second_client(oai):
             await first.discover()
             async with OaiGnbClient(cfg(oai, request_timeout_s=1.5, retries=0)) as second:
                 # the gNB runs a waiting client's request when the client before it leaves,
-                # abandoned or not: this `o1 stats` runs when `first` leaves, and the next client's
-                # would land within milliseconds of it (OAI 2025.w36: SIGFPE) had that client not
-                # settled it first (mission/gnb.py _O1_UNANSWERED; with `help` here instead, as
-                # before that, and without the settling, this gNB died after this test in 2 of 8 runs)
+                # abandoned or not. A discovery on a new connection sends a bare line first
+                # (mission/gnb.py O1_SETTLE_REQUEST), so that is what waits here and runs when
+                # `first` leaves; an `o1 stats` waiting here killed this gNB: with SIGFPE when the
+                # next client's followed it within milliseconds, with SIGABRT (once in ~20 runs)
+                # when answered into this client's closed socket
                 with pytest.raises(GnbBusyError, match="one client at a time"):
                     await second.discover()
             after = await first.discover()
