@@ -134,8 +134,8 @@ class MissionController:
         self._start_utc = datetime.now(UTC).isoformat(timespec="milliseconds")
         self._buffer = TelemetryBuffer(4096)
         self._last_tel_log_t = -math.inf
-        # the telemetry records as logged (t [s], ENU [m], velocity ENU [m/s]) until the survey, for
-        # the GPS correlation time when the noise model leaves it unknown (_flight_noise)
+        # the telemetry records as logged (t [s], ENU [m], velocity ENU [m/s]) until the take-off is
+        # over, for the GPS correlation time when the noise model leaves it unknown (_flight_noise)
         self._tau_records: list[tuple[float, np.ndarray, np.ndarray]] | None = (
             [] if noise.gps_tau_s is None else None)
         self._takeoff_over = asyncio.Event()
