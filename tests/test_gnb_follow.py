@@ -19,6 +19,7 @@ from estimator.geodesy import Origin
 from mission.gnb import GnbConfig, OaiGnbClient
 from sitl_scenarios.gnb import MavlinkPositionSource, SimulatedGnb
 from sitl_scenarios.scenario import scenario_from_dict
+from tests.procs import stop_process
 
 HOME = Origin(47.397742, 8.545594, 488.0)
 
@@ -143,11 +144,6 @@ def test_standalone_entry_point_serves_the_adapter(tmp_path: Path):
         assert rntis == [0x4601]
         assert abs(fine.range_m - d) < 15 and abs(coarse.range_m - d) < 40
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
+        stop_process(proc, grace_s=5, kill_wait_s=5)
         if proc.stderr is not None:
             proc.stderr.close()

@@ -14,7 +14,6 @@ import asyncio
 import contextlib
 import json
 import shutil
-import signal
 import socket
 import subprocess
 import threading
@@ -29,6 +28,7 @@ from estimator.ranging import one_way_m_per_ta_step
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.oai import PROMPT_UE, parse_rfsim_distance
 from mission.oai_ra import RandomAccess, log_time_format
+from tests.procs import stop_process
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
@@ -93,13 +93,7 @@ class OaiRun:
         proc = self.proc
         if proc is None:
             return
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10)
+        stop_process(proc, grace_s=30, kill_wait_s=10)
         if proc.stdout is not None:
             proc.stdout.close()
 

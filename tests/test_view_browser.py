@@ -28,6 +28,7 @@ import pytest
 
 from estimator.geodesy import Origin
 from estimator.types import CHI2_2DOF_95
+from tests.procs import stop_process
 
 pytestmark = pytest.mark.browser
 
@@ -97,13 +98,7 @@ class _Proc:
             raise AssertionError("no view URL printed:\n" + "".join(self.lines[-30:])) from None
 
     def stop(self) -> None:
-        if self.p.poll() is None:
-            self.p.terminate()
-            try:
-                self.p.wait(10)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
+        stop_process(self.p, grace_s=10)
 
 
 def _watch(page) -> list[str]:
