@@ -221,6 +221,8 @@ class OaiGnbClient:
         """
         check_ci_line(line)
         async with self._lock:
+            if line == "o1 stats":
+                await self._o1_spacing()
             return await self._request_locked(line, self.config.retries)
 
     async def _request_locked(self, line: str, retries: int, reconnect: bool = True) -> str:
@@ -380,12 +382,8 @@ class OaiGnbClient:
         if stale:
             log.info("an earlier `o1 stats` to %s went unanswered and may still run: asking %r first",
                      self.address, t.settle_request)
-        try:
-            _, late = split_async_lines(await t.exchange(t.settle_request))
-            self.late_lines.extend(late)
-        except GnbUnknownCommandError:  # REST without the ci module: no request to settle with
-            log.warning("cannot settle an unanswered `o1 stats` at %s (%r unknown): spacing from now",
-                        self.address, t.settle_request)
+        _, late = split_async_lines(await t.exchange(t.settle_request))
+        self.late_lines.extend(late)
         if stale:
             if _O1_UNANSWERED.get(self._key) == stale_conn_s:
                 del _O1_UNANSWERED[self._key]

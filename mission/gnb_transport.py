@@ -15,8 +15,9 @@ which the client above writes once for both. What differs, and how each transpor
   order.
 
 Both raise `TransportLost` for a connection that failed before an answer (the client retries
-those, and only those), GnbTimeoutError/GnbError for connecting, GnbUnknownCommandError for a
-command the gNB does not have, GnbProtocolError for an answer that is not the transport's format.
+those, and only those), GnbTimeoutError/GnbError for connecting, GnbProtocolError for an answer
+that is not the transport's format; a command the gNB does not have comes back as the telnet
+server's own text (``... is not a softmodem command``), which the client checks once for both.
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ import time
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
-from mission.oai import MAX_REPLY_CHARS, decode_reply, protocol_error
-from uavloc.errors import GnbError, GnbProtocolError, GnbTimeoutError, GnbUnknownCommandError
+from mission.oai import MAX_REPLY_CHARS, decode_reply, protocol_error, unknown_command_text
+from uavloc.errors import GnbError, GnbProtocolError, GnbTimeoutError
 
 log = logging.getLogger(__name__)
 
@@ -367,7 +368,8 @@ class RestTransport:
             raise GnbError(f"request {line!r} is {len(data)} bytes as JSON, OAI's web server refuses more than "
                            f"{REST_MAX_BODY_BYTES}")
         if self.modules and module not in self.modules:
-            raise self._unknown(line, f"the web server's modules are {', '.join(self.modules)}")
+            log.debug("%r: module %r not among the web server's modules %s", line, module, self.modules)
+            return unknown_command_text(line)
         try:
             async with self._session.post(f"{self.base}/{module}/commands", data=data,
                                           headers={"Content-Type": "application/json"}) as resp:
@@ -381,17 +383,13 @@ class RestTransport:
         if status == 200:
             return parse_rest_display(raw)
         text = raw[:200].decode("utf-8", errors="replace")
-        if status == 501 or status == 404:  # unknown command (websrv.c), or no such module endpoint
-            raise self._unknown(line, f"HTTP {status} {text!r}")
+        if status == 501 or status == 404:  # unknown command (websrv.c), or no such module endpoint:
+            # the telnet server's text, so that the one check above the transport says it
+            log.debug("%r: HTTP %d %r", line, status, text)
+            return unknown_command_text(line)
         if status == 413:
             raise GnbError(f"the gNB web server refused {line!r} as too large (HTTP 413)")
         raise GnbError(f"the gNB web server answered HTTP {status} to {line!r}: {text!r}")
-
-    def _unknown(self, line: str, why: str) -> GnbUnknownCommandError:
-        exc = GnbUnknownCommandError(f"the gNB does not know the command {line.strip()!r} over REST (is its "
-                                     f"telnet module loaded, --telnetsrv.shrmod?): {why}")
-        exc.text = why  # type: ignore[attr-defined]
-        return exc
 
     async def read_late(self, wait_s: float) -> list[str]:
         return []  # the web server waits for a queued command's output and puts it in display
