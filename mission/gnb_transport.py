@@ -340,8 +340,13 @@ class RestTransport:
                            f"running with --websrv and --telnetsrv?)") from exc
         except aiohttp.ClientError as exc:
             await session.close()
-            raise GnbProtocolError(f"the server at {a} does not speak HTTP ({type(exc).__name__}: {exc}); is it "
-                                   f"OAI's telnet port? give it as telnet://{a.host}:{a.port} or HOST:PORT") from exc
+            said = str(exc)
+            if "softmodem" in said and "not a softmodem command" in said:
+                why = "it answered each header line as OAI's telnet server does (`... is not a softmodem command`)"
+            else:
+                why = f"{type(exc).__name__}: {' '.join(said.split())[:120]}"
+            raise GnbProtocolError(f"the server at {a} does not speak HTTP: {why}; a telnet port is given as "
+                                   f"telnet://{a.host}:{a.port} or {a.host}:{a.port}") from exc
         except BaseException:
             await session.close()
             raise

@@ -483,7 +483,7 @@ class SimulatedGnb:
         connected = self._connected_rntis()
         if args:  # OAI: any buffer, even websrv's " " (strtol gives 0)
             try:
-                rnti = int(args.split()[0], 16)  # OAI: strtol(buf, NULL, 16)
+                rnti = int(args.split()[0], 16) if args.split() else 0  # OAI: strtol(buf, NULL, 16)
             except ValueError:
                 rnti = 0
             if not 1 <= rnti < 0xFFFE:

@@ -35,14 +35,11 @@ import asyncio
 import contextlib
 import json
 import logging
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from aiohttp import web
 
 from uavloc.errors import SimulatorError
-
-if TYPE_CHECKING:
-    from sitl_scenarios.gnb import SimulatedGnb
 
 log = logging.getLogger(__name__)
 
@@ -79,10 +76,31 @@ def _param_values(param: object) -> list[str] | None:
     return out
 
 
-class GnbRestServer:
-    """aiohttp server of one SimulatedGnb's REST API on host:port (port 0: ephemeral, read `.port`)."""
+class RestBackend(Protocol):
+    """What the web server needs from the simulated gNB (`sitl_scenarios.gnb.SimulatedGnb`)."""
 
-    def __init__(self, gnb: SimulatedGnb, host: str, port: int) -> None:
+    stock_websrv: bool
+    crashed: str | None
+
+    def modules(self) -> list[str]: ...
+
+    def module_commands(self, module: str) -> list[tuple[str, str]] | None: ...
+
+    def run_command(self, module: str, cmd: str, args: str) -> str | None: ...
+
+    def crash_now(self) -> None: ...
+
+    def take_fault(self, kind: str) -> bool: ...
+
+    def take_delay(self) -> float: ...
+
+    def malform_bytes(self, answer: str) -> bytes: ...
+
+
+class GnbRestServer:
+    """aiohttp server of one simulated gNB's REST API on host:port (port 0: ephemeral, read `.port`)."""
+
+    def __init__(self, gnb: RestBackend, host: str, port: int) -> None:
         self.gnb = gnb
         self.host = host
         self.port = port
