@@ -474,3 +474,25 @@ def test_a_whole_sim_mission_over_rest_locates_every_user(tmp_path):
     assert result.not_located() == [] and len(result.user_ids) == len(sc.users)
     err = result.error_m()
     assert err is not None and np.all(err <= sc.mission.target_radius_m), err
+
+
+# ---------------------------------------------------------------------------------------------
+# the command line
+
+
+def test_gnb_probe_over_rest_and_a_telnet_port_given_as_http(capsys):
+    from mission.cli import main
+
+    async def serve(address_of):
+        async with sim() as gnb:
+            return await asyncio.to_thread(main, ["gnb", "probe", "--gnb", address_of(gnb), "--count", "2", "--json"])
+
+    assert run(serve(lambda g: f"http://127.0.0.1:{g.rest_port}")) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ok"] and doc["address"].startswith("http://") and doc["gnb_rntis"] == ["1234", "4601", "b0b2"]
+    assert all(len(u["samples"]) == 2 and u["samples"][0]["range_m"] > 0 for u in doc["ues"])
+    assert run(serve(lambda g: f"telnet://127.0.0.1:{g.port}")) == 0
+    capsys.readouterr()
+    assert run(serve(lambda g: f"http://127.0.0.1:{g.port}")) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert not doc["ok"] and "does not speak HTTP" in doc["message"] and "telnet://" in doc["message"]
