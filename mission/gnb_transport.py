@@ -68,12 +68,14 @@ class GnbAddress:
         return f"{scheme}://{self.host}:{self.port}"
 
 
-def parse_gnb_address(text: str, transport: Transport | None = None) -> GnbAddress:
+def parse_gnb_address(text: str, default: Transport = "telnet") -> GnbAddress:
     """"HOST[:PORT]", "telnet://HOST[:PORT]" or "http://HOST[:PORT][/]" -> GnbAddress.
 
-    transport: the transport of an address without a scheme (default telnet); a scheme that
-    contradicts it is a GnbError. The default port is the transport's OAI default.
+    default: the transport of an address without a scheme (a mission file's `gnb.transport`); a
+    scheme says it itself. The default port is the transport's OAI default (9090, 8090).
     """
+    if default not in TRANSPORTS:
+        raise GnbError(f"gNB transport must be one of {', '.join(TRANSPORTS)}, got {default!r}")
     from mission.gnb_config import parse_host_port
 
     s = text.strip()
@@ -83,14 +85,12 @@ def parse_gnb_address(text: str, transport: Transport | None = None) -> GnbAddre
         if kind is None:
             raise GnbError(f"bad gNB address {text!r}: scheme {scheme!r} is not telnet:// or http:// "
                            f"(https is not served by OAI's web server)")
-        if transport is not None and transport != kind:
-            raise GnbError(f"gNB address {text!r} is {kind}, but the transport asked is {transport}")
         if rest.endswith("/"):
             rest = rest[:-1]
         if "/" in rest:
             raise GnbError(f"bad gNB address {text!r}: a path is not allowed (OAI serves {REST_PREFIX}/...)")
     else:
-        kind, rest = (transport or "telnet"), s
+        kind, rest = default, s
     if not rest:
         raise GnbError(f"bad gNB address {text!r}: no host")
     host, port = parse_host_port(rest, DEFAULT_PORTS[kind])

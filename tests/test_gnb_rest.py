@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from pathlib import Path
 
 import aiohttp
 import numpy as np
@@ -381,10 +382,11 @@ def test_parse_gnb_address_errors(text, match):
         parse_gnb_address(text)
 
 
-def test_an_address_contradicting_the_transport_is_refused():
-    with pytest.raises(GnbError, match="is rest"):
-        parse_gnb_address("http://h:1", transport="telnet")
-    assert parse_gnb_address("h:1", transport="rest").transport == "rest"
+def test_a_scheme_less_address_takes_the_default_transport_and_its_port():
+    assert parse_gnb_address("h", default="rest") == GnbAddress("h", 8090, "rest")
+    assert parse_gnb_address("telnet://h", default="rest") == GnbAddress("h", 9090, "telnet")
+    with pytest.raises(GnbError, match="transport"):
+        parse_gnb_address("h", default="grpc")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -496,3 +498,32 @@ def test_gnb_probe_over_rest_and_a_telnet_port_given_as_http(capsys):
     assert run(serve(lambda g: f"http://127.0.0.1:{g.port}")) == 1
     doc = json.loads(capsys.readouterr().out)
     assert not doc["ok"] and "does not speak HTTP" in doc["message"] and "telnet://" in doc["message"]
+
+
+def test_a_campaign_spec_names_the_gnb_transport_of_its_full_runs():
+    from sitl_scenarios.campaign.spec import spec_from_dict
+    from uavloc.errors import CampaignError
+
+    def spec(**campaign):
+        return spec_from_dict({"campaign": {"name": "t", "planners": ["lawnmower"], **campaign},
+                               "scenarios": [{"file": "paper"}]})
+
+    telnet, rest = spec(mode="full"), spec(mode="full", gnb_transport="rest")
+    assert [r.gnb_transport for r in telnet.runs + rest.runs] == ["telnet", "rest"]
+    assert telnet.runs[0].key != rest.runs[0].key
+    with pytest.raises(CampaignError, match="only full mode"):
+        spec(mode="fast", gnb_transport="rest")
+    with pytest.raises(CampaignError, match="'telnet' or 'rest'"):
+        spec(mode="full", gnb_transport="http")
+
+
+def test_a_mission_files_transport_applies_to_an_address_without_scheme(tmp_path):
+    from mission.config import load_mission
+
+    text = (Path(__file__).parent.parent / "mission/examples/flight.toml").read_text()
+    path = tmp_path / "m.toml"
+    path.write_text(text.replace("[gnb]\n", '[gnb]\ntransport = "rest"\n', 1))
+    gnb = load_mission(path).gnb
+    address = parse_gnb_address("10.0.0.2", default=gnb.transport)
+    config = gnb.client_config(address.host, address.port)
+    assert (config.transport, config.port) == ("rest", 8090)

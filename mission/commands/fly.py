@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     if gnb_over:
         mission = dataclasses.replace(mission, gnb=dataclasses.replace(mission.gnb, **gnb_over))
         validate_mission(mission, "command line")
-    address = parse_gnb_address(args.gnb)
+    address = parse_gnb_address(args.gnb, default=mission.gnb.transport)
     if args.log is not None:
         log_path = args.log
     elif args.out is not None:
