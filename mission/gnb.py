@@ -14,8 +14,9 @@ the transport. The client is an async context manager that owns its connection:
 - a lost connection is re-opened with jittered exponential backoff (seeded rng) and the request
   re-sent, up to `retries` times; after a timeout the connection is closed (a late answer would
   otherwise be read as the next one) and GnbTimeoutError raised;
-- OAI serves one client at a time: a fresh connection that is closed before its first answer, or
-  stays silent (what OAI does), is reported as GnbBusyError;
+- OAI's telnet server serves one client at a time, its web server one command at a time (one
+  output buffer): a fresh connection that is closed before its first answer, or stays silent
+  (what OAI does), is reported as GnbBusyError; retries follow connection errors only;
 - an unknown command (``... is not a softmodem command``) is GnbUnknownCommandError;
 - discovery through ``o1 stats`` (RNTI list) or ``ci get_single_rnti``;
 - measurement through the RTT command set (default ``rtt pdcch_order <rnti hex>``, names are
