@@ -94,6 +94,39 @@ def test_measurements_match_the_true_geometry(transport):
 
 
 @pytest.mark.parametrize("transport", TRANSPORTS)
+def test_stock_active_mode_triggers_only_a_listed_ue_and_reads_its_msg2(transport, tmp_path):
+    log_path = tmp_path / "gnb.log"
+
+    async def body():
+        async with sim(log_path=log_path, msg2_delay_s=0.02) as gnb, OaiGnbClient(cfg(
+                gnb, transport, mode="stock", stock_mode="active", log_path=log_path, msg2_timeout_s=1.0)) as c:
+            got = [await c.measure(r) for r in (0x4601, 0xB0B2)]
+            with pytest.raises(GnbNoMeasurementError, match="not sending `ci force_reestab 0777`"):
+                await c.measure(0x0777)  # out of coverage: never sent
+            return got, c.ci_sent, gnb.crashed
+
+    got, sent, crashed = run(body())
+    assert [s.rnti for s in got] == [0x4601, 0xB0B2] and all(s.source == "msg2" for s in got)
+    assert sent == ["ci force_reestab 4601", "ci force_reestab b0b2"] and crashed is None
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_stock_passive_mode_sends_nothing_and_reads_the_log(transport, tmp_path):
+    log_path = tmp_path / "gnb.log"
+
+    async def body():
+        async with sim(log_path=log_path) as gnb, OaiGnbClient(cfg(
+                gnb, transport, mode="stock", stock_mode="passive", log_path=log_path)) as c:
+            await c.discover()
+            new_a = gnb.reattach(0)
+            sample = await c.measure(new_a)
+            return sample, new_a, c.ci_sent
+
+    sample, new_a, sent = run(body())
+    assert sample.rnti == new_a and sample.source == "msg2" and sent == []
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
 def test_unknown_command_is_the_same_error(transport):
     async def body():
         async with sim(rtt_command="other") as gnb:
