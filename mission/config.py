@@ -169,7 +169,9 @@ class NoiseConfig:
 class GnbSettings:
     """How to measure with the gNB (DESIGN.md §8; the address is given on the command line).
 
-    mode: "rtt" (the RTT telnet module) or "stock" (the Msg2 lines of log_path); stock_mode:
+    transport: "telnet" or "rest" (OAI's web server), for a `--gnb` address without a scheme
+    (`telnet://` and `http://` say it themselves); mode: "rtt" (the RTT telnet module) or "stock"
+    (the Msg2 lines of log_path); stock_mode:
     "active" (trigger a random access with `ci force_reestab`, then wait for its Msg2) or "passive"
     (only the random accesses that happen anyway); rtt_module, rtt_command: the RTT command's
     names; discovery: "auto", "o1" or "single"; mu, fs_hz: numerology and sampling rate of the gNB
@@ -180,6 +182,7 @@ class GnbSettings:
     lost connection. :meth:`measure_timeout_s` is what the controller allows one measurement.
     """
 
+    transport: Literal["telnet", "rest"] = "telnet"
     mode: Literal["rtt", "stock"] = "rtt"
     stock_mode: Literal["active", "passive"] = "passive"
     rtt_module: str = "rtt"
@@ -209,7 +212,8 @@ class GnbSettings:
         """The :class:`mission.gnb_config.GnbConfig` of the gNB adapter at host:port."""
         from mission.gnb_config import GnbConfig
 
-        kw = dict(host=host, port=port, mode=self.mode, stock_mode=self.stock_mode, rtt_module=self.rtt_module,
+        kw = dict(host=host, port=port, transport=self.transport, mode=self.mode, stock_mode=self.stock_mode,
+                  rtt_module=self.rtt_module,
                   rtt_command=self.rtt_command, discovery=self.discovery,
                   request_timeout_s=self.request_timeout_s, connect_timeout_s=self.connect_timeout_s,
                   retries=self.retries, log_path=None if self.log_path is None else Path(self.log_path),

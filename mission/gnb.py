@@ -1,17 +1,22 @@
-"""OAI gNB adapter: an asyncio telnet client for OpenAirInterface's telnet server (DESIGN.md §8).
+"""OAI gNB adapter: one asyncio client for OpenAirInterface's telnet server or its web server (REST)
+(DESIGN.md §8; docs/rest-transport.md).
 
 The controller depends on the small :class:`GnbClient` protocol; :class:`OaiGnbClient` implements
-it over TCP for a real (modified or stock) OAI gNB and for the simulated one
-(`sitl_scenarios/gnb.py`). The client is an async context manager that owns its connection:
+it for a real (modified or stock) OAI gNB and for the simulated one (`sitl_scenarios/gnb.py`),
+over the transport the address names (`mission.gnb_transport`: ``HOST:PORT`` or
+``telnet://HOST:PORT`` telnet, ``http://HOST:PORT`` REST). Everything below is written once, above
+the transport. The client is an async context manager that owns its connection:
 
-- a request is one line ``module command [args]\n``; the answer is everything up to the prompt
-  ``softmodem_gnb> ``; every request has a timeout; late ``rfsimu_*_cmd:`` lines (OAI prints
+- a request is one line ``module command [args]``; telnet sends it and reads up to the prompt
+  ``softmodem_gnb> ``, REST posts it to ``/oaisoftmodem/<module>/commands`` and reads the
+  ``display`` lines; every request has a timeout; late ``rfsimu_*_cmd:`` lines (OAI prints
   them after the prompt) are taken out of the next answer;
 - a lost connection is re-opened with jittered exponential backoff (seeded rng) and the request
   re-sent, up to `retries` times; after a timeout the connection is closed (a late answer would
   otherwise be read as the next one) and GnbTimeoutError raised;
-- OAI serves one client at a time: a fresh connection that is closed before its first answer, or
-  stays silent (what OAI does), is reported as GnbBusyError;
+- OAI's telnet server serves one client at a time, its web server one command at a time (one
+  output buffer): a fresh connection that is closed before its first answer, or stays silent
+  (what OAI does), is reported as GnbBusyError; retries follow connection errors only;
 - an unknown command (``... is not a softmodem command``) is GnbUnknownCommandError;
 - discovery through ``o1 stats`` (RNTI list) or ``ci get_single_rnti``;
 - measurement through the RTT command set (default ``rtt pdcch_order <rnti hex>``, names are
@@ -33,7 +38,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import contextlib
 import logging
 import math
 import random
@@ -43,12 +47,11 @@ from typing import Protocol, runtime_checkable
 
 from mission.gnb_config import FORBIDDEN_CI, GnbConfig, check_ci_line, parse_host_port
 from mission.gnb_log import LogFollower, StockLog
+from mission.gnb_transport import GnbAddress, GnbTransport, TransportLost, make_transport, parse_gnb_address
 from mission.oai import (
-    MAX_REPLY_CHARS,
     RttErrorReply,
     RttSample,
     check_known_command,
-    decode_reply,
     parse_force_reestab,
     parse_o1_stats,
     parse_rtt_reply,
@@ -63,12 +66,13 @@ from uavloc.errors import (
     GnbError,
     GnbNoMeasurementError,
     GnbNoRandomAccessError,
+    GnbProtocolError,
     GnbTimeoutError,
     GnbUnknownCommandError,
 )
 
-__all__ = ["FORBIDDEN_CI", "GnbClient", "GnbConfig", "LogFollower", "OaiGnbClient", "RttSample", "check_ci_line",
-           "parse_host_port"]
+__all__ = ["FORBIDDEN_CI", "GnbAddress", "GnbClient", "GnbConfig", "LogFollower", "OaiGnbClient", "RttSample",
+           "check_ci_line", "parse_gnb_address", "parse_host_port"]
 
 log = logging.getLogger(__name__)
 
@@ -110,17 +114,14 @@ class GnbClient(Protocol):
     async def measure(self, rnti: int) -> RttSample: ...
 
 
-class _ConnectionLost(Exception):
-    pass
-
-
 class OaiGnbClient:
-    """Telnet client of an OAI gNB (see the module docstring); implements :class:`GnbClient`.
+    """Client of an OAI gNB over telnet or REST (see the module docstring); implements :class:`GnbClient`.
 
-    config: GnbConfig; rng: jitter source (default random.Random(config.seed)); clock: monotonic
-    clock [s] used to time-stamp samples (the midpoint of request and answer for RTT samples; for
-    stock samples the Msg2 line's wall_clock stamp mapped through `wall`, or the time it was read
-    when the log has no such stamp); wall: UNIX time [s].
+    config: GnbConfig (its `transport` picks the wire, `mission.gnb_transport`); rng: jitter source
+    (default random.Random(config.seed)); clock: monotonic clock [s] used to time-stamp samples
+    (the midpoint of request and answer for RTT samples; for stock samples the Msg2 line's
+    wall_clock stamp mapped through `wall`, or the time it was read when the log has no such
+    stamp); wall: UNIX time [s].
 
     State of the stock modes: `rnti_alias` (requested RNTI -> the RNTI the UE has now, changed only
     by a log line that proves it), `recent_accesses` (every random access the log proved, newest
@@ -133,13 +134,11 @@ class OaiGnbClient:
         self.rng = rng if rng is not None else random.Random(self.config.seed)
         self.clock = clock
         self.wall = wall
-        self._reader: asyncio.StreamReader | None = None
-        self._writer: asyncio.StreamWriter | None = None
-        self._fresh = True  # no answer received yet on the current connection
-        self._connected_at = -math.inf  # when the current connection was opened (monotonic [s])
+        cfg = self.config
+        self.address = GnbAddress(cfg.host, int(cfg.port), cfg.transport)
+        self.transport: GnbTransport = make_transport(self.address, cfg.prompt, cfg.connect_timeout_s)
         self._lock = asyncio.Lock()
         self._stock_lock = asyncio.Lock()
-        self._prompt = self.config.prompt.encode()
         #: stock modes: the gNB log and what it proved (None without a log_path)
         self.stock_log = StockLog(self.config.log_path, self.config.log_poll_s, self.config.log_history) if (
             self.config.log_path is not None) else None
@@ -160,55 +159,35 @@ class OaiGnbClient:
         await self.aclose()
 
     async def aclose(self) -> None:
-        """Say `exit` (OAI closes on input starting with `ex`) and close the connection."""
-        if self._writer is not None:
+        """Say goodbye (telnet: `exit`) and close the connection."""
+        if self.transport.connected:
             await self._space_before_leaving()
-            with contextlib.suppress(ConnectionError, OSError):
-                self._writer.write(b"exit\n")
+            await self.transport.goodbye()
         await self._close(spaced=True)
 
     async def _space_before_leaving(self) -> None:
-        """An `o1 stats` this process left queued behind this connection (_O1_UNANSWERED) runs as
-        soon as the connection ends: not within O1_MIN_INTERVAL_S of the last one (maybe this
-        connection's own, answered just before)."""
-        if self._writer is not None and _O1_UNANSWERED.get(self._key, -math.inf) > self._connected_at:
+        """Telnet: an `o1 stats` this process left queued behind this connection (_O1_UNANSWERED)
+        runs as soon as the connection ends: not within O1_MIN_INTERVAL_S of the last one (maybe
+        this connection's own, answered just before)."""
+        t = self.transport
+        if t.connected and t.queued_by_connection and _O1_UNANSWERED.get(self._key, -math.inf) > t.connected_at:
             await self._o1_spacing()
 
     async def _close(self, spaced: bool = False) -> None:
         if not spaced:
             await self._space_before_leaving()
-        w, self._writer, self._reader = self._writer, None, None
-        if w is not None:
-            w.close()
-            with contextlib.suppress(ConnectionError, OSError, TimeoutError):
-                async with asyncio.timeout(1.0):
-                    await w.wait_closed()
+        await self.transport.close()
 
     def _drop(self) -> None:
         """Close the connection at once (no awaiting: safe while being cancelled)."""
-        w, self._writer, self._reader = self._writer, None, None
-        if w is not None:
-            w.close()
+        self.transport.drop()
 
     @property
     def connected(self) -> bool:
-        return self._writer is not None
+        return self.transport.connected
 
     async def _connect(self) -> None:
-        cfg = self.config
-        try:
-            async with asyncio.timeout(cfg.connect_timeout_s):
-                self._reader, self._writer = await asyncio.open_connection(
-                    cfg.host, cfg.port, limit=MAX_REPLY_CHARS + len(self._prompt))
-        except TimeoutError:
-            raise GnbTimeoutError(f"connecting to the gNB at {cfg.host}:{cfg.port} timed out after "
-                                  f"{cfg.connect_timeout_s:g} s") from None
-        except OSError as exc:
-            raise GnbError(f"cannot connect to the gNB telnet server at {cfg.host}:{cfg.port}: {exc} "
-                           f"(is nr-softmodem running with --telnetsrv?)") from exc
-        self._fresh = True
-        self._connected_at = time.monotonic()
-        log.debug("connected to gNB %s:%d", cfg.host, cfg.port)
+        await self.transport.connect()
 
     async def _backoff(self, attempt: int) -> None:
         cfg = self.config
@@ -224,6 +203,8 @@ class OaiGnbClient:
             try:
                 await self._connect()
                 return
+            except GnbProtocolError:
+                raise  # something else listens there (a telnet port given as http://): say so at once
             except GnbError as exc:
                 last = exc
                 log.info("gNB connection attempt %d failed: %s", attempt + 1, exc)
@@ -231,78 +212,66 @@ class OaiGnbClient:
         raise last
 
     # -- one request ---------------------------------------------------------------------------
-    async def _exchange(self, line: str) -> bytes:
-        assert self._reader is not None and self._writer is not None
-        try:
-            self._writer.write(line.encode() + b"\n")
-            await self._writer.drain()
-            return await self._reader.readuntil(self._prompt)
-        except asyncio.IncompleteReadError as exc:
-            raise _ConnectionLost(f"the gNB closed the connection ({len(exc.partial)} bytes of answer)") from None
-        except asyncio.LimitOverrunError:
-            await self._close()
-            raise protocol_error(f"answer to {line!r} longer than {MAX_REPLY_CHARS} bytes without a prompt",
-                                 "") from None
-        except (ConnectionError, OSError) as exc:
-            raise _ConnectionLost(f"connection to the gNB failed: {exc}") from None
-
     async def request(self, line: str) -> str:
-        """Send one request line and return the answer text before the prompt.
+        """Send one request line and return the answer text (telnet: before the prompt; REST: the
+        display lines).
 
         Retries after a lost connection (jittered backoff); raises GnbTimeoutError, GnbBusyError,
-        GnbProtocolError (undecodable answer) or GnbError (gNB unreachable, or a `ci` line that
-        check_ci_line refuses).
+        GnbProtocolError (undecodable answer), GnbUnknownCommandError or GnbError (gNB unreachable,
+        or a `ci` line that check_ci_line refuses).
         """
         check_ci_line(line)
         async with self._lock:
+            if line == "o1 stats":
+                await self._o1_spacing()
             return await self._request_locked(line, self.config.retries)
 
     async def _request_locked(self, line: str, retries: int, reconnect: bool = True) -> str:
         if "\n" in line or "\r" in line:
             raise GnbError(f"a request is one line, got {line!r}")
         cfg = self.config
+        t = self.transport
         refused = 0
         last = ""
         for attempt in range(retries + 1):
             if attempt:
                 self.reconnects += 1
                 await self._backoff(attempt - 1)
-            if self._writer is None:
+            if not t.connected:
                 if not reconnect:
                     raise GnbError(f"not sending {line!r}: the connection was lost since the check before it")
                 try:
                     await self._connect()
+                except GnbProtocolError:
+                    raise
                 except GnbError as exc:
                     last = str(exc)
                     log.info("gNB reconnect attempt %d failed: %s", attempt, exc)
                     continue
-            fresh = self._fresh
+            fresh = t.fresh
             o1 = line == "o1 stats"
             sent = answered = False
             try:
                 async with asyncio.timeout(cfg.request_timeout_s):
                     if o1:
                         await self._settle_o1()
-                        fresh = self._fresh
+                        fresh = t.fresh
                     sent = True
-                    data = await self._exchange(line)
+                    text = await t.exchange(line)
                     answered = True
                     if o1:  # it ran before its answer: the spacing counts from the later time
                         _O1_LAST_SENT[self._key] = time.monotonic()
             except TimeoutError:
                 await self._close()
                 if fresh:
-                    raise GnbBusyError(
-                        f"no answer to {line!r} within {cfg.request_timeout_s:g} s on a new connection to "
-                        f"{cfg.host}:{cfg.port}: the OAI telnet server serves one client at a time; is "
-                        f"another client connected (or is the gNB hung)?") from None
+                    raise GnbBusyError(t.busy_message(line, cfg.request_timeout_s)) from None
                 raise GnbTimeoutError(f"no answer to {line!r} within {cfg.request_timeout_s:g} s") from None
             except asyncio.CancelledError:
                 # cancelled mid-exchange (e.g. the caller's own timeout): the answer may still
                 # arrive, so this connection is out of step; drop it without awaiting
                 self._drop()
                 raise
-            except _ConnectionLost as exc:
+            except TransportLost as exc:
                 await self._close()
                 last = str(exc)
                 refused += fresh
@@ -310,15 +279,14 @@ class OaiGnbClient:
                 continue
             finally:
                 if o1 and sent and not answered:  # sent, perhaps, and not answered: it may still run
-                    _O1_UNANSWERED[self._key] = max(_O1_UNANSWERED.get(self._key, -math.inf), self._connected_at)
-            self._fresh = False
-            body, late = split_async_lines(decode_reply(data, cfg.prompt))
+                    _O1_UNANSWERED[self._key] = max(_O1_UNANSWERED.get(self._key, -math.inf), t.connected_at)
+            body, late = split_async_lines(text)
             for ln in late:
                 log.debug("late rfsimu output before the answer to %r: %s", line, ln)
                 self.late_lines.append(ln)
             return body
         if refused == retries + 1:
-            raise GnbBusyError(f"the gNB at {cfg.host}:{cfg.port} closed every new connection before "
+            raise GnbBusyError(f"the gNB at {self.address} closed every new connection before "
                                f"answering ({refused} attempts): it serves one client at a time; is "
                                f"another client connected?")
         raise GnbError(f"request {line!r} failed after {retries + 1} attempts: {last}")
@@ -326,22 +294,12 @@ class OaiGnbClient:
     async def request_late(self, line: str, wait_s: float = 2.0) -> str:
         """Send a command whose output OAI prints after the prompt (`rfsimu ...`) and return the
         answer plus the lines that followed within wait_s [s] (empty when OAI printed nothing, e.g.
-        rfsimu without a connected peer)."""
+        rfsimu without a connected peer). Over REST the web server waits for that output itself."""
         check_ci_line(line)
         async with self._lock:
             body = await self._request_locked(line, self.config.retries)
             out = [body] if body.strip() else []
-            reader = self._reader
-            assert reader is not None
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(wait_s):
-                    while True:
-                        raw = await reader.readuntil(b"\n")
-                        text = raw.decode("utf-8", errors="replace")
-                        if text.strip():
-                            out.append(text)
-                            if text.lstrip().startswith("rfsimu_"):
-                                break
+            out += await self.transport.read_late(wait_s)
             return "".join(out)
 
     # -- discovery -----------------------------------------------------------------------------
@@ -355,15 +313,16 @@ class OaiGnbClient:
         rntis: list[int] | None = None
         if mode in ("auto", "o1"):
             await self._o1_spacing()
-            body = await self._request_locked("o1 stats", self.config.retries)
             try:
+                body = self._check_blank_param(await self._request_locked("o1 stats", self.config.retries), "o1 stats")
                 rntis = parse_o1_stats(check_known_command(body, "o1 stats")).rntis
             except GnbUnknownCommandError:
                 if mode == "o1":
                     raise
                 log.info("o1 module not loaded; discovering with `ci get_single_rnti`")
         if rntis is None:
-            body = await self._request_locked("ci get_single_rnti", self.config.retries)
+            body = self._check_blank_param(await self._request_locked("ci get_single_rnti", self.config.retries),
+                                           "ci get_single_rnti")
             single = parse_single_rnti(check_known_command(body, "ci get_single_rnti"))
             if single is None:
                 raise GnbNoMeasurementError(
@@ -373,6 +332,18 @@ class OaiGnbClient:
         self.known_rntis = sorted(rntis)
         log.debug("gNB reports %d UE(s): %s", len(rntis), ", ".join(f"{r:04x}" for r in self.known_rntis))
         return list(self.known_rntis)
+
+    def _check_blank_param(self, body: str, line: str) -> str:
+        """REST: OAI's web server hands a command given no parameter the buffer " " (websrv.c), and
+        stock OAI's `o1 stats` and `ci get_single_rnti` refuse any buffer (`if (buf)`: "no parameter
+        allowed"): say so, and what to do, instead of a parse error."""
+        if self.address.transport == "rest" and "no parameter allowed" in body:
+            raise GnbError(
+                f"`{line}` over OAI's web server at {self.address} answered {body.strip()!r}: the web server "
+                f"passes \" \" to a command given no parameter, and stock OAI (2025.w36) refuses any; "
+                f"discover over telnet (telnet://{self.address.host}:9090), or run the modified gNB that "
+                f"takes a blank buffer for none (docs/rest-transport.md)")
+        return body
 
     @property
     def _key(self) -> tuple[str, int]:
@@ -389,22 +360,31 @@ class OaiGnbClient:
         _O1_LAST_SENT[self._key] = time.monotonic()
 
     async def _settle_o1(self) -> None:
-        """Before an `o1 stats` (on the current connection, under the lock), ask O1_SETTLE_REQUEST
-        first when the gNB has not answered anything on this connection yet (it may be serving
-        another client: the `o1 stats` must not be what waits in its queue), or when an earlier
-        `o1 stats` to this gNB went unanswered on a connection opened before this one
-        (_O1_UNANSWERED): the answer comes after that stale request has run; then wait
-        O1_MIN_INTERVAL_S from it."""
+        """Before an `o1 stats` (on the current connection, under the lock), ask the transport's
+        settle request first (telnet: O1_SETTLE_REQUEST; REST: a read-only command through the web
+        server's shared output buffer) when
+
+        - telnet only: the gNB has not answered anything on this connection yet (it may be serving
+          another client: the `o1 stats` must not be what waits in its queue); over REST every
+          request runs when it arrives, so there is no such queue;
+        - an earlier `o1 stats` to this gNB went unanswered (_O1_UNANSWERED) and may still run:
+          over telnet only when it was left on a connection opened before this one (OAI serves
+          connections in order: an older one's request runs before anything sent here); over REST
+          whenever it was (it may still wait for the output buffer).
+
+        The settle answer comes after that stale request has run (telnet: always; REST: when the
+        gNB's mutex hands the buffer over in order, which Linux mutexes usually but not surely do;
+        docs/rest-transport.md); then wait O1_MIN_INTERVAL_S from it."""
+        t = self.transport
         stale_conn_s = _O1_UNANSWERED.get(self._key)
-        stale = stale_conn_s is not None and self._connected_at > stale_conn_s
-        if not (self._fresh or stale):
+        stale = stale_conn_s is not None and (not t.queued_by_connection or t.connected_at > stale_conn_s)
+        if not ((t.fresh and t.settle_when_fresh) or stale):
             return
         if stale:
-            log.info("an earlier `o1 stats` to %s:%d went unanswered and may still run: asking %r first",
-                     *self._key, O1_SETTLE_REQUEST)
-        _, late = split_async_lines(decode_reply(await self._exchange(O1_SETTLE_REQUEST), self.config.prompt))
+            log.info("an earlier `o1 stats` to %s went unanswered and may still run: asking %r first",
+                     self.address, t.settle_request)
+        _, late = split_async_lines(await t.exchange(t.settle_request))
         self.late_lines.extend(late)
-        self._fresh = False
         if stale:
             if _O1_UNANSWERED.get(self._key) == stale_conn_s:
                 del _O1_UNANSWERED[self._key]

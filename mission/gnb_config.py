@@ -21,8 +21,10 @@ UE_CI = ("force_reestab", "get_current_bwp")
 class GnbConfig:
     """Settings of :class:`OaiGnbClient`.
 
-    host, port: the gNB telnet server (`--telnetsrv.listenport`, default 9090); prompt: what ends
-    an answer; mode: "rtt" (RTT command set) or "stock" (Msg2 lines of the gNB log); stock_mode:
+    host, port: the gNB telnet server (`--telnetsrv.listenport`, default 9090) or web server
+    (`--websrv.listenport`, default 8090); transport: "telnet" or "rest" (OAI's web server,
+    `mission.gnb_transport`); prompt: what ends a telnet answer; mode: "rtt" (RTT command set) or
+    "stock" (Msg2 lines of the gNB log); stock_mode:
     "passive" (only the random accesses that happen anyway; the default) or "active" (trigger with
     `ci force_reestab`, then wait: on OAI 2025.w36 a discovery a few seconds after the trigger
     killed the gNB with SIGFPE in our runs, so this is an explicit choice); rtt_module,
@@ -39,6 +41,7 @@ class GnbConfig:
 
     host: str = "127.0.0.1"
     port: int = 9090
+    transport: Literal["telnet", "rest"] = "telnet"
     prompt: str = PROMPT_GNB
     mode: Literal["rtt", "stock"] = "rtt"
     stock_mode: Literal["active", "passive"] = "passive"
@@ -58,6 +61,8 @@ class GnbConfig:
     mu: int = 1
 
     def __post_init__(self) -> None:
+        if self.transport not in ("telnet", "rest"):
+            raise GnbError(f"gNB transport must be 'telnet' or 'rest', got {self.transport!r}")
         if self.mode not in ("rtt", "stock"):
             raise GnbError(f"gNB mode must be 'rtt' or 'stock', got {self.mode!r}")
         if self.stock_mode not in ("active", "passive"):

@@ -81,10 +81,11 @@ def _utc(t_s: float) -> str:
 class ProbeResult:
     """The outcome of a probe.
 
-    address: "host:port"; mode: "rtt", "stock/active" or "stock/passive"; gnb_rntis: the UEs the
-    gNB listed (None when discovery failed); ues: one UeProbe per UE probed (configured ones
-    first); problems: what is wrong with the setup, one sentence each; log_stamps: time-stamp kind
-    of the gNB log (stock modes, else None); count: measurements asked per UE.
+    address: "host:port" (telnet) or "http://host:port" (REST); mode: "rtt", "stock/active" or
+    "stock/passive"; gnb_rntis: the UEs the gNB listed (None when discovery failed); ues: one
+    UeProbe per UE probed (configured ones first); problems: what is wrong with the setup, one
+    sentence each; log_stamps: time-stamp kind of the gNB log (stock modes, else None); count:
+    measurements asked per UE.
     """
 
     address: str
@@ -176,7 +177,7 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
         raise GnbError(f"a probe takes at least one measurement per UE, got count={count}")
     cfg: GnbConfig | None = client.config if isinstance(client, OaiGnbClient) else None
     if cfg is not None:
-        address = address or f"{cfg.host}:{cfg.port}"
+        address = address or _address(cfg)
         mode = mode or (cfg.mode if cfg.mode == "rtt" else f"stock/{cfg.stock_mode}")
         log_path = log_path if log_path is not None else cfg.log_path
     res = ProbeResult(address=address or "gNB", mode=mode or "?", count=count)
@@ -258,12 +259,18 @@ async def probe_address(config: GnbConfig, *, rntis: list[int] | None = None, co
     """probe_gnb on a fresh connection to config's gNB; a gNB that cannot be reached is a problem."""
     if count < 1:
         raise GnbError(f"a probe takes at least one measurement per UE, got count={count}")
-    address = f"{config.host}:{config.port}"
+    address = _address(config)
     mode = config.mode if config.mode == "rtt" else f"stock/{config.stock_mode}"
     try:
         async with OaiGnbClient(config) as client:
             return await probe_gnb(client, rntis=rntis, count=count)
     except GnbError as exc:
         res = ProbeResult(address=address, mode=mode, count=count)
-        res.problems.append(f"no telnet server: {exc}")
+        what = "no web server" if config.transport == "rest" else "no telnet server"
+        res.problems.append(f"{what}: {exc}")
         return res
+
+
+def _address(cfg: GnbConfig) -> str:
+    """"host:port" over telnet (as before), "http://host:port" over REST."""
+    return f"http://{cfg.host}:{cfg.port}" if cfg.transport == "rest" else f"{cfg.host}:{cfg.port}"

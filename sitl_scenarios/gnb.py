@@ -30,12 +30,13 @@ UE). :meth:`SimulatedGnb.reattach` makes a UE go idle and attach again with a ne
 Answers come from the true geometry through :class:`sitl_scenarios.radio.RadioModel`. The UAV
 position comes from a callable (the built-in vehicle, in-process) or from a MAVLink stream
 (:class:`MavlinkPositionSource`, GLOBAL_POSITION_INT). Faults (delay, malformed answer, dropped
-connection, refused connection) come from the scenario's ``[faults.gnb]`` table and from
-:meth:`SimulatedGnb.inject` for tests.
+connection, refused connection, HTTP error) come from the scenario's ``[faults.gnb]`` table and
+from :meth:`SimulatedGnb.inject` for tests. With ``rest_port`` the same gNB also serves OAI's web
+server API (`sitl_scenarios/gnb_rest.py`) over the same commands, state and crash hazards.
 
 Standalone::
 
-    python -m sitl_scenarios.gnb --scenario FILE --port 9090 --follow udpin:0.0.0.0:14550
+    python -m sitl_scenarios.gnb --scenario FILE --port 9090 --rest-port 8090 --follow udpin:0.0.0.0:14550
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ import numpy as np
 from mission.oai import PROMPT_GNB, format_rtt_line, unknown_command_text
 from sitl_scenarios.gnb_faults import GnbFaults
 from sitl_scenarios.gnb_ra import OaiRaLog
+from sitl_scenarios.gnb_rest import GnbRestServer
 from sitl_scenarios.position import MavlinkPositionSource, PositionSource, static_position
 from sitl_scenarios.radio import RadioModel, RawRtt
 from sitl_scenarios.scenario import Scenario, load_scenario
@@ -67,7 +69,7 @@ from uavloc.errors import ScenarioError, SimulatorError
 
 log = logging.getLogger(__name__)
 
-FaultKind = Literal["delay", "malformed", "drop", "refuse"]
+FaultKind = Literal["delay", "malformed", "drop", "refuse", "http_error"]
 #: what a UE does after `ci force_reestab`: a reestablishment (a UE with traffic, OAI with a core),
 #: a connected-mode RA then an idle re-attach (what the recorded OAI did), or nothing (no traffic)
 StockReaction = Literal["reestablish", "crnti_then_idle", "none"]
@@ -75,7 +77,7 @@ _STOCK_REACTIONS = ("reestablish", "crnti_then_idle", "none")
 #: `ci` commands that dereference the UE of a given RNTI without checking it (telnetsrv_ci.c)
 _CRASHING_CI = ("force_reestab", "force_ue_release", "force_ul_failure", "get_current_bwp")
 _CI_UNKNOWN = "could not identify UE (no UE, no such RNTI, or multiple UEs)\n"
-_FAULT_KINDS = ("delay", "malformed", "drop", "refuse")
+_FAULT_KINDS = ("delay", "malformed", "drop", "refuse", "http_error")
 _MAX_LINE = 2048  # OAI's TELNET_MAX_MSGLENGTH
 #: an `o1 stats` this soon after the previous one crashes the gNB [s] (0 ms crashed OAI, 5 ms did not)
 O1_CRASH_WINDOW_S = 0.002
@@ -112,6 +114,8 @@ class SimulatedGnb:
         reattach_delay_s: float = 0.05,
         linger_s: float = 0.5,
         wall: Callable[[], float] = time.time,
+        rest_port: int | None = None,
+        stock_websrv: bool = False,
     ) -> None:
         if stock_reaction not in _STOCK_REACTIONS:
             raise SimulatorError(f"stock_reaction must be one of {_STOCK_REACTIONS}, got {stock_reaction!r}")
@@ -134,6 +138,13 @@ class SimulatedGnb:
         self.reattach_delay_s = reattach_delay_s
         self.linger_s = linger_s
         self.wall = wall
+        #: the web server's port (None: no REST API; 0: an ephemeral port, read it after entering)
+        self.rest_port = rest_port
+        #: REST: the commands take the web server's blank buffer " " for an argument, as stock OAI
+        #: 2025.w36 does (`o1 stats`, `ci get_single_rnti`: "no parameter allowed"); False: for none,
+        #: as the modified gNB of the RTT mode does (sitl_scenarios/gnb_rest.py)
+        self.stock_websrv = stock_websrv
+        self.rest: GnbRestServer | None = None
         #: current C-RNTI of each user (a new one after a reestablishment or a re-attach)
         self.current_rnti: list[int] = [u.rnti for u in scenario.users]
         #: old contexts of UEs that went idle: RNTI -> monotonic time the gNB drops it
@@ -183,6 +194,14 @@ class SimulatedGnb:
             await self._tg.__aexit__(None, None, None)
             raise SimulatorError(f"simulated gNB cannot listen on {self.host}:{self.port}: {exc}") from exc
         self.port = self._server.sockets[0].getsockname()[1]
+        if self.rest_port is not None:
+            try:
+                self.rest = await GnbRestServer(self, self.host, self.rest_port).__aenter__()
+            except BaseException:
+                self._server.close()
+                await self._tg.__aexit__(None, None, None)
+                raise
+            self.rest_port = self.rest.port
         log.info("simulated gNB listening on %s:%d (%d users)", self.host, self.port, len(self.scenario.users))
         return self
 
@@ -192,6 +211,9 @@ class SimulatedGnb:
             return
         server, tg, self._server, self._tg = self._server, self._tg, None, None
         server.close()
+        rest, self.rest = self.rest, None
+        if rest is not None:
+            await rest.__aexit__(None, None, None)
         for w in list(self._writers):
             w.close()  # handlers see EOF and return; waiting (silent busy) ones too once served
         if self._handlers:
@@ -216,7 +238,7 @@ class SimulatedGnb:
         self._writers.add(writer)
         self.connections += 1
         try:
-            if self._fault("refuse", self.faults.refuse_rate):
+            if self.take_fault("refuse"):
                 log.info("fault: refusing a connection")
                 return
             if self._slot.locked() and self.faults.busy_mode == "close":
@@ -250,26 +272,21 @@ class SimulatedGnb:
             self.requests += 1
             answer = self.process(line)
             if self.crashed is not None:
-                self._crash_now()
+                self.crash_now()
                 return
             if answer is None:
                 log.debug("client sent %r: closing", line)
                 return
-            if self._fault("drop", self.faults.drop_rate):
+            if self.take_fault("drop"):
                 log.info("fault: dropping the connection instead of answering %r", line)
                 return
-            delay = 0.0
-            if self._once["delay"] > 0:
-                self._once["delay"] -= 1
-                delay = self._once_delay_s
-            elif self.faults.delay_rate > 0 and self._fault_rng.random() < self.faults.delay_rate:
-                delay = self.faults.delay_s
+            delay = self.take_delay()
             if delay > 0 and not await self._sleep_unless_gone(reader, delay):
                 log.debug("client left while its answer was delayed")
                 return
             data = answer.encode()
-            if self._fault("malformed", self.faults.malformed_rate):
-                data = self._malform(answer)
+            if self.take_fault("malformed"):
+                data = self.malform_bytes(answer)
                 log.info("fault: malformed answer to %r", line)
             writer.write(data + PROMPT_GNB.encode())
             await writer.drain()
@@ -284,7 +301,22 @@ class SimulatedGnb:
             await asyncio.sleep(min(0.01, left))
         return not reader.at_eof()
 
-    def _malform(self, answer: str) -> bytes:
+    def take_fault(self, kind: FaultKind) -> bool:
+        """Whether this answer (connection, for "refuse") gets the fault `kind` (injected or drawn)."""
+        rates = {"malformed": self.faults.malformed_rate, "drop": self.faults.drop_rate,
+                 "refuse": self.faults.refuse_rate, "http_error": 0.0}
+        return self._fault(kind, rates[kind])
+
+    def take_delay(self) -> float:
+        """The extra delay of this answer [s] (0: none)."""
+        if self._once["delay"] > 0:
+            self._once["delay"] -= 1
+            return self._once_delay_s
+        if self.faults.delay_rate > 0 and self._fault_rng.random() < self.faults.delay_rate:
+            return self.faults.delay_s
+        return 0.0
+
+    def malform_bytes(self, answer: str) -> bytes:
         kind = self._fault_rng.randrange(3)
         if kind == 0 and len(answer) > 2:  # truncated
             return answer[: len(answer) // 2].encode()
@@ -308,6 +340,28 @@ class SimulatedGnb:
             return ("   module 0 = ci:\n      ci get_single_rnti \n      ci force_reestab [rnti(hex,opt)]\n"
                     "   module 1 = o1:\n      o1 stats \n"
                     f"   module 2 = {self.rtt_module}:\n      {self.rtt_module} {self.rtt_command} <rnti(hex)>\n")
+        answer = self.run_command(module, cmd, args)
+        return unknown_command_text(buf) if answer is None else answer
+
+    def modules(self) -> list[str]:
+        """The loaded telnet modules (what the web server lists)."""
+        return ["ci", "o1"] + ([] if self.rtt_module_lost() else [self.rtt_module.lower()])
+
+    def module_commands(self, module: str) -> list[tuple[str, str]] | None:
+        """(command, question or "") of a loaded module, None when it is not loaded."""
+        if module not in self.modules():
+            return None
+        if module == "ci":
+            return [("get_single_rnti", ""), ("force_reestab", "RNTI (hex, optional)"),
+                    ("force_ue_release", "RNTI (hex, optional)"), ("force_ul_failure", "RNTI (hex, optional)"),
+                    ("get_current_bwp", "RNTI (hex, optional)")]
+        if module == "o1":
+            return [("stats", "")]
+        return [(self.rtt_command.lower(), "RNTI (hex)")]
+
+    def run_command(self, module: str, cmd: str, args: str) -> str | None:
+        """One telnet module command with its argument buffer ("" for none) -> its output, or None
+        when the gNB has no such command. Shared by the telnet and the REST server."""
         if module == "ci" and cmd == "get_single_rnti":
             return self._get_single_rnti(args)
         if module == "ci" and cmd in _CRASHING_CI:
@@ -316,7 +370,7 @@ class SimulatedGnb:
             return self._o1_stats(args)
         if module == self.rtt_module.lower() and cmd == self.rtt_command.lower() and not self.rtt_module_lost():
             return self._rtt(args)
-        return unknown_command_text(buf)
+        return None
 
     def rtt_module_lost(self) -> bool:
         """The fault `rtt_module_lost_at_s`: the RTT module is gone from this simulation time on."""
@@ -427,9 +481,9 @@ class SimulatedGnb:
         (telnetsrv_ci.c: fetch_rnti, then the command): failures in two lines; an RNTI in
         1..0xfffd that the gNB does not have crashes it."""
         connected = self._connected_rntis()
-        if args.strip():
+        if args:  # OAI: any buffer, even websrv's " " (strtol gives 0)
             try:
-                rnti = int(args.split()[0], 16)  # OAI: strtol(buf, NULL, 16)
+                rnti = int(args.split()[0], 16) if args.split() else 0  # OAI: strtol(buf, NULL, 16)
             except ValueError:
                 rnti = 0
             if not 1 <= rnti < 0xFFFE:
@@ -455,7 +509,7 @@ class SimulatedGnb:
             self.reattach(k)
         return ""
 
-    def _crash_now(self) -> None:
+    def crash_now(self) -> None:
         """Die like nr-softmodem on a segfault: stop listening and drop every connection."""
         if self.log_path is not None:
             with self.log_path.open("a", encoding="utf-8") as fh:
@@ -464,6 +518,8 @@ class SimulatedGnb:
             self._server.close()
         for w in list(self._writers):
             w.close()
+        if self.rest is not None:
+            self.rest.crash()
 
     # -- random accesses ------------------------------------------------------------------------
     def _frame(self) -> int:
@@ -535,9 +591,11 @@ async def _run(args: argparse.Namespace) -> None:
         gnb = await stack.enter_async_context(SimulatedGnb(
             scenario, position, host=args.host, port=args.port, log_path=args.log, seed=args.seed,
             rtt_module=args.rtt_module, rtt_command=args.rtt_command, stock_reaction=args.stock_reaction,
+            rest_port=args.rest_port, stock_websrv=args.stock_websrv,
             faults=None if args.rtt_module_lost_after is None else dataclasses.replace(
                 GnbFaults.from_scenario(scenario), rtt_module_lost_at_s=args.rtt_module_lost_after)))
-        print(f"simulated gNB for scenario {scenario.name!r} on {args.host}:{gnb.port}", file=sys.stderr)
+        rest = "" if gnb.rest_port is None else f", REST on http://{args.host}:{gnb.rest_port}"
+        print(f"simulated gNB for scenario {scenario.name!r} on {args.host}:{gnb.port}{rest}", file=sys.stderr)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -551,7 +609,12 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m sitl_scenarios.gnb", description=__doc__.split("\n")[0])
     p.add_argument("--scenario", required=True, help="scenario TOML file or bundled name")
     p.add_argument("--host", default="0.0.0.0")
-    p.add_argument("--port", type=int, default=9090)
+    p.add_argument("--port", type=int, default=9090, help="telnet port (default 9090)")
+    p.add_argument("--rest-port", type=int, metavar="PORT",
+                   help="also serve OAI's web server (REST) API on this port (OAI's default is 8090)")
+    p.add_argument("--stock-websrv", action="store_true",
+                   help="REST: commands take the web server's blank parameter for an argument, as stock OAI "
+                        "2025.w36 does (o1 stats and ci get_single_rnti then refuse it)")
     p.add_argument("--follow", help="MAVLink URL to follow the vehicle, e.g. udpin:0.0.0.0:14550")
     p.add_argument("--origin", choices=("home", "scenario"), default="home",
                    help="ENU origin when following MAVLink: the vehicle's home or the scenario origin")

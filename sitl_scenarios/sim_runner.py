@@ -59,7 +59,7 @@ class SimulatedMission:
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
                  speedup: float = 20.0, planner: str | None = None, connect: str | None = None,
                  max_stream_wall_hz: float = 100.0, gnb_request_timeout_s: float = 1.0,
-                 controller_overrides: dict | None = None):
+                 controller_overrides: dict | None = None, gnb_transport: str = "telnet"):
         if not (math.isfinite(speedup) and speedup > 0):
             raise MissionError(f"speedup must be a positive number, got {speedup!r}")
         self.scenario = scenario
@@ -71,6 +71,9 @@ class SimulatedMission:
         self.max_stream_wall_hz = max_stream_wall_hz
         self.gnb_request_timeout_s = gnb_request_timeout_s
         self.controller_overrides = dict(controller_overrides or {})
+        if gnb_transport not in ("telnet", "rest"):
+            raise MissionError(f"gnb_transport must be 'telnet' or 'rest', got {gnb_transport!r}")
+        self.gnb_transport = gnb_transport
         self.vehicle_sim: VehicleSimulator | None = None
         self.gnb_sim: SimulatedGnb | None = None
         self.gnb_client: OaiGnbClient | None = None
@@ -141,9 +144,12 @@ class SimulatedMission:
             await self._gnb_stack.__aenter__()
             stack.push_async_callback(self._close_gnb)
             self.gnb_sim = await self._gnb_stack.enter_async_context(SimulatedGnb(
-                self.scenario, position, host="127.0.0.1", port=0, clock=self._sim_clock, seed=self.seed))
+                self.scenario, position, host="127.0.0.1", port=0, clock=self._sim_clock, seed=self.seed,
+                rest_port=0 if self.gnb_transport == "rest" else None))
+            rest = self.gnb_transport == "rest"
             self.gnb_client = await self._gnb_stack.enter_async_context(OaiGnbClient(GnbConfig(
-                host="127.0.0.1", port=self.gnb_sim.port, seed=self.seed, mu=self.scenario.radio.mu,
+                host="127.0.0.1", port=self.gnb_sim.rest_port if rest else self.gnb_sim.port,
+                transport="rest" if rest else "telnet", seed=self.seed, mu=self.scenario.radio.mu,
                 request_timeout_s=self.gnb_request_timeout_s, connect_timeout_s=self.gnb_request_timeout_s,
                 retries=1, backoff_max_s=0.2)))
             overrides = dict(self.controller_overrides)
@@ -153,7 +159,8 @@ class SimulatedMission:
                 self.scenario, self.vehicle, self.gnb_client, self.log_path, planner=self.planner,
                 seed=self.seed, time_scale=self.speedup, truth=self._truth, buildings=self._buildings,
                 external_vehicle=self.connect is not None,
-                header_config={"command": "sim", "speedup": self.speedup, "connect": self.connect},
+                header_config={"command": "sim", "speedup": self.speedup, "connect": self.connect,
+                               "gnb_transport": self.gnb_transport},
                 **overrides)
         except BaseException:
             await stack.aclose()

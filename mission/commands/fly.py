@@ -20,7 +20,9 @@ HELP = "fly a localization mission with a MAVLink vehicle (PX4) and an OAI gNB"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", required=True, metavar="URL",
                    help="MAVSDK connection URL of the vehicle, e.g. udpin://0.0.0.0:14540 or serial:///dev/ttyACM0:57600")
-    p.add_argument("--gnb", required=True, metavar="HOST:PORT", help="the gNB's telnet server (default port 9090)")
+    p.add_argument("--gnb", required=True, metavar="ADDRESS",
+                   help="the gNB: HOST:PORT or telnet://HOST:PORT (telnet server, default port 9090), "
+                        "http://HOST:PORT (OAI's web server, default port 8090)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--mission", metavar="FILE",
                      help="mission file: users (id, RNTI), geofence, altitudes, Δ, target, noise, gNB and "
@@ -44,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
 
     from mission.config import load_mission, validate_mission
     from mission.controller import controller_from_mission
-    from mission.gnb import OaiGnbClient, parse_host_port
+    from mission.gnb import OaiGnbClient, parse_gnb_address
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
     from mission.view.live import live_view
@@ -64,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     if gnb_over:
         mission = dataclasses.replace(mission, gnb=dataclasses.replace(mission.gnb, **gnb_over))
         validate_mission(mission, "command line")
-    host, port = parse_host_port(args.gnb)
+    address = parse_gnb_address(args.gnb, default=mission.gnb.transport)
     if args.log is not None:
         log_path = args.log
     elif args.out is not None:
@@ -83,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     held: dict = {}
 
     async def main():
-        gnb_cfg = mission.gnb.client_config(host, port)
+        gnb_cfg = mission.gnb.client_config(address.host, address.port, transport=address.transport)
         async with MavsdkVehicle(args.connect) as vehicle, OaiGnbClient(gnb_cfg) as gnb:
             controller = controller_from_mission(
                 mission, vehicle, gnb, log_path, planner=args.planner,

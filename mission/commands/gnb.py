@@ -1,4 +1,4 @@
-"""`uavloc gnb probe --gnb HOST:PORT [--mode rtt|stock] [--gnb-log FILE] [--count N] [--json]`.
+"""`uavloc gnb probe --gnb ADDRESS [--mode rtt|stock] [--gnb-log FILE] [--count N] [--json]`.
 
 The preflight check an operator runs before take-off: discover the gNB's UEs, take N
 measurements of each, print ranges, TA, SNR and timing, or say exactly what is wrong. Exit
@@ -51,7 +51,9 @@ def _seconds(text: str) -> float:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="gnb_command", metavar="SUBCOMMAND", required=True)
     q = sub.add_parser("probe", help="discover the UEs and measure each", description=__doc__.split("\n\n")[1])
-    q.add_argument("--gnb", required=True, metavar="HOST:PORT", help="the gNB's telnet server (default port 9090)")
+    q.add_argument("--gnb", required=True, metavar="ADDRESS",
+                   help="the gNB: HOST:PORT or telnet://HOST:PORT (telnet server, default port 9090), "
+                        "http://HOST:PORT (OAI's web server, default port 8090)")
     q.add_argument("--mode", choices=("rtt", "stock"), default="rtt",
                    help="rtt: the RTT command set of a modified gNB; stock: Msg2 lines of --gnb-log")
     q.add_argument("--stock", choices=("active", "passive"), default="passive",
@@ -74,16 +76,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from mission.gnb import GnbConfig, parse_host_port
+    from mission.gnb import GnbConfig, parse_gnb_address
     from mission.probe import probe_address
     from uavloc.errors import GnbError
 
-    host, port = parse_host_port(args.gnb)
+    address = parse_gnb_address(args.gnb)
     if args.mode == "stock" and args.gnb_log is None:
         raise GnbError("--mode stock reads the random accesses from the gNB log: give --gnb-log FILE")
     if args.gnb_log is not None and not args.gnb_log.is_file():
         raise GnbError(f"--gnb-log {args.gnb_log}: no such file")
-    cfg = GnbConfig(host=host, port=port, mode=args.mode, stock_mode=args.stock,
+    cfg = GnbConfig(host=address.host, port=address.port, transport=address.transport, mode=args.mode,
+                    stock_mode=args.stock,
                     log_path=args.gnb_log if args.mode == "stock" else None, rtt_module=args.rtt_module,
                     rtt_command=args.rtt_command, request_timeout_s=args.timeout, connect_timeout_s=args.timeout,
                     retries=1, msg2_timeout_s=args.wait, mu=args.mu,

@@ -1,4 +1,5 @@
-"""`uavloc sim SCENARIO [--seed N] [--speedup X] [--planner NAME] [--out DIR] [--json] [--connect URL]`:
+"""`uavloc sim SCENARIO [--seed N] [--speedup X] [--planner NAME] [--out DIR] [--json] [--connect URL]
+[--gnb-transport telnet|rest]`:
 a whole mission against the built-in vehicle and the simulated gNB (or a running PX4 SITL)."""
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "when available)")
     p.add_argument("--out", type=Path, metavar="DIR", help="write the mission log and a report here")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    p.add_argument("--gnb-transport", choices=("telnet", "rest"), default="telnet",
+                   help="how the adapter talks to the simulated gNB: its telnet server (default) or OAI's web "
+                        "server API (REST)")
     p.add_argument("--connect", metavar="URL",
                    help="fly a running PX4 SITL instead (e.g. udpin://0.0.0.0:14540); the simulated gNB "
                         "follows it and scenario positions are offsets from its home")
@@ -62,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
 
     async def main():
         async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
-                                    planner=args.planner, connect=args.connect) as sim:
+                                    planner=args.planner, connect=args.connect,
+                                    gnb_transport=args.gnb_transport) as sim:
             held["sim"] = sim
             async with live_view(args, sim.controller.log_writer, title=f"uavloc sim {scenario.name}"):
                 return await sim.run()
