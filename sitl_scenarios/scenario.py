@@ -45,8 +45,9 @@ class UserConfig:
 
     sawtooth_amplitude_m / sawtooth_period_s: UE downlink-timing drift as a one-way range error that
     rises linearly from 0 to the amplitude and resets (its mean, amplitude/2, is a range bias).
-    None (the default): a commercial UE, the radio section's ue_sawtooth_amplitude_m / _period_s;
-    0 amplitude: an ideal UE (e.g. a software UE with a perfect clock).
+    Absent from the file: a commercial UE, the radio section's ue_sawtooth_amplitude_m / _period_s,
+    resolved once when the scenario is read (:func:`scenario_from_dict`), so a loaded scenario's
+    users always carry numbers; 0 amplitude: an ideal UE (e.g. a software UE with a perfect clock).
     """
 
     id: str
@@ -421,7 +422,17 @@ def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
     """Build and validate a :class:`Scenario` from a parsed TOML document."""
     sc = _build(Scenario, data, "")
     _check(sc, where)
-    return sc
+    return _resolve_commercial_ues(sc)
+
+
+def _resolve_commercial_ues(sc: Scenario) -> Scenario:
+    """`sc` with every user's absent clock sawtooth set to the radio's commercial-UE one."""
+    r = sc.radio
+    users = [dataclasses.replace(
+        u, sawtooth_amplitude_m=r.ue_sawtooth_amplitude_m if u.sawtooth_amplitude_m is None else u.sawtooth_amplitude_m,
+        sawtooth_period_s=r.ue_sawtooth_period_s if u.sawtooth_period_s is None else u.sawtooth_period_s)
+        for u in sc.users]
+    return dataclasses.replace(sc, users=users)
 
 
 def resolve_scenario_path(name_or_path: str | Path) -> Path:
