@@ -83,20 +83,6 @@ class SafetyLimits:
                    alt_min_m=mission.flight.alt_min_m, alt_max_m=mission.flight.alt_max_m,
                    battery_rtl_pct=mission.safety.battery_rtl_pct)
 
-    @classmethod
-    def from_scenario(cls, sc) -> SafetyLimits:
-        """From a :class:`sitl_scenarios.scenario.Scenario` (its geofence and mission sections)."""
-        g, m = sc.geofence, sc.mission
-        fence = np.asarray(g.polygon_enu_m, float) if g.polygon_enu_m else None
-        return cls(
-            fence_enu_m=fence,
-            no_fly_enu_m=tuple(np.asarray(p, float) for p in g.no_fly_enu_m),
-            max_distance_m=g.max_distance_m,
-            alt_min_m=m.alt_min_m,
-            alt_max_m=m.alt_max_m,
-            battery_rtl_pct=m.battery_rtl_pct,
-        )
-
 
 def home_violations(polygons_enu_m: tuple[np.ndarray | None, tuple[np.ndarray, ...]]) -> list[str]:
     """:meth:`SafetyGate.home_violations` of a fence and no-fly zones in the home ENU frame, as

@@ -363,6 +363,30 @@ def load_scenario(name_or_path: str | Path, base_dir: Path | None = None) -> Sce
     return scenario_from_dict(schema.read_toml(path, "scenario file", ScenarioError), str(path))
 
 
+def controller_from_scenario(scenario: Scenario, vehicle: Any, gnb: Any, log_path: str | Path, *,
+                             seed: int | None = None, external_vehicle: bool = False, **kwargs: Any) -> Any:
+    """A :class:`mission.controller.MissionController` for a simulation scenario: its mission
+    (`scenario.mission_config(external_vehicle)`: an external autopilot's GPS error is not the
+    built-in vehicle's) flown by `mission.controller.controller_from_mission`, with the planning
+    constraints that also keep clear of the scenario's buildings. seed: default the scenario's;
+    kwargs: controller_from_mission's (planner, time_scale, truth, header_config, params,
+    buildings, ControllerConfig overrides)."""
+    from mission.controller import controller_from_mission
+
+    header = {"scenario": scenario.name, **(kwargs.pop("header_config", None) or {})}
+    return controller_from_mission(
+        scenario.mission_config(external_vehicle), vehicle, gnb, log_path,
+        seed=scenario.seed if seed is None else seed, header_config=header,
+        constraints=lambda home: scenario.planning_constraints(), **kwargs)
+
+
+def flight_mission(name_or_path: str | Path) -> mc.MissionConfig:
+    """The mission part of a scenario as a real autopilot flies it (`uavloc fly --scenario`, found
+    through the `uavloc.scenarios` entry point's module): no true positions, and the GPS error
+    model left to the flight (an external autopilot's is not the built-in vehicle's)."""
+    return load_scenario(name_or_path).mission_config(external_vehicle=True)
+
+
 def bundled_scenarios() -> list[Path]:
     """Every scenario file shipped in sitl_scenarios/."""
     return sorted(SCENARIO_DIR.glob("*.toml"))

@@ -178,7 +178,7 @@ def test_planning_constraints_of_the_mission_part_equal_the_scenarios_without_bu
     sc = load_scenario(path)
     if sc.buildings:
         sc = dataclasses.replace(sc, buildings=[])
-    want = PlanningConstraints.from_scenario(sc)
+    want = sc.planning_constraints()
     got = sc.mission_config().planning_constraints(Origin(sc.origin.lat_deg, sc.origin.lon_deg, sc.origin.alt_m))
     for f in dataclasses.fields(PlanningConstraints):
         a, b = getattr(got, f.name), getattr(want, f.name)

@@ -60,7 +60,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     """Fly one scenario in fast mode (see the module docstring); deterministic in (sc, planner, params, seed)."""
     users = np.array([[u.east_m, u.north_m, u.up_m] for u in sc.users], float)
     noise = sc.noise_model()
-    c = PlanningConstraints.from_scenario(sc)
+    c = sc.planning_constraints()
     opts = dict(planner_opts or {})
     if planner_name == "oracle":
         opts.setdefault("true_users_enu_m", users)

@@ -284,9 +284,9 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
 
 def _check_planner_options(section: CampaignSection, planner_opts: dict, sc: Scenario, where: str) -> None:
     """Build each planner once with its options, so a bad option is an error before any run starts."""
-    from planner import PlanningConstraints, make_planner
+    from planner import make_planner
 
-    c = PlanningConstraints.from_scenario(sc)
+    c = sc.planning_constraints()
     truth = [[u.east_m, u.north_m, u.up_m] for u in sc.users]
     for name in section.planners:
         opts = dict(planner_opts.get(name, {}))
