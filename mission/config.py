@@ -56,7 +56,7 @@ from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from mission import schema
 from mission.schema import bounded, positive
-from uavloc.errors import MissionConfigError
+from uavloc.errors import MissionConfigError, UavlocError
 
 if typing.TYPE_CHECKING:
     from planner.types import PlanningConstraints
@@ -391,6 +391,25 @@ def validate_mission(mc: MissionConfig, where: str) -> None:
     if s.battery_takeoff_min_pct < s.battery_rtl_pct:
         raise bad("safety.battery_takeoff_min_pct", s.battery_takeoff_min_pct,
                   f"must be >= battery_rtl_pct ({s.battery_rtl_pct:g})")
+
+
+#: the tables of a mission file whose keys are plain settings (not users or polygons)
+SETTING_TABLES = ("flight", "noise", "gnb", "safety")
+
+
+def setting_tables(flat: dict, where: str, error: type[UavlocError] = MissionConfigError) -> dict:
+    """{table: {key: value}} of settings given by their key alone ({"budget_m": 1500} →
+    {"flight": {"budget_m": 1500}}): every key of flight, noise, gnb and safety is unique, so its
+    name says its table (campaign families take their mission settings this way)."""
+    table_of = {f.name: t for t in SETTING_TABLES
+                for f in dataclasses.fields(typing.get_type_hints(MissionConfig)[t])}
+    out: dict = {}
+    for key, value in flat.items():
+        if key not in table_of:
+            raise schema.fail(where, key, value, "not a setting of a mission file's "
+                              f"{', '.join(f'[{t}]' for t in SETTING_TABLES)}", error)
+        out.setdefault(table_of[key], {})[key] = value
+    return out
 
 
 def mission_from_dict(data: dict, where: str = "mission") -> MissionConfig:

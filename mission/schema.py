@@ -141,6 +141,8 @@ def _convert(value: Any, tp: Any, where: str, key: str, error: ErrorType, explai
     if origin is dict:
         if not isinstance(value, dict):
             raise fail(where, key, value, "expected a table", error)
+        if args and dataclasses.is_dataclass(args[1]):  # a table of tables by name: [truth.ue1]
+            return {k: _convert(v, args[1], where, f"{key}.{k}", error, explain) for k, v in value.items()}
         return dict(value)
     if tp is bool:
         if not isinstance(value, bool):

@@ -1,9 +1,22 @@
-"""Scenario files: strict TOML whose keys are the fields of the dataclasses below (DESIGN.md §9).
+"""Scenario files: a mission file plus the world it is flown in (DESIGN.md §9).
+
+    Scenario  =  mission: mission.config.MissionConfig   what is flown: `name`, `description`,
+                                                          [[users]] (id, rnti, ground_height_m),
+                                                          [geofence], [flight], [noise], [gnb], [safety]
+              +  world: World                             what is true: `seed`, [origin],
+                                                          [truth.<user id>], [[buildings]], [radio],
+                                                          [vehicle], [faults]
+
+Both halves are read by the one strict loader (mission.schema: unknown keys, types, units, NaN,
+ranges, RNTIs) and the mission half is checked exactly as `uavloc fly --mission` checks a mission
+file (mission.config.validate_mission), so a simulated mission is flown with the settings a real
+one would be. Where the file leaves them out, the mission's vehicle speeds, assumed range noise and
+gNB numerology come from its world (:data:`MISSION_DEFAULTS_FROM_WORLD`).
 
 Positions (users, buildings, geofence, no-fly zones) are ENU offsets in metres from the origin, so
 a scenario flies anywhere: with the built-in vehicle the origin is `[origin]`; with an external
-vehicle (PX4 SITL) it is the vehicle's home. Unknown keys, wrong types and out-of-range numbers are a
-:class:`ScenarioError` that names the file and the key.
+vehicle (PX4 SITL) it is the vehicle's home. Every error is a :class:`ScenarioError` that names
+the file and the key.
 """
 
 from __future__ import annotations
@@ -19,7 +32,7 @@ from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from mission import config as mc
 from mission import schema
-from mission.config import MAX_DISTANCE_M, MAX_HEIGHT_M
+from mission.config import MAX_DISTANCE_M
 from mission.schema import bounded, like, positive
 from planner.types import PlanningConstraints
 from uavloc.errors import MissionConfigError, ScenarioError
@@ -42,8 +55,10 @@ class OriginConfig:
 
 
 @dataclass(frozen=True)
-class UserConfig:
-    """A ground user (UE). `east_m`, `north_m` from the origin; `up_m` its ground height (ENU up).
+class TrueUserConfig:
+    """Where a user really is and how its clock behaves (`[truth.<id>]`, matched to the mission's
+    user of that id). east_m, north_m from the origin [m]; its height is the mission's
+    ground_height_m (the ground it stands on is known before take-off).
 
     sawtooth_amplitude_m / sawtooth_period_s: UE downlink-timing drift as a one-way range error that
     rises linearly from 0 to the amplitude and resets (its mean, amplitude/2, is a range bias).
@@ -52,13 +67,24 @@ class UserConfig:
     users always carry numbers; 0 amplitude: an ideal UE (e.g. a software UE with a perfect clock).
     """
 
-    id: str
-    rnti: int = like(mc.MissionUserConfig, "rnti")
     east_m: float = bounded(dataclasses.MISSING, -MAX_DISTANCE_M, MAX_DISTANCE_M)
     north_m: float = bounded(dataclasses.MISSING, -MAX_DISTANCE_M, MAX_DISTANCE_M)
-    up_m: float = bounded(0.0, -MAX_HEIGHT_M, MAX_HEIGHT_M)
     sawtooth_amplitude_m: float | None = bounded(None, 0.0, 200.0)
     sawtooth_period_s: float | None = positive(None, 1e5)
+
+
+@dataclass(frozen=True)
+class UserConfig:
+    """A simulated user, the mission's user joined with its truth (:attr:`Scenario.users`): id,
+    RNTI, true east_m, north_m and up_m (its ground height) from the origin [m], clock sawtooth."""
+
+    id: str
+    rnti: int
+    east_m: float
+    north_m: float
+    up_m: float
+    sawtooth_amplitude_m: float
+    sawtooth_period_s: float
 
 
 @dataclass(frozen=True)
@@ -67,16 +93,6 @@ class BuildingConfig:
 
     footprint_enu_m: list[tuple[float, float]]
     height_m: float = positive(dataclasses.MISSING, 1000.0)
-
-
-@dataclass(frozen=True)
-class GeofenceConfig:
-    """Inclusion polygon [[east_m, north_m], ...] (may be non-convex; empty: none), a maximum
-    horizontal distance from home [m], and exclusion polygons (no-fly zones)."""
-
-    polygon_enu_m: list[tuple[float, float]] = field(default_factory=list)
-    max_distance_m: float = positive(500.0, MAX_DISTANCE_M)
-    no_fly_enu_m: list[list[tuple[float, float]]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -125,58 +141,45 @@ class VehicleConfig:
 
 
 @dataclass(frozen=True)
-class MissionConfig:
-    """The mission: Δ spacing, altitude above home, limits and stop rule.
+class World:
+    """What is true in a simulation (the world sections of a scenario file): the noise seed, the
+    built-in vehicle's home, where the users are, the buildings, the radio, the vehicle model and
+    the simulators' faults (`[faults.gnb]`, sitl_scenarios.gnb_faults; `[[faults.vehicle]]`,
+    sitl_scenarios.vehicle.fault_events)."""
 
-    altitude_m: flight height above home [m]; alt_min_m/alt_max_m: allowed band above home;
-    target_radius_m: stop when every user's 95 % ellipse is inside this radius;
-    budget_m: maximum metres flown in SURVEY; time_limit_s: maximum mission time;
-    leg_max_m: maximum leg length the planner may choose; acceptance_m: arrival radius;
-    battery_rtl_pct: battery below which the safety monitor returns home;
-    sigma_gps_m: σ_gps the estimator assumes; planner: default planner name;
-    estimate_bias: estimate a range bias per user (a UE clock sawtooth has a positive mean);
-    range_s0_m: the s0 of σ(d) the estimator and planner assume (default: the radio's); raise it
-    when the UEs add error the radio's σ(d) leaves out, e.g. a clock sawtooth of amplitude A adds a
-    spread of A/√12 around its mean.
-    gps_tau_s: correlation time of the GPS error the estimator assumes [s] (0 white; default: the
-    vehicle section's, i.e. the built-in vehicle's truth, when the built-in vehicle flies, and
-    unknown when an external autopilot does: the log then omits it, and the flight (from the
-    take-off's telemetry) and replay (from the whole log's) estimate it from the telemetry
-    velocity, else assume estimator.noise.DEFAULT_GPS_TAU_S).
-    """
-
-    delta_m: float = like(mc.FlightConfig, "delta_m")
-    altitude_m: float = like(mc.FlightConfig, "altitude_m")
-    alt_min_m: float = like(mc.FlightConfig, "alt_min_m")
-    alt_max_m: float = like(mc.FlightConfig, "alt_max_m")
-    target_radius_m: float = like(mc.FlightConfig, "target_radius_m")
-    budget_m: float = like(mc.FlightConfig, "budget_m")
-    time_limit_s: float = like(mc.FlightConfig, "time_limit_s")
-    leg_max_m: float = like(mc.FlightConfig, "leg_max_m")
-    acceptance_m: float = like(mc.FlightConfig, "acceptance_m")
-    battery_rtl_pct: float = like(mc.SafetyConfig, "battery_rtl_pct")
-    sigma_gps_m: float = like(mc.NoiseConfig, "sigma_gps_m")
-    planner: str = "casadi"
-    estimate_bias: bool = True
-    range_s0_m: float | None = positive(None, 1000.0)
-    gps_tau_s: float | None = like(mc.NoiseConfig, "gps_tau_s")
+    truth: dict[str, TrueUserConfig]
+    seed: int = bounded(0, 0, MAX_SEED)
+    origin: OriginConfig = field(default_factory=OriginConfig)
+    buildings: list[BuildingConfig] = field(default_factory=list)
+    radio: RadioConfig = field(default_factory=RadioConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    faults: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class Scenario:
-    """A whole scenario file."""
+    """A whole scenario file: a mission file's mission plus the world it is flown in."""
 
-    name: str
-    users: list[UserConfig]
-    seed: int = bounded(0, 0, MAX_SEED)
-    description: str = ""
-    origin: OriginConfig = field(default_factory=OriginConfig)
-    buildings: list[BuildingConfig] = field(default_factory=list)
-    geofence: GeofenceConfig = field(default_factory=GeofenceConfig)
-    radio: RadioConfig = field(default_factory=RadioConfig)
-    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
-    mission: MissionConfig = field(default_factory=MissionConfig)
-    faults: dict[str, Any] = field(default_factory=dict)
+    mission: mc.MissionConfig
+    world: World
+
+    # -- the world's and the mission's parts under their usual names
+    name = property(lambda self: self.mission.name)
+    description = property(lambda self: self.mission.description)
+    geofence = property(lambda self: self.mission.geofence)
+    seed = property(lambda self: self.world.seed)
+    origin = property(lambda self: self.world.origin)
+    buildings = property(lambda self: self.world.buildings)
+    radio = property(lambda self: self.world.radio)
+    vehicle = property(lambda self: self.world.vehicle)
+    faults = property(lambda self: self.world.faults)
+
+    @property
+    def users(self) -> list[UserConfig]:
+        """The users in the mission's order, each with its truth."""
+        t = self.world.truth
+        return [UserConfig(u.id, u.rnti, t[u.id].east_m, t[u.id].north_m, u.ground_height_m,
+                           t[u.id].sawtooth_amplitude_m, t[u.id].sawtooth_period_s) for u in self.mission.users]
 
     @property
     def origin_geo(self) -> Origin:
@@ -188,86 +191,45 @@ class Scenario:
         # σ_gps does not enter the radio; a GPS-noise-free vehicle (gps_sigma_m = 0) still needs a valid model
         return NoiseModel(sigma_gps_m=self.vehicle.gps_sigma_m or 1.0, s0_m=r.s0_m, a_m=r.a_m, b_per_m=r.b_per_m)
 
+    def mission_config(self, external_vehicle: bool = False) -> mc.MissionConfig:
+        """The mission as flown: the file's, with the GPS error's correlation time, when the file
+        leaves it unknown, the built-in vehicle's (that is what it flies with); with an external
+        autopilot it stays unknown (PX4's EKF output is not the built-in vehicle's and drifts ~50
+        times slower: the flight and replay estimate it from the telemetry)."""
+        m = self.mission
+        if m.noise.gps_tau_s is not None or external_vehicle:
+            return m
+        return dataclasses.replace(m, noise=dataclasses.replace(m.noise, gps_tau_s=self.vehicle.gps_tau_s))
+
     def noise_model(self, external_vehicle: bool = False) -> NoiseModel:
-        """The noise model the estimator and planner assume: σ_gps and (when given) s0 from the
-        mission section, the rest of σ(d) from the radio section; the GPS correlation time from
-        the mission section, else the built-in vehicle's (unknown, None, with external_vehicle:
-        PX4's EKF output is not the built-in vehicle's and drifts ~50 times slower)."""
-        r, m = self.radio, self.mission
-        s0 = r.s0_m if m.range_s0_m is None else m.range_s0_m
-        tau = m.gps_tau_s
-        if tau is None and not external_vehicle:
-            tau = self.vehicle.gps_tau_s
-        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m,
-                          gps_tau_s=None if tau is None else float(tau))
+        """The noise model the estimator and planner assume (:meth:`mission_config`'s)."""
+        return self.mission_config(external_vehicle).noise_model()
 
     def planning_constraints(self, home_enu_m=(0.0, 0.0, 0.0), building_clearance_m: float = 5.0,
                              **overrides: Any) -> PlanningConstraints:
-        """The planner's constraints of this scenario's mission and geofence.
+        """The planner's constraints of the mission (MissionConfig.planning_constraints) that also
+        keep clear of the buildings, with home at home_enu_m.
 
-        Altitudes in the scenario are above home; here they become ENU `up` (home up + value).
+        Altitudes in the mission are above home; here they become ENU `up` (home up + value).
         Buildings: the UAV overflies every building whose height + `building_clearance_m` fits in the
         altitude band (the band's floor is raised to clear the tallest of them); a building too tall
         for the band becomes a no-fly zone. `overrides` replace any field (e.g. margin_m=3.0).
         """
-        scenario = self
-        m, g = scenario.mission, scenario.geofence
+        base = self.mission.planning_constraints(self.origin_geo)
         home = np.asarray(home_enu_m, dtype=float).reshape(3)
-        alt_min, alt_max = m.alt_min_m, m.alt_max_m
-        no_fly = [np.asarray(p, dtype=float) for p in g.no_fly_enu_m]
-        for b in scenario.buildings:
+        f = self.mission.flight
+        alt_min, no_fly = f.alt_min_m, list(base.no_fly_enu_m)
+        for b in self.buildings:
             top = b.height_m + building_clearance_m
-            if top <= alt_max:
+            if top <= f.alt_max_m:
                 alt_min = max(alt_min, top)
             else:
                 no_fly.append(np.asarray(b.footprint_enu_m, dtype=float))
-        kwargs = dict(
-            home_enu_m=home,
-            fence_enu_m=np.asarray(g.polygon_enu_m, dtype=float).reshape(-1, 2),
-            no_fly_enu_m=tuple(no_fly),
-            alt_min_m=home[2] + alt_min,
-            alt_max_m=home[2] + alt_max,
-            cruise_alt_m=home[2] + min(max(m.altitude_m, alt_min), alt_max),
-            leg_max_m=m.leg_max_m,
-            max_distance_m=g.max_distance_m,
-            budget_m=m.budget_m,
-            delta_m=m.delta_m,
-            target_radius_m=m.target_radius_m,
-            min_leg_m=min(10.0, m.leg_max_m),
-        )
+        kwargs = dict(home_enu_m=home, no_fly_enu_m=tuple(no_fly), alt_min_m=home[2] + alt_min,
+                      alt_max_m=home[2] + f.alt_max_m,
+                      cruise_alt_m=home[2] + min(max(f.altitude_m, alt_min), f.alt_max_m))
         kwargs.update(overrides)
-        return PlanningConstraints(**kwargs)
-
-    def mission_config(self, external_vehicle: bool = False, where: str | None = None) -> mc.MissionConfig:
-        """The mission part of this scenario as a :class:`mission.config.MissionConfig` (what a real
-        flight would be configured with: users without their positions, fence, limits, the noise
-        the estimator assumes (noise_model(external_vehicle)), the gNB's numerology). The bridge
-        until scenarios are written as a mission plus a world (see mission/config.py). Checked by
-        mission.config.validate_mission (where: the file, for messages)."""
-        m, g, n = self.mission, self.geofence, self.noise_model(external_vehicle)
-        out = mc.MissionConfig(
-            name=self.name,
-            description=self.description,
-            users=tuple(mc.MissionUserConfig(u.id, u.rnti, u.up_m) for u in self.users),
-            geofence=mc.GeofenceConfig(
-                polygon_enu_m=tuple(tuple(p) for p in g.polygon_enu_m),
-                no_fly_enu_m=tuple(tuple(tuple(p) for p in z) for z in g.no_fly_enu_m),
-                max_distance_m=g.max_distance_m),
-            flight=mc.FlightConfig(
-                altitude_m=m.altitude_m, alt_min_m=m.alt_min_m, alt_max_m=m.alt_max_m, delta_m=m.delta_m,
-                target_radius_m=m.target_radius_m, budget_m=m.budget_m, time_limit_s=m.time_limit_s,
-                cruise_speed_mps=self.vehicle.speed_mps, climb_mps=self.vehicle.climb_mps,
-                descent_mps=self.vehicle.descent_mps, leg_max_m=m.leg_max_m, acceptance_m=m.acceptance_m,
-                planner=m.planner),
-            noise=mc.NoiseConfig(sigma_gps_m=n.sigma_gps_m, range_s0_m=n.s0_m, range_a_m=n.a_m,
-                                 range_b_per_m=n.b_per_m, gps_tau_s=n.gps_tau_s, estimate_bias=m.estimate_bias),
-            gnb=mc.GnbSettings(mu=self.radio.mu, fs_hz=self.radio.fs_hz),
-            safety=mc.SafetyConfig(battery_rtl_pct=m.battery_rtl_pct,
-                                   battery_takeoff_min_pct=max(mc.SafetyConfig.battery_takeoff_min_pct,
-                                                               m.battery_rtl_pct)),
-        )
-        mc.validate_mission(out, where or f"scenario {self.name!r}")
-        return out
+        return dataclasses.replace(base, **kwargs)
 
     def user_by_rnti(self, rnti: int) -> UserConfig:
         for u in self.users:
@@ -280,19 +242,78 @@ class Scenario:
 # strict conversion of parsed TOML into the dataclasses above: mission.schema, as for mission files
 
 
+#: the top-level keys of a scenario file that are the world's (the rest are a mission file's)
+WORLD_KEYS = tuple(f.name for f in dataclasses.fields(World))
+
+#: the tables of a scenario's mission whose defaults come from its world, when the file leaves them
+#: out: (mission table, key) ← (world table, key). The speeds the mission asks of the vehicle are
+#: the built-in vehicle's; the range noise the estimator assumes is the radio's; the gNB is the
+#: simulated one.
+MISSION_DEFAULTS_FROM_WORLD = (
+    (("flight", "cruise_speed_mps"), ("vehicle", "speed_mps")),
+    (("flight", "climb_mps"), ("vehicle", "climb_mps")),
+    (("flight", "descent_mps"), ("vehicle", "descent_mps")),
+    (("noise", "range_s0_m"), ("radio", "s0_m")),
+    (("noise", "range_a_m"), ("radio", "a_m")),
+    (("noise", "range_b_per_m"), ("radio", "b_per_m")),
+    (("gnb", "mu"), ("radio", "mu")),
+    (("gnb", "fs_hz"), ("radio", "fs_hz")),
+)
+#: a scenario's mission defaults that differ from a mission file's: its UEs are commercial ones
+#: by default (a clock sawtooth, whose mean is a range bias), so the estimator keeps a range bias
+SCENARIO_MISSION_DEFAULTS = (("noise", "estimate_bias", True),)
+
+_OLD_MISSION_TABLE = ("a scenario file is a mission file plus world sections: the keys of the former [mission] "
+                      "table are in [flight] (delta_m, altitude_m, budget_m, planner, ...), [noise] (sigma_gps_m, "
+                      "range_s0_m, gps_tau_s, estimate_bias) and [safety] (battery_rtl_pct); user positions are "
+                      "in [truth.<id>]")
+
+
+def _mission_table(data: dict, world: World) -> dict:
+    """The mission file part of a scenario document, with the defaults its world gives."""
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items() if k not in WORLD_KEYS}
+    for (table, key), (wtable, wkey) in MISSION_DEFAULTS_FROM_WORLD:
+        if isinstance(out.setdefault(table, {}), dict):
+            out[table].setdefault(key, getattr(getattr(world, wtable), wkey))
+    for table, key, value in SCENARIO_MISSION_DEFAULTS:
+        if isinstance(out.setdefault(table, {}), dict):
+            out[table].setdefault(key, value)
+    safety = out.setdefault("safety", {})
+    if isinstance(safety, dict) and "battery_rtl_pct" in safety:
+        # a low-battery return threshold above the take-off floor raises the floor with it
+        safety.setdefault("battery_takeoff_min_pct", max(mc.SafetyConfig.battery_takeoff_min_pct,
+                                                         safety["battery_rtl_pct"]))
+    return out
+
+
+def _explain_unknown(cls: type, name: str) -> str | None:
+    if cls is mc.MissionConfig and name == "mission":
+        return _OLD_MISSION_TABLE
+    if cls is mc.MissionConfig:
+        keys = sorted({f.name for f in dataclasses.fields(mc.MissionConfig)} | set(WORLD_KEYS))
+        return f"unknown key {name!r}; allowed here: {', '.join(keys)}"
+    if cls is mc.MissionUserConfig and name in ("east_m", "north_m", "up_m", "sawtooth_amplitude_m",
+                                                "sawtooth_period_s"):
+        return f"a user's truth is in [truth.<id>] (up_m is the user's ground_height_m); {_OLD_MISSION_TABLE}"
+    return None
+
+
 def _check(sc: Scenario, where: str) -> None:
-    """The checks across fields (each number's own range is checked by mission.schema.build)."""
-    for i, u in enumerate(sc.users):
-        if not (u.id and u.id.strip()):
-            raise schema.fail(where, f"users[{i}].id", u.id, "a user needs an id", ScenarioError)
+    """The checks across fields and sections (each number's own range is checked by
+    mission.schema.build, the mission's consistency by mission.config.validate_mission)."""
+    ids = [u.id for u in sc.mission.users]
+    for uid in ids:
+        if uid not in sc.world.truth:
+            raise schema.fail(where, "truth", sorted(sc.world.truth), f"user {uid!r} has no [truth.{uid}]",
+                              ScenarioError)
+    extra = sorted(set(sc.world.truth) - set(ids))
+    if extra:
+        raise schema.fail(where, f"truth.{extra[0]}", sc.world.truth[extra[0]], "no [[users]] entry has this id",
+                          ScenarioError)
     for i, b in enumerate(sc.buildings):
         if len(b.footprint_enu_m) < 3:
             raise schema.fail(where, f"buildings[{i}].footprint_enu_m", b.footprint_enu_m,
                               "needs >= 3 [east, north] points", ScenarioError)
-    for i, poly in enumerate([sc.geofence.polygon_enu_m, *sc.geofence.no_fly_enu_m]):
-        if poly and len(poly) < 3:
-            key = "geofence.polygon_enu_m" if i == 0 else f"geofence.no_fly_enu_m[{i - 1}]"
-            raise schema.fail(where, key, poly, "needs >= 3 [east, north] points", ScenarioError)
     unknown = sorted(set(sc.faults) - set(FAULT_TABLES))
     if unknown:
         raise schema.fail(where, f"faults.{unknown[0]}", sc.faults[unknown[0]],
@@ -306,17 +327,23 @@ def _check(sc: Scenario, where: str) -> None:
         faults_from_scenario(sc.faults)
     except ScenarioError as exc:
         raise ScenarioError(f"{where}: {exc}") from None
-    # the mission part is checked as a mission file is (users, RNTIs, fence, home, band, ...)
-    try:
-        sc.mission_config(where=where)
-    except MissionConfigError as exc:
-        raise ScenarioError(str(exc)) from None
 
 
 def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
-    """Build and validate a :class:`Scenario` from a parsed TOML document; `where` (the file)
+    """Build and validate a :class:`Scenario` from a parsed TOML document: its world sections
+    (:data:`WORLD_KEYS`) and a mission file (mission.config, checked as `uavloc fly --mission`
+    checks one, with the defaults :data:`MISSION_DEFAULTS_FROM_WORLD` gives); `where` (the file)
     names the source in every message."""
-    sc = schema.build(Scenario, data, where, error=ScenarioError)
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{where}: a scenario is a TOML document")
+    world = schema.build(World, {k: v for k, v in data.items() if k in WORLD_KEYS}, where, error=ScenarioError)
+    mission = schema.build(mc.MissionConfig, _mission_table(data, world), where, error=ScenarioError,
+                           explain=_explain_unknown)
+    try:
+        mc.validate_mission(mission, where)
+    except MissionConfigError as exc:
+        raise ScenarioError(str(exc)) from None
+    sc = Scenario(mission, world)
     _check(sc, where)
     return _resolve_commercial_ues(sc)
 
@@ -324,11 +351,23 @@ def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
 def _resolve_commercial_ues(sc: Scenario) -> Scenario:
     """`sc` with every user's absent clock sawtooth set to the radio's commercial-UE one."""
     r = sc.radio
-    users = [dataclasses.replace(
-        u, sawtooth_amplitude_m=r.ue_sawtooth_amplitude_m if u.sawtooth_amplitude_m is None else u.sawtooth_amplitude_m,
-        sawtooth_period_s=r.ue_sawtooth_period_s if u.sawtooth_period_s is None else u.sawtooth_period_s)
-        for u in sc.users]
-    return dataclasses.replace(sc, users=users)
+    truth = {uid: dataclasses.replace(
+        t, sawtooth_amplitude_m=r.ue_sawtooth_amplitude_m if t.sawtooth_amplitude_m is None else t.sawtooth_amplitude_m,
+        sawtooth_period_s=r.ue_sawtooth_period_s if t.sawtooth_period_s is None else t.sawtooth_period_s)
+        for uid, t in sc.world.truth.items()}
+    return dataclasses.replace(sc, world=dataclasses.replace(sc.world, truth=truth))
+
+
+def user_tables(users: list[dict]) -> dict:
+    """The `[[users]]` (mission) and `[truth.<id>]` (world) tables of a scenario document for
+    simulated users given one table each: id, rnti, east_m, north_m, up_m (its ground height, 0
+    when absent), sawtooth_amplitude_m, sawtooth_period_s (optional). For code that writes worlds
+    (campaign families, tests, benchmarks); the keys are checked when the document is read."""
+    truth_keys = ("east_m", "north_m", "sawtooth_amplitude_m", "sawtooth_period_s")
+    mission = [{"id": u["id"], "rnti": u["rnti"], **({"ground_height_m": u["up_m"]} if "up_m" in u else {}),
+                **{k: v for k, v in u.items() if k not in (*truth_keys, "id", "rnti", "up_m")}} for u in users]
+    truth = {u["id"]: {k: u[k] for k in truth_keys if k in u} for u in users}
+    return {"users": mission, "truth": truth}
 
 
 def bundled_scenario_names() -> list[str]:

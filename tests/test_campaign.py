@@ -41,6 +41,7 @@ name = "home_under_tall_building"
 [[users]]
 id = "ue1"
 rnti = 17921
+[truth.ue1]
 east_m = 150.0
 north_m = 150.0
 [[buildings]]

@@ -19,7 +19,7 @@ from uavloc.errors import CampaignError, MissionConfigError, SafetyError, Scenar
 MISSION = {"name": "m", "users": [{"id": "a", "rnti": "0x4601"}],
            "geofence": {"polygon_enu_m": [[-100.0, -100.0], [100.0, -100.0], [100.0, 100.0], [-100.0, 100.0]]},
            "flight": {"planner": "lawnmower"}}
-SCENARIO = {"name": "s", "users": [{"id": "a", "rnti": "0x4601", "east_m": 20.0, "north_m": 10.0}],
+SCENARIO = {"name": "s", "users": [{"id": "a", "rnti": "0x4601"}], "truth": {"a": {"east_m": 20.0, "north_m": 10.0}},
             "geofence": {"polygon_enu_m": [[-100.0, -100.0], [100.0, -100.0], [100.0, 100.0], [-100.0, 100.0]]}}
 SQUARE_OFF_HOME = [[50.0, 50.0], [90.0, 50.0], [90.0, 90.0], [50.0, 90.0]]
 SQUARE_AT_HOME = [[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]]
@@ -92,7 +92,7 @@ def test_every_number_has_an_upper_bound_named_in_the_message(section, key, valu
 
 
 @pytest.mark.parametrize(("section", "key", "value"), [
-    ("mission", "altitude_m", 1e6), ("mission", "time_limit_s", 1e300), ("vehicle", "speed_mps", 1e9),
+    ("flight", "altitude_m", 1e6), ("flight", "time_limit_s", 1e300), ("vehicle", "speed_mps", 1e9),
     ("radio", "coverage_m", 1e12),
 ])
 def test_a_scenario_has_the_same_bounds(section, key, value):

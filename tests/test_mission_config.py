@@ -145,7 +145,7 @@ def test_every_bundled_scenario_has_a_valid_mission_part(path):
     sc = load_scenario(path)
     mc = sc.mission_config()
     assert [u.rnti for u in mc.users] == [u.rnti for u in sc.users]
-    assert mc.flight.budget_m == sc.mission.budget_m
+    assert mc.flight.budget_m == sc.mission.flight.budget_m
     assert mc.noise_model() == sc.noise_model()
     assert not any(hasattr(u, "east_m") for u in mc.users)
 
@@ -177,7 +177,7 @@ def test_planning_constraints_of_the_mission_part_equal_the_scenarios_without_bu
 
     sc = load_scenario(path)
     if sc.buildings:
-        sc = dataclasses.replace(sc, buildings=[])
+        sc = dataclasses.replace(sc, world=dataclasses.replace(sc.world, buildings=[]))
     want = sc.planning_constraints()
     got = sc.mission_config().planning_constraints(Origin(sc.origin.lat_deg, sc.origin.lon_deg, sc.origin.alt_m))
     for f in dataclasses.fields(PlanningConstraints):

@@ -70,7 +70,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     gps = GpsError(sc.vehicle.gps_sigma_m, sc.vehicle.gps_tau_s, np.random.default_rng(gps_ss))
     radio = RadioModel(sc, np.random.default_rng(radio_ss))
     speed_mps = sc.vehicle.speed_mps
-    delta_m = sc.mission.delta_m
+    delta_m = sc.mission.flight.delta_m
     track = AccuracyTrack(users, targets_m)
     out = Outcome()
     all_users = range(len(users))

@@ -266,7 +266,7 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
 
     runs: list[RunSpec] = []
     for condition, sc, sp in scenarios:
-        base = {"delta_m": sc.mission.delta_m, "estimate_bias": sc.mission.estimate_bias}
+        base = {"delta_m": sc.mission.flight.delta_m, "estimate_bias": sc.mission.noise.estimate_bias}
         for planner in section.planners:
             opts = dict(planner_opts.get(planner, {}))
             for est_name, est_opts in est_tables.items():
