@@ -52,7 +52,6 @@ from uavloc.errors import CampaignError, ScenarioError, UavlocError
 MODES = ("fast", "full")
 #: a campaign's, family's or scenario's name as part of a file name: no folder, no '.', no '..'
 SAFE_NAME = re.compile(r"(?!\.{1,2}$)[A-Za-z0-9_.\-]+")
-TOP_LEVEL = ("campaign", "estimators", "planner_options", "scenarios", "families")
 
 
 @dataclass(frozen=True)
@@ -74,6 +73,19 @@ class ScenarioFileSpec:
 
     file: str
     condition: str = ""
+
+
+@dataclass(frozen=True)
+class SpecDocument:
+    """A whole spec file (see the module docstring): the `[campaign]` table, named estimator
+    variants and planner options (tables checked by :func:`spec_from_dict`), scenario files and
+    families."""
+
+    campaign: CampaignSection
+    estimators: dict[str, dict[str, Any]] = field(default_factory=lambda: {"default": {}})
+    planner_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    scenarios: list[ScenarioFileSpec] = field(default_factory=list)
+    families: list[FamilySpec] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -118,11 +130,6 @@ class Campaign:
 
 def _err(where: str, msg: str) -> CampaignError:
     return CampaignError(f"{where}: {msg}")
-
-
-def _section(cls: type, data: Any, key: str, where: str) -> Any:
-    """Strict table → dataclass (mission.schema), errors as CampaignError naming the spec and the key."""
-    return schema.build(cls, data, where, key, error=CampaignError)
 
 
 def _solver_params(opts: Any, base: dict, key: str, where: str) -> SolverParams:
@@ -204,27 +211,19 @@ def _run_key(condition: str, sc: Scenario, planner: str, opts: dict, estimator: 
 def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None,
                    path: Path | None = None) -> Campaign:
     """Validate a parsed spec and expand it to its runs (CampaignError naming the key on anything bad)."""
-    if not isinstance(data, dict):
-        raise _err(where, "a spec is a TOML document")
-    unknown = sorted(set(data) - set(TOP_LEVEL))
-    if unknown:
-        raise _err(where, f"unknown key(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(TOP_LEVEL)}")
-    if "campaign" not in data:
-        raise _err(where, "missing the [campaign] table")
-    section: CampaignSection = _section(CampaignSection, data["campaign"], "campaign", where)
+    doc: SpecDocument = schema.build(SpecDocument, data, where, error=CampaignError)
+    section = doc.campaign
     _check_section(section, where)
     targets = tuple(sorted(section.targets_m, reverse=True))
 
     # estimator variants: name → options (the base values come from each scenario's mission)
-    est_tables = data.get("estimators", {"default": {}})
-    if not isinstance(est_tables, dict) or not est_tables:
+    est_tables = doc.estimators
+    if not est_tables:
         raise _err(where, "estimators: expected at least one [estimators.NAME] table")
     for name, opts in est_tables.items():
         _solver_params(opts, {}, f"estimators.{name}", where)  # fail early, before any scenario
 
-    planner_opts = data.get("planner_options", {})
-    if not isinstance(planner_opts, dict):
-        raise _err(where, f"planner_options: expected a table, got {planner_opts!r}")
+    planner_opts = doc.planner_options
     for name, opts in planner_opts.items():
         if name not in section.planners:
             raise _err(where, f"planner_options.{name}: {name!r} is not in campaign.planners {section.planners}")
@@ -233,28 +232,19 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
         if section.mode == "full" and opts:
             raise _err(where, f"planner_options.{name}: full mode flies each planner with its defaults")
 
-    # scenarios: (condition, scenario, params)
+    # scenarios: (condition, scenario, params), the files' and the families' alike
     scenarios: list[tuple[str, Scenario, dict]] = []
-    files = data.get("scenarios", [])
-    if not isinstance(files, list):
-        raise _err(where, f"scenarios: expected [[scenarios]] entries, got {files!r}")
-    for i, entry in enumerate(files):
-        fs: ScenarioFileSpec = _section(ScenarioFileSpec, entry, f"scenarios[{i}]", where)
+    for i, fs in enumerate(doc.scenarios):
         try:
             sc = load_scenario(fs.file, base_dir)
         except ScenarioError as exc:
             raise _err(where, f"scenarios[{i}].file: {exc}") from exc
         scenarios.append((fs.condition or sc.name, sc, _scenario_params(sc, f"file:{fs.file}")))
-    fams = data.get("families", [])
-    if not isinstance(fams, list):
-        raise _err(where, f"families: expected [[families]] entries, got {fams!r}")
-    for i, entry in enumerate(fams):
-        fam: FamilySpec = _section(FamilySpec, entry, f"families[{i}]", where)
+    for i, fam in enumerate(doc.families):
         try:
             validate_family(fam, f"families[{i}]")
-            for j in range(fam.count):
-                sc = generate_scenario(fam, j, f"families[{i}]")
-                scenarios.append((fam.name, sc, _scenario_params(sc, f"family:{fam.name}")))
+            scenarios += [(fam.name, sc, _scenario_params(sc, f"family:{fam.name}"))
+                          for sc in (generate_scenario(fam, j, f"families[{i}]") for j in range(fam.count))]
         except ScenarioError as exc:
             raise _err(where, str(exc)) from exc
     if not scenarios:
