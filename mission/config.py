@@ -6,37 +6,22 @@ target accuracy, budget and time limit, the cruise speed, the noise model the es
 how to talk to the gNB, and how long to wait before giving up on a lost link or gNB. A mission
 file never holds a user's true position: that is what the flight is for.
 
-The TOML keys ARE the field names of the frozen dataclasses below (`[flight] budget_m = 1200`).
-An unknown key, a key in the wrong unit (`budget_km`), a wrong type, a NaN or an out-of-range
-number is a :class:`MissionConfigError` naming the file, the key and the value. Units are in the
-names (`_m`, `_s`, `_mps`, `_pct`, `_deg`, `_hz`); positions are ENU offsets in metres from home
-(`*_enu_m`, as in DESIGN.md §9) or geodetic (`*_lat_lon_deg`, [[lat_deg, lon_deg], ...]), one or the
-other per polygon kind; :meth:`GeofenceConfig.polygons_enu_m` turns both into home-ENU once home is
-known.
+The TOML keys ARE the field names of the frozen dataclasses below (`[flight] budget_m = 1200`),
+read by the one strict loader of every uavloc file (mission.schema): an unknown key, a key in the
+wrong unit (`budget_km`), a wrong type, a NaN, a number outside its field's bounds (what a
+multicopter mission can mean: `MAX_HEIGHT_M`, `MAX_SPEED_MPS`, ... beside each field) or a
+file that is not UTF-8 is a :class:`MissionConfigError` naming the file, the key and the value.
+:func:`validate_mission` checks what spans fields (distinct users and RNTIs, the altitude band,
+home inside the fence and outside every no-fly zone, ...). Units are in the names (`_m`, `_s`,
+`_mps`, `_pct`, `_deg`, `_hz`); positions are ENU offsets in metres from home (`*_enu_m`, as in
+DESIGN.md §9) or geodetic (`*_lat_lon_deg`, [[lat_deg, lon_deg], ...]), one or the other per
+polygon kind; :meth:`GeofenceConfig.polygons_enu_m` turns both into home-ENU once home is known.
 
-Mission and world (the split phase 2 makes in `sitl_scenarios/`)::
-
-    Scenario (sitl_scenarios, a simulation)  =  MissionConfig (this module: what is flown)
-                                              +  World (what is true)
-
-    World, a frozen dataclass in sitl_scenarios/ whose fields are today's scenario sections:
-      seed: int; origin: OriginConfig (the built-in vehicle's home)
-      users: per user id → true east_m, north_m, up_m, UE clock sawtooth (amplitude, period)
-      buildings: [BuildingConfig]            footprint + height (NLoS in the radio model)
-      radio: RadioConfig                     μ, fs, oversampling, σ(d) the radio draws from,
-                                             coverage, NLoS excess, SNR
-      vehicle: VehicleConfig                 speeds, acceleration, GPS error (σ, τ), battery
-      faults: {...}                          fault injection of the simulators
-
-    A scenario file is then `[mission]` (a mission file's tables, nested) plus `[world]`; a world
-    user is matched to a mission user by id, and a world without a user the mission names (or the
-    other way round) is an error. Speeds the mission asks (`flight.cruise_speed_mps`) and the
-    vehicle model's top speed are different things and may differ.
-
-`sitl_scenarios` imports `mission` and never the other way: `Scenario.mission_config()` (in
-`sitl_scenarios/scenario.py`) is the bridge from today's scenario files until then. Only the
-world's truth differs between a simulation and a flight, so the simulated mission is flown with
-exactly the settings a real one would be.
+A simulation scenario (sitl_scenarios/scenario.py) is a mission file plus world sections (true
+users, buildings, radio, vehicle model, faults): its mission half is a :class:`MissionConfig`
+read and checked exactly as here, so a simulated mission is flown with the settings a real one
+would be. `sitl_scenarios` imports `mission` and never the other way; nothing here takes a
+scenario.
 
 Example: `mission/examples/flight.toml` (shipped as package data; :func:`example_mission_path`).
 """

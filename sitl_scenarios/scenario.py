@@ -287,8 +287,6 @@ def _mission_table(data: dict, world: World) -> dict:
 
 
 def _explain_unknown(cls: type, name: str) -> str | None:
-    if cls is mc.MissionConfig and name == "mission":
-        return _OLD_MISSION_TABLE
     if cls is mc.MissionConfig:
         keys = sorted({f.name for f in dataclasses.fields(mc.MissionConfig)} | set(WORLD_KEYS))
         return f"unknown key {name!r}; allowed here: {', '.join(keys)}"
@@ -336,6 +334,8 @@ def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
     names the source in every message."""
     if not isinstance(data, dict):
         raise ScenarioError(f"{where}: a scenario is a TOML document")
+    if "mission" in data:
+        raise schema.fail(where, "mission", data["mission"], _OLD_MISSION_TABLE, ScenarioError)
     world = schema.build(World, {k: v for k, v in data.items() if k in WORLD_KEYS}, where, error=ScenarioError)
     mission = schema.build(mc.MissionConfig, _mission_table(data, world), where, error=ScenarioError,
                            explain=_explain_unknown)
