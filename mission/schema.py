@@ -34,6 +34,10 @@ from uavloc.errors import MissionConfigError, UavlocError
 
 ErrorType = type[UavlocError]
 
+#: a name that also names files or folders (a campaign's, a family's): one word of letters, digits,
+#: '_', '-' and '.', not '.' or '..', so it never names a folder elsewhere
+SAFE_NAME = re.compile(r"(?!\.{1,2}$)[A-Za-z0-9_.\-]+")
+
 #: unit suffixes of key names (a key whose name differs from a field's only here has the wrong unit)
 UNIT_SUFFIX = re.compile(r"_(m|km|ft|s|ms|min|h|mps|kmh|kph|pct|deg|rad|hz|khz|mhz|per_m|m2|mps2|db|db_at_100m)$")
 

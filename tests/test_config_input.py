@@ -176,3 +176,10 @@ def test_a_campaign_name_never_names_a_folder(name):
     spec = {"campaign": {"name": name, "planners": ["lawnmower"]}, "scenarios": [{"file": "paper"}]}
     with pytest.raises(CampaignError, match="campaign.name"):
         spec_from_dict(spec, "spec.toml")
+
+
+@pytest.mark.parametrize("name", ["../up", "a/b"])
+def test_a_family_name_never_names_a_folder(name):
+    spec = {"campaign": {"name": "c", "planners": ["lawnmower"]}, "families": [{"name": name, "count": 1}]}
+    with pytest.raises(CampaignError, match=r"families\[0\].name"):
+        spec_from_dict(spec, "spec.toml")

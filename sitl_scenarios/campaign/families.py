@@ -93,8 +93,9 @@ def _range(value: Any, key: str) -> tuple[Any, Any]:
 
 def validate_family(fam: FamilySpec, where: str) -> None:
     """Raise ScenarioError naming the key of the first bad parameter."""
-    if not fam.name.strip():
-        raise ScenarioError(f"{where}.name must not be empty")
+    if not schema.SAFE_NAME.fullmatch(fam.name):
+        raise ScenarioError(f"{where}.name {fam.name!r}: one word of letters, digits, '_', '-' and '.' "
+                            "(it names the family's scenarios and its condition)")
     if not 1 <= fam.count <= 100_000:
         raise ScenarioError(f"{where}.count must be in 1..100000, got {fam.count}")
     if fam.seed < 0:

@@ -38,7 +38,6 @@ import dataclasses
 import hashlib
 import json
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,8 +49,7 @@ from sitl_scenarios.scenario import Scenario, load_scenario
 from uavloc.errors import CampaignError, ScenarioError, UavlocError
 
 MODES = ("fast", "full")
-#: a campaign's, family's or scenario's name as part of a file name: no folder, no '.', no '..'
-SAFE_NAME = re.compile(r"(?!\.{1,2}$)[A-Za-z0-9_.\-]+")
+
 
 
 @dataclass(frozen=True)
@@ -152,7 +150,7 @@ def _check_section(c: CampaignSection, where: str) -> None:
 
     if not c.name.strip():
         raise _err(where, "campaign.name must not be empty")
-    if not SAFE_NAME.fullmatch(c.name):
+    if not schema.SAFE_NAME.fullmatch(c.name):
         # the name makes the default output folder and the results' file names
         raise _err(where, f"campaign.name {c.name!r}: one word of letters, digits, '_', '-' and '.' "
                    "(not '.' or '..'), so it names no folder outside --out")
