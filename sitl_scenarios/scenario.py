@@ -35,14 +35,14 @@ from mission import schema
 from mission.config import MAX_DISTANCE_M
 from mission.schema import bounded, like, positive
 from planner.types import PlanningConstraints
+from sitl_scenarios.gnb_faults import GnbFaults
+from sitl_scenarios.vehicle_faults import FaultEvent, check_fault_event
 from uavloc.errors import MissionConfigError, ScenarioError
 
 SCENARIO_DIR = Path(__file__).resolve().parent
 
 #: the largest seed (numpy's SeedSequence takes non-negative integers; 32 bits is plenty)
 MAX_SEED = 2**32 - 1
-#: the tables of `[faults]`: the simulated gNB's (sitl_scenarios.gnb_faults) and the vehicle's
-FAULT_TABLES = ("gnb", "vehicle")
 
 
 @dataclass(frozen=True)
@@ -141,11 +141,20 @@ class VehicleConfig:
 
 
 @dataclass(frozen=True)
+class FaultsConfig:
+    """The simulators' fault injection: `[faults.gnb]` (the simulated gNB's, GnbFaults) and
+    `[[faults.vehicle]]` (the built-in vehicle's scheduled faults, FaultEvent)."""
+
+    gnb: GnbFaults = field(default_factory=GnbFaults)
+    vehicle: list[FaultEvent] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
 class World:
     """What is true in a simulation (the world sections of a scenario file): the noise seed, the
     built-in vehicle's home, where the users are, the buildings, the radio, the vehicle model and
     the simulators' faults (`[faults.gnb]`, sitl_scenarios.gnb_faults; `[[faults.vehicle]]`,
-    sitl_scenarios.vehicle.fault_events)."""
+    sitl_scenarios.vehicle_faults)."""
 
     truth: dict[str, TrueUserConfig]
     seed: int = bounded(0, 0, MAX_SEED)
@@ -153,7 +162,7 @@ class World:
     buildings: list[BuildingConfig] = field(default_factory=list)
     radio: RadioConfig = field(default_factory=RadioConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
-    faults: dict[str, Any] = field(default_factory=dict)
+    faults: FaultsConfig = field(default_factory=FaultsConfig)
 
 
 @dataclass(frozen=True)
@@ -312,19 +321,8 @@ def _check(sc: Scenario, where: str) -> None:
         if len(b.footprint_enu_m) < 3:
             raise schema.fail(where, f"buildings[{i}].footprint_enu_m", b.footprint_enu_m,
                               "needs >= 3 [east, north] points", ScenarioError)
-    unknown = sorted(set(sc.faults) - set(FAULT_TABLES))
-    if unknown:
-        raise schema.fail(where, f"faults.{unknown[0]}", sc.faults[unknown[0]],
-                          f"unknown key; allowed here: {', '.join(FAULT_TABLES)}", ScenarioError)
-    # the simulators' own strict readers of their tables, so a bad fault is refused at load
-    from sitl_scenarios.gnb_faults import GnbFaults
-    from sitl_scenarios.vehicle.fault_events import faults_from_scenario
-
-    try:
-        GnbFaults.from_table(sc.faults.get("gnb", {}))
-        faults_from_scenario(sc.faults)
-    except ScenarioError as exc:
-        raise ScenarioError(f"{where}: {exc}") from None
+    for i, ev in enumerate(sc.faults.vehicle):
+        check_fault_event(ev, where, f"faults.vehicle[{i}]")
 
 
 def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:

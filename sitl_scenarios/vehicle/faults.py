@@ -8,7 +8,7 @@ import logging
 import math
 
 from sitl_scenarios.vehicle.autopilot import Autopilot
-from sitl_scenarios.vehicle.fault_events import FAULT_KINDS, FaultEvent, faults_from_scenario
+from sitl_scenarios.vehicle_faults import FAULT_KINDS, FaultEvent, faults_from_scenario
 
 __all__ = ["FAULT_KINDS", "FaultEvent", "VehicleFaults", "faults_from_scenario"]
 
