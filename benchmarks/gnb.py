@@ -28,7 +28,7 @@ sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resol
 from mission.gnb import GnbConfig, OaiGnbClient  # noqa: E402 (after the sys.path fix)
 from mission.gnb_transport import rest_request  # noqa: E402
 from sitl_scenarios.gnb import SimulatedGnb, static_position  # noqa: E402
-from sitl_scenarios.scenario import scenario_from_dict  # noqa: E402
+from sitl_scenarios.scenario import scenario_from_dict, user_tables  # noqa: E402
 
 TARGET_ONE_MS = 5.0
 TARGET_TEN_MS = 50.0
@@ -39,7 +39,7 @@ def ten_user_scenario():
     users = [{"id": f"u{i}", "rnti": 0x4601 + i, "east_m": float(e), "north_m": float(n)}
              for i, (e, n) in enumerate(rng.uniform(-300, 300, size=(10, 2)))]
     buildings = [{"footprint_enu_m": [[20.0, 20.0], [60.0, 20.0], [60.0, 50.0], [20.0, 50.0]], "height_m": 25.0}]
-    return scenario_from_dict({"name": "bench", "seed": 1, "users": users, "buildings": buildings})
+    return scenario_from_dict({"name": "bench", "seed": 1, **user_tables(users), "buildings": buildings})
 
 
 async def echo_baseline_ms(n: int) -> list[float]:

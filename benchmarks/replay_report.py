@@ -35,7 +35,7 @@ def main() -> int:
     args = ap.parse_args()
     sc = load_scenario(args.scenario)
     # keyframes ≈ (climb + out + turns·2πr + back) / Δ
-    turns = max(args.keyframes * sc.mission.delta_m / (2 * math.pi * args.radius) - 0.3, 0.2)
+    turns = max(args.keyframes * sc.mission.flight.delta_m / (2 * math.pi * args.radius) - 0.3, 0.2)
     args.work.mkdir(parents=True, exist_ok=True)
     log_path = args.work / f"{sc.name}_{args.keyframes}.jsonl"
     if not log_path.exists():

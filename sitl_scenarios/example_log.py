@@ -34,7 +34,7 @@ FIXED_START_UTC = "2026-01-01T00:00:00.000+00:00"
 def survey_path_enu_m(scenario: Scenario, radius_m: float = 50.0, n_turns: float = 1.0) -> np.ndarray:
     """Waypoints (P, 3) [m, ENU]: climb at home, go to a circle of `radius_m` around the users'
     centroid, fly it `n_turns` times, come back home."""
-    alt = scenario.mission.altitude_m
+    alt = scenario.mission.flight.altitude_m
     users = np.array([[u.east_m, u.north_m] for u in scenario.users])
     c = users.mean(axis=0)
     angles = np.linspace(0.0, 2 * np.pi * n_turns, max(int(72 * n_turns), 8) + 1)
@@ -98,7 +98,7 @@ def generate(scenario: Scenario, out: Path, seed: int | None = None, radius_m: f
     tau_s = scenario.vehicle.gps_tau_s
     path = survey_path_enu_m(scenario, radius_m, n_turns)
     tel_pts, tel_s = densify(path, speed * 0.2)  # telemetry at 5 Hz (the controller's telemetry_log_hz)
-    kf_pts, kf_s = densify(path, scenario.mission.delta_m)
+    kf_pts, kf_s = densify(path, scenario.mission.flight.delta_m)
     out = Path(out)
     if out.exists():
         out.unlink()
@@ -110,7 +110,7 @@ def generate(scenario: Scenario, out: Path, seed: int | None = None, radius_m: f
             {"mu": scenario.radio.mu, "fs_hz": scenario.radio.fs_hz},
             noise=scenario.noise_model(),
             config={"generator": "sitl_scenarios.example_log", "scenario": scenario.name, "seed": seed,
-                    "delta_m": scenario.mission.delta_m},
+                    "delta_m": scenario.mission.flight.delta_m},
             start_utc=start_utc,
         )
         truth_lat, truth_lon, truth_alt = origin.enu_to_lla(

@@ -587,7 +587,7 @@ async def _run(args: argparse.Namespace) -> None:
             origin = scenario.origin_geo if args.origin == "scenario" else None
             position: PositionSource = await stack.enter_async_context(MavlinkPositionSource(args.follow, origin))
         else:
-            position = static_position(args.static_enu or (0.0, 0.0, scenario.mission.altitude_m))
+            position = static_position(args.static_enu or (0.0, 0.0, scenario.mission.flight.altitude_m))
         gnb = await stack.enter_async_context(SimulatedGnb(
             scenario, position, host=args.host, port=args.port, log_path=args.log, seed=args.seed,
             rtt_module=args.rtt_module, rtt_command=args.rtt_command, stock_reaction=args.stock_reaction,

@@ -4,12 +4,16 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
-from sitl_scenarios.scenario import Scenario
+from mission import schema
+from mission.schema import bounded
 from uavloc.errors import ScenarioError
+
+#: the longest extra delay of an answer [s] and the latest simulation time of a fault [s]
+MAX_DELAY_S = 600.0
+MAX_FAULT_TIME_S = 1e6
 
 
 @dataclass
@@ -26,35 +30,21 @@ class GnbFaults:
     a gNB restarted without it would); absent: never.
     """
 
-    delay_s: float = 0.0
-    delay_rate: float = 0.0
-    malformed_rate: float = 0.0
-    drop_rate: float = 0.0
-    refuse_rate: float = 0.0
-    busy_mode: str = "silent"
-    rtt_module_lost_at_s: float | None = None
+    delay_s: float = bounded(0.0, 0.0, MAX_DELAY_S)
+    delay_rate: float = bounded(0.0, 0.0, 1.0, what="is a probability in [0, 1]")
+    malformed_rate: float = bounded(0.0, 0.0, 1.0, what="is a probability in [0, 1]")
+    drop_rate: float = bounded(0.0, 0.0, 1.0, what="is a probability in [0, 1]")
+    refuse_rate: float = bounded(0.0, 0.0, 1.0, what="is a probability in [0, 1]")
+    busy_mode: Literal["silent", "close"] = "silent"
+    rtt_module_lost_at_s: float | None = bounded(None, 0.0, MAX_FAULT_TIME_S)
 
     @classmethod
     def from_table(cls, table: dict[str, Any], where: str = "faults.gnb") -> GnbFaults:
-        """Strict conversion: unknown keys, wrong types and out-of-range rates are ScenarioError."""
-        if not isinstance(table, dict):
-            raise ScenarioError(f"{where}: expected a table, got {table!r}")
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(table) - set(fields))
-        if unknown:
-            raise ScenarioError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(fields)}")
-        kwargs: dict[str, Any] = {}
-        for k, v in table.items():
-            if k == "busy_mode":
-                if v not in ("close", "silent"):
-                    raise ScenarioError(f"{where}.busy_mode must be 'close' or 'silent', got {v!r}")
-            elif isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-                raise ScenarioError(f"{where}.{k} must be a non-negative number, got {v!r}")
-            elif k.endswith("_rate") and v > 1:
-                raise ScenarioError(f"{where}.{k} is a probability, got {v!r}")
-            kwargs[k] = v if k == "busy_mode" else float(v)
-        return cls(**kwargs)
+        """Strictly (mission.schema): unknown keys, wrong types and out-of-range numbers are a
+        ScenarioError naming `where` and the key."""
+        return schema.build(cls, table, where, error=ScenarioError)
 
     @classmethod
-    def from_scenario(cls, scenario: Scenario) -> GnbFaults:
-        return cls.from_table(scenario.faults.get("gnb", {}))
+    def from_scenario(cls, scenario: Any) -> GnbFaults:
+        """A copy (the simulated gNB may change its own) of a scenario's `[faults.gnb]`."""
+        return dataclasses.replace(scenario.faults.gnb)

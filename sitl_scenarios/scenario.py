@@ -1,18 +1,27 @@
-"""Scenario files: strict TOML whose keys are the fields of the dataclasses below (DESIGN.md §9).
+"""Scenario files: a mission file plus the world it is flown in (DESIGN.md §9).
+
+    Scenario  =  mission: mission.config.MissionConfig   what is flown: `name`, `description`,
+                                                          [[users]] (id, rnti, ground_height_m),
+                                                          [geofence], [flight], [noise], [gnb], [safety]
+              +  world: World                             what is true: `seed`, [origin],
+                                                          [truth.<user id>], [[buildings]], [radio],
+                                                          [vehicle], [faults]
+
+Both halves are read by the one strict loader (mission.schema: unknown keys, types, units, NaN,
+ranges, RNTIs) and the mission half is checked exactly as `uavloc fly --mission` checks a mission
+file (mission.config.validate_mission), so a simulated mission is flown with the settings a real
+one would be. Where the file leaves them out, the mission's vehicle speeds, assumed range noise and
+gNB numerology come from its world (:data:`MISSION_DEFAULTS_FROM_WORLD`).
 
 Positions (users, buildings, geofence, no-fly zones) are ENU offsets in metres from the origin, so
 a scenario flies anywhere: with the built-in vehicle the origin is `[origin]`; with an external
-vehicle (PX4 SITL) it is the vehicle's home. Unknown keys, wrong types and out-of-range numbers are a
-:class:`ScenarioError` that names the file and the key.
+vehicle (PX4 SITL) it is the vehicle's home. Every error is a :class:`ScenarioError` that names
+the file and the key.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
-import tomllib
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,59 +30,69 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
+from mission import config as mc
+from mission import schema
+from mission.config import MAX_DISTANCE_M
+from mission.schema import bounded, like, positive
 from planner.types import PlanningConstraints
-from uavloc.errors import ScenarioError
-
-if typing.TYPE_CHECKING:
-    from mission import config as mission_config
+from sitl_scenarios.gnb_faults import GnbFaults
+from sitl_scenarios.vehicle_faults import FaultEvent, check_fault_event
+from uavloc.errors import MissionConfigError, ScenarioError
 
 SCENARIO_DIR = Path(__file__).resolve().parent
+
+#: the largest seed (numpy's SeedSequence takes non-negative integers; 32 bits is plenty)
+MAX_SEED = 2**32 - 1
 
 
 @dataclass(frozen=True)
 class OriginConfig:
     """Geodetic origin used by the built-in vehicle (its home)."""
 
-    lat_deg: float = 47.397742
-    lon_deg: float = 8.545594
-    alt_m: float = 488.0
+    lat_deg: float = bounded(47.397742, -90.0, 90.0)
+    lon_deg: float = bounded(8.545594, -180.0, 180.0)
+    alt_m: float = bounded(488.0, -500.0, 9000.0)
+
+
+@dataclass(frozen=True)
+class TrueUserConfig:
+    """Where a user really is and how its clock behaves (`[truth.<id>]`, matched to the mission's
+    user of that id). east_m, north_m from the origin [m]; its height is the mission's
+    ground_height_m (the ground it stands on is known before take-off).
+
+    sawtooth_amplitude_m / sawtooth_period_s: UE downlink-timing drift as a one-way range error that
+    rises linearly from 0 to the amplitude and resets (its mean, amplitude/2, is a range bias).
+    Absent from the file: a commercial UE, the radio section's ue_sawtooth_amplitude_m / _period_s,
+    resolved once when the scenario is read (:func:`scenario_from_dict`), so a loaded scenario's
+    users always carry numbers; 0 amplitude: an ideal UE (e.g. a software UE with a perfect clock).
+    """
+
+    east_m: float = bounded(dataclasses.MISSING, -MAX_DISTANCE_M, MAX_DISTANCE_M)
+    north_m: float = bounded(dataclasses.MISSING, -MAX_DISTANCE_M, MAX_DISTANCE_M)
+    sawtooth_amplitude_m: float | None = bounded(None, 0.0, 200.0)
+    sawtooth_period_s: float | None = positive(None, 1e5)
 
 
 @dataclass(frozen=True)
 class UserConfig:
-    """A ground user (UE). `east_m`, `north_m` from the origin; `up_m` its ground height (ENU up).
-
-    sawtooth_amplitude_m / sawtooth_period_s: UE downlink-timing drift as a one-way range error that
-    rises linearly from 0 to the amplitude and resets (its mean, amplitude/2, is a range bias).
-    None (the default): a commercial UE, the radio section's ue_sawtooth_amplitude_m / _period_s;
-    0 amplitude: an ideal UE (e.g. a software UE with a perfect clock).
-    """
+    """A simulated user, the mission's user joined with its truth (:attr:`Scenario.users`): id,
+    RNTI, true east_m, north_m and up_m (its ground height) from the origin [m], clock sawtooth."""
 
     id: str
     rnti: int
     east_m: float
     north_m: float
-    up_m: float = 0.0
-    sawtooth_amplitude_m: float | None = None
-    sawtooth_period_s: float | None = None
+    up_m: float
+    sawtooth_amplitude_m: float
+    sawtooth_period_s: float
 
 
 @dataclass(frozen=True)
 class BuildingConfig:
     """A building: footprint polygon [[east_m, north_m], ...] (≥ 3 vertices) and height [m]."""
 
-    footprint_enu_m: list[list[float]]
-    height_m: float
-
-
-@dataclass(frozen=True)
-class GeofenceConfig:
-    """Inclusion polygon [[east_m, north_m], ...] (may be non-convex; empty: none), a maximum
-    horizontal distance from home [m], and exclusion polygons (no-fly zones)."""
-
-    polygon_enu_m: list[list[float]] = field(default_factory=list)
-    max_distance_m: float = 500.0
-    no_fly_enu_m: list[list[list[float]]] = field(default_factory=list)
+    footprint_enu_m: list[tuple[float, float]]
+    height_m: float = positive(dataclasses.MISSING, 1000.0)
 
 
 @dataclass(frozen=True)
@@ -89,17 +108,17 @@ class RadioConfig:
     without its own), 12 m peak as the paper saw with a Quectel module.
     """
 
-    mu: int = 1
-    fs_hz: float = 46.08e6
-    oversampling: int = 8
-    s0_m: float = 3.0
-    a_m: float = 0.0
-    b_per_m: float = 0.0
-    coverage_m: float = 1500.0
-    nlos_excess_mean_m: float = 20.0
-    snr_db_at_100m: float = 30.0
-    ue_sawtooth_amplitude_m: float = 12.0
-    ue_sawtooth_period_s: float = 15.0
+    mu: int = like(mc.GnbSettings, "mu")
+    fs_hz: float = like(mc.GnbSettings, "fs_hz")
+    oversampling: int = bounded(8, 1, 1024)
+    s0_m: float = like(mc.NoiseConfig, "range_s0_m")
+    a_m: float = like(mc.NoiseConfig, "range_a_m")
+    b_per_m: float = like(mc.NoiseConfig, "range_b_per_m")
+    coverage_m: float = positive(1500.0, 1e5)
+    nlos_excess_mean_m: float = bounded(20.0, 0.0, 500.0)
+    snr_db_at_100m: float = bounded(30.0, -50.0, 100.0)
+    ue_sawtooth_amplitude_m: float = bounded(12.0, 0.0, 200.0)
+    ue_sawtooth_period_s: float = positive(15.0, 1e5)
 
 
 @dataclass(frozen=True)
@@ -109,71 +128,67 @@ class VehicleConfig:
     gps_tau_s: correlation time of the GPS error (0: independent per fix; > 0: Gauss-Markov).
     """
 
-    speed_mps: float = 10.0
-    climb_mps: float = 3.0
-    descent_mps: float = 1.5
-    accel_mps2: float = 3.0
-    gps_sigma_m: float = 1.0
+    speed_mps: float = like(mc.FlightConfig, "cruise_speed_mps")
+    climb_mps: float = like(mc.FlightConfig, "climb_mps")
+    descent_mps: float = like(mc.FlightConfig, "descent_mps")
+    accel_mps2: float = positive(3.0, 50.0)
+    gps_sigma_m: float = bounded(1.0, 0.0, 100.0)
     # the built-in vehicle's own error; an external autopilot's is not this one (Scenario.noise_model):
     # PX4 SITL's (SIH) EKF output drifts far slower, its increments say tau ~ 120-220 s at sigma 1 m
-    gps_tau_s: float = 3.0
-    battery_capacity_s: float = 1800.0
-    battery_start_pct: float = 100.0
+    gps_tau_s: float = bounded(3.0, 0.0, 1e5)
+    battery_capacity_s: float = positive(1800.0, 1e5)
+    battery_start_pct: float = positive(100.0, 100.0)
 
 
 @dataclass(frozen=True)
-class MissionConfig:
-    """The mission: Δ spacing, altitude above home, limits and stop rule.
+class FaultsConfig:
+    """The simulators' fault injection: `[faults.gnb]` (the simulated gNB's, GnbFaults) and
+    `[[faults.vehicle]]` (the built-in vehicle's scheduled faults, FaultEvent)."""
 
-    altitude_m: flight height above home [m]; alt_min_m/alt_max_m: allowed band above home;
-    target_radius_m: stop when every user's 95 % ellipse is inside this radius;
-    budget_m: maximum metres flown in SURVEY; time_limit_s: maximum mission time;
-    leg_max_m: maximum leg length the planner may choose; acceptance_m: arrival radius;
-    battery_rtl_pct: battery below which the safety monitor returns home;
-    sigma_gps_m: σ_gps the estimator assumes; planner: default planner name;
-    estimate_bias: estimate a range bias per user (a UE clock sawtooth has a positive mean);
-    range_s0_m: the s0 of σ(d) the estimator and planner assume (default: the radio's); raise it
-    when the UEs add error the radio's σ(d) leaves out, e.g. a clock sawtooth of amplitude A adds a
-    spread of A/√12 around its mean.
-    gps_tau_s: correlation time of the GPS error the estimator assumes [s] (0 white; default: the
-    vehicle section's, i.e. the built-in vehicle's truth, when the built-in vehicle flies, and
-    unknown when an external autopilot does: the log then omits it, and the flight (from the
-    take-off's telemetry) and replay (from the whole log's) estimate it from the telemetry
-    velocity, else assume estimator.noise.DEFAULT_GPS_TAU_S).
-    """
+    gnb: GnbFaults = field(default_factory=GnbFaults)
+    vehicle: list[FaultEvent] = field(default_factory=list)
 
-    delta_m: float = 2.0
-    altitude_m: float = 30.0
-    alt_min_m: float = 10.0
-    alt_max_m: float = 120.0
-    target_radius_m: float = 2.0
-    budget_m: float = 2000.0
-    time_limit_s: float = 1200.0
-    leg_max_m: float = 80.0
-    acceptance_m: float = 2.0
-    battery_rtl_pct: float = 25.0
-    sigma_gps_m: float = 1.0
-    planner: str = "casadi"
-    estimate_bias: bool = True
-    range_s0_m: float | None = None
-    gps_tau_s: float | None = None
+
+@dataclass(frozen=True)
+class World:
+    """What is true in a simulation (the world sections of a scenario file): the noise seed, the
+    built-in vehicle's home, where the users are, the buildings, the radio, the vehicle model and
+    the simulators' faults (`[faults.gnb]`, sitl_scenarios.gnb_faults; `[[faults.vehicle]]`,
+    sitl_scenarios.vehicle_faults)."""
+
+    truth: dict[str, TrueUserConfig]
+    seed: int = bounded(0, 0, MAX_SEED)
+    origin: OriginConfig = field(default_factory=OriginConfig)
+    buildings: list[BuildingConfig] = field(default_factory=list)
+    radio: RadioConfig = field(default_factory=RadioConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    faults: FaultsConfig = field(default_factory=FaultsConfig)
 
 
 @dataclass(frozen=True)
 class Scenario:
-    """A whole scenario file."""
+    """A whole scenario file: a mission file's mission plus the world it is flown in."""
 
-    name: str
-    users: list[UserConfig]
-    seed: int = 0
-    description: str = ""
-    origin: OriginConfig = field(default_factory=OriginConfig)
-    buildings: list[BuildingConfig] = field(default_factory=list)
-    geofence: GeofenceConfig = field(default_factory=GeofenceConfig)
-    radio: RadioConfig = field(default_factory=RadioConfig)
-    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
-    mission: MissionConfig = field(default_factory=MissionConfig)
-    faults: dict[str, Any] = field(default_factory=dict)
+    mission: mc.MissionConfig
+    world: World
+
+    # -- the world's and the mission's parts under their usual names
+    name = property(lambda self: self.mission.name)
+    description = property(lambda self: self.mission.description)
+    geofence = property(lambda self: self.mission.geofence)
+    seed = property(lambda self: self.world.seed)
+    origin = property(lambda self: self.world.origin)
+    buildings = property(lambda self: self.world.buildings)
+    radio = property(lambda self: self.world.radio)
+    vehicle = property(lambda self: self.world.vehicle)
+    faults = property(lambda self: self.world.faults)
+
+    @property
+    def users(self) -> list[UserConfig]:
+        """The users in the mission's order, each with its truth."""
+        t = self.world.truth
+        return [UserConfig(u.id, u.rnti, t[u.id].east_m, t[u.id].north_m, u.ground_height_m,
+                           t[u.id].sawtooth_amplitude_m, t[u.id].sawtooth_period_s) for u in self.mission.users]
 
     @property
     def origin_geo(self) -> Origin:
@@ -185,87 +200,45 @@ class Scenario:
         # σ_gps does not enter the radio; a GPS-noise-free vehicle (gps_sigma_m = 0) still needs a valid model
         return NoiseModel(sigma_gps_m=self.vehicle.gps_sigma_m or 1.0, s0_m=r.s0_m, a_m=r.a_m, b_per_m=r.b_per_m)
 
+    def mission_config(self, external_vehicle: bool = False) -> mc.MissionConfig:
+        """The mission as flown: the file's, with the GPS error's correlation time, when the file
+        leaves it unknown, the built-in vehicle's (that is what it flies with); with an external
+        autopilot it stays unknown (PX4's EKF output is not the built-in vehicle's and drifts ~50
+        times slower: the flight and replay estimate it from the telemetry)."""
+        m = self.mission
+        if m.noise.gps_tau_s is not None or external_vehicle:
+            return m
+        return dataclasses.replace(m, noise=dataclasses.replace(m.noise, gps_tau_s=self.vehicle.gps_tau_s))
+
     def noise_model(self, external_vehicle: bool = False) -> NoiseModel:
-        """The noise model the estimator and planner assume: σ_gps and (when given) s0 from the
-        mission section, the rest of σ(d) from the radio section; the GPS correlation time from
-        the mission section, else the built-in vehicle's (unknown, None, with external_vehicle:
-        PX4's EKF output is not the built-in vehicle's and drifts ~50 times slower)."""
-        r, m = self.radio, self.mission
-        s0 = r.s0_m if m.range_s0_m is None else m.range_s0_m
-        tau = m.gps_tau_s
-        if tau is None and not external_vehicle:
-            tau = self.vehicle.gps_tau_s
-        return NoiseModel(sigma_gps_m=m.sigma_gps_m, s0_m=s0, a_m=r.a_m, b_per_m=r.b_per_m,
-                          gps_tau_s=None if tau is None else float(tau))
+        """The noise model the estimator and planner assume (:meth:`mission_config`'s)."""
+        return self.mission_config(external_vehicle).noise_model()
 
     def planning_constraints(self, home_enu_m=(0.0, 0.0, 0.0), building_clearance_m: float = 5.0,
                              **overrides: Any) -> PlanningConstraints:
-        """The planner's constraints of this scenario's mission and geofence.
+        """The planner's constraints of the mission (MissionConfig.planning_constraints) that also
+        keep clear of the buildings, with home at home_enu_m.
 
-        Altitudes in the scenario are above home; here they become ENU `up` (home up + value).
+        Altitudes in the mission are above home; here they become ENU `up` (home up + value).
         Buildings: the UAV overflies every building whose height + `building_clearance_m` fits in the
         altitude band (the band's floor is raised to clear the tallest of them); a building too tall
         for the band becomes a no-fly zone. `overrides` replace any field (e.g. margin_m=3.0).
         """
-        scenario = self
-        m, g = scenario.mission, scenario.geofence
+        base = self.mission.planning_constraints(self.origin_geo)
         home = np.asarray(home_enu_m, dtype=float).reshape(3)
-        alt_min, alt_max = m.alt_min_m, m.alt_max_m
-        no_fly = [np.asarray(p, dtype=float) for p in g.no_fly_enu_m]
-        for b in scenario.buildings:
+        f = self.mission.flight
+        alt_min, no_fly = f.alt_min_m, list(base.no_fly_enu_m)
+        for b in self.buildings:
             top = b.height_m + building_clearance_m
-            if top <= alt_max:
+            if top <= f.alt_max_m:
                 alt_min = max(alt_min, top)
             else:
                 no_fly.append(np.asarray(b.footprint_enu_m, dtype=float))
-        kwargs = dict(
-            home_enu_m=home,
-            fence_enu_m=np.asarray(g.polygon_enu_m, dtype=float).reshape(-1, 2),
-            no_fly_enu_m=tuple(no_fly),
-            alt_min_m=home[2] + alt_min,
-            alt_max_m=home[2] + alt_max,
-            cruise_alt_m=home[2] + min(max(m.altitude_m, alt_min), alt_max),
-            leg_max_m=m.leg_max_m,
-            max_distance_m=g.max_distance_m,
-            budget_m=m.budget_m,
-            delta_m=m.delta_m,
-            target_radius_m=m.target_radius_m,
-            min_leg_m=min(10.0, m.leg_max_m),
-        )
+        kwargs = dict(home_enu_m=home, no_fly_enu_m=tuple(no_fly), alt_min_m=home[2] + alt_min,
+                      alt_max_m=home[2] + f.alt_max_m,
+                      cruise_alt_m=home[2] + min(max(f.altitude_m, alt_min), f.alt_max_m))
         kwargs.update(overrides)
-        return PlanningConstraints(**kwargs)
-
-    def mission_config(self, external_vehicle: bool = False) -> mission_config.MissionConfig:
-        """The mission part of this scenario as a :class:`mission.config.MissionConfig` (what a real
-        flight would be configured with: users without their positions, fence, limits, the noise
-        the estimator assumes (noise_model(external_vehicle)), the gNB's numerology). The bridge
-        until scenarios are written as a mission plus a world (see mission/config.py)."""
-        from mission import config as mc
-
-        m, g, n = self.mission, self.geofence, self.noise_model(external_vehicle)
-        out = mc.MissionConfig(
-            name=self.name,
-            description=self.description,
-            users=tuple(mc.MissionUserConfig(u.id, u.rnti, u.up_m) for u in self.users),
-            geofence=mc.GeofenceConfig(
-                polygon_enu_m=tuple(tuple(p) for p in g.polygon_enu_m),
-                no_fly_enu_m=tuple(tuple(tuple(p) for p in z) for z in g.no_fly_enu_m),
-                max_distance_m=g.max_distance_m),
-            flight=mc.FlightConfig(
-                altitude_m=m.altitude_m, alt_min_m=m.alt_min_m, alt_max_m=m.alt_max_m, delta_m=m.delta_m,
-                target_radius_m=m.target_radius_m, budget_m=m.budget_m, time_limit_s=m.time_limit_s,
-                cruise_speed_mps=self.vehicle.speed_mps, climb_mps=self.vehicle.climb_mps,
-                descent_mps=self.vehicle.descent_mps, leg_max_m=m.leg_max_m, acceptance_m=m.acceptance_m,
-                planner=m.planner),
-            noise=mc.NoiseConfig(sigma_gps_m=n.sigma_gps_m, range_s0_m=n.s0_m, range_a_m=n.a_m,
-                                 range_b_per_m=n.b_per_m, gps_tau_s=n.gps_tau_s, estimate_bias=m.estimate_bias),
-            gnb=mc.GnbSettings(mu=self.radio.mu, fs_hz=self.radio.fs_hz),
-            safety=mc.SafetyConfig(battery_rtl_pct=m.battery_rtl_pct,
-                                   battery_takeoff_min_pct=max(mc.SafetyConfig.battery_takeoff_min_pct,
-                                                               m.battery_rtl_pct)),
-        )
-        mc.validate_mission(out, f"scenario {self.name!r}")
-        return out
+        return dataclasses.replace(base, **kwargs)
 
     def user_by_rnti(self, rnti: int) -> UserConfig:
         for u in self.users:
@@ -275,177 +248,180 @@ class Scenario:
 
 
 # ---------------------------------------------------------------------------------------------
-# strict conversion of parsed TOML into the dataclasses above
+# strict conversion of parsed TOML into the dataclasses above: mission.schema, as for mission files
 
 
-def _convert(value: Any, tp: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if tp is Any:
-        return value
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _convert(value, arg, where)
-            except ScenarioError as exc:
-                errors.append(str(exc))
-        raise ScenarioError(errors[0] if errors else f"{where}: unsupported value {value!r}")
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise ScenarioError(f"{where}: expected a table, got {value!r}")
-        return _build(tp, value, where)
-    if origin is list:
-        if not isinstance(value, list):
-            raise ScenarioError(f"{where}: expected a list, got {value!r}")
-        (item_tp,) = args
-        return [_convert(v, item_tp, f"{where}[{i}]") for i, v in enumerate(value)]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ScenarioError(f"{where}: expected a table, got {value!r}")
-        return dict(value)
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ScenarioError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, str):  # RNTIs are often written in hex: "0x4601"
-            try:
-                return int(value, 0)
-            except ValueError as exc:
-                raise ScenarioError(f"{where}: expected an integer, got {value!r}") from exc
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ScenarioError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ScenarioError(f"{where}: expected a number, got {value!r}")
-        if not math.isfinite(value):
-            raise ScenarioError(f"{where}: must be finite, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ScenarioError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise ScenarioError(f"{where}: unsupported type {tp!r}")  # pragma: no cover - schema bug
+#: the top-level keys of a scenario file that are the world's (the rest are a mission file's)
+WORLD_KEYS = tuple(f.name for f in dataclasses.fields(World))
+
+#: the tables of a scenario's mission whose defaults come from its world, when the file leaves them
+#: out: (mission table, key) ← (world table, key). The speeds the mission asks of the vehicle are
+#: the built-in vehicle's; the range noise the estimator assumes is the radio's; the gNB is the
+#: simulated one.
+MISSION_DEFAULTS_FROM_WORLD = (
+    (("flight", "cruise_speed_mps"), ("vehicle", "speed_mps")),
+    (("flight", "climb_mps"), ("vehicle", "climb_mps")),
+    (("flight", "descent_mps"), ("vehicle", "descent_mps")),
+    (("noise", "range_s0_m"), ("radio", "s0_m")),
+    (("noise", "range_a_m"), ("radio", "a_m")),
+    (("noise", "range_b_per_m"), ("radio", "b_per_m")),
+    (("gnb", "mu"), ("radio", "mu")),
+    (("gnb", "fs_hz"), ("radio", "fs_hz")),
+)
+#: a scenario's mission defaults that differ from a mission file's: its UEs are commercial ones
+#: by default (a clock sawtooth, whose mean is a range bias), so the estimator keeps a range bias
+SCENARIO_MISSION_DEFAULTS = (("noise", "estimate_bias", True),)
+
+_OLD_MISSION_TABLE = ("a scenario file is a mission file plus world sections: the keys of the former [mission] "
+                      "table are in [flight] (delta_m, altitude_m, budget_m, planner, ...), [noise] (sigma_gps_m, "
+                      "range_s0_m, gps_tau_s, estimate_bias) and [safety] (battery_rtl_pct); user positions are "
+                      "in [truth.<id>]")
 
 
-def _build(cls: type, data: dict, where: str) -> Any:
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ScenarioError(
-            f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(sorted(fields))}"
-        )
-    kwargs = {}
-    for name, f in fields.items():
-        if name in data:
-            kwargs[name] = _convert(data[name], hints[name], f"{where}.{name}" if where else name)
-        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise ScenarioError(f"{where or 'scenario'}: missing required key {name!r}")
-    return cls(**kwargs)
+def _mission_table(data: dict, world: World) -> dict:
+    """The mission file part of a scenario document, with the defaults its world gives."""
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items() if k not in WORLD_KEYS}
+    for (table, key), (wtable, wkey) in MISSION_DEFAULTS_FROM_WORLD:
+        if isinstance(out.setdefault(table, {}), dict):
+            out[table].setdefault(key, getattr(getattr(world, wtable), wkey))
+    for table, key, value in SCENARIO_MISSION_DEFAULTS:
+        if isinstance(out.setdefault(table, {}), dict):
+            out[table].setdefault(key, value)
+    safety = out.setdefault("safety", {})
+    if isinstance(safety, dict) and "battery_rtl_pct" in safety:
+        # a low-battery return threshold above the take-off floor raises the floor with it
+        safety.setdefault("battery_takeoff_min_pct", max(mc.SafetyConfig.battery_takeoff_min_pct,
+                                                         safety["battery_rtl_pct"]))
+    return out
+
+
+def _explain_unknown(cls: type, name: str) -> str | None:
+    if cls is mc.MissionConfig:
+        keys = sorted({f.name for f in dataclasses.fields(mc.MissionConfig)} | set(WORLD_KEYS))
+        return f"unknown key {name!r}; allowed here: {', '.join(keys)}"
+    if cls is mc.MissionUserConfig and name in ("east_m", "north_m", "up_m", "sawtooth_amplitude_m",
+                                                "sawtooth_period_s"):
+        return f"a user's truth is in [truth.<id>] (up_m is the user's ground_height_m); {_OLD_MISSION_TABLE}"
+    return None
 
 
 def _check(sc: Scenario, where: str) -> None:
-    def positive(path: str, v: float) -> None:
-        if not v > 0:
-            raise ScenarioError(f"{where}: {path} must be positive, got {v!r}")
-
-    if not sc.users:
-        raise ScenarioError(f"{where}: a scenario needs at least one user")
-    seen_id, seen_rnti = set(), set()
-    for u in sc.users:
-        if u.id in seen_id:
-            raise ScenarioError(f"{where}: duplicate user id {u.id!r}")
-        if u.rnti in seen_rnti:
-            raise ScenarioError(f"{where}: duplicate RNTI {u.rnti:#06x}")
-        if not 0 < u.rnti <= 0xFFEF:
-            raise ScenarioError(f"{where}: user {u.id!r} RNTI must be in 0x0001..0xFFEF, got {u.rnti:#x}")
-        if u.sawtooth_amplitude_m is not None and not u.sawtooth_amplitude_m >= 0:
-            raise ScenarioError(f"{where}: user {u.id!r} sawtooth_amplitude_m must be >= 0")
-        if u.sawtooth_period_s is not None:
-            positive(f"user {u.id!r} sawtooth_period_s", u.sawtooth_period_s)
-        seen_id.add(u.id)
-        seen_rnti.add(u.rnti)
-    if not -90 <= sc.origin.lat_deg <= 90 or not -180 <= sc.origin.lon_deg <= 180:
-        raise ScenarioError(f"{where}: origin lat/lon out of range: {sc.origin}")
+    """The checks across fields and sections (each number's own range is checked by
+    mission.schema.build, the mission's consistency by mission.config.validate_mission)."""
+    ids = [u.id for u in sc.mission.users]
+    for uid in ids:
+        if uid not in sc.world.truth:
+            raise schema.fail(where, "truth", sorted(sc.world.truth), f"user {uid!r} has no [truth.{uid}]",
+                              ScenarioError)
+    extra = sorted(set(sc.world.truth) - set(ids))
+    if extra:
+        raise schema.fail(where, f"truth.{extra[0]}", sc.world.truth[extra[0]], "no [[users]] entry has this id",
+                          ScenarioError)
     for i, b in enumerate(sc.buildings):
-        if len(b.footprint_enu_m) < 3 or any(len(p) != 2 for p in b.footprint_enu_m):
-            raise ScenarioError(f"{where}: buildings[{i}].footprint_enu_m needs >= 3 [east, north] points")
-        positive(f"buildings[{i}].height_m", b.height_m)
-    polys = [("geofence.polygon_enu_m", sc.geofence.polygon_enu_m)] + [
-        (f"geofence.no_fly_enu_m[{i}]", p) for i, p in enumerate(sc.geofence.no_fly_enu_m)
-    ]
-    for path, poly in polys:
-        if poly and (len(poly) < 3 or any(len(p) != 2 for p in poly)):
-            raise ScenarioError(f"{where}: {path} needs >= 3 [east, north] points")
-    positive("geofence.max_distance_m", sc.geofence.max_distance_m)
-    r = sc.radio
-    if r.mu not in (0, 1, 2, 3):
-        raise ScenarioError(f"{where}: radio.mu must be 0..3, got {r.mu}")
-    for path in ("fs_hz", "oversampling", "s0_m", "coverage_m", "ue_sawtooth_period_s"):
-        positive(f"radio.{path}", getattr(r, path))
-    if r.a_m < 0 or r.nlos_excess_mean_m < 0 or not r.ue_sawtooth_amplitude_m >= 0:
-        raise ScenarioError(f"{where}: radio.a_m, radio.nlos_excess_mean_m and radio.ue_sawtooth_amplitude_m "
-                            "must be >= 0")
-    v = sc.vehicle
-    for path in ("speed_mps", "climb_mps", "descent_mps", "accel_mps2", "battery_capacity_s"):
-        positive(f"vehicle.{path}", getattr(v, path))
-    if v.gps_sigma_m < 0 or not 0 < v.battery_start_pct <= 100:
-        raise ScenarioError(f"{where}: vehicle.gps_sigma_m must be >= 0 and battery_start_pct in (0, 100]")
-    if v.gps_tau_s < 0:
-        raise ScenarioError(f"{where}: vehicle.gps_tau_s must be >= 0, got {v.gps_tau_s!r}")
-    m = sc.mission
-    for path in ("delta_m", "altitude_m", "target_radius_m", "budget_m", "time_limit_s", "leg_max_m",
-                 "acceptance_m", "sigma_gps_m"):
-        positive(f"mission.{path}", getattr(m, path))
-    if not 0 <= m.alt_min_m <= m.altitude_m <= m.alt_max_m:
-        raise ScenarioError(
-            f"{where}: need 0 <= mission.alt_min_m <= mission.altitude_m <= mission.alt_max_m, got "
-            f"{m.alt_min_m}, {m.altitude_m}, {m.alt_max_m}"
-        )
-    if m.gps_tau_s is not None and not (isinstance(m.gps_tau_s, int | float) and 0 <= m.gps_tau_s < float("inf")):
-        raise ScenarioError(f"{where}: mission.gps_tau_s must be a number >= 0, got {m.gps_tau_s!r}")
-    if m.range_s0_m is not None and not m.range_s0_m > 0:
-        raise ScenarioError(f"{where}: mission.range_s0_m must be positive, got {m.range_s0_m!r}")
-    if not 0 <= m.battery_rtl_pct < 100:
-        raise ScenarioError(f"{where}: mission.battery_rtl_pct must be in [0, 100), got {m.battery_rtl_pct}")
+        if len(b.footprint_enu_m) < 3:
+            raise schema.fail(where, f"buildings[{i}].footprint_enu_m", b.footprint_enu_m,
+                              "needs >= 3 [east, north] points", ScenarioError)
+    for i, ev in enumerate(sc.faults.vehicle):
+        check_fault_event(ev, where, f"faults.vehicle[{i}]")
 
 
 def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
-    """Build and validate a :class:`Scenario` from a parsed TOML document."""
-    sc = _build(Scenario, data, "")
-    _check(sc, where)
-    return sc
-
-
-def resolve_scenario_path(name_or_path: str | Path) -> Path:
-    """A path as given, or the name of a bundled scenario (`paper` → sitl_scenarios/paper.toml)."""
-    p = Path(name_or_path)
-    if p.is_file():
-        return p
-    bundled = SCENARIO_DIR / (p.name if p.suffix == ".toml" else f"{p.name}.toml")
-    if bundled.is_file():
-        return bundled
-    names = ", ".join(sorted(q.stem for q in SCENARIO_DIR.glob("*.toml")))
-    raise ScenarioError(f"no scenario file {str(name_or_path)!r}; bundled scenarios: {names}")
-
-
-def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Read a scenario file (or a bundled scenario by name) strictly."""
-    path = resolve_scenario_path(name_or_path)
+    """Build and validate a :class:`Scenario` from a parsed TOML document: its world sections
+    (:data:`WORLD_KEYS`) and a mission file (mission.config, checked as `uavloc fly --mission`
+    checks one, with the defaults :data:`MISSION_DEFAULTS_FROM_WORLD` gives); `where` (the file)
+    names the source in every message."""
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{where}: a scenario is a TOML document")
+    if "mission" in data:
+        raise schema.fail(where, "mission", data["mission"], _OLD_MISSION_TABLE, ScenarioError)
+    world = schema.build(World, {k: v for k, v in data.items() if k in WORLD_KEYS}, where, error=ScenarioError)
+    mission = schema.build(mc.MissionConfig, _mission_table(data, world), where, error=ScenarioError,
+                           explain=_explain_unknown)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{path}: not valid TOML: {exc}") from exc
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read: {exc}") from exc
-    return scenario_from_dict(data, str(path))
+        mc.validate_mission(mission, where)
+    except MissionConfigError as exc:
+        raise ScenarioError(str(exc)) from None
+    sc = Scenario(mission, world)
+    _check(sc, where)
+    return _resolve_commercial_ues(sc)
+
+
+def _resolve_commercial_ues(sc: Scenario) -> Scenario:
+    """`sc` with every user's absent clock sawtooth set to the radio's commercial-UE one."""
+    r = sc.radio
+    truth = {uid: dataclasses.replace(
+        t, sawtooth_amplitude_m=r.ue_sawtooth_amplitude_m if t.sawtooth_amplitude_m is None else t.sawtooth_amplitude_m,
+        sawtooth_period_s=r.ue_sawtooth_period_s if t.sawtooth_period_s is None else t.sawtooth_period_s)
+        for uid, t in sc.world.truth.items()}
+    return dataclasses.replace(sc, world=dataclasses.replace(sc.world, truth=truth))
+
+
+def user_tables(users: list[dict]) -> dict:
+    """The `[[users]]` (mission) and `[truth.<id>]` (world) tables of a scenario document for
+    simulated users given one table each: id, rnti, east_m, north_m, up_m (its ground height, 0
+    when absent), sawtooth_amplitude_m, sawtooth_period_s (optional). For code that writes worlds
+    (campaign families, tests, benchmarks); the keys are checked when the document is read."""
+    truth_keys = ("east_m", "north_m", "sawtooth_amplitude_m", "sawtooth_period_s")
+    mission = [{"id": u["id"], "rnti": u["rnti"], **({"ground_height_m": u["up_m"]} if "up_m" in u else {}),
+                **{k: v for k, v in u.items() if k not in (*truth_keys, "id", "rnti", "up_m")}} for u in users]
+    truth = {u["id"]: {k: u[k] for k in truth_keys if k in u} for u in users}
+    return {"users": mission, "truth": truth}
+
+
+def bundled_scenario_names() -> list[str]:
+    """The names of the scenario files shipped in sitl_scenarios/ (`paper`, ...)."""
+    return sorted(q.stem for q in SCENARIO_DIR.glob("*.toml"))
+
+
+def resolve_scenario_path(name_or_path: str | Path, base_dir: Path | None = None) -> Path:
+    """The file of a scenario: a bare name without a folder or suffix (`paper`) is a bundled
+    scenario (sitl_scenarios/paper.toml); anything else (`nodir/paper.toml`, `paper.toml`) is a
+    path, relative to base_dir when given, and must exist: never the bundled file of the same name."""
+    text = str(name_or_path)
+    p = Path(text)
+    bare = p.parent == Path(".") and not p.suffix and "/" not in text and "\\" not in text
+    names = ", ".join(bundled_scenario_names())
+    if bare:
+        bundled = SCENARIO_DIR / f"{p.name}.toml"
+        if bundled.is_file():
+            return bundled
+        raise ScenarioError(f"no bundled scenario {text!r} (a file is given by its path, e.g. {text}.toml "
+                            f"or ./{text}); bundled scenarios: {names}")
+    path = p if base_dir is None or p.is_absolute() else base_dir / p
+    if not path.is_file():
+        raise ScenarioError(f"{path}: no such scenario file (a bundled scenario is given by its bare name; "
+                            f"bundled scenarios: {names})")
+    return path
+
+
+def load_scenario(name_or_path: str | Path, base_dir: Path | None = None) -> Scenario:
+    """Read a scenario file (or a bundled scenario by name, :func:`resolve_scenario_path`) strictly."""
+    path = resolve_scenario_path(name_or_path, base_dir)
+    return scenario_from_dict(schema.read_toml(path, "scenario file", ScenarioError), str(path))
+
+
+def controller_from_scenario(scenario: Scenario, vehicle: Any, gnb: Any, log_path: str | Path, *,
+                             seed: int | None = None, external_vehicle: bool = False, **kwargs: Any) -> Any:
+    """A :class:`mission.controller.MissionController` for a simulation scenario: its mission
+    (`scenario.mission_config(external_vehicle)`: an external autopilot's GPS error is not the
+    built-in vehicle's) flown by `mission.controller.controller_from_mission`, with the planning
+    constraints that also keep clear of the scenario's buildings. seed: default the scenario's;
+    kwargs: controller_from_mission's (planner, time_scale, truth, header_config, params,
+    buildings, ControllerConfig overrides)."""
+    from mission.controller import controller_from_mission
+
+    header = {"scenario": scenario.name, **(kwargs.pop("header_config", None) or {})}
+    return controller_from_mission(
+        scenario.mission_config(external_vehicle), vehicle, gnb, log_path,
+        seed=scenario.seed if seed is None else seed, header_config=header,
+        constraints=lambda home: scenario.planning_constraints(), **kwargs)
+
+
+def flight_mission(name_or_path: str | Path) -> mc.MissionConfig:
+    """The mission part of a scenario as a real autopilot flies it (`uavloc fly --scenario`, found
+    through the `uavloc.scenarios` entry point's module): no true positions, and the GPS error
+    model left to the flight (an external autopilot's is not the built-in vehicle's)."""
+    return load_scenario(name_or_path).mission_config(external_vehicle=True)
 
 
 def bundled_scenarios() -> list[Path]:

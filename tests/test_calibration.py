@@ -154,14 +154,14 @@ def test_sawtooth_model_separates_the_clock_drift_from_sigma():
     is the sawtooth's mean A/2."""
     from estimator.ranging import range_m_from_raw
     from sitl_scenarios.radio import RadioModel
-    from sitl_scenarios.scenario import scenario_from_dict
+    from sitl_scenarios.scenario import scenario_from_dict, user_tables
 
     amps = (6.0, 10.0)
     sc = scenario_from_dict({
         "name": "cal-saw", "seed": 0,
-        "users": [{"id": f"ue{j + 1}", "rnti": 0x4601 + j, "east_m": float(USERS_ENU[j, 0]),
-                   "north_m": float(USERS_ENU[j, 1]), "up_m": float(USERS_ENU[j, 2]),
-                   "sawtooth_amplitude_m": amps[j], "sawtooth_period_s": 17.0 + 6 * j} for j in range(2)],
+        **user_tables([{"id": f"ue{j + 1}", "rnti": 0x4601 + j, "east_m": float(USERS_ENU[j, 0]),
+                        "north_m": float(USERS_ENU[j, 1]), "up_m": float(USERS_ENU[j, 2]),
+                        "sawtooth_amplitude_m": amps[j], "sawtooth_period_s": 17.0 + 6 * j} for j in range(2)]),
         "radio": {"s0_m": 2.0, "a_m": 0.2, "b_per_m": 0.008, "coverage_m": 3000.0, "nlos_excess_mean_m": 0.0},
     })
     radio = RadioModel(sc, np.random.default_rng(1))

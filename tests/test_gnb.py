@@ -14,7 +14,7 @@ from estimator.ranging import C_MPS, one_way_m_per_ta_step
 from mission.gnb import GnbClient, GnbConfig, LogFollower, OaiGnbClient, parse_host_port
 from mission.oai import PROMPT_GNB, format_msg2_line, parse_force_reestab
 from sitl_scenarios.gnb import GnbFaults, SimulatedGnb, static_position
-from sitl_scenarios.scenario import bundled_scenarios, load_scenario, scenario_from_dict
+from sitl_scenarios.scenario import bundled_scenarios, load_scenario, scenario_from_dict, user_tables
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
@@ -37,7 +37,7 @@ IN_COVERAGE = [0x1234, 0x4601, 0xB0B2]
 
 
 def scenario(users=None, faults=None, **radio):
-    data = {"name": "gnb-test", "seed": 7, "users": users or USERS,
+    data = {"name": "gnb-test", "seed": 7, **user_tables(users or USERS),
             "radio": {"coverage_m": 1000.0, "s0_m": 1.0, "ue_sawtooth_amplitude_m": 0.0, **radio}}
     if faults is not None:
         data["faults"] = faults
@@ -483,7 +483,7 @@ def test_server_not_running_is_a_clear_error():
 
 
 def test_fault_rates_from_the_scenario_faults_table():
-    sc = scenario(faults={"gnb": {"malformed_rate": 0.3, "drop_rate": 0.2}, "vehicle": {"x": 1}})
+    sc = scenario(faults={"gnb": {"malformed_rate": 0.3, "drop_rate": 0.2}, "vehicle": []})
     assert GnbFaults.from_scenario(sc) == GnbFaults(malformed_rate=0.3, drop_rate=0.2)
 
     async def body():
@@ -739,7 +739,7 @@ def test_every_bundled_scenario_serves_its_users(path):
     sc = load_scenario(path)
 
     async def body():
-        async with SimulatedGnb(sc, static_position((0.0, 0.0, sc.mission.altitude_m)), port=0,
+        async with SimulatedGnb(sc, static_position((0.0, 0.0, sc.mission.flight.altitude_m)), port=0,
                                 faults=GnbFaults()) as gnb, OaiGnbClient(client_config(gnb)) as c:
             rntis = await c.discover()
             return rntis, await c.measure_many(rntis)

@@ -18,7 +18,7 @@ from pymavlink import mavutil
 from estimator.geodesy import Origin
 from mission.gnb import GnbConfig, OaiGnbClient
 from sitl_scenarios.gnb import MavlinkPositionSource, SimulatedGnb
-from sitl_scenarios.scenario import scenario_from_dict
+from sitl_scenarios.scenario import scenario_from_dict, user_tables
 from tests.procs import stop_process
 
 HOME = Origin(47.397742, 8.545594, 488.0)
@@ -87,7 +87,7 @@ def test_follower_home_position_message_sets_origin():
 def test_gnb_answers_from_the_followed_vehicle_position():
     port = free_udp_port()
     sc = scenario_from_dict({"name": "f", "seed": 2, "radio": {"s0_m": 0.5, "ue_sawtooth_amplitude_m": 0.0},
-                             "users": [{"id": "a", "rnti": "0x4601", "east_m": 200.0, "north_m": 0.0}]})
+                             **user_tables([{"id": "a", "rnti": "0x4601", "east_m": 200.0, "north_m": 0.0}])})
 
     async def body():
         async with MavlinkPositionSource(f"udpin:127.0.0.1:{port}") as src, \

@@ -67,13 +67,13 @@ def pymavlink_fixes(path):
 
 def radio_model(origin: Origin, seed: int = 11):
     from sitl_scenarios.radio import RadioModel
-    from sitl_scenarios.scenario import scenario_from_dict
+    from sitl_scenarios.scenario import scenario_from_dict, user_tables
 
     sc = scenario_from_dict({
         "name": "vtol-import",
         "origin": origin.to_dict(),
-        "users": [{"id": f"ue{k + 1}", "rnti": RNTIS[k], "east_m": float(e), "north_m": float(n), "up_m": float(u)}
-                  for k, (e, n, u) in enumerate(USERS_ENU)],
+        **user_tables([{"id": f"ue{k + 1}", "rnti": RNTIS[k], "east_m": float(e), "north_m": float(n),
+                        "up_m": float(u)} for k, (e, n, u) in enumerate(USERS_ENU)]),
         "radio": {"mu": 1, "fs_hz": 46.08e6, "oversampling": 8, "s0_m": 1.5, "coverage_m": 2000.0,
                   "ue_sawtooth_amplitude_m": 0.0},
     })

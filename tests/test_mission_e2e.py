@@ -92,8 +92,8 @@ def test_simulated_mission_localizes_every_user_and_replays_to_the_same_estimate
     assert not final.armed and not final.in_air
     assert result.measurements >= 20 and result.keyframes >= 20
     err = result.error_m()
-    assert err is not None and np.all(err <= sc.mission.target_radius_m), err
-    assert np.all(result.estimate.error_bound_95_m() <= sc.mission.target_radius_m)
+    assert err is not None and np.all(err <= sc.mission.flight.target_radius_m), err
+    assert np.all(result.estimate.error_bound_95_m() <= sc.mission.flight.target_radius_m)
     kinds = _kinds(log_path)
     for kind in ("home", "arm", "takeoff", "stop", "rtl", "landed", "end"):
         assert kind in kinds, kind
@@ -203,7 +203,7 @@ def test_planner_waypoint_outside_the_geofence_is_refused_and_logged(tmp_path):
     sc = load_scenario("paper")
     log_path = tmp_path / "mission.jsonl"
     fence = np.asarray(sc.geofence.polygon_enu_m)
-    bad = np.array([fence[:, 0].max() + 50.0, 0.0, sc.mission.altitude_m])
+    bad = np.array([fence[:, 0].max() + 50.0, 0.0, sc.mission.flight.altitude_m])
 
     async def fly():
         async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower") as sim:
@@ -247,7 +247,7 @@ def test_planner_waypoint_outside_the_geofence_is_refused_and_logged(tmp_path):
 @pytest.mark.slow
 def test_low_battery_returns_home(tmp_path):
     sc = load_scenario("paper")
-    sc = replace(sc, mission=replace(sc.mission, battery_rtl_pct=30.0))
+    sc = replace(sc, mission=replace(sc.mission, safety=replace(sc.mission.safety, battery_rtl_pct=30.0)))
     log_path = tmp_path / "mission.jsonl"
 
     async def fly():

@@ -56,11 +56,11 @@ def test_three_user_mission_on_px4_reaches_the_target_and_replays(px4, tmp_path)
     result, seen = asyncio.run(fly())
     assert result.status == STATUS_TARGET, (result.reason, result.events[-10:])
     err = result.error_m()
-    assert err is not None and np.all(err <= sc.mission.target_radius_m), err
+    assert err is not None and np.all(err <= sc.mission.flight.target_radius_m), err
     # the stop rule judged a batch refresh (estimator.refresh); the final answer is the cold batch
     # solve over every keyframe (the last few included), whose 95 % bound may come out a few per
     # cent either side (seen: 4.0016 m for 4 m)
-    assert np.all(result.estimate.error_bound_95_m() <= 1.1 * sc.mission.target_radius_m)
+    assert np.all(result.estimate.error_bound_95_m() <= 1.1 * sc.mission.flight.target_radius_m)
     assert result.rtl_sent and result.landed
     # PX4's side: it flew RTL home and landed there
     assert "RETURN_TO_LAUNCH" in seen.modes, seen.modes

@@ -9,7 +9,7 @@ import pytest
 
 from estimator.ranging import C_MPS, range_m_from_raw, ta_step_s
 from sitl_scenarios.radio import RadioModel, line_of_sight_blocked, point_in_polygon
-from sitl_scenarios.scenario import BuildingConfig, RadioConfig, scenario_from_dict
+from sitl_scenarios.scenario import BuildingConfig, RadioConfig, scenario_from_dict, user_tables
 from uavloc.errors import ScenarioError, SimulatorError
 
 SQUARE = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]
@@ -20,7 +20,7 @@ def make_scenario(radio: dict | None = None, users: list[dict] | None = None, bu
     data = {
         "name": "t",
         "seed": 3,
-        "users": users or [{"id": "a", "rnti": 0x4601, "east_m": 0.0, "north_m": 0.0}],
+        **user_tables(users or [{"id": "a", "rnti": 0x4601, "east_m": 0.0, "north_m": 0.0}]),
         # ideal UEs unless a test asks for a clock sawtooth (commercial UEs are the default)
         "radio": {"ue_sawtooth_amplitude_m": 0.0, **(radio or {})},
     }
@@ -177,11 +177,11 @@ def test_radio_config_defaults_are_used():
 
 
 def test_users_are_commercial_ues_with_a_clock_sawtooth_by_default():
-    sc = scenario_from_dict({"name": "t", "seed": 3, "users": [
+    sc = scenario_from_dict({"name": "t", "seed": 3, **user_tables([
         {"id": "a", "rnti": 0x4601, "east_m": 0.0, "north_m": 0.0},
         {"id": "b", "rnti": 0x4602, "east_m": 5.0, "north_m": 0.0, "sawtooth_amplitude_m": 0.0},
         {"id": "c", "rnti": 0x4603, "east_m": 9.0, "north_m": 0.0, "sawtooth_amplitude_m": 4.0,
-         "sawtooth_period_s": 7.0}]})
+         "sawtooth_period_s": 7.0}])})
     model = RadioModel(sc, np.random.default_rng(1))
     assert model.sawtooth_params(0) == (RadioConfig().ue_sawtooth_amplitude_m, RadioConfig().ue_sawtooth_period_s)
     assert model.sawtooth_params(1)[0] == 0.0 and model.sawtooth_m(1, 3.0) == 0.0

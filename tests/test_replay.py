@@ -13,19 +13,19 @@ from mission.cli import main
 from mission.log import read_mission_log
 from mission.replay import ReplayOptions, build_keyframes, replay, result_document
 from sitl_scenarios.example_log import generate
-from sitl_scenarios.scenario import load_scenario, scenario_from_dict
+from sitl_scenarios.scenario import load_scenario, scenario_from_dict, user_tables
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "sitl_scenarios" / "data" / "example_paper.jsonl"
 
 THREE_USERS = {
     "name": "three",
     "seed": 7,
-    "users": [
+    **user_tables([
         {"id": "a", "rnti": 0x4601, "east_m": 40.0, "north_m": 10.0},
         {"id": "b", "rnti": 0x4602, "east_m": -20.0, "north_m": 50.0},
         {"id": "c", "rnti": 0x4603, "east_m": 10.0, "north_m": -45.0, "up_m": 2.0},
-    ],
-    "mission": {"altitude_m": 35.0},
+    ]),
+    "flight": {"altitude_m": 35.0},
 }
 
 

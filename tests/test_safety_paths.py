@@ -115,7 +115,7 @@ def test_refused_waypoints_in_a_row_return_home(tmp_path):
     sc = load_scenario("paper")
     log_path = tmp_path / "mission.jsonl"
     fence = np.asarray(sc.geofence.polygon_enu_m)
-    bad = np.array([fence[:, 0].max() + 50.0, 0.0, sc.mission.altitude_m])
+    bad = np.array([fence[:, 0].max() + 50.0, 0.0, sc.mission.flight.altitude_m])
 
     async def fly():
         async with SimulatedMission(sc, log_path, speedup=SPEEDUP, planner="lawnmower",
@@ -148,8 +148,8 @@ class RecordingPlanner:
 def test_the_planner_is_given_the_energy_the_battery_drain_allows(tmp_path):
     capacity_s = 300.0  # a battery that drains 1 % every 3 s of flight
     sc = load_scenario("paper")
-    sc = replace(sc, vehicle=replace(sc.vehicle, battery_capacity_s=capacity_s),
-                 mission=replace(sc.mission, budget_m=400.0))
+    sc = replace(sc, world=replace(sc.world, vehicle=replace(sc.vehicle, battery_capacity_s=capacity_s)),
+                 mission=replace(sc.mission, flight=replace(sc.mission.flight, budget_m=400.0)))
     log_path = tmp_path / "mission.jsonl"
 
     async def fly():
@@ -178,7 +178,8 @@ def test_the_planner_is_given_the_energy_the_battery_drain_allows(tmp_path):
 @pytest.mark.sim
 def test_no_take_off_below_the_take_off_battery_minimum(tmp_path):
     sc = load_scenario("paper")
-    sc = replace(sc, vehicle=replace(sc.vehicle, battery_start_pct=40.0))  # the mission asks for >= 50 %
+    # the mission asks for >= 50 %
+    sc = replace(sc, world=replace(sc.world, vehicle=replace(sc.vehicle, battery_start_pct=40.0)))
     log_path = tmp_path / "mission.jsonl"
 
     async def fly():

@@ -17,7 +17,8 @@ from uavloc.errors import ScenarioError
 
 BASE = {
     "name": "t",
-    "users": [{"id": "a", "rnti": "0x4601", "east_m": 10.0, "north_m": 5.0}],
+    "users": [{"id": "a", "rnti": "0x4601"}],
+    "truth": {"a": {"east_m": 10.0, "north_m": 5.0}},
     "radio": {"mu": 1},
 }
 
@@ -40,7 +41,7 @@ def test_every_bundled_scenario_loads(path):
 def test_hex_rnti_and_defaults():
     sc = scenario_from_dict(BASE)
     assert sc.users[0].rnti == 0x4601
-    assert sc.mission.delta_m == 2.0
+    assert sc.mission.flight.delta_m == 2.0
     assert sc.noise_model().s0_m == sc.radio.s0_m
 
 
@@ -48,15 +49,20 @@ def test_hex_rnti_and_defaults():
     ("data", "match"),
     [
         (with_(["bogus"], 1), "unknown key.*'bogus'"),
-        (with_(["radio", "muu"], 1), r"radio: unknown key.*'muu'"),
-        (with_(["users", 0, "colour"], "red"), r"users\[0\]: unknown key"),
+        (with_(["radio", "muu"], 1), r"'radio.muu'.*unknown key"),
+        (with_(["users", 0, "colour"], "red"), r"users\[0\].colour'.*unknown key"),
         (with_(["radio", "mu"], 7), "radio.mu"),
-        (with_(["radio", "fs_hz"], "fast"), "radio.fs_hz: expected a number"),
+        (with_(["radio", "fs_hz"], "fast"), "radio.fs_hz' = 'fast': expected a number"),
         (with_(["radio", "fs_hz"], float("nan")), "finite"),
         (with_(["users", 0, "rnti"], "zz"), "expected an integer"),
-        (with_(["mission", "altitude_m"], 500.0), "alt_max_m"),
+        (with_(["flight", "altitude_m"], 500.0), "alt_max_m"),
+        (with_(["mission"], {"delta_m": 2.0}), r"'mission'.*a mission file plus world sections.*\[flight\]"),
+        (with_(["users", 0, "east_m"], 1.0), r"'users\[0\].east_m'.*truth"),
+        (with_(["truth", "b"], {"east_m": 1.0, "north_m": 1.0}), r"'truth.b'.*no \[\[users\]\] entry"),
+        (with_(["truth"], {}), r"user 'a' has no \[truth.a\]"),
         (with_(["users"], []), "at least one user"),
-        ({"name": "x"}, "missing required key 'users'"),
+        ({"name": "x", "truth": {}}, "missing required key 'users'"),
+        ({"name": "x", "users": [{"id": "a", "rnti": 1}]}, "missing required key 'truth'"),
         (with_(["buildings"], [{"footprint_enu_m": [[0, 0], [1, 1]], "height_m": 5.0}]), ">= 3"),
     ],
 )
@@ -86,18 +92,18 @@ def test_invalid_toml_is_a_scenario_error(tmp_path):
 
 def test_file_round_trip(tmp_path):
     p = tmp_path / "s.toml"
-    p.write_text('name = "s"\n[[users]]\nid = "u"\nrnti = 17921\neast_m = 1\nnorth_m = 2\n')
+    p.write_text('name = "s"\n[[users]]\nid = "u"\nrnti = 17921\n[truth.u]\neast_m = 1\nnorth_m = 2\n')
     assert tomllib.loads(p.read_text())["name"] == "s"
     assert load_scenario(p).users[0].east_m == 1.0
 
 
 def test_estimator_noise_can_differ_from_the_radio_truth():
-    sc = scenario_from_dict(with_(["mission", "range_s0_m"], 4.6))
+    sc = scenario_from_dict(with_(["noise", "range_s0_m"], 4.6))
     assert sc.noise_model().s0_m == 4.6
     assert sc.radio_noise_model().s0_m == sc.radio.s0_m == 3.0
     assert scenario_from_dict(BASE).noise_model().s0_m == 3.0
-    with pytest.raises(ScenarioError, match="range_s0_m must be positive"):
-        scenario_from_dict(with_(["mission", "range_s0_m"], 0.0))
+    with pytest.raises(ScenarioError, match="range_s0_m' = 0.0: must be positive"):
+        scenario_from_dict(with_(["noise", "range_s0_m"], 0.0))
 
 
 def test_an_external_autopilot_does_not_get_the_builtin_vehicles_gps_drift():
@@ -110,5 +116,5 @@ def test_an_external_autopilot_does_not_get_the_builtin_vehicles_gps_drift():
     assert sc.noise_model(external_vehicle=True).gps_tau_s is None
     assert sc.mission_config(external_vehicle=True).noise.gps_tau_s is None
     assert "gps_tau_s" not in sc.mission_config(external_vehicle=True).noise.header_noise()
-    given = scenario_from_dict(with_(["mission", "gps_tau_s"], 150.0))
+    given = scenario_from_dict(with_(["noise", "gps_tau_s"], 150.0))
     assert given.noise_model(external_vehicle=True).gps_tau_s == given.noise_model().gps_tau_s == 150.0

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from mission.safety import SafetyGate, SafetyLimits
-from planner.types import PlanningConstraints
 from sitl_scenarios.radio import RadioModel, line_of_sight_blocked
 from sitl_scenarios.scenario import bundled_scenarios, load_scenario
 
@@ -22,24 +21,24 @@ def test_the_issue_asks_for_these_scenarios():
 @pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: p.stem)
 def test_bundled_scenario_is_consistent(path):
     sc = load_scenario(path)
-    gate = SafetyGate(SafetyLimits.from_scenario(sc))
-    cruise = np.array([0.0, 0.0, sc.mission.altitude_m])
+    gate = SafetyGate(SafetyLimits.from_mission(sc.mission_config(), sc.origin_geo))
+    cruise = np.array([0.0, 0.0, sc.mission.flight.altitude_m])
     assert gate.position_violations(cruise) == []
     for u in sc.users:
         # every user lies inside the fence, so the UAV may fly over it
-        assert gate.position_violations(np.array([u.east_m, u.north_m, sc.mission.altitude_m])) == [], u.id
-    constraints = PlanningConstraints.from_scenario(sc)
+        assert gate.position_violations(np.array([u.east_m, u.north_m, sc.mission.flight.altitude_m])) == [], u.id
+    constraints = sc.planning_constraints()
     assert constraints.alt_min_m <= constraints.cruise_alt_m <= constraints.alt_max_m
     radio = RadioModel(sc, np.random.default_rng(sc.seed))
     # the user closest to home answers from overhead
     k = int(np.argmin([np.hypot(u.east_m, u.north_m) for u in sc.users]))
     u = sc.users[k]
-    assert radio.measure(k, np.array([u.east_m, u.north_m, sc.mission.altitude_m]), 0.0) is not None
+    assert radio.measure(k, np.array([u.east_m, u.north_m, sc.mission.flight.altitude_m]), 0.0) is not None
 
 
 def test_three_users_scenario_has_nlos_from_some_directions_only():
     sc = load_scenario("three_users_nlos")
-    alt = sc.mission.altitude_m
+    alt = sc.mission.flight.altitude_m
     for u in sc.users:
         user = np.array([u.east_m, u.north_m, u.up_m])
         ring = [np.array([u.east_m + 60 * np.cos(a), u.north_m + 60 * np.sin(a), alt])
@@ -59,6 +58,4 @@ def test_edge_of_coverage_user_is_out_of_reach_from_part_of_the_fence():
 
 def test_sawtooth_scenario_has_a_strong_clock_drift():
     sc = load_scenario("clock_sawtooth")
-    amps = [sc.radio.ue_sawtooth_amplitude_m if u.sawtooth_amplitude_m is None else u.sawtooth_amplitude_m
-            for u in sc.users]
-    assert max(amps) >= 3 * sc.radio.s0_m
+    assert max(u.sawtooth_amplitude_m for u in sc.users) >= 3 * sc.radio.s0_m

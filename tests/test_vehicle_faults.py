@@ -115,12 +115,13 @@ def test_scheduled_faults_from_scenario_table() -> None:
     ("table", "match"),
     [
         ({"vehicle": {"kind": "gps_loss"}}, "expected a list"),
-        ({"vehicle": [{"kind": "meteor", "at_s": 1.0}]}, "kind must be one of"),
+        ({"vehicle": [{"kind": "meteor", "at_s": 1.0}]}, r"vehicle\[0\].kind' = 'meteor': must be one of"),
         ({"vehicle": [{"kind": "gps_loss", "at_s": 1.0, "durration_s": 3.0}]}, "unknown key"),
         ({"vehicle": [{"kind": "gps_loss"}]}, "at_s"),
         ({"vehicle": [{"kind": "link_pause", "at_s": 1.0}]}, "positive duration"),
         ({"vehicle": [{"kind": "low_battery", "at_s": 1.0, "battery_pct": 120.0}]}, "battery_pct"),
-        ({"vehicle": [{"kind": "gps_loss", "at_s": "soon"}]}, "finite number"),
+        ({"vehicle": [{"kind": "gps_loss", "at_s": "soon"}]}, "at_s' = 'soon': expected a number"),
+        ({"vehicle": [{"kind": "gps_loss", "at_s": float("inf")}]}, "finite number"),
     ],
 )
 def test_bad_fault_tables_are_scenario_errors(table: dict, match: str) -> None:

@@ -206,7 +206,7 @@ def test_the_missions_log_header_carries_the_scenarios_area(live_mission):
     ring = np.array(h.geofence)
     back = h.origin.lla_to_enu(ring[:, 0], ring[:, 1], h.origin.alt_m)[:, :2]
     np.testing.assert_allclose(back, sc.geofence.polygon_enu_m, atol=0.01)
-    assert h.altitude_band_m == {"min_m": sc.mission.alt_min_m, "max_m": sc.mission.alt_max_m}
+    assert h.altitude_band_m == {"min_m": sc.mission.flight.alt_min_m, "max_m": sc.mission.flight.alt_max_m}
     assert h.max_distance_m == sc.geofence.max_distance_m and h.buildings == [] and h.no_fly_zones == []
 
 

@@ -3,6 +3,7 @@ found (DESIGN.md §7, §11). Plain data, no I/O."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -10,7 +11,9 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.types import Estimate
+from mission.config import FlightConfig, SafetyConfig
 from mission.result import horizontal_error_m, user_entries_of_estimate
+from mission.schema import like, twin_of
 
 CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
     "CONNECT", "PREFLIGHT", "TAKEOFF", "SURVEY", "RETURN", "LANDED", "ABORT")
@@ -64,51 +67,46 @@ class ControllerConfig:
     battery_takeoff_min_pct: no take-off below this charge [%].
     """
 
-    delta_m: float = 2.0
-    altitude_m: float = 30.0
-    target_radius_m: float = 2.0
-    budget_m: float = 2000.0
-    time_limit_s: float = 1200.0
-    acceptance_m: float = 2.0
-    speed_mps: float = 10.0
-    climb_mps: float = 3.0
-    descent_mps: float = 1.5
+    delta_m: float = like(FlightConfig, "delta_m")
+    altitude_m: float = like(FlightConfig, "altitude_m")
+    target_radius_m: float = like(FlightConfig, "target_radius_m")
+    budget_m: float = like(FlightConfig, "budget_m")
+    time_limit_s: float = like(FlightConfig, "time_limit_s")
+    acceptance_m: float = like(FlightConfig, "acceptance_m")
+    speed_mps: float = like(FlightConfig, "cruise_speed_mps")
+    climb_mps: float = like(FlightConfig, "climb_mps")
+    descent_mps: float = like(FlightConfig, "descent_mps")
     time_scale: float = 1.0
     connect_timeout_s: float = 30.0
     ready_timeout_s: float = 60.0
-    link_timeout_s: float = 3.0
-    link_lost_wait_s: float = 10.0
-    gnb_lost_wait_s: float = 20.0
+    link_timeout_s: float = like(SafetyConfig, "link_timeout_s")
+    link_lost_wait_s: float = like(SafetyConfig, "link_lost_wait_s")
+    gnb_lost_wait_s: float = like(SafetyConfig, "gnb_lost_wait_s")
     gnb_timeout_s: float = 2.0
     telemetry_log_hz: float = 5.0
     status_interval_s: float = 2.0
-    max_refusals: int = 3
-    alt_margin_m: float = 5.0
-    breach_confirm_fixes: int = 3
+    max_refusals: int = like(SafetyConfig, "max_refusals")
+    alt_margin_m: float = like(SafetyConfig, "alt_margin_m")
+    breach_confirm_fixes: int = like(SafetyConfig, "breach_confirm_fixes")
     position_smooth_s: float = 1.0
     estimator_mode: str = "process"
-    battery_takeoff_min_pct: float = 0.0
+    # no take-off floor unless a mission file sets one (from_mission)
+    battery_takeoff_min_pct: float = like(SafetyConfig, "battery_takeoff_min_pct", default=0.0)
 
     @classmethod
     def from_mission(cls, mission, **overrides) -> ControllerConfig:
-        """From a :class:`mission.config.MissionConfig` (its flight, safety and gNB sections; the
-        per-measurement timeout is `mission.gnb.measure_timeout_s()`); overrides: any field."""
-        f, s = mission.flight, mission.safety
-        kw = dict(delta_m=f.delta_m, altitude_m=f.altitude_m, target_radius_m=f.target_radius_m,
-                  budget_m=f.budget_m, time_limit_s=f.time_limit_s, acceptance_m=f.acceptance_m,
-                  speed_mps=f.cruise_speed_mps, climb_mps=f.climb_mps, descent_mps=f.descent_mps,
-                  link_timeout_s=s.link_timeout_s, link_lost_wait_s=s.link_lost_wait_s,
-                  gnb_lost_wait_s=s.gnb_lost_wait_s, max_refusals=s.max_refusals,
-                  alt_margin_m=s.alt_margin_m, breach_confirm_fixes=s.breach_confirm_fixes,
-                  gnb_timeout_s=mission.gnb.measure_timeout_s(),
-                  battery_takeoff_min_pct=s.battery_takeoff_min_pct)
+        """From a :class:`mission.config.MissionConfig` (the fields of its flight and safety tables
+        that :data:`FROM_MISSION` names; the per-measurement timeout is
+        `mission.gnb.measure_timeout_s()`); overrides: any field."""
+        kw = {name: getattr(getattr(mission, table), key) for name, (table, key) in FROM_MISSION.items()}
+        kw["gnb_timeout_s"] = mission.gnb.measure_timeout_s()
         kw.update(overrides)
         return cls(**kw)
 
-    @classmethod
-    def from_scenario(cls, sc, **overrides) -> ControllerConfig:
-        """A simulation scenario's: `from_mission(sc.mission_config())`."""
-        return cls.from_mission(sc.mission_config(), **overrides)
+
+#: ControllerConfig field → (mission file table, key) it is taken from (its twin, mission.schema.like)
+FROM_MISSION = {f.name: ({FlightConfig: "flight", SafetyConfig: "safety"}[twin[0]], twin[1])
+                for f in dataclasses.fields(ControllerConfig) if (twin := twin_of(f)) is not None}
 
 
 @dataclass

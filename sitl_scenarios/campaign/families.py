@@ -28,15 +28,19 @@ for the clock parameters; integers for counts, both ends included).
 from __future__ import annotations
 
 import math
+import typing
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from sitl_scenarios.scenario import MissionConfig, Scenario, _build, scenario_from_dict
+from mission import schema
+from mission.config import MissionConfig, setting_tables
+from sitl_scenarios.scenario import Scenario, scenario_from_dict, user_tables
 from uavloc.errors import ScenarioError
 
-#: the mission every family member flies unless `[families.mission]` says otherwise
+#: the mission every family member flies unless `[families.mission]` says otherwise: settings of a
+#: mission file's [flight], [noise], [gnb] and [safety] by their key alone (mission.config.setting_tables)
 DEFAULT_MISSION = {"delta_m": 2.0, "altitude_m": 30.0, "alt_min_m": 15.0, "alt_max_m": 80.0, "leg_max_m": 60.0,
                    "budget_m": 3000.0, "target_radius_m": 0.6, "sigma_gps_m": 1.0}
 
@@ -89,8 +93,9 @@ def _range(value: Any, key: str) -> tuple[Any, Any]:
 
 def validate_family(fam: FamilySpec, where: str) -> None:
     """Raise ScenarioError naming the key of the first bad parameter."""
-    if not fam.name.strip():
-        raise ScenarioError(f"{where}.name must not be empty")
+    if not schema.SAFE_NAME.fullmatch(fam.name):
+        raise ScenarioError(f"{where}.name {fam.name!r}: one word of letters, digits, '_', '-' and '.' "
+                            "(it names the family's scenarios and its condition)")
     if not 1 <= fam.count <= 100_000:
         raise ScenarioError(f"{where}.count must be in 1..100000, got {fam.count}")
     if fam.seed < 0:
@@ -104,7 +109,11 @@ def validate_family(fam: FamilySpec, where: str) -> None:
     for key in ("max_distance_m", "range_s0_m", "speed_mps"):
         if not getattr(fam, key) > 0:
             raise ScenarioError(f"{where}.{key} must be positive, got {getattr(fam, key)!r}")
-    _build(MissionConfig, {**DEFAULT_MISSION, **fam.mission}, f"{where}.mission")
+    # each setting strictly, named by the key the spec gives it (families[i].mission.budget_m)
+    tables = setting_tables({**DEFAULT_MISSION, **fam.mission}, f"{where}.mission", ScenarioError)
+    for table, values in tables.items():
+        schema.build(typing.get_type_hints(MissionConfig)[table], values, where, f"{where}.mission",
+                     error=ScenarioError)
 
 
 def _inside(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -185,17 +194,18 @@ def generate_scenario(fam: FamilySpec, j: int, where: str = "") -> Scenario:
         users.append({"id": f"ue{k}", "rnti": 0x4601 + k, "east_m": float(p[0]), "north_m": float(p[1]),
                       "sawtooth_amplitude_m": cond("sawtooth_amplitude_m"),
                       "sawtooth_period_s": cond("sawtooth_period_s")})
+    where_j = f"{where} scenario {fam.name}{j:02d}" if where else f"{fam.name}{j:02d}"
     name = f"{fam.name}{j:02d}"
     data = {
         "name": name,
         "description": f"family {fam.name!r} #{j}: {kind} fence",
         "seed": fam.seed + j,
-        "users": users,
+        **user_tables(users),
         "buildings": buildings,
         "geofence": {"polygon_enu_m": poly.tolist(), "max_distance_m": fam.max_distance_m, "no_fly_enu_m": no_fly},
         "radio": {"s0_m": fam.range_s0_m, "a_m": 0.3 if distance_noise else 0.0,
                   "b_per_m": 0.01 if distance_noise else 0.0, "nlos_excess_mean_m": nlos_mean_m},
         "vehicle": {"speed_mps": fam.speed_mps, "gps_sigma_m": gps_sigma_m, "gps_tau_s": gps_tau_s},
-        "mission": {**DEFAULT_MISSION, **fam.mission},
+        **setting_tables({**DEFAULT_MISSION, **fam.mission}, where_j, ScenarioError),
     }
-    return scenario_from_dict(data, f"{where} scenario {name}" if where else name)
+    return scenario_from_dict(data, where_j)

@@ -60,7 +60,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     """Fly one scenario in fast mode (see the module docstring); deterministic in (sc, planner, params, seed)."""
     users = np.array([[u.east_m, u.north_m, u.up_m] for u in sc.users], float)
     noise = sc.noise_model()
-    c = PlanningConstraints.from_scenario(sc)
+    c = sc.planning_constraints()
     opts = dict(planner_opts or {})
     if planner_name == "oracle":
         opts.setdefault("true_users_enu_m", users)
@@ -70,7 +70,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     gps = GpsError(sc.vehicle.gps_sigma_m, sc.vehicle.gps_tau_s, np.random.default_rng(gps_ss))
     radio = RadioModel(sc, np.random.default_rng(radio_ss))
     speed_mps = sc.vehicle.speed_mps
-    delta_m = sc.mission.delta_m
+    delta_m = sc.mission.flight.delta_m
     track = AccuracyTrack(users, targets_m)
     out = Outcome()
     all_users = range(len(users))

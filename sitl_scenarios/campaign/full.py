@@ -45,7 +45,7 @@ def fly_full(sc: Scenario, planner_name: str, params: SolverParams, seed: int, t
 
         result = asyncio.run(main())
         mlog = read_mission_log(log_path)
-    return outcome_from_log(mlog, result, targets_m, sc.mission.sigma_gps_m)
+    return outcome_from_log(mlog, result, targets_m, sc.mission.noise.sigma_gps_m)
 
 
 def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: float) -> Outcome:

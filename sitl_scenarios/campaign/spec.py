@@ -39,19 +39,18 @@ import dataclasses
 import hashlib
 import json
 import math
-import tomllib
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from estimator.types import SolverParams
+from mission import schema
 from sitl_scenarios.campaign.families import FamilySpec, generate_scenario, validate_family
-from sitl_scenarios.scenario import Scenario, _build, load_scenario, resolve_scenario_path
+from sitl_scenarios.scenario import Scenario, load_scenario
 from uavloc.errors import CampaignError, ScenarioError, UavlocError
 
 MODES = ("fast", "full")
-TOP_LEVEL = ("campaign", "estimators", "planner_options", "scenarios", "families")
+
 
 
 @dataclass(frozen=True)
@@ -74,6 +73,19 @@ class ScenarioFileSpec:
 
     file: str
     condition: str = ""
+
+
+@dataclass(frozen=True)
+class SpecDocument:
+    """A whole spec file (see the module docstring): the `[campaign]` table, named estimator
+    variants and planner options (tables checked by :func:`spec_from_dict`), scenario files and
+    families."""
+
+    campaign: CampaignSection
+    estimators: dict[str, dict[str, Any]] = field(default_factory=lambda: {"default": {}})
+    planner_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    scenarios: list[ScenarioFileSpec] = field(default_factory=list)
+    families: list[FamilySpec] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -121,40 +133,14 @@ def _err(where: str, msg: str) -> CampaignError:
     return CampaignError(f"{where}: {msg}")
 
 
-def _section(cls: type, data: Any, key: str, where: str) -> Any:
-    """Strict table → dataclass, errors re-raised as CampaignError naming the spec and the key."""
-    if not isinstance(data, dict):
-        raise _err(where, f"{key}: expected a table, got {data!r}")
-    try:
-        return _build(cls, data, key)
-    except ScenarioError as exc:
-        raise _err(where, str(exc)) from exc
-
-
 def _solver_params(opts: Any, base: dict, key: str, where: str) -> SolverParams:
-    """SolverParams from a spec table: every key a field, every value of the field's type."""
+    """SolverParams from a spec table over `base`: every key a field, every value of the field's type."""
     from estimator.problem import check_params
-    from sitl_scenarios.scenario import _convert
 
     if not isinstance(opts, dict):
         raise _err(where, f"{key}: expected a table, got {opts!r}")
-    hints = typing.get_type_hints(SolverParams)
-    names = {f.name for f in dataclasses.fields(SolverParams)}
-    kwargs = dict(base)
-    for name, value in opts.items():
-        if name not in names:
-            raise _err(where, f"{key}: unknown key {name!r}; allowed: {', '.join(sorted(names))}")
-        tp = hints[name]
-        if typing.get_origin(tp) is typing.Literal:
-            if value not in typing.get_args(tp):
-                raise _err(where, f"{key}.{name}: must be one of {typing.get_args(tp)}, got {value!r}")
-            kwargs[name] = value
-            continue
-        try:
-            kwargs[name] = _convert(value, tp, f"{key}.{name}")
-        except ScenarioError as exc:
-            raise _err(where, str(exc)) from exc
-    params = SolverParams(**kwargs)
+    params = dataclasses.replace(schema.build(SolverParams, opts, where, key, error=CampaignError), **{
+        k: v for k, v in base.items() if k not in opts})
     try:
         check_params(params)
     except UavlocError as exc:
@@ -167,6 +153,10 @@ def _check_section(c: CampaignSection, where: str) -> None:
 
     if not c.name.strip():
         raise _err(where, "campaign.name must not be empty")
+    if not schema.SAFE_NAME.fullmatch(c.name):
+        # the name makes the default output folder and the results' file names
+        raise _err(where, f"campaign.name {c.name!r}: one word of letters, digits, '_', '-' and '.' "
+                   "(not '.' or '..'), so it names no folder outside --out")
     if c.mode not in MODES:
         raise _err(where, f"campaign.mode must be one of {', '.join(MODES)}, got {c.mode!r}")
     if not c.seeds:
@@ -228,27 +218,19 @@ def _run_key(condition: str, sc: Scenario, planner: str, opts: dict, estimator: 
 def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None,
                    path: Path | None = None) -> Campaign:
     """Validate a parsed spec and expand it to its runs (CampaignError naming the key on anything bad)."""
-    if not isinstance(data, dict):
-        raise _err(where, "a spec is a TOML document")
-    unknown = sorted(set(data) - set(TOP_LEVEL))
-    if unknown:
-        raise _err(where, f"unknown key(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(TOP_LEVEL)}")
-    if "campaign" not in data:
-        raise _err(where, "missing the [campaign] table")
-    section: CampaignSection = _section(CampaignSection, data["campaign"], "campaign", where)
+    doc: SpecDocument = schema.build(SpecDocument, data, where, error=CampaignError)
+    section = doc.campaign
     _check_section(section, where)
     targets = tuple(sorted(section.targets_m, reverse=True))
 
     # estimator variants: name → options (the base values come from each scenario's mission)
-    est_tables = data.get("estimators", {"default": {}})
-    if not isinstance(est_tables, dict) or not est_tables:
+    est_tables = doc.estimators
+    if not est_tables:
         raise _err(where, "estimators: expected at least one [estimators.NAME] table")
     for name, opts in est_tables.items():
         _solver_params(opts, {}, f"estimators.{name}", where)  # fail early, before any scenario
 
-    planner_opts = data.get("planner_options", {})
-    if not isinstance(planner_opts, dict):
-        raise _err(where, f"planner_options: expected a table, got {planner_opts!r}")
+    planner_opts = doc.planner_options
     for name, opts in planner_opts.items():
         if name not in section.planners:
             raise _err(where, f"planner_options.{name}: {name!r} is not in campaign.planners {section.planners}")
@@ -257,29 +239,19 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
         if section.mode == "full" and opts:
             raise _err(where, f"planner_options.{name}: full mode flies each planner with its defaults")
 
-    # scenarios: (condition, scenario, params)
+    # scenarios: (condition, scenario, params), the files' and the families' alike
     scenarios: list[tuple[str, Scenario, dict]] = []
-    files = data.get("scenarios", [])
-    if not isinstance(files, list):
-        raise _err(where, f"scenarios: expected [[scenarios]] entries, got {files!r}")
-    for i, entry in enumerate(files):
-        fs: ScenarioFileSpec = _section(ScenarioFileSpec, entry, f"scenarios[{i}]", where)
-        candidate = (base_dir / fs.file) if base_dir is not None else Path(fs.file)
+    for i, fs in enumerate(doc.scenarios):
         try:
-            sc = load_scenario(candidate if candidate.is_file() else resolve_scenario_path(fs.file))
+            sc = load_scenario(fs.file, base_dir)
         except ScenarioError as exc:
             raise _err(where, f"scenarios[{i}].file: {exc}") from exc
         scenarios.append((fs.condition or sc.name, sc, _scenario_params(sc, f"file:{fs.file}")))
-    fams = data.get("families", [])
-    if not isinstance(fams, list):
-        raise _err(where, f"families: expected [[families]] entries, got {fams!r}")
-    for i, entry in enumerate(fams):
-        fam: FamilySpec = _section(FamilySpec, entry, f"families[{i}]", where)
+    for i, fam in enumerate(doc.families):
         try:
             validate_family(fam, f"families[{i}]")
-            for j in range(fam.count):
-                sc = generate_scenario(fam, j, f"families[{i}]")
-                scenarios.append((fam.name, sc, _scenario_params(sc, f"family:{fam.name}")))
+            scenarios += [(fam.name, sc, _scenario_params(sc, f"family:{fam.name}"))
+                          for sc in (generate_scenario(fam, j, f"families[{i}]") for j in range(fam.count))]
         except ScenarioError as exc:
             raise _err(where, str(exc)) from exc
     if not scenarios:
@@ -291,7 +263,7 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
 
     runs: list[RunSpec] = []
     for condition, sc, sp in scenarios:
-        base = {"delta_m": sc.mission.delta_m, "estimate_bias": sc.mission.estimate_bias}
+        base = {"delta_m": sc.mission.flight.delta_m, "estimate_bias": sc.mission.noise.estimate_bias}
         for planner in section.planners:
             opts = dict(planner_opts.get(planner, {}))
             for est_name, est_opts in est_tables.items():
@@ -309,9 +281,9 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
 
 def _check_planner_options(section: CampaignSection, planner_opts: dict, sc: Scenario, where: str) -> None:
     """Build each planner once with its options, so a bad option is an error before any run starts."""
-    from planner import PlanningConstraints, make_planner
+    from planner import make_planner
 
-    c = PlanningConstraints.from_scenario(sc)
+    c = sc.planning_constraints()
     truth = [[u.east_m, u.north_m, u.up_m] for u in sc.users]
     for name in section.planners:
         opts = dict(planner_opts.get(name, {}))
@@ -328,10 +300,5 @@ def _check_planner_options(section: CampaignSection, planner_opts: dict, sc: Sce
 def load_spec(path: str | Path) -> Campaign:
     """Read a campaign spec file strictly and expand it to its runs."""
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise CampaignError(f"{p}: not valid TOML: {exc}") from exc
-    except OSError as exc:
-        raise CampaignError(f"{p}: cannot read the spec: {exc}") from exc
+    data = schema.read_toml(p, "campaign spec", CampaignError)
     return spec_from_dict(data, str(p), base_dir=p.resolve().parent, path=p)

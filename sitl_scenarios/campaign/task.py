@@ -30,7 +30,7 @@ def _base_record(run: RunSpec) -> dict:
     rec = {
         "key": run.key, "condition": run.condition, "scenario": run.scenario.name, "planner": run.planner,
         "estimator": run.estimator, "seed": int(run.seed), "mode": run.mode,
-        "targets_m": [float(t) for t in run.targets_m], "budget_m": float(run.scenario.mission.budget_m),
+        "targets_m": [float(t) for t in run.targets_m], "budget_m": float(run.scenario.mission.flight.budget_m),
     }
     rec.update(run.scenario_params)
     return rec

@@ -120,7 +120,7 @@ class VehicleSimulator:
         if kwargs.get("seed") is None:
             kwargs["seed"] = scenario.seed
         if kwargs.get("faults") is None:
-            kwargs["faults"] = faults_from_scenario(scenario.faults)
+            kwargs["faults"] = list(scenario.faults.vehicle)
         return cls(scenario.origin_geo, scenario.vehicle, **kwargs)
 
     # --- lifecycle ----------------------------------------------------------------------------
