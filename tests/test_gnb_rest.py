@@ -19,7 +19,7 @@ from mission.gnb import O1_MIN_INTERVAL_S, GnbAddress, GnbConfig, OaiGnbClient, 
 from mission.gnb_transport import REST_MAX_BODY_BYTES, parse_rest_display, parse_rest_modules, rest_request
 from sitl_scenarios.gnb import GnbFaults, SimulatedGnb, static_position
 from sitl_scenarios.gnb_rest import display_lines, websrv_buffer
-from sitl_scenarios.scenario import scenario_from_dict
+from sitl_scenarios.scenario import scenario_from_dict, user_tables
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
@@ -41,7 +41,7 @@ TRANSPORTS = ["telnet", "rest"]
 
 
 def scenario():
-    return scenario_from_dict({"name": "gnb-rest-test", "seed": 7, "users": USERS,
+    return scenario_from_dict({"name": "gnb-rest-test", "seed": 7, **user_tables(USERS),
                                "radio": {"coverage_m": 1000.0, "s0_m": 1.0, "ue_sawtooth_amplitude_m": 0.0}})
 
 
@@ -508,7 +508,7 @@ def test_a_whole_sim_mission_over_rest_locates_every_user(tmp_path):
     assert result.ok, result.reason  # every user located, none ambiguous
     assert result.not_located() == [] and len(result.user_ids) == len(sc.users)
     err = result.error_m()
-    assert err is not None and np.all(err <= sc.mission.target_radius_m), err
+    assert err is not None and np.all(err <= sc.mission.flight.target_radius_m), err
 
 
 # ---------------------------------------------------------------------------------------------
