@@ -1,6 +1,7 @@
 """Straight legs at a commanded speed on PX4 SITL and on the built-in vehicle, side by side.
 
-    python benchmarks/px4_legs.py [--legs 15 40 80 300] [--speed-mps 10] [--speed 4] [--instance 11]
+    UAVLOC_PX4=.../build/px4_sitl_default \
+        python benchmarks/px4_legs.py [--legs 15 40 80 300] [--speed-mps 10] [--speed 4] [--instance 1]
 
 Both vehicles take off to 20 m, get DO_CHANGE_SPEED (`--speed-mps`) and then one DO_REPOSITION per
 leg, each leg starting from rest at the end of the previous one. Per leg: the peak horizontal ground
@@ -28,13 +29,7 @@ import numpy as np  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 
 from estimator.geodesy import Origin  # noqa: E402
-from sitl_scenarios.px4_sitl import (  # noqa: E402
-    DEFAULT_BUNDLE,
-    Px4Sitl,
-    instance_busy,
-    materialize,
-    missing_requirement,
-)
+from sitl_scenarios.px4_sitl import Px4Sitl, build_from_env, instance_busy, missing_requirement  # noqa: E402
 from sitl_scenarios.scenario import load_scenario  # noqa: E402
 from sitl_scenarios.vehicle.autopilot import Autopilot  # noqa: E402
 
@@ -105,13 +100,13 @@ def _cmd_long(m, cmd: int, *p: float) -> None:
 
 def run_px4(legs: list[float], speed_mps: float, speed: float, instance: int, work: Path,
             dump: Path | None = None) -> tuple[list[dict], dict]:
-    why = missing_requirement(DEFAULT_BUNDLE)
+    build = build_from_env()
+    why = missing_requirement(build)
     if why is not None:
         raise SystemExit(f"px4 legs: {why}")
-    launcher = materialize(DEFAULT_BUNDLE, work / "px4-sitl")
     while instance_busy(instance):
         instance += 1
-    px4 = Px4Sitl(launcher, instance, speed, work / "px4-work", output=work / "px4.log")
+    px4 = Px4Sitl(build, instance, speed, work / "px4-work", output=work / "px4.log")
     px4.start()
     try:
         if not px4.wait_ready(90.0):
@@ -191,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--legs", type=float, nargs="+", default=[15.0, 40.0, 80.0, 300.0])
     ap.add_argument("--speed-mps", type=float, default=10.0, help="commanded ground speed (DO_CHANGE_SPEED)")
     ap.add_argument("--speed", type=float, default=4.0, help="PX4 speed factor (default 4)")
-    ap.add_argument("--instance", type=int, default=11)
+    ap.add_argument("--instance", type=int, default=1)
     ap.add_argument("--builtin-only", action="store_true")
     ap.add_argument("--dump", type=Path, metavar="DIR", help="save PX4's per-leg (t, position) here (.npz)")
     args = ap.parse_args(argv)

@@ -66,6 +66,27 @@ def test_fixtures_are_the_shared_recordings():
     assert len(copied) == 13
     for f in copied:
         assert f.read_bytes() == (shared / f.name).read_bytes(), f.name
+    for name in ("gnb.conf", "ue.conf", "LICENSE.OAI"):
+        assert (FIXTURES / "conf" / name).read_bytes() == (shared / "conf" / name).read_bytes(), name
+
+
+def test_the_oai_tests_skip_naming_uavloc_oai_and_run_the_recorded_conf_on_free_ports(tmp_path):
+    """The `oai` fixture's skip sentence, and the recorded conf files with this run's ports."""
+    from tests.test_oai_live import BUILD_FILES, _conf_with_ports, oai_build_missing
+
+    assert oai_build_missing({}).startswith("UAVLOC_OAI is not set")
+    assert "ran_build/build" in oai_build_missing({"UAVLOC_OAI": ""})
+    why = oai_build_missing({"UAVLOC_OAI": str(tmp_path)})
+    assert why.startswith(f"UAVLOC_OAI={tmp_path} lacks nr-softmodem, nr-uesoftmodem")
+    for f in BUILD_FILES:
+        (tmp_path / f).write_bytes(b"")
+    assert oai_build_missing({"UAVLOC_OAI": str(tmp_path)}) is None
+    gnb = _conf_with_ports((FIXTURES / "conf" / "gnb.conf").read_text(), 20611, 20612)
+    ue = _conf_with_ports((FIXTURES / "conf" / "ue.conf").read_text(), 20613, 20612)
+    assert re.search(r"telnetsrv = \{\s*listenaddr = \"127.0.0.1\";\s*listenport = 20611;", gnb)
+    assert re.search(r"rfsimulator: \{\s*serverport = 20612;\s*serveraddr = \"server\";", gnb)
+    assert "listenport = 20613;" in ue and "serverport = 20612;" in ue
+    assert "9099" not in gnb and "9091" not in ue
 
 
 # ---------------------------------------------------------------------------------------------
