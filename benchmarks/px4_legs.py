@@ -29,30 +29,13 @@ import numpy as np  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 
 from estimator.geodesy import Origin  # noqa: E402
+from sitl_scenarios.px4_conformance import HEIGHT_M, leg_figures  # noqa: E402
 from sitl_scenarios.px4_sitl import Px4Sitl, build_from_env, instance_busy, missing_requirement  # noqa: E402
 from sitl_scenarios.scenario import load_scenario  # noqa: E402
 from sitl_scenarios.vehicle.autopilot import Autopilot  # noqa: E402
 
-HEIGHT_M = 20.0
-SETTLE_DIST_M = 1.0
-SETTLE_SPEED_MPS = 0.3
 PARAMS = ("MPC_ACC_HOR", "MPC_ACC_HOR_MAX", "MPC_JERK_AUTO", "MPC_JERK_MAX", "MPC_XY_CRUISE",
           "MPC_XY_VEL_MAX", "NAV_ACC_RAD", "MPC_XY_TRAJ_P", "MPC_XY_ERR_MAX", "MPC_XY_P", "MPC_YAW_MODE")
-
-
-def leg_figures(t_s: np.ndarray, pos_m: np.ndarray, target_m: np.ndarray, length_m: float) -> dict:
-    """t_s (n,), pos_m (n, 2) horizontal, target (2,): peak / p99 speed, settle time, mean speed."""
-    v = np.hypot(*np.gradient(pos_m, t_s, axis=0).T)
-    d = np.hypot(*(pos_m - target_m).T)
-    settled = np.nonzero((d < SETTLE_DIST_M) & (v < SETTLE_SPEED_MPS))[0]
-    t_settle = float(t_s[settled[0]] - t_s[0]) if len(settled) else float("nan")
-    beyond_m = np.dot(pos_m - target_m, _unit(target_m - pos_m[0]))
-    return {"peak": float(v.max()), "p99": float(np.percentile(v, 99)), "settle_s": t_settle,
-            "mean": length_m / t_settle, "overshoot": float(np.max(beyond_m))}
-
-
-def _unit(x: np.ndarray) -> np.ndarray:
-    return x / np.linalg.norm(x)
 
 
 def _leg_targets(legs: list[float]) -> list[np.ndarray]:
