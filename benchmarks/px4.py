@@ -1,10 +1,11 @@
 """The same mission on real PX4 SITL and on the built-in vehicle, side by side.
 
-    python benchmarks/px4.py [--scenario three_users_nlos] [--seed N] [--speed 4] [--instance 11]
+    UAVLOC_PX4=.../PX4-Autopilot/build/px4_sitl_default \
+        python benchmarks/px4.py [--scenario three_users_nlos] [--seed N] [--speed 4] [--instance 1]
 
-One scenario and seed, flown twice by the same controller: against PX4 SITL (../shared/px4-sitl,
-SIH quadrotor, speed factor `--speed`, started here from a working copy, see
-sitl_scenarios.px4_sitl) and against the built-in vehicle (sitl_scenarios.vehicle) at the same
+One scenario and seed, flown twice by the same controller: against the user's PX4 SITL build
+(`UAVLOC_PX4`, SIH quadrotor, speed factor `--speed`, started as `make px4_sitl sihsim_quadx` does,
+see sitl_scenarios.px4_sitl) and against the built-in vehicle (sitl_scenarios.vehicle) at the same
 speed factor. Per run: status, survey metres flown, measurements per metre, cruise speed (the top
 ground speed reached on the survey legs: 99th percentile of the horizontal ground speed while
 surveying, from the log's telemetry) and the mean survey ground speed, RTL height
@@ -33,13 +34,7 @@ sys.path[:] = [str(REPO)] + [p for p in sys.path if Path(p or ".").resolve() != 
 import numpy as np  # noqa: E402
 
 from mission.log import read_mission_log  # noqa: E402
-from sitl_scenarios.px4_sitl import (  # noqa: E402
-    DEFAULT_BUNDLE,
-    Px4Sitl,
-    instance_busy,
-    materialize,
-    missing_requirement,
-)
+from sitl_scenarios.px4_sitl import Px4Sitl, build_from_env, instance_busy, missing_requirement  # noqa: E402
 from sitl_scenarios.scenario import load_scenario  # noqa: E402
 from sitl_scenarios.sim_runner import SimulatedMission  # noqa: E402
 
@@ -88,13 +83,13 @@ async def fly(scenario, seed: int, log_path: Path, connect: str | None, speedup:
 
 
 def run_px4(scenario, seed: int, speed: float, instance: int, work: Path) -> dict:
-    why = missing_requirement(DEFAULT_BUNDLE)
+    build = build_from_env()
+    why = missing_requirement(build)
     if why is not None:
         raise SystemExit(f"px4 benchmark: {why}")
-    launcher = materialize(DEFAULT_BUNDLE, work / "px4-sitl")
     while instance_busy(instance):
         instance += 1
-    px4 = Px4Sitl(launcher, instance, speed, work / "px4-work", output=work / "px4.log")
+    px4 = Px4Sitl(build, instance, speed, work / "px4-work", output=work / "px4.log")
     px4.start()
     try:
         if not px4.wait_ready(90.0):
@@ -114,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="three_users_nlos")
     ap.add_argument("--seed", type=int, help="default: the scenario's")
     ap.add_argument("--speed", type=float, default=4.0, help="PX4 speed factor and built-in speedup (default 4)")
-    ap.add_argument("--instance", type=int, default=11, help="PX4 instance (the next free one is taken)")
+    ap.add_argument("--instance", type=int, default=1, help="PX4 instance (the next free one is taken)")
     ap.add_argument("--keep", type=Path, metavar="DIR", help="keep both mission logs and PX4's output here")
     args = ap.parse_args(argv)
     sc = load_scenario(args.scenario)

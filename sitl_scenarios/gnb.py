@@ -10,6 +10,10 @@ second client is accepted and left waiting unanswered until the first leaves, as
 
 - ``o1 stats``: OAI's JSON document (UEs in coverage under ``O1-Operational.ues``) then ``OK``;
 - ``ci get_single_rnti``: ``single UE RNTI %04x`` / ``different number of UEs``;
+- ``ci get_reestab_count``: ``UE RNTI %04x reestab N reconfig 0`` / ``no single UE in RRC present``;
+- ``rfsimu setdistance|getdistance rfsimu_channel_ue0 [m]``, ``rfsimu vtime``: the bare prompt, then
+  the rfsimulator's line (offset in samples at 46.08 MHz; nothing without a UE or for another
+  channel), as the recorded gNB printed it;
 - ``ci force_reestab [rnti]``: OAI's answer (failures in two lines), then the random-access lines
   of the UE's reaction (`stock_reaction`) in the gNB log; ``ci force_reestab``,
   ``force_ue_release``, ``force_ul_failure`` and ``get_current_bwp`` with an RNTI in 1..0xfffd the
@@ -58,6 +62,7 @@ from typing import Literal
 
 import numpy as np
 
+from estimator.ranging import C_MPS
 from mission.oai import PROMPT_GNB, format_rtt_line, unknown_command_text
 from sitl_scenarios.gnb_faults import GnbFaults
 from sitl_scenarios.gnb_ra import OaiRaLog
@@ -79,6 +84,10 @@ _CRASHING_CI = ("force_reestab", "force_ue_release", "force_ul_failure", "get_cu
 _CI_UNKNOWN = "could not identify UE (no UE, no such RNTI, or multiple UEs)\n"
 _FAULT_KINDS = ("delay", "malformed", "drop", "refuse", "http_error")
 _MAX_LINE = 2048  # OAI's TELNET_MAX_MSGLENGTH
+#: the rfsimulator's sample rate at 106 PRB, 30 kHz (rfsimu vtime of the recorded gNB) [Hz]
+RFSIM_SAMPLE_RATE_HZ = 46_080_000.0
+#: the UE's channel model in the recorded configuration (gnb.conf / ue.conf `modellist_rfsimu_1`)
+RFSIM_CHANNEL = "rfsimu_channel_ue0"
 #: an `o1 stats` this soon after the previous one crashes the gNB [s] (0 ms crashed OAI, 5 ms did not)
 O1_CRASH_WINDOW_S = 0.002
 
@@ -157,6 +166,12 @@ class SimulatedGnb:
         #: recent RTT results with their truth, newest last (for tests and diagnostics)
         self.truth: collections.deque[RawRtt] = collections.deque(maxlen=100_000)
         self.requests = 0
+        #: reestablishments per current RNTI (`ci get_reestab_count`)
+        self.reestab_count: dict[int, int] = {}
+        #: the rfsimulator's channel offset [samples] (`rfsimu setdistance|getdistance`)
+        self.rfsim_offset = 0
+        #: text the rfsimulator prints after the prompt of the request that asked for it
+        self._after_prompt = ""
         self.connections = 0
         self._once: collections.Counter[str] = collections.Counter()
         self._once_delay_s = 0.0
@@ -288,8 +303,12 @@ class SimulatedGnb:
             if self.take_fault("malformed"):
                 data = self.malform_bytes(answer)
                 log.info("fault: malformed answer to %r", line)
+            after, self._after_prompt = self._after_prompt, ""
             writer.write(data + PROMPT_GNB.encode())
             await writer.drain()
+            if after:  # the rfsimulator prints from its own thread, after the prompt
+                writer.write(after.encode())
+                await writer.drain()
 
     @staticmethod
     async def _sleep_unless_gone(reader: asyncio.StreamReader, delay_s: float) -> bool:
@@ -333,6 +352,8 @@ class SimulatedGnb:
         if buf[:2].lower() == "ex":
             return None
         parts = buf.split(None, 2)
+        if not parts:  # only blanks: OAI echoes them in its unknown-command text
+            return unknown_command_text(buf)
         module = parts[0].lower()
         cmd = parts[1].lower() if len(parts) > 1 else ""
         args = parts[2] if len(parts) > 2 else ""
@@ -364,6 +385,11 @@ class SimulatedGnb:
         when the gNB has no such command. Shared by the telnet and the REST server."""
         if module == "ci" and cmd == "get_single_rnti":
             return self._get_single_rnti(args)
+        if module == "ci" and cmd == "get_reestab_count":
+            return self._get_reestab_count()
+        if module == "rfsimu":
+            self._after_prompt = self._rfsimu(cmd, args)
+            return ""
         if module == "ci" and cmd in _CRASHING_CI:
             return self._ci_with_rnti(cmd, args)
         if module == "o1" and cmd == "stats":
@@ -411,6 +437,42 @@ class SimulatedGnb:
             return "different number of UEs\n"
         return f"single UE RNTI {rntis[0]:04x}\n"
 
+    def _get_reestab_count(self) -> str:
+        """`ci get_reestab_count` (telnetsrv_ci.c): the one UE's reestablishments and RRC
+        reconfigurations (none here)."""
+        rntis = self._connected_rntis()
+        if len(rntis) != 1:
+            return "no single UE in RRC present\n"
+        return f"UE RNTI {rntis[0]:04x} reestab {self.reestab_count.get(rntis[0], 0)} reconfig 0\n"
+
+    def _rfsimu(self, cmd: str, args: str) -> str:
+        """OAI's rfsimulator commands, answered after the prompt (rfsimulator/simulator.c), on the
+        channel `rfsimu_channel_ue0` that exists while a UE is connected; unknown channels and
+        commands print nothing. The offset is kept and reported; the simulated ranges come from the
+        true geometry, not from it. Samples at RFSIM_SAMPLE_RATE_HZ: offset = ⌊d·fs/c⌋."""
+        words = args.split()
+        channel = words[0] if words else ""
+        if cmd == "vtime":
+            if not self._connected_rntis():
+                return ""
+            ts = int(self.clock() * RFSIM_SAMPLE_RATE_HZ)
+            return f"rfsimu_vtime_cmd: vtime measurement: TS {ts} sample_rate {RFSIM_SAMPLE_RATE_HZ:.3f}\n"
+        if channel != RFSIM_CHANNEL or not self._connected_rntis():
+            return ""
+        if cmd == "getdistance":
+            return (f"rfsimu_getdistance_cmd: <default> offset {self.rfsim_offset} "
+                    f"delay {self.rfsim_offset / RFSIM_SAMPLE_RATE_HZ * 1e3:.6f} ms\n")
+        if cmd == "setdistance" and len(words) == 2:
+            try:
+                distance_m = float(words[1])
+            except ValueError:
+                return ""
+            self.rfsim_offset = int(distance_m * RFSIM_SAMPLE_RATE_HZ / C_MPS)
+            exact_m = self.rfsim_offset * C_MPS / RFSIM_SAMPLE_RATE_HZ
+            return (f"\nrfsimu_setdistance_cmd: new_offset {self.rfsim_offset}, new (exact) distance {exact_m:.3f} m, "
+                    f"new delay {self.rfsim_offset / RFSIM_SAMPLE_RATE_HZ * 1e3:.6f} ms\n")
+        return ""
+
     def _o1_stats(self, args: str) -> str:
         # OAI 2025.w36 dies with SIGFPE on an `o1 stats` within a few ms of the previous one (the
         # real gNB, back to back: exit 136 on the 2nd pair; 5 ms apart: 20 pairs lived)
@@ -430,12 +492,13 @@ class SimulatedGnb:
         doc = {
             "o1-config": {
                 "BWP": {"dl": [bwp], "ul": [bwp]},
-                "NRCELLDU": {"nrcelldu3gpp:ssbFrequency": 641280, "nrcelldu3gpp:arfcnDL": 640008,
-                             "nrcelldu3gpp:bSChannelBwDL": 40, "nrcelldu3gpp:arfcnUL": 640008,
+                # the cell of the recorded configuration (../shared/data/oai-2025.w36/conf/gnb.conf)
+                "NRCELLDU": {"nrcelldu3gpp:ssbFrequency": 621312, "nrcelldu3gpp:arfcnDL": 620040,
+                             "nrcelldu3gpp:bSChannelBwDL": 40, "nrcelldu3gpp:arfcnUL": 620040,
                              "nrcelldu3gpp:bSChannelBwUL": 40, "nrcelldu3gpp:nRPCI": 0, "nrcelldu3gpp:nRTAC": 1,
-                             "nrcelldu3gpp:mcc": "001", "nrcelldu3gpp:mnc": "01", "nrcelldu3gpp:sd": 16777215,
+                             "nrcelldu3gpp:mcc": "208", "nrcelldu3gpp:mnc": "99", "nrcelldu3gpp:sd": 16777215,
                              "nrcelldu3gpp:sst": 1},
-                "device": {"gnbId": 3584, "gnbName": "gNB-uavloc-sim", "vendor": "OpenAirInterface"},
+                "device": {"gnbId": 3584, "gnbName": "gnb-rfsim", "vendor": "OpenAirInterface"},
             },
             "O1-Operational": {
                 "frame-type": "tdd", "band-number": 78, "num-ues": len(rntis), "ues": rntis, "load": 0,
@@ -563,6 +626,7 @@ class SimulatedGnb:
             return None
         old, tc = self.current_rnti[k], self._new_rnti()
         self.current_rnti[k] = tc
+        self.reestab_count[tc] = self.reestab_count.pop(old, 0) + 1
         self.ra_log.reestablishment(self._frame(), old, tc, *got)
         return tc
 

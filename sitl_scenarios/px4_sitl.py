@@ -1,23 +1,24 @@
-"""Real PX4 SITL (the shared bundle `../shared/px4-sitl/`) started and stopped from Python.
+"""The user's own PX4 SITL build, started and stopped from Python.
 
-Used by the `px4` tests (tests/conftest.py) and `benchmarks/px4.py`. Three parts:
+Used by the `px4` tests (tests/conftest.py), `benchmarks/px4.py` and `benchmarks/px4_legs.py`.
+`UAVLOC_PX4` names a PX4-Autopilot build folder (`.../PX4-Autopilot/build/px4_sitl_default`, made
+by `make px4_sitl`); nothing of PX4 ships with uavloc. Two parts:
 
-- :func:`materialize`: a working copy of the bundle. The bundle as shipped is read-only and its
-  `bin/px4-<module>` commands are 3-byte plain files containing ``px4`` where PX4's build makes
-  symbolic links to `px4` (PX4's start-up script runs them: `px4-param: Permission denied`, `no
-  autostart file found`). The copy replaces each such file by a link to `px4`; every other file
-  (`px4-alias.sh`, the binary, `etc/`) is copied as it is, except one line of PX4's
-  `px4-rc.mavlink`, see :data:`API_PORT_RULE`.
-- :class:`Px4Sitl`: one PX4 instance (`px4-sitl -i INSTANCE -s SPEED -w WORKDIR`) in its own
-  process group, its output kept (and written to a file), ready when it prints `Ready for
-  takeoff!`, stopped with SIGTERM (SIGKILL after a grace time).
+- :class:`Px4Sitl`: one PX4 instance started the way `make px4_sitl sihsim_quadx` starts it (PX4's
+  `simulator_sih/CMakeLists.txt`: ``PX4_SIM_MODEL=sihsim_quadx PX4_SIMULATOR=sihsim bin/px4``), the
+  way PX4's own MAVSDK tests run it unattended (`-d`, no interactive shell): ``bin/px4 -d -i
+  INSTANCE -w WORKDIR BUILD/etc`` with ``PX4_SIM_SPEED_FACTOR``. PX4 links `WORKDIR/etc` to the
+  build's ROMFS (`BUILD/etc`), keeps its parameters, dataman and logs in WORKDIR, runs
+  `etc/init.d-posix/rcS INSTANCE`, which picks airframe 10040_sihsim_quadx (SYS_AUTOSTART) from
+  PX4_SIM_MODEL. Its own process group, its output kept (and written to a file), ready when it
+  prints `Ready for takeoff!`, stopped with SIGTERM (SIGKILL after a grace time).
 - :class:`UdpRelay`: a UDP relay between PX4's API link and a MAVLink client that can stop
   relaying for a while (a paused vehicle link), in both directions.
 
-Ports (PX4's `px4-rc.mavlink`): instance i sends its API link to UDP 14540+i (MAVSDK:
-``udpin://127.0.0.1:14540+i``) and listens on 14580+i; its GCS link listens on 18570+i and sends
-to ``PX4_GCS_REMOTE_PORT``, which must then differ from 18570+i (the bundle's default, 18570+i,
-is PX4's own port: nobody else can listen there); here 14690+i unless given.
+Ports (PX4's stock `px4-rc.mavlink`, unchanged): instance i sends its API link to UDP 14540+i
+(MAVSDK: ``udpin://127.0.0.1:14540+i``) for i <= 9; every instance above 9 sends it to 14549, so
+the tests use instances 1-8 only. Its GCS link listens on 18570+i and answers whoever talks to it
+first (MAVSDK: ``udpout://127.0.0.1:18570+i``), so no two instances' GCS links collide.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import contextlib
 import fcntl
 import logging
 import os
+import re
 import shutil
 import signal
 import socket
@@ -38,39 +40,60 @@ from uavloc.errors import SimulatorError
 
 log = logging.getLogger(__name__)
 
-#: where the shared bundle sits beside a checkout (../shared/px4-sitl)
-DEFAULT_BUNDLE = Path(__file__).resolve().parents[2] / "shared" / "px4-sitl"
+#: environment variable naming the user's PX4 build folder (build/px4_sitl_default)
+BUILD_ENV = "UAVLOC_PX4"
 #: what PX4 prints when it can fly
 READY_TEXT = "Ready for takeoff!"
-#: PX4's `px4-rc.mavlink` sends the API link of every instance above 9 to the same UDP port 14549
-#: (PX4's multi-vehicle convention). Two test runs (or a colleague's instance 9) would then share
-#: one port, so the working copy drops that rule: instance i always sends to 14540+i.
-API_PORT_RULE = '[ "$px4_instance" -gt 9 ] && udp_offboard_port_remote=14549'
+#: the SIH quadrotor, PX4's simulator without Gazebo (airframe 10040_sihsim_quadx)
+SIM_MODEL = "sihsim_quadx"
 
 
 def api_port(instance: int) -> int:
-    """UDP port PX4 instance `instance` sends its API (offboard) link to."""
-    return 14540 + int(instance)
+    """UDP port PX4 instance `instance` sends its API (offboard) link to (stock px4-rc.mavlink)."""
+    return 14540 + int(instance) if int(instance) <= 9 else 14549
 
 
-def default_gcs_port(instance: int) -> int:
-    """UDP port PX4 instance `instance` is told to send its GCS link to (PX4_GCS_REMOTE_PORT)."""
-    return 14690 + int(instance)
+def gcs_port(instance: int) -> int:
+    """UDP port PX4 instance `instance` listens on for its GCS link."""
+    return 18570 + int(instance)
 
 
-def missing_requirement(bundle: Path = DEFAULT_BUNDLE) -> str | None:
-    """Why PX4 SITL cannot start here (bundle absent, `bc` missing), or None."""
-    bundle = Path(bundle)
-    if not (bundle / "px4-sitl").is_file() or not (bundle / "bin" / "px4").is_file():
-        return f"PX4 SITL bundle not found at {bundle}"
-    if shutil.which("bc") is None:
+def build_from_env(env: dict[str, str] | None = None) -> Path | None:
+    """The PX4 build folder `UAVLOC_PX4` names (None when unset or empty)."""
+    value = (os.environ if env is None else env).get(BUILD_ENV, "").strip()
+    return Path(value).expanduser() if value else None
+
+
+def missing_requirement(build: Path | None) -> str | None:
+    """Why PX4 SITL cannot start from `build` (unset, not a px4_sitl build, `bc` missing), or None.
+
+    The sentence names UAVLOC_PX4 and what it must point to.
+    """
+    if build is None:
+        return (f"{BUILD_ENV} is not set: set it to your PX4-Autopilot build folder "
+                "(PX4-Autopilot/build/px4_sitl_default, made by `make px4_sitl`) to run the PX4 tests")
+    build = Path(build)
+    px4, rcs = build / "bin" / "px4", build / "etc" / "init.d-posix" / "rcS"
+    if not (px4.is_file() and os.access(px4, os.X_OK)):
+        return f"{BUILD_ENV}={build} has no executable bin/px4 (build it with `make px4_sitl` in PX4-Autopilot)"
+    if not rcs.is_file():
+        return f"{BUILD_ENV}={build} has no etc/init.d-posix/rcS (PX4's ROMFS of a px4_sitl build)"
+    airframes = build / "etc" / "init.d-posix" / "airframes"
+    if airframes.is_dir() and not any(airframes.glob(f"*_{SIM_MODEL}")):
+        return f"{BUILD_ENV}={build} has no {SIM_MODEL} airframe in etc/init.d-posix/airframes"
+    if shutil.which("bc") is None and _scripts_use_bc(build / "etc" / "init.d-posix"):
         return "PX4's start-up script needs `bc` (apt-get install bc)"
     return None
 
 
+def _scripts_use_bc(init_dir: Path) -> bool:
+    pipe_to_bc = re.compile(r"\|\s*bc\b")
+    return any(pipe_to_bc.search(f.read_text(errors="replace")) for f in init_dir.glob("*rc*") if f.is_file())
+
+
 def instance_busy(instance: int) -> bool:
     """True when a PX4 server already runs as `instance` on this machine (PX4 holds an exclusive
-    `flock` on /tmp/px4_lock-<instance> while it runs) or one of its UDP ports is taken."""
+    lock on /tmp/px4_lock-<instance> while it runs) or one of its UDP ports is taken."""
     lock = Path(f"/tmp/px4_lock-{int(instance)}")
     if lock.exists():
         try:
@@ -79,7 +102,7 @@ def instance_busy(instance: int) -> bool:
                 fcntl.flock(fh, fcntl.LOCK_UN)
         except OSError:
             return True
-    for port in (api_port(instance), 14580 + int(instance), 18570 + int(instance), default_gcs_port(instance)):
+    for port in (api_port(instance), 14580 + int(instance), gcs_port(instance)):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             try:
                 s.bind(("127.0.0.1", port))
@@ -88,78 +111,23 @@ def instance_busy(instance: int) -> bool:
     return False
 
 
-def _is_module_stub(path: Path) -> bool:
-    """A `bin/px4-<module>` that should be a link to `px4` but is a plain file saying `px4`."""
-    if path.is_symlink() or not path.is_file() or not path.name.startswith("px4-"):
-        return False
-    if path.stat().st_size > 16:
-        return False
-    return path.read_bytes().strip() == b"px4"
-
-
-def materialize(bundle: Path, dest: Path) -> Path:
-    """A working copy of the PX4 SITL bundle in `dest` (created; reused when already complete).
-
-    Returns the launcher `dest/px4-sitl`. Module stubs become symbolic links to `px4`; the copy is
-    writable by its owner so it can be removed.
-    """
-    bundle, dest = Path(bundle), Path(dest)
-    launcher = dest / "px4-sitl"
-    done = dest / ".materialized"
-    if done.is_file():
-        return launcher
-    why = missing_requirement(bundle)
-    if why is not None and "bundle" in why:
-        raise SimulatorError(why)
-    if dest.exists():
-        _make_writable(dest)
-        shutil.rmtree(dest)
-    shutil.copytree(bundle, dest, symlinks=True)
-    _make_writable(dest)
-    linked = 0
-    for f in sorted((dest / "bin").iterdir()):
-        if _is_module_stub(f):
-            f.unlink()
-            f.symlink_to("px4")
-            linked += 1
-    rc = dest / "etc" / "init.d-posix" / "px4-rc.mavlink"
-    if rc.is_file():
-        text = rc.read_text()
-        if API_PORT_RULE in text:
-            rc.write_text(text.replace(API_PORT_RULE, "# (uavloc test copy) " + API_PORT_RULE))
-    done.write_text(f"{linked} module links\n")
-    log.info("PX4 SITL working copy in %s (%d module commands linked to px4)", dest, linked)
-    return launcher
-
-
-def _make_writable(root: Path) -> None:
-    for dirpath, _dirnames, filenames in os.walk(root):
-        os.chmod(dirpath, 0o755)
-        for name in filenames:
-            p = Path(dirpath) / name
-            if not p.is_symlink():
-                p.chmod(p.stat().st_mode | 0o200)
-
-
 class Px4Sitl:
-    """One PX4 SITL instance. See the module docstring.
+    """One PX4 SITL instance of the user's build. See the module docstring.
 
-    launcher: a working copy's `px4-sitl` (:func:`materialize`); instance: PX4 instance (ports
-    above); speed: PX4_SIM_SPEED_FACTOR; workdir: a fresh directory for parameters, dataman and
-    logs; home: (lat_deg, lon_deg, alt_amsl_m) or None for the bundle's; output: file that gets
-    PX4's console output; gcs_port: where PX4 sends its GCS link (default :func:`default_gcs_port`).
+    build: the PX4 build folder (`build/px4_sitl_default`, :func:`build_from_env`); instance: PX4
+    instance (ports above); speed: PX4_SIM_SPEED_FACTOR; workdir: a fresh directory for parameters,
+    dataman and logs; home: (lat_deg, lon_deg, alt_amsl_m) or None for PX4's default (SIH: near
+    Zurich); output: file that gets PX4's console output.
     """
 
-    def __init__(self, launcher: Path, instance: int, speed: float, workdir: Path,
-                 home: tuple[float, float, float] | None = None, output: Path | None = None,
-                 gcs_port: int | None = None):
-        self.launcher = Path(launcher)
+    def __init__(self, build: Path, instance: int, speed: float, workdir: Path,
+                 home: tuple[float, float, float] | None = None, output: Path | None = None):
+        self.build = Path(build).resolve()
         self.instance = int(instance)
         self.speed = float(speed)
         self.workdir = Path(workdir)
         self.home = home
         self.output = Path(output) if output is not None else self.workdir.with_suffix(".log")
-        self.gcs_port = default_gcs_port(self.instance) if gcs_port is None else int(gcs_port)
         self.lines: list[str] = []
         self._ready = threading.Event()
         self._proc: subprocess.Popen | None = None
@@ -170,28 +138,42 @@ class Px4Sitl:
         return api_port(self.instance)
 
     @property
+    def gcs_port(self) -> int:
+        return gcs_port(self.instance)
+
+    @property
     def api_url(self) -> str:
         """MAVSDK URL of the API link (what `uavloc sim --connect` is given)."""
         return f"udpin://127.0.0.1:{self.api_port}"
 
     @property
     def gcs_url(self) -> str:
-        """MAVSDK URL of the GCS link (a second client: observer, parameters, failure injection)."""
-        return f"udpin://127.0.0.1:{self.gcs_port}"
+        """MAVSDK URL of the GCS link (a second client: observer, parameters, failure injection).
+        The client talks first; PX4 then answers to where the client's datagrams came from."""
+        return f"udpout://127.0.0.1:{self.gcs_port}"
 
     def text(self) -> str:
         return "".join(self.lines)
 
-    def start(self) -> None:
-        self.workdir.mkdir(parents=True, exist_ok=True)
-        env = dict(os.environ, PX4_GCS_REMOTE_PORT=str(self.gcs_port))
+    def command_line(self) -> tuple[list[str], dict[str, str]]:
+        """(argv, the environment variables PX4 is given on top of this process's)."""
+        env = {"PX4_SIM_MODEL": SIM_MODEL, "PX4_SIMULATOR": "sihsim", "PX4_SIM_SPEED_FACTOR": f"{self.speed:g}"}
         if self.home is not None:
             env.update(PX4_HOME_LAT=repr(self.home[0]), PX4_HOME_LON=repr(self.home[1]),
                        PX4_HOME_ALT=repr(self.home[2]))
-        cmd = [str(self.launcher), "-i", str(self.instance), "-s", f"{self.speed:g}", "-w", str(self.workdir)]
-        log.info("starting PX4 SITL: %s", " ".join(cmd))
-        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                      env=env, cwd=self.workdir, start_new_session=True,
+        argv = [str(self.build / "bin" / "px4"), "-d", "-i", str(self.instance), "-w", str(self.workdir.resolve()),
+                str(self.build / "etc")]
+        return argv, env
+
+    def start(self) -> None:
+        why = missing_requirement(self.build)
+        if why is not None:
+            raise SimulatorError(why)
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        argv, extra = self.command_line()
+        log.info("starting PX4 SITL: %s %s", " ".join(f"{k}={v}" for k, v in extra.items()), " ".join(argv))
+        self._proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                      env=dict(os.environ, **extra), cwd=self.workdir, start_new_session=True,
                                       preexec_fn=_terminate_with_parent)
         self._reader = threading.Thread(target=self._read, name=f"px4-{self.instance}-out", daemon=True)
         self._reader.start()
@@ -220,7 +202,7 @@ class Px4Sitl:
     def command(self, module: str, *args: str, timeout_s: float = 10.0) -> str:
         """Run a command on this PX4's console (`bin/px4-<module> --instance N ARGS`, PX4's own
         client, e.g. `command("sensor_gps_sim", "stop")`); returns its output."""
-        exe = self.launcher.parent / "bin" / f"px4-{module}"
+        exe = self.build / "bin" / f"px4-{module}"
         if not exe.exists():
             raise SimulatorError(f"PX4 has no module command {exe.name}")
         r = subprocess.run([str(exe), "--instance", str(self.instance), *args], capture_output=True, text=True,
@@ -245,7 +227,7 @@ class Px4Sitl:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(5.0)
-        # PX4's daemon may outlive the launcher's shell for a moment
+        # a module command PX4 started may outlive it for a moment
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(proc.pid, signal.SIGKILL)
         if self._reader is not None:
@@ -261,8 +243,8 @@ class Px4Sitl:
 
 
 def _terminate_with_parent() -> None:
-    """In the launcher's child process (Linux): SIGTERM when the Python process that started it
-    dies, even without running its cleanup (the launcher then stops PX4), so an aborted test run
+    """In PX4's process (Linux): SIGTERM when the Python process that started it dies, even
+    without running its cleanup (PX4 then shuts down), so an aborted test run
     leaves no PX4 behind."""
     with contextlib.suppress(Exception):
         import ctypes

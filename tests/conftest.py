@@ -29,30 +29,32 @@ def _fresh_o1_bookkeeping(request):
         gnb._O1_UNANSWERED.clear()
 
 
-# --- real PX4 SITL (tests marked `px4`) ----------------------------------------------------------
+# --- the user's PX4 SITL build (tests marked `px4`) ----------------------------------------------
 
-#: PX4 instances the tests may use (API link UDP 14540+i, GCS link to 14690+i)
-PX4_INSTANCES = range(11, 20)
+#: PX4 instances the tests may use: API link UDP 14540+i, GCS link on 18570+i (PX4's stock ports;
+#: above 9 every instance would send its API link to the same port 14549)
+PX4_INSTANCES = range(1, 9)
 _px4_next = iter(())
 
 
 @pytest.fixture(scope="session")
-def px4_launcher(tmp_path_factory):
-    """A working copy of ../shared/px4-sitl (module commands linked to `px4`), made once per
-    session; skips when the bundle or `bc` is missing."""
-    from sitl_scenarios.px4_sitl import DEFAULT_BUNDLE, materialize, missing_requirement
+def px4_build():
+    """The PX4 build folder UAVLOC_PX4 names (build/px4_sitl_default); skips, naming UAVLOC_PX4,
+    when it is unset or not a px4_sitl build."""
+    from sitl_scenarios.px4_sitl import build_from_env, missing_requirement
 
-    why = missing_requirement(DEFAULT_BUNDLE)
+    build = build_from_env()
+    why = missing_requirement(build)
     if why is not None:
         pytest.skip(why)
-    return materialize(DEFAULT_BUNDLE, tmp_path_factory.mktemp("px4-sitl") / "px4-sitl")
+    return build
 
 
 @pytest.fixture
-def px4(px4_launcher, tmp_path):
-    """A fresh PX4 SITL (SIH quadrotor) for one test: its own instance (11-19, one not in use),
-    speed factor tests.px4.PX4_SPEED, a fresh working directory; stopped after the test. Skips
-    when PX4 does not print `Ready for takeoff!` in time."""
+def px4(px4_build, tmp_path):
+    """A fresh PX4 SITL (SIH quadrotor) of the user's build for one test: its own instance (1-8,
+    one not in use), speed factor tests.px4.PX4_SPEED, a fresh working directory; stopped after the
+    test. Skips when PX4 does not print `Ready for takeoff!` in time."""
     from sitl_scenarios.px4_sitl import Px4Sitl, instance_busy
     from tests.px4 import PX4_SPEED, READY_TIMEOUT_S
 
@@ -68,7 +70,7 @@ def px4(px4_launcher, tmp_path):
             break
     if instance is None:
         pytest.skip(f"every PX4 instance {PX4_INSTANCES.start}-{PX4_INSTANCES.stop - 1} is in use")
-    sitl = Px4Sitl(px4_launcher, instance, PX4_SPEED, tmp_path / "px4-work", output=tmp_path / "px4.log")
+    sitl = Px4Sitl(px4_build, instance, PX4_SPEED, tmp_path / "px4-work", output=tmp_path / "px4.log")
     sitl.start()
     try:
         if not sitl.wait_ready(READY_TIMEOUT_S):

@@ -2,7 +2,8 @@
 (flight mode, landed state, position, PX4's status texts) and sets parameters and injects failures
 through MAVSDK's Param and Failure plugins, while uavloc flies PX4 over the API link.
 
-The fixtures (tests/conftest.py) start PX4 itself (sitl_scenarios.px4_sitl).
+The fixtures (tests/conftest.py) start PX4 itself from the user's build (UAVLOC_PX4,
+sitl_scenarios.px4_sitl).
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ class Observed:
 
 
 class GcsClient:
-    """MAVSDK on PX4's GCS link (`udpin://127.0.0.1:18570+i`), as an async context manager."""
+    """MAVSDK on PX4's GCS link (`udpout://127.0.0.1:18570+i`), as an async context manager."""
 
     def __init__(self, url: str):
         self.url = url

@@ -1,8 +1,14 @@
-"""The adapter against a real OAI 2025.w36 gNB and UE (`../shared/oai-rfsim/`, marker `oai`).
+"""The adapter against the user's own OAI gNB and nrUE build (`UAVLOC_OAI`, marker `oai`).
 
-One gNB+UE pair is started for the session (about 1.7 cores while it runs) and stopped at the end;
-after every test the gNB process must still be alive and answer `o1 stats`. Skipped with the reason
-when the bundle is absent or its runtime packages are missing (`oai-rfsim --check`).
+`UAVLOC_OAI` names an OAI build folder (`openairinterface5g/cmake_targets/ran_build/build`, made by
+`./build_oai --gNB --nrUE -w SIMU --build-lib telnetsrv`) holding `nr-softmodem`, `nr-uesoftmodem`,
+the rfsimulator and the telnet server with its `ci`, `o1` and `ciUE` modules. One gNB+UE pair is
+started for the module with the configuration files the transcripts were recorded with
+(`../shared/data/oai-2025.w36/conf/`, or tests/fixtures/oai-2025.w36/conf when absent; copied to
+the run folder with free loopback ports for the two telnet servers and the rfsimulator) and the
+command lines of that recording, about 1.7 cores while it runs, and stopped at the end; after
+every test the gNB process must still be alive and answer `o1 stats`. Skipped with a sentence
+naming UAVLOC_OAI when it is unset or lacks one of those files.
 
 Order matters on purpose: the tests that trigger the connected UE run before the ones that make it
 re-attach (an idle UE's old context lingers in the gNB for about 21 s).
@@ -13,6 +19,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
+import re
 import shutil
 import socket
 import subprocess
@@ -28,6 +36,7 @@ from estimator.ranging import one_way_m_per_ta_step
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.oai import PROMPT_UE, parse_rfsim_distance
 from mission.oai_ra import RandomAccess, log_time_format
+from tests.conftest import SHARED_DATA
 from tests.procs import stop_process
 from uavloc.errors import (
     GnbBusyError,
@@ -40,17 +49,66 @@ from uavloc.errors import (
 
 pytestmark = pytest.mark.oai
 
-BUNDLE = Path(__file__).resolve().parents[2] / "shared" / "oai-rfsim"
-LAUNCHER = BUNDLE / "oai-rfsim"
+BUILD_ENV = "UAVLOC_OAI"
+#: what the build folder must hold (build_oai --gNB --nrUE -w SIMU --build-lib telnetsrv)
+BUILD_FILES = ("nr-softmodem", "nr-uesoftmodem", "librfsimulator.so", "libtelnetsrv.so", "libtelnetsrv_ci.so",
+               "libtelnetsrv_o1.so", "libtelnetsrv_ciUE.so")
+#: the configuration files of the recorded transcripts (the shared data, else the test fixtures' copy)
+CONF = next((d for d in (SHARED_DATA / "oai-2025.w36" / "conf",
+                         Path(__file__).parent / "fixtures" / "oai-2025.w36" / "conf") if (d / "gnb.conf").is_file()),
+            SHARED_DATA / "oai-2025.w36" / "conf")
+#: the recording's command lines (../shared/data/README.md), the ports of this run added
+GNB_ARGS = ("-E", "--rfsim", "--rfsimulator.serveraddr", "server", "--telnetsrv", "--telnetsrv.shrmod", "ci,o1",
+            "--log_config.global_log_options", "level,nocolor,wall_clock")
+UE_ARGS = ("-E", "--rfsim", "-r", "106", "--numerology", "1", "--band", "78", "-C", "3319680000", "--ssb", "516",
+           "--rfsimulator.serveraddr", "127.0.0.1", "--telnetsrv", "--telnetsrv.shrmod", "ciUE")
+#: the gNB's line when the UE is attached ("... RNTI 8d15) Received RRCSetupComplete (RRC_CONNECTED reached)")
+_ATTACHED = re.compile(r"RNTI ([0-9a-f]{4})\) Received RRCSetupComplete \(RRC_CONNECTED reached\)")
 TA_STEP_M = one_way_m_per_ta_step(1)  # 39.03 m at 30 kHz SCS
+
+
+def oai_build_missing(env: dict[str, str] | None = None) -> str | None:
+    """Why the OAI tests cannot run (a sentence naming UAVLOC_OAI), or None."""
+    value = (os.environ if env is None else env).get(BUILD_ENV, "").strip()
+    if not value:
+        return (f"{BUILD_ENV} is not set: set it to your OAI build folder (openairinterface5g/cmake_targets/"
+                "ran_build/build, made by `./build_oai --gNB --nrUE -w SIMU --build-lib telnetsrv`) "
+                "to run the OAI tests")
+    build = Path(value).expanduser()
+    missing = [f for f in BUILD_FILES if not (build / f).is_file()]
+    if missing:
+        return f"{BUILD_ENV}={build} lacks {', '.join(missing)} (build_oai --gNB --nrUE -w SIMU --build-lib telnetsrv)"
+    if not (CONF / "gnb.conf").is_file() or not (CONF / "ue.conf").is_file():
+        return f"the recorded OAI configuration files are not at {CONF}"
+    return None
+
+
+def _free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _conf_with_ports(text: str, telnet_port: int, rfsim_port: int) -> str:
+    """A recorded conf file with its telnet server's listenport, and the rfsimulator's serverport."""
+    text, n = re.subn(r"(telnetsrv\s*=\s*\{[^}]*?listenport\s*=\s*)\d+", rf"\g<1>{telnet_port}", text, flags=re.S)
+    assert n == 1, "the recorded conf file has no telnetsrv listenport"
+    if "rfsimulator:" in text:
+        return re.sub(r"(rfsimulator:\s*\{)", rf"\1\n    serverport = {rfsim_port};", text, count=1)
+    return text + f"\nrfsimulator: {{\n  serverport = {rfsim_port};\n}};\n"
 
 
 @dataclass
 class OaiRun:
-    """A running oai-rfsim launcher and what it printed (KEY=VALUE lines)."""
+    """The user's nr-softmodem and nr-uesoftmodem, started as the transcripts were recorded.
 
+    info: GNB_LOG, UE_LOG, GNB_TELNET_PORT, UE_TELNET_PORT, GNB_PID, UE_PID, UE_RNTI (hex), READY,
+    EXIT_STATUS, ERROR; exited: "gnb" / "ue" in the order they exited.
+    """
+
+    build: Path
     workdir: Path
-    proc: subprocess.Popen | None = None
+    procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     info: dict[str, str] = field(default_factory=dict)
     exited: list[str] = field(default_factory=list)
     launches: int = 0
@@ -68,34 +126,68 @@ class OaiRun:
         return int(self.info["UE_TELNET_PORT"])
 
     def gnb_process_alive(self) -> bool:
-        """The nr-softmodem process exists and is not a zombie, and the launcher saw no exit."""
-        if self.exited or self.proc.poll() is not None:
+        """The nr-softmodem process exists and is not a zombie, and no OAI process exited."""
+        gnb = self.procs.get("gnb")
+        if self.exited or gnb is None or gnb.poll() is not None:
             return False
         try:
-            stat = Path(f"/proc/{int(self.info['GNB_PID'])}/stat").read_text()
+            stat = Path(f"/proc/{gnb.pid}/stat").read_text()
         except OSError:
             return False
         return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
 
+    def _start(self, name: str, exe: str, conf: Path, args: tuple[str, ...], log: Path) -> None:
+        env = dict(os.environ, LD_LIBRARY_PATH=os.pathsep.join(
+            p for p in (str(self.build), os.environ.get("LD_LIBRARY_PATH", "")) if p))
+        fh = open(log, "w")  # noqa: SIM115 -- the process writes it until stop()
+        proc = subprocess.Popen([str(self.build / exe), "-O", str(conf), *args], stdout=fh, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, cwd=conf.parent, env=env, start_new_session=True)
+        fh.close()
+        self.procs[name] = proc
+        self.info[f"{name.upper()}_PID"] = str(proc.pid)
+        info, exited = self.info, self.exited  # this launch's (a relaunch replaces them)
+
+        def watch() -> None:
+            code = proc.wait()
+            if exited is self.exited and name not in exited:
+                exited.append(name)
+                info.setdefault("EXIT_STATUS", str(code if code >= 0 else 128 - code))
+
+        threading.Thread(target=watch, daemon=True, name=f"oai-{name}-wait").start()
+
     def launch(self) -> None:
-        """Start the launcher in a new run folder and wait until the UE is attached (READY=1)."""
+        """Start gNB and UE in a new run folder and wait until the UE is attached (READY=1)."""
         self.launches += 1
-        self.info, self.exited = {}, []
-        self.proc = subprocess.Popen([str(LAUNCHER), "--workdir", str(self.workdir / f"run{self.launches}")],
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        _read_until_ready(self, deadline_s=240.0)
-        if self.info.get("READY") != "1":
-            pytest.fail(f"oai-rfsim did not attach the UE: {self.info.get('ERROR', 'no READY line')} "
-                        f"(exit status {self.proc.poll()})")
+        self.info, self.exited, self.procs = {}, [], {}
+        run = self.workdir / f"run{self.launches}"
+        run.mkdir(parents=True)
+        gnb_port, ue_port, rfsim_port = _free_tcp_port(), _free_tcp_port(), _free_tcp_port()
+        for name, port in (("gnb", gnb_port), ("ue", ue_port)):
+            (run / f"{name}.conf").write_text(_conf_with_ports((CONF / f"{name}.conf").read_text(), port, rfsim_port))
+        self.info.update(GNB_LOG=str(run / "gnb.log"), UE_LOG=str(run / "ue.log"), GNB_TELNET_PORT=str(gnb_port),
+                         UE_TELNET_PORT=str(ue_port))
+        self._start("gnb", "nr-softmodem", run / "gnb.conf", GNB_ARGS, run / "gnb.log")
+        deadline = time.monotonic() + 60.0
+        while not _port_open(gnb_port) and time.monotonic() < deadline and not self.exited:
+            time.sleep(0.2)
+        self._start("ue", "nr-uesoftmodem", run / "ue.conf", UE_ARGS, run / "ue.log")
+        deadline = time.monotonic() + 240.0
+        while time.monotonic() < deadline and not self.exited:
+            m = _ATTACHED.search(self.gnb_log.read_text(errors="replace"))
+            if m:
+                self.info.update(UE_RNTI=m.group(1), READY="1")
+                return
+            time.sleep(0.5)
+        self.info["ERROR"] = f"{self.exited or 'no process'} exited" if self.exited else "UE not attached in 240 s"
+        pytest.fail(f"OAI did not attach the UE: {self.info['ERROR']} (exit status {self.info.get('EXIT_STATUS')}); "
+                    f"logs in {run}")
 
     def stop(self) -> None:
-        """SIGTERM to the launcher, which stops both OAI processes."""
-        proc = self.proc
-        if proc is None:
-            return
-        stop_process(proc, grace_s=30, kill_wait_s=10)
-        if proc.stdout is not None:
-            proc.stdout.close()
+        """SIGTERM to the UE, then the gNB (SIGKILL after a grace period)."""
+        for name in ("ue", "gnb"):
+            proc = self.procs.get(name)
+            if proc is not None:
+                stop_process(proc, grace_s=30, kill_wait_s=10)
 
     def commands_received(self) -> list[str]:
         """The telnet commands the gNB logged (`[TELNETSRV] Command received: ... "<line>"`)."""
@@ -106,36 +198,18 @@ class OaiRun:
         return out
 
 
-def _read_until_ready(run: OaiRun, deadline_s: float) -> None:
-    assert run.proc.stdout is not None
-    lines: list[str] = []
-
-    # this launch's own stdout and records (a relaunch replaces them: OaiRun.launch)
-    stdout, info, exited = run.proc.stdout, run.info, run.exited
-
-    def reader() -> None:
-        for line in stdout:
-            k, _, v = line.strip().partition("=")
-            info[k] = v
-            if k == "EXITED":
-                exited.append(v)
-            lines.append(line)
-
-    threading.Thread(target=reader, daemon=True).start()
-    t_end = time.monotonic() + deadline_s
-    while time.monotonic() < t_end and "READY" not in run.info and run.proc.poll() is None:
-        time.sleep(0.1)
+def _port_open(port: int) -> bool:
+    with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.5):
+        return True
+    return False
 
 
 @pytest.fixture(scope="module")
 def oai(tmp_path_factory):
-    if not LAUNCHER.is_file():
-        pytest.skip(f"the OAI bundle is not at {BUNDLE}")
-    check = subprocess.run([str(LAUNCHER), "--check"], capture_output=True, text=True, timeout=60)
-    if check.returncode != 0:
-        missing = [ln for ln in check.stdout.splitlines() if ln.startswith("MISSING_PACKAGES")]
-        pytest.skip(f"oai-rfsim --check failed ({check.returncode}): {missing or check.stderr.strip()[-300:]}")
-    run = OaiRun(workdir=tmp_path_factory.mktemp("oai-rfsim"))
+    why = oai_build_missing()
+    if why is not None:
+        pytest.skip(why)
+    run = OaiRun(build=Path(os.environ[BUILD_ENV]).expanduser(), workdir=tmp_path_factory.mktemp("oai-run"))
     try:
         run.launch()
         yield run

@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import ast
 import asyncio
+import contextlib
+import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from estimator.ranging import one_way_m_per_ta_step, range_m_from_raw
@@ -32,6 +35,25 @@ from uavloc.errors import GnbUnknownCommandError
 
 FIXTURES = Path(__file__).parent / "fixtures" / "oai-2025.w36"
 _LINE = re.compile(r"^(>>>|<<<)(.*?) (b'.*|b\".*)$")
+
+
+def sessions(name: str) -> list[tuple[bytes, bytes, bool]]:
+    """A recorded telnet session -> [(bytes sent, bytes received, whether the gNB closed the
+    connection after them (an `EOF` answer, or the recorder's send failing on the closed socket))]."""
+    out: list[list] = []
+    for line in (FIXTURES / name).read_text().splitlines():
+        m = _LINE.match(line)
+        if out and ((line.startswith("<<<") and "EOF" in line.split("b'", 1)[0])
+                    or line.startswith(("BrokenPipeError", "ConnectionResetError"))):
+            out[-1][2] = True
+        if not m:
+            continue
+        data = ast.literal_eval(m.group(3))
+        if m.group(1) == ">>>":
+            out.append([data, [], False])
+        elif out and data:
+            out[-1][1].append(data)
+    return [(sent, b"".join(segs), closed) for sent, segs, closed in out]
 
 
 def exchanges(name: str) -> list[tuple[bytes, list[bytes]]]:
@@ -66,6 +88,27 @@ def test_fixtures_are_the_shared_recordings():
     assert len(copied) == 13
     for f in copied:
         assert f.read_bytes() == (shared / f.name).read_bytes(), f.name
+    for name in ("gnb.conf", "ue.conf", "LICENSE.OAI"):
+        assert (FIXTURES / "conf" / name).read_bytes() == (shared / "conf" / name).read_bytes(), name
+
+
+def test_the_oai_tests_skip_naming_uavloc_oai_and_run_the_recorded_conf_on_free_ports(tmp_path):
+    """The `oai` fixture's skip sentence, and the recorded conf files with this run's ports."""
+    from tests.test_oai_live import BUILD_FILES, _conf_with_ports, oai_build_missing
+
+    assert oai_build_missing({}).startswith("UAVLOC_OAI is not set")
+    assert "ran_build/build" in oai_build_missing({"UAVLOC_OAI": ""})
+    why = oai_build_missing({"UAVLOC_OAI": str(tmp_path)})
+    assert why.startswith(f"UAVLOC_OAI={tmp_path} lacks nr-softmodem, nr-uesoftmodem")
+    for f in BUILD_FILES:
+        (tmp_path / f).write_bytes(b"")
+    assert oai_build_missing({"UAVLOC_OAI": str(tmp_path)}) is None
+    gnb = _conf_with_ports((FIXTURES / "conf" / "gnb.conf").read_text(), 20611, 20612)
+    ue = _conf_with_ports((FIXTURES / "conf" / "ue.conf").read_text(), 20613, 20612)
+    assert re.search(r"telnetsrv = \{\s*listenaddr = \"127.0.0.1\";\s*listenport = 20611;", gnb)
+    assert re.search(r"rfsimulator: \{\s*serverport = 20612;\s*serveraddr = \"server\";", gnb)
+    assert "listenport = 20613;" in ue and "serverport = 20612;" in ue
+    assert "9099" not in gnb and "9091" not in ue
 
 
 # ---------------------------------------------------------------------------------------------
@@ -289,3 +332,86 @@ def test_every_recorded_answer_is_read(name):
             assert late[0].startswith("rfsimu_vtime_cmd: vtime measurement")
         seen += 1
     assert seen >= 1
+
+
+# ---------------------------------------------------------------------------------------------
+# the simulated gNB answers each recorded request as the real one did
+
+#: the UE each gNB transcript was recorded with (its RNTI: requests name it), None: no UE
+RECORDED_UE = {"01_noue_probe_and_crash.txt": None, "02_noue_probe.txt": None,
+               "03_rfsimu_without_ue_and_exit.txt": None, "05_gnb_probe_with_ue.txt": 0x8D15,
+               "07_force_reestab_no_effect.txt": 0x8D15, "09_setdistance_transcripts.txt": 0x8D15,
+               "10_force_ue_release_crash.txt": 0xF5AA}
+#: not compared: `help` (the simulated gNB lists the modules it has, ci, o1, rfsimu and its RTT
+#: module; OAI lists seven, telnet, softmodem, loader and measur among them)
+NOT_COMPARED = (b"help",)
+_RNTI_HEX = re.compile(r"\b[0-9a-f]{4}\b")
+_TS = re.compile(r"TS \d+")
+
+
+def _normalized(data: bytes, closed: bool) -> object:
+    """An answer with RNTIs and times aside: the o1 JSON document parsed, its UE list by length;
+    a closed connection as such (the recording saw EOF where the simulated gNB may reset)."""
+    text = data.decode("utf-8", "replace")
+    if text.lstrip().startswith("{"):
+        doc_text, _, rest = text.partition("\nOK\n")
+        doc = json.loads(doc_text)
+        ops = doc.get("O1-Operational", {})
+        ops["ues"] = len(ops.get("ues", []))
+        return doc, rest, closed
+    return _TS.sub("TS <t>", _RNTI_HEX.sub("<rnti>", text)), closed
+
+
+async def _ask(reader, writer, sent: bytes) -> tuple[bytes, bool]:
+    """Send one request; what came back up to the prompt and right after it, and whether the
+    connection closed."""
+    got = b""
+    try:
+        writer.write(sent)
+        await writer.drain()
+        while PROMPT_GNB.encode() not in got:
+            chunk = await asyncio.wait_for(reader.read(65536), 2.0)
+            if not chunk:
+                return got, True
+            got += chunk
+        with contextlib.suppress(TimeoutError):
+            got += await asyncio.wait_for(reader.read(65536), 0.2)  # the rfsimulator's line
+    except (ConnectionError, OSError):
+        return got, True
+    return got, False
+
+
+@pytest.mark.parametrize("name", sorted(RECORDED_UE))
+def test_the_simulated_gnb_answers_each_recorded_request_as_oai_did(name):
+    """Each request of a recorded gNB session, sent in order on one connection to the simulated
+    gNB with the recorded UE (or none): the same answer, RNTIs and times aside, and the
+    connection closed where OAI closed it (`exit`, the crashes of 01 and 10). Requests to the
+    UE's telnet server (09) are not the gNB's."""
+    from sitl_scenarios.gnb import SimulatedGnb
+    from sitl_scenarios.position import static_position
+    from sitl_scenarios.scenario import scenario_from_dict
+
+    rnti = RECORDED_UE[name]
+    users = [{"id": "ue", "rnti": hex(rnti if rnti is not None else 0x0777),
+              "east_m": 10.0 if rnti is not None else 9000.0, "north_m": 0.0}]
+    sc = scenario_from_dict({"name": "oai-transcript", "seed": 1, "users": users, "radio": {"coverage_m": 1000.0}})
+    asked = [(s, d, c) for s, d, c in sessions(name)
+             if PROMPT_UE.encode() not in d and not s.strip().startswith(NOT_COMPARED)]
+    assert asked, name
+
+    async def body():
+        out = []
+        async with SimulatedGnb(sc, static_position(np.array([0.0, 0.0, 40.0])), port=0,
+                                stock_reaction="none") as gnb:
+            reader, writer = await asyncio.open_connection("127.0.0.1", gnb.port)
+            closed = False
+            for sent, _data, _closed in asked:
+                got = (b"", True) if closed else await _ask(reader, writer, sent)
+                closed = got[1]
+                out.append(got)
+            writer.close()
+        return out
+
+    got = run(body())
+    for (sent, data, closed), (answer_, sim_closed) in zip(asked, got, strict=True):
+        assert _normalized(answer_, sim_closed) == _normalized(data, closed), sent

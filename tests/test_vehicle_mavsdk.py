@@ -19,7 +19,6 @@ import pytest
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
 from mavsdk.asyncio.plugins.action import ActionAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
-from mavsdk.plugins.action import ActionError, ActionResult
 from mavsdk.plugins.telemetry import FlightMode, LandedState
 
 from estimator.geodesy import Origin
@@ -167,16 +166,17 @@ def test_mavsdk_flies_takeoff_goto_rtl(kind: str) -> None:
     asyncio.run(run())
 
 
-def test_takeoff_refused_when_disarmed() -> None:
-    """Built-in only: PX4 >= 1.14 takes NAV_TAKEOFF as a switch to Takeoff mode even when
-    disarmed (and climbs once armed); the built-in vehicle refuses it, as older PX4 did."""
+def test_takeoff_when_disarmed_selects_takeoff_mode_and_climbs_once_armed() -> None:
+    """Like PX4 >= 1.14 (the recorded legs flight: TAKEOFF mode disarmed, then armed): NAV_TAKEOFF
+    while disarmed switches to Takeoff mode; the vehicle climbs once armed."""
     async def run() -> None:
         async with vehicle_link("builtin") as link:
-            await first(link.telemetry.subscribe_health(), lambda h: h.is_global_position_ok, link.wall(30))
-            with pytest.raises(ActionError) as err:
-                await link.action.takeoff()
-            assert err.value.result in (ActionResult.COMMAND_DENIED,
-                                        ActionResult.COMMAND_DENIED_NOT_LANDED)
-            assert not await first(link.telemetry.subscribe_armed(), lambda a: True, link.wall(5))
+            tel = link.telemetry
+            await first(tel.subscribe_health(), lambda h: h.is_global_position_ok and h.is_armable, link.wall(30))
+            await link.action.takeoff()
+            await first(tel.subscribe_flight_mode(), lambda m: m == FlightMode.TAKEOFF, link.wall(5))
+            assert not await first(tel.subscribe_armed(), lambda a: True, link.wall(5))
+            await link.action.arm()
+            await first(tel.subscribe_position(), lambda p: p.relative_altitude_m > 1.0, link.wall(30))
 
     asyncio.run(run())

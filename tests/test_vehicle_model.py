@@ -104,8 +104,10 @@ def test_takeoff_and_leg_respect_speed_climb_and_acceleration_limits() -> None:
     ap.takeoff()
     run(ap, 25.0, rec)
     assert ap.mode is FlightMode.HOLD
-    climb = [v[2] for _, _, v in rec]
-    assert max(climb) <= ap.params["MPC_TKO_SPEED"] + 1e-9
+    # PX4 (the recorded legs flight): MPC_TKO_SPEED up to MPC_LAND_ALT1, MPC_Z_V_AUTO_UP above
+    low = [v[2] for _, p, v in rec if p[2] < ap.params["MPC_LAND_ALT1"] - 0.5]
+    assert max(low) <= ap.params["MPC_TKO_SPEED"] + 1e-9
+    assert max(v[2] for _, _, v in rec) <= ap.params["MPC_Z_V_AUTO_UP"] + 1e-9
     lat, lon, alt = ORIGIN.enu_to_lla([0.0, 100.0, 20.0])
     assert ap.change_speed(8.0)[0] == ACCEPTED  # DO_CHANGE_SPEED, as the mission controller commands it
     assert ap.reposition(float(lat), float(lon), float(alt))[0] == ACCEPTED
@@ -205,7 +207,8 @@ def test_px4_refusals() -> None:
     assert ap.arm()[0] == DENIED  # no GPS fix yet
     assert ap.takeoff()[0] == DENIED  # disarmed
     ap.step(6.0, 0.0)
-    assert ap.takeoff()[0] == DENIED  # still disarmed
+    # disarmed, PX4 selects takeoff mode and climbs once armed (the recorded legs flight)
+    assert ap.takeoff()[0] == ACCEPTED and ap.mode is FlightMode.TAKEOFF and not ap.in_air
     assert ap.arm()[0] == ACCEPTED
     assert ap.reposition(43.6144, 7.0716, 170.0)[0] == DENIED  # on the ground
     ap.params.set("MIS_TAKEOFF_ALT", 10.0)
@@ -225,11 +228,21 @@ def test_armed_without_takeoff_disarms_after_com_disarm_prflt() -> None:
     assert not ap.armed
 
 
-def test_gps_loss_in_flight_descends_and_blocks_arming() -> None:
+def test_gps_loss_in_flight_dead_reckons_then_lands_blind_and_blocks_arming() -> None:
+    """PX4 (the recorded gpsloss flight): the position is kept from dead reckoning for
+    DEAD_RECKONING_S, drifting, then the failsafe lands where the vehicle is."""
+    from sitl_scenarios.vehicle.sensors import DEAD_RECKONING_S
+
     ap = make()
     fly_to_altitude(ap, 15.0)
+    mode = ap.mode
     ap.set_gps_lost(True)
-    assert ap.mode is FlightMode.LAND
+    run(ap, DEAD_RECKONING_S - 0.2)
+    assert ap.mode is mode and ap.position_valid and ap.position_published
+    assert 0.0 < np.hypot(*(ap.estimated_position() - np.array(ap.pos))[:2]) < 2.0  # drifting
+    run(ap, 0.4)
+    assert ap.mode is FlightMode.LAND and ap.position_failsafe and not ap.position_valid
+    assert ap.position_published  # PX4 keeps publishing its (invalid) position
     run(ap, 60.0)
     assert not ap.armed and not ap.in_air
     assert ap.arm()[0] == DENIED
@@ -346,8 +359,8 @@ def test_euler_to_quaternion_table(rpy: tuple, q: tuple) -> None:
 @pytest.mark.parametrize(
     ("speedup", "heartbeats", "attitudes"),
     [
-        (8.0, 16, 50),  # heartbeat 1 Hz vehicle time = 8 Hz wall; ATTITUDE 10 Hz x 8 capped at 25 Hz
-        (0.5, 2, 10),  # heartbeat 0.5 Hz wall raised to 1 Hz wall; ATTITUDE 10 Hz x 0.5 = 5 Hz
+        (8.0, 16, 50),  # heartbeat 1 Hz vehicle time = 8 Hz wall; ATTITUDE 50 Hz x 8 capped at 25 Hz
+        (0.5, 2, 50),  # heartbeat 0.5 Hz wall raised to 1 Hz wall; ATTITUDE 50 Hz x 0.5 = 25 Hz
     ],
 )
 def test_stream_schedule_rates_follow_vehicle_time_with_wall_caps(
@@ -383,7 +396,7 @@ def test_stream_schedule_set_interval_stop_and_default() -> None:
     assert sched.set_interval(bat, -1) == ACCEPTED and sched.interval_us(bat) == -1
     assert count(1.0) == 0
     assert sched.set_interval(bat, 0) == ACCEPTED
-    assert sched.intervals_s[bat] == DEFAULT_INTERVALS_S[bat] == 1.0
+    assert sched.intervals_s[bat] == DEFAULT_INTERVALS_S[bat] == 2.0  # PX4's BATTERY_STATUS, 0.5 Hz
     assert count(2.0) == 1
     assert sched.set_interval(31337, 100_000) == UNSUPPORTED
     assert sched.set_interval(bat, math.nan) == UNSUPPORTED

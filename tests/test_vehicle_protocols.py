@@ -198,7 +198,7 @@ def test_set_message_interval_changes_the_stream_interval() -> None:
                 await first(link.telemetry.subscribe_battery(), lambda b: True, 5.0)
         return seen
 
-    assert asyncio.run(run()) == [1_000_000, 100_000, 1_000_000]
+    assert asyncio.run(run()) == [2_000_000, 100_000, 1_000_000]  # PX4's BATTERY_STATUS: 0.5 Hz
 
 
 def test_raw_link_two_targets_and_malformed_command() -> None:

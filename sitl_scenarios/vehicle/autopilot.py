@@ -41,11 +41,26 @@ from sitl_scenarios.vehicle.mav import (
 from sitl_scenarios.vehicle.navigator import MissionItem, MissionState, Navigator, RtlState
 from sitl_scenarios.vehicle.params import ParamStore, px4_params
 from sitl_scenarios.vehicle.px4 import FlightMode
-from sitl_scenarios.vehicle.sensors import BATTERY_WARNINGS, GpsError, VelocityError, charge_state, drained_pct
+from sitl_scenarios.vehicle.sensors import (
+    BATTERY_WARNINGS,
+    DEAD_RECKONING_S,
+    DeadReckoning,
+    GpsError,
+    VelocityError,
+    charge_state,
+    drained_pct,
+)
 from sitl_scenarios.vehicle.state import VehicleState
 
 log = logging.getLogger(__name__)
 
+#: from touchdown to "Landing detected" [s]: PX4 v1.18's land detector (SIH quadrotor) took 3.7 s
+#: (gpsloss recording) to 7 s (legs recording, RTL) to report the vehicle on the ground
+LAND_DETECT_S = 5.0
+#: PX4's take-off (legs recording): the climb rate ramps up over MPC_TKO_RAMP_T (3 s), and the last
+#: metres are approached at about 0.55 m/s per metre to go
+TAKEOFF_RAMP_S = 3.0
+TAKEOFF_APPROACH_PER_S = 0.55
 #: COM_LOW_BAT_ACT values (PX4 parameter) that return at a critical / land at an emergency charge
 _LOW_BAT_RTL = (1, 3)
 _LOW_BAT_LAND = (2, 3)
@@ -71,6 +86,9 @@ class Autopilot(Navigator):
         )
         self.gps_error = GpsError(vehicle.gps_sigma_m, vehicle.gps_tau_s, rng)
         self.vel_error = VelocityError(rng)
+        self.dead_reckoning = DeadReckoning(rng)
+        self.gps_error_at_loss: np.ndarray | None = None  # the GPS error frozen when the fix went
+        self.position_failsafe = False  # blind land after the dead reckoning ran out
         self.t_s = 0.0
         self.pos = [0.0, 0.0, 0.0]
         self.vel = [0.0, 0.0, 0.0]
@@ -97,6 +115,8 @@ class Autopilot(Navigator):
         self._land_xy: tuple[float, float] | None = None
         self._rtl = RtlState()
         self._landed_since_s: float | None = None  # armed and on the ground since
+        self._touchdown_s: float | None = None  # on the ground, landing not yet detected, since
+        self._takeoff_from_s: float | None = None  # a take-off's climb started
         self._has_flown = False  # left the ground since arming
         self._battery_level = CHARGE_OK
         self._offboard_pos: list[float] | None = None
@@ -111,6 +131,21 @@ class Autopilot(Navigator):
         return not self.gps_lost and self.t_s >= self.gps_fix_delay_s
 
     @property
+    def position_valid(self) -> bool:
+        """A global position estimate the autopilot flies on: GPS, or dead reckoning for
+        DEAD_RECKONING_S after the fix went (PX4's EKF2 keeps the position that long)."""
+        if self.gps_ok:
+            return True
+        since = self.dead_reckoning.since_s
+        return since is not None and self.t_s - since < DEAD_RECKONING_S
+
+    @property
+    def position_published(self) -> bool:
+        """PX4 keeps publishing its (dead-reckoned, drifting) position after GPS went, even once
+        invalid; nothing before the first fix."""
+        return self.gps_ok or self.dead_reckoning.since_s is not None
+
+    @property
     def charge_state(self) -> int:
         return charge_state(self.battery_pct, self.params)
 
@@ -122,7 +157,10 @@ class Autopilot(Navigator):
         return [float(v) for v in self.origin.lla_to_enu(lat_deg, lon_deg, alt_m)]
 
     def estimated_position(self) -> np.ndarray:
-        """What the vehicle's estimator believes: true position + GPS error, (3,) ENU [m]."""
+        """What the vehicle's estimator believes, (3,) ENU [m]: true position + GPS error; without
+        GPS, + the GPS error it had then + the dead-reckoning drift since (sensors.DeadReckoning)."""
+        if self.gps_error_at_loss is not None:
+            return np.asarray(self.pos) + self.gps_error_at_loss + self.dead_reckoning.offset_m(self.t_s)
         return np.asarray(self.pos) + self.gps_error.sample(self.t_s)
 
     def estimated_velocity(self) -> np.ndarray:
@@ -130,7 +168,7 @@ class Autopilot(Navigator):
         [m/s] (zero on the ground, where PX4 reports the vehicle at rest)."""
         if not self.in_air:
             return np.asarray(self.vel, dtype=float)
-        return np.asarray(self.vel) + self.vel_error.sample(self.t_s)
+        return np.asarray(self.vel) + self.vel_error.sample(self.t_s) + self.dead_reckoning.velocity_mps(self.t_s)
 
     def snapshot(self, link_up: bool) -> VehicleState:
         lat, lon, alt = self.enu_to_lla(self.pos)
@@ -161,7 +199,7 @@ class Autopilot(Navigator):
 
 
     def _need_position(self, what: str) -> tuple[int, str] | None:
-        if not self.gps_ok:
+        if not self.position_valid:
             reason = f"{what} denied: no global position"
             self._say(SEV_CRITICAL, reason)
             return DENIED, reason
@@ -208,6 +246,7 @@ class Autopilot(Navigator):
 
     def _disarm(self, text: str) -> None:
         self.armed = False
+        self.position_failsafe = False
         self._landed_since_s = None
         if self.in_air:  # forced disarm in the air: it falls; here it is put on the ground
             self.in_air = False
@@ -219,9 +258,8 @@ class Autopilot(Navigator):
         self._say(SEV_INFO, text)
 
     def takeoff(self, alt_amsl_m: float = math.nan) -> tuple[int, str]:
-        """MAV_CMD_NAV_TAKEOFF: param7 AMSL altitude, NaN → home + MIS_TAKEOFF_ALT (PX4)."""
-        if not self.armed:
-            return self._deny("Takeoff denied: disarmed")
+        """MAV_CMD_NAV_TAKEOFF: param7 AMSL altitude, NaN → home + MIS_TAKEOFF_ALT (PX4). Disarmed,
+        PX4 selects takeoff mode with that height and climbs once armed (the legs recording)."""
         denied = self._need_position("Takeoff")
         if denied:
             return denied
@@ -234,6 +272,8 @@ class Autopilot(Navigator):
         self._takeoff_up_m = max(up, 1.0)
         self._hold = [self.pos[0], self.pos[1], self._takeoff_up_m]
         self._set_mode(FlightMode.TAKEOFF)
+        if not self.armed:
+            return ACCEPTED, f"takeoff mode selected, to {self._takeoff_up_m:.1f} m once armed"
         return ACCEPTED, f"takeoff to {self._takeoff_up_m:.1f} m"
 
     def land(self, lat_deg: float = math.nan, lon_deg: float = math.nan) -> tuple[int, str]:
@@ -363,18 +403,34 @@ class Autopilot(Navigator):
 
     # --- faults -------------------------------------------------------------------------------
     def set_gps_lost(self, lost: bool) -> None:
+        """The receiver loses (regains) its fix. Like PX4 (gpsloss recording): the EKF dead-reckons
+        for DEAD_RECKONING_S, the vehicle flying on as commanded while its position drifts; then the
+        position is invalid and, in the air, the failsafe lands blind where it is
+        (:meth:`_position_failsafe`). The position is published all along."""
         if lost == self.gps_lost:
             return
         self.gps_lost = lost
         if lost:
-            self._say(SEV_CRITICAL, "GPS lost: no global position")
-            if self.in_air and self.mode is not FlightMode.LAND:
-                self._say(SEV_CRITICAL, "Failsafe: no position, descending")
-                sp = self._stopping_point()
-                self._land_xy = (sp[0], sp[1])
-                self._set_mode(FlightMode.LAND)
+            if self.t_s >= self.gps_fix_delay_s:
+                self.gps_error_at_loss = np.array(self.gps_error.sample(self.t_s))
+                self.dead_reckoning.start(self.t_s)
+            self._say(SEV_CRITICAL, "GPS lost: dead reckoning")
         else:
+            self.gps_error_at_loss = None
+            self.dead_reckoning.stop()
             self._say(SEV_INFO, "GPS fix regained")
+
+    def _position_failsafe(self) -> None:
+        """PX4's mc_pos_control without a valid position: "invalid setpoints", "Failsafe: blind
+        land": descend at MPC_LAND_SPEED where it is, no horizontal position control."""
+        if self.position_failsafe or self.position_valid or not (self.in_air and self.armed):
+            return
+        self.position_failsafe = True
+        self._say(SEV_WARNING, "invalid setpoints")
+        self._say(SEV_CRITICAL, "Failsafe: blind land")
+        sp = self._stopping_point()
+        self._land_xy = (sp[0], sp[1])
+        self._set_mode(FlightMode.LAND)
 
     def set_battery_pct(self, pct: float) -> None:
         self.battery_pct = min(max(float(pct), 0.0), 100.0)
@@ -397,6 +453,7 @@ class Autopilot(Navigator):
         self._battery(dt)
         if not self.armed:
             return
+        self._position_failsafe()
         target, v_h, vel_cmd, v_dn = self._guidance()
         self._move(dt, target, v_h, vel_cmd, v_dn)
         self._land_detector()
@@ -448,7 +505,8 @@ class Autopilot(Navigator):
             return target, self._cruise_mps(), None, v_dn
         if mode is FlightMode.LAND:
             xy = self._land_xy or (self.pos[0], self.pos[1])
-            return [xy[0], xy[1], -1.0], self._cruise_mps(), None, self._land_speed()
+            v_land = self.params["MPC_LAND_SPEED"] if self.position_failsafe else self._land_speed()
+            return [xy[0], xy[1], -1.0], self._cruise_mps(), None, v_land
         if mode is FlightMode.RTL:
             return self._rtl_step()
         if mode is FlightMode.MISSION:
@@ -460,11 +518,23 @@ class Autopilot(Navigator):
             return target, v, None, v_dn
         return self._hold, self._cruise_mps(), None, v_dn  # HOLD, POSCTL
 
+    def _takeoff_climb_mps(self) -> float:
+        """PX4's take-off climb (legs recording): ramped up over TAKEOFF_RAMP_S from leaving the
+        ground, MPC_TKO_SPEED up to MPC_LAND_ALT1 above home, MPC_Z_V_AUTO_UP above, and from there
+        an approach slowing as v = TAKEOFF_APPROACH_PER_S · (height to go)."""
+        p = self.params
+        h = self.pos[2] - self.home[2]
+        if not self.in_air or self._takeoff_from_s is None:
+            self._takeoff_from_s = self.t_s
+        v = p["MPC_TKO_SPEED"] if h < p["MPC_LAND_ALT1"] else p["MPC_Z_V_AUTO_UP"]
+        v *= min(1.0, max(self.t_s - self._takeoff_from_s, 0.05) / TAKEOFF_RAMP_S)
+        return max(0.1, min(v, TAKEOFF_APPROACH_PER_S * (self._takeoff_up_m - self.pos[2])))
+
     def _move(
         self, dt: float, target: list[float] | None, v_h: float, vel_cmd: list[float] | None, v_dn: float
     ) -> None:
         p = self.params
-        v_up = p["MPC_TKO_SPEED"] if self.mode is FlightMode.TAKEOFF else p["MPC_Z_V_AUTO_UP"]
+        v_up = self._takeoff_climb_mps() if self.mode is FlightMode.TAKEOFF else p["MPC_Z_V_AUTO_UP"]
         trk = kinematics.Tracking(p["MPC_JERK_AUTO"], p["MPC_XY_ERR_MAX"], p["MPC_XY_P"], p["MPC_XY_VEL_P_ACC"],
                                   vel_int=p["MPC_XY_VEL_I_ACC"])
         self.acc, self.yaw_rad, self._setpoint = kinematics.move(
@@ -477,7 +547,13 @@ class Autopilot(Navigator):
             self.mode is FlightMode.RTL and self._rtl.phase == "land"
         )
         if self.in_air:
-            if self.pos[2] <= GROUND_EPS_M and self.vel[2] >= -1e-3:
+            on_ground = self.pos[2] <= GROUND_EPS_M and self.vel[2] >= -1e-3
+            if not on_ground:
+                self._touchdown_s = None
+            elif self._touchdown_s is None:
+                self._touchdown_s = self.t_s
+            if on_ground and self.t_s - self._touchdown_s >= LAND_DETECT_S:
+                self._touchdown_s = None
                 self.in_air = False
                 self.vel = [0.0, 0.0, 0.0]
                 self.acc = [0.0, 0.0, 0.0]
@@ -502,6 +578,8 @@ class Autopilot(Navigator):
                 self._landed_since_s = self.t_s
             wait = self.params["COM_DISARM_LAND"] if self._has_flown else self.params["COM_DISARM_PRFLT"]
             if wait >= 0 and self.t_s - self._landed_since_s >= wait:
+                if self._has_flown and self.mode in (FlightMode.LAND, FlightMode.RTL):
+                    self._set_mode(FlightMode.HOLD)  # PX4 is in LOITER once disarmed (both recordings)
                 self._disarm("Disarmed after landing" if self._has_flown else "Disarmed: no takeoff")
 
 

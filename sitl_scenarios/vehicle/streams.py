@@ -32,20 +32,22 @@ SENSORS_PRESENT = (
 #: MAVLink version of the heartbeat (the `mavlink_version` field)
 MAVLINK_VERSION = 3
 
-# default stream intervals, simulated seconds (None: only on request)
+# default stream intervals, simulated seconds (None: only on request): those of the recorded PX4
+# v1.18 (../shared/data/px4-v1.18-sih/legs, tests/test_px4_conformance.py); SYSTEM_TIME, which that
+# recording's link does not carry, times uavloc's telemetry (mission.vehicle)
 DEFAULT_INTERVALS_S: dict[int, float | None] = {
     mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
-    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 0.5,
+    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
     mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
-    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 0.1,
-    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 0.1,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE: 0.1,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 0.1,
-    mavlink.MAVLINK_MSG_ID_ALTITUDE: 0.2,
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 0.02,
+    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 0.02,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: 0.02,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 0.02,
+    mavlink.MAVLINK_MSG_ID_ALTITUDE: 1.0,
     mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 0.2,
     mavlink.MAVLINK_MSG_ID_VFR_HUD: 0.25,
     mavlink.MAVLINK_MSG_ID_HOME_POSITION: 2.0,
-    mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
+    mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: 2.0,
     mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
     mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: None,
@@ -122,10 +124,12 @@ class StreamEncoder:
         t_us = int(ap.t_s * 1e6)
         M = mavlink
         if msg_id == M.MAVLINK_MSG_ID_HEARTBEAT:
-            if ap.charge_state >= CHARGE_EMERGENCY or (ap.gps_lost and ap.in_air):
+            if ap.charge_state >= CHARGE_EMERGENCY or ap.position_failsafe:
                 status = M.MAV_STATE_CRITICAL
-            else:
-                status = M.MAV_STATE_ACTIVE if ap.armed else M.MAV_STATE_STANDBY
+            elif ap.armed:
+                status = M.MAV_STATE_ACTIVE
+            else:  # PX4: UNINIT until its pre-arm checks (here: a fix and home) pass
+                status = M.MAV_STATE_STANDBY if ap.gps_ok and ap.home_set else M.MAV_STATE_UNINIT
             return M.MAVLink_heartbeat_message(
                 M.MAV_TYPE_QUADROTOR, M.MAV_AUTOPILOT_PX4, px4.px4_base_mode(ap.mode, ap.armed),
                 px4.px4_custom_mode(ap.mode), status, MAVLINK_VERSION)
@@ -152,8 +156,8 @@ class StreamEncoder:
                 t_us, M.GPS_FIX_TYPE_3D_FIX, round(lat * 1e7), round(lon * 1e7), int(alt * 1000), 80, 120,
                 int(vh * 100), cog, 12, int(alt * 1000), sigma_mm, int(sigma_mm * 1.5), 100, 0, 0)
         elif msg_id == M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
-            if not ap.gps_ok:
-                return None  # no global position estimate: PX4 stops publishing it
+            if not ap.position_published:
+                return None  # no global position estimate yet
             est = ap.estimated_position()
             lat, lon, alt = ap.enu_to_lla(est)
             vel = ap.estimated_velocity()  # the EKF's velocity: small error, no drift (sensors.VelocityError)
@@ -162,7 +166,7 @@ class StreamEncoder:
                 int((est[2] - ap.home[2]) * 1000), round(vel[1] * 100), round(vel[0] * 100),
                 round(-vel[2] * 100), int((math.degrees(ap.yaw_rad) % 360) * 100))
         elif msg_id == M.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
-            if not ap.gps_ok:
+            if not ap.position_published:
                 return None
             est = ap.estimated_position()
             vel = ap.estimated_velocity()
@@ -175,7 +179,7 @@ class StreamEncoder:
             q = quaternion(roll, pitch, wrap_pi(ap.yaw_rad))
             return M.MAVLink_attitude_quaternion_message(t_ms, *q, 0.0, 0.0, 0.0, [0.0, 0.0, 0.0, 0.0])
         elif msg_id == M.MAVLINK_MSG_ID_ALTITUDE:
-            est_up = float(ap.estimated_position()[2]) if ap.gps_ok else ap.pos[2]
+            est_up = float(ap.estimated_position()[2]) if ap.position_published else ap.pos[2]
             amsl = self.origin.alt_m + est_up
             return M.MAVLink_altitude_message(
                 t_us, amsl, amsl, est_up, est_up - ap.home[2], math.nan, math.nan)  # no range finder
