@@ -488,10 +488,10 @@ class MissionController:
         keyframes = self.pipeline.keyframes
         if keyframes:
             # the final answer is the batch solution over every keyframe, as `uavloc replay`
-            # computes it from the log: the keyframes read back from the log as written (the
-            # pipeline's own copies differ from them by float rounding, ~1e-14 m in the velocity
-            # displacements, which the discrete choices of the solve — bias selection, clock fit —
-            # can turn into centimetres); the pipeline's keyframes if the log cannot be read back
+            # computes it from the log: the same keyframes (one builder, mission.keyframes) under
+            # replay's noise model and solver settings, the GPS error's τ estimated from the whole
+            # log's telemetry when the mission leaves it unknown; the pipeline's keyframes under
+            # the mission's noise model if the log cannot be read back
             try:
                 est = self._final_estimate_from_log()
             except Exception as exc:  # also a bug in replay: fall back, never lose the result
