@@ -14,7 +14,7 @@ responsibility:
 - `mission.control.journal`: the mission log's records and the status line;
 - `mission.control.flight`: MissionController, the flight top to bottom.
 
-Every name callers used from this module is re-exported here.
+The names these modules define are imported from them, not from here.
 """
 
 from __future__ import annotations
@@ -28,29 +28,8 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.types import SolverParams
-from mission.control.config import (
-    ABORT,
-    CONNECT,
-    LANDED,
-    PREFLIGHT,
-    PX4_DEFAULT_CRUISE_MPS,
-    RETURN,
-    STATUS_ABORTED,
-    STATUS_BUDGET,
-    STATUS_INTERRUPTED,
-    STATUS_NO_LEG,
-    STATUS_RETURNED,
-    STATUS_TARGET,
-    SURVEY,
-    TAKEOFF,
-    ControllerConfig,
-    MissionResult,
-    MissionUser,
-)
-from mission.control.estimator_worker import EstimatorWorker
-from mission.control.flight import MissionController, _first_error
-from mission.control.loop import LoopLagMonitor
-from mission.control.pipeline import PROTOCOL_ERROR_STREAK
+from mission.control.config import ControllerConfig, MissionUser
+from mission.control.flight import MissionController
 from mission.gnb import GnbClient
 from mission.safety import SafetyLimits
 from mission.vehicle import Vehicle
@@ -58,15 +37,6 @@ from planner.types import Planner
 from uavloc.errors import PlannerError
 
 log = logging.getLogger(__name__)
-
-__all__ = [
-    "ABORT", "CONNECT", "LANDED", "PREFLIGHT", "PROTOCOL_ERROR_STREAK", "PX4_DEFAULT_CRUISE_MPS", "RETURN",
-    "STATUS_ABORTED", "STATUS_BUDGET", "STATUS_INTERRUPTED", "STATUS_NO_LEG", "STATUS_RETURNED", "STATUS_TARGET",
-    "SURVEY", "TAKEOFF", "ControllerConfig", "EstimatorWorker", "LoopLagMonitor", "MissionController",
-    "MissionResult", "MissionUser", "_first_error", "controller_from_mission", "controller_from_scenario",
-    "resolve_planner_name",
-]
-
 
 # ---------------------------------------------------------------------------------------------
 # building a controller from a scenario file

@@ -18,11 +18,11 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from estimator.batch import solve_batch
 from estimator.gps import estimate_gps_tau_s
 from estimator.keyframes import KeyframeSelector
 from estimator.noise import NoiseModel
 from estimator.refresh import RefreshedEstimator
-from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframe, trigger_gps_enu_m
 from mission.log import MissionLog

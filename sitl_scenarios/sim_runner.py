@@ -29,7 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from estimator.geodesy import Origin
-from mission.controller import MissionController, MissionResult, controller_from_scenario
+from mission.control.config import MissionResult
+from mission.control.flight import MissionController
+from mission.controller import controller_from_scenario
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.vehicle import MavsdkVehicle
 from sitl_scenarios.gnb import SimulatedGnb
