@@ -17,15 +17,16 @@ One keyframe n from its trigger's records i = 1..G (one per user measured):
 
 The velocity integral uses only the records of its window: from the last velocity record at or
 before t_pos,n−1 through the first one strictly after t_pos,n (estimator.motion computes each gap
-from its own records). The flight therefore waits, when placing, for a velocity record after the
-trigger (:func:`velocity_covers`); once it has one, its records give the integral the whole log gives.
+from its own records), found by bisection in the records sorted once by time. The flight
+therefore waits, when placing, for a velocity record after the trigger (:func:`velocity_covers`);
+once it has one, its records give the integral the whole log gives.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -61,7 +62,7 @@ class TriggerRecords:
         except (KeyError, TypeError) as exc:
             raise MissionLogError(f"rtt record without a usable {exc}: {list(records)!r}") from None
 
-    @property
+    @cached_property
     def position_t_s(self) -> float:
         """Time [s] of the trigger's UAV position: the mean of its records' times."""
         return position_time_s(self.t_s)
@@ -80,6 +81,15 @@ class VelocityRecords:
         """From the log's `vel_ned_mps` (T, 3) [north, east, down]."""
         return cls(np.asarray(t_s, float), velocity_enu_of_ned(vel_ned_mps))
 
+    @cached_property
+    def finite_sorted(self) -> tuple[np.ndarray, np.ndarray]:
+        """(t_s (F,), vel_enu_mps (F, 3)) of the records with velocity, stably sorted by time (records
+        at the same time stay in log order, as estimator.motion.integrate_velocity keeps them)."""
+        tt, vv = np.asarray(self.t_s, float), np.asarray(self.vel_enu_mps, float).reshape(-1, 3)
+        use = np.isfinite(vv).all(axis=1) & np.isfinite(tt)
+        order = np.argsort(tt[use], kind="stable")
+        return tt[use][order], vv[use][order]
+
 
 def position_time_s(record_t_s: np.ndarray) -> float:
     """Time [s] of a trigger's UAV position: the mean of its records' (logged) times, where the
@@ -87,50 +97,65 @@ def position_time_s(record_t_s: np.ndarray) -> float:
     return float(np.mean(np.asarray(record_t_s, dtype=float)))
 
 
-def trigger_gps_enu_m(trigger: TriggerRecords, origin: Origin) -> np.ndarray:
-    """(3,) GPS prior of the trigger's keyframe [m, ENU of origin] (module docstring): the logged
-    position itself when the records share one (the mean of equal numbers can differ in the last bit)."""
-    lla = trigger.uav_lla
-    if bool(np.all(lla == lla[0])):
-        return np.asarray(origin.lla_to_enu(lla[0, 0], lla[0, 1], lla[0, 2]), float)
-    return origin.lla_to_enu(lla[:, 0], lla[:, 1], lla[:, 2]).mean(axis=0)
+def triggers_gps_enu_m(triggers: Sequence[TriggerRecords], origin: Origin) -> np.ndarray:
+    """(N, 3) GPS priors of the triggers' keyframes [m, ENU of origin] (module docstring): the
+    logged position itself where a trigger's records share one (the mean of equal numbers can
+    differ in the last bit). One conversion of contiguous (N,) columns, however many triggers."""
+    first = np.array([t.uav_lla[0] for t in triggers], dtype=float).reshape(-1, 3)
+    gps = origin.lla_to_enu(*(np.ascontiguousarray(first[:, c]) for c in range(3))).reshape(-1, 3)
+    for i, t in enumerate(triggers):
+        lla = t.uav_lla
+        if not bool(np.all(lla == lla[0])):
+            gps[i] = origin.lla_to_enu(*(np.ascontiguousarray(lla[:, c]) for c in range(3))).mean(axis=0)
+    return gps
 
 
 def velocity_covers(velocity: VelocityRecords, t_s: float) -> bool:
     """Whether the records hold a velocity record strictly after t_s: from then on, more records
     do not change the displacement of a gap ending at t_s (module docstring)."""
-    v = velocity.vel_enu_mps
-    have = np.isfinite(v).all(axis=1) & (velocity.t_s > t_s)
-    return bool(np.any(have))
+    t_sorted, _ = velocity.finite_sorted
+    return bool(t_sorted.size and t_sorted[-1] > t_s)
 
 
-def velocity_odometry(velocity: VelocityRecords, t_from_s: float, t_to_s: float,
-                      noise: NoiseModel) -> tuple[np.ndarray | None, float | None]:
-    """(ô (3,) [m, ENU], σ_m [m]) from position time t_from_s to t_to_s, or (None, None) where the
-    records do not cover the gap (estimator.motion), integrated over the window of records from
-    the last at or before t_from_s through the first strictly after t_to_s."""
-    tt, vv = np.asarray(velocity.t_s, float), np.asarray(velocity.vel_enu_mps, float)
-    finite = np.isfinite(vv).all(axis=1) & np.isfinite(tt)
-    before = tt[finite & (tt <= t_from_s)]
-    after = tt[finite & (tt > t_to_s)]
-    lo = before.max() if before.size else -math.inf
-    hi = after.min() if after.size else math.inf
-    window = finite & (tt >= lo) & (tt <= hi)
-    disp, ok, disc = integrate_velocity(tt[window], vv[window], np.array([t_from_s, t_to_s]))
-    if not ok[1]:
-        return None, None
-    return disp[1].copy(), float(motion_sigma_m(t_to_s - t_from_s, noise, disc[1]))
+def velocity_odometry(velocity: VelocityRecords, t_pos_s: np.ndarray,
+                      noise: NoiseModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ô (M, 3) [m, ENU], σ_m (M,) [m], ok (M,)): the displacement from each position time of
+    t_pos_s (M,) [s] to the next and its σ (estimator.motion), ok where the records cover the gap;
+    row 0 and rows not ok are not a displacement. Each gap's numbers come from its own records
+    only, so any records holding its window (module docstring) give the same bits."""
+    tt, vv = velocity.finite_sorted
+    t_pos = np.asarray(t_pos_s, dtype=float)
+    disp, ok, disc = integrate_velocity(tt, vv, t_pos)
+    sigma = motion_sigma_m(np.diff(t_pos, prepend=t_pos[:1]), noise, disc)
+    return disp, sigma, ok
+
+
+def build_keyframes_of(triggers: Sequence[TriggerRecords], origin: Origin, prev_position_t_s: float | None,
+                       velocity: VelocityRecords | None, noise: NoiseModel) -> list[Keyframe]:
+    """The keyframes of consecutive triggers' records (module docstring), each with the
+    displacement from the one before (the first: from position time prev_position_t_s, none when
+    None) where `velocity` covers the gap, under the noise model's σ_v, τ_v; none without velocity."""
+    if not triggers:
+        return []
+    gps = triggers_gps_enu_m(triggers, origin)
+    t_pos = np.array([t.position_t_s for t in triggers])
+    first = 0 if prev_position_t_s is None else 1  # the row of triggers[0] among the times
+    times = t_pos if prev_position_t_s is None else np.concatenate([[float(prev_position_t_s)], t_pos])
+    ok = np.zeros(times.size, dtype=bool)
+    if velocity is not None and times.size >= 2:
+        disp, sigma, ok = velocity_odometry(velocity, times, noise)
+    keyframes = []
+    for i, trig in enumerate(triggers):
+        row = i + first
+        linked = row > 0 and bool(ok[row])
+        keyframes.append(Keyframe(
+            gps_enu_m=gps[i].copy(), user_idx=np.asarray(trig.user_idx).copy(),
+            range_m=C_MPS * np.asarray(trig.toa_s, float), t_s=float(trig.t_s[0]),
+            odom_enu_m=disp[row].copy() if linked else None, odom_sigma_m=float(sigma[row]) if linked else None))
+    return keyframes
 
 
 def build_keyframe(trigger: TriggerRecords, origin: Origin, prev_position_t_s: float | None,
                    velocity: VelocityRecords | None, noise: NoiseModel) -> Keyframe:
-    """The keyframe of one trigger's records (module docstring); with the displacement from the
-    previous keyframe (position time prev_position_t_s) where `velocity` covers the gap, under
-    the noise model's σ_v, τ_v; none for the first keyframe or without velocity."""
-    odom, odom_sigma = None, None
-    if prev_position_t_s is not None and velocity is not None:
-        odom, odom_sigma = velocity_odometry(velocity, prev_position_t_s, trigger.position_t_s, noise)
-    return Keyframe(gps_enu_m=trigger_gps_enu_m(trigger, origin), user_idx=np.asarray(trigger.user_idx).copy(),
-                    range_m=C_MPS * np.asarray(trigger.toa_s, float), t_s=float(trigger.t_s[0]),
-                    odom_enu_m=odom, odom_sigma_m=odom_sigma)
-
+    """The keyframe of one trigger's records: :func:`build_keyframes_of` for one trigger."""
+    return build_keyframes_of([trigger], origin, prev_position_t_s, velocity, noise)[0]

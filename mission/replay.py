@@ -24,7 +24,7 @@ from estimator.keyframes import KeyframeSelector
 from estimator.noise import NoiseModel
 from estimator.refresh import RefreshedEstimator
 from estimator.types import Estimate, Keyframe, SolverParams
-from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframe, trigger_gps_enu_m
+from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframes_of, triggers_gps_enu_m
 from mission.log import MissionLog
 from mission.result import horizontal_error_m, user_entries_of_estimate
 from mission.telemetry import odometer_dead_band_m, odometer_m
@@ -145,7 +145,7 @@ def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
 def build_keyframes(mlog: MissionLog, delta_m: float | None = None, noise: NoiseModel | None = None,
                     velocity: bool = True) -> list[Keyframe]:
     """Group the log's rtt records into triggers and build each one's keyframe
-    (mission.keyframes.build_keyframe, the flight's builder), optionally re-selected at Δ spacing.
+    (mission.keyframes.build_keyframes_of, the flight's builder), optionally re-selected at Δ spacing.
 
     A group is consecutive records with no user twice that share their first record's UAV position
     exactly (uavloc writes one position per trigger, however long the trigger's measurements took
@@ -174,18 +174,13 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None, noise: Noise
     vel = mlog.tel_vel_ned_mps
     records = VelocityRecords.from_ned(mlog.tel_t_s, vel) if velocity and vel is not None and len(vel) else None
     noise = noise if noise is not None else mlog.header.noise
-    selector = KeyframeSelector(delta_m) if delta_m else None
-    keyframes: list[Keyframe] = []
-    prev_t_pos: float | None = None
-    for g in groups:
-        idx = np.asarray(g)
-        trigger = TriggerRecords(t_s=mlog.rtt_t_s[idx], user_idx=mlog.rtt_user[idx],
-                                 uav_lla=mlog.rtt_uav_lla[idx], toa_s=mlog.rtt_toa_s[idx])
-        if selector is not None and not selector.accept(trigger_gps_enu_m(trigger, origin)):
-            continue
-        keyframes.append(build_keyframe(trigger, origin, prev_t_pos, records, noise))
-        prev_t_pos = trigger.position_t_s
-    return keyframes
+    triggers = [TriggerRecords(t_s=mlog.rtt_t_s[idx], user_idx=mlog.rtt_user[idx], uav_lla=mlog.rtt_uav_lla[idx],
+                               toa_s=mlog.rtt_toa_s[idx]) for idx in map(np.asarray, groups)]
+    if delta_m:
+        selector = KeyframeSelector(delta_m)
+        gps = triggers_gps_enu_m(triggers, origin)
+        triggers = [t for t, g in zip(triggers, gps, strict=True) if selector.accept(g)]
+    return build_keyframes_of(triggers, origin, None, records, noise)
 
 
 def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),

@@ -54,52 +54,54 @@ def test_live_keyframes_are_replays_bit_for_bit(tmp_path):
 # --- the velocity window ------------------------------------------------------------------------
 
 
-def _records(rng, n: int, shuffle: bool) -> VelocityRecords:
-    """n telemetry records 0.2 s apart (jittered, some at equal times, some without velocity,
-    one stretch 2 s apart); with `shuffle` three neighbours swapped."""
-    t = np.cumsum(rng.choice([0.0, 0.2, 0.2, 0.2, 0.23, 2.0], size=n, p=[0.05, 0.5, 0.2, 0.1, 0.1, 0.05]))
-    t = np.round(t, 6)
+def _records(rng, n: int, messy: bool) -> VelocityRecords:
+    """n telemetry records about 0.2 s apart, some without velocity, some stretches 2 s apart.
+    Strictly increasing times, as the flight logs them (one record per 1/telemetry_log_hz at
+    most); `messy`: also records at equal times and three neighbours swapped (another tool's log)."""
+    steps = [0.0, 0.2, 0.2, 0.2, 0.23, 2.0] if messy else [0.17, 0.2, 0.2, 0.2, 0.23, 2.0]
+    t = np.round(np.cumsum(rng.choice(steps, size=n, p=[0.05, 0.5, 0.2, 0.1, 0.1, 0.05])), 6)
     v = rng.normal(size=(n, 3)) * 3.0
     v[rng.random(n) < 0.1] = np.nan
-    if shuffle:
+    if messy:
         swap = rng.integers(0, n - 1, size=3)
         t[swap], t[swap + 1] = t[swap + 1].copy(), t[swap].copy()
     return VelocityRecords(t, v)
 
 
-def test_the_window_gives_the_whole_logs_bits():
-    """velocity_odometry over [a, b] == estimator.motion.integrate_velocity over every record, and
-    == velocity_odometry over any prefix of the records that holds one strictly after b (what the
-    flight has when it places a keyframe), records logged in time order."""
+def test_the_records_at_hand_give_the_whole_logs_bits():
+    """velocity_odometry over all records == estimator.motion.integrate_velocity over them as
+    logged; and, for records logged as the flight logs them, each gap alone from the first prefix
+    of the records that holds one strictly after it (what the flight has when it places a
+    keyframe) == that gap among all the position times over every record (what replay computes)."""
     rng = np.random.default_rng(7)
     noise = NoiseModel(vel_sigma_mps=0.05, vel_tau_s=0.7)
     checked = linked = 0
     for i in range(300):
-        shuffle = i % 3 == 0
-        rec = _records(rng, int(rng.integers(5, 80)), shuffle)
-        a = float(rng.uniform(rec.t_s.min() - 0.5, rec.t_s.max()))
-        b = a + float(rng.choice([0.0, 0.4, rng.uniform(0.0, 6.0)]))
-        if rng.random() < 0.2:  # at a record's time exactly
-            b = float(rng.choice(rec.t_s))
-            a = min(a, b)
-        got = velocity_odometry(rec, a, b, noise)
-        disp, ok, disc = integrate_velocity(rec.t_s, rec.vel_enu_mps, np.array([a, b]))
-        assert (got[0] is not None) == bool(ok[1])
-        if ok[1]:
-            np.testing.assert_array_equal(got[0], disp[1])
-            assert got[1] == float(motion_sigma_m(b - a, noise, disc[1]))
-            linked += 1
-        for m in range(1, 0 if shuffle else len(rec.t_s) + 1):
-            prefix = VelocityRecords(rec.t_s[:m], rec.vel_enu_mps[:m])
-            if velocity_covers(prefix, b):
-                early = velocity_odometry(prefix, a, b, noise)
-                assert (early[0] is None) == (got[0] is None)
-                if got[0] is not None and early[0] is not None:
-                    np.testing.assert_array_equal(early[0], got[0])
-                    assert early[1] == got[1]
-                checked += 1
-                break
-    assert linked > 50 and checked > 50
+        messy = i % 3 == 0
+        rec = _records(rng, int(rng.integers(5, 80)), messy)
+        times = np.sort(rng.uniform(rec.t_s.min() - 0.5, rec.t_s.max() + 0.5, size=int(rng.integers(2, 7))))
+        times[rng.random(times.size) < 0.2] = rng.choice(rec.t_s)  # at a record's time exactly
+        times = np.sort(times)
+        disp, sigma, ok = velocity_odometry(rec, times, noise)
+        ref, ref_ok, disc = integrate_velocity(rec.t_s, rec.vel_enu_mps, times)
+        np.testing.assert_array_equal(ok, ref_ok)
+        np.testing.assert_array_equal(disp[ok], ref[ref_ok])
+        np.testing.assert_array_equal(sigma[ok], motion_sigma_m(np.diff(times, prepend=times[:1]), noise, disc)[ok])
+        linked += int(ok[1:].sum())
+        if messy:
+            continue
+        for n in range(1, times.size):
+            prefix = next((p for p in (VelocityRecords(rec.t_s[:m], rec.vel_enu_mps[:m])
+                                       for m in range(1, rec.t_s.size + 1)) if velocity_covers(p, times[n])), None)
+            if prefix is None:
+                continue
+            d1, s1, ok1 = velocity_odometry(prefix, times[n - 1:n + 1], noise)
+            assert ok1[1] == ok[n]
+            if ok[n]:
+                np.testing.assert_array_equal(d1[1], disp[n])
+                assert s1[1] == sigma[n]
+            checked += 1
+    assert linked > 100 and checked > 200, (linked, checked)
 
 
 def test_a_trigger_with_one_logged_position_keeps_it_exactly():

@@ -40,7 +40,7 @@ from estimator.types import Keyframe
 from mission.control.config import MissionUser
 from mission.control.state import FlightState
 from mission.gnb import GnbClient
-from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframe
+from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframe, velocity_covers
 from mission.log import MissionLogWriter
 from mission.telemetry import TelemetryBuffer
 from uavloc.errors import GnbError, GnbNoMeasurementError, GnbProtocolError, GnbUnknownCommandError, MissionError
@@ -107,7 +107,7 @@ class MeasurementPipeline:
         soon as the log shows the gap replay would refuse (a telemetry record MAX_VEL_GAP_S after the
         last velocity record, none after t_s); at most VELOCITY_WAIT_S wall."""
         deadline = time.monotonic() + VELOCITY_WAIT_S
-        while not (self._vel_t and self._vel_t[-1] > t_s):
+        while not velocity_covers(self._velocity(), t_s):
             if (not self._vel_t or self._tel_last_t > self._vel_t[-1] + MAX_VEL_GAP_S
                     or time.monotonic() >= deadline):
                 return False
