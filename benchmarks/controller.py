@@ -39,10 +39,11 @@ sys.path[:] = [str(REPO)] + [p for p in sys.path if Path(p or ".").resolve() != 
 import numpy as np  # noqa: E402
 
 from estimator.noise import NoiseModel  # noqa: E402
+from estimator.online import OnlineEstimator  # noqa: E402
 from estimator.simulate import simulate  # noqa: E402
-from estimator.slam import OnlineEstimator  # noqa: E402
 from estimator.types import SolverParams  # noqa: E402
-from mission.controller import EstimatorWorker, LoopLagMonitor  # noqa: E402
+from mission.control.estimator_worker import EstimatorWorker  # noqa: E402
+from mission.control.loop import LoopLagMonitor  # noqa: E402
 
 
 async def lag_with_worker(keyframes, n_users: int, noise: NoiseModel, params: SolverParams,

@@ -33,12 +33,13 @@ from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from estimator.batch import solve_batch
 from estimator.crlb import crlb_users
 from estimator.init import init_user
 from estimator.noise import NoiseModel
+from estimator.online import OnlineEstimator
 from estimator.problem import pack_keyframes
 from estimator.simulate import simulate
-from estimator.slam import OnlineEstimator, solve_batch
 from estimator.types import SolverParams
 
 try:  # optional

@@ -11,7 +11,7 @@ last a whole period). :func:`fit_sawtooth` finds the period P from the periodogr
 user's range residuals (the sawtooth's fundamental is its strongest line), then the reset phase φ
 and the drift (A/P) by least squares on a grid around it; the estimator then estimates the
 amplitude A_k with the positions (the user's bias becomes A_k times the sawtooth's shape) and
-solves again (estimator.slam._track_clocks).
+solves again (estimator.batch._track_clocks).
 """
 
 from __future__ import annotations

@@ -17,10 +17,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from estimator.linearize import linearize
 from estimator.noise import NoiseModel
 from estimator.problem import Problem, check_params
 from estimator.schur import schur_solve
-from estimator.slam import linearize
 from estimator.types import SolverParams
 from uavloc.errors import EstimatorError
 

@@ -16,7 +16,7 @@ Jacobian differentiates *through* σ(d) (not IRLS-style with σ frozen per itera
 With a = 0 (the default noise model) σ' = 0 and α = 1/σ. The robust loss enters only through the
 IRLS weight w(e) (estimator.robust), which *is* frozen per iteration as in GTSAM.
 
-The vectorised solver (estimator.slam) computes the same quantities on (N, K) arrays; the dense
+The vectorised solver (estimator.linearize) computes the same quantities on (N, K) arrays; the dense
 reference :func:`dense_normal_equations` assembles the full normal matrix from these factor
 objects one by one, so the fast Schur path can be checked against `np.linalg.solve`/`inv`.
 """

@@ -1,6 +1,6 @@
 """The online estimator: fixed-lag smoothing over a window of keyframes, marginalization into a
 Gaussian prior (estimator.online_marginal), and information-filter steps between window solves
-(estimator.online_filter, estimator.online_chain); see the estimator.slam docstring."""
+(estimator.online_filter, estimator.online_chain); see docs/keyframes-slam-model.md."""
 
 from __future__ import annotations
 

@@ -146,7 +146,7 @@ class Problem:
     gps_first: bool = True
     #: (K,) per-user scale s_k of the range noise, σ_k(d) = s_k σ(d) (None: 1 for all)
     noise_scale_k: np.ndarray | None = None
-    #: (K,) per-user σ of the bias prior (None: params.bias_prior_sigma_m for all; estimator.slam
+    #: (K,) per-user σ of the bias prior (None: params.bias_prior_sigma_m for all; estimator.solve
     #: sets a tiny one where the bias selection fixed a bias at 0)
     bias_sigma_k: np.ndarray | None = None
     #: (K,) users whose bias the selection keeps whatever the test says (a tracked clock sawtooth:

@@ -32,17 +32,17 @@ class SolverParams:
         μ [m] (estimator.robust): a range is LoS with probability 1 − π, or carries a positive
         excess ~ Exp(mean μ). nlos_prob is where π starts.
     nlos_adapt: re-estimate π per user by EM, π_k = mean over its ranges of P(NLoS | e), between
-        solves (estimator.slam.solve_robust); at LoS π_k falls to its floor and the loss becomes
+        solves (estimator.solve.solve_robust); at LoS π_k falls to its floor and the loss becomes
         nearly quadratic (a fixed π biases the solution slightly towards short ranges).
     estimate_bias: add a range bias b_k per user, with a zero-mean prior of bias_prior_sigma_m.
         Default True (it was False): a commercial UE's clock sawtooth has a positive mean, and a
         UE without one pays little for the extra unknown under the weak prior.
     bias_select: with estimate_bias, fix at 0 the bias of a user whose estimate is insignificant
-        (|b̂| < 4 sd, estimator.slam.solve_robust), so a UE without a clock offset loses nothing.
+        (|b̂| < 4 sd, estimator.solve.solve_robust), so a UE without a clock offset loses nothing.
     track_clock: the batch solver fits a UE clock sawtooth (drift and resets, estimator.clock)
         to each user whose residuals are noisier than σ(d) and removes it from its ranges.
     estimate_noise_scale: re-estimate a per-user scale s_k ≥ 1 of the range noise from the
-        residuals, σ_k(d) = s_k σ(d) (estimator.slam.noise_scale_update), so that a UE noisier
+        residuals, σ_k(d) = s_k σ(d) (estimator.solve.noise_scale_update), so that a UE noisier
         than the assumed σ(d) gets an honest covariance. Reported as Estimate.extra["noise_scale"].
     user_dim: 2 (east, north; up fixed at the known ground height) or 3.
     motion_sigma_m: per-axis σ of the relative-motion factor of a keyframe that carries a

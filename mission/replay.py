@@ -18,14 +18,13 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from estimator.batch import solve_batch
 from estimator.gps import estimate_gps_tau_s
 from estimator.keyframes import KeyframeSelector
-from estimator.motion import integrate_velocity, motion_sigma_m, velocity_enu_of_ned
 from estimator.noise import NoiseModel
-from estimator.ranging import C_MPS
 from estimator.refresh import RefreshedEstimator
-from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
+from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframes_of, triggers_gps_enu_m
 from mission.log import MissionLog
 from mission.result import horizontal_error_m, user_entries_of_estimate
 from mission.telemetry import odometer_dead_band_m, odometer_m
@@ -145,26 +144,23 @@ def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
 
 def build_keyframes(mlog: MissionLog, delta_m: float | None = None, noise: NoiseModel | None = None,
                     velocity: bool = True) -> list[Keyframe]:
-    """Group the log's rtt records into keyframes, optionally re-selected at Δ spacing.
+    """Group the log's rtt records into triggers and build each one's keyframe
+    (mission.keyframes.build_keyframes_of, the flight's builder), optionally re-selected at Δ spacing.
 
-    range = C · toa_s for every record; a group is consecutive records with no user twice that
-    share their first record's UAV position exactly (uavloc writes one position per trigger, however
-    long the trigger's measurements took in vehicle seconds), or, in logs of other tools, lie within
-    GROUP_RADIUS_M and GROUP_WINDOW_S of it.
+    A group is consecutive records with no user twice that share their first record's UAV position
+    exactly (uavloc writes one position per trigger, however long the trigger's measurements took
+    in vehicle seconds), or, in logs of other tools, lie within GROUP_RADIUS_M and GROUP_WINDOW_S of it.
 
     With `velocity` and telemetry that carries `vel_ned_mps`, each keyframe also gets the
-    displacement from the one before (estimator.motion.integrate_velocity between the times of
-    their positions, the mean time of each group's records: where the controller interpolated the
-    position) and its σ (motion_sigma_m under `noise`, the header's when None); none where the
-    records do not cover the gap.
+    displacement from the one kept before it and its σ (under `noise`, the header's when None);
+    none where the records do not cover the gap.
     """
     if len(mlog.rtt_t_s) == 0:
         return []
     origin = mlog.header.origin
     pos = origin.lla_to_enu(mlog.rtt_uav_lla[:, 0], mlog.rtt_uav_lla[:, 1], mlog.rtt_uav_lla[:, 2])
-    range_m = C_MPS * mlog.rtt_toa_s
     groups: list[list[int]] = []
-    for i in range(len(range_m)):
+    for i in range(len(mlog.rtt_t_s)):
         if groups:
             g = groups[-1]
             first = g[0]
@@ -175,42 +171,16 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None, noise: Noise
                 g.append(i)
                 continue
         groups.append([i])
-    selector = KeyframeSelector(delta_m) if delta_m else None
-    keyframes = []
-    t_pos = []
-    for g in groups:
-        idx = np.asarray(g)
-        # a trigger's records share one position: take it as logged (the mean of equal numbers can
-        # differ in the last bit, and the controller's keyframe has the logged position exactly)
-        same = bool(np.all(mlog.rtt_uav_lla[idx] == mlog.rtt_uav_lla[idx[0]]))
-        gps = pos[idx[0]].copy() if same else pos[idx].mean(axis=0)
-        if selector is not None and not selector.accept(gps):
-            continue
-        keyframes.append(Keyframe(gps_enu_m=gps, user_idx=mlog.rtt_user[idx].copy(),
-                                  range_m=range_m[idx].copy(), t_s=float(mlog.rtt_t_s[idx[0]])))
-        t_pos.append(position_time_s(mlog.rtt_t_s[idx]))
     vel = mlog.tel_vel_ned_mps
-    if velocity and vel is not None and len(keyframes) > 1 and np.isfinite(vel).all(axis=1).any():
-        keyframes = with_velocity_odometry(keyframes, np.asarray(t_pos), mlog.tel_t_s, velocity_enu_of_ned(vel),
-                                           noise if noise is not None else mlog.header.noise)
-    return keyframes
-
-
-def position_time_s(record_t_s: np.ndarray) -> float:
-    """Time [s] of a trigger's UAV position: the mean of its records' (logged) times, where the
-    controller interpolated the telemetry (mission.control.pipeline)."""
-    return float(np.mean(np.asarray(record_t_s, dtype=float)))
-
-
-def with_velocity_odometry(keyframes: list[Keyframe], t_pos_s: np.ndarray, tel_t_s: np.ndarray,
-                           vel_enu_mps: np.ndarray, noise: NoiseModel) -> list[Keyframe]:
-    """The keyframes with the displacement from the previous one integrated from velocity records
-    (tel_t_s (T,), vel_enu_mps (T, 3), NaN rows skipped) between their position times t_pos_s (N,)
-    and its σ, where the records cover the gap (estimator.motion); the others unchanged."""
-    disp, ok, disc = integrate_velocity(tel_t_s, vel_enu_mps, t_pos_s)
-    sig = motion_sigma_m(np.diff(t_pos_s, prepend=t_pos_s[:1]), noise, disc)
-    return [replace(kf, odom_enu_m=disp[i].copy(), odom_sigma_m=float(sig[i])) if ok[i] else kf
-            for i, kf in enumerate(keyframes)]
+    records = VelocityRecords.from_ned(mlog.tel_t_s, vel) if velocity and vel is not None and len(vel) else None
+    noise = noise if noise is not None else mlog.header.noise
+    triggers = [TriggerRecords(t_s=mlog.rtt_t_s[idx], user_idx=mlog.rtt_user[idx], uav_lla=mlog.rtt_uav_lla[idx],
+                               toa_s=mlog.rtt_toa_s[idx]) for idx in map(np.asarray, groups)]
+    if delta_m:
+        selector = KeyframeSelector(delta_m)
+        gps = triggers_gps_enu_m(triggers, origin)
+        triggers = [t for t, g in zip(triggers, gps, strict=True) if selector.accept(g)]
+    return build_keyframes_of(triggers, origin, None, records, noise)
 
 
 def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),

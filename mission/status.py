@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from mission.controller import MissionResult
+from mission.control.config import MissionResult
 
 log = logging.getLogger(__name__)
 

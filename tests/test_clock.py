@@ -126,7 +126,7 @@ def test_no_clock_tracking_without_a_bias_to_carry_it():
     user's north coordinate there)."""
     from dataclasses import replace
 
-    from estimator.slam import solve_batch
+    from estimator.batch import solve_batch
 
     sc = simulate(np.random.default_rng(7), n_users=2, n_keyframes=300, dt_s=0.4, noise=NoiseModel())
     t = np.array([kf.t_s for kf in sc.keyframes])
@@ -145,7 +145,7 @@ def test_batch_finds_a_weak_sawtooth_in_a_short_log():
     """An 8 m sawtooth at σ = 3 m over 120 keyframes (48 s, 3.2 periods): its variance barely
     shows (the RMS test alone missed it in 4 of 40 such logs, 4–6 m off, NEES > 100), its
     smoothness does; every such user of 6 logs is tracked and inside a 99.9 % bound."""
-    from estimator.slam import solve_batch
+    from estimator.batch import solve_batch
 
     for seed in range(6):
         sc = simulate(np.random.default_rng(200 + seed), n_users=3, n_keyframes=120, dt_s=0.4,

@@ -9,18 +9,14 @@ import numpy as np
 import pytest
 
 from estimator.noise import NoiseModel
+from estimator.online import OnlineEstimator
 from estimator.refresh import RefreshedEstimator
 from estimator.simulate import simulate
-from estimator.slam import OnlineEstimator
 from estimator.types import SolverParams
-from mission.controller import (
-    STATUS_TARGET,
-    ControllerConfig,
-    EstimatorWorker,
-    LoopLagMonitor,
-    MissionResult,
-    _first_error,
-)
+from mission.control.config import STATUS_TARGET, ControllerConfig, MissionResult
+from mission.control.estimator_worker import EstimatorWorker
+from mission.control.flight import _first_error
+from mission.control.loop import LoopLagMonitor
 from sitl_scenarios.scenario import load_scenario
 from uavloc.errors import EstimatorError, GnbError, VehicleError
 
@@ -222,8 +218,8 @@ def test_status_line_marks_an_ambiguous_user_instead_of_a_small_r95(tmp_path):
 def test_worker_takes_queued_keyframes_together_with_one_estimate(survey):
     """Keyframes that queued up while the estimator was busy are solved together: one estimate,
     the batch answer for all of them (an estimator that falls behind catches up)."""
+    from estimator.batch import solve_batch
     from estimator.refresh import SOURCE_BATCH
-    from estimator.slam import solve_batch
 
     kfs = survey.keyframes[:50]
 

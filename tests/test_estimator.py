@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from estimator.batch import solve_batch
 from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
 from estimator.init import (
@@ -23,11 +24,12 @@ from estimator.init import (
     mirror_test,
     mirror_tests,
 )
+from estimator.linearize import linearize
 from estimator.noise import NoiseModel
+from estimator.online import OnlineEstimator
 from estimator.problem import pack_keyframes
 from estimator.schur import schur_solve
 from estimator.simulate import simulate
-from estimator.slam import OnlineEstimator, linearize, solve_batch
 from estimator.types import Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
@@ -314,7 +316,7 @@ def test_nlos_probability_is_the_maximum_likelihood_mixing_weight():
 
     from estimator.problem import Problem
     from estimator.robust import loss_weight
-    from estimator.slam import NLOS_PROB_MAX, NLOS_PROB_MIN, nlos_prob_update
+    from estimator.solve import NLOS_PROB_MAX, NLOS_PROB_MIN, nlos_prob_update
 
     rng = np.random.default_rng(3)
     m_w = 20.0 / 3.0

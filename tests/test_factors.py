@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from estimator.factors import BiasPriorFactor, GpsPriorFactor, MotionFactor, RangeFactor
+from estimator.linearize import _range_terms
 from estimator.noise import NoiseModel
 from estimator.numdiff import numerical_jacobian
 from estimator.problem import pack_keyframes
 from estimator.robust import LOSSES, loss_psi_weight, loss_rho, loss_weight, nlos_terms
 from estimator.simulate import simulate
-from estimator.slam import _range_terms
 from estimator.types import SolverParams
 
 # a distance-dependent spread so that ∂σ/∂d enters the range Jacobian

@@ -9,7 +9,8 @@ import pytest
 
 from estimator.geodesy import Origin
 from mission.config import example_mission_path, load_mission, mission_from_dict
-from mission.controller import ControllerConfig, controller_from_mission
+from mission.control.config import ControllerConfig
+from mission.controller import controller_from_mission
 from mission.safety import SafetyLimits
 from sitl_scenarios.scenario import load_scenario
 from uavloc.errors import MissionConfigError

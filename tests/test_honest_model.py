@@ -13,15 +13,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from estimator.batch import solve_batch
 from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
 from estimator.gps import GpsFactor, gps_chain_terms, gps_phi
+from estimator.linearize import linearize
 from estimator.noise import NoiseModel
 from estimator.numdiff import numerical_jacobian
+from estimator.online import OnlineEstimator
 from estimator.problem import pack_keyframes
 from estimator.schur import schur_solve
 from estimator.simulate import gps_error_m, simulate
-from estimator.slam import OnlineEstimator, linearize, solve_batch
 from estimator.types import SolverParams
 from uavloc.errors import EstimatorError
 

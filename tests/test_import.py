@@ -159,8 +159,8 @@ def test_import_vtol_flight_writes_track_and_aligned_ranges(tmp_path):
 def test_imported_vtol_flight_localizes_the_users(tmp_path):
     """Estimator over the imported log: each rtt record is a keyframe (GPS prior at the interpolated
     UAV position, one range), as replay builds them from a log whose users were ranged one by one."""
+    from estimator.batch import solve_batch
     from estimator.noise import NoiseModel
-    from estimator.slam import solve_batch
     from estimator.types import Keyframe
 
     path = VTOL

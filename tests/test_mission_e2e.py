@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mission.controller import STATUS_RETURNED, STATUS_TARGET
+from mission.control.config import STATUS_RETURNED, STATUS_TARGET
 from mission.log import read_mission_log
 from mission.safety import point_in_polygon, point_on_boundary
 from planner.types import PlanResult

@@ -10,7 +10,7 @@ import asyncio
 import pytest
 
 from mission.cli import main
-from mission.controller import STATUS_ABORTED, STATUS_RETURNED
+from mission.control.config import STATUS_ABORTED, STATUS_RETURNED
 from mission.log import read_mission_log
 from sitl_scenarios.scenario import load_scenario
 from sitl_scenarios.sim_runner import SimulatedMission

@@ -13,7 +13,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from estimator.batch import solve_batch
 from estimator.factors import MotionFactor, dense_normal_equations
+from estimator.linearize import linearize
 from estimator.motion import (
     MAX_VEL_GAP_S,
     MOTION_SIGMA_FLOOR_M,
@@ -22,9 +24,9 @@ from estimator.motion import (
 )
 from estimator.noise import NoiseModel
 from estimator.numdiff import numerical_jacobian
+from estimator.online import OnlineEstimator
 from estimator.problem import pack_keyframes
 from estimator.simulate import simulate
-from estimator.slam import OnlineEstimator, linearize, solve_batch
 from estimator.types import Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from mavsdk.plugins.failure import FailureError, FailureType, FailureUnit
 
-from mission.controller import STATUS_RETURNED, STATUS_TARGET
+from mission.control.config import STATUS_RETURNED, STATUS_TARGET
 from mission.log import read_mission_log
 from sitl_scenarios.px4_sitl import UdpRelay
 from sitl_scenarios.scenario import load_scenario

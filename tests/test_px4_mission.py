@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mission.controller import STATUS_TARGET
+from mission.control.config import STATUS_TARGET
 from mission.log import read_mission_log
 from sitl_scenarios.scenario import load_scenario
 from sitl_scenarios.sim_runner import SimulatedMission

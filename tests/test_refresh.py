@@ -8,10 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from estimator.batch import solve_batch
 from estimator.noise import NoiseModel
+from estimator.online import OnlineEstimator
 from estimator.refresh import CONFIRM_MIN_KEYFRAMES, SOURCE_BATCH, SOURCE_ONLINE, RefreshedEstimator
 from estimator.simulate import simulate
-from estimator.slam import OnlineEstimator, solve_batch
 from estimator.types import CHI2_2DOF_95
 from uavloc.errors import EstimatorError
 

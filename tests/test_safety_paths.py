@@ -12,9 +12,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mission.control.config import PREFLIGHT, RETURN, SURVEY, TAKEOFF, ControllerConfig
+from mission.control.config import PREFLIGHT, RETURN, STATUS_RETURNED, SURVEY, TAKEOFF, ControllerConfig
 from mission.control.safety_monitor import SafetyView, energy_remaining_m, return_reason
-from mission.controller import STATUS_RETURNED
 from mission.log import read_mission_log
 from mission.safety import SafetyGate, SafetyLimits
 from planner.types import PlanResult

@@ -39,11 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
+from estimator.batch import solve_batch
 from estimator.geodesy import Origin
 from estimator.gps import estimate_gps_tau_s
 from estimator.noise import NoiseModel
 from estimator.refresh import SOURCE_BATCH
-from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.control.config import (
     ABORT,
@@ -65,7 +65,7 @@ from mission.control.config import (
 )
 from mission.control.estimator_worker import EstimatorWorker
 from mission.control.journal import MissionJournal, status_line
-from mission.control.legs import SurveyLegs
+from mission.control.legs import LegsDeps, SurveyLegs
 from mission.control.loop import LoopLagMonitor
 from mission.control.pipeline import MeasurementPipeline
 from mission.control.safety_monitor import SafetyMonitor
@@ -144,7 +144,7 @@ class MissionController:
         self.pipeline = MeasurementPipeline(gnb, self.users, config.delta_m, config.gnb_timeout_s, self.flight,
                                             self._buffer, lambda: self.origin, self.journal.writer, self.now,
                                             self.mission_t)
-        self.legs = SurveyLegs(self)
+        self.legs: SurveyLegs | None = None  # once home is known (_at_home)
         self._gated: GatedVehicle | None = None
         self._connected = False
         self.loop_lag = LoopLagMonitor()
@@ -282,6 +282,12 @@ class MissionController:
         if self._limits_at is not None:
             self.gate = SafetyGate(self._limits_at(self.origin))
         self._gated = GatedVehicle(self.vehicle, self.gate, self.origin, self.journal.event, self._pos_enu_smoothed)
+        self.legs = SurveyLegs(LegsDeps(
+            config=self.config, flight=self.flight, gated=self._gated,
+            set_speed=lambda mps: self.vehicle.set_speed(mps), battery_pct=lambda: self.vehicle.state.battery_pct,
+            battery_rtl_pct=self.gate.limits.battery_rtl_pct, planner=self.planner, origin=self.origin,
+            journal=self.journal, pos_enu=self.pos_enu, now=self.now, wall=self.wall, drain=self.pipeline.drain,
+            sigma_gps_m=self.noise.sigma_gps_m))
         cfg = dict(self.header_config)
         cfg.setdefault("controller", asdict(self.config))
         cfg.setdefault("solver", asdict(self.params))
@@ -496,10 +502,10 @@ class MissionController:
         keyframes = self.pipeline.keyframes
         if keyframes:
             # the final answer is the batch solution over every keyframe, as `uavloc replay`
-            # computes it from the log: the keyframes read back from the log as written (the
-            # pipeline's own copies differ from them by float rounding, ~1e-14 m in the velocity
-            # displacements, which the discrete choices of the solve — bias selection, clock fit —
-            # can turn into centimetres); the pipeline's keyframes if the log cannot be read back
+            # computes it from the log: the same keyframes (one builder, mission.keyframes) under
+            # replay's noise model and solver settings, the GPS error's τ estimated from the whole
+            # log's telemetry when the mission leaves it unknown; the pipeline's keyframes under
+            # the mission's noise model if the log cannot be read back
             try:
                 est = self._final_estimate_from_log()
             except Exception as exc:  # also a bug in replay: fall back, never lose the result

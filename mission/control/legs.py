@@ -13,39 +13,80 @@ import dataclasses
 import logging
 import math
 import time
-from typing import Any
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 
 import numpy as np
 
-from mission.control.config import PX4_DEFAULT_CRUISE_MPS, STATUS_BUDGET, STATUS_NO_LEG, STATUS_TARGET, TAKEOFF
+from estimator.geodesy import Origin
+from mission.control.config import (
+    PX4_DEFAULT_CRUISE_MPS,
+    STATUS_BUDGET,
+    STATUS_NO_LEG,
+    STATUS_TARGET,
+    TAKEOFF,
+    ControllerConfig,
+)
+from mission.control.journal import MissionJournal
 from mission.control.safety_monitor import energy_remaining_m
+from mission.control.state import FlightState
+from mission.safety import GatedVehicle
 from mission.telemetry import Odometer, odometer_dead_band_m
-from planner.types import PlanningState, PlanResult
+from planner.types import Planner, PlanningState, PlanResult
 from uavloc.errors import PlannerError, SafetyError, VehicleError
 
 log = logging.getLogger(__name__)
 
 
-class SurveyLegs:
-    """The flying part of a :class:`MissionController` (its vehicle, gate, planner and state)."""
+@dataclass(frozen=True)
+class LegsDeps:
+    """What the survey legs use of the flight, once home is known.
 
-    def __init__(self, ctl: Any):  # a mission.control.flight.MissionController (no import: no cycle)
-        self.ctl = ctl
-        self.odometer = Odometer(odometer_dead_band_m(ctl.noise.sigma_gps_m))
+    config, flight: the mission's settings and the shared state; gated: every command that moves
+    the vehicle, through the safety gate; set_speed(m/s): the cruise speed (no motion of its
+    own); battery_pct(): the vehicle's charge now [%] or None; battery_rtl_pct: the gate's RTL
+    threshold [%]; planner; origin: home (ENU frame of the planner and the gate); journal: the
+    mission log; pos_enu(): the latest fix [m, ENU] or None; now(): mission seconds; wall(s):
+    mission → wall seconds; drain(timeout_s): wait until the measurements so far are solved;
+    sigma_gps_m: the GPS σ (the odometer's dead band).
+    """
+
+    config: ControllerConfig
+    flight: FlightState
+    gated: GatedVehicle
+    set_speed: Callable[[float], Awaitable[None]]
+    battery_pct: Callable[[], float | None]
+    battery_rtl_pct: float
+    planner: Planner
+    origin: Origin
+    journal: MissionJournal
+    pos_enu: Callable[[], np.ndarray | None]
+    now: Callable[[], float]
+    wall: Callable[[float], float]
+    drain: Callable[[float], Awaitable[None]]
+    sigma_gps_m: float
+
+
+class SurveyLegs:
+    """Take-off and the survey's legs of one flight (module docstring), on :class:`LegsDeps`."""
+
+    def __init__(self, deps: LegsDeps):
+        self.deps = deps
+        self.odometer = Odometer(odometer_dead_band_m(deps.sigma_gps_m))
         self.leg_speed_mps = PX4_DEFAULT_CRUISE_MPS  # what the vehicle flies legs at (commanded or default)
         self.speed_refusals = 0
         self.battery_start_pct: float | None = None
 
     async def takeoff(self) -> None:
-        ctl, cfg, f = self.ctl, self.ctl.config, self.ctl.flight
+        dep, cfg, f = self.deps, self.deps.config, self.deps.flight
         f.set_phase(TAKEOFF)
-        await ctl._gated.arm()
-        ctl.journal.event("armed", kind="arm")
-        await ctl._gated.takeoff(cfg.altitude_m)
-        ctl.journal.event(f"takeoff to {cfg.altitude_m:g} m above home", kind="takeoff")
-        deadline = time.monotonic() + ctl.wall(2.0 * cfg.altitude_m / cfg.climb_mps + 30.0)
+        await dep.gated.arm()
+        dep.journal.event("armed", kind="arm")
+        await dep.gated.takeoff(cfg.altitude_m)
+        dep.journal.event(f"takeoff to {cfg.altitude_m:g} m above home", kind="takeoff")
+        deadline = time.monotonic() + dep.wall(2.0 * cfg.altitude_m / cfg.climb_mps + 30.0)
         while f.return_reason is None:
-            pos = ctl.pos_enu()
+            pos = dep.pos_enu()
             if pos is not None and pos[2] >= cfg.altitude_m - max(1.5, cfg.acceptance_m):
                 return
             if time.monotonic() > deadline:
@@ -55,23 +96,23 @@ class SurveyLegs:
 
     def energy_remaining_m(self) -> float:
         """Metres the battery still allows (down to the RTL threshold), from the drain so far."""
-        return energy_remaining_m(self.ctl.flight.flown_m, self.battery_start_pct, self.ctl.vehicle.state.battery_pct,
-                                  self.ctl.gate.limits.battery_rtl_pct)
+        return energy_remaining_m(self.deps.flight.flown_m, self.battery_start_pct, self.deps.battery_pct(),
+                                  self.deps.battery_rtl_pct)
 
     async def plan(self, pos: np.ndarray) -> PlanResult:
         """The planner's next leg from `pos`, with the estimate of every keyframe measured so far."""
-        ctl = self.ctl
-        await ctl.pipeline.drain(10.0)
-        state = PlanningState(uav_enu_m=pos, estimate=ctl.flight.estimate, flown_m=ctl.flight.flown_m,
+        dep = self.deps
+        await dep.drain(10.0)
+        state = PlanningState(uav_enu_m=pos, estimate=dep.flight.estimate, flown_m=dep.flight.flown_m,
                               energy_remaining_m=self.energy_remaining_m())
         t0 = time.perf_counter()
-        plan = await asyncio.to_thread(ctl.planner.plan, state)
+        plan = await asyncio.to_thread(dep.planner.plan, state)
         # the planner's compute time, for the log (the planner itself has no clock)
         return dataclasses.replace(plan, solve_time_s=time.perf_counter() - t0)
 
     async def survey(self) -> None:
-        ctl, cfg, f = self.ctl, self.ctl.config, self.ctl.flight
-        self.battery_start_pct = ctl.vehicle.state.battery_pct
+        dep, cfg, f = self.deps, self.deps.config, self.deps.flight
+        self.battery_start_pct = dep.battery_pct()
         refusals = 0
         leg = 0
         while not f.ending:
@@ -80,7 +121,7 @@ class SurveyLegs:
             await self.wait_link()
             if f.ending:
                 break
-            pos = ctl.pos_enu()
+            pos = dep.pos_enu()
             try:
                 plan = await self.plan(pos)
             except PlannerError as exc:
@@ -94,15 +135,15 @@ class SurveyLegs:
             if f.ending:
                 break
             wp = np.asarray(plan.waypoint_enu_m, float)
-            lat, lon, alt = (float(x) for x in ctl.origin.enu_to_lla(wp))
+            lat, lon, alt = (float(x) for x in dep.origin.enu_to_lla(wp))
             leg += 1
-            ctl.journal.writer.write(
-                "waypoint", ctl.now(), leg=leg, lat_deg=lat, lon_deg=lon, alt_m=alt, enu_m=wp.tolist(),
-                planner=getattr(ctl.planner, "name", "?"), status=plan.status,
+            dep.journal.writer.write(
+                "waypoint", dep.now(), leg=leg, lat_deg=lat, lon_deg=lon, alt_m=alt, enu_m=wp.tolist(),
+                planner=getattr(dep.planner, "name", "?"), status=plan.status,
                 objective=plan.objective if math.isfinite(plan.objective) else None, solve_time_s=plan.solve_time_s)
             await self.command_speed()
             try:
-                await ctl._gated.goto_enu(wp)
+                await dep.gated.goto_enu(wp)
             except SafetyError:
                 refusals += 1
                 if refusals >= cfg.max_refusals:
@@ -112,7 +153,7 @@ class SurveyLegs:
                 # a lost link or a refusal: the safety monitor decides about the link; here wait for
                 # it and replan from wherever the vehicle is then
                 refusals += 1
-                ctl.journal.event(f"goto failed: {exc}", kind="goto_failed")
+                dep.journal.event(f"goto failed: {exc}", kind="goto_failed")
                 if getattr(exc, "result", None) == "UNKNOWN":
                     # MAVSDK 4.1's answer to a MAV_RESULT it does not know (PX4's 9 to a reposition):
                     # it stops delivering telemetry and may crash on later calls, so send nothing but RTL
@@ -129,33 +170,33 @@ class SurveyLegs:
     async def command_speed(self) -> None:
         """Command the mission's cruise speed before every leg (PX4 keeps it over repositions, but a
         mode change resets it); the leg timeouts follow what the vehicle then flies."""
-        ctl, cfg = self.ctl, self.ctl.config
+        dep, cfg = self.deps, self.deps.config
         try:
-            await ctl.vehicle.set_speed(cfg.speed_mps)
+            await dep.set_speed(cfg.speed_mps)
         except VehicleError as exc:
             self.speed_refusals += 1
             self.leg_speed_mps = min(cfg.speed_mps, PX4_DEFAULT_CRUISE_MPS)
             if self.speed_refusals == 1:
-                ctl.journal.event(f"speed {cfg.speed_mps:g} m/s not accepted ({exc}): legs timed for "
+                dep.journal.event(f"speed {cfg.speed_mps:g} m/s not accepted ({exc}): legs timed for "
                                   f"{self.leg_speed_mps:g} m/s", kind="speed_refused")
             return
         if self.leg_speed_mps != cfg.speed_mps:
-            ctl.journal.event(f"cruise speed {cfg.speed_mps:g} m/s commanded", kind="speed", speed_mps=cfg.speed_mps)
+            dep.journal.event(f"cruise speed {cfg.speed_mps:g} m/s commanded", kind="speed", speed_mps=cfg.speed_mps)
         self.leg_speed_mps = cfg.speed_mps
 
     async def wait_link(self) -> None:
         """While the vehicle link is lost (and the survey goes on), wait."""
-        f = self.ctl.flight
+        f = self.deps.flight
         while f.link_lost_since is not None and not f.ending:
             await asyncio.sleep(0.05)
 
     def budget_spent(self) -> bool:
-        return self.ctl.flight.flown_m >= self.ctl.config.budget_m
+        return self.deps.flight.flown_m >= self.deps.config.budget_m
 
     async def fly_leg(self, start: np.ndarray, wp: np.ndarray) -> None:
         """Wait for arrival within the acceptance radius, a stop/return request, or the leg timeout;
         the Δ-trigger measures while the leg is flown."""
-        f = self.ctl.flight
+        f = self.deps.flight
         f.on_leg = True
         try:
             await self._fly_leg_until_done(start, wp)
@@ -163,13 +204,13 @@ class SurveyLegs:
             f.on_leg = False
 
     async def _fly_leg_until_done(self, start: np.ndarray, wp: np.ndarray) -> None:
-        ctl, cfg, f = self.ctl, self.ctl.config, self.ctl.flight
+        dep, cfg, f = self.deps, self.deps.config, self.deps.flight
         dist = float(np.linalg.norm(wp - start))
-        deadline = time.monotonic() + ctl.wall(2.0 * dist / self.leg_speed_mps + 20.0)
+        deadline = time.monotonic() + dep.wall(2.0 * dist / self.leg_speed_mps + 20.0)
         # metres flown: an odometer whose dead band (max(5 m, 8 σ_gps)) GPS noise does not cross
         self.odometer.start(start)
         while True:
-            pos = ctl.pos_enu()
+            pos = dep.pos_enu()
             f.flown_m = self.odometer.update(pos)
             if np.linalg.norm(pos - wp) <= cfg.acceptance_m:
                 f.flown_m = self.odometer.finish(pos)
@@ -180,15 +221,15 @@ class SurveyLegs:
                 f.finish_survey(STATUS_BUDGET, "budget spent")
                 return
             if time.monotonic() > deadline:
-                ctl.journal.event(f"leg to ({wp[0]:.1f}, {wp[1]:.1f}, {wp[2]:.1f}) m timed out", kind="leg_timeout")
+                dep.journal.event(f"leg to ({wp[0]:.1f}, {wp[1]:.1f}, {wp[2]:.1f}) m timed out", kind="leg_timeout")
                 return
             await f.wake.wait(0.2)
 
     def return_timeout_s(self) -> float:
         """Mission seconds the return home and landing may take: twice the flight at the vehicle's
         return speed (PX4: MPC_XY_CRUISE unless changed) and descent, plus 60 s."""
-        ctl = self.ctl
-        pos = ctl.pos_enu()
+        dep = self.deps
+        pos = dep.pos_enu()
         dist = 0.0 if pos is None else float(np.hypot(pos[0], pos[1]))
-        height = ctl.config.altitude_m if pos is None else max(float(pos[2]), 0.0)
-        return 2.0 * (dist / min(self.leg_speed_mps, PX4_DEFAULT_CRUISE_MPS) + height / ctl.config.descent_mps) + 60.0
+        height = dep.config.altitude_m if pos is None else max(float(pos[2]), 0.0)
+        return 2.0 * (dist / min(self.leg_speed_mps, PX4_DEFAULT_CRUISE_MPS) + height / dep.config.descent_mps) + 60.0

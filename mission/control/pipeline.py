@@ -11,12 +11,12 @@
   round: how replay groups them back into the same keyframe) and puts its keyframe on the
   keyframe queue, in trigger order. Placing waits for the next fix, so the trigger is ready for
   the next Δ at once;
-- the **velocity**: the keyframe carries the displacement from the previous one integrated from
-  the autopilot's velocity (estimator.motion), taken from the telemetry records *as logged* (the
-  pipeline listens to the mission log), between the two rounds' position times, under the header's
-  noise model: exactly what replay rebuilds from the log (mission.replay.build_keyframes). Placing
-  waits briefly for the logged record after the round; without one (or without velocity) the
-  keyframe has no motion factor.
+- the **keyframe** is built from the round's `rtt` records as logged by the one builder replay
+  uses too (mission.keyframes.build_keyframe), with the displacement from the previous keyframe
+  integrated from the telemetry velocity *as logged* (the pipeline listens to the mission log)
+  under the header's noise model: the keyframes replay rebuilds from the log, bit for bit. Placing
+  waits briefly for the logged velocity record after the round; without one (or without velocity)
+  the keyframe has no motion factor.
 
 The pipeline owns both queues; the estimator worker reads `keyframes_out`.
 """
@@ -34,15 +34,14 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.keyframes import KeyframeSelector
-from estimator.motion import MAX_VEL_GAP_S, integrate_velocity, motion_sigma_m
+from estimator.motion import MAX_VEL_GAP_S
 from estimator.noise import NoiseModel
-from estimator.ranging import C_MPS
 from estimator.types import Keyframe
 from mission.control.config import MissionUser
 from mission.control.state import FlightState
 from mission.gnb import GnbClient
+from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframe, velocity_covers
 from mission.log import MissionLogWriter
-from mission.replay import position_time_s
 from mission.telemetry import TelemetryBuffer
 from uavloc.errors import GnbError, GnbNoMeasurementError, GnbProtocolError, GnbUnknownCommandError, MissionError
 
@@ -82,6 +81,7 @@ class MeasurementPipeline:
         self._noise = NoiseModel()
         self._last_pos_t: float | None = None
         self._tel_last_t = -np.inf  # the last telemetry record's t, with or without velocity
+        self._user_index = {u.id: k for k, u in enumerate(users)}
         writer.subscribe(self._on_record)
 
     # -- the log, as written --------------------------------------------------------------------
@@ -98,28 +98,21 @@ class MeasurementPipeline:
         elif kind == "header" and isinstance(rec.get("noise"), dict):
             self._noise = NoiseModel.from_log_dict(rec["noise"])
 
+    def _velocity(self) -> VelocityRecords:
+        return VelocityRecords(np.asarray(self._vel_t, float), np.asarray(self._vel_enu, float).reshape(-1, 3))
+
     async def _velocity_covers(self, t_s: float) -> bool:
-        """Wait for a logged velocity record at or after t_s. False at once without velocity, and as
+        """Wait for a logged velocity record strictly after t_s (mission.keyframes: then the records
+        at hand give the displacement the whole log gives). False at once without velocity, and as
         soon as the log shows the gap replay would refuse (a telemetry record MAX_VEL_GAP_S after the
-        last velocity record, none at or after t_s); at most VELOCITY_WAIT_S wall."""
+        last velocity record, none after t_s); at most VELOCITY_WAIT_S wall."""
         deadline = time.monotonic() + VELOCITY_WAIT_S
-        while not (self._vel_t and self._vel_t[-1] >= t_s):
+        while not velocity_covers(self._velocity(), t_s):
             if (not self._vel_t or self._tel_last_t > self._vel_t[-1] + MAX_VEL_GAP_S
                     or time.monotonic() >= deadline):
                 return False
             await self.flight.wake.wait(0.05)
         return True
-
-    def odometry(self, t_prev_s: float | None, t_s: float) -> tuple[np.ndarray | None, float | None]:
-        """(displacement (3,) [m, ENU], σ [m]) from position time t_prev_s to t_s, integrated from the
-        logged velocity (mission.replay.with_velocity_odometry on the same records), or (None, None)."""
-        if t_prev_s is None or len(self._vel_t) < 2:
-            return None, None
-        times = np.array([t_prev_s, t_s])
-        disp, ok, disc = integrate_velocity(np.asarray(self._vel_t), np.asarray(self._vel_enu), times)
-        if not ok[1]:
-            return None, None
-        return disp[1].copy(), float(motion_sigma_m(t_s - t_prev_s, self._noise, disc[1]))
 
     def _forget_velocity_before(self, t_s: float) -> None:
         """Drop velocity records no longer needed: those before the last one at or before t_s − MAX_VEL_GAP_S."""
@@ -211,23 +204,18 @@ class MeasurementPipeline:
             return
         lat, lon, alt = (float(x) for x in origin.enu_to_lla(pos))
         uav = {"lat_deg": lat, "lon_deg": lon, "alt_m": alt}
-        logged_t = []
-        for k, s, tm in samples:
-            rec = self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
-            logged_t.append(rec["t"])
+        records = [self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
+                   for k, s, tm in samples]
         self.flight.measurements += len(samples)
-        # the keyframe from the logged numbers, exactly as replay rebuilds it
-        gps = origin.lla_to_enu(lat, lon, alt)
-        t_pos = position_time_s(np.array(logged_t))
-        odom, odom_sigma = None, None
+        # the keyframe of the records as logged, by replay's builder (mission.keyframes)
+        trigger = TriggerRecords.from_records(records, self._user_index)
+        t_pos = trigger.position_t_s
+        velocity = None
         if self._last_pos_t is not None and await self._velocity_covers(t_pos):
-            odom, odom_sigma = self.odometry(self._last_pos_t, t_pos)
+            velocity = self._velocity()
+        kf = build_keyframe(trigger, origin, self._last_pos_t, velocity, self._noise)
         self._last_pos_t = t_pos
         self._forget_velocity_before(t_pos)
-        kf = Keyframe(gps_enu_m=np.asarray(gps, float), user_idx=np.array([k for k, _, _ in samples]),
-                      range_m=np.array([C_MPS * s.toa_s for _, s, _ in samples]),
-                      t_s=float(logged_t[0]),  # as logged (the GPS links use it)
-                      odom_enu_m=odom, odom_sigma_m=odom_sigma)
         self.keyframes.append(kf)
         self.keyframes_out.put_nowait(kf)
 

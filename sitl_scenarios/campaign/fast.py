@@ -3,7 +3,7 @@
 The loop (the planner benchmark's, DESIGN.md §5–6): the UAV starts at home at the cruise altitude;
 the planner gives a waypoint; the UAV flies the straight leg at the scenario's cruise speed; every Δ
 metres along it (spacing carried across legs) a keyframe is simulated and fed to the REAL
-estimator (estimator.slam.OnlineEstimator); the planner is called again at the leg end with the
+estimator (estimator.online.OnlineEstimator); the planner is called again at the leg end with the
 latest Estimate. The run ends when every accuracy target is reached, when the planner is done, or
 when the scenario's budget is flown.
 
@@ -24,8 +24,8 @@ import time
 
 import numpy as np
 
+from estimator.online import OnlineEstimator
 from estimator.ranging import range_m_from_raw
-from estimator.slam import OnlineEstimator
 from estimator.types import Keyframe, SolverParams
 from planner import PlanningConstraints, PlanningState, make_planner
 from sitl_scenarios.campaign.families import _inside
