@@ -31,11 +31,10 @@ import numpy as np
 from estimator.geodesy import Origin
 from mission.control.config import MissionResult
 from mission.control.flight import MissionController
-from mission.controller import controller_from_scenario
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.vehicle import MavsdkVehicle
 from sitl_scenarios.gnb import SimulatedGnb
-from sitl_scenarios.scenario import Scenario
+from sitl_scenarios.scenario import Scenario, controller_from_scenario
 from sitl_scenarios.vehicle import VehicleSimulator
 from uavloc.errors import MissionError
 
