@@ -394,7 +394,8 @@ def test_the_simulated_gnb_answers_each_recorded_request_as_oai_did(name):
     rnti = RECORDED_UE[name]
     users = [{"id": "ue", "rnti": hex(rnti if rnti is not None else 0x0777),
               "east_m": 10.0 if rnti is not None else 9000.0, "north_m": 0.0}]
-    sc = scenario_from_dict({"name": "oai-transcript", "seed": 1, **user_tables(users), "radio": {"coverage_m": 1000.0}})
+    sc = scenario_from_dict({"name": "oai-transcript", "seed": 1, **user_tables(users),
+                             "radio": {"coverage_m": 1000.0}})
     asked = [(s, d, c) for s, d, c in sessions(name)
              if PROMPT_UE.encode() not in d and not s.strip().startswith(NOT_COMPARED)]
     assert asked, name
