@@ -21,11 +21,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from estimator.batch import solve_batch
 from estimator.clock import SawtoothFit, fit_sawtooth, refine_sawtooth
 from estimator.noise import NoiseModel
+from estimator.online import OnlineEstimator
 from estimator.refresh import RefreshedEstimator
 from estimator.simulate import simulate
-from estimator.slam import OnlineEstimator, solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 
 PROPS = settings(derandomize=True, deadline=None, database=None, print_blob=True,
