@@ -102,3 +102,39 @@ def rtt_lines(log_path: Path) -> int:
         return log_path.read_bytes().count(b'"type":"rtt"')
     except FileNotFoundError:
         return 0
+
+
+@dataclass
+class TinyDisk:
+    """A folder whose files cannot grow past `size_b` bytes: a real tmpfs of that size (root),
+    else a file-size limit for the subprocesses started with `preexec` (EFBIG instead of ENOSPC;
+    the same refused write)."""
+
+    path: Path
+    size_b: int
+    mounted: bool
+
+    def preexec(self) -> None:
+        if not self.mounted:
+            import resource
+            import signal
+
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a refused write, not a killed process
+            resource.setrlimit(resource.RLIMIT_FSIZE, (self.size_b, self.size_b))
+
+
+@contextlib.contextmanager
+def tiny_disk(folder: Path, size_b: int = 80_000) -> Iterator[TinyDisk]:
+    import os
+
+    path = folder / "disk"
+    path.mkdir()
+    mounted = False
+    if os.geteuid() == 0:
+        mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_b}", "tmpfs", str(path)],
+                                 capture_output=True).returncode == 0
+    try:
+        yield TinyDisk(path, size_b, mounted)
+    finally:
+        if mounted:
+            subprocess.run(["umount", "-l", str(path)], capture_output=True)

@@ -176,3 +176,35 @@ def test_binary_file_is_a_clear_error(tmp_path):
     (tmp_path / "b.jsonl").write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(MissionLogError, match="UTF-8"):
         read_mission_log(tmp_path / "b.jsonl")
+
+
+def test_a_refused_write_keeps_the_log_whole_and_stops_it_once(tmp_path):
+    """Issue 21 #2: the file system refusing a line (file size limit) cuts it off again: the
+    error names the file, later records are dropped without raising, the log reads whole."""
+    import subprocess
+    import sys
+
+    from tests.fly_rig import REPO, tiny_disk
+
+    script = (
+        "import sys\n"
+        "from mission.log import MissionLogWriter\n"
+        "from uavloc.errors import MissionLogError\n"
+        "w = MissionLogWriter(sys.argv[1]); w.open()\n"
+        "try:\n"
+        "    for i in range(10000):\n"
+        "        w.write('event', float(i), message='x' * 100)\n"
+        "except MissionLogError as exc:\n"
+        "    print(exc)\n"
+        "w.write('event', 1e4, message='after the fault'); w.close()\n"
+        "print('dropped', w.dropped)\n")
+    with tiny_disk(tmp_path, 20_000) as disk:
+        path = disk.path / "m.jsonl"
+        proc = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, capture_output=True, text=True,
+                              timeout=60, preexec_fn=disk.preexec)
+        raw = path.read_bytes()
+    assert proc.returncode == 0, proc.stderr
+    assert f"cannot write the mission log {path}" in proc.stdout and "dropped 1" in proc.stdout, proc.stdout
+    lines = raw.split(b"\n")
+    assert lines[-1] == b"" and len(lines) > 50
+    assert all(json.loads(line)["message"] == "x" * 100 for line in lines[:-1])

@@ -104,7 +104,10 @@ def run(args: argparse.Namespace) -> int:
             runner.exit_if_stuck(EXIT_INTERRUPTED)
             return EXIT_INTERRUPTED
     print_result(result, args.json)
-    if args.out is not None and result.log_path is not None and result.measurements:
+    log_failed = held["controller"].log_writer.failed
+    if log_failed is not None:
+        log.error("no report: %s", log_failed)
+    elif args.out is not None and result.log_path is not None and result.measurements:
         write_report(result.log_path, args.out)
     code = EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
     runner.exit_if_stuck(code)

@@ -82,7 +82,10 @@ def run(args: argparse.Namespace) -> int:
         if tmp is not None:
             result.log_path = None  # the temporary log goes away with the command
         print_result(result, args.json)
-        if args.out is not None and result.measurements:
+        log_failed = held["sim"].controller.log_writer.failed
+        if log_failed is not None:
+            log.error("no report: %s", log_failed)
+        elif args.out is not None and result.measurements:
             write_report(log_path, args.out)
     finally:
         if tmp is not None:
