@@ -42,13 +42,13 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
     from datetime import UTC, datetime
 
+    from mission.commands.outdir import mission_log_path
     from mission.config import load_mission, validate_mission
     from mission.controller import controller_from_mission
     from mission.gnb import OaiGnbClient, parse_host_port
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
     from mission.view.live import live_view
-    from uavloc.errors import MissionError
 
     if args.mission is not None:
         mission = load_mission(args.mission)
@@ -65,17 +65,8 @@ def run(args: argparse.Namespace) -> int:
         mission = dataclasses.replace(mission, gnb=dataclasses.replace(mission.gnb, **gnb_over))
         validate_mission(mission, "command line")
     host, port = parse_host_port(args.gnb)
-    if args.log is not None:
-        log_path = args.log
-    elif args.out is not None:
-        log_path = args.out / "mission.jsonl"
-    else:
-        log_path = Path(f"uavloc-mission-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}.jsonl")
-    if log_path.exists() and log_path.stat().st_size > 0:
-        # a log holds one mission (a second header makes it unreadable for replay); never
-        # overwrite one either
-        raise MissionError(f"mission log {log_path} already holds a mission: give another --log or --out, "
-                           "or move it away (not taking off)")
+    log_path = mission_log_path(args.out, args.log,
+                                Path(f"uavloc-mission-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}.jsonl"))
 
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 
