@@ -173,3 +173,34 @@ def test_a_full_disk_in_flight_sends_the_vehicle_home_and_keeps_the_log_whole(tm
     last_enu = mlog.header.origin.lla_to_enu(*mlog.tel_lla[-1])
     assert np.linalg.norm(np.asarray(last_enu)[:2]) > 20.0
     assert not report_written  # no report half-written on the full disk
+
+
+def test_fly_refuses_an_out_that_is_a_file_before_connecting(tmp_path):
+    """Issue 21 #6: `fly --out FILE` was refused only after connecting (and with a traceback)."""
+    import subprocess
+    import sys
+
+    from mission.config import example_mission_path
+    from tests.fly_rig import REPO
+
+    out = tmp_path / "results"
+    out.write_text("not a folder\n", encoding="utf-8")
+    # nothing listens on these: connecting would wait for the autopilot until the timeout
+    proc = subprocess.run([sys.executable, "-m", "mission", "fly", "--mission", str(example_mission_path()),
+                           "--connect", "udpin://127.0.0.1:9", "--gnb", "127.0.0.1:9", "--out", str(out)],
+                          cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert f"--out {out} is a file" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert "waiting for an autopilot" not in proc.stderr
+    assert out.read_text(encoding="utf-8") == "not a folder\n"
+
+
+def test_sim_refuses_a_folder_holding_a_mission(tmp_path, capsys):
+    """Issue 21 #9: `sim --out DIR` deleted an earlier mission.jsonl without a word; it is refused
+    as `fly` refuses it, and the earlier log is untouched."""
+    old = tmp_path / "mission.jsonl"
+    old.write_text('{"type":"header","t":0.0}\n', encoding="utf-8")
+    code = main(["sim", "paper", "--planner", "lawnmower", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 1 and f"mission log {old} already holds a mission" in err, err
+    assert old.read_text(encoding="utf-8") == '{"type":"header","t":0.0}\n'

@@ -35,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
     import tempfile
 
+    from mission.commands.outdir import LOG_NAME, mission_log_path
     from mission.status import print_result, write_report
     from mission.view.live import live_view
     from sitl_scenarios.scenario import load_scenario
@@ -48,12 +49,10 @@ def run(args: argparse.Namespace) -> int:
         log.warning("--speedup is ignored with --connect (PX4 SITL sets its own speed)")
     tmp = None
     if args.out is not None:
-        log_path = args.out / "mission.jsonl"
-        if log_path.exists():
-            log_path.unlink()  # a log is one mission; the writer appends
+        log_path = mission_log_path(args.out, None, args.out / LOG_NAME)
     else:
         tmp = tempfile.TemporaryDirectory(prefix="uavloc-sim-")
-        log_path = Path(tmp.name) / "mission.jsonl"
+        log_path = Path(tmp.name) / LOG_NAME
 
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 
