@@ -13,6 +13,7 @@ import json
 import logging
 import math
 import os
+import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -459,6 +460,10 @@ def iter_log_objects(fh: TextIO, path: Path) -> Iterator[tuple[int, dict | None,
                 yield i, None, line
                 continue
             raise MissionLogError(f"{path}:{i}: not valid JSON ({exc.msg} at column {exc.colno})") from None
+        except RecursionError:
+            # json's parser recurses once per nesting level; a record is a few levels deep
+            raise MissionLogError(f"{path}:{i}: JSON nested too deeply to be a record (Python's JSON reader "
+                                  f"gives up after about {sys.getrecursionlimit()} levels)") from None
         if not isinstance(obj, dict):
             raise MissionLogError(f"{path}:{i}: a record must be a JSON object, got {type(obj).__name__}")
         yield i, obj, line

@@ -208,3 +208,15 @@ def test_a_refused_write_keeps_the_log_whole_and_stops_it_once(tmp_path):
     lines = raw.split(b"\n")
     assert lines[-1] == b"" and len(lines) > 50
     assert all(json.loads(line)["message"] == "x" * 100 for line in lines[:-1])
+
+
+def test_a_line_nested_too_deeply_is_an_error_naming_the_line(tmp_path):
+    """Issue 21 #6: a line of JSON nested 100 000 deep raised RecursionError out of the reader."""
+    p = tmp_path / "deep.jsonl"
+    with MissionLogWriter(p) as w:
+        w.write_header(Origin(43.6, 7.07, 150.0), [{"id": "ue1", "rnti": 0x4601, "ground_alt_m": 150.0}],
+                       {"mu": 1, "fs_hz": 61.44e6})
+    with p.open("a", encoding="utf-8") as fh:
+        fh.write("[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(MissionLogError, match=r"deep\.jsonl:2: JSON nested too deeply"):
+        read_mission_log(p)
