@@ -3,7 +3,8 @@
 Writer: :class:`MissionLogWriter` appends one JSON object per line and flushes each, so a crash loses
 at most the line being written. Reader: :func:`read_mission_log` accepts any file that follows the
 table in DESIGN.md §10; a torn last line (no newline, not JSON) is skipped with a warning; anything
-else malformed raises :class:`MissionLogError` naming the line number and the reason.
+else malformed raises :class:`MissionLogError` naming the line number and the reason, also
+telemetry records out of time order (a shuffled or spliced log: refused, not sorted).
 """
 
 from __future__ import annotations
@@ -409,6 +410,12 @@ def _parse_area(obj: dict) -> dict:
     return out
 
 
+#: record types whose times must not go back: the track and the odometer are built from them in
+#: file order; uavloc and `uavloc import` write them in time order, and a shuffled or spliced log
+#: shows there. (rtt records are not checked: a trigger's records carry each measurement's own
+#: time, which in stock mode is the user's random access and may precede the one logged before it.)
+TIME_ORDERED_TYPES = ("telemetry",)
+
 #: largest speed a telemetry velocity may claim [m/s]
 MAX_SPEED_MPS = 200.0
 
@@ -484,6 +491,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
     truth: np.ndarray | None = None
     estimates, waypoints, events = [], [], []
     torn: int | None = None
+    last_t: dict[str, tuple[float, int]] = {}  # record type -> (time, line) of the latest one
     with fh:
         try:
             for lineno, obj, _line in iter_log_objects(fh, path):
@@ -504,6 +512,13 @@ def read_mission_log(path: str | Path) -> MissionLog:
                         continue
                     if rtype == "header":
                         raise _LineError("a second header")
+                    if rtype in TIME_ORDERED_TYPES:
+                        prev = last_t.get(rtype)
+                        if prev is not None and t < prev[0]:
+                            raise _LineError(f"{rtype} record at t = {t:g} s is earlier than the one on line "
+                                             f"{prev[1]} (t = {prev[0]:g} s): the log is out of time order "
+                                             "(refused, not sorted: its track would be one never flown)")
+                        last_t[rtype] = (t, lineno)
                     if rtype == "rtt":
                         uid = obj.get("user")
                         if uid not in user_ix:
