@@ -304,3 +304,15 @@ def test_uavloc_fly_with_an_external_vehicle_and_gnb(tmp_path):
     mlog = read_mission_log(log_path)
     assert mlog.truth_lla is None  # a real flight knows no truth
     assert "landed" in [e.get("kind") for e in mlog.events]
+
+
+def test_sim_flies_the_oracle_planner_at_the_true_users(capsys):
+    """Issue 21 #10: `uavloc sim paper --planner oracle` failed (`the oracle planner needs
+    true_users_enu_m`): a simulation gives it the true users in the controller's frame."""
+    from mission.cli import main
+
+    code = main(["-q", "sim", "paper", "--planner", "oracle", "--speedup", str(SPEEDUP), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err[-3000:]
+    doc = json.loads(out)
+    assert doc["status"] == "target_reached" and doc["users"][0]["error_m"] < 5.0, doc

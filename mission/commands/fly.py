@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
 
     from mission.commands.outdir import mission_log_path
     from mission.config import load_mission, validate_mission
-    from mission.controller import controller_from_mission
+    from mission.controller import controller_from_mission, resolve_planner_name
     from mission.gnb import OaiGnbClient, parse_host_port
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
@@ -64,6 +64,8 @@ def run(args: argparse.Namespace) -> int:
     if gnb_over:
         mission = dataclasses.replace(mission, gnb=dataclasses.replace(mission.gnb, **gnb_over))
         validate_mission(mission, "command line")
+    # a flight knows no true positions: the oracle planner is refused before anything connects
+    resolve_planner_name(args.planner or mission.flight.planner, truth_known=False)
     host, port = parse_host_port(args.gnb)
     log_path = mission_log_path(args.out, args.log,
                                 Path(f"uavloc-mission-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}.jsonl"))
