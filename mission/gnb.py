@@ -114,6 +114,13 @@ class _ConnectionLost(Exception):
     pass
 
 
+def _unanswered_bytes(reader: asyncio.StreamReader | None) -> bytes:
+    """What the server sent that no prompt ended yet (the stream's buffer after a timed-out
+    read; empty when nothing came)."""
+    buf = getattr(reader, "_buffer", None)  # CPython's StreamReader keeps unread bytes there
+    return bytes(buf) if buf else b""
+
+
 class OaiGnbClient:
     """Telnet client of an OAI gNB (see the module docstring); implements :class:`GnbClient`.
 
@@ -290,7 +297,14 @@ class OaiGnbClient:
                     if o1:  # it ran before its answer: the spacing counts from the later time
                         _O1_LAST_SENT[self._key] = time.monotonic()
             except TimeoutError:
+                got = _unanswered_bytes(self._reader)
                 await self._close()
+                if got:
+                    # something answered, but not an OAI telnet server: say what, not "no answer"
+                    raise protocol_error(
+                        f"{cfg.host}:{cfg.port} sent {len(got)} byte(s) but no '{cfg.prompt}' prompt within "
+                        f"{cfg.request_timeout_s:g} s after {line!r} (is this the gNB's telnet server, "
+                        "nr-softmodem --telnetsrv?); it sent", got) from None
                 if fresh:
                     raise GnbBusyError(
                         f"no answer to {line!r} within {cfg.request_timeout_s:g} s on a new connection to "

@@ -10,6 +10,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from mission.commands.argtypes import gnb_address
 from mission.view.live import add_view_arguments
 
 log = logging.getLogger(__name__)
@@ -20,7 +21,8 @@ HELP = "fly a localization mission with a MAVLink vehicle (PX4) and an OAI gNB"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", required=True, metavar="URL",
                    help="MAVSDK connection URL of the vehicle, e.g. udpin://0.0.0.0:14540 or serial:///dev/ttyACM0:57600")
-    p.add_argument("--gnb", required=True, metavar="HOST:PORT", help="the gNB's telnet server (default port 9090)")
+    p.add_argument("--gnb", required=True, metavar="HOST:PORT", type=gnb_address,
+                   help="the gNB's telnet server (default port 9090)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--mission", metavar="FILE",
                      help="mission file: users (id, RNTI), geofence, altitudes, Δ, target, noise, gNB and "

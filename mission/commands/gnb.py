@@ -13,6 +13,8 @@ import logging
 import sys
 from pathlib import Path
 
+from mission.commands.argtypes import gnb_address
+
 log = logging.getLogger(__name__)
 
 HELP = "check a gNB before flight: discover its UEs and measure each (gnb probe)"
@@ -51,7 +53,8 @@ def _seconds(text: str) -> float:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="gnb_command", metavar="SUBCOMMAND", required=True)
     q = sub.add_parser("probe", help="discover the UEs and measure each", description=__doc__.split("\n\n")[1])
-    q.add_argument("--gnb", required=True, metavar="HOST:PORT", help="the gNB's telnet server (default port 9090)")
+    q.add_argument("--gnb", required=True, metavar="HOST:PORT", type=gnb_address,
+                   help="the gNB's telnet server (default port 9090)")
     q.add_argument("--mode", choices=("rtt", "stock"), default="rtt",
                    help="rtt: the RTT command set of a modified gNB; stock: Msg2 lines of --gnb-log")
     q.add_argument("--stock", choices=("active", "passive"), default="passive",
