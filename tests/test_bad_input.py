@@ -145,7 +145,7 @@ CASES = [
     # -- gnb probe --
     Case("probe-port-letters", ["gnb", "probe", "--gnb", "127.0.0.1:abc"], 2, ["--gnb", "'abc'"]),
     Case("probe-port-range", ["gnb", "probe", "--gnb", "127.0.0.1:70000"], 2, ["--gnb", "127.0.0.1:70000"]),
-    Case("probe-bad-count", ["gnb", "probe", "--gnb", "127.0.0.1:9", "--count", "0"], 2, ["--count", "1..1000"]),
+    Case("probe-bad-count", ["gnb", "probe", "--gnb", "127.0.0.1:9", "--count", "0"], 2, ["--count", "[1, 1000]"]),
     Case("probe-stock-without-log", ["gnb", "probe", "--gnb", "127.0.0.1:9", "--mode", "stock"], 1,
          ["--gnb-log"]),
     Case("probe-nothing-listening", ["gnb", "probe", "--gnb", "127.0.0.1:9", "--timeout", "0.5"], 1,

@@ -199,16 +199,9 @@ def test_fly_view_follows_a_flight_to_the_end(tmp_path):
     """`uavloc fly --view 127.0.0.1:0` against a vehicle and a gNB it did not start (the built-in
     vehicle and the simulated gNB stand in): a WebSocket viewer (no browser) follows the flight to
     LANDED; the last frame's users are the JSON result's; a real flight draws no truth, no buildings."""
-    import threading
-
-    from sitl_scenarios.gnb import SimulatedGnb
-    from sitl_scenarios.scenario import load_scenario
-    from sitl_scenarios.sim_runner import free_udp_port
-    from sitl_scenarios.vehicle import VehicleSimulator
+    from tests.fly_rig import external_fly_rig
     from tests.test_view_browser import _Proc
 
-    sc = load_scenario("paper")
-    port = free_udp_port()
     frames: list[dict] = []
 
     async def follow(url: str) -> None:
@@ -219,35 +212,14 @@ def test_fly_view_follows_a_flight_to_the_end(tmp_path):
                     return
                 await ws.send_str("ack")
 
-    with VehicleSimulator.from_scenario(sc, speedup=20.0, target=("127.0.0.1", port), bind=("127.0.0.1", 0),
-                                        max_stream_wall_hz=100.0) as veh:
-        started = threading.Event()
-        ctl: dict = {}
-
-        def serve_gnb() -> None:
-            async def main():
-                ctl["stop"], ctl["loop"] = asyncio.Event(), asyncio.get_running_loop()
-                async with SimulatedGnb(sc, lambda: np.asarray(veh.state().pos_enu_m), port=0,
-                                        clock=lambda: veh.state().t_s) as gnb:
-                    ctl["port"] = gnb.port
-                    started.set()
-                    await ctl["stop"].wait()
-
-            asyncio.run(main())
-
-        thread = threading.Thread(target=serve_gnb, daemon=True)
-        thread.start()
-        assert started.wait(10)
-        proc = _Proc(["fly", "--connect", f"udpin://127.0.0.1:{port}", "--gnb", f"127.0.0.1:{ctl['port']}",
-                      "--scenario", "paper", "--planner", "lawnmower", "--log", str(tmp_path / "fly.jsonl"),
-                      "--json", "--view", "127.0.0.1:0"])
+    with external_fly_rig(tmp_path, speedup=20.0) as rig:
+        proc = _Proc(["fly", "--connect", rig.connect, "--gnb", rig.gnb, "--scenario", "paper", "--planner",
+                      "lawnmower", "--log", str(tmp_path / "fly.jsonl"), "--json", "--view", "127.0.0.1:0"])
         try:
             asyncio.run(asyncio.wait_for(follow(proc.url()), 300))
             out, _ = proc.p.communicate(timeout=120)
         finally:
             proc.stop()
-            ctl["loop"].call_soon_threadsafe(ctl["stop"].set)
-            thread.join(10)
     assert proc.p.returncode == 0, "".join(proc.lines)[-3000:]
     doc = json.loads(out)
     last = frames[-1]

@@ -4,6 +4,7 @@ message naming the option) before anything starts."""
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 from mission.view.live import checked
 
@@ -18,12 +19,23 @@ def _gnb_address(text: str) -> None:
 gnb_address = checked(_gnb_address)
 
 
-def tcp_port(text: str) -> int:
-    """A TCP port 0..65535 (0: any free port)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"port must be an integer 0..65535, got {text!r}") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be 0..65535, got {v}")
-    return v
+def in_range(convert: Callable[[str], float], lo: float, hi: float, *, closed: bool, what: str):
+    """An argparse type: `convert(text)` within [lo, hi] (closed) or (lo, hi) (open); `what` names
+    the expected value in the message."""
+    brackets = ("[", "]") if closed else ("(", ")")
+    span = f"{brackets[0]}{lo:g}, {hi:g}{brackets[1]}"
+
+    def parse(text: str):
+        try:
+            v = convert(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if not (lo <= v <= hi if closed else lo < v < hi):
+            raise argparse.ArgumentTypeError(f"must be in {span}, got {text}")
+        return v
+
+    return parse
+
+
+#: a TCP port (0: any free port)
+tcp_port = in_range(int, 0, 65535, closed=True, what="a port number 0..65535")

@@ -13,7 +13,7 @@ import logging
 import sys
 from pathlib import Path
 
-from mission.commands.argtypes import gnb_address
+from mission.commands.argtypes import gnb_address, in_range
 
 log = logging.getLogger(__name__)
 
@@ -30,24 +30,10 @@ def _rnti(text: str) -> int:
     return v
 
 
-def _count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"count must be an integer, got {text!r}") from None
-    if not 1 <= v <= 1000:
-        raise argparse.ArgumentTypeError(f"count must be 1..1000, got {v}")
-    return v
-
-
-def _seconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
-    if not 0 < v < 3600:
-        raise argparse.ArgumentTypeError(f"seconds must be in (0, 3600), got {text!r}")
-    return v
+#: measurements per UE
+_count = in_range(int, 1, 1000, closed=True, what="an integer count")
+#: seconds of a wait or timeout
+_seconds = in_range(float, 0.0, 3600.0, closed=False, what="seconds")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -7,6 +7,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from mission.commands.argtypes import in_range
 from mission.view.live import add_view_arguments
 
 log = logging.getLogger(__name__)
@@ -14,22 +15,11 @@ log = logging.getLogger(__name__)
 HELP = "fly a simulated mission (built-in vehicle or PX4 SITL, simulated gNB) and print where the users are"
 
 
-def _speedup(text: str) -> float:
-    """--speedup: simulated seconds per wall second, in (0, 10000)."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not 0 < v < 1e4:
-        raise argparse.ArgumentTypeError(f"must be in (0, 10000), got {text}")
-    return v
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", metavar="SCENARIO",
                    help="scenario file, or the name of a bundled one (paper, three_users_nlos, ...)")
     p.add_argument("--seed", type=int, help="seed of the simulators and the planner (default: the scenario's)")
-    p.add_argument("--speedup", type=_speedup, default=10.0,
+    p.add_argument("--speedup", type=in_range(float, 0.0, 1e4, closed=False, what="a number"), default=10.0,
                    help="simulated seconds per wall second of the built-in vehicle (default 10)")
     p.add_argument("--planner", metavar="NAME",
                    help="casadi, greedy, lawnmower, circle, random, oracle (default: the scenario's, casadi "
