@@ -11,6 +11,7 @@ configures logging.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import os
@@ -107,6 +108,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         log.error("uavloc %s: interrupted", args.command)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # the reader of stdout went away (`uavloc replay LOG --json | head`): nothing more can be
+        # said there, and the interpreter's own flush at exit must not fail again
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        log.error("uavloc %s: its output was closed before it ended", args.command)
+        return EXIT_ERROR
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -42,9 +42,14 @@ log = logging.getLogger(__name__)
 # building a controller from a mission file
 
 
-def resolve_planner_name(name: str) -> str:
+#: the planner that plans at the users' true positions: simulations only
+ORACLE_PLANNER = "oracle"
+
+
+def resolve_planner_name(name: str, truth_known: bool = True) -> str:
     """The planner to use: `name`, except "casadi" falls back to "lawnmower" when CasADi's planner
-    is not available."""
+    is not available. The oracle is refused where the true positions are unknown (a flight:
+    truth_known False)."""
     from planner import planner_names
 
     names = planner_names()
@@ -53,6 +58,10 @@ def resolve_planner_name(name: str) -> str:
         return "lawnmower"
     if name not in names:
         raise PlannerError(f"unknown planner {name!r}; choose one of {', '.join(names)}")
+    if name == ORACLE_PLANNER and not truth_known:
+        raise PlannerError("the oracle planner plans at the users' true positions, which only a simulation "
+                           "knows (uavloc sim); choose one of "
+                           f"{', '.join(n for n in names if n != ORACLE_PLANNER)}")
     return name
 
 
@@ -73,21 +82,25 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
     """
     from planner import make_planner
 
-    name = resolve_planner_name(planner or mission.flight.planner)
+    name = resolve_planner_name(planner or mission.flight.planner, truth_known=truth is not None)
     noise = mission.noise_model()
     make_constraints = constraints or mission.planning_constraints
 
     def planner_at(home: Origin) -> Planner:
-        return make_planner(name, make_constraints(home), noise, rng_seed=seed)
+        # the oracle gets the true users in the controller's frame (ENU from the vehicle's home)
+        opts = {"true_users_enu_m": truth(home)} if name == ORACLE_PLANNER else {}
+        return make_planner(name, make_constraints(home), noise, rng_seed=seed, **opts)
 
     def limits_at(home: Origin) -> SafetyLimits:
         return SafetyLimits.from_mission(mission, home)
 
     g = mission.geofence
     if not (g.polygon_lat_lon_deg or g.no_fly_lat_lon_deg):
-        # ENU polygons do not depend on home: build now (a caller may wrap the planner before run)
+        # ENU polygons do not depend on home: build now (a caller may wrap the planner before
+        # run); the oracle's true users do, it is built once home is known
         here = Origin(0.0, 0.0, 0.0)
-        planner_obj, limits = planner_at(here), limits_at(here)
+        planner_obj = planner_at if name == ORACLE_PLANNER else planner_at(here)
+        limits = limits_at(here)
     else:
         planner_obj, limits = planner_at, limits_at
     config = ControllerConfig.from_mission(mission, time_scale=time_scale, **overrides)

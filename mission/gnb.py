@@ -262,7 +262,14 @@ class OaiGnbClient:
                     if o1:  # it ran before its answer: the spacing counts from the later time
                         _O1_LAST_SENT[self._key] = time.monotonic()
             except TimeoutError:
+                got = t.unanswered()
                 await self._close()
+                if got:
+                    # something answered, but not an OAI telnet server: say what, not "no answer"
+                    raise protocol_error(
+                        f"{cfg.host}:{cfg.port} sent {len(got)} byte(s) but no '{cfg.prompt}' prompt within "
+                        f"{cfg.request_timeout_s:g} s after {line!r} (is this the gNB's telnet server, "
+                        "nr-softmodem --telnetsrv?); it sent", got) from None
                 if fresh:
                     raise GnbBusyError(t.busy_message(line, cfg.request_timeout_s)) from None
                 raise GnbTimeoutError(f"no answer to {line!r} within {cfg.request_timeout_s:g} s") from None

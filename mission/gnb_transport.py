@@ -131,6 +131,10 @@ class GnbTransport(Protocol):
 
     def busy_message(self, line: str, timeout_s: float) -> str: ...
 
+    def unanswered(self) -> bytes:
+        """What the server sent that no complete answer ended yet (after a timed-out exchange)."""
+        ...
+
 
 # ---------------------------------------------------------------------------------------------
 # telnet
@@ -226,6 +230,12 @@ class TelnetTransport:
         w, self._writer, self._reader = self._writer, None, None
         if w is not None:
             w.close()
+
+    def unanswered(self) -> bytes:
+        """The bytes after the last prompt that no prompt ended yet (the stream's buffer after a
+        timed-out read; empty when nothing came)."""
+        buf = getattr(self._reader, "_buffer", None)  # CPython's StreamReader keeps unread bytes there
+        return bytes(buf) if buf else b""
 
     def busy_message(self, line: str, timeout_s: float) -> str:
         return (f"no answer to {line!r} within {timeout_s:g} s on a new connection to {self.address.host}:"
@@ -412,6 +422,9 @@ class RestTransport:
         s, self._session = self._session, None
         if s is not None and s.connector is not None:
             s.connector.close()  # synchronous: the sockets close now, and the session counts as closed
+
+    def unanswered(self) -> bytes:
+        return b""  # an HTTP answer comes whole or not at all
 
     def busy_message(self, line: str, timeout_s: float) -> str:
         return (f"no answer to {line!r} within {timeout_s:g} s from the gNB web server at {self.address}: it runs "

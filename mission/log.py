@@ -3,14 +3,18 @@
 Writer: :class:`MissionLogWriter` appends one JSON object per line and flushes each, so a crash loses
 at most the line being written. Reader: :func:`read_mission_log` accepts any file that follows the
 table in DESIGN.md §10; a torn last line (no newline, not JSON) is skipped with a warning; anything
-else malformed raises :class:`MissionLogError` naming the line number and the reason.
+else malformed raises :class:`MissionLogError` naming the line number and the reason, also
+telemetry records out of time order (a shuffled or spliced log: refused, not sorted).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
+import os
+import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -37,8 +41,15 @@ RECORD_TYPES = ("header", "telemetry", "rtt", "estimate", "waypoint", "event", "
 class MissionLogWriter:
     """Append-only writer of a mission log. Use as a context manager.
 
-    Every record is one line, written and flushed at once. NaN or infinite numbers are refused
-    (JSON has none) with a :class:`MissionLogError`, and nothing is written for that record.
+    Every record is one line, written and flushed at once (one unbuffered write of the whole
+    line). NaN or infinite numbers are refused (JSON has none) with a :class:`MissionLogError`, and
+    nothing is written for that record.
+
+    A line the file system refuses (a full disk, a file size limit, an I/O error) is cut off
+    again, so the log stays whole up to the last record written; that write raises a
+    :class:`MissionLogError` naming the file and the reason, and the writer is then
+    :attr:`failed`: later records are dropped (counted in :attr:`dropped`) instead of raising, so
+    that a failing log never stops the mission's safe end (RTL) on its way.
 
     Listeners (:meth:`subscribe`, e.g. the live view) get each record as written (a dict of plain
     JSON types) right after its line is flushed; they must be quick and not raise: an exception in
@@ -47,8 +58,14 @@ class MissionLogWriter:
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        self._fh: TextIO | None = None
+        self._fd: int | None = None
+        self._size = 0  # bytes of whole lines in the file
+        self._lines = 0  # lines this writer wrote
         self._listeners: list[Callable[[dict], None]] = []
+        #: the error that stopped the log (None while it is written)
+        self.failed: MissionLogError | None = None
+        #: records dropped since the log failed
+        self.dropped = 0
 
     def subscribe(self, listener: Callable[[dict], None]) -> None:
         """Call `listener(record)` with every record written from now on."""
@@ -61,19 +78,27 @@ class MissionLogWriter:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def is_open(self) -> bool:
+        return self._fd is not None
+
     def open(self) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = self.path.open("a", encoding="utf-8")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise MissionLogError(f"cannot open mission log {self.path}: {exc.strerror or exc}") from None
+        self._size = os.fstat(self._fd).st_size
 
     def close(self) -> None:
-        if self._fh is not None:
-            self._fh.flush()
-            self._fh.close()
-            self._fh = None
+        if self._fd is not None:
+            fd, self._fd = self._fd, None
+            with contextlib.suppress(OSError):  # nothing is buffered: every line was written whole
+                os.close(fd)
 
     def write(self, record_type: str, t_s: float, **fields: Any) -> dict:
         """Append one record `{"type": record_type, "t": t_s, **fields}` and flush it."""
-        if self._fh is None:
+        if self._fd is None:
             raise MissionLogError(f"mission log {self.path} is not open")
         if record_type not in RECORD_TYPES:
             raise MissionLogError(f"unknown record type {record_type!r}; known: {', '.join(RECORD_TYPES)}")
@@ -83,8 +108,10 @@ class MissionLogWriter:
             line = json.dumps(plain, allow_nan=False, separators=(",", ":"))
         except ValueError as exc:
             raise MissionLogError(f"{record_type} record has a NaN or infinite number: {obj!r}") from exc
-        self._fh.write(line + "\n")
-        self._fh.flush()
+        if self.failed is not None:
+            self.dropped += 1
+            return obj
+        self._append((line + "\n").encode("utf-8"))
         for listener in list(self._listeners):
             try:
                 listener(plain)
@@ -92,6 +119,24 @@ class MissionLogWriter:
                 log.exception("mission log listener %r failed; it gets no more records", listener)
                 self._listeners.remove(listener)
         return obj
+
+    def _append(self, data: bytes) -> None:
+        """Write `data` (whole lines) at the end; on a refused write cut the file back to its last
+        whole line and fail (see the class docstring)."""
+        view = memoryview(data)
+        try:
+            while view:
+                n = os.write(self._fd, view)
+                view = view[n:]
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._fd, self._size)
+            self.failed = MissionLogError(
+                f"cannot write the mission log {self.path}: {exc.strerror or exc}; it holds the "
+                f"{self._lines} record(s) written before, whole, and no more are written")
+            raise self.failed from None
+        self._size += len(data)
+        self._lines += 1
 
     def write_header(
         self,
@@ -365,6 +410,12 @@ def _parse_area(obj: dict) -> dict:
     return out
 
 
+#: record types whose times must not go back: the track and the odometer are built from them in
+#: file order; uavloc and `uavloc import` write them in time order, and a shuffled or spliced log
+#: shows there. (rtt records are not checked: a trigger's records carry each measurement's own
+#: time, which in stock mode is the user's random access and may precede the one logged before it.)
+TIME_ORDERED_TYPES = ("telemetry",)
+
 #: largest speed a telemetry velocity may claim [m/s]
 MAX_SPEED_MPS = 200.0
 
@@ -416,6 +467,10 @@ def iter_log_objects(fh: TextIO, path: Path) -> Iterator[tuple[int, dict | None,
                 yield i, None, line
                 continue
             raise MissionLogError(f"{path}:{i}: not valid JSON ({exc.msg} at column {exc.colno})") from None
+        except RecursionError:
+            # json's parser recurses once per nesting level; a record is a few levels deep
+            raise MissionLogError(f"{path}:{i}: JSON nested too deeply to be a record (Python's JSON reader "
+                                  f"gives up after about {sys.getrecursionlimit()} levels)") from None
         if not isinstance(obj, dict):
             raise MissionLogError(f"{path}:{i}: a record must be a JSON object, got {type(obj).__name__}")
         yield i, obj, line
@@ -436,6 +491,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
     truth: np.ndarray | None = None
     estimates, waypoints, events = [], [], []
     torn: int | None = None
+    last_t: dict[str, tuple[float, int]] = {}  # record type -> (time, line) of the latest one
     with fh:
         try:
             for lineno, obj, _line in iter_log_objects(fh, path):
@@ -456,6 +512,13 @@ def read_mission_log(path: str | Path) -> MissionLog:
                         continue
                     if rtype == "header":
                         raise _LineError("a second header")
+                    if rtype in TIME_ORDERED_TYPES:
+                        prev = last_t.get(rtype)
+                        if prev is not None and t < prev[0]:
+                            raise _LineError(f"{rtype} record at t = {t:g} s is earlier than the one on line "
+                                             f"{prev[1]} (t = {prev[0]:g} s): the log is out of time order "
+                                             "(refused, not sorted: its track would be one never flown)")
+                        last_t[rtype] = (t, lineno)
                     if rtype == "rtt":
                         uid = obj.get("user")
                         if uid not in user_ix:

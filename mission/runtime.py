@@ -9,8 +9,11 @@ and `uavloc fly`:
 
 - the default executor is its own thread pool, shut down without waiting; after the mission it
   gives stuck calls `shutdown_timeout_s` wall seconds, then reports them (:attr:`stuck`);
-- SIGINT: the first Ctrl-C cancels the mission (the controller sends RTL within its bounded safe
-  end, logs and closes the log); a second Ctrl-C exits the process at once (exit code 130);
+- SIGINT, SIGTERM, SIGHUP (Ctrl-C, a `kill`, a dropped terminal; :data:`ENDING_SIGNALS`): the
+  first cancels the mission (the controller sends RTL within its bounded safe end, logs and closes
+  the log), the command ends with exit code 130 as after Ctrl-C; a second exits the process at once
+  (exit code 130). Left to their default action, SIGTERM and SIGHUP would end the process with
+  the vehicle still flying its last setpoint;
 - :meth:`exit_if_stuck`: after the command printed its result, a process with stuck vehicle-library
   threads ends with `os._exit` (the interpreter's exit would wait for them for ever).
 
@@ -34,12 +37,20 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
-#: exit code of a process ended by Ctrl-C (128 + SIGINT)
+#: exit code of a process ended by Ctrl-C (128 + SIGINT), also used after SIGTERM and SIGHUP
 EXIT_INTERRUPTED = 130
+
+#: the signals that end a mission the way Ctrl-C does (RTL, end record, exit code 130)
+ENDING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _signal_label(signum: int) -> str:
+    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
 
 
 class BoundedRun:
-    """`asyncio.run` with a bounded shutdown and a two-stage Ctrl-C. See the module docstring."""
+    """`asyncio.run` with a bounded shutdown and a two-stage Ctrl-C (or SIGTERM, SIGHUP). See the
+    module docstring."""
 
     def __init__(self, shutdown_timeout_s: float = 3.0, max_workers: int = 16):
         self.shutdown_timeout_s = float(shutdown_timeout_s)
@@ -67,38 +78,41 @@ class BoundedRun:
         executor = ThreadPoolExecutor(self.max_workers, thread_name_prefix="uavloc-io")
         loop.set_default_executor(executor)
         task = loop.create_task(coro)
-        handler_set = False
-        previous = signal.getsignal(signal.SIGINT)
+        handled: dict[int, Any] = {}
         if threading.current_thread() is threading.main_thread():
-            with contextlib.suppress(NotImplementedError, RuntimeError):
-                loop.add_signal_handler(signal.SIGINT, self._on_sigint, task)
-                handler_set = True
+            for signum in ENDING_SIGNALS:
+                previous = signal.getsignal(signum)
+                with contextlib.suppress(NotImplementedError, RuntimeError):
+                    loop.add_signal_handler(signum, self._on_signal, task, signum)
+                    handled[signum] = previous
         try:
             return loop.run_until_complete(task)
         finally:
-            if handler_set:
-                loop.remove_signal_handler(signal.SIGINT)
-                # until the process ends, a Ctrl-C after the first one exits at once
-                signal.signal(signal.SIGINT, self._on_late_sigint)
+            for signum in handled:
+                loop.remove_signal_handler(signum)
+                # until the process ends, a signal after the first one exits at once
+                signal.signal(signum, self._on_late_signal)
             self._close_loop(loop, executor)
-            if handler_set and self.interrupts == 0 and not self.stuck:
-                signal.signal(signal.SIGINT, previous)  # a clean run leaves Ctrl-C as it was
+            if self.interrupts == 0 and not self.stuck:
+                for signum, previous in handled.items():
+                    signal.signal(signum, previous)  # a clean run leaves the signals as they were
 
-    def _on_sigint(self, task: asyncio.Task) -> None:
+    def _on_signal(self, task: asyncio.Task, signum: int) -> None:
         self.interrupts += 1
+        label = _signal_label(signum)
         if self.interrupts == 1:
-            print("\nCtrl-C: ending the mission (RTL, log closed); Ctrl-C again exits at once",
+            print(f"\n{label}: ending the mission (RTL, log closed); Ctrl-C again exits at once",
                   file=sys.stderr, flush=True)
             task.cancel()
             return
-        print("\nCtrl-C again: exiting now", file=sys.stderr, flush=True)
+        print(f"\n{label} again: exiting now", file=sys.stderr, flush=True)
         _hard_exit(EXIT_INTERRUPTED)
 
-    def _on_late_sigint(self, signum: int, frame: Any) -> None:
-        """SIGINT once the mission's loop has ended (shutdown, result printing)."""
+    def _on_late_signal(self, signum: int, frame: Any) -> None:
+        """An ending signal once the mission's loop has ended (shutdown, result printing)."""
         self.interrupts += 1
         if self.interrupts >= 2 or self.stuck:
-            print("\nCtrl-C again: exiting now", file=sys.stderr, flush=True)
+            print(f"\n{_signal_label(signum)} again: exiting now", file=sys.stderr, flush=True)
             _hard_exit(EXIT_INTERRUPTED)
         raise KeyboardInterrupt
 

@@ -334,6 +334,11 @@ def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
         raise ScenarioError(f"{where}: a scenario is a TOML document")
     if "mission" in data:
         raise schema.fail(where, "mission", data["mission"], _OLD_MISSION_TABLE, ScenarioError)
+    # a key neither part knows is named before a part misses one (often it is that one, misspelt)
+    mission_keys = {f.name for f in dataclasses.fields(mc.MissionConfig)}
+    for name, value in data.items():
+        if name not in WORLD_KEYS and name not in mission_keys:
+            raise schema.fail(where, name, value, _explain_unknown(mc.MissionConfig, name), ScenarioError)
     world = schema.build(World, {k: v for k, v in data.items() if k in WORLD_KEYS}, where, error=ScenarioError)
     mission = schema.build(mc.MissionConfig, _mission_table(data, world), where, error=ScenarioError,
                            explain=_explain_unknown)

@@ -73,3 +73,17 @@ def test_geodetic_fence_is_placed_once_home_is_known(tmp_path):
     want = SafetyLimits.from_mission(m, home)
     assert ctl.gate.limits.fence_enu_m == pytest.approx(want.fence_enu_m)
     ctl.journal.close()
+
+
+def test_fly_refuses_the_oracle_planner_before_connecting(capsys):
+    """Issue 21 #10: the oracle plans at the true positions, which a flight never has: refused
+    with the reason and the planners it may use, before anything connects (nothing listens)."""
+    from mission.cli import main
+    from mission.config import example_mission_path
+
+    code = main(["fly", "--mission", str(example_mission_path()), "--connect", "udpin://127.0.0.1:9",
+                 "--gnb", "127.0.0.1:9", "--planner", "oracle"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "oracle planner plans at the users' true positions" in err and "lawnmower" in err, err
+    assert "waiting for an autopilot" not in err

@@ -290,54 +290,13 @@ def test_ctrl_c_on_uavloc_sim_sends_rtl(tmp_path):
 
 @pytest.mark.slow
 def test_uavloc_fly_with_an_external_vehicle_and_gnb(tmp_path):
-    """`uavloc fly` against a vehicle and a gNB it did not start: the built-in vehicle (thread) and
-    the simulated gNB (its own event loop in a thread) stand in for the Pixhawk and the OAI gNB."""
-    import threading
+    """`uavloc fly` against a vehicle and a gNB it did not start (tests/fly_rig.py)."""
+    from tests.fly_rig import external_fly_rig
 
-    from mission.config import example_mission_path, load_mission
-    from sitl_scenarios.gnb import SimulatedGnb
-    from sitl_scenarios.sim_runner import free_udp_port
-    from sitl_scenarios.vehicle import VehicleSimulator
-
-    sc = load_scenario("paper")
-    port = free_udp_port()
     log_path = tmp_path / "fly.jsonl"
-    # the shipped example mission file, with the paper scenario's one user (0x4601) only
-    text = example_mission_path().read_text(encoding="utf-8")
-    start = text.index('[[users]]\nid = "ue2"')
-    mission = tmp_path / "flight.toml"
-    mission.write_text(text[:start] + text[text.index("\n#", start) + 1:], encoding="utf-8")
-    assert [u.rnti for u in load_mission(mission).users] == [u.rnti for u in sc.users]
-    with VehicleSimulator.from_scenario(sc, speedup=SPEEDUP, target=("127.0.0.1", port), bind=("127.0.0.1", 0),
-                                        max_stream_wall_hz=100.0) as veh:
-        started = threading.Event()
-        stop: dict = {}
-        gnb_port: dict = {}
-
-        def serve_gnb() -> None:
-            async def main():
-                stop["event"] = asyncio.Event()
-                stop["loop"] = asyncio.get_running_loop()
-                async with SimulatedGnb(sc, lambda: np.asarray(veh.state().pos_enu_m), port=0,
-                                        clock=lambda: veh.state().t_s) as gnb:
-                    gnb_port["port"] = gnb.port
-                    started.set()
-                    await stop["event"].wait()
-
-            asyncio.run(main())
-
-        thread = threading.Thread(target=serve_gnb, daemon=True)
-        thread.start()
-        assert started.wait(10)
-        try:
-            proc = subprocess.run(
-                [sys.executable, "-m", "mission", "-q", "fly", "--connect", f"udpin://127.0.0.1:{port}",
-                 "--gnb", f"127.0.0.1:{gnb_port['port']}", "--mission", str(mission), "--planner", "lawnmower",
-                 "--log", str(log_path), "--json"],
-                cwd=REPO, capture_output=True, text=True, timeout=180)
-        finally:
-            stop["loop"].call_soon_threadsafe(stop["event"].set)
-            thread.join(10)
+    with external_fly_rig(tmp_path, SPEEDUP) as rig:
+        proc = subprocess.run(rig.fly_args("--log", str(log_path), "--json", pre=("-q",)), cwd=REPO,
+                              capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr[-3000:]
     doc = json.loads(proc.stdout)
     assert doc["status"] in ("target_reached", "budget_spent") and doc["measurements"] > 20
@@ -345,3 +304,15 @@ def test_uavloc_fly_with_an_external_vehicle_and_gnb(tmp_path):
     mlog = read_mission_log(log_path)
     assert mlog.truth_lla is None  # a real flight knows no truth
     assert "landed" in [e.get("kind") for e in mlog.events]
+
+
+def test_sim_flies_the_oracle_planner_at_the_true_users(capsys):
+    """Issue 21 #10: `uavloc sim paper --planner oracle` failed (`the oracle planner needs
+    true_users_enu_m`): a simulation gives it the true users in the controller's frame."""
+    from mission.cli import main
+
+    code = main(["-q", "sim", "paper", "--planner", "oracle", "--speedup", str(SPEEDUP), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err[-3000:]
+    doc = json.loads(out)
+    assert doc["status"] == "target_reached" and doc["users"][0]["error_m"] < 5.0, doc

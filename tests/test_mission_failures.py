@@ -135,3 +135,72 @@ def test_fly_refuses_a_log_that_already_holds_a_mission_before_any_connection(tm
     err = capsys.readouterr().err
     assert code == 1 and "already holds a mission" in err and str(old) in err, err
     assert old.read_text(encoding="utf-8") == '{"type":"header","t":0.0}\n'
+
+
+@pytest.mark.sim
+def test_a_full_disk_in_flight_sends_the_vehicle_home_and_keeps_the_log_whole(tmp_path):
+    """Issue 21 #2: the mission log's disk fills during the survey: the vehicle is sent home (RTL
+    seen on the vehicle), the log is whole up to the fault (no torn line), one clear message and
+    no traceback, exit 1."""
+    import subprocess
+
+    import numpy as np
+
+    from tests.fly_rig import REPO, external_fly_rig, tiny_disk, wait_for
+
+    with tiny_disk(tmp_path) as disk, external_fly_rig(tmp_path, speedup=SPEEDUP) as rig:
+        out = disk.path / "out"
+        proc = subprocess.run(rig.fly_args("--out", str(out)), cwd=REPO, capture_output=True, text=True,
+                              timeout=300, preexec_fn=disk.preexec)
+        state = rig.vehicle.state()
+        home = np.asarray(state.home_enu_m)
+
+        def home_dist_m() -> float:
+            return float(np.linalg.norm((rig.vehicle.state().pos_enu_m - home)[:2]))
+
+        wait_for(lambda: home_dist_m() < 5.0, 60, "the vehicle back over home")
+        raw = (out / "mission.jsonl").read_bytes()
+        mlog = read_mission_log(out / "mission.jsonl")
+        report_written = (out / "top_view.png").exists()
+    err = proc.stderr + proc.stdout
+    assert proc.returncode == 1, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert f"cannot write the mission log {out / 'mission.jsonl'}" in err, err[-3000:]
+    assert state.mode == "return_to_launch" or not state.in_air, state.mode
+    assert raw.endswith(b"\n") and len(raw) > disk.size_b // 2
+    assert mlog.skipped_torn_line is None and len(mlog.rtt_t_s) > 5
+    # sent home from the survey: far from home when the log stopped (and back over home since)
+    last_enu = mlog.header.origin.lla_to_enu(*mlog.tel_lla[-1])
+    assert np.linalg.norm(np.asarray(last_enu)[:2]) > 20.0
+    assert not report_written  # no report half-written on the full disk
+
+
+def test_fly_refuses_an_out_that_is_a_file_before_connecting(tmp_path):
+    """Issue 21 #6: `fly --out FILE` was refused only after connecting (and with a traceback)."""
+    import subprocess
+    import sys
+
+    from mission.config import example_mission_path
+    from tests.fly_rig import REPO
+
+    out = tmp_path / "results"
+    out.write_text("not a folder\n", encoding="utf-8")
+    # nothing listens on these: connecting would wait for the autopilot until the timeout
+    proc = subprocess.run([sys.executable, "-m", "mission", "fly", "--mission", str(example_mission_path()),
+                           "--connect", "udpin://127.0.0.1:9", "--gnb", "127.0.0.1:9", "--out", str(out)],
+                          cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert f"--out {out} is a file" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert "waiting for an autopilot" not in proc.stderr
+    assert out.read_text(encoding="utf-8") == "not a folder\n"
+
+
+def test_sim_refuses_a_folder_holding_a_mission(tmp_path, capsys):
+    """Issue 21 #9: `sim --out DIR` deleted an earlier mission.jsonl without a word; it is refused
+    as `fly` refuses it, and the earlier log is untouched."""
+    old = tmp_path / "mission.jsonl"
+    old.write_text('{"type":"header","t":0.0}\n', encoding="utf-8")
+    code = main(["sim", "paper", "--planner", "lawnmower", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 1 and f"mission log {old} already holds a mission" in err, err
+    assert old.read_text(encoding="utf-8") == '{"type":"header","t":0.0}\n'

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -176,3 +177,63 @@ def test_binary_file_is_a_clear_error(tmp_path):
     (tmp_path / "b.jsonl").write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(MissionLogError, match="UTF-8"):
         read_mission_log(tmp_path / "b.jsonl")
+
+
+def test_a_refused_write_keeps_the_log_whole_and_stops_it_once(tmp_path):
+    """Issue 21 #2: the file system refusing a line (file size limit) cuts it off again: the
+    error names the file, later records are dropped without raising, the log reads whole."""
+    import subprocess
+    import sys
+
+    from tests.fly_rig import REPO, tiny_disk
+
+    script = (
+        "import sys\n"
+        "from mission.log import MissionLogWriter\n"
+        "from uavloc.errors import MissionLogError\n"
+        "w = MissionLogWriter(sys.argv[1]); w.open()\n"
+        "try:\n"
+        "    for i in range(10000):\n"
+        "        w.write('event', float(i), message='x' * 100)\n"
+        "except MissionLogError as exc:\n"
+        "    print(exc)\n"
+        "w.write('event', 1e4, message='after the fault'); w.close()\n"
+        "print('dropped', w.dropped)\n")
+    with tiny_disk(tmp_path, 20_000) as disk:
+        path = disk.path / "m.jsonl"
+        proc = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, capture_output=True, text=True,
+                              timeout=60, preexec_fn=disk.preexec)
+        raw = path.read_bytes()
+    assert proc.returncode == 0, proc.stderr
+    assert f"cannot write the mission log {path}" in proc.stdout and "dropped 1" in proc.stdout, proc.stdout
+    lines = raw.split(b"\n")
+    assert lines[-1] == b"" and len(lines) > 50
+    assert all(json.loads(line)["message"] == "x" * 100 for line in lines[:-1])
+
+
+def test_a_line_nested_too_deeply_is_an_error_naming_the_line(tmp_path):
+    """Issue 21 #6: a line of JSON nested 100 000 deep raised RecursionError out of the reader."""
+    p = tmp_path / "deep.jsonl"
+    with MissionLogWriter(p) as w:
+        w.write_header(Origin(43.6, 7.07, 150.0), [{"id": "ue1", "rnti": 0x4601, "ground_alt_m": 150.0}],
+                       {"mu": 1, "fs_hz": 61.44e6})
+    with p.open("a", encoding="utf-8") as fh:
+        fh.write("[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(MissionLogError, match=r"deep\.jsonl:2: JSON nested too deeply"):
+        read_mission_log(p)
+
+
+def test_records_out_of_time_order_are_refused_naming_both_lines(tmp_path):
+    """Issue 21 #8: a shuffled log replayed "ok" with 4 597 m flown (truth 254 m). Telemetry
+    records whose time goes back are refused (not sorted), naming both lines."""
+    example = Path(__file__).resolve().parents[1] / "sitl_scenarios" / "data" / "example_paper.jsonl"
+    lines = example.read_text(encoding="utf-8").splitlines(keepends=True)
+    tel = [i for i, line in enumerate(lines) if '"type":"telemetry"' in line]
+    i, j = tel[10], tel[40]
+    lines[i], lines[j] = lines[j], lines[i]
+    p = tmp_path / "shuffled.jsonl"
+    p.write_text("".join(lines), encoding="utf-8")
+    with pytest.raises(MissionLogError, match=rf"shuffled\.jsonl:{tel[11] + 1}: telemetry record .* earlier than "
+                                              rf"the one on line {i + 1} .* out of time order"):
+        read_mission_log(p)
+    assert len(read_mission_log(example).tel_t_s) > 40  # the log as written reads

@@ -199,16 +199,9 @@ def test_fly_view_follows_a_flight_to_the_end(tmp_path):
     """`uavloc fly --view 127.0.0.1:0` against a vehicle and a gNB it did not start (the built-in
     vehicle and the simulated gNB stand in): a WebSocket viewer (no browser) follows the flight to
     LANDED; the last frame's users are the JSON result's; a real flight draws no truth, no buildings."""
-    import threading
-
-    from sitl_scenarios.gnb import SimulatedGnb
-    from sitl_scenarios.scenario import load_scenario
-    from sitl_scenarios.sim_runner import free_udp_port
-    from sitl_scenarios.vehicle import VehicleSimulator
+    from tests.fly_rig import external_fly_rig
     from tests.test_view_browser import _Proc
 
-    sc = load_scenario("paper")
-    port = free_udp_port()
     frames: list[dict] = []
 
     async def follow(url: str) -> None:
@@ -219,35 +212,14 @@ def test_fly_view_follows_a_flight_to_the_end(tmp_path):
                     return
                 await ws.send_str("ack")
 
-    with VehicleSimulator.from_scenario(sc, speedup=20.0, target=("127.0.0.1", port), bind=("127.0.0.1", 0),
-                                        max_stream_wall_hz=100.0) as veh:
-        started = threading.Event()
-        ctl: dict = {}
-
-        def serve_gnb() -> None:
-            async def main():
-                ctl["stop"], ctl["loop"] = asyncio.Event(), asyncio.get_running_loop()
-                async with SimulatedGnb(sc, lambda: np.asarray(veh.state().pos_enu_m), port=0,
-                                        clock=lambda: veh.state().t_s) as gnb:
-                    ctl["port"] = gnb.port
-                    started.set()
-                    await ctl["stop"].wait()
-
-            asyncio.run(main())
-
-        thread = threading.Thread(target=serve_gnb, daemon=True)
-        thread.start()
-        assert started.wait(10)
-        proc = _Proc(["fly", "--connect", f"udpin://127.0.0.1:{port}", "--gnb", f"127.0.0.1:{ctl['port']}",
-                      "--scenario", "paper", "--planner", "lawnmower", "--log", str(tmp_path / "fly.jsonl"),
-                      "--json", "--view", "127.0.0.1:0"])
+    with external_fly_rig(tmp_path, speedup=20.0) as rig:
+        proc = _Proc(["fly", "--connect", rig.connect, "--gnb", rig.gnb, "--scenario", "paper", "--planner",
+                      "lawnmower", "--log", str(tmp_path / "fly.jsonl"), "--json", "--view", "127.0.0.1:0"])
         try:
             asyncio.run(asyncio.wait_for(follow(proc.url()), 300))
             out, _ = proc.p.communicate(timeout=120)
         finally:
             proc.stop()
-            ctl["loop"].call_soon_threadsafe(ctl["stop"].set)
-            thread.join(10)
     assert proc.p.returncode == 0, "".join(proc.lines)[-3000:]
     doc = json.loads(out)
     last = frames[-1]
@@ -258,3 +230,70 @@ def test_fly_view_follows_a_flight_to_the_end(tmp_path):
     assert u["r95_m"] == pytest.approx(doc["users"][0]["error_bound_95_m"], rel=1e-9)
     static = next(f["static"] for f in frames if "static" in f)
     assert static["command"] == "fly" and static["geofence"] and static["truth"] == {} and static["buildings"] == []
+
+
+def test_every_route_shares_one_request_budget_and_answers_429_beyond_it(tmp_path):
+    """Issue 21 #7: 50 clients polling /api/frame slowed the mission (only the WebSocket was
+    limited). All routes take from one token bucket; with the clock held still exactly `burst`
+    requests pass, the rest get 429 with Retry-After; time refills it at the rate."""
+    records = write_mission(tmp_path / "m.jsonl")
+    now = [100.0]
+
+    async def main():
+        feed = LiveFeed()
+        async with ViewServer(feed, "127.0.0.1", 0, max_requests_hz=10.0, request_burst=20,
+                              refused_delay_s=0.1, clock=lambda: now[0]) as server:
+            for rec in records:
+                feed.on_record(rec)
+            base = f"http://127.0.0.1:{server.port}"
+            routes = ["/", "/static/view.js", "/api/info", "/api/frame"]
+            async with aiohttp.ClientSession() as s:
+                async def get(path):
+                    async with s.get(base + path) as r:
+                        await r.read()
+                        return r.status, r.headers.get("Retry-After")
+
+                # 50 polling clients at once: 20 answered, 30 refused
+                first = await asyncio.gather(*(get(routes[i % 4]) for i in range(50)))
+                now[0] += 0.5  # 5 tokens back
+                second = await asyncio.gather(*(get("/api/frame") for _ in range(8)))
+                refused = server.requests_refused
+        return first, second, refused
+
+    first, second, refused = asyncio.run(main())
+    assert sorted(st for st, _ in first).count(200) == 20
+    assert all(st == 429 and int(ra) >= 1 for st, ra in first if st != 200)
+    assert [st for st, _ in second].count(200) == 5
+    assert refused == 30 + 3
+
+
+def test_malformed_http_requests_print_no_traceback(tmp_path):
+    """Issue 21 #6: each malformed request to the live view printed an aiohttp traceback on the
+    mission's console; `uavloc view` now answers 400 and prints nothing of it."""
+    import socket
+    import subprocess
+    import sys
+
+    from tests.fly_rig import REPO
+    from tests.procs import stop_process
+
+    log_path = tmp_path / "m.jsonl"
+    write_mission(log_path)
+    proc = subprocess.Popen([sys.executable, "-m", "mission", "view", str(log_path), "--port", "0"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stderr.readline()
+        port = int(first.split("http://127.0.0.1:", 1)[1].split("/", 1)[0])
+        bad = [b"GARBAGE\r\n\r\n", b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: abc\r\n\r\n",
+               b"\x00\x01\x02\xff\r\n\r\n",
+               b"GET /api/frame HTTP/1.1\r\nHost: localhost\r\nX: " + b"a" * 20000 + b"\r\n\r\n"]
+        answers = []
+        for payload in bad:
+            with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+                sock.sendall(payload)
+                answers.append(sock.recv(64))
+    finally:
+        stop_process(proc, 5.0)
+    _out, err = proc.communicate(timeout=10)
+    assert all(a.startswith(b"HTTP/1.") and b" 400 " in a for a in answers), answers
+    assert "Traceback" not in err and "Error handling request" not in err, err[-3000:]

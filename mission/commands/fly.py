@@ -10,6 +10,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from mission.commands.argtypes import gnb_address
 from mission.view.live import add_view_arguments
 
 log = logging.getLogger(__name__)
@@ -20,7 +21,7 @@ HELP = "fly a localization mission with a MAVLink vehicle (PX4) and an OAI gNB"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", required=True, metavar="URL",
                    help="MAVSDK connection URL of the vehicle, e.g. udpin://0.0.0.0:14540 or serial:///dev/ttyACM0:57600")
-    p.add_argument("--gnb", required=True, metavar="ADDRESS",
+    p.add_argument("--gnb", required=True, metavar="ADDRESS", type=gnb_address,
                    help="the gNB: HOST:PORT or telnet://HOST:PORT (telnet server, default port 9090), "
                         "http://HOST:PORT (OAI's web server, default port 8090)")
     src = p.add_mutually_exclusive_group(required=True)
@@ -44,13 +45,13 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
     from datetime import UTC, datetime
 
+    from mission.commands.outdir import mission_log_path
     from mission.config import load_mission, validate_mission
-    from mission.controller import controller_from_mission
+    from mission.controller import controller_from_mission, resolve_planner_name
     from mission.gnb import OaiGnbClient, parse_gnb_address
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
     from mission.view.live import live_view
-    from uavloc.errors import MissionError
 
     if args.mission is not None:
         mission = load_mission(args.mission)
@@ -66,18 +67,11 @@ def run(args: argparse.Namespace) -> int:
     if gnb_over:
         mission = dataclasses.replace(mission, gnb=dataclasses.replace(mission.gnb, **gnb_over))
         validate_mission(mission, "command line")
+    # a flight knows no true positions: the oracle planner is refused before anything connects
+    resolve_planner_name(args.planner or mission.flight.planner, truth_known=False)
     address = parse_gnb_address(args.gnb, default=mission.gnb.transport)
-    if args.log is not None:
-        log_path = args.log
-    elif args.out is not None:
-        log_path = args.out / "mission.jsonl"
-    else:
-        log_path = Path(f"uavloc-mission-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}.jsonl")
-    if log_path.exists() and log_path.stat().st_size > 0:
-        # a log holds one mission (a second header makes it unreadable for replay); never
-        # overwrite one either
-        raise MissionError(f"mission log {log_path} already holds a mission: give another --log or --out, "
-                           "or move it away (not taking off)")
+    log_path = mission_log_path(args.out, args.log,
+                                Path(f"uavloc-mission-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}.jsonl"))
 
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 
@@ -106,7 +100,10 @@ def run(args: argparse.Namespace) -> int:
             runner.exit_if_stuck(EXIT_INTERRUPTED)
             return EXIT_INTERRUPTED
     print_result(result, args.json)
-    if args.out is not None and result.log_path is not None and result.measurements:
+    log_failed = held["controller"].log_writer.failed
+    if log_failed is not None:
+        log.error("no report: %s", log_failed)
+    elif args.out is not None and result.log_path is not None and result.measurements:
         write_report(result.log_path, args.out)
     code = EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
     runner.exit_if_stuck(code)

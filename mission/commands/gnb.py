@@ -13,6 +13,8 @@ import logging
 import sys
 from pathlib import Path
 
+from mission.commands.argtypes import gnb_address, in_range
+
 log = logging.getLogger(__name__)
 
 HELP = "check a gNB before flight: discover its UEs and measure each (gnb probe)"
@@ -28,30 +30,16 @@ def _rnti(text: str) -> int:
     return v
 
 
-def _count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"count must be an integer, got {text!r}") from None
-    if not 1 <= v <= 1000:
-        raise argparse.ArgumentTypeError(f"count must be 1..1000, got {v}")
-    return v
-
-
-def _seconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
-    if not 0 < v < 3600:
-        raise argparse.ArgumentTypeError(f"seconds must be in (0, 3600), got {text!r}")
-    return v
+#: measurements per UE
+_count = in_range(int, 1, 1000, closed=True, what="an integer count")
+#: seconds of a wait or timeout
+_seconds = in_range(float, 0.0, 3600.0, closed=False, what="seconds")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="gnb_command", metavar="SUBCOMMAND", required=True)
     q = sub.add_parser("probe", help="discover the UEs and measure each", description=__doc__.split("\n\n")[1])
-    q.add_argument("--gnb", required=True, metavar="ADDRESS",
+    q.add_argument("--gnb", required=True, metavar="ADDRESS", type=gnb_address,
                    help="the gNB: HOST:PORT or telnet://HOST:PORT (telnet server, default port 9090), "
                         "http://HOST:PORT (OAI's web server, default port 8090)")
     q.add_argument("--mode", choices=("rtt", "stock"), default="rtt",

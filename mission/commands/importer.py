@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             doc = json.loads(args.noise.read_text(encoding="utf-8"))
             noise = NoiseModel.from_log_dict(doc.get("noise", doc))
-        except (OSError, ValueError, AttributeError) as exc:
+        except (OSError, ValueError, AttributeError, RecursionError) as exc:
             raise ImportDataError(f"--noise {args.noise}: not a JSON noise section ({exc})") from exc
         except UavlocError as exc:
             raise ImportDataError(f"--noise {args.noise}: {exc}") from exc

@@ -8,6 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
+from mission.commands.argtypes import tcp_port
 from mission.view.address import check_tiles_url
 from mission.view.live import checked
 
@@ -18,7 +19,7 @@ HELP = "show a recorded mission log in a browser, with a time slider"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("log", type=Path, metavar="LOG", help="mission log (uavloc-mission/1, JSON Lines)")
-    p.add_argument("--port", type=int, default=0, help="TCP port (default 0: any free port, printed at start)")
+    p.add_argument("--port", type=tcp_port, default=0, help="TCP port (default 0: any free port, printed at start)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; any other requires the printed access token)")
     p.add_argument("--tiles", metavar="URL", type=checked(check_tiles_url),
@@ -44,11 +45,6 @@ async def serve(log_path: Path, host: str, port: int, tiles_url: str | None, rea
 def run(args: argparse.Namespace) -> int:
     import asyncio
     import contextlib
-
-    from uavloc.errors import MissionError
-
-    if not 0 <= args.port <= 65535:
-        raise MissionError(f"--port must be 0..65535, got {args.port}")
 
     def ready(server) -> None:
         print(f"uavloc: view of {args.log} at {server.url}  (Ctrl-C to stop)", file=sys.stderr, flush=True)

@@ -32,7 +32,7 @@ class MissionJournal:
 
     @property
     def is_open(self) -> bool:
-        return self.writer._fh is not None
+        return self.writer.is_open
 
     def event(self, message: str, **fields: Any) -> None:
         """An `event` record (kept until the header is written)."""

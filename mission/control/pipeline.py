@@ -1,9 +1,13 @@
 """The measurement pipeline (DESIGN.md §3, §7): Δ-trigger → placer → keyframe queue.
 
 - the **trigger** (:meth:`MeasurementPipeline.run_trigger`): while a survey leg is flown, when the
-  UAV has moved Δ since the last keyframe (`KeyframeSelector`), measure every user through the
+  UAV has moved Δ since the last keyframe (`KeyframeSelector`), measure the users through the
   gNB (not while hovering to replan, where GPS noise alone would move the fix by Δ) and put the
-  round on the place queue; a round that fails for the gNB as a whole (no answer, an unknown
+  round on the place queue. A round ends when every user is measured or when the UAV has moved
+  Δ since it began, whichever comes first; the next round goes on with the next user (in turn),
+  so many users share the gNB's answers without stretching the keyframe spacing (one position
+  per round, within Δ of every measurement in it). The first round cut short logs how many users
+  the gNB serves per Δ (event `gnb_rounds`); a round that fails for the gNB as a whole (no answer, an unknown
   command, or PROTOCOL_ERROR_STREAK rounds of nothing but unreadable answers) marks the gNB lost
   in the :class:`FlightState`, in the gNB's own words;
 - the **placer** (:meth:`MeasurementPipeline.run_placer`): places each round at the telemetry
@@ -74,6 +78,8 @@ class MeasurementPipeline:
         self.keyframes: list[Keyframe] = []
         self.user_misses = np.zeros(len(users), int)
         self.protocol_streak = 0
+        self._next_user = 0  # whom the next round measures first (rounds take the users in turn)
+        self._rounds_reported = False
         # logged telemetry velocity (mission t [s], ENU [m/s]) since shortly before the last keyframe,
         # the header's noise model, and the last keyframe's position time
         self._vel_t: list[float] = []
@@ -133,12 +139,29 @@ class MeasurementPipeline:
                 continue  # check the newest fix at once: fixes arrived while measuring
             await f.wake.wait(1.0)
 
+    def _moved_since_m(self, start: tuple[float, np.ndarray] | None) -> float:
+        """How far [m] the UAV's newest fix is from `start` (buffer.latest() when the round began)."""
+        latest = self.buffer.latest()
+        if start is None or latest is None:
+            return 0.0
+        return float(np.linalg.norm(latest[1] - start[1]))
+
     async def measure_round(self) -> None:
-        """One trigger: measure every user; queue the round for placing."""
+        """One trigger: measure the users in turn, from the one after the last round's, until all
+        are measured or the UAV has moved Δ; queue the round for placing."""
         samples = []
         gnb_failed: str | None = None
         protocol_errors: list[str] = []
-        for k, u in enumerate(self.users):
+        n_users = len(self.users)
+        start = self.buffer.latest()
+        first, tried = self._next_user, 0
+        for k in [(first + i) % n_users for i in range(n_users)]:
+            if tried and self._moved_since_m(start) >= self.delta_m:
+                self._report_rounds(tried, start)
+                break
+            u = self.users[k]
+            self._next_user = k  # a failing gNB: this user is measured first next time
+            tried += 1
             t_req = time.monotonic()
             try:
                 async with asyncio.timeout(self.gnb_timeout_s):
@@ -162,6 +185,9 @@ class MeasurementPipeline:
             except GnbError as exc:
                 gnb_failed = str(exc)
                 break
+            finally:
+                if gnb_failed is None:
+                    self._next_user = (k + 1) % n_users
             t_mono = s.t_mono_s if (s.t_mono_s and math.isfinite(s.t_mono_s)) else 0.5 * (t_req + time.monotonic())
             samples.append((k, s, t_mono))
         now = self.now()
@@ -176,6 +202,19 @@ class MeasurementPipeline:
             self.flight.gnb_answered(now)
         if samples:
             self.place_queue.put_nowait(samples)
+
+    def _report_rounds(self, served: int, start: tuple[float, np.ndarray] | None) -> None:
+        """Once per mission: the first round cut short says what the gNB serves per Δ."""
+        if self._rounds_reported:
+            return
+        self._rounds_reported = True
+        n_users = len(self.users)
+        latest = self.buffer.latest()
+        took = f" in {latest[0] - start[0]:.2f} s" if start is not None and latest is not None else ""
+        every_m = self.delta_m * math.ceil(n_users / served)
+        self.flight.event(f"the gNB served {served} of {n_users} users{took} while the UAV flew Δ = "
+                          f"{self.delta_m:g} m: rounds take the users in turn, each measured about every "
+                          f"{every_m:g} m", kind="gnb_rounds", served=served, users=n_users)
 
     # -- placer ---------------------------------------------------------------------------------
 

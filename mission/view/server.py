@@ -13,6 +13,14 @@ One page (`/`, with its script and style from this package: no CDN) and a small 
   Nothing waits on a browser: the mission only updates the state (O(1) per record) and pulses;
   nothing is queued per client.
 
+Load: every request, on any route, takes a token from one budget of `max_requests_hz` per second
+(bursts up to `request_burst`); a request with none left gets 429 with Retry-After, answered only
+after `refused_delay_s` (a client polling in a loop waits there, at no cost to the loop, instead
+of asking again at once), so that no number of polling clients can take more of the mission's
+event loop than that. The live frame of
+`/api/frame` is built once per state. Malformed requests get aiohttp's 400 and one debug line in
+the log, not a traceback on the mission's console.
+
 Access: on a loopback address nobody else can connect, and requests must name a loopback host
 (no DNS rebinding). On any other address an access token is required: the URL printed at start
 carries `?token=...`; the page sets it as a cookie; any request without a valid token gets 403.
@@ -27,10 +35,13 @@ import json
 import logging
 import secrets
 import threading
+import time
+from collections.abc import Callable
 from importlib import resources
 from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from mission.view.address import check_tiles_url, is_loopback
 from mission.view.state import Cursor, Timeline, ViewState
@@ -48,6 +59,46 @@ def _host_name(host_header: str) -> str:
     if host_header.startswith("["):
         return host_header[1:].split("]", 1)[0]
     return host_header.rsplit(":", 1)[0] if host_header.count(":") == 1 else host_header
+
+
+class RequestBudget:
+    """A token bucket: `rate_hz` requests per second on average, bursts of up to `burst`.
+
+    tokens(t) = min(burst, tokens(t0) + rate_hz · (t − t0)); a request takes one token.
+    clock: seconds (monotonic; a test passes its own)."""
+
+    def __init__(self, rate_hz: float, burst: int, clock: Callable[[], float] = time.monotonic):
+        if not (rate_hz > 0 and burst >= 1):
+            raise MissionError(f"a request budget needs rate_hz > 0 and burst >= 1, got {rate_hz}, {burst}")
+        self.rate_hz, self.burst, self.clock = float(rate_hz), int(burst), clock
+        self._tokens = float(burst)
+        self._t_s = clock()
+
+    def take(self) -> float:
+        """0.0 when a token was taken, else the seconds until one is there (nothing taken)."""
+        now = self.clock()
+        self._tokens = min(float(self.burst), self._tokens + self.rate_hz * max(0.0, now - self._t_s))
+        self._t_s = now
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+            return 0.0
+        return (1.0 - self._tokens) / self.rate_hz
+
+
+class _RequestLog(logging.LoggerAdapter):
+    """aiohttp's request-handler logger: a malformed request (aiohttp's 400 or 413, answered by
+    aiohttp) is one debug line, any other failure one error line with the traceback only at debug
+    level, so nothing from a browser or a port scanner prints a traceback on the mission's console."""
+
+    def exception(self, msg: object, *args: object, exc_info: object = True, **kw: object) -> None:
+        exc = exc_info if isinstance(exc_info, BaseException) else None
+        text = (msg % args) if args else str(msg)
+        if isinstance(exc, HttpProcessingError):
+            self.logger.debug("live view: malformed request (%s): %s", text, str(exc.message).strip())
+            return
+        what = f"{type(exc).__name__}: {exc}" if exc is not None else "see the debug log"
+        self.logger.error("live view: %s: %s", text, what)
+        self.logger.debug("live view: %s", text, exc_info=exc_info)
 
 
 class LiveFeed:
@@ -130,12 +181,17 @@ class ViewServer:
     token: required on non-loopback hosts (generated when None); tiles_url: background tile URL
     template ({z}/{x}/{y}) or None (metric grid only); max_clients: WebSocket clients at once;
     max_rate_hz: frames per second per client; final_flush_s: on close, how long the senders
-    may take to hand the last frame to their clients before the sockets are closed.
+    may take to hand the last frame to their clients before the sockets are closed;
+    max_requests_hz, request_burst: the request budget of all routes and clients together
+    (:class:`RequestBudget`; clock: its clock); refused_delay_s: how long a request over the
+    budget waits for its 429.
     """
 
     def __init__(self, feed: LiveFeed | LogFeed, host: str = "127.0.0.1", port: int = 0, *,
                  token: str | None = None, tiles_url: str | None = None, title: str = "uavloc",
-                 max_clients: int = 16, max_rate_hz: float = 5.0, final_flush_s: float = 1.0):
+                 max_clients: int = 16, max_rate_hz: float = 5.0, final_flush_s: float = 1.0,
+                 max_requests_hz: float = 30.0, request_burst: int = 60, refused_delay_s: float = 1.0,
+                 clock: Callable[[], float] = time.monotonic):
         if not (max_rate_hz > 0 and max_clients >= 1 and final_flush_s >= 0):
             raise MissionError(f"view server needs max_rate_hz > 0, max_clients >= 1, final_flush_s >= 0; got "
                                f"{max_rate_hz}, {max_clients}, {final_flush_s}")
@@ -149,6 +205,9 @@ class ViewServer:
         self.max_clients = max_clients
         self.min_interval_s = 1.0 / max_rate_hz
         self.final_flush_s = final_flush_s
+        self.budget = RequestBudget(max_requests_hz, request_burst, clock)
+        self.refused_delay_s = max(0.0, float(refused_delay_s))
+        self.requests_refused = 0  # answered 429: over the request budget
         self._runner: web.AppRunner | None = None
         self._senders: set[asyncio.Task] = set()
         self._sockets: dict[web.WebSocketResponse, asyncio.Event] = {}  # socket -> "frame acknowledged"
@@ -170,7 +229,8 @@ class ViewServer:
         app.router.add_get("/api/frame", self._frame)
         app.router.add_get("/ws", self._ws)
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False,
-                                     shutdown_timeout=max(0.5, self.final_flush_s))
+                                     shutdown_timeout=max(0.5, self.final_flush_s),
+                                     logger=_RequestLog(logging.getLogger(f"{__name__}.requests"), {}))
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.host, self.port, reuse_address=True)
         try:
@@ -228,6 +288,16 @@ class ViewServer:
 
     @web.middleware
     async def _guard(self, request: web.Request, handler):
+        wait_s = self.budget.take()
+        if wait_s > 0.0:
+            self.requests_refused += 1
+            if self.requests_refused in (1, 10, 100) or self.requests_refused % 1000 == 0:
+                log.info("live view: %d request(s) over the budget of %g/s refused (429)", self.requests_refused,
+                         self.budget.rate_hz)
+            await asyncio.sleep(self.refused_delay_s)
+            retry_s = max(1, round(max(wait_s - self.refused_delay_s, 0.0) + 0.5))
+            raise web.HTTPTooManyRequests(text="uavloc view: too many requests, try again shortly\n",
+                                          headers={"Retry-After": str(retry_s)})
         if not self._authorized(request):
             log.info("live view: refused %s %s from %s (no valid token)", request.method, request.path,
                      request.remote)
@@ -277,8 +347,11 @@ class ViewServer:
                 raise web.HTTPBadRequest(text=f"t must be a number of seconds, got {request.query['t']!r}\n") from None
             if t_s != t_s or t_s in (float("inf"), float("-inf")):
                 raise web.HTTPBadRequest(text="t must be finite\n")
-        doc, _ = self.feed.frame(None, t_s)
-        return web.Response(text=json.dumps(doc, separators=(",", ":")), content_type="application/json")
+        if isinstance(self.feed, LiveFeed):
+            text = self._frame_text(None)[0]  # built once per state, whoever polls
+        else:
+            text = json.dumps(self.feed.frame(None, t_s)[0], separators=(",", ":"))
+        return web.Response(text=text, content_type="application/json")
 
     async def _ws(self, request: web.Request) -> web.StreamResponse:
         if not isinstance(self.feed, LiveFeed):

@@ -8,6 +8,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from mission.commands.argtypes import in_range
 from mission.view.live import add_view_arguments
 
 log = logging.getLogger(__name__)
@@ -33,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="scenario file, or the name of a bundled one (paper, three_users_nlos, ...)")
     p.add_argument("--seed", type=seed_argument, metavar="N",
                    help="seed of the simulators and the planner (default: the scenario's)")
-    p.add_argument("--speedup", type=float, default=10.0,
+    p.add_argument("--speedup", type=in_range(float, 0.0, 1e4, closed=False, what="a number"), default=10.0,
                    help="simulated seconds per wall second of the built-in vehicle (default 10)")
     p.add_argument("--planner", metavar="NAME",
                    help="casadi, greedy, lawnmower, circle, random, oracle (default: the scenario's, casadi "
@@ -53,25 +54,21 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
     import tempfile
 
+    from mission.commands.outdir import LOG_NAME, mission_log_path
     from mission.status import print_result, write_report
     from mission.view.live import live_view
     from sitl_scenarios.scenario import load_scenario
     from sitl_scenarios.sim_runner import SimulatedMission
-    from uavloc.errors import MissionError
 
     scenario = load_scenario(args.scenario)
-    if not (args.speedup > 0 and args.speedup < 1e4):
-        raise MissionError(f"--speedup must be in (0, 10000), got {args.speedup}")
     if args.connect is not None and args.speedup != 10.0:
         log.warning("--speedup is ignored with --connect (PX4 SITL sets its own speed)")
     tmp = None
     if args.out is not None:
-        log_path = args.out / "mission.jsonl"
-        if log_path.exists():
-            log_path.unlink()  # a log is one mission; the writer appends
+        log_path = mission_log_path(args.out, None, args.out / LOG_NAME)
     else:
         tmp = tempfile.TemporaryDirectory(prefix="uavloc-sim-")
-        log_path = Path(tmp.name) / "mission.jsonl"
+        log_path = Path(tmp.name) / LOG_NAME
 
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 
@@ -101,7 +98,10 @@ def run(args: argparse.Namespace) -> int:
         if tmp is not None:
             result.log_path = None  # the temporary log goes away with the command
         print_result(result, args.json)
-        if args.out is not None and result.measurements:
+        log_failed = held["sim"].controller.log_writer.failed
+        if log_failed is not None:
+            log.error("no report: %s", log_failed)
+        elif args.out is not None and result.measurements:
             write_report(log_path, args.out)
     finally:
         if tmp is not None:

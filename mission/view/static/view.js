@@ -369,6 +369,13 @@
       inFlight = true;
       try {
         const resp = await fetch(`api/frame?t=${encodeURIComponent(t)}`, { credentials: "same-origin" });
+        if (resp.status === 429) {
+          // over the server's request budget: ask again (the newest time asked) after Retry-After
+          const wait_s = Number(resp.headers.get("Retry-After")) || 1;
+          await new Promise((done) => setTimeout(done, 1000 * wait_s));
+          if (pending === null) pending = t;
+          return;
+        }
         if (!resp.ok) throw new Error(`frame: HTTP ${resp.status}`);
         resetSeries();
         applyFrame(await resp.json());

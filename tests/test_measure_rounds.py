@@ -1,0 +1,70 @@
+"""The Δ-trigger's measurement rounds (mission.control.pipeline) with many users: a round ends
+when the UAV has moved Δ, the next goes on with the next user, so the gNB's answers are shared
+out without stretching the keyframe spacing (issue 21 #11). The real client against the
+simulated gNB; the UAV moves a fixed step per gNB position look-up, so the test is deterministic."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+
+from mission.control.config import MissionUser
+from mission.control.pipeline import MeasurementPipeline
+from mission.control.state import FlightState
+from mission.gnb import GnbConfig, OaiGnbClient
+from mission.log import MissionLogWriter
+from mission.telemetry import TelemetryBuffer
+from sitl_scenarios.gnb import SimulatedGnb
+from sitl_scenarios.scenario import scenario_from_dict, user_tables
+
+N_USERS = 12
+DELTA_M = 2.0
+STEP_M = 0.25  # the UAV's move per position look-up of the gNB
+
+
+def test_rounds_end_after_delta_and_take_the_users_in_turn(tmp_path):
+    """Issue 21 #11: 200 users took 3 000 ranges at 15 keyframes over 333 m (every user measured
+    at every trigger while the UAV flew on). Each round now stays within Δ of its start, rounds
+    follow each other through the users in order, every user is measured, and one event says
+    how many users the gNB serves per Δ."""
+    users = [{"id": f"ue{k}", "rnti": 0x4601 + k, "east_m": 30.0 * np.cos(k), "north_m": 30.0 * np.sin(k)}
+             for k in range(N_USERS)]
+    sc = scenario_from_dict({"name": "many", "seed": 3, **user_tables(users), "flight": {"delta_m": DELTA_M}})
+    buf = TelemetryBuffer(4096)
+    now = {"t": 0.0, "x": 0.0}
+    buf.append(0.0, np.array([0.0, 0.0, 30.0]))
+
+    def position() -> np.ndarray:
+        now["t"] += 0.05
+        now["x"] += STEP_M
+        pos = np.array([now["x"], 0.0, 30.0])
+        buf.append(now["t"], pos)
+        return pos
+
+    events: list[tuple[str, dict]] = []
+    flight = FlightState(event=lambda message, **fields: events.append((message, fields)))
+
+    async def main():
+        async with SimulatedGnb(sc, position, port=0, clock=lambda: now["t"], seed=3) as gnb, \
+                OaiGnbClient(GnbConfig(host="127.0.0.1", port=gnb.port, seed=3, mu=1, request_timeout_s=2.0,
+                                       connect_timeout_s=2.0, retries=1, backoff_max_s=0.2)) as client:
+            pipe = MeasurementPipeline(client, [MissionUser(u["id"], u["rnti"]) for u in users], DELTA_M, 5.0,
+                                       flight, buf, lambda: None, MissionLogWriter(tmp_path / "m.jsonl"),
+                                       now=lambda: now["t"], mission_t=lambda t: t)
+            rounds = []
+            for _ in range(8):
+                x0 = buf.latest()[1][0]
+                await pipe.measure_round()
+                rounds.append(([k for k, _, _ in pipe.place_queue.get_nowait()], x0, buf.latest()[1][0]))
+            return rounds
+
+    rounds = asyncio.run(main())
+    order = [k for ks, _, _ in rounds for k in ks]
+    assert order == [i % N_USERS for i in range(len(order))]  # in turn, across rounds
+    assert all(1 <= len(ks) < N_USERS for ks, _, _ in rounds), [len(ks) for ks, _, _ in rounds]
+    # the UAV moved at most Δ (plus the last measurement's step) during any round
+    assert all(x1 - x0 <= DELTA_M + 2 * STEP_M for _, x0, x1 in rounds)
+    assert set(order) == set(range(N_USERS))
+    told = [f for m, f in events if f.get("kind") == "gnb_rounds"]
+    assert len(told) == 1 and told[0]["users"] == N_USERS and told[0]["served"] < N_USERS
