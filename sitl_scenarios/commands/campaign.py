@@ -40,4 +40,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"\ncampaign {campaign.name}: {len(campaign.runs)} runs, {done.ran} run now on {done.where} "
           f"({done.workers} workers) in {done.wall_s:.1f} s (+{done.setup_s:.1f} s setup), {done.skipped} already "
           f"done, {done.failed} failed; results in {out}/results, summary and figures in {out}")
+    if done.ran:
+        print(done.cost_line())
     return 1 if done.failed else 0
