@@ -16,7 +16,7 @@ import pytest
 
 from estimator.refresh import SOURCE_BATCH
 from estimator.types import SolverParams
-from mission.controller import controller_from_scenario
+from mission.controller import controller_from_mission
 from mission.estimation import MissionEstimator
 from sitl_scenarios.campaign.fast import fly_fast
 from sitl_scenarios.scenario import load_scenario, resolve_scenario_path
@@ -63,8 +63,9 @@ def test_the_fast_mode_acts_on_the_mission_s_estimator_and_ends_with_its_final_a
 @pytest.mark.parametrize("name", ["paper", "five_commercial_ues", "three_users_nlos"])
 def test_the_flight_and_the_fast_mode_build_the_same_estimator(name, tmp_path: Path):
     sc = load_scenario(resolve_scenario_path(name))
-    # the controller `uavloc sim` builds (its vehicle and gNB are not used before it runs)
-    ctl = controller_from_scenario(sc, None, None, tmp_path / "mission.jsonl", params=_params(sc))
+    # the controller `uavloc sim` builds for the scenario's mission (its vehicle and gNB are not
+    # used before it runs)
+    ctl = controller_from_mission(sc.mission_config(), None, None, tmp_path / "mission.jsonl", params=_params(sc))
     flight = ctl.estimator_setup()
     fast = MissionEstimator.from_mission(sc.mission_config(), params=_params(sc))
     assert flight.n_users == fast.n_users == len(sc.users)
