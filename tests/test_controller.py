@@ -180,7 +180,7 @@ def test_loop_lag_monitor_sees_a_blocked_loop():
 
 def test_config_from_scenario_takes_the_mission_and_vehicle_sections():
     sc = load_scenario("three_users_nlos")
-    cfg = ControllerConfig.from_scenario(sc, time_scale=20.0)
+    cfg = ControllerConfig.from_mission(sc.mission_config(), time_scale=20.0)
     m, v = sc.mission, sc.vehicle
     assert (cfg.delta_m, cfg.altitude_m, cfg.target_radius_m, cfg.budget_m) == (
         m.delta_m, m.altitude_m, m.target_radius_m, m.budget_m)
@@ -205,7 +205,7 @@ def test_result_document_follows_design_section_11(survey):
 
 def test_status_line_marks_an_ambiguous_user_instead_of_a_small_r95(tmp_path):
     from estimator.types import Estimate
-    from mission.controller import controller_from_scenario
+    from sitl_scenarios.scenario import controller_from_scenario
 
     sc = load_scenario("three_users_nlos")
     ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower")
@@ -270,9 +270,9 @@ def test_flight_estimates_an_unknown_gps_correlation_time_from_the_take_off_tele
     the telemetry logged before the survey — the estimate replay makes from the same records — not
     the estimator's fixed default, so that the live stop rule and the final answer agree."""
     from estimator.gps import estimate_gps_tau_s
-    from mission.controller import controller_from_scenario
     from mission.log import read_mission_log
     from mission.vehicle import GeoFix
+    from sitl_scenarios.scenario import controller_from_scenario
 
     sc = load_scenario("paper")
     ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower",
@@ -294,9 +294,9 @@ def test_flight_estimates_an_unknown_gps_correlation_time_from_the_take_off_tele
 
 
 def test_flight_keeps_the_default_gps_correlation_time_without_telemetry_to_estimate_it(tmp_path):
-    from mission.controller import controller_from_scenario
     from mission.log import read_mission_log
     from mission.vehicle import GeoFix
+    from sitl_scenarios.scenario import controller_from_scenario
 
     sc = load_scenario("paper")
     ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower",
@@ -309,7 +309,7 @@ def test_flight_keeps_the_default_gps_correlation_time_without_telemetry_to_esti
 
 
 def test_flight_uses_a_known_gps_correlation_time_as_given(tmp_path):
-    from mission.controller import controller_from_scenario
+    from sitl_scenarios.scenario import controller_from_scenario
 
     sc = load_scenario("paper")
     ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower")

@@ -242,6 +242,7 @@ class MissionController:
                                          name="telemetry"))
         f.set_phase(PREFLIGHT)
         self._at_home(await self.vehicle.wait_ready(cfg.ready_timeout_s))
+        self._preflight_home()
         await self._preflight_gnb()
         self._preflight_battery()
         safety = SafetyMonitor(f, cfg, self.gate, self.vehicle.state, self._buffer.latest, self.now)
@@ -312,6 +313,13 @@ class MissionController:
                            probe=probe.to_dict())
         if not ok:
             raise GnbPreflightError(f"not taking off: {probe.message()}")
+
+    def _preflight_home(self) -> None:
+        """No take-off from a home outside the fence or inside a no-fly zone (geodetic polygons
+        are known in the home frame only now; mission.config refuses ENU ones at load)."""
+        problems = self.gate.home_violations()
+        if problems:
+            raise SafetyError(f"not taking off: {'; '.join(problems)}")
 
     def _preflight_battery(self) -> None:
         """No take-off below battery_takeoff_min_pct (when the vehicle reports its charge)."""

@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from sitl_scenarios.scenario import MissionConfig, Scenario, _build, scenario_from_dict
+from mission import schema
+from sitl_scenarios.scenario import MissionConfig, Scenario, scenario_from_dict
 from uavloc.errors import ScenarioError
 
 #: the mission every family member flies unless `[families.mission]` says otherwise
@@ -104,7 +105,7 @@ def validate_family(fam: FamilySpec, where: str) -> None:
     for key in ("max_distance_m", "range_s0_m", "speed_mps"):
         if not getattr(fam, key) > 0:
             raise ScenarioError(f"{where}.{key} must be positive, got {getattr(fam, key)!r}")
-    _build(MissionConfig, {**DEFAULT_MISSION, **fam.mission}, f"{where}.mission")
+    schema.build(MissionConfig, {**DEFAULT_MISSION, **fam.mission}, where, f"{where}.mission", error=ScenarioError)
 
 
 def _inside(p: np.ndarray, poly: np.ndarray) -> np.ndarray:

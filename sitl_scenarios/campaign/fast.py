@@ -68,7 +68,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     users = np.array([[u.east_m, u.north_m, u.up_m] for u in sc.users], float)
     setup = MissionEstimator.from_mission(sc.mission_config(), params=params)
     noise = setup.noise
-    c = PlanningConstraints.from_scenario(sc)
+    c = sc.planning_constraints()
     opts = dict(planner_opts or {})
     if planner_name == "oracle":
         opts.setdefault("true_users_enu_m", users)
