@@ -129,6 +129,12 @@ def peak_frequency_hz(t_s: np.ndarray, x: np.ndarray, f_min_hz: float, f_max_hz:
     return float(peak_frequencies_hz(t_s, x, f_min_hz, f_max_hz, 1, oversample)[0])
 
 
+def _columns(nuisance: np.ndarray, n: int) -> np.ndarray:
+    """The nuisance columns as an (n, m) array (a (n,) vector is one column; n may be 0)."""
+    z = np.asarray(nuisance, dtype=float)
+    return z.reshape(n, 1) if z.ndim == 1 else z.reshape(n, -1 if n else z.shape[-1])
+
+
 def _basis(n: int, nuisance: np.ndarray | None) -> np.ndarray:
     """(n, q) orthonormal basis of the constant and the nuisance columns (n, m) (QR; columns
     that add nothing new are dropped)."""
@@ -237,7 +243,7 @@ def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | No
     ok = np.isfinite(t) & np.isfinite(r)
     z = None
     if nuisance is not None:
-        z = np.asarray(nuisance, dtype=float).reshape(t.size, -1)
+        z = _columns(nuisance, t.size)
         ok &= np.all(np.isfinite(z), axis=1)
         z = z[ok]
     t, r = t[ok], r[ok]
@@ -310,7 +316,7 @@ def refine_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, prev: SawtoothFit,
     ok = np.isfinite(t) & np.isfinite(r)
     z = None
     if nuisance is not None:
-        z = np.asarray(nuisance, dtype=float).reshape(t.size, -1)
+        z = _columns(nuisance, t.size)
         ok &= np.all(np.isfinite(z), axis=1)
         z = z[ok]
     t, r = t[ok], r[ok]

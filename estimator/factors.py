@@ -6,15 +6,18 @@
 (each squared term carries a factor ½ in the code). Every factor returns a *whitened* error and
 its analytic Jacobian; tests compare each Jacobian with central differences.
 
-σ(d) in the range factor: the solver minimises Σ ρ(e) with e = r / σ(d) exactly as written, so the
-Jacobian differentiates *through* σ(d) (not IRLS-style with σ frozen per iteration):
+σ in the range factor is the spread at the measured range, σ(r̂), a constant of the factor:
 
-    d = ||x − u||,  û = (x − u)/d,  r = r̂ − d − b,  e = r / σ(d)
-    ∂e/∂d = −(1/σ + r σ'(d)/σ²) =: −α
-    ∂e/∂x = −α û,   ∂e/∂u = +α û,   ∂e/∂b = −1/σ
+    d = ||x − u||,  û = (x − u)/d,  r = r̂ − d − b,  e = r / σ(r̂)
+    ∂e/∂d = −1/σ =: −α,   ∂e/∂x = −α û,   ∂e/∂u = +α û,   ∂e/∂b = −1/σ
 
-With a = 0 (the default noise model) σ' = 0 and α = 1/σ. The robust loss enters only through the
-IRLS weight w(e) (estimator.robust), which *is* frozen per iteration as in GTSAM.
+σ at the estimate's distance, e = r / σ(d), has its least squares at infinity when σ grows with
+d (a = 0.3 m, b = 0.01 /m: e → 0 as d → ∞, the LS cost lacks the 2 log σ(d) of the likelihood):
+wide worlds sent users tens of kilometres away, σ(d) to overflow and the solves to NaN (issue 21).
+σ(r̂) and σ(d) differ by σ'·(r̂ − d), a few per cent of σ at the solution (b·σ ≈ 0.05), and the
+weighted least squares in d then has its minimum where the ranges put it. With a = 0 (the default
+noise model) both are s0. The robust loss enters only through the IRLS weight w(e)
+(estimator.robust), frozen per iteration as in GTSAM.
 
 The vectorised solver (estimator.slam) computes the same quantities on (N, K) arrays; the dense
 reference :func:`dense_normal_equations` assembles the full normal matrix from these factor
@@ -72,23 +75,26 @@ class RangeFactor:
         b = float(theta[-1]) * self.bias_gain if self.with_bias else 0.0
         return u, b
 
+    @property
+    def sigma_m(self) -> float:
+        """σ(r̂) [m], the spread at the measured range (clamped at 0 m)."""
+        return float(self.noise.range_sigma_m(max(self.range_m, 0.0)))
+
     def error(self, x_enu_m: np.ndarray, theta: np.ndarray) -> float:
         u, b = self._user(theta)
         d = float(np.linalg.norm(np.asarray(x_enu_m, float) - u))
-        # e = (r̂ − d − b) / σ(d)
-        return (self.range_m - d - b) / float(self.noise.range_sigma_m(d))
+        # e = (r̂ − d − b) / σ(r̂)
+        return (self.range_m - d - b) / self.sigma_m
 
     def jacobian(self, x_enu_m: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(∂e/∂x (3,), ∂e/∂θ (p,))."""
-        u, b = self._user(theta)
+        u, _b = self._user(theta)
         diff = np.asarray(x_enu_m, float) - u
         d = max(float(np.linalg.norm(diff)), 1e-9)
         uhat = diff / d
-        sig = float(self.noise.range_sigma_m(d))
-        dsig = float(self.noise.range_sigma_dd(d))
-        r = self.range_m - d - b
-        # α = 1/σ + r σ'/σ²
-        alpha = 1.0 / sig + r * dsig / sig**2
+        sig = self.sigma_m
+        # α = 1/σ(r̂)
+        alpha = 1.0 / sig
         j_x = -alpha * uhat
         j_theta = [alpha * uhat[: self.user_dim]]
         if self.with_bias:
@@ -106,7 +112,9 @@ def range_residuals(
     and the planner's predicted information (planner.information). RangeFactor is the same factor
     one range at a time, for the dense reference.
 
-        d = max(||x − u||, 1e-9),  σ = √((s σ(d))² + σ_gps²),  r = r̂ − d − b,  e = r / σ
+        d = max(||x − u||, 1e-9),  σ = √((s σ(r̂))² + σ_gps²),  r = r̂ − d − b,  e = r / σ
+
+    (σ at the measured range r̂ ≥ 0 where there is one, at d for the noise-free prediction)
 
     diff_enu_m: (3, ...) x − u, coordinates first (numpy's inner loops then run over the long
         axes) [m]; range_m: (...) measured ranges r̂ [m], or None for the noise-free prediction
@@ -114,13 +122,20 @@ def range_residuals(
         noise scale s broadcastable to (...), or None (1); gps_var_m2: σ_gps² folded into the range
         variance where the UAV is held at its fix (initialization, planner), 0 where it is a
         variable of the solve; mask: (...) bool, ranges to use (r and e are 0 elsewhere), or None.
-    Returns d (...) [m]; σ [m], a scalar (or s alone) when it does not depend on d (a = 0), else
-    (...); r (...) [m]; e (...).
+    Returns d (...) [m]; σ [m], a scalar (or s alone) when it does not depend on the range (a = 0),
+    else (...); r (...) [m]; e (...).
     """
     d = np.sqrt(diff_enu_m[0] * diff_enu_m[0] + diff_enu_m[1] * diff_enu_m[1] + diff_enu_m[2] * diff_enu_m[2])
     np.maximum(d, 1e-9, out=d)
-    # σ(d) = s0 + a·exp(b·d): a scalar when it does not depend on d (a cheaper loss evaluation)
-    sig = noise.s0_m if noise.a_m == 0.0 else noise.range_sigma_m(d)
+    # σ(r̂) = s0 + a·exp(b·r̂): a scalar when a = 0 (a cheaper loss evaluation); σ(d) predicted
+    if noise.a_m == 0.0:
+        sig = noise.s0_m
+    elif range_m is None:
+        sig = noise.range_sigma_m(d)
+    else:
+        at = np.asarray(range_m, dtype=float)
+        # masked entries (NaN ranges) take d: their r and e are 0 whatever σ is
+        sig = noise.range_sigma_m(np.where(np.isfinite(at), np.maximum(at, 0.0), d))
     if scale is not None:
         sig = sig * scale
     if gps_var_m2:
@@ -137,27 +152,9 @@ def range_residuals(
     return d, sig, r, r / sig
 
 
-def range_alpha(
-    d: np.ndarray, sig: np.ndarray | float, r: np.ndarray, noise: NoiseModel, scale: np.ndarray | None = None,
-    gps_var_m2: float = 0.0, mask: np.ndarray | None = None,
-) -> np.ndarray:
-    """α = −∂e/∂d of the range factor (shapes as returned by range_residuals; a scalar when σ is one
-    and there is no mask), 0 where not mask:
-
-        α = 1/σ + r σ'/σ²,   σ' = dσ/dd = s a b exp(b d) · sσ(d)/σ   (σ_gps folded: σ = √((sσ(d))² + σ_gps²))
-    """
-    if noise.a_m != 0.0 and noise.b_per_m != 0.0:
-        dsig = noise.range_sigma_dd(d)
-        if scale is not None:
-            dsig = dsig * scale
-        if gps_var_m2:
-            # d√(σ² + σ_gps²)/dd = σ σ' / σ_eff with σ = s σ(d)
-            base = noise.range_sigma_m(d) * (1.0 if scale is None else scale)
-            dsig = dsig * base / sig
-        alpha = 1.0 / sig + r * dsig / sig**2
-        if mask is not None:
-            alpha *= mask
-        return alpha
+def range_alpha(sig: np.ndarray | float, mask: np.ndarray | None = None) -> np.ndarray | float:
+    """α = −∂e/∂d = 1/σ of the range factor (σ as returned by range_residuals: a constant of the
+    factor, σ(r̂)), 0 where not mask; a scalar when σ is one and there is no mask."""
     return 1.0 / sig if mask is None else mask / sig
 
 
@@ -265,7 +262,7 @@ def dense_normal_equations(
             f = RangeFactor(prob.range_m[i, k], nk, prob.user_dim, prob.user_up_m[k], params.estimate_bias, gain)
             e = f.error(uav_enu_m[i], theta[k])
             jx, jt = f.jacobian(uav_enu_m[i], theta[k])
-            sig = float(nk.range_sigma_m(np.linalg.norm(uav_enu_m[i] - f._user(theta[k])[0])))
+            sig = f.sigma_m
             pi = params.nlos_prob if prob.nlos_prob_k is None else float(prob.nlos_prob_k[k])
             rho, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi, params.nlos_mean_m / sig))
             cost += float(rho[0])

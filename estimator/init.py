@@ -109,7 +109,7 @@ def refine_user(
 ) -> UserFit:
     """Robust Gauss–Newton (with step halving) on one user, UAV fixed. Shapes as in `user_cost`.
 
-    σ_eff is evaluated at the current distance and held fixed within an iteration (IRLS style).
+    σ_eff is the range factor's, at the measured ranges (estimator.factors).
     """
     loss = params.loss if loss is None else loss
     scale = params.loss_scale if scale is None else scale
@@ -138,8 +138,8 @@ def refine_user(
             break
         for _half in range(8):
             trial = theta + step
-            # a wild first step (near-singular h) may reach distances where σ(d) overflows: its
-            # cost is then inf or NaN, rejected below, and the step halved
+            # a wild first step (near-singular h) may reach absurd distances: its cost is then
+            # huge, inf or NaN, rejected below, and the step halved
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 c = user_cost(uav_enu_m, range_m, trial, up_m, noise, params, loss, scale)
             if c <= cost:
@@ -196,10 +196,10 @@ def _grid_cost(uav: np.ndarray, rng: np.ndarray, dz: np.ndarray, cand: np.ndarra
         d *= d
         np.minimum(d, f4(c2 * sig * sig), out=d)
         return (d @ ones).astype(float) / (sig * sig)
-    # e = (r̂ − d)/σ_eff(d);  Σ min(e², c²)
-    sig = _sigma_eff(noise, d.astype(float)).astype(f4)
+    # e = (r̂ − d)/σ_eff(r̂) (the range factor's σ at the measured range);  Σ min(e², c²)
+    sig = _sigma_eff(noise, np.maximum(rng, 0.0)).astype(f4)
     d -= rng.astype(f4)[:, None, :]
-    d /= sig
+    d /= sig[:, None, :]
     d *= d
     np.minimum(d, f4(c2), out=d)
     return (d @ ones).astype(float)

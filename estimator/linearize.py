@@ -76,7 +76,7 @@ def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndar
     bias = 0.0
     if prob.params.estimate_bias:
         bias = theta[:, -1:] if prob.bias_gain is None else theta[:, -1:] * prob.bias_gain[:n].T
-    # e = (r̂ − d − b) / σ_k(d), σ_k(d) = s_k σ(d) (a scalar or (K, 1) when it does not depend on d)
+    # e = (r̂ − d − b) / σ_k(r̂), σ_k = s_k σ(r̂) (a scalar or (K, 1) when it does not depend on r̂)
     d, sig, r, e = range_residuals(diff, prob.range_m[:n].T, bias, prob.noise,
                                    None if prob.noise_scale_k is None else prob.noise_scale_k[:, None],
                                    mask=None if full else mask_kn)
@@ -99,10 +99,10 @@ def _range_terms(
     3 coordinates. Returns e, w, rho (K, n), J (3 + p, K, n) = [∂e/∂x; ∂e/∂θ_k] and ψ = ρ'(e)
     (K, n), zero where mask_kn is False.
     """
-    params, noise = prob.params, prob.noise
+    params = prob.params
     n = x.shape[0]
     d_u = prob.user_dim
-    diff, d, sig, r, e, full = _residuals(prob, x, theta, mask_kn)
+    diff, d, sig, _r, e, full = _residuals(prob, x, theta, mask_kn)
     nl = _nlos_args(prob, sig) if params.loss == "nlos" else None
     rho, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl)
     if observed is not None and nl is not None:
@@ -113,10 +113,9 @@ def _range_terms(
         w = w * mask_kn
         psi = psi * mask_kn
         rho = rho * mask_kn
-    # α = 1/σ + r σ'/σ²;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −g/σ (estimator.factors)
-    scale = None if prob.noise_scale_k is None else prob.noise_scale_k[:, None]
+    # α = 1/σ;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −g/σ (estimator.factors)
     mask = None if full else mask_kn
-    alpha = range_alpha(d, sig, r, noise, scale, mask=mask)
+    alpha = range_alpha(sig, mask)
     jac = range_jacobian(diff, d, alpha, sig, d_u, params.estimate_bias,
                          None if prob.bias_gain is None else prob.bias_gain[:n].T, mask)
     return e, w, rho, jac, psi

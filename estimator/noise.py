@@ -1,6 +1,9 @@
 """Noise model shared by the estimator, the planner and the simulators (DESIGN.md §4, §5).
 
     σ(d) = s0 + a · exp(b · d)          range standard deviation at slant distance d [m]
+
+The estimator weighs a measured range r̂ by σ(r̂), the spread at the distance it measured, not at
+the distance of the current estimate (estimator.factors).
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ DEFAULT_GPS_TAU_S = 60.0
 #: velocity is good to a few cm/s, these are on the safe side
 DEFAULT_VEL_SIGMA_MPS = 0.1
 DEFAULT_VEL_TAU_S = 1.0
+#: σ(d)'s exponent b·d is capped here (exp(700) ≈ 1e304: finite, and 1/σ² is then 0)
+SIGMA_EXPONENT_MAX = 700.0
 
 
 @dataclass(frozen=True)
@@ -82,16 +87,21 @@ class NoiseModel:
         return DEFAULT_VEL_TAU_S if self.vel_tau_s is None else float(self.vel_tau_s)
 
     def range_sigma_m(self, d_m: np.ndarray | float) -> np.ndarray:
-        """σ(d) = s0 + a·exp(b·d) [m]; `d_m` any shape, result the same shape."""
+        """σ(d) = s0 + a·exp(min(b·d, SIGMA_EXPONENT_MAX)) [m]; `d_m` any shape, result the same
+        shape. The exponent is capped so that an absurd distance (a wild trial step, a bogus
+        range of 10⁶ m) gives a huge finite σ, whose range then carries no information, instead
+        of an overflow."""
         d = np.asarray(d_m, dtype=float)
         # σ(d) = s0 + a·exp(b·d)
-        return self.s0_m + self.a_m * np.exp(self.b_per_m * d)
+        return self.s0_m + self.a_m * np.exp(np.minimum(self.b_per_m * d, SIGMA_EXPONENT_MAX))
 
     def range_sigma_dd(self, d_m: np.ndarray | float) -> np.ndarray:
-        """dσ/dd = a·b·exp(b·d) [m/m], same shape as `d_m`."""
+        """dσ/dd = a·b·exp(b·d) [m/m] (0 where the exponent is capped), same shape as `d_m`."""
         d = np.asarray(d_m, dtype=float)
         # dσ/dd = a·b·exp(b·d)
-        return self.a_m * self.b_per_m * np.exp(self.b_per_m * d)
+        bd = self.b_per_m * d
+        return np.where(bd < SIGMA_EXPONENT_MAX, self.a_m * self.b_per_m * np.exp(np.minimum(bd, SIGMA_EXPONENT_MAX)),
+                        0.0)
 
     @classmethod
     def from_log_dict(cls, noise: dict | None) -> NoiseModel:

@@ -273,7 +273,7 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         for _ in range(1):
             diff = x - users
             d = np.maximum(np.sqrt((diff * diff).sum(axis=1)), 1e-9)
-            sig = self._noise.range_sigma_m(d) * self._scale[k]
+            sig = self._noise.range_sigma_m(np.maximum(r_meas, 0.0)) * self._scale[k]
             e = (r_meas - d - bias) / sig
             _, psi, w = loss_psi_weight(
                 e, self._params.loss, self._params.loss_scale, nlos_args(self._params, sig), need_rho=False)

@@ -13,6 +13,7 @@ from estimator.gps import gps_phi
 from estimator.marginals import (
     _covariances,
 )
+from estimator.noise import SIGMA_EXPONENT_MAX
 from estimator.online_chain import chain_step
 from estimator.robust import loss_psi_weight
 from estimator.schur import sym3_cofactors
@@ -86,19 +87,17 @@ class FilterSteps:
         gx, gy, gz = x0.tolist()
         users = self._users[ka].tolist()
         biases = self._theta[ka, -1].tolist() if with_bias else None
-        sig_dd = noise.a_m != 0.0 and noise.b_per_m != 0.0
         s0, a_m, b_m = noise.s0_m, noise.a_m, noise.b_per_m
         us, sigs, es = [], [], []
         for j, (r_j, (ux, uy, uz)) in enumerate(zip(r_list, users, strict=True)):
             dx, dy, dz = gx - ux, gy - uy, gz - uz
             d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
-            # σ(d) = s0 + a·exp(b·d)
+            # σ(r̂) = s0 + a·exp(b·r̂), the spread at the measured range (estimator.factors)
             sc = self._scale_list[ka_list[j]]
-            sig = (s0 + a_m * math.exp(b_m * d) if a_m != 0.0 else s0) * sc
+            sig = (s0 + a_m * math.exp(min(b_m * max(r_j, 0.0), SIGMA_EXPONENT_MAX)) if a_m != 0.0 else s0) * sc
             res = r_j - d - (biases[j] if with_bias else 0.0)
-            # α = 1/σ + r σ'/σ²
-            alpha = 1.0 / sig + (res * sc * a_m * b_m * math.exp(b_m * d) / (sig * sig) if sig_dd else 0.0)
-            f = alpha / d
+            # α = 1/σ
+            f = 1.0 / (sig * d)
             us.append((dx * f, dy * f, dz * f))  # α û = ∂e/∂u = −∂e/∂x
             sigs.append(sig)
             es.append(res / sig)

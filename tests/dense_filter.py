@@ -41,7 +41,7 @@ def add_ranges(h, g, on, kf, x0, theta0, pi, user_up_m) -> None:
         f = RangeFactor(float(r), noise, params.user_dim, float(user_up_m[k]), params.estimate_bias)
         e = f.error(x0, theta0[k])
         jx, jt = f.jacobian(x0, theta0[k])
-        sig = float(noise.range_sigma_m(np.linalg.norm(x0 - f._user(theta0[k])[0])))
+        sig = f.sigma_m
         _, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi[k], params.nlos_mean_m / sig))
         jr = np.zeros(h.shape[0])
         jr[3:6] = jx

@@ -207,7 +207,7 @@ def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params
         f = RangeFactor(float(r), noise, params.user_dim, float(sc.user_up_m[k]), params.estimate_bias)
         e = f.error(x0, theta0[k])
         jx, jt = f.jacobian(x0, theta0[k])
-        sig = float(noise.range_sigma_m(np.linalg.norm(x0 - f._user(theta0[k])[0])))
+        sig = f.sigma_m
         _, psi, w = loss_psi_weight(np.array([e]), params.loss, params.loss_scale, (pi[k], params.nlos_mean_m / sig))
         j = np.zeros(dim)
         j[:3] = jx
@@ -475,6 +475,39 @@ def test_a_far_off_start_gets_no_credit_from_distance_dependent_noise():
     assert np.all(fit.theta[:2] >= lo[0] - 5.0) and np.all(fit.theta[:2] <= hi[0] + 5.0)
     # 330 m from a 60 m circle, σ ≈ 5 m there: the start is a few σ off across the line of sight
     assert np.linalg.norm(fit.theta[:2] - sc.users_enu_m[0, :2]) < 20.0
+
+
+WIDE_NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.3, b_per_m=0.01)
+
+
+def test_the_solver_cost_rises_as_a_user_moves_away_under_distance_dependent_noise():
+    """The solver's range factor weighs a range by σ at the measured range: its cost grows
+    quadratically as a user moves away. With σ at the estimate's own distance, e = r/σ(d) → 0 as
+    d → ∞: a user 1 km off cost 1e-5 against 45 at the truth, and wide worlds sent users tens of
+    kilometres away until σ(d) overflowed (issue 21)."""
+    sc = simulate(np.random.default_rng(5), n_users=1, n_keyframes=80, noise=WIDE_NOISE,
+                  users_enu_m=np.array([[200.0, 120.0, 0.0]]))
+    prob = pack_keyframes(sc.keyframes, 1, sc.user_up_m, WIDE_NOISE, SolverParams(estimate_bias=False))
+    x = np.array([kf.gps_enu_m for kf in sc.keyframes])
+    costs = [linearize(prob, x, sc.users_enu_m[:, :2] + off, np.ones(1, dtype=bool)).cost
+             for off in (0.0, 1e3, 1e5)]
+    assert np.all(np.isfinite(costs)) and np.all(np.diff(costs) > 0)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_online_in_a_wide_world_with_distance_dependent_noise_stays_near_the_users(seed):
+    """Six users up to 350 m from a lawnmower over the centre, σ(d) = 3 + 0.3·exp(0.01·d) m, 30 %
+    NLoS: every keyframe is taken without an exception and every user ends within 15 m (the
+    online estimator raised OverflowError in its filter step on seeds 0 and 1 before σ came from
+    the measured range; on a nearby seed it left three users 37 km away)."""
+    rng = np.random.default_rng(seed + 1)
+    users = np.column_stack([rng.uniform(-250, 250, 6), rng.uniform(-250, 250, 6), np.zeros(6)])
+    sc = simulate(np.random.default_rng(101 + seed), n_users=6, n_keyframes=300, noise=WIDE_NOISE,
+                  users_enu_m=users, pattern="lawnmower", p_nlos=0.3, nlos_mean_m=30.0)
+    on = OnlineEstimator(6, sc.user_up_m, WIDE_NOISE, SolverParams())
+    for kf in sc.keyframes:
+        est = on.add_keyframe(kf)
+    assert np.all(np.linalg.norm(est.users_enu_m[:, :2] - users[:, :2], axis=1) < 15.0)
 
 
 def test_start_refinement_lowers_the_truncated_cost_and_reaches_the_truth_on_exact_ranges():

@@ -25,8 +25,8 @@ def _vectorised(x, theta, r_meas, noise, user_dim, with_bias, gain, scale, gps_v
     u = np.array([theta[0], theta[1], theta[2] if user_dim == 3 else 1.0])
     diff = (x - u)[:, None]
     b = theta[-1] * gain if with_bias else 0.0
-    d, sig, r, e = range_residuals(diff, np.array([r_meas]), b, noise, scale, gps_var)
-    alpha = range_alpha(d, sig, r, noise, scale, gps_var)
+    d, sig, _r, e = range_residuals(diff, np.array([r_meas]), b, noise, scale, gps_var)
+    alpha = range_alpha(sig)
     jac = range_jacobian(diff, d, alpha, sig, user_dim, with_bias, np.array([gain]) if with_bias else None)
     return float(e[0]), jac[:, 0]
 
@@ -65,8 +65,8 @@ def test_masked_ranges_have_zero_error_and_jacobian():
     diff = rng.normal(size=(3, 4, 6)) * 50
     r_meas = np.linalg.norm(diff, axis=0) + 2.0
     mask = rng.random((4, 6)) < 0.6
-    d, sig, r, e = range_residuals(diff, np.where(mask, r_meas, np.nan), 0.5, NOISE_DD, mask=mask)
-    alpha = range_alpha(d, sig, r, NOISE_DD, mask=mask)
+    d, sig, _r, e = range_residuals(diff, np.where(mask, r_meas, np.nan), 0.5, NOISE_DD, mask=mask)
+    alpha = range_alpha(sig, mask)
     jac = range_jacobian(diff, d, alpha, sig, 2, True, mask=mask)
     assert np.all(e[~mask] == 0) and np.all(jac[:, ~mask] == 0)
     assert np.all(np.isfinite(e)) and np.all(e[mask] != 0)
