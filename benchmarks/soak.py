@@ -121,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    import distributed  # noqa: F401  (its import configures its loggers: set after it)
+
     if not args.verbose:
         # what the runs log (a degraded estimator, a planner exploring, a caught failure) is counted
         # and listed below, not printed as it happens
