@@ -30,6 +30,7 @@ from estimator.geodesy import Origin
 from estimator.types import SolverParams
 from mission.control.config import ControllerConfig, MissionUser
 from mission.control.flight import MissionController
+from mission.estimation import mission_solver_params
 from mission.gnb import GnbClient
 from mission.safety import SafetyLimits
 from mission.vehicle import Vehicle
@@ -108,8 +109,7 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
     cfg = {"mission": mission.name, "planner": name, "seed": seed, **(header_config or {})}
     radio = {"mu": mission.gnb.mu, "fs_hz": mission.gnb.fs_hz}
     if params is None:
-        params = SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
-                              bias_prior_sigma_m=mission.noise.bias_prior_sigma_m)
+        params = mission_solver_params(mission)
     return MissionController(vehicle, gnb, planner_obj, users, noise, limits, config, log_path,
                              params=params, truth=truth, header_config=cfg, radio=radio, buildings=buildings)
 

@@ -18,12 +18,11 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from estimator.batch import solve_batch
 from estimator.gps import estimate_gps_tau_s
 from estimator.keyframes import KeyframeSelector
 from estimator.noise import NoiseModel
-from estimator.refresh import RefreshedEstimator
 from estimator.types import Estimate, Keyframe, SolverParams
+from mission.estimation import MissionEstimator
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframes_of, triggers_gps_enu_m
 from mission.log import MissionLog
 from mission.result import horizontal_error_m, user_entries_of_estimate
@@ -214,10 +213,12 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
         kf_flown = odometer_m(kf_gps, band_m)
     flown_m = float(kf_flown[-1])
 
+    # the mission's estimator (mission.estimation), without a stop rule
+    setup = MissionEstimator(n_users, user_up_m, noise, params)
     history = None
     total = len(keyframes) + 1
     if options.history:
-        refreshed = RefreshedEstimator(n_users, user_up_m, noise, params, online=False)
+        refreshed = setup.estimator(online=False)
         bounds = np.full((len(keyframes), n_users), np.inf)
         users_hist = np.full((len(keyframes), n_users, 3), np.nan)
         for i, kf in enumerate(keyframes):
@@ -229,7 +230,7 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
         errors = horizontal_error_m(users_hist, truth_enu[None]) if truth_enu is not None else None
         history = ReplayHistory(kf_flown, kf_t, bounds, errors, users_hist)
 
-    estimate = solve_batch(keyframes, n_users, user_up_m, noise, params)
+    estimate = setup.final(keyframes)
     if progress is not None:
         progress(total, total)
     error_m = horizontal_error_m(estimate.users_enu_m, truth_enu) if truth_enu is not None else None

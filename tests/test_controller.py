@@ -17,10 +17,13 @@ from mission.control.config import STATUS_TARGET, ControllerConfig, MissionResul
 from mission.control.estimator_worker import EstimatorWorker
 from mission.control.flight import _first_error
 from mission.control.loop import LoopLagMonitor
+from mission.estimation import MissionEstimator
 from sitl_scenarios.scenario import load_scenario
 from uavloc.errors import EstimatorError, GnbError, VehicleError
 
 N_USERS = 3
+#: the mission's estimator for N_USERS users at height 0 (confirm=False in the workers below: no stop rule)
+SETUP = MissionEstimator(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), 1.0)
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +33,7 @@ def survey():
 
 async def _solve_all(keyframes, mode: str):
     """Solve every keyframe through an EstimatorWorker while a LoopLagMonitor runs."""
-    worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode=mode)
+    worker = EstimatorWorker(SETUP, confirm=False, mode=mode)
     monitor = LoopLagMonitor(0.01)
     estimates = []
     done = asyncio.Event()
@@ -61,7 +64,7 @@ def test_the_estimator_solves_in_a_child_process_off_the_event_loop(survey):
     import os
 
     async def go():
-        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="process")
+        worker = EstimatorWorker(SETUP, confirm=False, mode="process")
         got = []
         async with asyncio.TaskGroup() as tg:
             run = tg.create_task(worker.run(got.append))
@@ -87,7 +90,7 @@ def test_estimator_child_dying_mid_mission_falls_back_to_a_thread_with_every_key
     kfs = survey.keyframes[:30]
 
     async def go():
-        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="process")
+        worker = EstimatorWorker(SETUP, confirm=False, mode="process")
         got = []
         async with asyncio.TaskGroup() as tg:
             run = tg.create_task(worker.run(got.append))
@@ -129,7 +132,7 @@ def test_worker_reports_estimator_errors_and_keeps_going(survey):
     errors = []
 
     async def go():
-        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="thread")
+        worker = EstimatorWorker(SETUP, confirm=False, mode="thread")
         got = []
         async with asyncio.TaskGroup() as tg:
             run = tg.create_task(worker.run(got.append, errors.append))
@@ -224,7 +227,7 @@ def test_worker_takes_queued_keyframes_together_with_one_estimate(survey):
     kfs = survey.keyframes[:50]
 
     async def go():
-        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="thread")
+        worker = EstimatorWorker(SETUP, confirm=False, mode="thread")
         got = []
         async with asyncio.TaskGroup() as tg:
             for kf in kfs:  # all queued before the worker starts
