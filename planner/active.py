@@ -56,7 +56,7 @@ from planner.information import (
     prior_value,
     users_initialised,
 )
-from planner.objective import SQRT_EPS_M2, Shape, kernels, mapped
+from planner.objective import SQRT_EPS_M2, Shape, kernel, mapped
 from planner.types import PlanningConstraints, PlanningState
 from uavloc.errors import PlannerError
 
@@ -89,11 +89,12 @@ class _Layout:
     n_rows: int
     n_planes: int
     compiled: bool = True
+    max_iter: int = 60
 
 
 def _layout(planner: ActivePlanner, hyp: Hypotheses) -> _Layout:
     shape = Shape(hyp.dim, hyp.bias, planner.criterion, planner.horizon, planner.n_quad)
-    return _Layout(shape, int(hyp.sample_w.size), planner.max_planes, planner.compiled)
+    return _Layout(shape, int(hyp.sample_w.size), planner.max_planes, planner.compiled, planner.max_iter)
 
 
 _SOLVERS: dict[_Layout, ca.Function] = {}
@@ -113,15 +114,15 @@ def _solver(lay: _Layout) -> ca.Function:
         return _SOLVERS[lay]
     sh, R, n_pl = lay.shape, lay.n_rows, lay.n_planes
     n_h, pp = sh.horizon, sh.n_par**2
-    k = kernels(sh, lay.compiled)
+    vgh, value = kernel("vgh", sh, lay.compiled), kernel("value", sh, lay.compiled)
     sizes = [3, 3 * R, pp * R, R, R, 4, 1, 1, 2 * n_pl, n_pl, 3, 1]
     par = ca.MX.sym("p", sum(sizes))
     x_c, U, P, s, wts, noise_par, delta, lam, A, c, home, ret = ca.vertsplit(par, list(np.cumsum([0, *sizes])))
     U, P, s, wts = ca.reshape(U, 3, R), ca.reshape(P, pp, R), ca.reshape(s, 1, R), ca.reshape(wts, R, 1)
     A = ca.reshape(A, n_pl, 2)
     z = ca.MX.sym("z", 3 * n_h)
-    f_rows, g_rows, h_rows = mapped(k.vgh, R)(z, x_c, U, P, s, noise_par, delta)
-    unc = mapped(k.value, R)(z, x_c, U, P, s, noise_par, delta) @ wts
+    f_rows, g_rows, h_rows = mapped(vgh, R)(z, x_c, U, P, s, noise_par, delta)
+    unc = mapped(value, R)(z, x_c, U, P, s, noise_par, delta) @ wts
     wps = [z[3 * h:3 * h + 3] for h in range(n_h)]
     prev, lengths = x_c, []
     for wp in wps:
@@ -140,6 +141,7 @@ def _solver(lay: _Layout) -> ca.Function:
     hess_rows = h_rows @ ca.kron(wts, ca.DM.eye(3 * n_h))
     hess = lam_f * hess_rows + ca.hessian(lam_f * cost + ca.dot(lam_g, g), z)[0]
     opts = dict(_IPOPT_OPTS)
+    opts["ipopt.max_iter"] = lay.max_iter
     opts["grad_f"] = ca.Function("grad_f", [z, par], [f_rows @ wts + cost, grad])
     opts["hess_lag"] = ca.Function("hess_lag", [z, par, lam_f, lam_g], [ca.triu(hess)])
     solver = ca.nlpsol("leg", "ipopt", {"x": z, "p": par, "f": unc + cost, "g": g}, opts)
@@ -190,7 +192,10 @@ class ActivePlanner(BasePlanner):
     "none" (planner.information.hypotheses_from_estimate; the mirror is always included while
     ambiguous); user_weights: (K,) w_k; max_planes: cap on the convex cell's half-planes;
     weighting: "sqrt" multiplies w_k by 1/sqrt(tr Σ_k); horizon: waypoints planned ahead (only the
-    first is flown; all lie in the first leg's convex cell; `last_horizon_enu_m` holds them).
+    first is flown; all lie in the first leg's convex cell; `last_horizon_enu_m` holds them);
+    compiled: the objective's kernels compiled to machine code (planner.objective); ipopt_seeds:
+    IPOPT runs only from this many of the best seeds by the objective (0: from every seed);
+    max_iter: IPOPT's iteration cap.
     """
 
     name = "casadi"
@@ -210,9 +215,15 @@ class ActivePlanner(BasePlanner):
         weighting: str = "none",
         horizon: int = 2,
         compiled: bool = True,
+        ipopt_seeds: int = 1,
+        max_iter: int = 30,
     ) -> None:
         super().__init__(constraints, noise, rng_seed)
         self.compiled = bool(compiled)
+        if ipopt_seeds < 0 or max_iter < 1:
+            raise PlannerError(f"need ipopt_seeds >= 0 and max_iter >= 1; got {ipopt_seeds}, {max_iter}")
+        self.ipopt_seeds = int(ipopt_seeds)
+        self.max_iter = int(max_iter)
         if weighting not in ("none", "sqrt"):
             raise PlannerError(f"weighting must be 'none' or 'sqrt', got {weighting!r}")
         self.weighting = weighting
@@ -405,6 +416,10 @@ class ActivePlanner(BasePlanner):
         warm = self._warm_start(state)
         if warm is not None:
             seeds.append(warm)
+        if self.ipopt_seeds and len(seeds) > self.ipopt_seeds:
+            # IPOPT only from the best seeds by the objective (each solve costs more than the ring)
+            order = np.argsort(self.evaluate(state, np.array(seeds).reshape(len(seeds), self.horizon, 3), hyp, lam))
+            seeds = [seeds[i] for i in order[:self.ipopt_seeds]]
         norm = prior_value(hyp, self.criterion)
         for seed in seeds:
             try:
@@ -447,6 +462,20 @@ class ActivePlanner(BasePlanner):
         step = path[0] - x
         n = float(np.linalg.norm(step))
         self._prev_dir = step / n if n > 0 else np.zeros(3)
+
+
+class ReferenceActivePlanner(ActivePlanner):
+    """The active planner as it was before its speed-ups ("casadi_reference"): the same objective
+    and decisions up to IPOPT's stopping point, with interpreted (not compiled) kernels, IPOPT from
+    every seed and up to 60 iterations — the slow baseline the planner benchmark times it against."""
+
+    name = "casadi_reference"
+
+    def __init__(self, constraints, noise, rng_seed=0, **opts) -> None:
+        opts.setdefault("compiled", False)
+        opts.setdefault("ipopt_seeds", 0)
+        opts.setdefault("max_iter", 60)
+        super().__init__(constraints, noise, rng_seed, **opts)
 
 
 class OraclePlanner(ActivePlanner):

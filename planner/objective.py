@@ -24,7 +24,7 @@ The row's value is the criterion of I (what the stop rule and the benchmark meas
         λ_min = (tr − sqrt((I₀₀ − I₁₁)² + 4 I₀₁² + ε_E tr²)) / 2, smooth at isotropy)
 
 The objective sums the rows with their weights (planner.active adds the leg-length cost and the
-normalisation). Kernels (one per :class:`Shape`, whatever the number of users and samples): the
+normalisation). Kernels (:func:`kernel`, one per :class:`Shape`, whatever the number of users and samples): the
 row's value, and its value, gradient and upper-triangular Hessian in the waypoints z (what IPOPT
 needs, so no derivative is taken through the mapped rows at solve time). Built once per process;
 compiled to machine code by the injectable :data:`compile_hook` (default: CasADi's JIT through the
@@ -134,16 +134,7 @@ def jit_function(name: str, inputs: list, outputs: list) -> ca.Function:
 compile_hook: Callable[[str, list, list], ca.Function] | None = jit_function
 
 
-@dataclass(frozen=True)
-class Kernels:
-    """value(z, x_c, u, P, s, noise, Δ) → f; vgh(…) → (f, ∇_z f, triu ∇²_z f); prior(P) → f(P)."""
-
-    value: ca.Function
-    vgh: ca.Function
-    prior: ca.Function
-
-
-_KERNELS: dict[tuple[Shape, bool], Kernels] = {}
+_KERNELS: dict[tuple[str, Shape, bool], ca.Function] = {}
 
 
 def _build(name: str, inputs: list, outputs: list, compiled: bool) -> ca.Function:
@@ -155,30 +146,38 @@ def _build(name: str, inputs: list, outputs: list, compiled: bool) -> ca.Functio
     return ca.Function(name, inputs, outputs)
 
 
-def kernels(shape: Shape, compiled: bool = True) -> Kernels:
-    """The row kernels of a shape, built (and compiled) once per process."""
-    key = (shape, bool(compiled))
+def kernel(kind: str, shape: Shape, compiled: bool = True) -> ca.Function:
+    """A row kernel, built (and compiled) once per process:
+
+    "value": (z, x_c, u, P, s, noise, Δ) → f;  "vgh": the same → (f, ∇_z f, triu ∇²_z f);
+    "prior": (P) → f(P), the criterion of the prior information alone (never compiled).
+    """
+    key = (kind, shape, bool(compiled and kind != "prior"))
     if key in _KERNELS:
         return _KERNELS[key]
     p = shape.n_par
-    z = ca.SX.sym("z", 3 * shape.horizon)
-    x_c, u = ca.SX.sym("x_c", 3), ca.SX.sym("u", 3)
-    P, scale = ca.SX.sym("P", p * p), ca.SX.sym("s")
-    noise_par, delta = ca.SX.sym("noise", 4), ca.SX.sym("delta")
-    f, _ = row_expr(z, x_c, u, P, scale, noise_par, delta, shape)
-    hess, grad = ca.hessian(f, z)
-    ins = [z, x_c, u, P, scale, noise_par, delta]
+    P = ca.SX.sym("P", p * p)
     tag = f"{shape.criterion}{shape.dim}{'b' if shape.bias else ''}h{shape.horizon}q{shape.n_quad}"
-    prior = {(i, j): P[i * p + j] for i in range(p) for j in range(i, p)}
-    out = Kernels(
-        value=_build(f"row_{tag}", ins, [f], compiled),
-        vgh=_build(f"row_vgh_{tag}", ins, [f, grad, ca.triu(hess)], compiled),
-        prior=ca.Function(f"prior_{tag}", [P], [criterion_expr(_position_part(prior, shape.dim, shape.bias),
-                                                                 shape.dim, shape.criterion)]),
-    )
-    _KERNELS[key] = out
-    log.debug("built planner kernels for %s (compiled=%s)", shape, compiled)
-    return out
+    if kind == "prior":
+        prior = {(i, j): P[i * p + j] for i in range(p) for j in range(i, p)}
+        f = criterion_expr(_position_part(prior, shape.dim, shape.bias), shape.dim, shape.criterion)
+        fun = ca.Function(f"prior_{tag}", [P], [f])
+    elif kind in ("value", "vgh"):
+        z = ca.SX.sym("z", 3 * shape.horizon)
+        x_c, u, scale = ca.SX.sym("x_c", 3), ca.SX.sym("u", 3), ca.SX.sym("s")
+        noise_par, delta = ca.SX.sym("noise", 4), ca.SX.sym("delta")
+        f, _ = row_expr(z, x_c, u, P, scale, noise_par, delta, shape)
+        ins = [z, x_c, u, P, scale, noise_par, delta]
+        if kind == "value":
+            fun = _build(f"row_{tag}", ins, [f], compiled)
+        else:
+            hess, grad = ca.hessian(f, z)
+            fun = _build(f"row_vgh_{tag}", ins, [f, grad, ca.triu(hess)], compiled)
+    else:
+        raise ValueError(f"kernel kind must be 'value', 'vgh' or 'prior', got {kind!r}")
+    _KERNELS[key] = fun
+    log.debug("built the planner's %s kernel for %s (compiled=%s)", kind, shape, key[2])
+    return fun
 
 
 _MAPS: dict[tuple[int, int], ca.Function] = {}
@@ -200,19 +199,18 @@ def row_values(shape: Shape, start_enu_m: np.ndarray, paths: np.ndarray, users_e
     """f of every (candidate, row): paths (C, H, 3); users_enu_m (R, 3); prior_info (R, p, p);
     scale (R,) → (C, R), the value kernel evaluated (what IPOPT minimises, term by term)."""
     C, R = len(paths), len(users_enu_m)
-    k = kernels(shape, compiled)
     n = C * R
     z = np.repeat(np.asarray(paths, dtype=float).reshape(C, -1), R, axis=0).T  # (3H, C·R)
     u = np.tile(np.asarray(users_enu_m, dtype=float), (C, 1)).T
     P = np.tile(np.asarray(prior_info, dtype=float).reshape(R, -1), (C, 1)).T
     s = np.tile(np.asarray(scale, dtype=float), C)[None]
-    f = mapped(k.value, n)(z, np.asarray(start_enu_m, dtype=float), u, P, s, noise_par, delta_m)
+    x_c = np.asarray(start_enu_m, dtype=float)
+    f = mapped(kernel("value", shape, compiled), n)(z, x_c, u, P, s, noise_par, delta_m)
     return np.asarray(f, dtype=float).reshape(C, R)
 
 
 def prior_values(shape: Shape, prior_info: np.ndarray) -> np.ndarray:
     """f(P) of every row: prior_info (R, p, p) → (R,) (the prior kernel evaluated)."""
     R = len(prior_info)
-    k = kernels(shape, compiled=False)
-    out = mapped(k.prior, R)(np.asarray(prior_info, dtype=float).reshape(R, -1).T)
+    out = mapped(kernel("prior", shape), R)(np.asarray(prior_info, dtype=float).reshape(R, -1).T)
     return np.asarray(out, dtype=float).reshape(R)

@@ -578,3 +578,18 @@ def test_ipopts_objective_is_the_numpy_prediction_with_noise_scales(criterion, b
     # the noise scale matters: without it the prediction differs
     plain = planner.evaluate(state, path[None], replace(hyp, noise_scale=None), lam)[0]
     assert abs(plain - numpy_f) > 1e-3 * abs(numpy_f)
+
+
+def test_compiled_kernels_equal_the_interpreted_ones_and_the_reference_planner_agrees():
+    """The compiled objective is the interpreted one (planner.objective), and the fast planner's first
+    waypoint is the slow reference configuration's (casadi_reference) on a two-user state."""
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias(True))
+    fast = make_planner("casadi", u_constraints(), NOISE)
+    slow = make_planner("casadi_reference", u_constraints(), NOISE)
+    assert (fast.compiled, fast.ipopt_seeds, slow.compiled, slow.ipopt_seeds, slow.max_iter) == (True, 1, False, 0, 60)
+    hyp = fast.hypotheses(state)
+    ring = fast.feasible_ring(state)
+    np.testing.assert_allclose(fast.uncertainty(state, ring, hyp), slow.uncertainty(state, ring, hyp), rtol=1e-12)
+    a, b = fast.plan(state), slow.plan(state)
+    assert a.objective <= b.objective * (1 + 1e-3)
+    assert np.linalg.norm(a.waypoint_enu_m - b.waypoint_enu_m) < 1.0
