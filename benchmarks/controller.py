@@ -43,12 +43,13 @@ from estimator.simulate import simulate  # noqa: E402
 from estimator.slam import OnlineEstimator  # noqa: E402
 from estimator.types import SolverParams  # noqa: E402
 from mission.controller import EstimatorWorker, LoopLagMonitor  # noqa: E402
+from mission.estimation import MissionEstimator  # noqa: E402
 
 
 async def lag_with_worker(keyframes, n_users: int, noise: NoiseModel, params: SolverParams,
                           mode: str) -> tuple[dict, list]:
     """Lag while EstimatorWorker (mode "process" or "thread") solves every keyframe."""
-    worker = EstimatorWorker(n_users, np.zeros(n_users), noise, params, mode=mode)
+    worker = EstimatorWorker(MissionEstimator(n_users, np.zeros(n_users), noise, params, 1.0), confirm=False, mode=mode)
     monitor = LoopLagMonitor(0.01)
     done = asyncio.Event()
     count = 0

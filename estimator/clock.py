@@ -297,32 +297,44 @@ def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | No
 def refine_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, prev: SawtoothFit,
                     nuisance: np.ndarray | None = None) -> SawtoothFit:
     """Re-fit a tracked sawtooth near its last (P, φ) on new residuals (more samples, a moved
-    solution): a (P, φ) grid of ± CLOCK_REFINE_BINS quarter frequency bins 1/(4·span) around
-    prev.period_s and ± CLOCK_REFINE_PHASE cycles around its phase at the samples' middle time,
-    then a finer grid around the best. Shapes and nuisance as in fit_sawtooth; prev itself when
-    there are fewer than 16 samples. explained: as in fit_sawtooth (no acceptance test: the
+    solution): a (1/P, φ) grid of ± CLOCK_REFINE_BINS quarter frequency bins df = 1/(4·span)
+    around 1/prev.period_s and ± CLOCK_REFINE_PHASE cycles around its phase at the samples'
+    middle time, then a finer grid around the best. Shapes and nuisance as in fit_sawtooth
+    (non-finite samples dropped); prev itself when fewer than 16 samples remain or they span
+    fewer than CLOCK_MIN_PERIODS of its period (fit_sawtooth's own rule: such samples cannot
+    pin a period, and the grid 1/P0 ± CLOCK_REFINE_BINS·df would reach zero frequency, an
+    infinite period, at span ≤ P0). explained: as in fit_sawtooth (no acceptance test: the
     user's sawtooth was accepted when first fitted)."""
     t = np.asarray(t_s, dtype=float)
     r = np.asarray(resid_m, dtype=float)
-    z = None if nuisance is None else np.asarray(nuisance, dtype=float).reshape(t.size, -1)
-    if t.size < 16:
+    ok = np.isfinite(t) & np.isfinite(r)
+    z = None
+    if nuisance is not None:
+        z = np.asarray(nuisance, dtype=float).reshape(t.size, -1)
+        ok &= np.all(np.isfinite(z), axis=1)
+        z = z[ok]
+    t, r = t[ok], r[ok]
+    p0 = prev.period_s
+    if t.size < 16 or not (math.isfinite(p0) and p0 > 0 and math.isfinite(prev.phase)):
+        return prev
+    span = float(t.max() - t.min())
+    if span < CLOCK_MIN_PERIODS * p0:
         return prev
     tm = 0.5 * float(t.min() + t.max())
     tc = t - tm
-    span = float(t.max() - t.min())
-    p0 = prev.period_s
     # the phase at the middle time: frac(t/P − φ) = frac((t − tm)/P − (φ − tm/P))
     ph0 = (prev.phase - tm / p0) % 1.0
-    df = 1.0 / (4.0 * max(span, p0))
-    periods = 1.0 / np.linspace(1.0 / p0 - CLOCK_REFINE_BINS * df, 1.0 / p0 + CLOCK_REFINE_BINS * df,
-                                2 * CLOCK_REFINE_BINS + 1)
+    # span ≥ 2 P0: 1/P0 − CLOCK_REFINE_BINS·df ≥ 1/(2 P0) > 0
+    df = 1.0 / (4.0 * span)
+    f0 = 1.0 / p0
+    periods = 1.0 / np.linspace(f0 - CLOCK_REFINE_BINS * df, f0 + CLOCK_REFINE_BINS * df, 2 * CLOCK_REFINE_BINS + 1)
     phases = ph0 + np.linspace(-CLOCK_REFINE_PHASE, CLOCK_REFINE_PHASE, 25)
     q = _basis(t.size, z)
     rq = r - q @ (q.T @ r)
     total = float(rq @ rq)
     _, p_best, ph_best, _, _, _ = _fit_grid(tc, r, periods, phases, z)
-    dp = float(np.max(np.abs(np.diff(periods))))
-    periods = p_best + np.linspace(-dp, dp, 11)
+    # the finer grid: ± one step df in frequency around the best (1/p_best − df ≥ 1/(4 P0) > 0)
+    periods = 1.0 / (1.0 / p_best + np.linspace(-df, df, 11))
     phases = ph_best + np.linspace(-1.0, 1.0, 11) * (2.0 * CLOCK_REFINE_PHASE / 24)
     rss, p_best, ph_best, amp, off, _ = _fit_grid(tc, r, periods, phases, z)
     explained = 1.0 - rss / total if total > 0 else 0.0

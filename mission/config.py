@@ -44,10 +44,7 @@ Example: `mission/examples/flight.toml` (shipped as package data; :func:`example
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
-import tomllib
-import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,6 +54,8 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
+from mission import schema
+from mission.schema import bounded, positive
 from uavloc.errors import MissionConfigError
 
 if typing.TYPE_CHECKING:
@@ -65,6 +64,22 @@ if typing.TYPE_CHECKING:
 EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 
 Polygon = tuple[tuple[float, float], ...]
+
+# What a multicopter mission can mean: the upper bounds of the numbers of a mission file (each
+# field's bounds are beside it, mission.schema.bounded; a value outside is refused with its key).
+#: heights above home and ground heights [m] (the legal ceiling is 120 m in most countries)
+MAX_HEIGHT_M = 500.0
+#: distances from home and leg lengths [m]
+MAX_DISTANCE_M = 20_000.0
+#: survey metres [m] (a multicopter's range on one battery is a few km)
+MAX_BUDGET_M = 100_000.0
+#: mission time [s] (a multicopter's endurance is well under an hour)
+MAX_MISSION_S = 7200.0
+#: horizontal speed [m/s]; vertical speeds [m/s]
+MAX_SPEED_MPS = 30.0
+MAX_VERTICAL_MPS = 10.0
+#: the largest C-RNTI (0xFFF0.. are reserved)
+MAX_RNTI = 0xFFEF
 
 #: keys that would place a user: a mission file never holds them.
 TRUE_POSITION_KEYS = frozenset({
@@ -81,8 +96,8 @@ class MissionUserConfig:
     ground_height_m: height of the ground it stands on above home [m] (ENU up; 0 = level with home)."""
 
     id: str
-    rnti: int
-    ground_height_m: float = 0.0
+    rnti: int = bounded(dataclasses.MISSING, 1, MAX_RNTI, what="an RNTI is in 0x0001..0xFFEF")
+    ground_height_m: float = bounded(0.0, -MAX_HEIGHT_M, MAX_HEIGHT_M)
 
 
 @dataclass(frozen=True)
@@ -96,7 +111,7 @@ class GeofenceConfig:
     polygon_lat_lon_deg: Polygon = ()
     no_fly_enu_m: tuple[Polygon, ...] = ()
     no_fly_lat_lon_deg: tuple[Polygon, ...] = ()
-    max_distance_m: float = 500.0
+    max_distance_m: float = positive(500.0, MAX_DISTANCE_M)
 
     def polygons_enu_m(self, home: Origin) -> tuple[np.ndarray | None, tuple[np.ndarray, ...]]:
         """(fence (P, 2) or None, no-fly zones ((Q, 2), ...)) in the home ENU frame [m]."""
@@ -122,18 +137,18 @@ class FlightConfig:
     arrival radius [m]; planner: "casadi", "greedy", "lawnmower", "circle" or "random" (not
     "oracle": it needs the true positions a flight does not have)."""
 
-    altitude_m: float = 30.0
-    alt_min_m: float = 10.0
-    alt_max_m: float = 120.0
-    delta_m: float = 2.0
-    target_radius_m: float = 2.0
-    budget_m: float = 2000.0
-    time_limit_s: float = 1200.0
-    cruise_speed_mps: float = 10.0
-    climb_mps: float = 3.0
-    descent_mps: float = 1.5
-    leg_max_m: float = 80.0
-    acceptance_m: float = 2.0
+    altitude_m: float = positive(30.0, MAX_HEIGHT_M)
+    alt_min_m: float = bounded(10.0, 0.0, MAX_HEIGHT_M)
+    alt_max_m: float = positive(120.0, MAX_HEIGHT_M)
+    delta_m: float = positive(2.0, 100.0)
+    target_radius_m: float = positive(2.0, 1000.0)
+    budget_m: float = positive(2000.0, MAX_BUDGET_M)
+    time_limit_s: float = positive(1200.0, MAX_MISSION_S)
+    cruise_speed_mps: float = positive(10.0, MAX_SPEED_MPS)
+    climb_mps: float = positive(3.0, MAX_VERTICAL_MPS)
+    descent_mps: float = positive(1.5, MAX_VERTICAL_MPS)
+    leg_max_m: float = positive(80.0, MAX_DISTANCE_M)
+    acceptance_m: float = positive(2.0, 50.0)
     planner: Literal["casadi", "greedy", "lawnmower", "circle", "random"] = "casadi"
 
 
@@ -147,13 +162,13 @@ class NoiseConfig:
     zero-mean prior of bias_prior_sigma_m [m].
     """
 
-    sigma_gps_m: float = 1.0
-    gps_tau_s: float | None = None
-    range_s0_m: float = 3.0
-    range_a_m: float = 0.0
-    range_b_per_m: float = 0.0
+    sigma_gps_m: float = positive(1.0, 100.0)
+    gps_tau_s: float | None = bounded(None, 0.0, 1e5)
+    range_s0_m: float = positive(3.0, 1000.0)
+    range_a_m: float = bounded(0.0, 0.0, 1000.0)
+    range_b_per_m: float = bounded(0.0, -1.0, 1.0)
     estimate_bias: bool = False
-    bias_prior_sigma_m: float = 10.0
+    bias_prior_sigma_m: float = positive(10.0, 1000.0)
 
     def noise_model(self) -> NoiseModel:
         """The estimator's :class:`NoiseModel`."""
@@ -185,13 +200,13 @@ class GnbSettings:
     rtt_module: str = "rtt"
     rtt_command: str = "pdcch_order"
     discovery: Literal["auto", "o1", "single"] = "auto"
-    mu: int = 1
-    fs_hz: float = 46.08e6
+    mu: int = bounded(1, 0, 3, what="the numerology is 0..3")
+    fs_hz: float = positive(46.08e6, 1e10)
     log_path: str | None = None
-    request_timeout_s: float = 2.0
-    connect_timeout_s: float = 2.0
-    msg2_timeout_s: float = 15.0
-    retries: int = 3
+    request_timeout_s: float = positive(2.0, 120.0)
+    connect_timeout_s: float = positive(2.0, 120.0)
+    msg2_timeout_s: float = positive(15.0, 600.0)
+    retries: int = bounded(3, 0, 100)
 
     def measure_timeout_s(self) -> float:
         """The controller's bound on one measurement [s]: the adapter's own request timeout and one
@@ -228,14 +243,14 @@ class SafetyConfig:
     outside a position limit that confirm a breach; alt_margin_m: tolerance of the altitude-band
     check while surveying [m]."""
 
-    link_timeout_s: float = 3.0
-    link_lost_wait_s: float = 10.0
-    gnb_lost_wait_s: float = 20.0
-    battery_takeoff_min_pct: float = 50.0
-    battery_rtl_pct: float = 25.0
-    max_refusals: int = 3
-    breach_confirm_fixes: int = 3
-    alt_margin_m: float = 5.0
+    link_timeout_s: float = positive(3.0, 60.0)
+    link_lost_wait_s: float = positive(10.0, 600.0)
+    gnb_lost_wait_s: float = positive(20.0, MAX_MISSION_S)
+    battery_takeoff_min_pct: float = bounded(50.0, 0.0, 99.0)
+    battery_rtl_pct: float = bounded(25.0, 0.0, 99.0)
+    max_refusals: int = bounded(3, 1, 1000)
+    breach_confirm_fixes: int = bounded(3, 1, 100)
+    alt_margin_m: float = bounded(5.0, 0.0, 50.0)
 
 
 @dataclass(frozen=True)
@@ -301,120 +316,39 @@ class MissionConfig:
 
 
 # ---------------------------------------------------------------------------------------------
-# strict conversion of parsed TOML into the dataclasses above
-
-_UNIT = re.compile(r"_(m|km|ft|s|ms|min|h|mps|kmh|kph|pct|deg|rad|hz|khz|mhz|per_m|m2)$")
-
-
-def _fail(where: str, key: str, value: Any, problem: str) -> MissionConfigError:
-    return MissionConfigError(f"{where}: key {key!r} = {value!r}: {problem}")
+# strict conversion of parsed TOML into the dataclasses above (mission.schema) and the checks
+# across fields
 
 
-def _convert(value: Any, tp: Any, where: str, key: str) -> Any:
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        (inner,) = [a for a in args if a is not type(None)]
-        return _convert(value, inner, where, key)
-    if origin is Literal:
-        if value not in args:
-            raise _fail(where, key, value, f"must be one of {', '.join(map(repr, args))}")
-        return value
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise _fail(where, key, value, "expected a table")
-        return build_dataclass(tp, value, where, key)
-    if origin is tuple:
-        if not isinstance(value, list):
-            raise _fail(where, key, value, "expected a list")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(v, args[0], where, f"{key}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise _fail(where, key, value, f"expected {len(args)} numbers")
-        return tuple(_convert(v, a, where, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise _fail(where, key, value, "expected true or false")
-        return value
-    if tp is int:
-        if isinstance(value, str):  # RNTIs are often written in hex: "0x4601"
-            # OAI prints RNTIs in hex without a prefix ("4601"): a bare digit string is ambiguous
-            if not value.strip().lower().startswith("0x"):
-                raise _fail(where, key, value, "expected an integer; a string must be hex with 0x "
-                            f"(\"0x{value.strip()}\"), or write the decimal number unquoted")
-            try:
-                return int(value, 16)
-            except ValueError:
-                raise _fail(where, key, value, "expected an integer (hex with 0x)") from None
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise _fail(where, key, value, "expected an integer")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            hint = " (the unit is in the key's name; write the number alone)" if isinstance(value, str) else ""
-            raise _fail(where, key, value, f"expected a number{hint}")
-        if not math.isfinite(value):
-            raise _fail(where, key, value, "must be a finite number")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise _fail(where, key, value, "expected a string")
-        return value
-    raise _fail(where, key, value, f"unsupported type {tp!r}")  # pragma: no cover - schema bug
-
-
-def _unknown_key(cls: type, name: str, value: Any, where: str, key: str) -> MissionConfigError:
-    fields = {f.name for f in dataclasses.fields(cls)}
+def _explain_unknown(cls: type, name: str) -> str | None:
+    """Why a key a mission file never holds is wrong (true positions, world sections)."""
     if name in TRUE_POSITION_KEYS:
-        return _fail(where, key, value, "a mission file never holds true positions (they are what the flight "
-                     "measures); true user positions belong to a simulation world in sitl_scenarios")
+        return ("a mission file never holds true positions (they are what the flight measures); true user "
+                "positions belong to a simulation world in sitl_scenarios")
     if cls is MissionConfig and name in WORLD_SECTIONS:
-        return _fail(where, key, value, "describes the simulated world, not the mission; a mission file holds "
-                     f"only {', '.join(sorted(fields))}")
-    stem = _UNIT.sub("", name)
-    same = sorted(f for f in fields if _UNIT.sub("", f) == stem and f != name)
-    if same:
-        return _fail(where, key, value, f"wrong unit: the key is {' or '.join(map(repr, same))} "
-                     "(units are part of the key names)")
-    return _fail(where, key, value, f"unknown key; allowed here: {', '.join(sorted(fields))}")
+        fields = sorted(f.name for f in dataclasses.fields(MissionConfig))
+        return f"describes the simulated world, not the mission; a mission file holds only {', '.join(fields)}"
+    return None
 
 
 def build_dataclass(cls: type, data: dict, where: str, prefix: str = "") -> Any:
-    """An instance of the frozen dataclass `cls` from a parsed TOML table, strictly: every key a
-    field, every value of the field's type. where: the file (for messages); prefix: the key path."""
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs = {}
-    for name, value in data.items():
-        key = f"{prefix}.{name}" if prefix else name
-        if name not in fields:
-            raise _unknown_key(cls, name, value, where, key)
-        kwargs[name] = _convert(value, hints[name], where, key)
-    for name, f in fields.items():
-        if name not in kwargs and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise MissionConfigError(f"{where}: missing required key {(prefix + '.' if prefix else '') + name!r}")
-    return cls(**kwargs)
+    """An instance of the frozen dataclass `cls` from a parsed TOML table of a mission file,
+    strictly (:func:`mission.schema.build`). where: the file (for messages); prefix: the key path."""
+    return schema.build(cls, data, where, prefix, error=MissionConfigError, explain=_explain_unknown)
 
 
 def validate_mission(mc: MissionConfig, where: str) -> None:
     """Raise :class:`MissionConfigError` unless the values of `mc` are consistent and in range."""
     def bad(key: str, value: Any, problem: str) -> MissionConfigError:
-        return _fail(where, key, value, problem)
+        return schema.fail(where, key, value, problem, MissionConfigError)
 
-    def positive(section: str, obj: Any, *names: str) -> None:
-        for n in names:
-            if not getattr(obj, n) > 0:
-                raise bad(f"{section}.{n}", getattr(obj, n), "must be positive")
-
+    schema.check_bounds(mc, where, error=MissionConfigError)
     if not mc.users:
         raise bad("users", [], "a mission needs at least one user")
     ids, rntis = set(), set()
     for i, u in enumerate(mc.users):
         if u.id in ids:
             raise bad(f"users[{i}].id", u.id, "duplicate user id")
-        if not 0 < u.rnti <= 0xFFEF:
-            raise bad(f"users[{i}].rnti", u.rnti, "an RNTI is in 0x0001..0xFFEF")
         if u.rnti in rntis:
             raise bad(f"users[{i}].rnti", u.rnti, "duplicate RNTI")
         ids.add(u.id)
@@ -431,38 +365,29 @@ def validate_mission(mc: MissionConfig, where: str) -> None:
             raise bad(key, [list(p) for p in poly], "a polygon needs >= 3 vertices")
         if "lat_lon" in key and any(not (-90 <= la <= 90 and -180 <= lo <= 180) for la, lo in poly):
             raise bad(key, [list(p) for p in poly], "latitude must be in [-90, 90], longitude in [-180, 180] degrees")
-    positive("geofence", g, "max_distance_m")
+    if not (g.polygon_lat_lon_deg or g.no_fly_lat_lon_deg):
+        # ENU polygons are offsets from home: home must be a place the vehicle may be (geodetic
+        # polygons are checked when home is known, before take-off, MissionController)
+        from mission.safety import home_violations
+        from uavloc.errors import SafetyError
+
+        try:
+            problems = home_violations(mc.geofence.polygons_enu_m(Origin(0.0, 0.0, 0.0)))
+        except SafetyError as exc:
+            raise bad("geofence", "", str(exc)) from None
+        if problems:
+            raise bad("geofence", "home (0, 0)", f"{'; '.join(problems)} (the vehicle takes off and lands at home)")
     f = mc.flight
-    positive("flight", f, "delta_m", "altitude_m", "target_radius_m", "budget_m", "time_limit_s",
-             "cruise_speed_mps", "climb_mps", "descent_mps", "leg_max_m", "acceptance_m")
     if not 0 <= f.alt_min_m <= f.altitude_m <= f.alt_max_m:
         raise bad("flight.altitude_m", f.altitude_m,
                   f"need 0 <= alt_min_m ({f.alt_min_m:g}) <= altitude_m <= alt_max_m ({f.alt_max_m:g})")
-    n = mc.noise
-    positive("noise", n, "sigma_gps_m", "range_s0_m", "bias_prior_sigma_m")
-    if n.range_a_m < 0:
-        raise bad("noise.range_a_m", n.range_a_m, "must be >= 0")
-    if n.gps_tau_s is not None and n.gps_tau_s < 0:
-        raise bad("noise.gps_tau_s", n.gps_tau_s, "must be >= 0")
     gn = mc.gnb
-    if gn.mu not in (0, 1, 2, 3):
-        raise bad("gnb.mu", gn.mu, "the numerology is 0..3")
-    positive("gnb", gn, "fs_hz", "request_timeout_s", "connect_timeout_s", "msg2_timeout_s")
-    if gn.retries < 0:
-        raise bad("gnb.retries", gn.retries, "must be >= 0")
     if gn.mode == "stock" and not gn.log_path:
         raise bad("gnb.mode", gn.mode, "stock mode reads the TA from the gNB log: set gnb.log_path")
     for key in ("rtt_module", "rtt_command"):
         if not re.fullmatch(r"[A-Za-z0-9_]+", getattr(gn, key)):
             raise bad(f"gnb.{key}", getattr(gn, key), "a telnet module/command name is one word of [A-Za-z0-9_]")
     s = mc.safety
-    positive("safety", s, "link_timeout_s", "link_lost_wait_s", "gnb_lost_wait_s", "max_refusals",
-             "breach_confirm_fixes")
-    if s.alt_margin_m < 0:
-        raise bad("safety.alt_margin_m", s.alt_margin_m, "must be >= 0")
-    for key in ("battery_rtl_pct", "battery_takeoff_min_pct"):
-        if not 0 <= getattr(s, key) < 100:
-            raise bad(f"safety.{key}", getattr(s, key), "a charge in [0, 100) %")
     if s.battery_takeoff_min_pct < s.battery_rtl_pct:
         raise bad("safety.battery_takeoff_min_pct", s.battery_takeoff_min_pct,
                   f"must be >= battery_rtl_pct ({s.battery_rtl_pct:g})")
@@ -478,16 +403,7 @@ def mission_from_dict(data: dict, where: str = "mission") -> MissionConfig:
 
 def load_mission(path: str | Path) -> MissionConfig:
     """Read a mission file strictly (see the module docstring)."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise MissionConfigError(f"{p}: cannot read the mission file: {exc}") from exc
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise MissionConfigError(f"{p}: not valid TOML: {exc}") from exc
-    return mission_from_dict(data, str(p))
+    return mission_from_dict(schema.read_toml(path, "mission file", MissionConfigError), str(path))
 
 
 def example_mission_path(name: str = "flight") -> Path:

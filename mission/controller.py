@@ -1,9 +1,9 @@
 """The mission controller's public face and its wiring (DESIGN.md §1, §7).
 
 :func:`controller_from_mission` builds a :class:`MissionController` for a mission file
-(:class:`mission.config.MissionConfig`); :func:`controller_from_scenario` for a simulation
-scenario's mission part. The controller itself lives in the `mission.control` package, split by
-responsibility:
+(:class:`mission.config.MissionConfig`; a simulation scenario's is built by
+sitl_scenarios.scenario.controller_from_scenario from its mission part). The controller itself
+lives in the `mission.control` package, split by responsibility:
 
 - `mission.control.config`: ControllerConfig, MissionResult, the states and statuses;
 - `mission.control.state`: FlightState, the one object the flight and its background tasks share;
@@ -51,6 +51,7 @@ from mission.control.estimator_worker import EstimatorWorker
 from mission.control.flight import MissionController, _first_error
 from mission.control.loop import LoopLagMonitor
 from mission.control.pipeline import PROTOCOL_ERROR_STREAK
+from mission.estimation import mission_solver_params
 from mission.gnb import GnbClient
 from mission.safety import SafetyLimits
 from mission.vehicle import Vehicle
@@ -63,7 +64,7 @@ __all__ = [
     "ABORT", "CONNECT", "LANDED", "PREFLIGHT", "PROTOCOL_ERROR_STREAK", "PX4_DEFAULT_CRUISE_MPS", "RETURN",
     "STATUS_ABORTED", "STATUS_BUDGET", "STATUS_INTERRUPTED", "STATUS_NO_LEG", "STATUS_RETURNED", "STATUS_TARGET",
     "SURVEY", "TAKEOFF", "ControllerConfig", "EstimatorWorker", "LoopLagMonitor", "MissionController",
-    "MissionResult", "MissionUser", "_first_error", "controller_from_mission", "controller_from_scenario",
+    "MissionResult", "MissionUser", "_first_error", "controller_from_mission",
     "resolve_planner_name",
 ]
 
@@ -125,25 +126,6 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
     cfg = {"mission": mission.name, "planner": name, "seed": seed, **(header_config or {})}
     radio = {"mu": mission.gnb.mu, "fs_hz": mission.gnb.fs_hz}
     if params is None:
-        params = SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
-                              bias_prior_sigma_m=mission.noise.bias_prior_sigma_m)
+        params = mission_solver_params(mission)
     return MissionController(vehicle, gnb, planner_obj, users, noise, limits, config, log_path,
                              params=params, truth=truth, header_config=cfg, radio=radio, buildings=buildings)
-
-
-def controller_from_scenario(scenario, vehicle: Vehicle, gnb: GnbClient, log_path: str | Path, *,
-                             planner: str | None = None, seed: int | None = None, time_scale: float = 1.0,
-                             truth: Callable[[Origin], np.ndarray] | None = None,
-                             header_config: dict | None = None, params: SolverParams | None = None,
-                             buildings: Callable[[Origin], list] | None = None,
-                             external_vehicle: bool = False,
-                             **overrides: Any) -> MissionController:
-    """A :class:`MissionController` for a simulation scenario: its mission
-    (`scenario.mission_config(external_vehicle)`: an external autopilot's GPS error is not the
-    built-in vehicle's) flown by :func:`controller_from_mission`, with the planning constraints
-    that also keep clear of the scenario's buildings. seed: default the scenario's."""
-    return controller_from_mission(
-        scenario.mission_config(external_vehicle), vehicle, gnb, log_path, planner=planner,
-        seed=scenario.seed if seed is None else seed, time_scale=time_scale, truth=truth,
-        header_config={"scenario": scenario.name, **(header_config or {})}, params=params,
-        constraints=lambda home: scenario.planning_constraints(), buildings=buildings, **overrides)

@@ -23,9 +23,8 @@ from estimator.keyframes import KeyframeSelector
 from estimator.motion import integrate_velocity, motion_sigma_m, velocity_enu_of_ned
 from estimator.noise import NoiseModel
 from estimator.ranging import C_MPS
-from estimator.refresh import RefreshedEstimator
-from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
+from mission.estimation import MissionEstimator
 from mission.log import MissionLog
 from mission.result import horizontal_error_m, user_entries_of_estimate
 from mission.telemetry import odometer_dead_band_m, odometer_m
@@ -244,10 +243,12 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
         kf_flown = odometer_m(kf_gps, band_m)
     flown_m = float(kf_flown[-1])
 
+    # the mission's estimator (mission.estimation), without a stop rule
+    setup = MissionEstimator(n_users, user_up_m, noise, params)
     history = None
     total = len(keyframes) + 1
     if options.history:
-        refreshed = RefreshedEstimator(n_users, user_up_m, noise, params, online=False)
+        refreshed = setup.estimator(online=False)
         bounds = np.full((len(keyframes), n_users), np.inf)
         users_hist = np.full((len(keyframes), n_users, 3), np.nan)
         for i, kf in enumerate(keyframes):
@@ -259,7 +260,7 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
         errors = horizontal_error_m(users_hist, truth_enu[None]) if truth_enu is not None else None
         history = ReplayHistory(kf_flown, kf_t, bounds, errors, users_hist)
 
-    estimate = solve_batch(keyframes, n_users, user_up_m, noise, params)
+    estimate = setup.final(keyframes)
     if progress is not None:
         progress(total, total)
     error_m = horizontal_error_m(estimate.users_enu_m, truth_enu) if truth_enu is not None else None

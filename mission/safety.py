@@ -83,19 +83,12 @@ class SafetyLimits:
                    alt_min_m=mission.flight.alt_min_m, alt_max_m=mission.flight.alt_max_m,
                    battery_rtl_pct=mission.safety.battery_rtl_pct)
 
-    @classmethod
-    def from_scenario(cls, sc) -> SafetyLimits:
-        """From a :class:`sitl_scenarios.scenario.Scenario` (its geofence and mission sections)."""
-        g, m = sc.geofence, sc.mission
-        fence = np.asarray(g.polygon_enu_m, float) if g.polygon_enu_m else None
-        return cls(
-            fence_enu_m=fence,
-            no_fly_enu_m=tuple(np.asarray(p, float) for p in g.no_fly_enu_m),
-            max_distance_m=g.max_distance_m,
-            alt_min_m=m.alt_min_m,
-            alt_max_m=m.alt_max_m,
-            battery_rtl_pct=m.battery_rtl_pct,
-        )
+
+def home_violations(polygons_enu_m: tuple[np.ndarray | None, tuple[np.ndarray, ...]]) -> list[str]:
+    """:meth:`SafetyGate.home_violations` of a fence and no-fly zones in the home ENU frame, as
+    `GeofenceConfig.polygons_enu_m` gives them: (fence (P, 2) or None, zones ((Q, 2), ...))."""
+    fence, zones = polygons_enu_m
+    return SafetyGate(SafetyLimits(fence_enu_m=fence, no_fly_enu_m=tuple(zones))).home_violations()
 
 
 class SafetyGate:
@@ -129,6 +122,12 @@ class SafetyGate:
             out.append(f"height {p[2]:.1f} m above home is outside the band "
                        f"[{lim.alt_min_m:g}, {lim.alt_max_m:g}] m")
         return out
+
+    def home_violations(self) -> list[str]:
+        """Every limit home (the ENU origin, where the vehicle takes off and lands) breaks, as
+        messages (empty: fine): outside the fence polygon or inside a no-fly zone."""
+        return [m.replace("position (0.0, 0.0) m", "home", 1)
+                for m in self.position_violations(np.zeros(3), check_altitude=False)]
 
     def check_goto(self, target_enu_m: np.ndarray, current_enu_m: np.ndarray | None) -> None:
         """Raise :class:`SafetyError` unless the target (3,) and the straight leg from the current

@@ -13,7 +13,7 @@ Plain dataclasses on numpy arrays, all positions in the mission's local ENU fram
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -100,12 +100,6 @@ class PlanningConstraints:
         e0 = np.concatenate(polys)
         e1 = np.concatenate([np.roll(p, -1, axis=0) for p in polys])
         return e0, e1
-
-    @classmethod
-    def from_scenario(cls, scenario: Any, **kwargs: Any) -> PlanningConstraints:
-        """A simulation scenario's constraints: `scenario.planning_constraints(**kwargs)`
-        (sitl_scenarios.scenario.Scenario; kept for callers, the planner imports no simulator)."""
-        return scenario.planning_constraints(**kwargs)
 
 
 @dataclass(frozen=True)

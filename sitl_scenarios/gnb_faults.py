@@ -8,7 +8,6 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from sitl_scenarios.scenario import Scenario
 from uavloc.errors import ScenarioError
 
 
@@ -56,5 +55,6 @@ class GnbFaults:
         return cls(**kwargs)
 
     @classmethod
-    def from_scenario(cls, scenario: Scenario) -> GnbFaults:
+    def from_scenario(cls, scenario: Any) -> GnbFaults:
+        """The `[faults.gnb]` table of a sitl_scenarios.scenario.Scenario (which checked it at load)."""
         return cls.from_table(scenario.faults.get("gnb", {}))

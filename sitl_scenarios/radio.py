@@ -127,11 +127,10 @@ class RadioModel:
 
     # -- deterministic parts ------------------------------------------------------------------
     def sawtooth_params(self, user: int | UserConfig) -> tuple[float, float]:
-        """(A [m], P [s]) of a user's clock sawtooth: its own, else the radio's commercial-UE one."""
+        """(A [m], P [s]) of a user's clock sawtooth (a commercial UE's is resolved when the scenario
+        is read, sitl_scenarios.scenario.scenario_from_dict)."""
         u = self.users[self.user_index(user)]
-        amp = self.radio.ue_sawtooth_amplitude_m if u.sawtooth_amplitude_m is None else u.sawtooth_amplitude_m
-        period = self.radio.ue_sawtooth_period_s if u.sawtooth_period_s is None else u.sawtooth_period_s
-        return float(amp), float(period)
+        return float(u.sawtooth_amplitude_m), float(u.sawtooth_period_s)
 
     def sawtooth_m(self, user: int | UserConfig, t_s: float) -> float:
         """saw(t) = A · frac(t / P + φ) [m, one-way]; mean A/2 over a period."""

@@ -9,10 +9,6 @@ vehicle (PX4 SITL) it is the vehicle's home. Unknown keys, wrong types and out-o
 from __future__ import annotations
 
 import dataclasses
-import math
-import tomllib
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,22 +17,28 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
+from mission import config as mc
+from mission import schema
+from mission.config import MAX_DISTANCE_M, MAX_HEIGHT_M
+from mission.schema import bounded, like, positive
 from planner.types import PlanningConstraints
-from uavloc.errors import ScenarioError
-
-if typing.TYPE_CHECKING:
-    from mission import config as mission_config
+from uavloc.errors import MissionConfigError, ScenarioError
 
 SCENARIO_DIR = Path(__file__).resolve().parent
+
+#: the largest seed (numpy's SeedSequence takes non-negative integers; 32 bits is plenty)
+MAX_SEED = 2**32 - 1
+#: the tables of `[faults]`: the simulated gNB's (sitl_scenarios.gnb_faults) and the vehicle's
+FAULT_TABLES = ("gnb", "vehicle")
 
 
 @dataclass(frozen=True)
 class OriginConfig:
     """Geodetic origin used by the built-in vehicle (its home)."""
 
-    lat_deg: float = 47.397742
-    lon_deg: float = 8.545594
-    alt_m: float = 488.0
+    lat_deg: float = bounded(47.397742, -90.0, 90.0)
+    lon_deg: float = bounded(8.545594, -180.0, 180.0)
+    alt_m: float = bounded(488.0, -500.0, 9000.0)
 
 
 @dataclass(frozen=True)
@@ -45,25 +47,26 @@ class UserConfig:
 
     sawtooth_amplitude_m / sawtooth_period_s: UE downlink-timing drift as a one-way range error that
     rises linearly from 0 to the amplitude and resets (its mean, amplitude/2, is a range bias).
-    None (the default): a commercial UE, the radio section's ue_sawtooth_amplitude_m / _period_s;
-    0 amplitude: an ideal UE (e.g. a software UE with a perfect clock).
+    Absent from the file: a commercial UE, the radio section's ue_sawtooth_amplitude_m / _period_s,
+    resolved once when the scenario is read (:func:`scenario_from_dict`), so a loaded scenario's
+    users always carry numbers; 0 amplitude: an ideal UE (e.g. a software UE with a perfect clock).
     """
 
     id: str
-    rnti: int
-    east_m: float
-    north_m: float
-    up_m: float = 0.0
-    sawtooth_amplitude_m: float | None = None
-    sawtooth_period_s: float | None = None
+    rnti: int = like(mc.MissionUserConfig, "rnti")
+    east_m: float = bounded(dataclasses.MISSING, -MAX_DISTANCE_M, MAX_DISTANCE_M)
+    north_m: float = bounded(dataclasses.MISSING, -MAX_DISTANCE_M, MAX_DISTANCE_M)
+    up_m: float = bounded(0.0, -MAX_HEIGHT_M, MAX_HEIGHT_M)
+    sawtooth_amplitude_m: float | None = bounded(None, 0.0, 200.0)
+    sawtooth_period_s: float | None = positive(None, 1e5)
 
 
 @dataclass(frozen=True)
 class BuildingConfig:
     """A building: footprint polygon [[east_m, north_m], ...] (≥ 3 vertices) and height [m]."""
 
-    footprint_enu_m: list[list[float]]
-    height_m: float
+    footprint_enu_m: list[tuple[float, float]]
+    height_m: float = positive(dataclasses.MISSING, 1000.0)
 
 
 @dataclass(frozen=True)
@@ -71,9 +74,9 @@ class GeofenceConfig:
     """Inclusion polygon [[east_m, north_m], ...] (may be non-convex; empty: none), a maximum
     horizontal distance from home [m], and exclusion polygons (no-fly zones)."""
 
-    polygon_enu_m: list[list[float]] = field(default_factory=list)
-    max_distance_m: float = 500.0
-    no_fly_enu_m: list[list[list[float]]] = field(default_factory=list)
+    polygon_enu_m: list[tuple[float, float]] = field(default_factory=list)
+    max_distance_m: float = positive(500.0, MAX_DISTANCE_M)
+    no_fly_enu_m: list[list[tuple[float, float]]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -89,17 +92,17 @@ class RadioConfig:
     without its own), 12 m peak as the paper saw with a Quectel module.
     """
 
-    mu: int = 1
-    fs_hz: float = 46.08e6
-    oversampling: int = 8
-    s0_m: float = 3.0
-    a_m: float = 0.0
-    b_per_m: float = 0.0
-    coverage_m: float = 1500.0
-    nlos_excess_mean_m: float = 20.0
-    snr_db_at_100m: float = 30.0
-    ue_sawtooth_amplitude_m: float = 12.0
-    ue_sawtooth_period_s: float = 15.0
+    mu: int = like(mc.GnbSettings, "mu")
+    fs_hz: float = like(mc.GnbSettings, "fs_hz")
+    oversampling: int = bounded(8, 1, 1024)
+    s0_m: float = like(mc.NoiseConfig, "range_s0_m")
+    a_m: float = like(mc.NoiseConfig, "range_a_m")
+    b_per_m: float = like(mc.NoiseConfig, "range_b_per_m")
+    coverage_m: float = positive(1500.0, 1e5)
+    nlos_excess_mean_m: float = bounded(20.0, 0.0, 500.0)
+    snr_db_at_100m: float = bounded(30.0, -50.0, 100.0)
+    ue_sawtooth_amplitude_m: float = bounded(12.0, 0.0, 200.0)
+    ue_sawtooth_period_s: float = positive(15.0, 1e5)
 
 
 @dataclass(frozen=True)
@@ -109,16 +112,16 @@ class VehicleConfig:
     gps_tau_s: correlation time of the GPS error (0: independent per fix; > 0: Gauss-Markov).
     """
 
-    speed_mps: float = 10.0
-    climb_mps: float = 3.0
-    descent_mps: float = 1.5
-    accel_mps2: float = 3.0
-    gps_sigma_m: float = 1.0
+    speed_mps: float = like(mc.FlightConfig, "cruise_speed_mps")
+    climb_mps: float = like(mc.FlightConfig, "climb_mps")
+    descent_mps: float = like(mc.FlightConfig, "descent_mps")
+    accel_mps2: float = positive(3.0, 50.0)
+    gps_sigma_m: float = bounded(1.0, 0.0, 100.0)
     # the built-in vehicle's own error; an external autopilot's is not this one (Scenario.noise_model):
     # PX4 SITL's (SIH) EKF output drifts far slower, its increments say tau ~ 120-220 s at sigma 1 m
-    gps_tau_s: float = 3.0
-    battery_capacity_s: float = 1800.0
-    battery_start_pct: float = 100.0
+    gps_tau_s: float = bounded(3.0, 0.0, 1e5)
+    battery_capacity_s: float = positive(1800.0, 1e5)
+    battery_start_pct: float = positive(100.0, 100.0)
 
 
 @dataclass(frozen=True)
@@ -142,21 +145,21 @@ class MissionConfig:
     velocity, else assume estimator.noise.DEFAULT_GPS_TAU_S).
     """
 
-    delta_m: float = 2.0
-    altitude_m: float = 30.0
-    alt_min_m: float = 10.0
-    alt_max_m: float = 120.0
-    target_radius_m: float = 2.0
-    budget_m: float = 2000.0
-    time_limit_s: float = 1200.0
-    leg_max_m: float = 80.0
-    acceptance_m: float = 2.0
-    battery_rtl_pct: float = 25.0
-    sigma_gps_m: float = 1.0
+    delta_m: float = like(mc.FlightConfig, "delta_m")
+    altitude_m: float = like(mc.FlightConfig, "altitude_m")
+    alt_min_m: float = like(mc.FlightConfig, "alt_min_m")
+    alt_max_m: float = like(mc.FlightConfig, "alt_max_m")
+    target_radius_m: float = like(mc.FlightConfig, "target_radius_m")
+    budget_m: float = like(mc.FlightConfig, "budget_m")
+    time_limit_s: float = like(mc.FlightConfig, "time_limit_s")
+    leg_max_m: float = like(mc.FlightConfig, "leg_max_m")
+    acceptance_m: float = like(mc.FlightConfig, "acceptance_m")
+    battery_rtl_pct: float = like(mc.SafetyConfig, "battery_rtl_pct")
+    sigma_gps_m: float = like(mc.NoiseConfig, "sigma_gps_m")
     planner: str = "casadi"
     estimate_bias: bool = True
-    range_s0_m: float | None = None
-    gps_tau_s: float | None = None
+    range_s0_m: float | None = positive(None, 1000.0)
+    gps_tau_s: float | None = like(mc.NoiseConfig, "gps_tau_s")
 
 
 @dataclass(frozen=True)
@@ -165,7 +168,7 @@ class Scenario:
 
     name: str
     users: list[UserConfig]
-    seed: int = 0
+    seed: int = bounded(0, 0, MAX_SEED)
     description: str = ""
     origin: OriginConfig = field(default_factory=OriginConfig)
     buildings: list[BuildingConfig] = field(default_factory=list)
@@ -235,13 +238,12 @@ class Scenario:
         kwargs.update(overrides)
         return PlanningConstraints(**kwargs)
 
-    def mission_config(self, external_vehicle: bool = False) -> mission_config.MissionConfig:
+    def mission_config(self, external_vehicle: bool = False, where: str | None = None) -> mc.MissionConfig:
         """The mission part of this scenario as a :class:`mission.config.MissionConfig` (what a real
         flight would be configured with: users without their positions, fence, limits, the noise
         the estimator assumes (noise_model(external_vehicle)), the gNB's numerology). The bridge
-        until scenarios are written as a mission plus a world (see mission/config.py)."""
-        from mission import config as mc
-
+        until scenarios are written as a mission plus a world (see mission/config.py). Checked by
+        mission.config.validate_mission (where: the file, for messages)."""
         m, g, n = self.mission, self.geofence, self.noise_model(external_vehicle)
         out = mc.MissionConfig(
             name=self.name,
@@ -264,7 +266,7 @@ class Scenario:
                                    battery_takeoff_min_pct=max(mc.SafetyConfig.battery_takeoff_min_pct,
                                                                m.battery_rtl_pct)),
         )
-        mc.validate_mission(out, f"scenario {self.name!r}")
+        mc.validate_mission(out, where or f"scenario {self.name!r}")
         return out
 
     def user_by_rnti(self, rnti: int) -> UserConfig:
@@ -275,177 +277,114 @@ class Scenario:
 
 
 # ---------------------------------------------------------------------------------------------
-# strict conversion of parsed TOML into the dataclasses above
-
-
-def _convert(value: Any, tp: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if tp is Any:
-        return value
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _convert(value, arg, where)
-            except ScenarioError as exc:
-                errors.append(str(exc))
-        raise ScenarioError(errors[0] if errors else f"{where}: unsupported value {value!r}")
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise ScenarioError(f"{where}: expected a table, got {value!r}")
-        return _build(tp, value, where)
-    if origin is list:
-        if not isinstance(value, list):
-            raise ScenarioError(f"{where}: expected a list, got {value!r}")
-        (item_tp,) = args
-        return [_convert(v, item_tp, f"{where}[{i}]") for i, v in enumerate(value)]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ScenarioError(f"{where}: expected a table, got {value!r}")
-        return dict(value)
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ScenarioError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, str):  # RNTIs are often written in hex: "0x4601"
-            try:
-                return int(value, 0)
-            except ValueError as exc:
-                raise ScenarioError(f"{where}: expected an integer, got {value!r}") from exc
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ScenarioError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ScenarioError(f"{where}: expected a number, got {value!r}")
-        if not math.isfinite(value):
-            raise ScenarioError(f"{where}: must be finite, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ScenarioError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise ScenarioError(f"{where}: unsupported type {tp!r}")  # pragma: no cover - schema bug
-
-
-def _build(cls: type, data: dict, where: str) -> Any:
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ScenarioError(
-            f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(sorted(fields))}"
-        )
-    kwargs = {}
-    for name, f in fields.items():
-        if name in data:
-            kwargs[name] = _convert(data[name], hints[name], f"{where}.{name}" if where else name)
-        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise ScenarioError(f"{where or 'scenario'}: missing required key {name!r}")
-    return cls(**kwargs)
+# strict conversion of parsed TOML into the dataclasses above: mission.schema, as for mission files
 
 
 def _check(sc: Scenario, where: str) -> None:
-    def positive(path: str, v: float) -> None:
-        if not v > 0:
-            raise ScenarioError(f"{where}: {path} must be positive, got {v!r}")
-
-    if not sc.users:
-        raise ScenarioError(f"{where}: a scenario needs at least one user")
-    seen_id, seen_rnti = set(), set()
-    for u in sc.users:
-        if u.id in seen_id:
-            raise ScenarioError(f"{where}: duplicate user id {u.id!r}")
-        if u.rnti in seen_rnti:
-            raise ScenarioError(f"{where}: duplicate RNTI {u.rnti:#06x}")
-        if not 0 < u.rnti <= 0xFFEF:
-            raise ScenarioError(f"{where}: user {u.id!r} RNTI must be in 0x0001..0xFFEF, got {u.rnti:#x}")
-        if u.sawtooth_amplitude_m is not None and not u.sawtooth_amplitude_m >= 0:
-            raise ScenarioError(f"{where}: user {u.id!r} sawtooth_amplitude_m must be >= 0")
-        if u.sawtooth_period_s is not None:
-            positive(f"user {u.id!r} sawtooth_period_s", u.sawtooth_period_s)
-        seen_id.add(u.id)
-        seen_rnti.add(u.rnti)
-    if not -90 <= sc.origin.lat_deg <= 90 or not -180 <= sc.origin.lon_deg <= 180:
-        raise ScenarioError(f"{where}: origin lat/lon out of range: {sc.origin}")
+    """The checks across fields (each number's own range is checked by mission.schema.build)."""
+    for i, u in enumerate(sc.users):
+        if not (u.id and u.id.strip()):
+            raise schema.fail(where, f"users[{i}].id", u.id, "a user needs an id", ScenarioError)
     for i, b in enumerate(sc.buildings):
-        if len(b.footprint_enu_m) < 3 or any(len(p) != 2 for p in b.footprint_enu_m):
-            raise ScenarioError(f"{where}: buildings[{i}].footprint_enu_m needs >= 3 [east, north] points")
-        positive(f"buildings[{i}].height_m", b.height_m)
-    polys = [("geofence.polygon_enu_m", sc.geofence.polygon_enu_m)] + [
-        (f"geofence.no_fly_enu_m[{i}]", p) for i, p in enumerate(sc.geofence.no_fly_enu_m)
-    ]
-    for path, poly in polys:
-        if poly and (len(poly) < 3 or any(len(p) != 2 for p in poly)):
-            raise ScenarioError(f"{where}: {path} needs >= 3 [east, north] points")
-    positive("geofence.max_distance_m", sc.geofence.max_distance_m)
-    r = sc.radio
-    if r.mu not in (0, 1, 2, 3):
-        raise ScenarioError(f"{where}: radio.mu must be 0..3, got {r.mu}")
-    for path in ("fs_hz", "oversampling", "s0_m", "coverage_m", "ue_sawtooth_period_s"):
-        positive(f"radio.{path}", getattr(r, path))
-    if r.a_m < 0 or r.nlos_excess_mean_m < 0 or not r.ue_sawtooth_amplitude_m >= 0:
-        raise ScenarioError(f"{where}: radio.a_m, radio.nlos_excess_mean_m and radio.ue_sawtooth_amplitude_m "
-                            "must be >= 0")
-    v = sc.vehicle
-    for path in ("speed_mps", "climb_mps", "descent_mps", "accel_mps2", "battery_capacity_s"):
-        positive(f"vehicle.{path}", getattr(v, path))
-    if v.gps_sigma_m < 0 or not 0 < v.battery_start_pct <= 100:
-        raise ScenarioError(f"{where}: vehicle.gps_sigma_m must be >= 0 and battery_start_pct in (0, 100]")
-    if v.gps_tau_s < 0:
-        raise ScenarioError(f"{where}: vehicle.gps_tau_s must be >= 0, got {v.gps_tau_s!r}")
-    m = sc.mission
-    for path in ("delta_m", "altitude_m", "target_radius_m", "budget_m", "time_limit_s", "leg_max_m",
-                 "acceptance_m", "sigma_gps_m"):
-        positive(f"mission.{path}", getattr(m, path))
-    if not 0 <= m.alt_min_m <= m.altitude_m <= m.alt_max_m:
-        raise ScenarioError(
-            f"{where}: need 0 <= mission.alt_min_m <= mission.altitude_m <= mission.alt_max_m, got "
-            f"{m.alt_min_m}, {m.altitude_m}, {m.alt_max_m}"
-        )
-    if m.gps_tau_s is not None and not (isinstance(m.gps_tau_s, int | float) and 0 <= m.gps_tau_s < float("inf")):
-        raise ScenarioError(f"{where}: mission.gps_tau_s must be a number >= 0, got {m.gps_tau_s!r}")
-    if m.range_s0_m is not None and not m.range_s0_m > 0:
-        raise ScenarioError(f"{where}: mission.range_s0_m must be positive, got {m.range_s0_m!r}")
-    if not 0 <= m.battery_rtl_pct < 100:
-        raise ScenarioError(f"{where}: mission.battery_rtl_pct must be in [0, 100), got {m.battery_rtl_pct}")
+        if len(b.footprint_enu_m) < 3:
+            raise schema.fail(where, f"buildings[{i}].footprint_enu_m", b.footprint_enu_m,
+                              "needs >= 3 [east, north] points", ScenarioError)
+    for i, poly in enumerate([sc.geofence.polygon_enu_m, *sc.geofence.no_fly_enu_m]):
+        if poly and len(poly) < 3:
+            key = "geofence.polygon_enu_m" if i == 0 else f"geofence.no_fly_enu_m[{i - 1}]"
+            raise schema.fail(where, key, poly, "needs >= 3 [east, north] points", ScenarioError)
+    unknown = sorted(set(sc.faults) - set(FAULT_TABLES))
+    if unknown:
+        raise schema.fail(where, f"faults.{unknown[0]}", sc.faults[unknown[0]],
+                          f"unknown key; allowed here: {', '.join(FAULT_TABLES)}", ScenarioError)
+    # the simulators' own strict readers of their tables, so a bad fault is refused at load
+    from sitl_scenarios.gnb_faults import GnbFaults
+    from sitl_scenarios.vehicle.fault_events import faults_from_scenario
+
+    try:
+        GnbFaults.from_table(sc.faults.get("gnb", {}))
+        faults_from_scenario(sc.faults)
+    except ScenarioError as exc:
+        raise ScenarioError(f"{where}: {exc}") from None
+    # the mission part is checked as a mission file is (users, RNTIs, fence, home, band, ...)
+    try:
+        sc.mission_config(where=where)
+    except MissionConfigError as exc:
+        raise ScenarioError(str(exc)) from None
 
 
 def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
-    """Build and validate a :class:`Scenario` from a parsed TOML document."""
-    sc = _build(Scenario, data, "")
+    """Build and validate a :class:`Scenario` from a parsed TOML document; `where` (the file)
+    names the source in every message."""
+    sc = schema.build(Scenario, data, where, error=ScenarioError)
     _check(sc, where)
-    return sc
+    return _resolve_commercial_ues(sc)
 
 
-def resolve_scenario_path(name_or_path: str | Path) -> Path:
-    """A path as given, or the name of a bundled scenario (`paper` → sitl_scenarios/paper.toml)."""
-    p = Path(name_or_path)
-    if p.is_file():
-        return p
-    bundled = SCENARIO_DIR / (p.name if p.suffix == ".toml" else f"{p.name}.toml")
-    if bundled.is_file():
-        return bundled
-    names = ", ".join(sorted(q.stem for q in SCENARIO_DIR.glob("*.toml")))
-    raise ScenarioError(f"no scenario file {str(name_or_path)!r}; bundled scenarios: {names}")
+def _resolve_commercial_ues(sc: Scenario) -> Scenario:
+    """`sc` with every user's absent clock sawtooth set to the radio's commercial-UE one."""
+    r = sc.radio
+    users = [dataclasses.replace(
+        u, sawtooth_amplitude_m=r.ue_sawtooth_amplitude_m if u.sawtooth_amplitude_m is None else u.sawtooth_amplitude_m,
+        sawtooth_period_s=r.ue_sawtooth_period_s if u.sawtooth_period_s is None else u.sawtooth_period_s)
+        for u in sc.users]
+    return dataclasses.replace(sc, users=users)
 
 
-def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Read a scenario file (or a bundled scenario by name) strictly."""
-    path = resolve_scenario_path(name_or_path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{path}: not valid TOML: {exc}") from exc
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read: {exc}") from exc
-    return scenario_from_dict(data, str(path))
+def bundled_scenario_names() -> list[str]:
+    """The names of the scenario files shipped in sitl_scenarios/ (`paper`, ...)."""
+    return sorted(q.stem for q in SCENARIO_DIR.glob("*.toml"))
+
+
+def resolve_scenario_path(name_or_path: str | Path, base_dir: Path | None = None) -> Path:
+    """The file of a scenario: a bare name without a folder or suffix (`paper`) is a bundled
+    scenario (sitl_scenarios/paper.toml); anything else (`nodir/paper.toml`, `paper.toml`) is a
+    path, relative to base_dir when given, and must exist: never the bundled file of the same name."""
+    text = str(name_or_path)
+    p = Path(text)
+    bare = p.parent == Path(".") and not p.suffix and "/" not in text and "\\" not in text
+    names = ", ".join(bundled_scenario_names())
+    if bare:
+        bundled = SCENARIO_DIR / f"{p.name}.toml"
+        if bundled.is_file():
+            return bundled
+        raise ScenarioError(f"no bundled scenario {text!r} (a file is given by its path, e.g. {text}.toml "
+                            f"or ./{text}); bundled scenarios: {names}")
+    path = p if base_dir is None or p.is_absolute() else base_dir / p
+    if not path.is_file():
+        raise ScenarioError(f"{path}: no such scenario file (a bundled scenario is given by its bare name; "
+                            f"bundled scenarios: {names})")
+    return path
+
+
+def load_scenario(name_or_path: str | Path, base_dir: Path | None = None) -> Scenario:
+    """Read a scenario file (or a bundled scenario by name, :func:`resolve_scenario_path`) strictly."""
+    path = resolve_scenario_path(name_or_path, base_dir)
+    return scenario_from_dict(schema.read_toml(path, "scenario file", ScenarioError), str(path))
+
+
+def controller_from_scenario(scenario: Scenario, vehicle: Any, gnb: Any, log_path: str | Path, *,
+                             seed: int | None = None, external_vehicle: bool = False, **kwargs: Any) -> Any:
+    """A :class:`mission.controller.MissionController` for a simulation scenario: its mission
+    (`scenario.mission_config(external_vehicle)`: an external autopilot's GPS error is not the
+    built-in vehicle's) flown by `mission.controller.controller_from_mission`, with the planning
+    constraints that also keep clear of the scenario's buildings. seed: default the scenario's;
+    kwargs: controller_from_mission's (planner, time_scale, truth, header_config, params,
+    buildings, ControllerConfig overrides)."""
+    from mission.controller import controller_from_mission
+
+    header = {"scenario": scenario.name, **(kwargs.pop("header_config", None) or {})}
+    return controller_from_mission(
+        scenario.mission_config(external_vehicle), vehicle, gnb, log_path,
+        seed=scenario.seed if seed is None else seed, header_config=header,
+        constraints=lambda home: scenario.planning_constraints(), **kwargs)
+
+
+def flight_mission(name_or_path: str | Path) -> mc.MissionConfig:
+    """The mission part of a scenario as a real autopilot flies it (`uavloc fly --scenario`, found
+    through the `uavloc.scenarios` entry point's module): no true positions, and the GPS error
+    model left to the flight (an external autopilot's is not the built-in vehicle's)."""
+    return load_scenario(name_or_path).mission_config(external_vehicle=True)
 
 
 def bundled_scenarios() -> list[Path]:

@@ -29,11 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from estimator.geodesy import Origin
-from mission.controller import MissionController, MissionResult, controller_from_scenario
+from mission.controller import MissionController, MissionResult
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.vehicle import MavsdkVehicle
 from sitl_scenarios.gnb import SimulatedGnb
-from sitl_scenarios.scenario import Scenario
+from sitl_scenarios.scenario import Scenario, controller_from_scenario
 from sitl_scenarios.vehicle import VehicleSimulator
 from uavloc.errors import MissionError
 

@@ -22,7 +22,7 @@ LAYERS = {"uavloc": 0, "estimator": 1, "planner": 2, "mission": 3, "sitl_scenari
 
 #: modules that import a higher layer (module → the higher package): none. Issue 12 phase 2 emptied
 #: the list (mission file for `uavloc fly --mission`, sim runner and `sim` command in sitl_scenarios,
-#: found through the `uavloc.commands` entry point, PlanningConstraints.from_scenario a delegate).
+#: found through the `uavloc.commands` entry point).
 KNOWN_UPWARD_IMPORTS: dict[str, str] = {}
 
 #: pure packages (DESIGN.md §2): no asyncio, sockets, files, clocks, processes or threads
@@ -161,7 +161,7 @@ def test_the_reader_sees_the_imports_it_must():
     assert "mission.geometry" in ours["mission.safety"]       # `from mission import geometry`
     assert "mission.report.inputs" in ours["mission.report.exports"]
     assert "planner.types" in ours["sitl_scenarios.scenario"]
-    assert "mission.config" in ours["sitl_scenarios.scenario"]  # under TYPE_CHECKING
+    assert "mission.schema" in ours["sitl_scenarios.scenario"]  # `from mission import schema`
     assert {"numpy", "pymap3d"} <= others["estimator.geodesy"]
     assert "asyncio" in others["mission.control.flight"]
 
@@ -232,3 +232,47 @@ def test_estimator_and_planner_do_no_io_and_read_no_clock(graph):
                     and isinstance(node.func.value, ast.Name) and node.func.value.id in {"np", "numpy"}):
                 calls.append(f"{name}:{node.lineno} np.{node.func.attr}()")
     assert calls == [], calls
+
+
+#: parameter names that say "a simulation scenario" (its dataclass, sitl_scenarios.scenario.Scenario)
+SCENARIO_PARAMETERS = frozenset({"scenario", "sc"})
+
+
+def scenario_uses(tree: ast.AST) -> list[str]:
+    """Where a module takes a simulation scenario: a `from_scenario` adapter, a parameter named
+    like a scenario or annotated with `Scenario`, a call of the scenario's `mission_config()`."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            if node.name.endswith("from_scenario"):
+                out.append(f"{node.lineno} def {node.name}")
+            a = node.args
+            for arg in [*a.posonlyargs, *a.args, *a.kwonlyargs, a.vararg, a.kwarg]:
+                if arg is None:
+                    continue
+                if arg.arg in SCENARIO_PARAMETERS:
+                    out.append(f"{node.lineno} {node.name}({arg.arg})")
+                if arg.annotation is not None and "Scenario" in ast.unparse(arg.annotation):
+                    out.append(f"{node.lineno} {node.name}({arg.arg}: {ast.unparse(arg.annotation)})")
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "mission_config":
+            out.append(f"{node.lineno} .mission_config()")
+    return out
+
+
+def test_scenario_uses_are_seen():
+    """The reader itself: each kind of use is found (a reader finding nothing would pass below)."""
+    src = ("class C:\n    @classmethod\n    def from_scenario(cls, x): pass\n"
+           "def f(scenario): pass\ndef g(x: Scenario): pass\ndef h(y): return y.mission_config()\n")
+    assert len(scenario_uses(ast.parse(src))) == 4
+
+
+def test_mission_and_planner_take_no_scenario():
+    """A simulation scenario is sitl_scenarios' business: mission/ and planner/ are configured by a
+    mission file's objects (mission.config) and the planner's own types, never by a scenario."""
+    found = {}
+    for name, path in project_modules().items():
+        if name.split(".")[0] in ("mission", "planner"):
+            uses = scenario_uses(ast.parse(path.read_text(encoding="utf-8")))
+            if uses:
+                found[name] = uses
+    assert found == {}, f"a scenario taken in mission/ or planner/: {found}"

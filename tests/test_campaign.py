@@ -34,15 +34,18 @@ SPEC = {
 }
 
 # a scenario whose fence leaves out home: the planner raises when asked to route from there
+# home under a building too tall to overfly (a no-fly zone of the planner's, not of the mission
+# file: a home outside the fence or inside a no-fly zone is refused when the scenario loads)
 OUTSIDE = """
-name = "home_outside_fence"
+name = "home_under_tall_building"
 [[users]]
 id = "ue1"
 rnti = 17921
 east_m = 150.0
 north_m = 150.0
-[geofence]
-polygon_enu_m = [[100.0, 100.0], [200.0, 100.0], [200.0, 200.0], [100.0, 200.0]]
+[[buildings]]
+footprint_enu_m = [[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]]
+height_m = 200.0
 """
 
 

@@ -163,3 +163,38 @@ def test_batch_finds_a_weak_sawtooth_in_a_short_log():
             assert fit.period_s == pytest.approx(15.0, rel=0.07)
             e = est.users_enu_m[k, :2] - sc.users_enu_m[k, :2]
             assert e @ np.linalg.solve(est.cov_users_m2[k], e) < 13.8, (seed, k, e)
+
+
+@pytest.mark.parametrize("span_periods", [0.5, 1.0, 1.05, 1.5, 1.99])
+def test_refine_sawtooth_keeps_a_period_its_samples_cannot_pin(span_periods):
+    """A tracked 15 s sawtooth refined on kept ranges spanning fewer than CLOCK_MIN_PERIODS of it
+    (a refresh whose loss set most of a user's ranges aside): the tracked fit comes back as it
+    was. The grid 1/P0 ± CLOCK_REFINE_BINS/(4·max(span, P0)) once reached zero frequency at
+    span ≤ P0 (an infinite period, a NaN fit) and a few-hundred-second period just above it,
+    whose gain then made the solve's normal equations NaN (issue 21: 'five_commercial_ues
+    --seed 2' died in solveh_banded)."""
+    from estimator.clock import SawtoothFit, refine_sawtooth
+
+    rng = np.random.default_rng(21)
+    prev = SawtoothFit(15.0, 0.7, 12.0, 0.0, 0.9)
+    t = 300.0 + np.sort(rng.uniform(0.0, span_periods * 15.0, 60))
+    r = prev.value_m(t) + rng.normal(scale=1.0, size=t.size)
+    assert refine_sawtooth(t, r, prev) is prev
+
+
+def test_refine_sawtooth_over_two_periods_stays_on_its_grid():
+    """Just over CLOCK_MIN_PERIODS periods: a finite fit whose frequency is within the grid's
+    ± (CLOCK_REFINE_BINS + 1) quarter bins of the tracked one, which non-finite samples do not
+    spoil."""
+    from estimator.clock import CLOCK_REFINE_BINS, SawtoothFit, refine_sawtooth
+
+    rng = np.random.default_rng(22)
+    prev = SawtoothFit(15.0, 0.7, 12.0, 0.0, 0.9)
+    t = 300.0 + np.sort(rng.uniform(0.0, 31.0, 80))
+    r = prev.value_m(t) + rng.normal(scale=1.0, size=t.size)
+    r[3] = np.nan
+    fit = refine_sawtooth(t, r, prev)
+    assert np.isfinite([fit.period_s, fit.phase, fit.amplitude_m, fit.offset_m, fit.explained]).all()
+    df = 1.0 / (4.0 * (t[-1] - t[0]))
+    assert abs(1.0 / fit.period_s - 1.0 / 15.0) <= (CLOCK_REFINE_BINS + 1) * df
+    assert fit.amplitude_m == pytest.approx(12.0, abs=1.5)

@@ -21,10 +21,13 @@ from mission.controller import (
     MissionResult,
     _first_error,
 )
+from mission.estimation import MissionEstimator
 from sitl_scenarios.scenario import load_scenario
 from uavloc.errors import EstimatorError, GnbError, VehicleError
 
 N_USERS = 3
+#: the mission's estimator for N_USERS users at height 0 (confirm=False in the workers below: no stop rule)
+SETUP = MissionEstimator(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), 1.0)
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +37,7 @@ def survey():
 
 async def _solve_all(keyframes, mode: str):
     """Solve every keyframe through an EstimatorWorker while a LoopLagMonitor runs."""
-    worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode=mode)
+    worker = EstimatorWorker(SETUP, confirm=False, mode=mode)
     monitor = LoopLagMonitor(0.01)
     estimates = []
     done = asyncio.Event()
@@ -65,7 +68,7 @@ def test_the_estimator_solves_in_a_child_process_off_the_event_loop(survey):
     import os
 
     async def go():
-        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="process")
+        worker = EstimatorWorker(SETUP, confirm=False, mode="process")
         got = []
         async with asyncio.TaskGroup() as tg:
             run = tg.create_task(worker.run(got.append))
@@ -91,7 +94,7 @@ def test_estimator_child_dying_mid_mission_falls_back_to_a_thread_with_every_key
     kfs = survey.keyframes[:30]
 
     async def go():
-        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="process")
+        worker = EstimatorWorker(SETUP, confirm=False, mode="process")
         got = []
         async with asyncio.TaskGroup() as tg:
             run = tg.create_task(worker.run(got.append))
@@ -133,7 +136,7 @@ def test_worker_reports_estimator_errors_and_keeps_going(survey):
     errors = []
 
     async def go():
-        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="thread")
+        worker = EstimatorWorker(SETUP, confirm=False, mode="thread")
         got = []
         async with asyncio.TaskGroup() as tg:
             run = tg.create_task(worker.run(got.append, errors.append))
@@ -177,7 +180,7 @@ def test_loop_lag_monitor_sees_a_blocked_loop():
 
 def test_config_from_scenario_takes_the_mission_and_vehicle_sections():
     sc = load_scenario("three_users_nlos")
-    cfg = ControllerConfig.from_scenario(sc, time_scale=20.0)
+    cfg = ControllerConfig.from_mission(sc.mission_config(), time_scale=20.0)
     m, v = sc.mission, sc.vehicle
     assert (cfg.delta_m, cfg.altitude_m, cfg.target_radius_m, cfg.budget_m) == (
         m.delta_m, m.altitude_m, m.target_radius_m, m.budget_m)
@@ -202,7 +205,7 @@ def test_result_document_follows_design_section_11(survey):
 
 def test_status_line_marks_an_ambiguous_user_instead_of_a_small_r95(tmp_path):
     from estimator.types import Estimate
-    from mission.controller import controller_from_scenario
+    from sitl_scenarios.scenario import controller_from_scenario
 
     sc = load_scenario("three_users_nlos")
     ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower")
@@ -228,7 +231,7 @@ def test_worker_takes_queued_keyframes_together_with_one_estimate(survey):
     kfs = survey.keyframes[:50]
 
     async def go():
-        worker = EstimatorWorker(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams(), mode="thread")
+        worker = EstimatorWorker(SETUP, confirm=False, mode="thread")
         got = []
         async with asyncio.TaskGroup() as tg:
             for kf in kfs:  # all queued before the worker starts
@@ -267,9 +270,9 @@ def test_flight_estimates_an_unknown_gps_correlation_time_from_the_take_off_tele
     the telemetry logged before the survey — the estimate replay makes from the same records — not
     the estimator's fixed default, so that the live stop rule and the final answer agree."""
     from estimator.gps import estimate_gps_tau_s
-    from mission.controller import controller_from_scenario
     from mission.log import read_mission_log
     from mission.vehicle import GeoFix
+    from sitl_scenarios.scenario import controller_from_scenario
 
     sc = load_scenario("paper")
     ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower",
@@ -291,9 +294,9 @@ def test_flight_estimates_an_unknown_gps_correlation_time_from_the_take_off_tele
 
 
 def test_flight_keeps_the_default_gps_correlation_time_without_telemetry_to_estimate_it(tmp_path):
-    from mission.controller import controller_from_scenario
     from mission.log import read_mission_log
     from mission.vehicle import GeoFix
+    from sitl_scenarios.scenario import controller_from_scenario
 
     sc = load_scenario("paper")
     ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower",
@@ -306,7 +309,7 @@ def test_flight_keeps_the_default_gps_correlation_time_without_telemetry_to_esti
 
 
 def test_flight_uses_a_known_gps_correlation_time_as_given(tmp_path):
-    from mission.controller import controller_from_scenario
+    from sitl_scenarios.scenario import controller_from_scenario
 
     sc = load_scenario("paper")
     ctl = controller_from_scenario(sc, None, None, tmp_path / "m.jsonl", planner="lawnmower")

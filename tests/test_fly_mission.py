@@ -30,9 +30,7 @@ def test_controller_config_from_the_example_mission_file():
 
 def test_scenario_config_is_its_mission_parts():
     sc = load_scenario("three_users_nlos")
-    assert ControllerConfig.from_scenario(sc, time_scale=20.0) == ControllerConfig.from_mission(
-        sc.mission_config(), time_scale=20.0)
-    assert ControllerConfig.from_scenario(sc).speed_mps == sc.vehicle.speed_mps
+    assert ControllerConfig.from_mission(sc.mission_config()).speed_mps == sc.vehicle.speed_mps
 
 
 def test_active_stock_mode_waits_longer_per_measurement_than_for_the_msg2():

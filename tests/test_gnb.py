@@ -483,7 +483,7 @@ def test_server_not_running_is_a_clear_error():
 
 
 def test_fault_rates_from_the_scenario_faults_table():
-    sc = scenario(faults={"gnb": {"malformed_rate": 0.3, "drop_rate": 0.2}, "vehicle": {"x": 1}})
+    sc = scenario(faults={"gnb": {"malformed_rate": 0.3, "drop_rate": 0.2}, "vehicle": []})
     assert GnbFaults.from_scenario(sc) == GnbFaults(malformed_rate=0.3, drop_rate=0.2)
 
     async def body():

@@ -91,7 +91,7 @@ BAD = [
     ("gnb.rtt_command", "pdcch order", ["gnb.rtt_command", "one word"]),
     ("gnb.mu", 5, ["gnb.mu", "5", "0..3"]),
     ("gnb.timeout_s", 1.0, ["gnb.timeout_s", "unknown key", "request_timeout_s"]),
-    ("safety.battery_rtl_pct", 100.0, ["safety.battery_rtl_pct", "[0, 100)"]),
+    ("safety.battery_rtl_pct", 100.0, ["safety.battery_rtl_pct", "at most 99"]),
     ("safety.battery_takeoff_min_pct", 10.0, ["safety.battery_takeoff_min_pct", "battery_rtl_pct"]),
     ("safety.gnb_lost_wait_ms", 20000, ["safety.gnb_lost_wait_ms", "wrong unit", "gnb_lost_wait_s"]),
     ("safety.link_lost_wait_s", -1.0, ["safety.link_lost_wait_s", "positive"]),
@@ -178,7 +178,7 @@ def test_planning_constraints_of_the_mission_part_equal_the_scenarios_without_bu
     sc = load_scenario(path)
     if sc.buildings:
         sc = dataclasses.replace(sc, buildings=[])
-    want = PlanningConstraints.from_scenario(sc)
+    want = sc.planning_constraints()
     got = sc.mission_config().planning_constraints(Origin(sc.origin.lat_deg, sc.origin.lon_deg, sc.origin.alt_m))
     for f in dataclasses.fields(PlanningConstraints):
         a, b = getattr(got, f.name), getattr(want, f.name)

@@ -119,13 +119,13 @@ def test_convex_cell_contains_seed_and_excludes_edges():
                                                                                   ["distance"])
 
 
-def test_from_scenario_raises_floor_over_buildings_and_makes_tall_ones_no_fly():
+def test_scenario_constraints_raise_floor_over_buildings_and_makes_tall_ones_no_fly():
     sc = load_scenario("paper")
     low = BuildingConfig(footprint_enu_m=[[0, 0], [10, 0], [10, 10]], height_m=25.0)
     tall = BuildingConfig(footprint_enu_m=[[50, 50], [60, 50], [60, 60]], height_m=200.0)
     from dataclasses import replace
 
-    c = PlanningConstraints.from_scenario(replace(sc, buildings=[low, tall]), home_enu_m=(0, 0, 5))
+    c = replace(sc, buildings=[low, tall]).planning_constraints(home_enu_m=(0, 0, 5))
     assert c.alt_min_m == pytest.approx(5 + 30.0)  # 25 m + 5 m clearance above home at up = 5
     assert c.alt_max_m == pytest.approx(5 + sc.mission.alt_max_m)
     assert len(c.no_fly_enu_m) == 1 and c.no_fly_enu_m[0][0].tolist() == [50, 50]

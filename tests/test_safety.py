@@ -162,7 +162,7 @@ def test_takeoff_height_in_band():
 @pytest.mark.parametrize("path", bundled_scenarios(), ids=lambda p: p.stem)
 def test_every_bundled_scenario_has_users_and_home_inside_its_limits(path):
     sc = load_scenario(path)
-    gate = SafetyGate(SafetyLimits.from_scenario(sc))
+    gate = SafetyGate(SafetyLimits.from_mission(sc.mission_config(), sc.origin_geo))
     assert gate.position_violations(np.array([0.0, 0.0, sc.mission.altitude_m])) == []
 
 

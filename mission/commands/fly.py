@@ -112,9 +112,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _scenario_mission(name: str):
-    """The mission part of a simulation scenario (the deprecated `--scenario`). The scenario
-    loader is found through the `uavloc.scenarios` entry point, so mission never imports
-    sitl_scenarios."""
+    """The mission part of a simulation scenario (the deprecated `--scenario`): the
+    `flight_mission(name)` of the module the `uavloc.scenarios` entry point names, so mission
+    never imports sitl_scenarios nor sees a scenario."""
+    import importlib
     from importlib.metadata import entry_points
 
     from uavloc.errors import MissionConfigError
@@ -123,5 +124,4 @@ def _scenario_mission(name: str):
     if not eps:
         raise MissionConfigError("--scenario needs the simulation package (sitl_scenarios) installed; "
                                  "use --mission FILE")
-    # flown by a real autopilot: the built-in vehicle's GPS error model is not its
-    return eps[0].load()(name).mission_config(external_vehicle=True)
+    return importlib.import_module(eps[0].module).flight_mission(name)

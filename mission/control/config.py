@@ -105,11 +105,6 @@ class ControllerConfig:
         kw.update(overrides)
         return cls(**kw)
 
-    @classmethod
-    def from_scenario(cls, sc, **overrides) -> ControllerConfig:
-        """A simulation scenario's: `from_mission(sc.mission_config())`."""
-        return cls.from_mission(sc.mission_config(), **overrides)
-
 
 @dataclass
 class MissionResult:

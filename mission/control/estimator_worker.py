@@ -1,5 +1,6 @@
-"""The estimator worker: `RefreshedEstimator.add_keyframe` (the online estimator with batch refreshes,
-estimator.refresh) off the event loop (a child process, or a thread), fed from a queue of keyframes."""
+"""The estimator worker: the mission's estimator (mission.estimation: the online estimator with batch
+refreshes, estimator.refresh) off the event loop (a child process, or a thread), fed from a queue of
+keyframes."""
 
 from __future__ import annotations
 
@@ -10,13 +11,10 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from typing import Any
 
-import numpy as np
-
-from estimator.noise import NoiseModel
 from estimator.refresh import RefreshedEstimator
-from estimator.types import Estimate, Keyframe, SolverParams
+from estimator.types import Estimate, Keyframe
+from mission.estimation import MissionEstimator
 from uavloc.errors import EstimatorError, MissionError
 
 log = logging.getLogger(__name__)
@@ -27,11 +25,10 @@ _CHILD_ESTIMATOR: RefreshedEstimator | None = None
 _CHILD_CONFIRM: Callable[[Estimate], bool] | None = None
 
 
-def _child_init(n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams,
-                confirm: Callable[[Estimate], bool] | None = None) -> None:
+def _child_init(setup: MissionEstimator, confirm: Callable[[Estimate], bool] | None) -> None:
     global _CHILD_ESTIMATOR, _CHILD_CONFIRM
     _die_with_parent()
-    _CHILD_ESTIMATOR = RefreshedEstimator(n_users, user_up_m, noise, params)
+    _CHILD_ESTIMATOR = setup.estimator()
     _CHILD_CONFIRM = confirm
 
 
@@ -60,24 +57,24 @@ def _child_add(keyframes: list[Keyframe]) -> tuple[Estimate | None, list[Estimat
 
 
 class EstimatorWorker:
-    """Feeds keyframes from a queue to the mission's estimator (estimator.refresh), off the event loop.
+    """Feeds keyframes from a queue to the mission's estimator (`setup.estimator()`,
+    mission.estimation), off the event loop.
 
     `RefreshedEstimator.add_keyframes` is numpy work of milliseconds (up to a few hundred when it
-    (re)initializes users or refreshes the batch). `confirm` (picklable, e.g. a functools.partial
-    of a module-level function) is the predicate on the online estimate that asks for a batch
-    refresh at once (the stop rule: estimator.refresh). mode "process" (default) runs the estimator
-    in a child process (spawn), so the event loop neither waits on it nor competes with it for the
-    GIL; mode "thread" runs it through `asyncio.to_thread`. Keyframes are solved in arrival order;
-    those that queued up while the estimator was busy go together, with one estimate for all.
+    (re)initializes users or refreshes the batch). With `confirm` (default) the stop rule on the
+    online estimate asks for a batch refresh at once (`setup.confirm`, estimator.refresh). mode
+    "process" (default) runs the estimator in a child process (spawn), so the event loop neither
+    waits on it nor competes with it for the GIL; mode "thread" runs it through `asyncio.to_thread`.
+    Keyframes are solved in arrival order; those that queued up while the estimator was busy go
+    together, with one estimate for all.
     """
 
-    def __init__(self, n_users: int, user_up_m: np.ndarray, noise: NoiseModel, params: SolverParams,
-                 queue: asyncio.Queue | None = None, mode: str = "process",
-                 confirm: Callable[[Estimate], bool] | None = None):
+    def __init__(self, setup: MissionEstimator, queue: asyncio.Queue | None = None, mode: str = "process",
+                 confirm: bool = True):
         if mode not in ("process", "thread"):
             raise MissionError(f"estimator worker mode must be 'process' or 'thread', got {mode!r}")
-        self.args: tuple[Any, ...] = (int(n_users), np.asarray(user_up_m, float), noise, params)
-        self.confirm = confirm
+        self.setup = setup
+        self.confirm = setup.confirm if confirm else None
         self.mode = mode
         self.queue: asyncio.Queue[Keyframe] = queue if queue is not None else asyncio.Queue()
         self.solve_s: list[float] = []
@@ -98,7 +95,7 @@ class EstimatorWorker:
         fed: list[Keyframe] = []
 
         def thread_solver(history: list[Keyframe]):
-            estimator = RefreshedEstimator(*self.args)
+            estimator = self.setup.estimator()
 
             def replay_then_add(keyframes: list[Keyframe]) -> tuple[Estimate | None, list[EstimatorError]]:
                 # the keyframes so far one at a time (a malformed one fails again, quietly), so
@@ -115,7 +112,7 @@ class EstimatorWorker:
             from concurrent.futures import ProcessPoolExecutor
 
             pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                       initializer=_child_init, initargs=(*self.args, self.confirm))
+                                       initializer=_child_init, initargs=(self.setup, self.confirm))
             solve = functools.partial(loop.run_in_executor, pool, _child_add)
         else:
             solve = thread_solver([])

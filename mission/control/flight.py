@@ -28,7 +28,6 @@ flights). Request timeouts stay in wall seconds.
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
 import math
 import time
@@ -42,8 +41,6 @@ import numpy as np
 from estimator.geodesy import Origin
 from estimator.gps import estimate_gps_tau_s
 from estimator.noise import NoiseModel
-from estimator.refresh import SOURCE_BATCH
-from estimator.slam import solve_batch
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission.control.config import (
     ABORT,
@@ -70,13 +67,13 @@ from mission.control.loop import LoopLagMonitor
 from mission.control.pipeline import MeasurementPipeline
 from mission.control.safety_monitor import SafetyMonitor
 from mission.control.state import FlightState
+from mission.estimation import MissionEstimator
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields, read_mission_log
 from mission.replay import ReplayOptions, replay
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.telemetry import TelemetryBuffer, VehicleClock
 from mission.vehicle import PositionFix, Vehicle
-from planner.stop import targets_reached
 from planner.types import Planner
 from uavloc.errors import (
     EstimatorError,
@@ -245,6 +242,7 @@ class MissionController:
                                          name="telemetry"))
         f.set_phase(PREFLIGHT)
         self._at_home(await self.vehicle.wait_ready(cfg.ready_timeout_s))
+        self._preflight_home()
         await self._preflight_gnb()
         self._preflight_battery()
         safety = SafetyMonitor(f, cfg, self.gate, self.vehicle.state, self._buffer.latest, self.now)
@@ -316,6 +314,13 @@ class MissionController:
         if not ok:
             raise GnbPreflightError(f"not taking off: {probe.message()}")
 
+    def _preflight_home(self) -> None:
+        """No take-off from a home outside the fence or inside a no-fly zone (geodetic polygons
+        are known in the home frame only now; mission.config refuses ENU ones at load)."""
+        problems = self.gate.home_violations()
+        if problems:
+            raise SafetyError(f"not taking off: {'; '.join(problems)}")
+
     def _preflight_battery(self) -> None:
         """No take-off below battery_takeoff_min_pct (when the vehicle reports its charge)."""
         pct, floor = self.vehicle.state.battery_pct, self.config.battery_takeoff_min_pct
@@ -346,23 +351,25 @@ class MissionController:
                            f"{tau:.0f} s", kind="gps_tau", gps_tau_s=tau)
         return replace(self.noise, gps_tau_s=tau)
 
+    def estimator_setup(self, noise: NoiseModel | None = None) -> MissionEstimator:
+        """The mission's estimator (mission.estimation) for these users, settings and stop rule."""
+        return MissionEstimator(len(self.users), np.array([u.up_m for u in self.users], float),
+                                self.noise if noise is None else noise, self.params, self.config.target_radius_m)
+
     async def _estimator_task(self) -> None:
         f = self.flight
         if self._tau_records is not None:
             # the first keyframe comes with the survey: estimate τ from the take-off's telemetry
             await self._takeoff_over.wait()
-        noise = self._flight_noise()
         # the stop rule is judged on batch estimates only: a target the online estimate reaches
-        # asks the worker for a batch refresh first (estimator.refresh)
-        reached = functools.partial(targets_reached, target_radius_m=self.config.target_radius_m)
-        worker = EstimatorWorker(len(self.users), np.array([u.up_m for u in self.users]), noise,
-                                 self.params, self.pipeline.keyframes_out, mode=self.config.estimator_mode,
-                                 confirm=reached)
+        # asks the worker for a batch refresh first (mission.estimation)
+        setup = self.estimator_setup(self._flight_noise())
+        worker = EstimatorWorker(setup, self.pipeline.keyframes_out, mode=self.config.estimator_mode)
 
         def on_estimate(est: Estimate) -> None:
             f.estimate = est
             self.journal.estimate(self.origin, est, len(self.pipeline.keyframes), f.flown_m)
-            if f.phase == SURVEY and est.extra.get("source") == SOURCE_BATCH and reached(est):
+            if f.phase == SURVEY and setup.stops(est):
                 f.finish_survey(STATUS_TARGET, "target reached")
 
         def on_error(exc: EstimatorError) -> None:
@@ -497,8 +504,7 @@ class MissionController:
             except Exception as exc:  # also a bug in replay: fall back, never lose the result
                 log.warning("final estimate from the pipeline's keyframes: the log could not be replayed: %s", exc)
                 try:
-                    est = solve_batch(keyframes, len(self.users), np.array([u.up_m for u in self.users]),
-                                      self.noise, self.params)
+                    est = self.estimator_setup().final(keyframes)
                 except Exception as exc2:  # a bug must not cost the mission its log or its last estimate
                     log.exception("final batch estimate failed")
                     self.journal.event(f"final batch estimate failed: {type(exc2).__name__}: {exc2}",

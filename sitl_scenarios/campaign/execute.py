@@ -15,6 +15,7 @@ recorded here with that error; either way the campaign goes on.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import sys
 import time
@@ -37,7 +38,8 @@ class CampaignRun:
     records: one per run of the spec that has a result, in the spec's order; ran / skipped / failed:
     runs executed now, runs found done, runs (now or before) with status "error"; wall_s: from the
     first submission to the last result [s]; setup_s: starting or reaching the cluster [s];
-    workers: worker processes that took part; where: "local", "LocalCluster(N)" or the address.
+    workers: worker processes that took part; where: "local", "LocalCluster(N)" or the address;
+    run_s: the runs' own wall times summed over the runs executed now (what one worker spends) [s].
     """
 
     records: list[dict] = field(default_factory=list)
@@ -48,6 +50,23 @@ class CampaignRun:
     setup_s: float = 0.0
     workers: int = 0
     where: str = ""
+    run_s: float = 0.0
+
+    @property
+    def runs_per_min_per_worker(self) -> float:
+        """A run's cost as throughput: 60 / (mean wall time of one run) [runs/min], NaN before any run."""
+        return 60.0 * self.ran / self.run_s if self.run_s > 0 else math.nan
+
+    @property
+    def runs_per_min(self) -> float:
+        """The campaign's throughput over all its workers: runs executed now per minute of wall time."""
+        return 60.0 * self.ran / self.wall_s if self.wall_s > 0 else math.nan
+
+    def cost_line(self) -> str:
+        """One line: runs per minute per worker (a run's cost) and over the campaign's workers."""
+        return (f"cost: {self.runs_per_min_per_worker:.2f} runs/min per worker (a run takes "
+                f"{self.run_s / max(self.ran, 1):.2f} s), {self.runs_per_min:.2f} runs/min on {self.workers} "
+                f"worker(s), {self.ran} runs")
 
 
 class _Flusher:
@@ -107,6 +126,8 @@ def run_campaign(campaign: Campaign, out_dir: str | Path, *, scheduler: str | No
         stored[rec["key"]] = rec
         flusher.add(rec)
         result.ran += 1
+        if math.isfinite(rec.get("wall_s", math.nan)):
+            result.run_s += rec["wall_s"]
         bar.update(1)
         if rec["status"] != "ok":
             bar.set_postfix_str(f"{sum(r['status'] != 'ok' for r in stored.values() if r['key'] in wanted)} failed")

@@ -17,7 +17,7 @@ World (ENU metres from home, home at the origin):
 - range noise σ(d) = s0 + a·exp(b·d): s0 = `range_s0_m`; a = 0.3 m, b = 0.01 /m in a share
   `distance_noise_share` of the scenarios, a = 0 elsewhere;
 - vehicle GPS error: σ `gps_sigma_m` per axis, Gauss–Markov with correlation time `gps_tau_s`
-  (0: independent per fix);
+  (0: independent per fix); the mission's `sigma_gps_m` is that σ (when > 0) unless `[families.mission]` sets it;
 - UE clocks: a sawtooth of amplitude `sawtooth_amplitude_m` and period `sawtooth_period_s`,
   drawn per user.
 
@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from sitl_scenarios.scenario import MissionConfig, Scenario, _build, scenario_from_dict
+from mission import schema
+from sitl_scenarios.scenario import MissionConfig, Scenario, scenario_from_dict
 from uavloc.errors import ScenarioError
 
 #: the mission every family member flies unless `[families.mission]` says otherwise
@@ -104,7 +105,7 @@ def validate_family(fam: FamilySpec, where: str) -> None:
     for key in ("max_distance_m", "range_s0_m", "speed_mps"):
         if not getattr(fam, key) > 0:
             raise ScenarioError(f"{where}.{key} must be positive, got {getattr(fam, key)!r}")
-    _build(MissionConfig, {**DEFAULT_MISSION, **fam.mission}, f"{where}.mission")
+    schema.build(MissionConfig, {**DEFAULT_MISSION, **fam.mission}, where, f"{where}.mission", error=ScenarioError)
 
 
 def _inside(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -196,6 +197,8 @@ def generate_scenario(fam: FamilySpec, j: int, where: str = "") -> Scenario:
         "radio": {"s0_m": fam.range_s0_m, "a_m": 0.3 if distance_noise else 0.0,
                   "b_per_m": 0.01 if distance_noise else 0.0, "nlos_excess_mean_m": nlos_mean_m},
         "vehicle": {"speed_mps": fam.speed_mps, "gps_sigma_m": gps_sigma_m, "gps_tau_s": gps_tau_s},
-        "mission": {**DEFAULT_MISSION, **fam.mission},
+        # the mission assumes the GPS σ it flies with (a perfect GPS: the default) unless
+        # [families.mission] says otherwise
+        "mission": {**DEFAULT_MISSION, **({"sigma_gps_m": gps_sigma_m} if gps_sigma_m > 0 else {}), **fam.mission},
     }
     return scenario_from_dict(data, f"{where} scenario {name}" if where else name)

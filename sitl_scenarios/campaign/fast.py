@@ -2,10 +2,13 @@
 
 The loop (the planner benchmark's, DESIGN.md §5–6): the UAV starts at home at the cruise altitude;
 the planner gives a waypoint; the UAV flies the straight leg at the scenario's cruise speed; every Δ
-metres along it (spacing carried across legs) a keyframe is simulated and fed to the REAL
-estimator (estimator.slam.OnlineEstimator); the planner is called again at the leg end with the
-latest Estimate. The run ends when every accuracy target is reached, when the planner is done, or
-when the scenario's budget is flown.
+metres along it (spacing carried across legs) a keyframe is simulated and fed to the mission's
+estimator, the same object a flight builds (mission.estimation.MissionEstimator from the scenario's
+mission, as `uavloc sim` flies it: the online estimator refreshed by batch solves that track UE
+clock sawtooths and drifting GPS, the stop rule confirming on the online estimate); the planner is
+called again at the leg end with the estimate the mission would act on. The run ends where the
+mission would: the mission's stop rule on a batch estimate, the planner done, or the budget flown;
+the final answer is the mission's (the batch solution over every keyframe, replay's).
 
 A keyframe at arc length s (time t = s / speed):
 - GPS fix = truth + the vehicle simulator's GPS error (sitl_scenarios.mavlink_autopilot.GpsError:
@@ -21,12 +24,13 @@ altitude band, distance from home, leg length and budget (`leg_violation`).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from estimator.ranging import range_m_from_raw
-from estimator.slam import OnlineEstimator
-from estimator.types import Keyframe, SolverParams
+from estimator.types import Estimate, Keyframe, SolverParams
+from mission.estimation import MissionEstimator
 from planner import PlanningConstraints, PlanningState, make_planner
 from sitl_scenarios.campaign.families import _inside
 from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
@@ -56,16 +60,22 @@ def leg_violation(c: PlanningConstraints, a: np.ndarray, b: np.ndarray, flown_m:
 
 
 def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
-             targets_m: tuple[float, ...], planner_opts: dict | None = None) -> Outcome:
-    """Fly one scenario in fast mode (see the module docstring); deterministic in (sc, planner, params, seed)."""
+             targets_m: tuple[float, ...], planner_opts: dict | None = None,
+             on_keyframe: Callable[[Keyframe, Estimate], None] | None = None) -> Outcome:
+    """Fly one scenario in fast mode (see the module docstring); deterministic in (sc, planner, params, seed).
+
+    on_keyframe(keyframe, estimate): called with each keyframe and the estimate the run then acts on."""
     users = np.array([[u.east_m, u.north_m, u.up_m] for u in sc.users], float)
-    noise = sc.noise_model()
-    c = PlanningConstraints.from_scenario(sc)
+    setup = MissionEstimator.from_mission(sc.mission_config(), params=params)
+    noise = setup.noise
+    c = sc.planning_constraints()
     opts = dict(planner_opts or {})
     if planner_name == "oracle":
         opts.setdefault("true_users_enu_m", users)
     planner = make_planner(planner_name, c, noise, rng_seed=seed, **opts)
-    est = OnlineEstimator(len(users), users[:, 2], noise, params)
+    est = setup.estimator()
+    confirm = setup.confirm
+    keyframes: list[Keyframe] = []
     gps_ss, radio_ss = np.random.SeedSequence([seed, sc.seed]).spawn(2)
     gps = GpsError(sc.vehicle.gps_sigma_m, sc.vehicle.gps_tau_s, np.random.default_rng(gps_ss))
     radio = RadioModel(sc, np.random.default_rng(radio_ss))
@@ -77,8 +87,8 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     n_ranges = n_nlos = 0
 
     x = np.array([*c.home_enu_m[:2], c.cruise_alt_m])
-    flown, since_kf, estimate = 0.0, delta_m, None
-    while track.pending and flown < c.budget_m:
+    flown, since_kf, estimate, stopped = 0.0, delta_m, None, False
+    while flown < c.budget_m:
         t0 = time.perf_counter()  # the planner has no clock: its compute time is timed here
         res = planner.plan(PlanningState(x, estimate, flown))
         out.plan_times_s.append(time.perf_counter() - t0)
@@ -104,21 +114,31 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
                 ranges.append(range_m_from_raw(raw.ta, raw.mu, raw.srs_peak, raw.fs_hz))
                 n_nlos += raw.nlos
             n_ranges += len(idx)
-            estimate = est.add_keyframe(Keyframe(pos + gps.sample(t_s), np.array(idx, dtype=int),
-                                                 np.array(ranges, dtype=float), t_s=t_s))
+            kf = Keyframe(pos + gps.sample(t_s), np.array(idx, dtype=int), np.array(ranges, dtype=float), t_s=t_s)
+            keyframes.append(kf)
+            estimate = est.add_keyframe(kf, confirm)
+            if on_keyframe is not None:
+                on_keyframe(kf, estimate)
             out.keyframes += 1
             track.update(estimate.users_enu_m[:, :2], estimate.cov_users_m2[:, :2, :2], flown + s)
-            if not track.pending:
+            if setup.stops(estimate):
+                stopped = True
                 break
             s += delta_m
-        if not track.pending:  # stopped mid-leg at the last target
+        if stopped:  # mid-leg, as the mission stops at once
             flown += s
+            out.end = "target reached"
             break
         since_kf = leg - (s - delta_m)
         flown += leg
         x = wp
     if not out.end:
-        out.end = "targets reached" if not track.pending else "budget spent"
+        out.end = "budget spent"
+    if est.online_failure is not None:
+        out.estimator_errors.append(est.online_failure)
+    if keyframes:  # the mission's final answer
+        final = setup.final(keyframes)
+        track.update(final.users_enu_m[:, :2], final.cov_users_m2[:, :2, :2], flown)
     out.flown_m = flown
     out.nlos_share = n_nlos / n_ranges if n_ranges else float("nan")
     return track.fill(out)

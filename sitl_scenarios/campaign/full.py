@@ -53,6 +53,7 @@ def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: fl
     out = Outcome(end=f"{result.status}: {result.reason}", flown_m=float(result.flown_m),
                   keyframes=int(result.keyframes))
     out.plan_times_s = [float(w.get("solve_time_s") or 0.0) for w in mlog.waypoints]
+    out.estimator_errors = [str(e.get("message", "")) for e in mlog.events if e.get("kind") == "estimator_error"]
     origin = mlog.header.origin
     if result.truth_enu_m is None or not mlog.estimates:
         return out

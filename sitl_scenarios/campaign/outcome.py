@@ -21,7 +21,9 @@ class Outcome:
     keyframes: keyframes fed to the estimator; final_error_m / final_bound95_m: (K,) per user at the
         end [m] (NaN where the user was never located); inside95: share of (estimate, user) pairs
         after a user's first estimate whose true error lies inside its own 95 % ellipse;
-        nlos_share: share of ranges whose line of sight a building blocked.
+        nlos_share: share of ranges whose line of sight a building blocked; estimator_errors: what
+        the estimator reported failing during the run (the mission went on: estimator.refresh drops a
+        failed online part, the flight logs an `estimator_error` event), in order.
     """
 
     metres_to: dict = field(default_factory=dict)
@@ -35,6 +37,7 @@ class Outcome:
     final_bound95_m: list = field(default_factory=list)
     inside95: float = math.nan
     nlos_share: float = math.nan
+    estimator_errors: list = field(default_factory=list)
 
 
 class AccuracyTrack:

@@ -38,18 +38,20 @@ import dataclasses
 import hashlib
 import json
 import math
-import tomllib
-import typing
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from estimator.types import SolverParams
+from mission import schema
 from sitl_scenarios.campaign.families import FamilySpec, generate_scenario, validate_family
-from sitl_scenarios.scenario import Scenario, _build, load_scenario, resolve_scenario_path
+from sitl_scenarios.scenario import Scenario, load_scenario
 from uavloc.errors import CampaignError, ScenarioError, UavlocError
 
 MODES = ("fast", "full")
+#: a campaign's, family's or scenario's name as part of a file name: no folder, no '.', no '..'
+SAFE_NAME = re.compile(r"(?!\.{1,2}$)[A-Za-z0-9_.\-]+")
 TOP_LEVEL = ("campaign", "estimators", "planner_options", "scenarios", "families")
 
 
@@ -119,39 +121,18 @@ def _err(where: str, msg: str) -> CampaignError:
 
 
 def _section(cls: type, data: Any, key: str, where: str) -> Any:
-    """Strict table → dataclass, errors re-raised as CampaignError naming the spec and the key."""
-    if not isinstance(data, dict):
-        raise _err(where, f"{key}: expected a table, got {data!r}")
-    try:
-        return _build(cls, data, key)
-    except ScenarioError as exc:
-        raise _err(where, str(exc)) from exc
+    """Strict table → dataclass (mission.schema), errors as CampaignError naming the spec and the key."""
+    return schema.build(cls, data, where, key, error=CampaignError)
 
 
 def _solver_params(opts: Any, base: dict, key: str, where: str) -> SolverParams:
-    """SolverParams from a spec table: every key a field, every value of the field's type."""
+    """SolverParams from a spec table over `base`: every key a field, every value of the field's type."""
     from estimator.problem import check_params
-    from sitl_scenarios.scenario import _convert
 
     if not isinstance(opts, dict):
         raise _err(where, f"{key}: expected a table, got {opts!r}")
-    hints = typing.get_type_hints(SolverParams)
-    names = {f.name for f in dataclasses.fields(SolverParams)}
-    kwargs = dict(base)
-    for name, value in opts.items():
-        if name not in names:
-            raise _err(where, f"{key}: unknown key {name!r}; allowed: {', '.join(sorted(names))}")
-        tp = hints[name]
-        if typing.get_origin(tp) is typing.Literal:
-            if value not in typing.get_args(tp):
-                raise _err(where, f"{key}.{name}: must be one of {typing.get_args(tp)}, got {value!r}")
-            kwargs[name] = value
-            continue
-        try:
-            kwargs[name] = _convert(value, tp, f"{key}.{name}")
-        except ScenarioError as exc:
-            raise _err(where, str(exc)) from exc
-    params = SolverParams(**kwargs)
+    params = dataclasses.replace(schema.build(SolverParams, opts, where, key, error=CampaignError), **{
+        k: v for k, v in base.items() if k not in opts})
     try:
         check_params(params)
     except UavlocError as exc:
@@ -164,6 +145,10 @@ def _check_section(c: CampaignSection, where: str) -> None:
 
     if not c.name.strip():
         raise _err(where, "campaign.name must not be empty")
+    if not SAFE_NAME.fullmatch(c.name):
+        # the name makes the default output folder and the results' file names
+        raise _err(where, f"campaign.name {c.name!r}: one word of letters, digits, '_', '-' and '.' "
+                   "(not '.' or '..'), so it names no folder outside --out")
     if c.mode not in MODES:
         raise _err(where, f"campaign.mode must be one of {', '.join(MODES)}, got {c.mode!r}")
     if not c.seeds:
@@ -255,9 +240,8 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
         raise _err(where, f"scenarios: expected [[scenarios]] entries, got {files!r}")
     for i, entry in enumerate(files):
         fs: ScenarioFileSpec = _section(ScenarioFileSpec, entry, f"scenarios[{i}]", where)
-        candidate = (base_dir / fs.file) if base_dir is not None else Path(fs.file)
         try:
-            sc = load_scenario(candidate if candidate.is_file() else resolve_scenario_path(fs.file))
+            sc = load_scenario(fs.file, base_dir)
         except ScenarioError as exc:
             raise _err(where, f"scenarios[{i}].file: {exc}") from exc
         scenarios.append((fs.condition or sc.name, sc, _scenario_params(sc, f"file:{fs.file}")))
@@ -300,9 +284,9 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
 
 def _check_planner_options(section: CampaignSection, planner_opts: dict, sc: Scenario, where: str) -> None:
     """Build each planner once with its options, so a bad option is an error before any run starts."""
-    from planner import PlanningConstraints, make_planner
+    from planner import make_planner
 
-    c = PlanningConstraints.from_scenario(sc)
+    c = sc.planning_constraints()
     truth = [[u.east_m, u.north_m, u.up_m] for u in sc.users]
     for name in section.planners:
         opts = dict(planner_opts.get(name, {}))
@@ -319,10 +303,5 @@ def _check_planner_options(section: CampaignSection, planner_opts: dict, sc: Sce
 def load_spec(path: str | Path) -> Campaign:
     """Read a campaign spec file strictly and expand it to its runs."""
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise CampaignError(f"{p}: not valid TOML: {exc}") from exc
-    except OSError as exc:
-        raise CampaignError(f"{p}: cannot read the spec: {exc}") from exc
+    data = schema.read_toml(p, "campaign spec", CampaignError)
     return spec_from_dict(data, str(p), base_dir=p.resolve().parent, path=p)

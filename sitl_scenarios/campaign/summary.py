@@ -3,8 +3,9 @@
 Per (condition, planner, estimator): runs, failures, and for each accuracy target the runs that
 reached it and the median and 95 % interval (2.5th–97.5th percentile) of the metres flown to it
 (a run that never reached it counts its budget, so a planner that fails is not flattered); the same
-statistics of the final mean true error, the share of estimates inside their own 95 % ellipse, and
-the median replan time. Written to `summary.csv` and `summary.txt`; figures `metres_to_target.png`
+statistics of the final mean true error, the share of estimates inside their own 95 % ellipse, the
+median replan and run times, and the runs whose estimator reported a failure.
+Written to `summary.csv` and `summary.txt`; figures `metres_to_target.png`
 (metres to each target per planner and condition) and `error_vs_bound.png` (each user's final true
 error against its 95 % bound).
 """
@@ -52,6 +53,8 @@ def summary_rows(records: list[dict], targets_m: tuple[float, ...]) -> list[dict
         row.update({"error_median_m": med, "error_lo95_m": lo, "error_hi95_m": hi})
         row["inside95_median"] = _stats([r["inside95"] for r in ok])[0]
         row["replan_median_ms"] = _stats([1e3 * t for r in ok for t in r["plan_times_s"]])[0]
+        row["run_median_s"] = _stats([r.get("wall_s", math.nan) for r in rs])[0]
+        row["estimator_errors"] = sum(r.get("estimator_errors") or 0 for r in ok)
         row["violations"] = sum(r["violations"] for r in ok)
         rows.append(row)
     return rows
@@ -62,7 +65,7 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
     head = f"{'condition':<14} {'planner':<10} {'estimator':<10} {'runs':>4} {'fail':>4}"
     for t in targets_m:
         head += f" {'reach@' + format(t, 'g'):>9} {'m@' + format(t, 'g') + ' median [95 %]':>24}"
-    head += f" {'error m median [95 %]':>24} {'in95':>5} {'replan ms':>9} {'viol':>4}"
+    head += f" {'error m median [95 %]':>24} {'in95':>5} {'replan ms':>9} {'run s':>6} {'viol':>4} {'est!':>4}"
     lines = [head, "-" * len(head)]
     for r in rows:
         line = f"{r['condition']:<14} {r['planner']:<10} {r['estimator']:<10} {r['runs']:>4} {r['failed']:>4}"
@@ -72,13 +75,16 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
             line += f" {r[f'reached@{t:g}']:>5}/{ok:<3} {r[k + '_median']:>7.0f} [{r[k + '_lo95']:>6.0f}, " \
                     f"{r[k + '_hi95']:>6.0f}]"
         line += f" {r['error_median_m']:>7.2f} [{r['error_lo95_m']:>5.2f}, {r['error_hi95_m']:>6.2f}]"
-        line += f" {r['inside95_median']:>5.2f} {r['replan_median_ms']:>9.1f} {r['violations']:>4}"
+        line += (f" {r['inside95_median']:>5.2f} {r['replan_median_ms']:>9.1f} {r['run_median_s']:>6.2f}"
+                 f" {r['violations']:>4} {r['estimator_errors']:>4}")
         lines.append(line)
     lines.append("")
     lines.append("m@T: metres flown until the mean 95 % error bound <= T m (a run that never gets there counts its "
                  "budget); [95 %]: 2.5th-97.5th percentile over runs;")
     lines.append("error: final mean true error per run; in95: median share of estimates inside their own 95 % "
-                 "ellipse; fail: runs that raised (see the results' error column).")
+                 "ellipse; fail: runs that raised (see the results' error column);")
+    lines.append("run s: median wall time of a run; est!: runs whose estimator reported a failure and went on "
+                 "(first_estimator_error column).")
     return "\n".join(lines)
 
 

@@ -53,6 +53,8 @@ def _outcome_fields(out: Outcome, targets_m: tuple[float, ...]) -> dict:
         "max_error_m": float(np.max(err)) if len(err) else math.nan,
         "inside95": float(out.inside95), "nlos_share": float(out.nlos_share),
         "violations": len(out.violations), "first_violation": out.violations[0] if out.violations else "",
+        "estimator_errors": len(out.estimator_errors),
+        "first_estimator_error": out.estimator_errors[0][:500] if out.estimator_errors else "",
     }
 
 

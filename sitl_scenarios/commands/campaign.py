@@ -28,8 +28,12 @@ def run(args: argparse.Namespace) -> int:
     from sitl_scenarios.campaign import load_spec, run_campaign, write_summary
     from sitl_scenarios.campaign.summary import format_table, summary_rows
 
-    if not log.isEnabledFor(logging.DEBUG):  # Dask's own INFO lines (workers starting, closing) drown the rest
-        logging.getLogger("distributed").setLevel(logging.WARNING)
+    if args.workers != 0:
+        # Dask's own INFO lines (workers starting, closing) drown the rest unless asked for (-v).
+        # Importing distributed configures its loggers, so their level is set after it
+        import distributed  # noqa: F401
+
+        logging.getLogger("distributed").setLevel(logging.INFO if getattr(args, "verbose", 0) else logging.WARNING)
     campaign = load_spec(args.spec)
     out = args.out if args.out is not None else Path(f"campaign-{campaign.name}")
     log.info("campaign %s: %d runs (%s mode) -> %s", campaign.name, len(campaign.runs), campaign.section.mode, out)
@@ -40,4 +44,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"\ncampaign {campaign.name}: {len(campaign.runs)} runs, {done.ran} run now on {done.where} "
           f"({done.workers} workers) in {done.wall_s:.1f} s (+{done.setup_s:.1f} s setup), {done.skipped} already "
           f"done, {done.failed} failed; results in {out}/results, summary and figures in {out}")
+    if done.ran:
+        print(done.cost_line())
     return 1 if done.failed else 0

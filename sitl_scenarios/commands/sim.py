@@ -11,13 +11,27 @@ from mission.view.live import add_view_arguments
 
 log = logging.getLogger(__name__)
 
+
+def seed_argument(text: str) -> int:
+    """`--seed N`: an integer in 0..MAX_SEED (a scenario's `seed` has the same range)."""
+    from sitl_scenarios.scenario import MAX_SEED
+
+    try:
+        seed = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a seed is an integer, got {text!r}") from None
+    if not 0 <= seed <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"a seed is in 0..{MAX_SEED}, got {seed}")
+    return seed
+
 HELP = "fly a simulated mission (built-in vehicle or PX4 SITL, simulated gNB) and print where the users are"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", metavar="SCENARIO",
                    help="scenario file, or the name of a bundled one (paper, three_users_nlos, ...)")
-    p.add_argument("--seed", type=int, help="seed of the simulators and the planner (default: the scenario's)")
+    p.add_argument("--seed", type=seed_argument, metavar="N",
+                   help="seed of the simulators and the planner (default: the scenario's)")
     p.add_argument("--speedup", type=float, default=10.0,
                    help="simulated seconds per wall second of the built-in vehicle (default 10)")
     p.add_argument("--planner", metavar="NAME",

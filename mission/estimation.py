@@ -1,0 +1,86 @@
+"""The mission's estimator, defined once: what a flight (`uavloc fly`, `uavloc sim`), replay, the
+campaigns (fast and full mode) and the benchmarks estimate with.
+
+- during the flight, the estimate acted on (planner, stop rule, operator) is
+  :class:`estimator.refresh.RefreshedEstimator`: the online estimator as the fast inner step,
+  refreshed by batch solves on its schedule, and at once when the stop rule holds on the online
+  estimate (`confirm`);
+- the stop rule: every user's 95 % bound within the target radius (planner.stop.targets_reached),
+  judged on a batch estimate only (`stops`);
+- the final answer: the batch solution over every keyframe (what `uavloc replay LOG` computes).
+
+:class:`MissionEstimator` carries the settings of all three; build it with :meth:`from_mission`
+(a mission file) or directly. Picklable: the flight's estimator child process builds from it.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from estimator.noise import NoiseModel
+from estimator.refresh import SOURCE_BATCH, RefreshedEstimator
+from estimator.slam import solve_batch
+from estimator.types import Estimate, Keyframe, SolverParams
+from planner.stop import targets_reached
+
+
+def mission_solver_params(mission) -> SolverParams:
+    """The estimator settings of a :class:`mission.config.MissionConfig`: its keyframe spacing Δ and
+    range-bias model, the solver's defaults otherwise."""
+    return SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
+                        bias_prior_sigma_m=mission.noise.bias_prior_sigma_m)
+
+
+@dataclass(frozen=True)
+class MissionEstimator:
+    """The settings of the mission's estimator (module docstring).
+
+    n_users: K; user_up_m: (K,) each user's known height, ENU up [m]; noise: the noise model
+    assumed; params: the solver's settings; target_radius_m: the stop rule's radius [m] (None: no
+    stop rule, e.g. a replay: no confirm, never stops).
+    """
+
+    n_users: int
+    user_up_m: np.ndarray
+    noise: NoiseModel
+    params: SolverParams
+    target_radius_m: float | None = None
+
+    @classmethod
+    def from_mission(cls, mission, params: SolverParams | None = None,
+                     noise: NoiseModel | None = None) -> MissionEstimator:
+        """The estimator a mission file flies with (params / noise: replace the mission's)."""
+        return cls(len(mission.users), np.array([u.ground_height_m for u in mission.users], float),
+                   mission.noise_model() if noise is None else noise,
+                   mission_solver_params(mission) if params is None else params,
+                   float(mission.flight.target_radius_m))
+
+    def with_noise(self, noise: NoiseModel) -> MissionEstimator:
+        return replace(self, noise=noise)
+
+    def estimator(self, online: bool = True) -> RefreshedEstimator:
+        """A fresh estimator, fed keyframe by keyframe (online=False: batch refreshes alone, for a
+        history computed after the fact)."""
+        return RefreshedEstimator(self.n_users, self.user_up_m, self.noise, self.params, online=online)
+
+    @property
+    def confirm(self) -> Callable[[Estimate], bool] | None:
+        """The predicate on the online estimate that asks for a batch refresh at once: the stop rule
+        (picklable); None without one."""
+        if self.target_radius_m is None:
+            return None
+        return functools.partial(targets_reached, target_radius_m=self.target_radius_m)
+
+    def stops(self, estimate: Estimate | None) -> bool:
+        """The stop rule on an estimate the mission acts on: a batch estimate with every user's 95 %
+        bound within the target radius."""
+        return (self.target_radius_m is not None and estimate is not None
+                and estimate.extra.get("source") == SOURCE_BATCH and targets_reached(estimate, self.target_radius_m))
+
+    def final(self, keyframes: Sequence[Keyframe]) -> Estimate:
+        """The mission's final answer: the batch solution over every keyframe."""
+        return solve_batch(list(keyframes), self.n_users, self.user_up_m, self.noise, self.params)
