@@ -245,6 +245,7 @@ class ActivePlanner(BasePlanner):
         self._prev_dir = np.zeros(3)
         self._prev_path: np.ndarray | None = None
         self.last_horizon_enu_m: np.ndarray | None = None
+        self._norm: tuple | None = None
 
     # -- hypotheses ------------------------------------------------------------------------------
     def hypotheses(self, state: PlanningState) -> Hypotheses | None:
@@ -281,9 +282,15 @@ class ActivePlanner(BasePlanner):
     def uncertainty(self, state: PlanningState, paths_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
         """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after flying candidate leg ends (C, 3) or
         horizons (C, H, 3) from the UAV (no cost term)."""
-        norm = prior_value(hyp, self.criterion)
+        norm = self._prior_value(hyp)
         return objective_values(state.uav_enu_m, paths_enu_m, hyp, self.noise, self.constraints.delta_m,
                                 self.n_quad, self.criterion, compiled=self.compiled) / norm
+
+    def _prior_value(self, hyp: Hypotheses) -> float:
+        """J₀ = prior_value(hyp) (computed once for the hypotheses of a plan)."""
+        if self._norm is None or self._norm[0] is not hyp or self._norm[1] != self.criterion:
+            self._norm = (hyp, self.criterion, prior_value(hyp, self.criterion))
+        return self._norm[2]
 
     def cost_per_m(self, ring_uncertainty: np.ndarray) -> float:
         """λ (normalised units per metre) = cost_rel · (best gain of a ring leg) / leg_max:
@@ -420,7 +427,7 @@ class ActivePlanner(BasePlanner):
             # IPOPT only from the best seeds by the objective (each solve costs more than the ring)
             order = np.argsort(self.evaluate(state, np.array(seeds).reshape(len(seeds), self.horizon, 3), hyp, lam))
             seeds = [seeds[i] for i in order[:self.ipopt_seeds]]
-        norm = prior_value(hyp, self.criterion)
+        norm = self._prior_value(hyp)
         for seed in seeds:
             try:
                 path, status = self._ipopt(state, hyp, seed, norm, lam)
