@@ -195,7 +195,8 @@ class ActivePlanner(BasePlanner):
     first is flown; all lie in the first leg's convex cell; `last_horizon_enu_m` holds them);
     compiled: the objective's kernels compiled to machine code (planner.objective); ipopt_seeds:
     IPOPT runs only from this many of the best seeds by the objective (0: from every seed);
-    max_iter: IPOPT's iteration cap.
+    max_iter: IPOPT's iteration cap; precompile: compile the kernels when the planner is made
+    (see `precompile`) instead of at the first plan that needs them.
     """
 
     name = "casadi"
@@ -217,6 +218,7 @@ class ActivePlanner(BasePlanner):
         compiled: bool = True,
         ipopt_seeds: int = 1,
         max_iter: int = 30,
+        precompile: bool = False,
     ) -> None:
         super().__init__(constraints, noise, rng_seed)
         self.compiled = bool(compiled)
@@ -246,6 +248,17 @@ class ActivePlanner(BasePlanner):
         self._prev_path: np.ndarray | None = None
         self.last_horizon_enu_m: np.ndarray | None = None
         self._norm: tuple | None = None
+        if precompile and self.compiled:
+            self.precompile()
+
+    def precompile(self) -> None:
+        """Build (compile) now the kernels plans with 2-D users will need, with and without range
+        biases, so the first plan with an estimate does not pay the compiler (once per process)."""
+        for bias in (False, True):
+            shape = Shape(2, bias, self.criterion, self.horizon, self.n_quad)
+            kernel("vgh", shape, self.compiled)
+            kernel("value", shape, self.compiled)
+            kernel("value", Shape(2, bias, self.criterion, 1, self.n_quad), self.compiled)
 
     # -- hypotheses ------------------------------------------------------------------------------
     def hypotheses(self, state: PlanningState) -> Hypotheses | None:

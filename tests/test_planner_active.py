@@ -593,3 +593,15 @@ def test_compiled_kernels_equal_the_interpreted_ones_and_the_reference_planner_a
     a, b = fast.plan(state), slow.plan(state)
     assert a.objective <= b.objective * (1 + 1e-3)
     assert np.linalg.norm(a.waypoint_enu_m - b.waypoint_enu_m) < 1.0
+
+
+def test_precompile_builds_the_kernels_a_plan_needs_before_the_first_plan():
+    from planner import objective
+
+    planner = make_planner("casadi", u_constraints(), NOISE, precompile=True)
+    for bias in (False, True):
+        shape = Shape(2, bias, planner.criterion, planner.horizon, planner.n_quad)
+        assert ("vgh", shape, True) in objective._KERNELS and ("value", shape, True) in objective._KERNELS
+    built = set(objective._KERNELS)
+    planner.plan(PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias(True)))
+    assert {k for k in objective._KERNELS if k[0] != "prior"} == {k for k in built if k[0] != "prior"}
