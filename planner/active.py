@@ -46,15 +46,17 @@ from estimator.noise import NoiseModel
 from planner.base import BasePlanner
 from planner.geometry import convex_cell, legs_feasible
 from planner.information import (
-    E_GAP_EPS,
     Hypotheses,
     explore_waypoint,
     hypotheses_from_estimate,
     hypotheses_from_truth,
+    hypothesis_rows,
+    noise_parameters,
     objective_values,
     prior_value,
     users_initialised,
 )
+from planner.objective import SQRT_EPS_M2, Shape, kernel, mapped
 from planner.types import PlanningConstraints, PlanningState
 from uavloc.errors import PlannerError
 
@@ -76,134 +78,82 @@ _IPOPT_OPTS = {
 }
 #: users (and mirrors) estimated farther than this from home are treated as not initialised [m].
 MAX_USER_RANGE_M = 5000.0
-#: ε added under square roots [m²] (numpy and CasADi use the same value).
-_SQRT_EPS_M2 = 1e-9
 
 
 @dataclass(frozen=True)
 class _Layout:
-    """Sizes that fix the structure of one CasADi problem (one cached solver per layout)."""
+    """What fixes one IPOPT problem (one cached solver each): the row kernel's shape, the number of
+    rows (users × samples), the convex cell's half-planes and whether the kernels are compiled."""
 
-    n_users: int
-    n_samples: int
-    dim: int
-    n_quad: int
+    shape: Shape
+    n_rows: int
     n_planes: int
-    criterion: str
-    horizon: int = 1
-    bias: bool = False  # a range bias per user: P is the joint (position, bias) information
+    compiled: bool = True
+    max_iter: int = 60
 
 
-def objective_expr(z, x_c, U, wts, P, noise_par, delta, lay: _Layout):
-    """CasADi expression of Σ_km wts_km f(I_km) after the legs x_c → w_1 → … → w_H (planner.information).
-
-    z: 3H×1 waypoints stacked; x_c: 3×1; U: (K·M)×3 sample positions; wts: (K·M)×1;
-    P: (K·M)×(p·p) prior information (row-major; p = d, or d + 1 with the bias last when lay.bias);
-    noise_par: [s0, a, b, σ_gps²]; returns (objective, lengths: list of the H leg lengths ℓ_h).
-    With a bias, measurements add h hᵀ/σ_eff², h = [−g; 1], and f is applied to the Schur complement
-    A − c cᵀ/s of the joint information (planner.information.position_information).
-    """
-    n_q, d, n_h = lay.n_quad, lay.dim, lay.horizon
-    p = d + int(lay.bias)
-    km = lay.n_users * lay.n_samples
-    t = ca.DM((np.arange(n_q) + 0.5) / n_q)
-    pts, scales, lengths = [], [], []
-    prev = x_c
-    for h in range(n_h):
-        wp = z[3 * h:3 * h + 3]
-        diff = wp - prev
-        length = ca.sqrt(ca.sumsqr(diff) + _SQRT_EPS_M2)
-        # quadrature points m_q = a + t_q (b − a), one row per q: Q×3; each stands for ℓ/(ΔQ) ranges
-        pts.append(ca.repmat(prev.T, n_q, 1) + t @ diff.T)
-        scales.append(ca.repmat(length / (delta * n_q), 1, n_q))
-        lengths.append(length)
-        prev = wp
-    pts = ca.vertcat(*pts)  # (HQ)×3
-    scale = ca.horzcat(*scales)  # 1×(HQ)
-    n_pts = n_h * n_q
-    comps = [ca.repmat(pts[:, i].T, km, 1) - ca.repmat(U[:, i], 1, n_pts) for i in range(3)]  # (KM)×(HQ)
-    dist = ca.sqrt(comps[0] ** 2 + comps[1] ** 2 + comps[2] ** 2 + _SQRT_EPS_M2)
-    s0, a, b, sgps2 = noise_par[0], noise_par[1], noise_par[2], noise_par[3]
-    # σ_eff² = (s0 + a e^{b d})² + σ_gps²;  g gᵀ/σ_eff² = diff diffᵀ / (d² σ_eff²)
-    w = ca.repmat(scale, km, 1) / (((s0 + a * ca.exp(b * dist)) ** 2 + sgps2) * dist**2)
-    info = {}
-    for i in range(d):
-        for j in range(i, d):
-            info[i, j] = P[:, i * p + j] + ca.sum2(comps[i] * comps[j] * w)
-    if lay.bias:
-        # h = [−g; 1]: cross terms −g_i/σ_eff² = −comps_i·w·dist, bias term 1/σ_eff² = w·dist²
-        wd = w * dist
-        s_b = P[:, d * p + d] + ca.sum2(wd * dist)
-        c_b = [P[:, i * p + d] - ca.sum2(comps[i] * wd) for i in range(d)]
-        for i in range(d):
-            for j in range(i, d):
-                info[i, j] = info[i, j] - c_b[i] * c_b[j] / s_b
-    if lay.criterion == "A":
-        if d == 2:
-            # tr(I⁻¹) = (I₀₀ + I₁₁) / (I₀₀ I₁₁ − I₀₁²)
-            f = (info[0, 0] + info[1, 1]) / (info[0, 0] * info[1, 1] - info[0, 1] ** 2)
-        else:
-            i00, i01, i02, i11, i12, i22 = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
-            c00, c11, c22 = i11 * i22 - i12**2, i00 * i22 - i02**2, i00 * i11 - i01**2
-            det = i00 * c00 - i01 * (i01 * i22 - i12 * i02) + i02 * (i01 * i12 - i11 * i02)
-            f = (c00 + c11 + c22) / det
-    elif lay.criterion == "E":
-        # 1/sqrt(λ_min(I)), λ_min = (tr − sqrt((I₀₀ − I₁₁)² + 4 I₀₁² + ε tr²)) / 2   (d = 2)
-        tr = info[0, 0] + info[1, 1]
-        gap = ca.sqrt((info[0, 0] - info[1, 1]) ** 2 + 4 * info[0, 1] ** 2 + E_GAP_EPS * tr**2)
-        f = 1.0 / ca.sqrt(0.5 * (tr - gap))
-    else:
-        if d == 2:
-            f = -ca.log(info[0, 0] * info[1, 1] - info[0, 1] ** 2)
-        else:
-            i00, i01, i02, i11, i12, i22 = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
-            det = i00 * (i11 * i22 - i12**2) - i01 * (i01 * i22 - i12 * i02) + i02 * (i01 * i12 - i11 * i02)
-            f = -ca.log(det)
-    return ca.dot(wts, f), lengths
+def _layout(planner: ActivePlanner, hyp: Hypotheses) -> _Layout:
+    shape = Shape(hyp.dim, hyp.bias, planner.criterion, planner.horizon, planner.n_quad)
+    return _Layout(shape, int(hyp.sample_w.size), planner.max_planes, planner.compiled, planner.max_iter)
 
 
-_SOLVERS: dict[_Layout, tuple[ca.Function, ca.Function]] = {}
+_SOLVERS: dict[_Layout, ca.Function] = {}
 
 
-def _solver(lay: _Layout) -> tuple[ca.Function, ca.Function]:
-    """(nlpsol, objective Function) for a layout, built once per process and cached.
+def _solver(lay: _Layout) -> ca.Function:
+    """IPOPT on the objective of planner.objective, built once per layout and process.
 
+    Parameters p = [x_c (3); U (3R); P (p²R); s (R); wts (R); noise (4); Δ; λ; A (2 n_pl); c (n_pl);
+    home (3); return factor], matrices column-major with one column per row (pack_params).
     Variables z = [w_1; …; w_H] (3H); constraints, in order: |w_1 − x_c|² (leg), |w_h − w_(h−1)|²
     for h ≥ 2, |w_h,en − home_en|² for every h, the energy of the first leg, A w_h,en − c ≤ 0 for
-    every h (rows of h consecutive).
+    every h (rows of h consecutive). IPOPT gets the value, gradient and Hessian of the rows from
+    the row kernels (mapped over the R rows), so no derivative is taken through them here.
     """
     if lay in _SOLVERS:
         return _SOLVERS[lay]
-    km, d, n_pl, n_h = lay.n_users * lay.n_samples, lay.dim, lay.n_planes, lay.horizon
-    z = ca.SX.sym("z", 3 * n_h)
-    x_c = ca.SX.sym("x_c", 3)
-    U = ca.SX.sym("U", km, 3)
-    wts = ca.SX.sym("wts", km)
-    p = d + int(lay.bias)
-    P = ca.SX.sym("P", km, p * p)
-    noise_par = ca.SX.sym("noise", 4)
-    delta, lam = ca.SX.sym("delta"), ca.SX.sym("lam")
-    A = ca.SX.sym("A", n_pl, 2)
-    c = ca.SX.sym("c", n_pl)
-    home = ca.SX.sym("home", 3)
-    ret = ca.SX.sym("ret")
-    unc, lengths = objective_expr(z, x_c, U, wts, P, noise_par, delta, lay)
-    obj = unc + lam * sum(lengths)
+    sh, R, n_pl = lay.shape, lay.n_rows, lay.n_planes
+    n_h, pp = sh.horizon, sh.n_par**2
+    vgh, value = kernel("vgh", sh, lay.compiled), kernel("value", sh, lay.compiled)
+    sizes = [3, 3 * R, pp * R, R, R, 4, 1, 1, 2 * n_pl, n_pl, 3, 1]
+    par = ca.MX.sym("p", sum(sizes))
+    x_c, U, P, s, wts, noise_par, delta, lam, A, c, home, ret = ca.vertsplit(par, list(np.cumsum([0, *sizes])))
+    U, P, s, wts = ca.reshape(U, 3, R), ca.reshape(P, pp, R), ca.reshape(s, 1, R), ca.reshape(wts, R, 1)
+    A = ca.reshape(A, n_pl, 2)
+    z = ca.MX.sym("z", 3 * n_h)
+    f_rows, g_rows, h_rows = mapped(vgh, R)(z, x_c, U, P, s, noise_par, delta)
+    unc = mapped(value, R)(z, x_c, U, P, s, noise_par, delta) @ wts
     wps = [z[3 * h:3 * h + 3] for h in range(n_h)]
+    prev, lengths = x_c, []
+    for wp in wps:
+        lengths.append(ca.sqrt(ca.sumsqr(wp - prev) + SQRT_EPS_M2))
+        prev = wp
+    cost = lam * sum(lengths)
     g = ca.vertcat(
         ca.sumsqr(wps[0] - x_c),  # first leg length²
         *[ca.sumsqr(wps[h] - wps[h - 1]) for h in range(1, n_h)],  # later legs²
         *[ca.sumsqr((wp - home)[:2]) for wp in wps],  # horizontal distance from home²
-        lengths[0] + ret * ca.sqrt(ca.sumsqr(wps[0] - home) + _SQRT_EPS_M2),  # energy of the first leg
+        lengths[0] + ret * ca.sqrt(ca.sumsqr(wps[0] - home) + SQRT_EPS_M2),  # energy of the first leg
         *[A @ wp[:2] - c for wp in wps],  # convex cell
     )
-    par = ca.vertcat(x_c, ca.vec(U), wts, ca.vec(P), noise_par, delta, lam, ca.vec(A), c, home, ret)
-    nlp = {"x": z, "p": par, "f": obj, "g": g}
-    solver = ca.nlpsol("leg", "ipopt", nlp, _IPOPT_OPTS)
-    fun = ca.Function("objective", [z, par], [obj, ca.gradient(obj, z)])
-    _SOLVERS[lay] = (solver, fun)
-    log.debug("built CasADi solver for %s", lay)
-    return solver, fun
+    lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", g.shape[0])
+    grad = g_rows @ wts + ca.gradient(cost, z)
+    hess_rows = h_rows @ ca.kron(wts, ca.DM.eye(3 * n_h))
+    hess = lam_f * hess_rows + ca.hessian(lam_f * cost + ca.dot(lam_g, g), z)[0]
+    opts = dict(_IPOPT_OPTS)
+    opts["ipopt.max_iter"] = lay.max_iter
+    opts["grad_f"] = ca.Function("grad_f", [z, par], [f_rows @ wts + cost, grad])
+    opts["hess_lag"] = ca.Function("hess_lag", [z, par, lam_f, lam_g], [ca.triu(hess)])
+    solver = ca.nlpsol("leg", "ipopt", {"x": z, "p": par, "f": unc + cost, "g": g}, opts)
+    _SOLVERS[lay] = solver
+    log.debug("built the IPOPT problem for %s", lay)
+    return solver
+
+
+def objective_function(lay: _Layout) -> ca.Function:
+    """(z, p) → (f, ∇f) of a layout's problem: exactly what its IPOPT minimises (for the tests)."""
+    sol = _solver(lay)
+    return sol.get_function("nlp_grad_f")
 
 
 def pack_params(
@@ -219,20 +169,16 @@ def pack_params(
     home: np.ndarray,
     return_factor: float,
 ) -> np.ndarray:
-    """The parameter vector of :func:`_solver`'s problem (column-major as CasADi's vec)."""
-    km, p = lay.n_users * lay.n_samples, lay.dim + int(lay.bias)
-    if hyp.n_par != p:
-        raise ValueError(f"layout has {p} parameters per user, the hypotheses {hyp.n_par}")
-    U = hyp.users_enu_m.reshape(km, 3)
-    wts = (hyp.user_w[:, None] * hyp.sample_w).reshape(km) / norm
-    P = hyp.prior_info.reshape(km, p * p)
+    """The parameter vector of :func:`_solver`'s problem (weights divided by `norm`)."""
+    if hyp.n_par != lay.shape.n_par or hyp.sample_w.size != lay.n_rows:
+        raise ValueError(f"layout {lay} does not fit hypotheses of {hyp.n_par} parameters, {hyp.sample_w.size} rows")
+    users, prior, scale, wts = hypothesis_rows(hyp)
     A_pad = np.zeros((lay.n_planes, 2))
     c_pad = np.ones(lay.n_planes)  # 0·p ≤ 1: inactive rows
     A_pad[: len(A)], c_pad[: len(c)] = A, c
     return np.concatenate([
-        x_c, U.ravel(order="F"), wts, P.ravel(order="F"),
-        [noise.s0_m, noise.a_m, noise.b_per_m, noise.sigma_gps_m**2], [delta_m, lam],
-        A_pad.ravel(order="F"), c_pad, home, [return_factor],
+        x_c, users.ravel(), prior.reshape(lay.n_rows, -1).ravel(), scale, wts / norm,
+        noise_parameters(noise), [delta_m, lam], A_pad.ravel(order="F"), c_pad, home, [return_factor],
     ])
 
 
@@ -246,7 +192,11 @@ class ActivePlanner(BasePlanner):
     "none" (planner.information.hypotheses_from_estimate; the mirror is always included while
     ambiguous); user_weights: (K,) w_k; max_planes: cap on the convex cell's half-planes;
     weighting: "sqrt" multiplies w_k by 1/sqrt(tr Σ_k); horizon: waypoints planned ahead (only the
-    first is flown; all lie in the first leg's convex cell; `last_horizon_enu_m` holds them).
+    first is flown; all lie in the first leg's convex cell; `last_horizon_enu_m` holds them);
+    compiled: the objective's kernels compiled to machine code (planner.objective); ipopt_seeds:
+    IPOPT runs only from this many of the best seeds by the objective (0: from every seed);
+    max_iter: IPOPT's iteration cap; precompile: compile the kernels when the planner is made
+    (see `precompile`) instead of at the first plan that needs them.
     """
 
     name = "casadi"
@@ -265,8 +215,17 @@ class ActivePlanner(BasePlanner):
         max_planes: int = 24,
         weighting: str = "none",
         horizon: int = 2,
+        compiled: bool = True,
+        ipopt_seeds: int = 1,
+        max_iter: int = 30,
+        precompile: bool = False,
     ) -> None:
         super().__init__(constraints, noise, rng_seed)
+        self.compiled = bool(compiled)
+        if ipopt_seeds < 0 or max_iter < 1:
+            raise PlannerError(f"need ipopt_seeds >= 0 and max_iter >= 1; got {ipopt_seeds}, {max_iter}")
+        self.ipopt_seeds = int(ipopt_seeds)
+        self.max_iter = int(max_iter)
         if weighting not in ("none", "sqrt"):
             raise PlannerError(f"weighting must be 'none' or 'sqrt', got {weighting!r}")
         self.weighting = weighting
@@ -288,6 +247,18 @@ class ActivePlanner(BasePlanner):
         self._prev_dir = np.zeros(3)
         self._prev_path: np.ndarray | None = None
         self.last_horizon_enu_m: np.ndarray | None = None
+        self._norm: tuple | None = None
+        if precompile and self.compiled:
+            self.precompile()
+
+    def precompile(self) -> None:
+        """Build (compile) now the kernels plans with 2-D users will need, with and without range
+        biases, so the first plan with an estimate does not pay the compiler (once per process)."""
+        for bias in (False, True):
+            shape = Shape(2, bias, self.criterion, self.horizon, self.n_quad)
+            kernel("vgh", shape, self.compiled)
+            kernel("value", shape, self.compiled)
+            kernel("value", Shape(2, bias, self.criterion, 1, self.n_quad), self.compiled)
 
     # -- hypotheses ------------------------------------------------------------------------------
     def hypotheses(self, state: PlanningState) -> Hypotheses | None:
@@ -324,9 +295,15 @@ class ActivePlanner(BasePlanner):
     def uncertainty(self, state: PlanningState, paths_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
         """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after flying candidate leg ends (C, 3) or
         horizons (C, H, 3) from the UAV (no cost term)."""
-        norm = prior_value(hyp, self.criterion)
+        norm = self._prior_value(hyp)
         return objective_values(state.uav_enu_m, paths_enu_m, hyp, self.noise, self.constraints.delta_m,
-                                self.n_quad, self.criterion) / norm
+                                self.n_quad, self.criterion, compiled=self.compiled) / norm
+
+    def _prior_value(self, hyp: Hypotheses) -> float:
+        """J₀ = prior_value(hyp) (computed once for the hypotheses of a plan)."""
+        if self._norm is None or self._norm[0] is not hyp or self._norm[1] != self.criterion:
+            self._norm = (hyp, self.criterion, prior_value(hyp, self.criterion))
+        return self._norm[2]
 
     def cost_per_m(self, ring_uncertainty: np.ndarray) -> float:
         """λ (normalised units per metre) = cost_rel · (best gain of a ring leg) / leg_max:
@@ -399,9 +376,8 @@ class ActivePlanner(BasePlanner):
         c, x = self.constraints, state.uav_enu_m
         n_h = self.horizon
         seed = np.asarray(seed, dtype=float).reshape(n_h, 3)
-        lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, self.n_quad, self.max_planes,
-                      self.criterion, n_h, hyp.bias)
-        solver, _ = _solver(lay)
+        lay = _layout(self, hyp)
+        solver = _solver(lay)
         # the cell around the first seed leg holds every waypoint, so every leg (convex) stays free
         A, off = convex_cell(c, x[:2], seed[0, :2], self.max_planes)
         par = pack_params(lay, x, hyp, self.noise, c.delta_m, norm, lam, A, off, c.home_enu_m,
@@ -460,7 +436,11 @@ class ActivePlanner(BasePlanner):
         warm = self._warm_start(state)
         if warm is not None:
             seeds.append(warm)
-        norm = prior_value(hyp, self.criterion)
+        if self.ipopt_seeds and len(seeds) > self.ipopt_seeds:
+            # IPOPT only from the best seeds by the objective (each solve costs more than the ring)
+            order = np.argsort(self.evaluate(state, np.array(seeds).reshape(len(seeds), self.horizon, 3), hyp, lam))
+            seeds = [seeds[i] for i in order[:self.ipopt_seeds]]
+        norm = self._prior_value(hyp)
         for seed in seeds:
             try:
                 path, status = self._ipopt(state, hyp, seed, norm, lam)
@@ -502,6 +482,20 @@ class ActivePlanner(BasePlanner):
         step = path[0] - x
         n = float(np.linalg.norm(step))
         self._prev_dir = step / n if n > 0 else np.zeros(3)
+
+
+class ReferenceActivePlanner(ActivePlanner):
+    """The active planner as it was before its speed-ups ("casadi_reference"): the same objective
+    and decisions up to IPOPT's stopping point, with interpreted (not compiled) kernels, IPOPT from
+    every seed and up to 60 iterations — the slow baseline the planner benchmark times it against."""
+
+    name = "casadi_reference"
+
+    def __init__(self, constraints, noise, rng_seed=0, **opts) -> None:
+        opts.setdefault("compiled", False)
+        opts.setdefault("ipopt_seeds", 0)
+        opts.setdefault("max_iter", 60)
+        super().__init__(constraints, noise, rng_seed, **opts)
 
 
 class OraclePlanner(ActivePlanner):

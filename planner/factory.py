@@ -12,10 +12,11 @@ def _registry() -> dict:
 
     reg = {"lawnmower": LawnmowerPlanner, "circle": CirclePlanner, "random": RandomPlanner}
     try:
-        from planner.active import ActivePlanner, GreedyPlanner, OraclePlanner
+        from planner.active import ActivePlanner, GreedyPlanner, OraclePlanner, ReferenceActivePlanner
     except ImportError:  # pragma: no cover - only while planner.active is being written
         return reg
-    reg.update({"casadi": ActivePlanner, "greedy": GreedyPlanner, "oracle": OraclePlanner})
+    reg.update({"casadi": ActivePlanner, "casadi_reference": ReferenceActivePlanner, "greedy": GreedyPlanner,
+                "oracle": OraclePlanner})
     return reg
 
 

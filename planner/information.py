@@ -1,7 +1,9 @@
-"""Predicted information of a leg and the planner's objective, in numpy (DESIGN.md §6).
+"""The planner's hypotheses (posterior samples) and the predicted information of a leg (DESIGN.md §6).
 
-This is the obvious reference: planner.active builds the same expression in CasADi and the tests
-check the two agree (values and gradients).
+The objective itself is defined once, in CasADi (planner.objective): `objective_values` and
+`prior_value` evaluate its kernels, the same functions IPOPT minimises. `predicted_information`
+below is the slow, obvious reference the tests check them against: the same model computed from
+the estimator's range factor (estimator.factors).
 
 Model. A leg (or a horizon of legs) x_0 → w_1 → … → w_H is flown with a range measurement every Δ
 metres. For user k at hypothesised position u, a measurement at m adds
@@ -52,6 +54,7 @@ import numpy as np
 from estimator.factors import range_jacobian, range_residuals
 from estimator.noise import NoiseModel
 from estimator.types import Estimate
+from planner.objective import SQRT_EPS_M2, Shape, prior_values, row_values
 
 #: ε of the prior information regulariser [1/m²] (a 1 km standard deviation).
 PRIOR_EPS_PER_M2 = 1e-6
@@ -285,28 +288,18 @@ def position_information(info: np.ndarray, bias: bool) -> np.ndarray:
     return a - c[..., :, None] * c[..., None, :] / s[..., None, None]
 
 
-#: relative ε under the eigenvalue-gap square root of the "E" criterion (smooth at isotropy).
-E_GAP_EPS = 1e-6
+def hypothesis_rows(hyp: Hypotheses) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The hypotheses as rows of the objective: users (K·M, 3), prior information (K·M, p, p),
+    noise scale (K·M,) and weights w_k c_ks (K·M,)."""
+    K, M = hyp.sample_w.shape
+    scale = np.ones(K) if hyp.noise_scale is None else np.asarray(hyp.noise_scale, dtype=float)
+    return (hyp.users_enu_m.reshape(K * M, 3), hyp.prior_info.reshape(K * M, hyp.n_par, hyp.n_par),
+            np.repeat(scale, M), (hyp.user_w[:, None] * hyp.sample_w).reshape(K * M))
 
 
-def uncertainty(info: np.ndarray, criterion: str) -> np.ndarray:
-    """f(I) over the last two axes: "A": tr(I⁻¹) [m²]; "D": −log det I; "E": 1/sqrt(λ_min(I)) [m]."""
-    if criterion == "A":
-        if info.shape[-1] == 2:
-            # tr(I⁻¹) = (I₀₀ + I₁₁) / det I for 2×2
-            det = info[..., 0, 0] * info[..., 1, 1] - info[..., 0, 1] * info[..., 1, 0]
-            return (info[..., 0, 0] + info[..., 1, 1]) / det
-        return np.trace(np.linalg.inv(info), axis1=-2, axis2=-1)
-    if criterion == "D":
-        return -np.linalg.slogdet(info)[1]
-    if criterion == "E":
-        if info.shape[-1] != 2:
-            raise ValueError("criterion 'E' is implemented for 2-D users only")
-        # λ_min = (tr − sqrt((I₀₀ − I₁₁)² + 4 I₀₁² + ε tr²)) / 2
-        tr = info[..., 0, 0] + info[..., 1, 1]
-        gap = np.sqrt((info[..., 0, 0] - info[..., 1, 1]) ** 2 + 4 * info[..., 0, 1] ** 2 + E_GAP_EPS * tr**2)
-        return 1.0 / np.sqrt(0.5 * (tr - gap))
-    raise ValueError(f"criterion must be 'A', 'D' or 'E', got {criterion!r}")
+def noise_parameters(noise: NoiseModel) -> np.ndarray:
+    """[s0, a, b, σ_gps²] of the objective's range noise (planner.objective)."""
+    return np.array([noise.s0_m, noise.a_m, noise.b_per_m, noise.sigma_gps_m**2])
 
 
 def objective_values(
@@ -318,20 +311,25 @@ def objective_values(
     n_quad: int,
     criterion: str = "A",
     cost_per_m: float = 0.0,
+    compiled: bool = True,
 ) -> np.ndarray:
-    """(C,) J = Σ_k w_k Σ_s c_ks f(I_ks) + λ Σ ℓ for candidate horizons (C, H, 3) (or (C, 3): H = 1)."""
+    """(C,) J = Σ_k w_k Σ_s c_ks f(I_ks) + λ Σ ℓ for candidate horizons (C, H, 3) (or (C, 3): H = 1):
+    planner.objective's kernel evaluated, the function IPOPT minimises."""
     W = np.asarray(waypoints_enu_m, dtype=float)
     if W.ndim == 2:
         W = W[:, None, :]
-    info, lengths = predicted_information(start_enu_m, W, hyp, noise, delta_m, n_quad)
-    f = uncertainty(position_information(info, hyp.bias), criterion)  # (C, K, M)
-    return np.einsum("k,km,ckm->c", hyp.user_w, hyp.sample_w, f) + cost_per_m * lengths.sum(axis=1)
+    shape = Shape(hyp.dim, hyp.bias, criterion, W.shape[1], n_quad)
+    users, prior, scale, wts = hypothesis_rows(hyp)
+    f = row_values(shape, start_enu_m, W, users, prior, scale, noise_parameters(noise), delta_m, compiled)
+    a = np.concatenate([np.broadcast_to(start_enu_m, (len(W), 1, 3)), W[:, :-1]], axis=1)
+    lengths = np.sqrt(np.sum((W - a) ** 2, axis=2) + SQRT_EPS_M2)  # as the kernel's ℓ
+    return f @ wts + cost_per_m * lengths.sum(axis=1)
 
 
 def prior_value(hyp: Hypotheses, criterion: str = "A") -> float:
     """Σ_k w_k Σ_s c_ks f(P_ks): the objective before flying (no cost)."""
-    f = uncertainty(position_information(hyp.prior_info, hyp.bias), criterion)
-    return float(np.einsum("k,km,km->", hyp.user_w, hyp.sample_w, f))
+    _, prior, _, wts = hypothesis_rows(hyp)
+    return float(prior_values(Shape(hyp.dim, hyp.bias, criterion, 1, 2), prior) @ wts)
 
 
 def explore_waypoint(planner, state, visited_enu_m: np.ndarray) -> np.ndarray:

@@ -234,7 +234,9 @@ def test_conditions_never_move_a_family_s_geometry():
 
 def test_the_planner_benchmark_spec_loads():
     campaign = load_spec(REPO / "benchmarks" / "planner_campaign.toml")
-    assert len(campaign.runs) == 30 * 6 and campaign.targets_m == (1.0, 0.6)
+    # two conditions on the same geometry (the hardware world by default, the ideal one labelled)
+    assert len(campaign.runs) == 2 * 30 * 7 and campaign.targets_m == (3.0, 1.0, 0.6)
+    assert [r.condition for r in campaign.runs][::210] == ["hardware", "ideal"]
     assert {r.params.window for r in campaign.runs} == {40}
 
 

@@ -8,10 +8,9 @@ import pytest
 from estimator.noise import NoiseModel
 from planner import REASON_TARGET, PlanningConstraints, PlanningState, make_planner
 from planner import active as active_mod
-from planner.active import _Layout, _solver, pack_params
+from planner.active import _Layout, objective_function, pack_params
 from planner.geometry import convex_cell, in_free_space, leg_violations, point_in_polygon
 from planner.information import (
-    E_GAP_EPS,
     PRIOR_EPS_PER_M2,
     hypotheses_from_estimate,
     joint_prior_info,
@@ -21,6 +20,7 @@ from planner.information import (
     prior_value,
     quadrature_points,
 )
+from planner.objective import E_GAP_EPS, Shape
 from tests.test_planner import fake_estimate, u_constraints
 from uavloc.errors import PlannerError
 
@@ -65,9 +65,9 @@ def _estimate_two_users_bias(ambiguous: bool = True):
 
 
 def _casadi_objective(planner, state, hyp, lam, n_planes=0):
-    lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, planner.n_quad, planner.max_planes,
-                  planner.criterion, 1, hyp.bias)
-    _, fun = _solver(lay)
+    lay = _Layout(Shape(hyp.dim, hyp.bias, planner.criterion, 1, planner.n_quad), hyp.sample_w.size,
+                  planner.max_planes)
+    fun = objective_function(lay)
     c = planner.constraints
     par = pack_params(lay, state.uav_enu_m, hyp, planner.noise, c.delta_m, prior_value(hyp, planner.criterion), lam,
                       np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor)
@@ -238,7 +238,7 @@ def test_plans_with_a_bias_estimate_and_caches_a_bias_layout():
     r = planner.plan(state)
     assert not r.done and np.isfinite(r.objective) and r.status.startswith(("ipopt", "ring"))
     assert leg_violations(c, state.uav_enu_m, r.waypoint_enu_m, c.budget_m) == []
-    assert any(lay.bias for lay in active_mod._SOLVERS)
+    assert any(lay.shape.bias for lay in active_mod._SOLVERS)
 
 
 def test_quadrature_matches_a_dense_sum_of_measurements():
@@ -478,9 +478,8 @@ def test_horizon_objective_gradient_and_feasibility(bias):
     planner = make_planner("casadi", c, NOISE, horizon=3, criterion="E")
     state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias() if bias else _estimate_two_users())
     hyp = planner.hypotheses(state)
-    lay = _Layout(len(hyp.index), hyp.users_enu_m.shape[1], hyp.dim, planner.n_quad, planner.max_planes, "E", 3,
-                  hyp.bias)
-    _, fun = _solver(lay)
+    lay = _Layout(Shape(hyp.dim, hyp.bias, "E", 3, planner.n_quad), hyp.sample_w.size, planner.max_planes)
+    fun = objective_function(lay)
     par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, prior_value(hyp, "E"), 0.002,
                       np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor)
     path = np.array([[-30.0, -70.0, 20.0], [-70.0, -40.0, 25.0], [-70.0, 10.0, 15.0]])
@@ -530,3 +529,79 @@ def test_predicted_information_uses_each_users_noise_scale():
     ratio = np.mean((NOISE.range_sigma_m(d) ** 2 + 1.0) / (4.0 * NOISE.range_sigma_m(d) ** 2 + 1.0))
     gain, gain_plain = info[0, 0, 0] - hyp.prior_info[0, 0], plain[0, 0, 0] - hyp.prior_info[0, 0]
     assert np.trace(gain) == pytest.approx(ratio * np.trace(gain_plain), rel=0.05)
+
+
+def _reference_criterion(info: np.ndarray, criterion: str) -> float:
+    """f of a position information by eigenvalues (the obvious way; E with the planner's smoothing)."""
+    lam = np.linalg.eigvalsh(info)
+    if criterion == "A":
+        return float(np.sum(1 / lam))
+    if criterion == "D":
+        return float(-np.sum(np.log(lam)))
+    tr, gap = lam.sum(), lam[-1] - lam[0]
+    return float(1 / np.sqrt(0.5 * (tr - np.sqrt(gap**2 + E_GAP_EPS * tr**2))))
+
+
+@pytest.mark.parametrize("criterion", ["A", "D", "E"])
+@pytest.mark.parametrize("bias", [False, True])
+def test_ipopts_objective_is_the_numpy_prediction_with_noise_scales(criterion, bias):
+    """One objective: the function IPOPT minimises (its nlp_f), the planner's numpy prediction
+    (`evaluate`) and the range factor's predicted information (planner.information's reference,
+    estimator.factors' range model) agree to 1e-9, with a noise scale per user."""
+    from dataclasses import replace
+
+    est = _estimate_two_users_bias(True) if bias else _estimate_two_users(True)
+    est = replace(est, extra={**est.extra, "noise_scale": np.array([2.5, 0.7])})
+    planner = make_planner("casadi", u_constraints(), NOISE, criterion=criterion)
+    state = PlanningState([0.0, -60.0, 30.0], est)
+    hyp = planner.hypotheses(state)
+    assert hyp.bias is bias and np.allclose(hyp.noise_scale, [2.5, 0.7])
+    lam, c = 0.003, planner.constraints
+    lay = _Layout(Shape(hyp.dim, hyp.bias, criterion, planner.horizon, planner.n_quad), hyp.sample_w.size,
+                  planner.max_planes)
+    norm = prior_value(hyp, criterion)
+    nlp_f = active_mod._solver(lay).get_function("nlp_f")
+    par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, norm, lam, np.zeros((0, 2)), np.zeros(0),
+                      c.home_enu_m, c.return_factor)
+    rng = np.random.default_rng(11)
+    for _ in range(4):
+        path = state.uav_enu_m + rng.uniform([-50, -30, -15], [50, 50, 25], size=(planner.horizon, 3)).cumsum(axis=0)
+        ipopt_f = float(nlp_f(x=path.ravel(), p=par)["f"])
+        numpy_f = float(planner.evaluate(state, path[None], hyp, lam)[0])
+        info, lengths = predicted_information(state.uav_enu_m, path[None], hyp, NOISE, c.delta_m, planner.n_quad)
+        pos = position_information(info[0], bias)
+        K, M = hyp.sample_w.shape
+        ref = sum(hyp.user_w[k] * hyp.sample_w[k, m] * _reference_criterion(pos[k, m], criterion)
+                  for k in range(K) for m in range(M)) / norm + lam * lengths.sum()
+        assert ipopt_f == pytest.approx(numpy_f, rel=1e-9, abs=1e-12)
+        assert numpy_f == pytest.approx(ref, rel=1e-9)
+    # the noise scale matters: without it the prediction differs
+    plain = planner.evaluate(state, path[None], replace(hyp, noise_scale=None), lam)[0]
+    assert abs(plain - numpy_f) > 1e-3 * abs(numpy_f)
+
+
+def test_compiled_kernels_equal_the_interpreted_ones_and_the_reference_planner_agrees():
+    """The compiled objective is the interpreted one (planner.objective), and the fast planner's first
+    waypoint is the slow reference configuration's (casadi_reference) on a two-user state."""
+    state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias(True))
+    fast = make_planner("casadi", u_constraints(), NOISE)
+    slow = make_planner("casadi_reference", u_constraints(), NOISE)
+    assert (fast.compiled, fast.ipopt_seeds, slow.compiled, slow.ipopt_seeds, slow.max_iter) == (True, 1, False, 0, 60)
+    hyp = fast.hypotheses(state)
+    ring = fast.feasible_ring(state)
+    np.testing.assert_allclose(fast.uncertainty(state, ring, hyp), slow.uncertainty(state, ring, hyp), rtol=1e-12)
+    a, b = fast.plan(state), slow.plan(state)
+    assert a.objective <= b.objective * (1 + 1e-3)
+    assert np.linalg.norm(a.waypoint_enu_m - b.waypoint_enu_m) < 1.0
+
+
+def test_precompile_builds_the_kernels_a_plan_needs_before_the_first_plan():
+    from planner import objective
+
+    planner = make_planner("casadi", u_constraints(), NOISE, precompile=True)
+    for bias in (False, True):
+        shape = Shape(2, bias, planner.criterion, planner.horizon, planner.n_quad)
+        assert ("vgh", shape, True) in objective._KERNELS and ("value", shape, True) in objective._KERNELS
+    built = set(objective._KERNELS)
+    planner.plan(PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias(True)))
+    assert {k for k in objective._KERNELS if k[0] != "prior"} == {k for k in built if k[0] != "prior"}

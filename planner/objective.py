@@ -1,0 +1,216 @@
+"""The planner's objective, defined once in CasADi: IPOPT minimises it and numpy evaluates it (DESIGN.md §6).
+
+One row is one hypothesis of one user (a posterior sample u with its prior information P, noise
+scale s and weight). After flying the horizon x_c → w_1 → … → w_H with a range every Δ metres, the
+row's predicted information is (midpoint rule, Q points per leg at t_q = (q − ½)/Q, each standing
+for ℓ/(ΔQ) ranges):
+
+    J(u) = P + Σ_legs (ℓ/(ΔQ)) Σ_q h_q h_qᵀ / σ_eff²(d_q),   d_q = sqrt(|m_q − u|² + ε)
+    σ_eff² = (s · σ(d))² + σ_gps²,   σ(d) = s0 + a·e^{b d}                          (noise scale s)
+    h_q = g_q = (m_q − u)[:d] / d_q                    (positions only, p = d)
+    h_q = [g_q; −1]                                    (with a range bias last, p = d + 1)
+
+The sign of the bias entry does not matter (h hᵀ); it is the estimator's range factor's Jacobian
+on (u, b) up to the factor −1/σ_eff (estimator.factors.range_jacobian; planner.information's
+`predicted_information` computes the same from that factor and the tests check the two agree).
+With a bias the position information is the Schur complement I = A − c cᵀ/s of J = [[A, c],
+[cᵀ, s]]. A tracked clock sawtooth is a bias whose gain follows the sawtooth's shape; a constant
+gain leaves the Schur complement unchanged, so it is modelled as this bias. A GPS error along the
+line of sight shifts the range one-for-one: σ_gps² is folded into the range variance.
+
+The row's value is the criterion of I (what the stop rule and the benchmark measure for "E"):
+
+    f = tr(I⁻¹) ("A"),  −log det I ("D"),  1/sqrt(λ_min(I)) ("E", d = 2,
+        λ_min = (tr − sqrt((I₀₀ − I₁₁)² + 4 I₀₁² + ε_E tr²)) / 2, smooth at isotropy)
+
+The objective sums the rows with their weights (planner.active adds the leg-length cost and the
+normalisation). Kernels (:func:`kernel`, one per :class:`Shape`, whatever the number of users and samples): the
+row's value, and its value, gradient and upper-triangular Hessian in the waypoints z (what IPOPT
+needs, so no derivative is taken through the mapped rows at solve time). Built once per process;
+compiled to machine code by the injectable :data:`compile_hook` (default: CasADi's JIT through the
+system C compiler, whose temporary files CasADi removes; the SX virtual machine when that fails or
+when `compiled=False`, the slow reference configuration).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: ε added under square roots [m²].
+SQRT_EPS_M2 = 1e-9
+#: relative ε under the eigenvalue-gap square root of the "E" criterion (smooth at isotropy).
+E_GAP_EPS = 1e-6
+#: C compiler flags of the kernels: -O1 evaluates about as fast as -O2 and compiles in a few seconds.
+JIT_FLAGS = ("-O1",)
+
+
+@dataclass(frozen=True)
+class Shape:
+    """What fixes a row kernel: position dimension d, a bias per user, criterion, horizon H, Q."""
+
+    dim: int
+    bias: bool
+    criterion: str
+    horizon: int
+    n_quad: int
+
+    @property
+    def n_par(self) -> int:
+        """p: parameters per user (d, or d + 1 with the bias last)."""
+        return self.dim + int(self.bias)
+
+
+def criterion_expr(info: dict, d: int, criterion: str):
+    """f of the position information given as {(i, j): I_ij, i ≤ j} (SX expressions), d = 2 or 3."""
+    if criterion == "E":
+        if d != 2:
+            raise ValueError("criterion 'E' is implemented for 2-D users only")
+        tr = info[0, 0] + info[1, 1]
+        gap = ca.sqrt((info[0, 0] - info[1, 1]) ** 2 + 4 * info[0, 1] ** 2 + E_GAP_EPS * tr**2)
+        return 1.0 / ca.sqrt(0.5 * (tr - gap))
+    if d == 2:
+        det = info[0, 0] * info[1, 1] - info[0, 1] ** 2
+        # tr(I⁻¹) = (I₀₀ + I₁₁) / det I
+        return (info[0, 0] + info[1, 1]) / det if criterion == "A" else -ca.log(det)
+    i00, i01, i02, i11, i12, i22 = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
+    c00, c11, c22 = i11 * i22 - i12**2, i00 * i22 - i02**2, i00 * i11 - i01**2
+    det = i00 * c00 - i01 * (i01 * i22 - i12 * i02) + i02 * (i01 * i12 - i11 * i02)
+    # tr(I⁻¹) = tr(adj I) / det I
+    return (c00 + c11 + c22) / det if criterion == "A" else -ca.log(det)
+
+
+def _position_part(J: dict, d: int, bias: bool) -> dict:
+    """{(i, j)} of the position information: J itself, or its Schur complement A − c cᵀ/s (bias last)."""
+    if not bias:
+        return {(i, j): J[i, j] for i in range(d) for j in range(i, d)}
+    s = J[d, d]
+    return {(i, j): J[i, j] - J[i, d] * J[j, d] / s for i in range(d) for j in range(i, d)}
+
+
+def row_expr(z, x_c, u, P, scale, noise_par, delta, shape: Shape):
+    """SX f of one row (module docstring). z: 3H waypoints stacked; x_c, u: 3; P: p·p row-major;
+    scale: s; noise_par: [s0, a, b, σ_gps²]; delta: Δ. Returns (f, [ℓ_1 … ℓ_H])."""
+    d, p, n_q = shape.dim, shape.n_par, shape.n_quad
+    t = (np.arange(n_q) + 0.5) / n_q
+    acc = {(i, j): P[i * p + j] for i in range(p) for j in range(i, p)}
+    s0, a, b, sgps2 = noise_par[0], noise_par[1], noise_par[2], noise_par[3]
+    prev, lengths = x_c, []
+    for h in range(shape.horizon):
+        wp = z[3 * h:3 * h + 3]
+        step = wp - prev
+        length = ca.sqrt(ca.sumsqr(step) + SQRT_EPS_M2)
+        lengths.append(length)
+        per_point = length / (delta * n_q)  # ranges each quadrature point stands for
+        for q in range(n_q):
+            rel = prev + t[q] * step - u
+            dist = ca.sqrt(ca.sumsqr(rel) + SQRT_EPS_M2)
+            # n / σ_eff², σ_eff² = (s σ(d))² + σ_gps²
+            w = per_point / ((scale * (s0 + a * ca.exp(b * dist))) ** 2 + sgps2)
+            hv = [rel[i] / dist for i in range(d)] + ([-1.0] if shape.bias else [])
+            for i in range(p):
+                for j in range(i, p):
+                    acc[i, j] = acc[i, j] + w * hv[i] * hv[j]
+        prev = wp
+    return criterion_expr(_position_part(acc, d, shape.bias), d, shape.criterion), lengths
+
+
+def jit_function(name: str, inputs: list, outputs: list) -> ca.Function:
+    """The default :data:`compile_hook`: a CasADi Function compiled by the system C compiler."""
+    opts = {"jit": True, "compiler": "shell", "jit_cleanup": True,
+            "jit_options": {"flags": list(JIT_FLAGS), "verbose": False}}
+    return ca.Function(name, inputs, outputs, opts)
+
+
+#: how kernels are compiled: (name, SX inputs, SX outputs) → Function. Replace it (e.g. with one
+#: that loads a compiled library from a cache folder) to keep the compiler's I/O elsewhere; None:
+#: never compile (the SX virtual machine).
+compile_hook: Callable[[str, list, list], ca.Function] | None = jit_function
+
+
+_KERNELS: dict[tuple[str, Shape, bool], ca.Function] = {}
+
+
+def _build(name: str, inputs: list, outputs: list, compiled: bool) -> ca.Function:
+    if compiled and compile_hook is not None:
+        try:
+            return compile_hook(name, inputs, outputs)
+        except RuntimeError as exc:  # no C compiler: the same function, interpreted
+            log.warning("could not compile the planner kernel %s (%s); interpreting it", name, exc)
+    return ca.Function(name, inputs, outputs)
+
+
+def kernel(kind: str, shape: Shape, compiled: bool = True) -> ca.Function:
+    """A row kernel, built (and compiled) once per process:
+
+    "value": (z, x_c, u, P, s, noise, Δ) → f;  "vgh": the same → (f, ∇_z f, triu ∇²_z f);
+    "prior": (P) → f(P), the criterion of the prior information alone (never compiled).
+    """
+    key = (kind, shape, bool(compiled and kind != "prior"))
+    if key in _KERNELS:
+        return _KERNELS[key]
+    p = shape.n_par
+    P = ca.SX.sym("P", p * p)
+    tag = f"{shape.criterion}{shape.dim}{'b' if shape.bias else ''}h{shape.horizon}q{shape.n_quad}"
+    if kind == "prior":
+        prior = {(i, j): P[i * p + j] for i in range(p) for j in range(i, p)}
+        f = criterion_expr(_position_part(prior, shape.dim, shape.bias), shape.dim, shape.criterion)
+        fun = ca.Function(f"prior_{tag}", [P], [f])
+    elif kind in ("value", "vgh"):
+        z = ca.SX.sym("z", 3 * shape.horizon)
+        x_c, u, scale = ca.SX.sym("x_c", 3), ca.SX.sym("u", 3), ca.SX.sym("s")
+        noise_par, delta = ca.SX.sym("noise", 4), ca.SX.sym("delta")
+        f, _ = row_expr(z, x_c, u, P, scale, noise_par, delta, shape)
+        ins = [z, x_c, u, P, scale, noise_par, delta]
+        if kind == "value":
+            fun = _build(f"row_{tag}", ins, [f], compiled)
+        else:
+            hess, grad = ca.hessian(f, z)
+            fun = _build(f"row_vgh_{tag}", ins, [f, grad, ca.triu(hess)], compiled)
+    else:
+        raise ValueError(f"kernel kind must be 'value', 'vgh' or 'prior', got {kind!r}")
+    _KERNELS[key] = fun
+    log.debug("built the planner's %s kernel for %s (compiled=%s)", kind, shape, key[2])
+    return fun
+
+
+_MAPS: dict[tuple[int, int], ca.Function] = {}
+
+
+def mapped(fun: ca.Function, n: int) -> ca.Function:
+    """`fun` over n columns (serial map; a few per process, so cached by size)."""
+    key = (id(fun), n)
+    if key not in _MAPS:
+        if len(_MAPS) > 256:
+            _MAPS.clear()
+        _MAPS[key] = fun.map(n, "serial")
+    return _MAPS[key]
+
+
+def row_values(shape: Shape, start_enu_m: np.ndarray, paths: np.ndarray, users_enu_m: np.ndarray,
+               prior_info: np.ndarray, scale: np.ndarray, noise_par: np.ndarray, delta_m: float,
+               compiled: bool = True) -> np.ndarray:
+    """f of every (candidate, row): paths (C, H, 3); users_enu_m (R, 3); prior_info (R, p, p);
+    scale (R,) → (C, R), the value kernel evaluated (what IPOPT minimises, term by term)."""
+    C, R = len(paths), len(users_enu_m)
+    n = C * R
+    z = np.repeat(np.asarray(paths, dtype=float).reshape(C, -1), R, axis=0).T  # (3H, C·R)
+    u = np.tile(np.asarray(users_enu_m, dtype=float), (C, 1)).T
+    P = np.tile(np.asarray(prior_info, dtype=float).reshape(R, -1), (C, 1)).T
+    s = np.tile(np.asarray(scale, dtype=float), C)[None]
+    x_c = np.asarray(start_enu_m, dtype=float)
+    f = mapped(kernel("value", shape, compiled), n)(z, x_c, u, P, s, noise_par, delta_m)
+    return np.asarray(f, dtype=float).reshape(C, R)
+
+
+def prior_values(shape: Shape, prior_info: np.ndarray) -> np.ndarray:
+    """f(P) of every row: prior_info (R, p, p) → (R,) (the prior kernel evaluated)."""
+    R = len(prior_info)
+    out = mapped(kernel("prior", shape), R)(np.asarray(prior_info, dtype=float).reshape(R, -1).T)
+    return np.asarray(out, dtype=float).reshape(R)
