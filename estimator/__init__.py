@@ -1,4 +1,4 @@
 """Pure estimation maths: ranging, measurement models, the SLAM solver, covariance, CRLB.
 
-No asyncio, sockets, files or clocks in here (DESIGN.md §2).
+No asyncio, sockets, files or clocks in here (docs/design.md §2).
 """

@@ -1,5 +1,5 @@
 """Fit the range-noise model and a per-user range bias from ranges to users at known positions
-(DESIGN.md §4: σ(d) = s0 + a·exp(b·d); the clock sawtooth's mean is a positive range bias).
+(docs/design.md §4: σ(d) = s0 + a·exp(b·d); the clock sawtooth's mean is a positive range bias).
 
 Model of one measurement i (user k = user_idx[i], slant distance d_i from the logged UAV position to
 the known user position):

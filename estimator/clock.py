@@ -1,4 +1,4 @@
-"""A commercial UE's clock sawtooth, tracked instead of treated as noise (DESIGN.md §4).
+"""A commercial UE's clock sawtooth, tracked instead of treated as noise (docs/design.md §4).
 
 A Rel-15 UE corrects its downlink timing only when conformance requires it: its round trip drifts
 at a steady rate and then resets, so the range error of user k is a sawtooth on top of any

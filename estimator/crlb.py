@@ -1,4 +1,4 @@
-"""Cramér–Rao lower bound of the users for a given geometry (DESIGN.md §5).
+"""Cramér–Rao lower bound of the users for a given geometry (docs/design.md §5).
 
 The Fisher information of the model at the true positions is the normal matrix of the SLAM cost
 evaluated there with zero residuals (unit IRLS weights): GPS priors on the keyframes, ranges

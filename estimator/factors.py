@@ -1,4 +1,4 @@
-"""Factors of the SLAM cost (DESIGN.md §5), one small dataclass each, plus a slow dense reference.
+"""Factors of the SLAM cost (docs/design.md §5), one small dataclass each, plus a slow dense reference.
 
     L = Σ_n ||x̂_n − x_n||² / σ_gps²  +  Σ_(n,k) ρ( (r̂_nk − ||x_n − u_k|| − b_k) / σ(d_nk) )
         + Σ_k (b_k / σ_b)²  +  Σ_n ||x_n − x_(n−1) − ô_n||² / σ_m²

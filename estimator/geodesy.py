@@ -1,4 +1,4 @@
-"""Geodetic <-> local ENU (DESIGN.md §3), through pymap3d (WGS-84)."""
+"""Geodetic <-> local ENU (docs/design.md §3), through pymap3d (WGS-84)."""
 
 from __future__ import annotations
 

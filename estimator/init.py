@@ -1,4 +1,4 @@
-"""Initialization of users and the mirror-ambiguity test (DESIGN.md §5).
+"""Initialization of users and the mirror-ambiguity test (docs/design.md §5).
 
 Both work on one user at a time with the UAV held at its GPS fixes. The GPS error of a keyframe
 projects onto the range direction, so its variance is folded into the range variance (the UAV

@@ -1,4 +1,4 @@
-"""Keyframe selection at Δ metres of flight (DESIGN.md §5; the paper uses Δ = 2 m).
+"""Keyframe selection at Δ metres of flight (docs/design.md §5; the paper uses Δ = 2 m).
 
 Keep the first position, then each position at least Δ (3-D distance) from the last *kept* one:
 

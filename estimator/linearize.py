@@ -1,4 +1,4 @@
-"""Linearization of the SLAM cost (DESIGN.md §5): the IRLS-weighted normal equations at a point.
+"""Linearization of the SLAM cost (docs/design.md §5): the IRLS-weighted normal equations at a point.
 
 Every factor's vectorised error and Jacobian enters here once: the range factor (_range_terms on
 estimator.factors.range_residuals / range_alpha / range_jacobian, the one source of the range

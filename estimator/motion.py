@@ -1,4 +1,4 @@
-"""Relative-motion factors from the autopilot's velocity (DESIGN.md §5).
+"""Relative-motion factors from the autopilot's velocity (docs/design.md §5).
 
 The displacement of the UAV between consecutive keyframes is the integral of its velocity. The
 autopilot reports its (EKF) velocity v̂ with every position fix; integrated between the keyframe

@@ -1,4 +1,4 @@
-"""Noise model shared by the estimator, the planner and the simulators (DESIGN.md §4, §5).
+"""Noise model shared by the estimator, the planner and the simulators (docs/design.md §4, §5).
 
     σ(d) = s0 + a · exp(b · d)          range standard deviation at slant distance d [m]
 
@@ -105,7 +105,7 @@ class NoiseModel:
 
     @classmethod
     def from_log_dict(cls, noise: dict | None) -> NoiseModel:
-        """Build from a mission-log header `noise` section (DESIGN.md §10); defaults when absent."""
+        """Build from a mission-log header `noise` section (docs/design.md §10); defaults when absent."""
         if not noise:
             return cls()
         rs = noise.get("range_sigma_m", {}) or {}

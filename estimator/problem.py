@@ -1,4 +1,4 @@
-"""Input checking and the array form of a SLAM problem (DESIGN.md §5).
+"""Input checking and the array form of a SLAM problem (docs/design.md §5).
 
 Keyframes arrive as a list of :class:`estimator.types.Keyframe`; the solver works on dense arrays:
 

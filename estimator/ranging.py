@@ -1,4 +1,4 @@
-"""From gNB numbers to a range (DESIGN.md §4, 3GPP TS 38.211 §4.1 and §4.3.1).
+"""From gNB numbers to a range (docs/design.md §4, 3GPP TS 38.211 §4.1 and §4.3.1).
 
     Tc      = 1 / (Δf_max · N_f) = 1 / (480 kHz · 4096)            ≈ 0.5086 ns
     TA step = 16 · 64 · Tc / 2^μ                                   (520.8 ns at μ = 0)

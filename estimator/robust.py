@@ -1,4 +1,4 @@
-"""Robust losses for range factors (DESIGN.md §5), applied by iteratively reweighted least squares.
+"""Robust losses for range factors (docs/design.md §5), applied by iteratively reweighted least squares.
 
 A loss ρ acts on a whitened residual e = r / σ(d). The solver minimises Σ ρ(e) and, at each
 Levenberg–Marquardt iteration, replaces it by the weighted quadratic ½ w e² with the IRLS weight

@@ -1,4 +1,4 @@
-"""Schur-complement solve of the block-arrow normal equations (DESIGN.md §5).
+"""Schur-complement solve of the block-arrow normal equations (docs/design.md §5).
 
 Unknowns: keyframe positions x (N, 3) and packed user parameters θ (P,). Normal equations
 

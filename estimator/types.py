@@ -1,7 +1,8 @@
 """Data passed between the estimator, the planner, replay and the controller.
 
-These are the contract between the parts (DESIGN.md §1): plain frozen dataclasses on numpy arrays.
-Shapes use N keyframes, K users, M range measurements, d = 2 (east, north) or 3 user coordinates.
+These are the contract between the parts (docs/design.md §1, docs/architecture.md): plain frozen
+dataclasses on numpy arrays. Shapes use N keyframes, K users, M range measurements, d = 2 (east,
+north) or 3 user coordinates.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""`uavloc` command line: a thin dispatcher (DESIGN.md §11).
+"""`uavloc` command line: a thin dispatcher (docs/design.md §11).
 
 Each subcommand is a module with `HELP`, `add_arguments(parser)` and `run(args) -> int`; heavy
 imports happen inside `run`. The mission's own live in `mission/commands/<name>.py`; other

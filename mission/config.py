@@ -14,7 +14,7 @@ file that is not UTF-8 is a :class:`MissionConfigError` naming the file, the key
 :func:`validate_mission` checks what spans fields (distinct users and RNTIs, the altitude band,
 home inside the fence and outside every no-fly zone, ...). Units are in the names (`_m`, `_s`,
 `_mps`, `_pct`, `_deg`, `_hz`); positions are ENU offsets in metres from home (`*_enu_m`, as in
-DESIGN.md §9) or geodetic (`*_lat_lon_deg`, [[lat_deg, lon_deg], ...]), one or the other per
+docs/design.md §9) or geodetic (`*_lat_lon_deg`, [[lat_deg, lon_deg], ...]), one or the other per
 polygon kind; :meth:`GeofenceConfig.polygons_enu_m` turns both into home-ENU once home is known.
 
 A simulation scenario (sitl_scenarios/scenario.py) is a mission file plus world sections (true
@@ -139,7 +139,7 @@ class FlightConfig:
 
 @dataclass(frozen=True)
 class NoiseConfig:
-    """The noise the estimator and planner assume (DESIGN.md §4, §5).
+    """The noise the estimator and planner assume (docs/design.md §4, §5).
 
     sigma_gps_m: per-axis GPS error [m]; gps_tau_s: its correlation time [s] (absent: unknown);
     σ(d) = range_s0_m + range_a_m·exp(range_b_per_m·d) one-way range spread [m];
@@ -161,13 +161,13 @@ class NoiseConfig:
                           b_per_m=self.range_b_per_m, gps_tau_s=self.gps_tau_s)
 
     def header_noise(self) -> dict:
-        """The mission log header's `noise` section (DESIGN.md §10), with `gps_tau_s` when known."""
+        """The mission log header's `noise` section (docs/design.md §10), with `gps_tau_s` when known."""
         return self.noise_model().to_log_dict()
 
 
 @dataclass(frozen=True)
 class GnbSettings:
-    """How to measure with the gNB (DESIGN.md §8; the address is given on the command line).
+    """How to measure with the gNB (docs/design.md §8; the address is given on the command line).
 
     transport: "telnet" or "rest" (OAI's web server), for a `--gnb` address without a scheme
     (`telnet://` and `http://` say it themselves); mode: "rtt" (the RTT telnet module) or "stock"
@@ -259,7 +259,7 @@ class MissionConfig:
         return self.noise.noise_model()
 
     def header_fields(self, home: Origin) -> dict:
-        """The mission log header's optional shape fields (DESIGN.md §10): `geofence` and
+        """The mission log header's optional shape fields (docs/design.md §10): `geofence` and
         `no_fly_zones` as open [[lat_deg, lon_deg], ...] rings, `altitude_band_m` {min_m, max_m}
         above home. Fields without a value are left out."""
 

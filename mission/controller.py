@@ -1,4 +1,4 @@
-"""The mission controller's public face and its wiring (DESIGN.md §1, §7).
+"""The mission controller's public face and its wiring (docs/design.md §1, §7).
 
 :func:`controller_from_mission` builds a :class:`MissionController` for a mission file
 (:class:`mission.config.MissionConfig`; a simulation scenario's is built by

@@ -1,5 +1,5 @@
 """OAI gNB adapter: one asyncio client for OpenAirInterface's telnet server or its web server (REST)
-(DESIGN.md §8; docs/rest-transport.md).
+(docs/design.md §8; docs/rest-transport.md).
 
 The controller depends on the small :class:`GnbClient` protocol; :class:`OaiGnbClient` implements
 it for a real (modified or stock) OAI gNB and for the simulated one (`sitl_scenarios/gnb.py`),

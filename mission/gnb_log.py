@@ -1,5 +1,5 @@
 """The gNB log as the stock modes read it: followed like `tail -f`, every line fed to
-:class:`mission.oai_ra.RaTracker`, and what the lines proved kept per UE (DESIGN.md §8).
+:class:`mission.oai_ra.RaTracker`, and what the lines proved kept per UE (docs/design.md §8).
 
 :class:`StockLog` is what :class:`mission.gnb.OaiGnbClient` owns in stock mode: the RNTI changes
 a log line proved (and only those), the random accesses it proved, and the round-trip ones not yet

@@ -4,7 +4,7 @@ telemetry log (tlog) for the UAV track and a gNB log for the ranges (`uavloc imp
 **UAV track** (pymavlink): every GLOBAL_POSITION_INT (lat, lon in 1e-7 deg; alt in mm AMSL;
 vx, vy, vz in cm/s NED). Radio links reorder and batch messages, so fixes are put in order by the
 autopilot's own clock `time_boot_ms`, duplicates dropped, and that clock is placed on UTC with one
-offset (DESIGN.md §3: the UAV position of a measurement is the track interpolated to its time):
+offset (docs/design.md §3: the UAV position of a measurement is the track interpolated to its time):
 
 - time base `system` (default when present): SYSTEM_TIME pairs `time_unix_usec` (the autopilot's
   UTC, from GPS) with `time_boot_ms`; offset = median of their difference.
@@ -27,7 +27,7 @@ through them. (The simulated gNB's own Msg2 log runs on simulation time and carr
 `--gnb-time-offset` is added to every stamp (to correct a known clock offset). Recognised
 payloads, parsed by `mission.oai` (the same parsers as the live adapter):
 
-- `rtt` reply lines of DESIGN.md §8 (`rnti <hex> ta <int> mu <int> srs_peak <float> fs <hz> ...`):
+- `rtt` reply lines of docs/design.md §8 (`rnti <hex> ta <int> mu <int> srs_peak <float> fs <hz> ...`):
   a complete measurement; `error ...` lines are counted and skipped;
 - OAI Msg2 lines (`UE <rnti>: ... timing_offset = N ...`): a coarse TA-only range (needs μ);
 - SRS ToA lines (`SRS ToA peak estimator N` in samples, or `SRS ... ToA ...: N ns`), which carry

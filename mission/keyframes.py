@@ -1,4 +1,4 @@
-"""The one keyframe builder (DESIGN.md §5, §10): a keyframe is a function of mission-log records.
+"""The one keyframe builder (docs/design.md §5, §10): a keyframe is a function of mission-log records.
 
 The flight (mission.control.pipeline) and replay (mission.replay) both call
 :func:`build_keyframe` with the `rtt` records of one trigger as written, the previous keyframe's

@@ -1,8 +1,8 @@
-"""The mission log, `uavloc-mission/1`: JSON Lines, appended and flushed line by line (DESIGN.md §10).
+"""The mission log, `uavloc-mission/1`: JSON Lines, appended and flushed line by line (docs/design.md §10).
 
 Writer: :class:`MissionLogWriter` appends one JSON object per line and flushes each, so a crash loses
 at most the line being written. Reader: :func:`read_mission_log` accepts any file that follows the
-table in DESIGN.md §10; a torn last line (no newline, not JSON) is skipped with a warning; anything
+table in docs/design.md §10; a torn last line (no newline, not JSON) is skipped with a warning; anything
 else malformed raises :class:`MissionLogError` naming the line number and the reason, also
 telemetry records out of time order (a shuffled or spliced log: refused, not sorted).
 """
@@ -232,7 +232,7 @@ class LogHeader:
     noise: NoiseModel
     has_noise: bool
     config: dict
-    #: optional area fields (DESIGN.md §10 header; absent in older logs): geofence and each no-fly
+    #: optional area fields (docs/design.md §10 header; absent in older logs): geofence and each no-fly
     #: zone as open rings [[lat_deg, lon_deg], ...]; altitude band {"min_m", "max_m"} above home;
     #: max distance from home [m]; buildings [{"footprint": ring, "height_m"}] (simulations)
     geofence: list[list[float]] | None = None

@@ -1,4 +1,4 @@
-"""Pure parsers for what an OpenAirInterface gNB says (DESIGN.md §8): telnet replies and log lines.
+"""Pure parsers for what an OpenAirInterface gNB says (docs/design.md §8): telnet replies and log lines.
 
 No I/O and no clocks: the adapter (`mission/gnb.py`) reads bytes and lines and hands them here;
 time stamps are supplied by the caller. Every parser raises :class:`GnbProtocolError` (with the
@@ -248,7 +248,7 @@ class RttSample:
         return C_MPS * self.toa_s
 
     def log_fields(self) -> dict:
-        """The raw and derived fields of a mission-log `rtt` record (DESIGN.md §10)."""
+        """The raw and derived fields of a mission-log `rtt` record (docs/design.md §10)."""
         out: dict = {"toa_s": self.toa_s, "ta": self.ta, "mu": self.mu, "srs_peak": self.srs_peak}
         if self.fs_hz is not None:
             out["fs_hz"] = self.fs_hz

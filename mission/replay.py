@@ -1,4 +1,4 @@
-"""Replay: re-run the estimator over a recorded mission log (DESIGN.md §1, §10, §11).
+"""Replay: re-run the estimator over a recorded mission log (docs/design.md §1, §10, §11).
 
 Replay needs only the `header` and the `rtt` records. Consecutive `rtt` records taken at the same
 UAV position (one trigger, all users) form one keyframe; its GPS prior is that position in the
@@ -251,7 +251,7 @@ def result_status(estimate: Estimate) -> str:
 
 
 def result_document(result: ReplayResult) -> dict:
-    """The JSON document of DESIGN.md §11 for a replay."""
+    """The JSON document of docs/design.md §11 for a replay."""
     return {
         "status": result_status(result.estimate),
         "users": user_entries_of_estimate(result.estimate, result.log.header.origin,

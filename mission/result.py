@@ -1,7 +1,7 @@
 """The one per-user result document, and the one horizontal error, of every tool.
 
 `uavloc sim`, `uavloc fly`, `uavloc replay` and the report all describe a located user the same
-way (DESIGN.md §11): :func:`user_entries` builds that list from plain arrays, and
+way (docs/design.md §11): :func:`user_entries` builds that list from plain arrays, and
 :func:`user_entries_of_estimate` from an :class:`estimator.types.Estimate`. Each entry::
 
     id, lat_deg, lon_deg, alt_m, enu_m            where (None when the user is not located)

@@ -1,4 +1,4 @@
-"""Safety gate: nothing reaches the vehicle that it did not pass (DESIGN.md §7).
+"""Safety gate: nothing reaches the vehicle that it did not pass (docs/design.md §7).
 
 Checks in the local ENU frame whose origin is home (`up` = height above home), with the plane
 geometry of mission/geometry.py (shapely; polygons are closed sets):

@@ -1,6 +1,6 @@
 """What `uavloc fly` and `uavloc sim` print at the end of a mission, and the report they write.
 
-The JSON document is DESIGN.md §11 (plus `reason`, `keyframes`, `log`); the human-readable lines
+The JSON document is docs/design.md §11 (plus `reason`, `keyframes`, `log`); the human-readable lines
 use the same per-user table as `uavloc replay`. `--out DIR` writes the report of the mission's own
 log (replayed, so the report shows exactly what replay would).
 """
@@ -19,7 +19,7 @@ log = logging.getLogger(__name__)
 
 
 def mission_document(result: MissionResult) -> dict:
-    """The DESIGN.md §11 document of a mission result."""
+    """The docs/design.md §11 document of a mission result."""
     doc = result.to_document()
     doc["keyframes"] = result.keyframes
     doc["log"] = str(result.log_path) if result.log_path is not None else None

@@ -1,4 +1,4 @@
-"""Telemetry ring buffer: the UAV position at a measurement's time (DESIGN.md §3).
+"""Telemetry ring buffer: the UAV position at a measurement's time (docs/design.md §3).
 
 A measurement's UAV position is the telemetry interpolated to the measurement time, not the last
 fix. :class:`TelemetryBuffer` keeps the last `capacity` fixes (time [s], ENU position [m]) in a

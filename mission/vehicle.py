@@ -1,6 +1,6 @@
 """The vehicle side of the mission: a small :class:`Vehicle` protocol and its MAVSDK implementation.
 
-The controller depends only on :class:`Vehicle` (STYLE.md 11). :class:`MavsdkVehicle` implements it
+The controller depends only on :class:`Vehicle` (docs/architecture.md). :class:`MavsdkVehicle` implements it
 over the native `mavsdk.asyncio` binding, for PX4 (real or SITL) and for the built-in simulator
 alike. Every call has a timeout; every plugin error is turned into a :class:`VehicleCommandError`
 carrying MAVSDK's result code, right where the call is made (the MAVSDK-Python examples' style).

@@ -1,4 +1,4 @@
-"""Active planning: choose the next waypoint that shrinks the users' uncertainty fastest (DESIGN.md §6).
+"""Active planning: choose the next waypoint that shrinks the users' uncertainty fastest (docs/design.md §6).
 
 Pure numpy + CasADi: no asyncio, sockets, files or clocks (the caller times `plan` for
 `PlanResult.solve_time_s`).

@@ -1,4 +1,4 @@
-"""The active planner: the next waypoint from the information objective, by CasADi + IPOPT (DESIGN.md §6).
+"""The active planner: the next waypoint from the information objective, by CasADi + IPOPT (docs/design.md §6).
 
 Defaults: criterion "E" (f = the error-ellipse semi-major axis per user, what the stop rule and
 the benchmark measure; "A" for 3-D users), horizon 2 (two waypoints planned, the first flown).

@@ -1,4 +1,4 @@
-"""Fixed-pattern and naive baselines behind the planner interface (DESIGN.md §6).
+"""Fixed-pattern and naive baselines behind the planner interface (docs/design.md §6).
 
 - :class:`LawnmowerPlanner`: boustrophedon lanes over the fence (or the distance disc) at the cruise
   altitude; legs follow the lanes, split at `leg_max_m`; the pattern restarts reversed when done.

@@ -1,4 +1,4 @@
-"""The planner's hypotheses (posterior samples) and the predicted information of a leg (DESIGN.md §6).
+"""The planner's hypotheses (posterior samples) and the predicted information of a leg (docs/design.md §6).
 
 The objective itself is defined once, in CasADi (planner.objective): `objective_values` and
 `prior_value` evaluate its kernels, the same functions IPOPT minimises. `predicted_information`

@@ -1,4 +1,4 @@
-"""The planner's objective, defined once in CasADi: IPOPT minimises it and numpy evaluates it (DESIGN.md §6).
+"""The planner's objective, defined once in CasADi: IPOPT minimises it and numpy evaluates it (docs/design.md §6).
 
 One row is one hypothesis of one user (a posterior sample u with its prior information P, noise
 scale s and weight). After flying the horizon x_c → w_1 → … → w_H with a range every Δ metres, the

@@ -1,4 +1,4 @@
-"""The stopping rule (DESIGN.md §6): every user located well enough, or the budget spent."""
+"""The stopping rule (docs/design.md §6): every user located well enough, or the budget spent."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The planner's contract with the mission controller (DESIGN.md §6).
+"""The planner's contract with the mission controller (docs/design.md §6).
 
 Plain dataclasses on numpy arrays, all positions in the mission's local ENU frame [m]:
 

@@ -1,4 +1,4 @@
-"""Simulated OAI gNB: a TCP server that speaks the OAI telnet protocol (DESIGN.md §8, §9).
+"""Simulated OAI gNB: a TCP server that speaks the OAI telnet protocol (docs/design.md §8, §9).
 
 Wire behaviour as OAI's `common/utils/telnetsrv/telnetsrv.c`: a request is one line; the answer
 is the command's output followed by the prompt ``softmodem_gnb> `` (no prompt on connect); lines

@@ -1,7 +1,7 @@
 """Radio model of the simulated gNB: from true geometry to the raw numbers a gNB reports.
 
 Pure and seeded (no sockets, no clocks, no files): the simulated gNB and the example-log generator
-both call it, with the time and the UAV position supplied by the caller. DESIGN.md §4 and §9.
+both call it, with the time and the UAV position supplied by the caller. docs/design.md §4 and §9.
 
 Chain for one measurement of user k from UAV position x at time t (one-way metres first):
 

@@ -1,4 +1,4 @@
-"""Scenario files: a mission file plus the world it is flown in (DESIGN.md §9).
+"""Scenario files: a mission file plus the world it is flown in (docs/design.md §9).
 
     Scenario  =  mission: mission.config.MissionConfig   what is flown: `name`, `description`,
                                                           [[users]] (id, rnti, ground_height_m),

@@ -12,7 +12,7 @@
 - the :class:`MissionController`, which :meth:`run` runs.
 
 Frames: with the built-in vehicle the scenario's origin is the vehicle's home; with PX4 SITL the
-scenario's positions are offsets from the vehicle's home (DESIGN.md §9). The `truth` record is
+scenario's positions are offsets from the vehicle's home (docs/design.md §9). The `truth` record is
 computed accordingly. Fault tests reach the parts through `.vehicle_sim`, `.gnb_sim`,
 `.controller` and :meth:`kill_gnb`.
 """

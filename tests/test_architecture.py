@@ -1,4 +1,4 @@
-"""The package graph (DESIGN.md §2): uavloc ← estimator ← planner ← mission ← sitl_scenarios, no
+"""The package graph (docs/design.md §2): uavloc ← estimator ← planner ← mission ← sitl_scenarios, no
 import cycle, and estimator/planner free of I/O, sockets, asyncio and clocks.
 
 Read from the source with `ast` (every import, at module level, inside functions and under
@@ -25,7 +25,7 @@ LAYERS = {"uavloc": 0, "estimator": 1, "planner": 2, "mission": 3, "sitl_scenari
 #: found through the `uavloc.commands` entry point).
 KNOWN_UPWARD_IMPORTS: dict[str, str] = {}
 
-#: pure packages (DESIGN.md §2): no asyncio, sockets, files, clocks, processes or threads
+#: pure packages (docs/design.md §2): no asyncio, sockets, files, clocks, processes or threads
 PURE_PACKAGES = ("estimator", "planner")
 IMPURE_MODULES = frozenset({
     "asyncio", "socket", "socketserver", "selectors", "select", "ssl", "signal", "time", "datetime", "os",
@@ -170,7 +170,7 @@ def test_every_import_goes_down_the_layers(graph):
     ours, _ = graph
     new = {m: ts for m, ts in upward_imports(ours).items()
            if not all(t.split(".")[0] == KNOWN_UPWARD_IMPORTS.get(m) for t in ts)}
-    assert not new, f"imports of a higher layer (DESIGN.md §2: {' ← '.join(LAYERS)}): {new}"
+    assert not new, f"imports of a higher layer (docs/design.md §2: {' ← '.join(LAYERS)}): {new}"
 
 
 def test_mission_imports_sitl_scenarios_only_where_known(graph):
@@ -184,7 +184,7 @@ def test_mission_imports_sitl_scenarios_only_where_known(graph):
 def test_no_cycle_between_packages_besides_the_known_upward_imports(graph):
     ours, _ = graph
     assert cycles(package_graph(ours, drop_known=True)) == []
-    # and the layers are what DESIGN.md §2 draws: every remaining package edge points down
+    # and the layers are what docs/design.md §2 draws: every remaining package edge points down
     for src, dsts in package_graph(ours, drop_known=True).items():
         assert all(LAYERS[d] < LAYERS[src] for d in dsts), (src, dsts)
 

@@ -1,4 +1,4 @@
-"""Ranging: TA + SRS peak -> ToA -> range (DESIGN.md §4), table of known values and bad input."""
+"""Ranging: TA + SRS peak -> ToA -> range (docs/design.md §4), table of known values and bad input."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The mission controller's configuration and result: what a flight is asked to do and what it
-found (DESIGN.md §7, §11). Plain data, no I/O."""
+found (docs/design.md §7, §11). Plain data, no I/O."""
 
 from __future__ import annotations
 
@@ -157,7 +157,7 @@ class MissionResult:
         return horizontal_error_m(self.estimate.users_enu_m, self.truth_enu_m)
 
     def to_document(self) -> dict:
-        """The DESIGN.md §11 JSON document (plus `reason`)."""
+        """The docs/design.md §11 JSON document (plus `reason`)."""
         users = user_entries_of_estimate(self.estimate if self.origin is not None else None, self.origin,
                                          self.user_ids, self.truth_enu_m)
         return {"status": self.status, "reason": self.reason, "users": users,

@@ -1,4 +1,4 @@
-"""The mission controller (DESIGN.md §1, §7): fly, measure every Δ, estimate, replan, stay safe.
+"""The mission controller (docs/design.md §1, §7): fly, measure every Δ, estimate, replan, stay safe.
 
 States CONNECT → PREFLIGHT → TAKEOFF → SURVEY → RETURN → LANDED, and ABORT from anywhere. The
 flight (:meth:`MissionController._flow`) reads top to bottom: connect, wait for home, open the log,

@@ -1,5 +1,5 @@
 """What a mission writes down: the mission log's header, events, truth and estimate records
-(DESIGN.md §10), and the status line on stderr."""
+(docs/design.md §10), and the status line on stderr."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Take-off and the survey's legs (DESIGN.md §7): plan a waypoint, pass it through the safety
+"""Take-off and the survey's legs (docs/design.md §7): plan a waypoint, pass it through the safety
 gate, command the cruise speed, fly it until arrival, a stop or return request, or its timeout.
 
 Refused waypoints: max_refusals in a row (by the gate or the vehicle) request a return home;

@@ -1,4 +1,4 @@
-"""The measurement pipeline (DESIGN.md §3, §7): Δ-trigger → placer → keyframe queue.
+"""The measurement pipeline (docs/design.md §3, §7): Δ-trigger → placer → keyframe queue.
 
 - the **trigger** (:meth:`MeasurementPipeline.run_trigger`): while a survey leg is flown, when the
   UAV has moved Δ since the last keyframe (`KeyframeSelector`), measure the users through the

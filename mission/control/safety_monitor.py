@@ -1,4 +1,4 @@
-"""The safety monitor (DESIGN.md §7): a pure decision over the mission's state, and a thin loop.
+"""The safety monitor (docs/design.md §7): a pure decision over the mission's state, and a thin loop.
 
 :func:`return_reason` says whether the survey must end and the vehicle return home, from a
 :class:`SafetyView` of the mission now: the vehicle link (lost longer than link_lost_wait_s), the

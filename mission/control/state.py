@@ -1,4 +1,4 @@
-"""The one object the flight and its background tasks share (DESIGN.md §7).
+"""The one object the flight and its background tasks share (docs/design.md §7).
 
 The measurement pipeline, the estimator worker, the safety monitor and the status line read and
 write a :class:`FlightState`, and nothing else of each other: a request to return home, the

@@ -1,4 +1,4 @@
-"""Mission report (DESIGN.md §11 `--out DIR`): figures in the spirit of the paper, `report.json`,
+"""Mission report (docs/design.md §11 `--out DIR`): figures in the spirit of the paper, `report.json`,
 a self-contained `report.html`, and GeoJSON / KML / QGroundControl exports.
 
 One direction, no cycle: `inputs` (what is drawn: :class:`ReportInputs`, the log header's shapes)

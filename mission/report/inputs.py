@@ -1,6 +1,6 @@
 """What a report draws: :class:`ReportInputs`, plain arrays independent of how replay or the
 mission controller store their results, and :class:`MissionShapes`, the geofence, no-fly zones,
-altitude band and buildings a log header may carry (DESIGN.md §10, optional fields):
+altitude band and buildings a log header may carry (docs/design.md §10, optional fields):
 
     geofence         [[lat_deg, lon_deg], ...]            open ring (inclusion)
     no_fly_zones     [[[lat_deg, lon_deg], ...], ...]     open rings (exclusion)

@@ -1,4 +1,4 @@
-"""What the live view shows, as a pure model fed with mission-log records (DESIGN.md §10).
+"""What the live view shows, as a pure model fed with mission-log records (docs/design.md §10).
 
 :class:`ViewState` takes the records a :class:`mission.log.MissionLogWriter` writes (live, as a
 listener) or a recorded log holds (`uavloc view LOG`), one by one, and keeps what the page draws in
@@ -155,7 +155,7 @@ class ViewState:
     # -- records --------------------------------------------------------------------------------
 
     def apply(self, rec: dict) -> None:
-        """Take one mission-log record (a dict as in DESIGN.md §10)."""
+        """Take one mission-log record (a dict as in docs/design.md §10)."""
         rtype = rec.get("type")
         t = rec.get("t")
         if isinstance(t, int | float) and math.isfinite(t):

@@ -1,6 +1,6 @@
 """Fast mode: a kinematic vehicle and channel around the real estimator and planner (no MAVLink, no TCP).
 
-The loop (the planner benchmark's, DESIGN.md §5–6): the UAV starts at home at the cruise altitude;
+The loop (the planner benchmark's, docs/design.md §5–6): the UAV starts at home at the cruise altitude;
 the planner gives a waypoint; the UAV flies the straight leg at the scenario's cruise speed; every Δ
 metres along it (spacing carried across legs) a keyframe is simulated and fed to the mission's
 estimator, the same object a flight builds (mission.estimation.MissionEstimator from the scenario's

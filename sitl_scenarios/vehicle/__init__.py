@@ -1,4 +1,4 @@
-"""Built-in MAVLink multicopter that MAVSDK takes for PX4 (DESIGN.md §9).
+"""Built-in MAVLink multicopter that MAVSDK takes for PX4 (docs/design.md §9).
 
 MAVLink 2 over UDP, system 1 component 1, PX4 heartbeat and custom modes, the telemetry streams
 MAVSDK uses, the command, parameter and mission protocols, offboard position setpoints.

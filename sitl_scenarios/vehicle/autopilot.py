@@ -1,5 +1,5 @@
 """The autopilot behind the built-in vehicle: PX4-like arming, flight modes, failsafes and guidance
-of a multicopter (DESIGN.md §9), PX4's `commander` and position controller in small.
+of a multicopter (docs/design.md §9), PX4's `commander` and position controller in small.
 
 No sockets and no clocks: :class:`Autopilot` advances when :meth:`Autopilot.step` is called with a
 simulated time step, and answers commands with MAV_RESULT codes. The MAVLink side lives in

@@ -15,7 +15,7 @@ from uavloc.errors import ScenarioError, SimulatorError
 
 log = logging.getLogger(__name__)
 
-DESCRIPTION = "Built-in MAVLink multicopter that MAVSDK takes for PX4 (DESIGN.md §9)."
+DESCRIPTION = "Built-in MAVLink multicopter that MAVSDK takes for PX4 (docs/design.md §9)."
 
 
 def _parse_targets(parts: list[str]) -> list[tuple[str, int]]:

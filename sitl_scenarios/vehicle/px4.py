@@ -1,4 +1,4 @@
-"""What makes the built-in vehicle look like PX4 on the wire (DESIGN.md §9): custom-mode encoding,
+"""What makes the built-in vehicle look like PX4 on the wire (docs/design.md §9): custom-mode encoding,
 autopilot capabilities and version. Pure data and pure functions; no sockets, no clocks.
 
 The numbers come from pymavlink: PX4's main and sub modes from `pymavlink.mavutil`

@@ -23,8 +23,9 @@ CAPACITY_MAH = 5000
 class GpsError:
     """Position error of the vehicle's GPS/EKF solution, isotropic in 3-D, σ per axis.
 
-    tau_s = 0: independent per fix (the estimator's model, DESIGN.md §5). tau_s > 0: first-order
-    Gauss-Markov, e_k = φ·e_{k-1} + sqrt(1 − φ²)·σ·w, φ = exp(−Δt/τ), stationary σ per axis.
+    tau_s = 0: independent per fix (white: the estimator's τ = 0 case, docs/design.md §5). tau_s > 0:
+    first-order Gauss-Markov (as the estimator models it), e_k = φ·e_{k-1} + sqrt(1 − φ²)·σ·w,
+    φ = exp(−Δt/τ), stationary σ per axis.
     """
 
     def __init__(self, sigma_m: float, tau_s: float, rng: np.random.Generator) -> None:

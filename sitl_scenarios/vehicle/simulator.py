@@ -1,5 +1,5 @@
 """The built-in vehicle's simulator: the autopilot, its link and protocols, run in a thread
-(DESIGN.md §9). :class:`VehicleSimulator` is the public API; see :mod:`sitl_scenarios.vehicle`.
+(docs/design.md §9). :class:`VehicleSimulator` is the public API; see :mod:`sitl_scenarios.vehicle`.
 
 Time: the simulation runs `speedup` times faster than the wall clock; every MAVLink timestamp is
 simulated time, and so are the message intervals a ground station sets (SET_MESSAGE_INTERVAL). On
