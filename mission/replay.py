@@ -25,7 +25,7 @@ from estimator.types import Estimate, Keyframe, SolverParams
 from mission.estimation import MissionEstimator
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframes_of, triggers_gps_enu_m
 from mission.log import MissionLog
-from mission.result import horizontal_error_m, user_entries_of_estimate
+from mission.result import horizontal_error_m, result_status, user_entries_of_estimate
 from mission.telemetry import odometer_dead_band_m, odometer_m
 from uavloc.errors import MissionLogError
 
@@ -239,15 +239,6 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
         estimate=estimate, truth_enu_m=truth_enu, error_m=error_m, flown_m=flown_m,
         n_measurements=int(sum(len(kf.range_m) for kf in keyframes)), history=history,
     )
-
-
-def result_status(estimate: Estimate) -> str:
-    """"ok" when every user is located without ambiguity; "ambiguous" or "incomplete" otherwise."""
-    if not np.all(np.isfinite(estimate.users_enu_m)):
-        return "incomplete"
-    if np.any(estimate.ambiguous):
-        return "ambiguous"
-    return "ok"
 
 
 def result_document(result: ReplayResult) -> dict:

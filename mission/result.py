@@ -1,4 +1,4 @@
-"""The one per-user result document, and the one horizontal error, of every tool.
+"""The one per-user result document, the one horizontal error and the one status of every tool.
 
 `uavloc sim`, `uavloc fly`, `uavloc replay` and the report all describe a located user the same
 way (docs/design.md §11): :func:`user_entries` builds that list from plain arrays, and
@@ -50,6 +50,16 @@ def error_bound_95_m(cov_en_m2: np.ndarray) -> np.ndarray:
         lam_max = np.linalg.eigvalsh(0.5 * (cov[ok] + np.swapaxes(cov[ok], 1, 2)))[:, -1]
         out[ok] = np.sqrt(CHI2_2DOF_95 * np.maximum(lam_max, 0.0))
     return out
+
+
+def result_status(estimate: Any) -> str:
+    """"ok" when every user of the estimate (users_enu_m (K, 3), ambiguous (K,)) is located without
+    ambiguity; "ambiguous" or "incomplete" otherwise (replay's document and the report)."""
+    if not np.all(np.isfinite(estimate.users_enu_m)):
+        return "incomplete"
+    if np.any(estimate.ambiguous):
+        return "ambiguous"
+    return "ok"
 
 
 def finite_or_none(x: Any) -> float | None:

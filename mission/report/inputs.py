@@ -24,7 +24,7 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
-from mission.result import error_bound_95_m, horizontal_error_m
+from mission.result import error_bound_95_m, horizontal_error_m, result_status
 
 log = logging.getLogger(__name__)
 
@@ -221,17 +221,11 @@ def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
         waypoints_enu_m=wps,
         shapes=shapes_from_log(mlog),
         flown_m=float(result.flown_m),
-        status=_status(est),
+        status=result_status(est),
         title=title or f"uavloc replay of {Path(str(mlog.path)).name}",
     )
 
 
-def _status(est: Any) -> str:
-    if not np.all(np.isfinite(est.users_enu_m)):
-        return "incomplete"
-    if np.any(est.ambiguous):
-        return "ambiguous"
-    return "ok"
 
 
 def waypoints_from_log(mlog: Any) -> np.ndarray | None:
