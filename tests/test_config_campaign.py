@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
+from mission.estimation import mission_solver_params
 from sitl_scenarios.campaign import spec_from_dict
 from sitl_scenarios.scenario import bundled_scenarios, load_scenario
 
@@ -27,3 +30,19 @@ def test_a_loaded_user_carries_its_clock_sawtooth(name):
     for u in sc.users:
         assert u.sawtooth_amplitude_m is not None and u.sawtooth_period_s is not None
         assert u.sawtooth_amplitude_m >= 0 and u.sawtooth_period_s > 0
+
+
+def test_a_runs_estimator_is_the_missions_under_the_specs_options():
+    """A run's SolverParams are those its scenario's mission flies with (mission_solver_params:
+    Δ, range bias and its prior), with the spec's [estimators.NAME] options over them."""
+    spec = {"campaign": {"name": "est", "planners": ["lawnmower"]},
+            "estimators": {"w40": {"window": 40}, "tight": {"bias_prior_sigma_m": 2.0}},
+            "families": [{"name": "f", "count": 2, "users": 2,
+                          "mission": {"delta_m": 3.0, "bias_prior_sigma_m": 4.0, "estimate_bias": False}}]}
+    runs = spec_from_dict(spec).runs
+    assert {r.estimator for r in runs} == {"w40", "tight"}
+    for run in runs:
+        mission = mission_solver_params(run.scenario.mission)
+        assert mission.bias_prior_sigma_m == 4.0 and mission.delta_m == 3.0 and not mission.estimate_bias
+        want = replace(mission, window=40) if run.estimator == "w40" else replace(mission, bias_prior_sigma_m=2.0)
+        assert run.params == want

@@ -45,6 +45,7 @@ from typing import Any
 
 from estimator.types import SolverParams
 from mission import schema
+from mission.estimation import mission_solver_params
 from sitl_scenarios.campaign.families import FamilySpec, generate_scenario, validate_family
 from sitl_scenarios.scenario import Scenario, load_scenario
 from uavloc.errors import CampaignError, ScenarioError, UavlocError
@@ -223,7 +224,7 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
     _check_section(section, where)
     targets = tuple(sorted(section.targets_m, reverse=True))
 
-    # estimator variants: name → options (the base values come from each scenario's mission)
+    # estimator variants: name → options over each scenario's mission's settings (mission_solver_params)
     est_tables = doc.estimators
     if not est_tables:
         raise _err(where, "estimators: expected at least one [estimators.NAME] table")
@@ -263,7 +264,8 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
 
     runs: list[RunSpec] = []
     for condition, sc, sp in scenarios:
-        base = {"delta_m": sc.mission.flight.delta_m, "estimate_bias": sc.mission.noise.estimate_bias}
+        # the estimator settings the scenario's mission flies with (mission.estimation), under the spec's
+        base = dataclasses.asdict(mission_solver_params(sc.mission))
         for planner in section.planners:
             opts = dict(planner_opts.get(planner, {}))
             for est_name, est_opts in est_tables.items():
