@@ -54,7 +54,7 @@ class GpsPriorFactor:
 
 @dataclass(frozen=True)
 class RangeFactor:
-    """Range keyframe -> user: e = (r̂ − ||x − u|| − b) / σ(||x − u||), a scalar.
+    """Range keyframe -> user: e = (r̂ − ||x − u|| − b) / σ(r̂), a scalar (σ at the measured range).
 
     User parameters θ = [east, north, (up if user_dim == 3), (bias if with_bias)]; in 2-D mode the
     user's up coordinate is the known `user_up_m`. The bias enters as b·g with gain g = bias_gain
