@@ -321,10 +321,18 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         estimate (an early start from few ranges that went to a wrong basin) is restarted there
         and its part of the prior, linearized in the wrong basin, is dropped. A user whose mirror
         fits clearly better jumps to it with its prior reflected.
+
+        Users are coupled only through the keyframe poses, so each user is judged by its own
+        ranges with the window's track fixed, and all the restarts (then all the flips) are
+        re-solved in one joint Levenberg–Marquardt run: one solve per check, not one per user
+        (with 200 users along a first straight leg a solve per user made the worker fall minutes
+        behind the flight). Flips are kept when the joint cost drops; if it does not, each flip
+        is tried alone, as the joint run may have been spoilt by one of them.
         """
         chi2 = self._params.ambiguity_chi2
         flipped = False
         x_win = res.x
+        restart: dict[int, np.ndarray] = {}
         for k in np.flatnonzero(self._active):
             rows = prob.mask[:, k]
             up = float(self._up[k])
@@ -340,25 +348,31 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
             )
             if (2.0 * (cur - new) > chi2 and not near_mirror
                     and np.linalg.norm(fit.theta[:2] - res.theta[k, :2]) > 2.0):
-                theta = res.theta.copy()
-                theta[k] = fit.theta
-                prior = self._dropped_prior(k)
-                trial = levenberg_marquardt(prob, res.x, theta, self._active, prior)
-                res, self._prior, flipped = trial, prior, True
+                restart[int(k)] = fit.theta
+        if restart:
+            theta = res.theta.copy()
+            prior = self._prior
+            for k, th in restart.items():
+                theta[k] = th
+                prior = _dropped_prior(prior, self._user_offset(k), self._p)
+            res = levenberg_marquardt(prob, res.x, theta, self._active, prior)
+            self._prior, flipped = prior, True
         mirrors = _mirror_all(prob, res.theta, self._active)
         # a prior that also holds the first keyframe (Gauss–Markov GPS or motion links) ties the
         # users to the whole marginalized track: reflecting one user's part of it is no longer a
         # consistent mirror hypothesis, so the window's mirror test only flags, it does not flip
         can_flip = self._prior is None or not self._prior.has_x
-        for k, mt in enumerate(mirrors):
-            if mt is None or not mt.mirror_is_better(chi2) or not can_flip:
-                continue
-            theta = res.theta.copy()
-            theta[k] = mt.mirror_theta
-            prior = self._reflected_prior(k, res.theta[k, :2], mt.mirror_theta[:2])
+        flip = [k for k, mt in enumerate(mirrors) if can_flip and mt is not None and mt.mirror_is_better(chi2)]
+        for group in ([flip] + ([[k] for k in flip] if len(flip) > 1 else [])):
+            theta, prior = res.theta.copy(), self._prior
+            for k in group:
+                theta[k] = mirrors[k].mirror_theta
+                prior = _reflected_prior(prior, self._user_offset(k), res.theta[k, :2], mirrors[k].mirror_theta[:2])
             trial = levenberg_marquardt(prob, res.x, theta, self._active, prior)
             if trial.lin.cost < res.lin.cost:
                 res, self._prior, flipped = trial, prior, True
+                if group is flip:
+                    break
         self._flipped = flipped
         if flipped:
             res = observed_s(prob, res, self._active, self._prior)
@@ -368,34 +382,39 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self._mirrors = mirrors
         return res
 
-    def _dropped_prior(self, k: int) -> Prior | None:
-        """The prior without any information on user k (its rows and columns zeroed)."""
-        pr = self._prior
-        if pr is None:
-            return None
-        off = (3 if pr.has_x else 0) + k * self._p
-        sl = slice(off, off + self._p)
-        info, grad = pr.info.copy(), pr.grad.copy()
-        info[sl, :] = 0.0
-        info[:, sl] = 0.0
-        grad[sl] = 0.0
-        return Prior(pr.has_x, pr.z0.copy(), info, grad)
+    def _user_offset(self, k: int) -> int:
+        """Index of user k's first parameter in the prior's state vector."""
+        has_x = self._prior is not None and self._prior.has_x
+        return (3 if has_x else 0) + k * self._p
 
-    def _reflected_prior(self, k: int, u_h: np.ndarray, m_h: np.ndarray) -> Prior | None:
-        """The prior with user k's horizontal coordinates reflected across the bisector of u → m.
 
-        Reflection z' = c + R(z − c) with R = I − 2 n nᵀ, n = (m − u)/|m − u|, c = (u + m)/2:
-        L'(z) = L(reflect(z)) gives c' = Rᵀc, Λ' = RᵀΛR, z0' = reflect(z0).
-        """
-        pr = self._prior
-        if pr is None:
-            return None
-        nvec = (m_h - u_h) / max(float(np.linalg.norm(m_h - u_h)), 1e-12)
-        ctr = 0.5 * (u_h + m_h)
-        refl2 = np.eye(2) - 2.0 * np.outer(nvec, nvec)
-        off = (3 if pr.has_x else 0) + k * self._p
-        r = np.eye(pr.z0.size)
-        r[off : off + 2, off : off + 2] = refl2
-        z0 = pr.z0.copy()
-        z0[off : off + 2] = ctr + refl2 @ (z0[off : off + 2] - ctr)
-        return Prior(pr.has_x, z0, r.T @ pr.info @ r, r.T @ pr.grad)
+def _dropped_prior(pr: Prior | None, off: int, p: int) -> Prior | None:
+    """The prior without any information on the user whose p parameters start at `off` (its
+    rows and columns zeroed)."""
+    if pr is None:
+        return None
+    sl = slice(off, off + p)
+    info, grad = pr.info.copy(), pr.grad.copy()
+    info[sl, :] = 0.0
+    info[:, sl] = 0.0
+    grad[sl] = 0.0
+    return Prior(pr.has_x, pr.z0.copy(), info, grad)
+
+
+def _reflected_prior(pr: Prior | None, off: int, u_h: np.ndarray, m_h: np.ndarray) -> Prior | None:
+    """The prior with the horizontal coordinates at off, off+1 (a user's) reflected across the
+    bisector of u → m.
+
+    Reflection z' = c + R(z − c) with R = I − 2 n nᵀ, n = (m − u)/|m − u|, c = (u + m)/2:
+    L'(z) = L(reflect(z)) gives c' = Rᵀc, Λ' = RᵀΛR, z0' = reflect(z0).
+    """
+    if pr is None:
+        return None
+    nvec = (m_h - u_h) / max(float(np.linalg.norm(m_h - u_h)), 1e-12)
+    ctr = 0.5 * (u_h + m_h)
+    refl2 = np.eye(2) - 2.0 * np.outer(nvec, nvec)
+    r = np.eye(pr.z0.size)
+    r[off : off + 2, off : off + 2] = refl2
+    z0 = pr.z0.copy()
+    z0[off : off + 2] = ctr + refl2 @ (z0[off : off + 2] - ctr)
+    return Prior(pr.has_x, z0, r.T @ pr.info @ r, r.T @ pr.grad)

@@ -124,7 +124,11 @@ class LawnmowerPlanner(BasePlanner):
             self._next = 0
         for _ in range(len(self.path_enu_m) + 1):
             target = self.path_enu_m[self._next]
-            if np.linalg.norm(target - x) < 1.0:
+            # a vertex nearer than the shortest useful leg is as good as reached: the flight counts
+            # a waypoint reached within its acceptance radius (2 m by default) and a drifting GPS
+            # fix wanders by about that, so a tighter test sends the UAV to the same vertex again
+            # and again
+            if np.linalg.norm(target - x) < self.constraints.min_leg_m:
                 self._advance()
                 continue
             step = routed_step(self.constraints, x, target, leg_cap_m)

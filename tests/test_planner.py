@@ -188,6 +188,22 @@ def test_lawnmower_covers_both_arms_of_the_u():
     assert np.all(v[:, 2] == c.cruise_alt_m)
 
 
+def test_lawnmower_goes_on_from_a_vertex_reached_within_the_arrival_radius():
+    """Issue 21 #11: the flight counts a waypoint reached within 2 m; the lawnmower, asking for
+    1 m, sent the UAV to the same corner again and again until the battery was spent hovering.
+    Arriving 1.5 m off each vertex, it now follows its lanes."""
+    c = u_constraints()
+    p = make_planner("lawnmower", c, NoiseModel())
+    x = np.array([0.0, -60.0, 30.0])
+    seen = []
+    for _ in range(12):
+        wp = p.plan(PlanningState(x, None, 0.0)).waypoint_enu_m
+        assert not any(np.allclose(wp, s) for s in seen[-1:]), f"the same waypoint {wp} twice in a row"
+        seen.append(wp)
+        x = wp + np.array([1.5, 0.0, 0.0])  # "arrived": within the flight's 2 m radius
+    assert len({tuple(np.round(s, 6)) for s in seen}) >= 8
+
+
 def test_budget_spent_ends_the_survey():
     c = u_constraints(budget_m=100.0)
     _, flown, _ = _fly(make_planner("lawnmower", c, NoiseModel()), c, [0, -60, 30], 20)

@@ -38,6 +38,12 @@ from uavloc.errors import PlannerError, SafetyError, VehicleError
 log = logging.getLogger(__name__)
 
 
+#: how long [mission s] the UAV hovers at most before a plan, for the estimator to solve the
+#: measurements so far: a hover costs battery in mission time, so the bound is in mission time (at
+#: a simulator's speedup, wall seconds would cost the battery speedup times as much)
+PLAN_DRAIN_MAX_S = 10.0
+
+
 @dataclass(frozen=True)
 class LegsDeps:
     """What the survey legs use of the flight, once home is known.
@@ -102,7 +108,7 @@ class SurveyLegs:
     async def plan(self, pos: np.ndarray) -> PlanResult:
         """The planner's next leg from `pos`, with the estimate of every keyframe measured so far."""
         dep = self.deps
-        await dep.drain(10.0)
+        await dep.drain(dep.wall(PLAN_DRAIN_MAX_S))
         state = PlanningState(uav_enu_m=pos, estimate=dep.flight.estimate, flown_m=dep.flight.flown_m,
                               energy_remaining_m=self.energy_remaining_m())
         t0 = time.perf_counter()
