@@ -121,10 +121,15 @@ def row_expr(z, x_c, u, P, scale, noise_par, delta, shape: Shape):
     return criterion_expr(_position_part(acc, d, shape.bias), d, shape.criterion), lengths
 
 
-def jit_function(name: str, inputs: list, outputs: list) -> ca.Function:
-    """The default :data:`compile_hook`: a CasADi Function compiled by the system C compiler."""
-    opts = {"jit": True, "compiler": "shell", "jit_cleanup": True,
-            "jit_options": {"flags": list(JIT_FLAGS), "verbose": False}}
+def jit_function(name: str, inputs: list, outputs: list, directory: str | None = None) -> ca.Function:
+    """The default :data:`compile_hook`: a CasADi Function compiled by the system C compiler.
+
+    directory: where the compiler's C source lives while the Function does (ending in a path
+    separator; None: CasADi's default, the current directory)."""
+    jit_options: dict = {"flags": list(JIT_FLAGS), "verbose": False}
+    if directory is not None:
+        jit_options["directory"] = directory
+    opts = {"jit": True, "compiler": "shell", "jit_cleanup": True, "jit_options": jit_options}
     return ca.Function(name, inputs, outputs, opts)
 
 

@@ -605,3 +605,20 @@ def test_precompile_builds_the_kernels_a_plan_needs_before_the_first_plan():
     built = set(objective._KERNELS)
     planner.plan(PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias(True)))
     assert {k for k in objective._KERNELS if k[0] != "prior"} == {k for k in built if k[0] != "prior"}
+
+
+def test_the_mission_compiles_planner_kernels_outside_the_working_folder(tmp_path, monkeypatch):
+    """CasADi's JIT keeps its C source in the current directory while a kernel lives (and leaves
+    it there when the process is killed): not in the user's folder, in the system's temporary one."""
+    import casadi as ca
+
+    from mission.controller import compile_planner_in_tmp
+    from planner import objective
+
+    monkeypatch.setattr(objective, "compile_hook", objective.jit_function)
+    monkeypatch.chdir(tmp_path)
+    compile_planner_in_tmp()
+    x = ca.SX.sym("x", 2)
+    f = objective.compile_hook("uavloc_test_kernel", [x], [ca.sumsqr(x)])
+    assert float(f([1.0, 2.0])) == 5.0
+    assert list(tmp_path.iterdir()) == []

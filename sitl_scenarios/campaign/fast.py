@@ -30,6 +30,7 @@ import numpy as np
 
 from estimator.ranging import range_m_from_raw
 from estimator.types import Estimate, Keyframe, SolverParams
+from mission.controller import compile_planner_in_tmp
 from mission.estimation import MissionEstimator
 from planner import PlanningConstraints, PlanningState, make_planner
 from sitl_scenarios.campaign.families import _inside
@@ -72,6 +73,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     opts = dict(planner_opts or {})
     if planner_name == "oracle":
         opts.setdefault("true_users_enu_m", users)
+    compile_planner_in_tmp()
     planner = make_planner(planner_name, c, noise, rng_seed=seed, **opts)
     est = setup.estimator()
     confirm = setup.confirm
