@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -126,6 +126,8 @@ class VehicleConfig:
     """Built-in vehicle: speeds [m/s], acceleration [m/s²], GPS noise [m], battery.
 
     gps_tau_s: correlation time of the GPS error (0: independent per fix; > 0: Gauss-Markov).
+    autopilot: whose personality the built-in vehicle has on the wire and in flight, PX4's or
+    ArduCopter's (sitl_scenarios.vehicle.ardupilot; docs/ardupilot.md).
     """
 
     speed_mps: float = like(mc.FlightConfig, "cruise_speed_mps")
@@ -138,6 +140,7 @@ class VehicleConfig:
     gps_tau_s: float = bounded(3.0, 0.0, 1e5)
     battery_capacity_s: float = positive(1800.0, 1e5)
     battery_start_pct: float = positive(100.0, 100.0)
+    autopilot: Literal["px4", "ardupilot"] = "px4"
 
 
 @dataclass(frozen=True)
