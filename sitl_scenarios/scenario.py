@@ -408,6 +408,12 @@ def load_scenario(name_or_path: str | Path, base_dir: Path | None = None) -> Sce
     return scenario_from_dict(schema.read_toml(path, "scenario file", ScenarioError), str(path))
 
 
+def with_autopilot(scenario: Scenario, autopilot: str) -> Scenario:
+    """The scenario with the built-in vehicle's personality `autopilot` ("px4", "ardupilot")."""
+    vehicle = dataclasses.replace(scenario.vehicle, autopilot=autopilot)
+    return dataclasses.replace(scenario, world=dataclasses.replace(scenario.world, vehicle=vehicle))
+
+
 def controller_from_scenario(scenario: Scenario, vehicle: Any, gnb: Any, log_path: str | Path, *,
                              seed: int | None = None, external_vehicle: bool = False, **kwargs: Any) -> Any:
     """A :class:`mission.controller.MissionController` for a simulation scenario: its mission

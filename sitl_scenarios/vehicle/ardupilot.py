@@ -232,10 +232,6 @@ class ArduCopter(Autopilot):
         """The EKF has a global position once it uses GPS; after a loss it dead-reckons."""
         return super().position_valid and self.t_s >= self.gps_fix_delay_s + EKF_GPS_AFTER_FIX_S
 
-    @property
-    def position_published(self) -> bool:
-        return super().position_published and self.t_s >= self.gps_fix_delay_s + EKF_GPS_AFTER_FIX_S
-
     def _home_ready(self) -> bool:
         return self.gps_ok and self.t_s >= self.gps_fix_delay_s + ORIGIN_AFTER_FIX_S
 
@@ -476,7 +472,8 @@ ARDUPILOT_CAPABILITIES = (
 
 
 class ArduPilotStreams(StreamEncoder):
-    """ArduCopter's HEARTBEAT, EKF_STATUS_REPORT and AUTOPILOT_VERSION; the rest as PX4 fills them."""
+    """ArduCopter's HEARTBEAT, EKF_STATUS_REPORT and AUTOPILOT_VERSION, its positions before the
+    EKF has one; the rest as PX4 fills them."""
 
     ap: ArduCopter
 
@@ -488,6 +485,12 @@ class ArduPilotStreams(StreamEncoder):
         if msg_id == EKF_STATUS_REPORT:
             var = 0.02 if ap.ekf_using_gps else 0.0
             return ardupilotmega.MAVLink_ekf_status_report_message(ap.ekf_flags(), var, var, var, var, 0.0)
+        if msg_id == _M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT and not ap.position_published:
+            # before its first fix ArduCopter sends GLOBAL_POSITION_INT all zeros (the recording)
+            return _M.MAVLink_global_position_int_message(int(ap.t_s * 1e3) & 0xFFFFFFFF, 0, 0, 0, 0, 0, 0, 0, 0)
+        if msg_id == _M.MAVLINK_MSG_ID_LOCAL_POSITION_NED and not (ap.position_valid
+                                                                   or ap.dead_reckoning.since_s is not None):
+            return None  # no local position before the EKF uses GPS (the recording: from then on)
         if msg_id == _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return _M.MAVLink_autopilot_version_message(
                 ARDUPILOT_CAPABILITIES, ARDUPILOT_VERSION, 0, 0, 0, list(b"51a5eed1"), [0] * 8, [0] * 8, 0x1209,
