@@ -156,6 +156,9 @@ _PX4_MODEL: dict[str, float | Callable[[ParamStore], float]] = {
     "MIS_TAKEOFF_ALT": lambda p: max(p["PILOT_TKOFF_ALT"] / 100.0, 1.0),
     "NAV_ACC_RAD": _cm("WPNAV_RADIUS"),
     "NAV_MC_ALT_RAD": 0.8,
+    # RTL (navigator): ArduCopter loiters RTL_LOIT_TIME at its return height over home, then lands
+    "RTL_DESCEND_ALT": math.inf,
+    "RTL_LAND_DELAY": lambda p: p["RTL_LOIT_TIME"] / 1000.0,
     "COM_DISARM_LAND": DISARM_AFTER_LAND_S,
     "COM_DISARM_PRFLT": lambda p: p["DISARM_DELAY"] if p["DISARM_DELAY"] > 0 else -1.0,
     "COM_OF_LOSS_T": 1.0,
@@ -414,27 +417,6 @@ class ArduCopter(Autopilot):
         if p["RTL_CONE_SLOPE"] > 0:
             h = min(h, max(p["RTL_CONE_SLOPE"] * d, 2.5))
         return home[2] + max(h, current, 2.5)
-
-    def _rtl_step(self) -> tuple[list[float], float, None, float]:
-        """climb → return → loiter RTL_LOIT_TIME over home → land (RTL_ALT_FINAL 0)."""
-        r, p, home = self._rtl, self.params, self.home
-        v_dn = p["MPC_Z_V_AUTO_DN"]
-        if r.phase == "climb":
-            if self.pos[2] >= r.return_up_m - 0.5:
-                r.phase = "return"
-            else:
-                return [self.pos[0], self.pos[1], r.return_up_m], self._cruise_mps(), None, v_dn
-        if r.phase == "return":
-            if math.hypot(home[0] - self.pos[0], home[1] - self.pos[1]) < 1.0 and math.hypot(*self.vel[:2]) < 0.5:
-                r.phase = "loiter"
-                r.loiter_until_s = self.t_s + p["RTL_LOIT_TIME"] / 1000.0
-            else:
-                return [home[0], home[1], r.return_up_m], self._cruise_mps(), None, v_dn
-        if r.phase == "loiter":
-            if self.t_s < r.loiter_until_s:
-                return [home[0], home[1], r.return_up_m], self._cruise_mps(), None, v_dn
-            r.phase = "land"
-        return [home[0], home[1], -1.0], self._cruise_mps(), None, self._land_speed()
 
 
 # --- the wire: streams and commands --------------------------------------------------------------
