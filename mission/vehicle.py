@@ -25,30 +25,10 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from mission.vehicle_types import GeoFix, VehicleCommandError, VehicleTimeoutError
 from uavloc.errors import VehicleError
 
 log = logging.getLogger(__name__)
-
-
-class VehicleCommandError(VehicleError):
-    """A vehicle command was refused or failed; `result` is MAVSDK's result-code name."""
-
-    def __init__(self, message: str, result: str = "UNKNOWN"):
-        super().__init__(message)
-        self.result = result
-
-
-class VehicleTimeoutError(VehicleError):
-    """The vehicle did not answer a request in time."""
-
-
-@dataclass(frozen=True)
-class GeoFix:
-    """A geodetic point: latitude, longitude [deg], altitude AMSL [m]."""
-
-    lat_deg: float
-    lon_deg: float
-    alt_amsl_m: float
 
 
 @dataclass(frozen=True)
