@@ -34,6 +34,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
 from mission.vehicle_types import GeoFix, VehicleCommandError, VehicleTimeoutError
+from uavloc.errors import VehicleError
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,8 @@ _MASK_POSITION = (M.POSITION_TARGET_TYPEMASK_VX_IGNORE | M.POSITION_TARGET_TYPEM
 _MASK_YAW = M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
 #: arming right after the EKF is ready may be refused for a moment (pre-arm checks settling)
 ARM_RETRY_S = 0.5
+#: wall seconds between requests for HOME_POSITION while it has not come
+HOME_REQUEST_S = 2.0
 
 
 def heartbeat_autopilot(fields_json: str) -> int | None:
@@ -223,10 +226,20 @@ class ArduPilotLink:
                 tg.create_task(follow(kind))
 
     async def wait_ready(self, timeout_s: float) -> None:
+        """Until the EKF has a global position, a 3-D fix and home; HOME_POSITION is asked for every
+        HOME_REQUEST_S meanwhile (ArduPilot sends it when home is set, or when asked)."""
         deadline = time.monotonic() + timeout_s
+        asked = -math.inf
         while not (self.position_ok and self.state.home_position_ok):
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 raise VehicleTimeoutError(f"vehicle not ready within {timeout_s:g} s ({self.not_ready()})")
+            if self.position_ok and not self.state.home_position_ok and now - asked > HOME_REQUEST_S:
+                asked = now
+                try:
+                    await self.command("request home", M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_HOME_POSITION)
+                except VehicleError as exc:
+                    log.info("vehicle: %s", exc)
             await asyncio.sleep(0.05)
 
     # -- commands -------------------------------------------------------------------------------

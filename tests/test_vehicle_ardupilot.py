@@ -19,7 +19,7 @@ from pymavlink import mavutil
 from estimator.geodesy import Origin
 from mission.control.config import STATUS_TARGET
 from mission.log import read_mission_log
-from mission.vehicle import MavsdkVehicle, VehicleCommandError
+from mission.vehicle import MavsdkVehicle, VehicleCommandError, VehicleTimeoutError
 from sitl_scenarios.scenario import VehicleConfig, load_scenario, with_autopilot
 from sitl_scenarios.sim_runner import SimulatedMission
 from sitl_scenarios.vehicle import VehicleSimulator
@@ -155,6 +155,22 @@ def test_the_adapter_detects_ardupilot_and_flies_it_by_its_modes():
     fixes, final = asyncio.run(asyncio.wait_for(fly(), 120.0))
     assert fixes and all(abs(f.lat_deg) > 1.0 for f in fixes)  # no 0, 0 fixes passed on
     assert not final.armed and final.mode == "return_to_launch"
+
+
+def test_not_ready_names_what_ardupilot_reports_when_the_ekf_has_no_gps():
+    async def fly():
+        port = _free_udp_port()
+        async with VehicleSimulator(HOME, ARDUPILOT, speedup=20.0, target=("127.0.0.1", port),
+                                    bind=("127.0.0.1", 0)) as sim, MavsdkVehicle(f"udpin://127.0.0.1:{port}") as v:
+            sim.lose_gps()
+            await v.connect(20.0)
+            with pytest.raises(VehicleTimeoutError) as err:
+                await v.wait_ready(2.0)
+            return str(err.value)
+
+    message = asyncio.run(asyncio.wait_for(fly(), 60.0))
+    assert message.startswith("vehicle not ready within 2 s (EKF global position ok: False"), message
+    assert "GPS fix type: 1" in message and "flags 0xa7" in message, message
 
 
 def _free_udp_port() -> int:
