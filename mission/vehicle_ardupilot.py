@@ -211,15 +211,18 @@ class ArduPilotLink:
         wanted = ("HEARTBEAT", "EKF_STATUS_REPORT", "GPS_RAW_INT", "EXTENDED_SYS_STATE", "HOME_POSITION")
 
         async def follow(kind: str) -> None:
-            async with contextlib.aclosing(self.direct.subscribe_message(kind)) as it:
-                async for msg in it:
-                    if msg.system_id != self.target_system or msg.component_id != 1:
-                        continue
-                    try:
-                        self._on(kind, json.loads(msg.fields_json))
-                    except (ValueError, KeyError, TypeError) as exc:
-                        log.debug("vehicle: unreadable %s: %s", kind, exc)
-                    self.state.last_rx_mono_s = time.monotonic()
+            try:
+                async with contextlib.aclosing(self.direct.subscribe_message(kind)) as it:
+                    async for msg in it:
+                        if msg.system_id != self.target_system or msg.component_id != 1:
+                            continue
+                        try:
+                            self._on(kind, json.loads(msg.fields_json))
+                        except (ValueError, KeyError, TypeError) as exc:
+                            log.debug("vehicle: unreadable %s: %s", kind, exc)
+                        self.state.last_rx_mono_s = time.monotonic()
+            except Exception:  # one lost subscription must not end the others (its state goes stale)
+                log.exception("vehicle: following ArduPilot's %s failed", kind)
 
         async with asyncio.TaskGroup() as tg:
             for kind in wanted:
