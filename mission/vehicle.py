@@ -1,9 +1,11 @@
 """The vehicle side of the mission: a small :class:`Vehicle` protocol and its MAVSDK implementation.
 
 The controller depends only on :class:`Vehicle` (docs/architecture.md). :class:`MavsdkVehicle` implements it
-over the native `mavsdk.asyncio` binding, for PX4 (real or SITL) and for the built-in simulator
-alike. Every call has a timeout; every plugin error is turned into a :class:`VehicleCommandError`
-carrying MAVSDK's result code, right where the call is made (the MAVSDK-Python examples' style).
+over the native `mavsdk.asyncio` binding, for PX4 and ArduPilot (real or SITL) and for the built-in
+simulator alike; which autopilot it is comes from the HEARTBEAT (`MAV_AUTOPILOT_*`). What MAVSDK
+does not do on ArduPilot is in :mod:`mission.vehicle_ardupilot` (docs/ardupilot.md). Every call has
+a timeout; every plugin error is turned into a :class:`VehicleCommandError` carrying MAVSDK's result
+code, right where the call is made (the MAVSDK-Python examples' style).
 
 Telemetry (position, home, battery, armed, flight mode, landed state, health, status texts, link)
 flows into one
@@ -23,30 +25,10 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from mission.vehicle_types import GeoFix, VehicleCommandError, VehicleTimeoutError
 from uavloc.errors import VehicleError
 
 log = logging.getLogger(__name__)
-
-
-class VehicleCommandError(VehicleError):
-    """A vehicle command was refused or failed; `result` is MAVSDK's result-code name."""
-
-    def __init__(self, message: str, result: str = "UNKNOWN"):
-        super().__init__(message)
-        self.result = result
-
-
-class VehicleTimeoutError(VehicleError):
-    """The vehicle did not answer a request in time."""
-
-
-@dataclass(frozen=True)
-class GeoFix:
-    """A geodetic point: latitude, longitude [deg], altitude AMSL [m]."""
-
-    lat_deg: float
-    lon_deg: float
-    alt_amsl_m: float
 
 
 @dataclass(frozen=True)
@@ -78,6 +60,8 @@ class VehicleState:
     vel_ned_mps: tuple[float, float, float] | None = None
     #: the autopilot's status texts (MAVLink STATUSTEXT) as (t_mono_s, severity name, text)
     texts: list[tuple[float, str, str]] = field(default_factory=list)
+    #: which autopilot the HEARTBEAT names: "px4", "ardupilot" or "other"
+    autopilot: str = "unknown"
 
     def age_s(self, now_mono_s: float | None = None) -> float:
         """Wall seconds since anything was last received (inf before the first message)."""
@@ -176,6 +160,8 @@ class MavsdkVehicle:
         self._system = None
         self._action = None
         self._telemetry = None
+        self._ardupilot = None  # mission.vehicle_ardupilot.ArduPilotLink once the heartbeat says ArduPilot
+        self._ardupilot_watch: asyncio.Task | None = None
 
     async def __aenter__(self) -> MavsdkVehicle:
         return self
@@ -210,10 +196,45 @@ class MavsdkVehicle:
         self.state.connected = True
         self.state.last_rx_mono_s = time.monotonic()
         log.info("autopilot found on %s", self.url)
+        await self._detect_autopilot(system)
+
+    async def _detect_autopilot(self, system) -> None:
+        """The HEARTBEAT's MAV_AUTOPILOT (MavlinkDirect); on ArduPilot, start following what
+        MAVSDK does not (mission.vehicle_ardupilot) and request the streams it would not send."""
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+        from pymavlink.dialects.v20 import common as mavlink
+
+        from mission.vehicle_ardupilot import heartbeat_autopilot
+
+        kind = None
+        direct = MavlinkDirectAsync(system)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(self.request_timeout_s):
+                async with contextlib.aclosing(direct.subscribe_message("HEARTBEAT")) as beats:
+                    async for msg in beats:
+                        kind = heartbeat_autopilot(msg.fields_json)
+                        if msg.component_id == 1 and kind not in (None, mavlink.MAV_AUTOPILOT_INVALID):
+                            break
+        self.state.autopilot = {mavlink.MAV_AUTOPILOT_PX4: "px4",
+                                mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot"}.get(kind, "other")
+        log.info("autopilot: %s (MAV_AUTOPILOT %s)", self.state.autopilot, kind)
+        if self.state.autopilot != "ardupilot":
+            return
+        from mission.vehicle_ardupilot import ArduPilotLink
+
+        self._ardupilot = ArduPilotLink(system, self.state, self.request_timeout_s, self.position_rate_hz,
+                                        target_system=await system.get_system_id())
+        self._ardupilot_watch = asyncio.create_task(self._ardupilot.watch(), name="ardupilot-watch")
+        await self._ardupilot.request_streams()
 
     async def close(self) -> None:
         """Shut MAVSDK down in a daemon thread; give up on it after close_timeout_s (wall)."""
         global _library_wedged
+        if self._ardupilot_watch is not None:
+            self._ardupilot_watch.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._ardupilot_watch
+            self._ardupilot_watch = None
         if self._mavsdk is None:
             return
         mav, self._mavsdk = self._mavsdk, None
@@ -240,8 +261,12 @@ class MavsdkVehicle:
             raise VehicleError("vehicle not connected: call connect() first")
 
     async def wait_ready(self, timeout_s: float = 60.0) -> GeoFix:
-        """Wait until the autopilot reports global position ok and home ok, then return home."""
+        """Wait until the autopilot reports global position ok and home ok, then return home
+        (ArduPilot: its EKF, GPS fix and HOME_POSITION, mission.vehicle_ardupilot)."""
         self._need()
+        if self._ardupilot is not None:
+            await self._ardupilot.wait_ready(timeout_s)
+            return self.state.home
         try:
             async with asyncio.timeout(timeout_s):
                 async with contextlib.aclosing(self._telemetry.subscribe_health()) as health:
@@ -274,7 +299,9 @@ class MavsdkVehicle:
         MavlinkDirect plugin gives the raw message)."""
         self._need()
         tel, st = self._telemetry, self.state
-        await self._request("set position rate", tel.set_rate_position(self.position_rate_hz), optional=True)
+        ardupilot = self._ardupilot  # ArduPilot: its heartbeat, EKF and home come from ArduPilotLink.watch
+        if ardupilot is None:
+            await self._request("set position rate", tel.set_rate_position(self.position_rate_hz), optional=True)
 
         def touch() -> None:
             st.last_rx_mono_s = time.monotonic()
@@ -288,6 +315,8 @@ class MavsdkVehicle:
         def on_pos(p) -> None:
             fix = PositionFix(time.monotonic(), p.latitude_deg, p.longitude_deg, p.absolute_altitude_m,
                               p.relative_altitude_m, st.vel_ned_mps)
+            if ardupilot is not None and not ardupilot.fix_usable(fix.lat_deg, fix.lon_deg):
+                return
             if all(math.isfinite(v) for v in (fix.lat_deg, fix.lon_deg, fix.alt_amsl_m)):
                 st.position = fix
                 on_position(fix)
@@ -346,13 +375,14 @@ class MavsdkVehicle:
 
                 direct = MavlinkDirectAsync(self._system)
                 tg.create_task(follow(direct.subscribe_message("SYSTEM_TIME"), on_system_time))
-            tg.create_task(follow(tel.subscribe_home(), on_home))
             tg.create_task(follow(tel.subscribe_battery(), on_battery))
-            tg.create_task(follow(tel.subscribe_health(), on_health))
             tg.create_task(follow(tel.subscribe_velocity_ned(), on_vel))
-            tg.create_task(follow(tel.subscribe_armed(), on_armed))
-            tg.create_task(follow(tel.subscribe_flight_mode(), on_mode))
-            tg.create_task(follow(tel.subscribe_landed_state(), on_landed))
+            if ardupilot is None:
+                tg.create_task(follow(tel.subscribe_home(), on_home))
+                tg.create_task(follow(tel.subscribe_health(), on_health))
+                tg.create_task(follow(tel.subscribe_armed(), on_armed))
+                tg.create_task(follow(tel.subscribe_flight_mode(), on_mode))
+                tg.create_task(follow(tel.subscribe_landed_state(), on_landed))
             tg.create_task(follow(tel.subscribe_status_text(), on_text))
             tg.create_task(follow_link())
 
@@ -380,11 +410,15 @@ class MavsdkVehicle:
 
     async def arm(self) -> None:
         self._need()
+        if self._ardupilot is not None:
+            return await self._ardupilot.arm()
         await self._request("arm", self._action.arm())
 
     async def takeoff(self, height_m: float) -> None:
         """Set the takeoff height above home and take off."""
         self._need()
+        if self._ardupilot is not None:
+            return await self._ardupilot.takeoff(float(height_m))
         await self._request(f"set takeoff altitude {height_m:g} m",
                             self._action.set_takeoff_altitude(float(height_m)))
         await self._request("takeoff", self._action.takeoff())
@@ -392,6 +426,8 @@ class MavsdkVehicle:
     async def goto_location(self, lat_deg: float, lon_deg: float, alt_amsl_m: float,
                             yaw_deg: float = float("nan")) -> None:
         self._need()
+        if self._ardupilot is not None:
+            return await self._ardupilot.goto(lat_deg, lon_deg, alt_amsl_m, yaw_deg)
         await self._request(
             f"goto ({lat_deg:.7f}, {lon_deg:.7f}, {alt_amsl_m:.1f} m AMSL)",
             self._action.goto_location(lat_deg, lon_deg, alt_amsl_m, yaw_deg),
@@ -402,16 +438,24 @@ class MavsdkVehicle:
         SITL, measured) flies the following repositions at this speed instead of MPC_XY_CRUISE and
         keeps it over later repositions; MAVSDK's goto_location sends no speed of its own."""
         self._need()
+        if self._ardupilot is not None:
+            return await self._ardupilot.set_speed(float(speed_mps))
         await self._request(f"set speed {speed_mps:g} m/s", self._action.set_current_speed(float(speed_mps)))
 
     async def return_to_launch(self) -> None:
         self._need()
+        if self._ardupilot is not None:
+            return await self._ardupilot.return_to_launch()
         await self._request("return to launch", self._action.return_to_launch())
 
     async def land(self) -> None:
         self._need()
+        if self._ardupilot is not None:
+            return await self._ardupilot.land()
         await self._request("land", self._action.land())
 
     async def disarm(self) -> None:
         self._need()
+        if self._ardupilot is not None:
+            return await self._ardupilot.disarm()
         await self._request("disarm", self._action.disarm())

@@ -58,6 +58,8 @@ STREAM_MIN_HZ = 0.4
 #: PX4 custom main mode AUTO and its sub modes (px4_custom_mode.h)
 MAIN_AUTO = 4
 SUB_TAKEOFF, SUB_LOITER, SUB_RTL, SUB_LAND = 2, 3, 5, 6
+#: ArduCopter's RTL custom mode (pymavlink mavutil.mode_mapping_acm)
+ARDUCOPTER_RTL = 6
 
 
 def leg_figures(t_s: np.ndarray, pos_m: np.ndarray, target_m: np.ndarray, length_m: float,
@@ -88,9 +90,10 @@ class Telemetry:
     """What one autopilot sent, in its own time.
 
     t_s (n,) / pos_ned_m (n, 3) / vel_ned_mps (n, 3): LOCAL_POSITION_NED; gpi_t_s: GLOBAL_POSITION_INT
-    times; heartbeats: (t, armed, main mode, sub mode, system status) at each change; fixes: (t, fix
-    type) at each change; landed: (t, MAV_LANDED_STATE) at each change; counts: messages per type;
-    span_s: autopilot time the log covers.
+    times; heartbeats: (t, armed, main mode, sub mode, system status) at each change (ArduPilot:
+    (t, armed, custom mode, system status)); fixes: (t, fix type) at each change; landed: (t,
+    MAV_LANDED_STATE) at each change; counts: messages per type; span_s: autopilot time the log
+    covers; autopilot: the HEARTBEAT's MAV_AUTOPILOT.
     """
 
     t_s: np.ndarray
@@ -102,6 +105,7 @@ class Telemetry:
     landed: list[tuple[float, int]] = field(default_factory=list)
     counts: Counter = field(default_factory=Counter)
     span_s: float = 0.0
+    autopilot: int = mavutil.mavlink.MAV_AUTOPILOT_PX4
 
     @property
     def height_m(self) -> np.ndarray:
@@ -149,6 +153,7 @@ def read_telemetry(path: Path) -> Telemetry:
             if sysid is None:
                 if kind == "HEARTBEAT" and msg.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID:
                     sysid = msg.get_srcSystem()
+                    tel.autopilot = msg.autopilot
                 else:
                     continue
             if msg.get_srcSystem() != sysid or msg.get_srcComponent() != 1:
@@ -167,8 +172,8 @@ def read_telemetry(path: Path) -> Telemetry:
             elif kind == "GLOBAL_POSITION_INT":
                 gpi_t.append(t_now)
             elif kind == "HEARTBEAT" and msg.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID:
-                hb = (bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED),
-                      (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF, msg.system_status)
+                hb = (bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED), *_mode_fields(msg),
+                      msg.system_status)
                 if not tel.heartbeats or tel.heartbeats[-1][1:] != hb:
                     tel.heartbeats.append((t_now, *hb))
             elif kind == "GPS_RAW_INT":
@@ -188,6 +193,20 @@ def read_telemetry(path: Path) -> Telemetry:
     return tel
 
 
+def _mode_fields(hb) -> tuple[int, ...]:
+    """A HEARTBEAT's mode: PX4's (main mode, sub mode) of its custom mode, ArduPilot's custom mode."""
+    if hb.autopilot == mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
+        return (hb.custom_mode,)
+    return (hb.custom_mode >> 16) & 0xFF, (hb.custom_mode >> 24) & 0xFF
+
+
+def _is_rtl(tel: Telemetry) -> Callable[[tuple], bool]:
+    """Whether a heartbeat of `tel` (Telemetry.heartbeats) is in RTL: PX4's sub mode, ArduCopter's mode."""
+    if tel.autopilot == mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
+        return lambda h: h[2] == ARDUCOPTER_RTL
+    return lambda h: h[3] == SUB_RTL
+
+
 # --- figures -----------------------------------------------------------------------------------
 def stream_rates_hz(tel: Telemetry) -> dict[str, float]:
     """{message type: rate [Hz of autopilot time]} of the messages sent at least STREAM_MIN_HZ."""
@@ -199,7 +218,7 @@ def mode_sequence(tel: Telemetry) -> list[list]:
     """[armed, main mode, sub mode, system status] at each change, from the first STANDBY on (the
     boot before it is the autopilot's own business)."""
     seq = [list(h[1:]) for h in tel.heartbeats]
-    first = next((k for k, h in enumerate(seq) if h[3] == mavutil.mavlink.MAV_STATE_STANDBY), 0)
+    first = next((k for k, h in enumerate(seq) if h[-1] == mavutil.mavlink.MAV_STATE_STANDBY), 0)
     return seq[first:]
 
 
@@ -279,10 +298,12 @@ def legs_figures(path: Path) -> dict:
     points = [ground_ne]
     for east, north in LEGS_ENU_M:
         points.append(points[-1] + np.array([north, east]))
+    # the first leg may start before the climb has come to rest (ArduCopter's recording)
+    k_top = int(np.argmax(tel.height_m > tel.height_m[0] + 0.9 * HEIGHT_M))
     starts = []
     for a_ne, b_ne in itertools.pairwise(points):
-        starts.append(_leaves(tel, k if not starts else starts[-1] + 1, a_ne, b_ne))
-    t_rtl_hb = _first_hb(tel, lambda h: h[3] == SUB_RTL, after_s=tel.t_s[starts[-1]])
+        starts.append(_leaves(tel, min(k, k_top) if not starts else starts[-1] + 1, a_ne, b_ne))
+    t_rtl_hb = _first_hb(tel, _is_rtl(tel), after_s=tel.t_s[starts[-1]])
     if not math.isfinite(t_rtl_hb):
         raise SimulatorError(f"{path}: no RTL after the legs")
     k_rtl = _motion_start(tel, tel.index(t_rtl_hb - 1.5))
@@ -294,10 +315,12 @@ def legs_figures(path: Path) -> dict:
         legs.append({key: round(v, 4) for key, v in
                      leg_figures(tel.t_s[sl], pos_en, target_en, math.hypot(east, north), vel_en).items()})
     rtl = rtl_figures(tel, k_rtl, t_rtl_hb)
+    out = {"takeoff": _rounded(takeoff), "legs": legs, "rtl": _rounded(rtl), "rates_hz": stream_rates_hz(tel),
+           "modes": mode_sequence(tel)}
     hover = tel.pos_ned_m[k:starts[0], :2]  # resting after the take-off, before the first leg
-    hover_wander = float(np.percentile(np.hypot(*(hover - np.median(hover, axis=0)).T), 95))
-    return {"takeoff": _rounded(takeoff), "legs": legs, "rtl": _rounded(rtl), "rates_hz": stream_rates_hz(tel),
-            "modes": mode_sequence(tel), "hover_wander_m": round(hover_wander, 4)}
+    if len(hover):
+        out["hover_wander_m"] = round(float(np.percentile(np.hypot(*(hover - np.median(hover, axis=0)).T), 95)), 4)
+    return out
 
 
 def rtl_figures(tel: Telemetry, k_rest: int, t_rtl_hb: float) -> dict:
@@ -309,6 +332,8 @@ def rtl_figures(tel: Telemetry, k_rest: int, t_rtl_hb: float) -> dict:
     ground = float(np.median(h[: max(5, tel.index(tel.t_s[0] + 1.0))]))
     t_landed = next((t for t, s in tel.landed if t > tel.t_s[k0] and s == mavutil.mavlink.MAV_LANDED_STATE_ON_GROUND),
                     math.nan)
+    if not tel.landed:  # no EXTENDED_SYS_STATE (ArduPilot's streams): landed once the status leaves ACTIVE
+        t_landed = _first_hb(tel, lambda h: h[-1] != mavutil.mavlink.MAV_STATE_ACTIVE, after_s=tel.t_s[k0])
     k_land = min(tel.index(t_landed), len(h) - 1)
     home_d = np.hypot(*tel.pos_ned_m[:, :2].T)
     over_home = k0 + int(np.argmax(home_d[k0:] < 1.0))
@@ -368,8 +393,11 @@ class Flight:
 
     conn: a pymavlink connection; tlog: a binary file that gets every message received, as a tlog
     (pymavlink's UDP connections write none themselves); timeout_s: wall seconds per wait. `home`
-    is where the vehicle stands (its first GLOBAL_POSITION_INT).
+    is where the vehicle stands (its first GLOBAL_POSITION_INT). Subclasses fly another autopilot's
+    primitives (sitl_scenarios.ardupilot_conformance); DIALECT: the pymavlink dialect they need.
     """
+
+    DIALECT = "common"
 
     def __init__(self, conn, timeout_s: float = 120.0, tlog: BinaryIO | None = None):
         self.conn = conn
@@ -454,10 +482,12 @@ class Flight:
         self.sleep(1.0)
 
 
-def fly_legs(conn, timeout_s: float = 120.0, tlog: BinaryIO | None = None) -> None:
+def fly_legs(conn, timeout_s: float = 120.0, tlog: BinaryIO | None = None,
+             flight: type[Flight] = Flight) -> None:
     """The recorded legs flight (module docstring) on the autopilot at the other end of conn
-    (tlog: see :class:`Flight`). The 2 s pause between legs is wall time, as in the recording."""
-    f = Flight(conn, timeout_s, tlog)
+    (tlog: see :class:`Flight`; flight: whose primitives). The 2 s pause between legs is wall time,
+    as in the recording."""
+    f = flight(conn, timeout_s, tlog)
     f.start()
     f.takeoff()
     east = north = 0.0
@@ -492,12 +522,13 @@ RECORDED_HOME = (43.6143, 7.0716, 150.0)
 
 
 def fly_builtin(flight: str, tlog: Path, speedup: float = 4.0, gps_loss_after_s: float | None = None,
-                vehicle=None, timeout_s: float = 120.0) -> Path:
+                vehicle=None, timeout_s: float = 120.0, primitives: type[Flight] = Flight) -> Path:
     """Fly the recorded `flight` ("legs" or "gpsloss") on the built-in vehicle at the recorded
     home, over MAVLink from pymavlink; returns `tlog`, what the vehicle sent. The streams run at
     their simulated rates (the simulator's wall-clock cap and tick raised to carry 50 Hz at this
     speedup). vehicle: its VehicleConfig (default: PX4's defaults, no GPS error: the recorded
-    SIH's estimate is smooth). gps_loss_after_s: the GPS-loss flight's moment of the loss."""
+    SIH's estimate is smooth). gps_loss_after_s: the GPS-loss flight's moment of the loss.
+    primitives: the :class:`Flight` (sub)class whose commands fly the legs."""
     from sitl_scenarios.scenario import VehicleConfig
     from sitl_scenarios.vehicle import VehicleSimulator
 
@@ -509,11 +540,11 @@ def fly_builtin(flight: str, tlog: Path, speedup: float = 4.0, gps_loss_after_s:
                            max_stream_wall_hz=60.0 * speedup)
     with sim:
         conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{sim.local_address[1]}", source_system=255,
-                                          dialect="common")
+                                          dialect=primitives.DIALECT)
         try:
             with open(tlog, "wb") as fh:
                 if flight == "legs":
-                    fly_legs(conn, timeout_s, fh)
+                    fly_legs(conn, timeout_s, fh, primitives)
                 else:
                     fly_gpsloss(conn, sim.lose_gps, gps_loss_after_s or 0.0, timeout_s, fh,
                                 clock_s=lambda: sim.state().t_s)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -126,6 +126,8 @@ class VehicleConfig:
     """Built-in vehicle: speeds [m/s], acceleration [m/s²], GPS noise [m], battery.
 
     gps_tau_s: correlation time of the GPS error (0: independent per fix; > 0: Gauss-Markov).
+    autopilot: whose personality the built-in vehicle has on the wire and in flight, PX4's or
+    ArduCopter's (sitl_scenarios.vehicle.ardupilot; docs/ardupilot.md).
     """
 
     speed_mps: float = like(mc.FlightConfig, "cruise_speed_mps")
@@ -138,6 +140,7 @@ class VehicleConfig:
     gps_tau_s: float = bounded(3.0, 0.0, 1e5)
     battery_capacity_s: float = positive(1800.0, 1e5)
     battery_start_pct: float = positive(100.0, 100.0)
+    autopilot: Literal["px4", "ardupilot"] = "px4"
 
 
 @dataclass(frozen=True)
@@ -403,6 +406,12 @@ def load_scenario(name_or_path: str | Path, base_dir: Path | None = None) -> Sce
     """Read a scenario file (or a bundled scenario by name, :func:`resolve_scenario_path`) strictly."""
     path = resolve_scenario_path(name_or_path, base_dir)
     return scenario_from_dict(schema.read_toml(path, "scenario file", ScenarioError), str(path))
+
+
+def with_autopilot(scenario: Scenario, autopilot: str) -> Scenario:
+    """The scenario with the built-in vehicle's personality `autopilot` ("px4", "ardupilot")."""
+    vehicle = dataclasses.replace(scenario.vehicle, autopilot=autopilot)
+    return dataclasses.replace(scenario, world=dataclasses.replace(scenario.world, vehicle=vehicle))
 
 
 def controller_from_scenario(scenario: Scenario, vehicle: Any, gnb: Any, log_path: str | Path, *,

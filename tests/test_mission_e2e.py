@@ -265,19 +265,25 @@ def test_low_battery_returns_home(tmp_path):
 @pytest.mark.slow
 def test_ctrl_c_on_uavloc_sim_sends_rtl(tmp_path):
     """The real Ctrl-C path: SIGINT to `uavloc sim` → RTL, the log flushed, exit code 130."""
+    ctrl_c_uavloc_sim(tmp_path)
+
+
+def ctrl_c_uavloc_sim(tmp_path: Path, *args: str, wait_s: float = 60.0) -> None:
+    """SIGINT to `uavloc sim paper --planner lawnmower ARGS` after 5 measurements: exit code 130,
+    the log ending in interrupted, rtl, end."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mission", "-v", "sim", "paper", "--planner", "lawnmower", "--out", str(tmp_path)],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        [sys.executable, "-m", "mission", "-v", "sim", "paper", "--planner", "lawnmower", *args, "--out",
+         str(tmp_path)], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     log_path = tmp_path / "mission.jsonl"
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
             if log_path.exists() and log_path.read_text().count('"type":"rtt"') >= 5:
                 break
             time.sleep(0.05)
         else:
-            raise AssertionError("no measurements within 60 s")
+            raise AssertionError(f"no measurements within {wait_s:g} s")
         proc.send_signal(signal.SIGINT)
         _out, err = proc.communicate(timeout=60)
     finally:

@@ -1,6 +1,6 @@
 """`uavloc sim SCENARIO [--seed N] [--speedup X] [--planner NAME] [--out DIR] [--json] [--connect URL]
-[--gnb-transport telnet|rest]`:
-a whole mission against the built-in vehicle and the simulated gNB (or a running PX4 SITL)."""
+[--gnb-transport telnet|rest] [--autopilot px4|ardupilot]`:
+a whole mission against the built-in vehicle and the simulated gNB (or a running PX4 or ArduPilot SITL)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,8 @@ def seed_argument(text: str) -> int:
         raise argparse.ArgumentTypeError(f"a seed is in 0..{MAX_SEED}, got {seed}")
     return seed
 
-HELP = "fly a simulated mission (built-in vehicle or PX4 SITL, simulated gNB) and print where the users are"
+HELP = ("fly a simulated mission (built-in vehicle or PX4/ArduPilot SITL, simulated gNB) and print where the users "
+        "are")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,8 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="how the adapter talks to the simulated gNB: its telnet server (default) or OAI's web "
                         "server API (REST)")
     p.add_argument("--connect", metavar="URL",
-                   help="fly a running PX4 SITL instead (e.g. udpin://0.0.0.0:14540); the simulated gNB "
-                        "follows it and scenario positions are offsets from its home")
+                   help="fly a running PX4 or ArduPilot SITL instead (e.g. udpin://0.0.0.0:14540); the simulated "
+                        "gNB follows it and scenario positions are offsets from its home")
+    p.add_argument("--autopilot", choices=("px4", "ardupilot"),
+                   help="the built-in vehicle's personality (default: the scenario's [vehicle] autopilot, px4)")
     add_view_arguments(p)
 
 
@@ -57,10 +60,15 @@ def run(args: argparse.Namespace) -> int:
     from mission.commands.outdir import LOG_NAME, mission_log_path
     from mission.status import print_result, write_report
     from mission.view.live import live_view
-    from sitl_scenarios.scenario import load_scenario
+    from sitl_scenarios.scenario import load_scenario, with_autopilot
     from sitl_scenarios.sim_runner import SimulatedMission
 
     scenario = load_scenario(args.scenario)
+    if args.autopilot is not None:
+        if args.connect is not None:
+            log.warning("--autopilot is ignored with --connect (the autopilot says what it is)")
+        else:
+            scenario = with_autopilot(scenario, args.autopilot)
     if args.connect is not None and args.speedup != 10.0:
         log.warning("--speedup is ignored with --connect (PX4 SITL sets its own speed)")
     tmp = None

@@ -70,7 +70,19 @@ class Autopilot(Navigator):
 
     Commands return (MAV_RESULT, reason). :attr:`messages` collects (severity, text) for STATUSTEXT
     and :attr:`reached` the mission sequence numbers reached; the owner drains both.
+
+    The class attributes are what another autopilot's personality changes (a subclass:
+    :class:`sitl_scenarios.vehicle.ardupilot.ArduCopter`).
     """
+
+    #: the mode the vehicle starts in, and the one it is put in once disarmed after landing in LAND
+    #: or RTL (PX4: LOITER in both recordings; None: it stays in that mode)
+    INITIAL_MODE: FlightMode = FlightMode.HOLD
+    MODE_AFTER_LANDING: FlightMode | None = FlightMode.HOLD
+    #: from touchdown to landed [s]
+    LAND_DETECT_S: float = LAND_DETECT_S
+    #: INT32 parameters travel byte-wise (PX4) or C-cast (ArduPilot)
+    PARAM_BYTEWISE: bool = True
 
     def __init__(
         self,
@@ -81,9 +93,7 @@ class Autopilot(Navigator):
     ) -> None:
         self.origin = origin
         self.config = vehicle
-        self.params = ParamStore(
-            px4_params(vehicle.speed_mps, vehicle.climb_mps, vehicle.descent_mps, vehicle.accel_mps2)
-        )
+        self.params = self._param_store(vehicle)
         self.gps_error = GpsError(vehicle.gps_sigma_m, vehicle.gps_tau_s, rng)
         self.vel_error = VelocityError(rng)
         self.dead_reckoning = DeadReckoning(rng)
@@ -98,7 +108,7 @@ class Autopilot(Navigator):
         self.armed = False
         self.in_air = False
         self.landed_state = LANDED_ON_GROUND
-        self.mode = FlightMode.HOLD
+        self.mode = self.INITIAL_MODE
         self.home = [0.0, 0.0, 0.0]
         self.home_set = False
         self.battery_pct = float(vehicle.battery_start_pct)
@@ -123,6 +133,10 @@ class Autopilot(Navigator):
         self._offboard_vel: list[float] | None = None
         self._offboard_wall_s: float | None = None
         self._wall_s = 0.0
+
+    @staticmethod
+    def _param_store(vehicle: VehicleConfig) -> ParamStore:
+        return ParamStore(px4_params(vehicle.speed_mps, vehicle.climb_mps, vehicle.descent_mps, vehicle.accel_mps2))
 
     # --- derived state ------------------------------------------------------------------------
     @property
@@ -446,7 +460,7 @@ class Autopilot(Navigator):
 
     def _substep(self, dt: float) -> None:
         self.t_s += dt
-        if not self.home_set and self.gps_ok:
+        if not self.home_set and self._home_ready():
             self.home = [self.pos[0], self.pos[1], 0.0]
             self.home_set = True
             self._say(SEV_INFO, "Home position set")
@@ -457,6 +471,10 @@ class Autopilot(Navigator):
         target, v_h, vel_cmd, v_dn = self._guidance()
         self._move(dt, target, v_h, vel_cmd, v_dn)
         self._land_detector()
+
+    def _home_ready(self) -> bool:
+        """PX4 sets home at its first fix."""
+        return self.gps_ok
 
     def _battery(self, dt: float) -> None:
         self.battery_pct = drained_pct(self.battery_pct, dt, self.config.battery_capacity_s, self.armed, self.in_air)
@@ -552,7 +570,7 @@ class Autopilot(Navigator):
                 self._touchdown_s = None
             elif self._touchdown_s is None:
                 self._touchdown_s = self.t_s
-            if on_ground and self.t_s - self._touchdown_s >= LAND_DETECT_S:
+            if on_ground and self.t_s - self._touchdown_s >= self.LAND_DETECT_S:
                 self._touchdown_s = None
                 self.in_air = False
                 self.vel = [0.0, 0.0, 0.0]
@@ -578,8 +596,9 @@ class Autopilot(Navigator):
                 self._landed_since_s = self.t_s
             wait = self.params["COM_DISARM_LAND"] if self._has_flown else self.params["COM_DISARM_PRFLT"]
             if wait >= 0 and self.t_s - self._landed_since_s >= wait:
-                if self._has_flown and self.mode in (FlightMode.LAND, FlightMode.RTL):
-                    self._set_mode(FlightMode.HOLD)  # PX4 is in LOITER once disarmed (both recordings)
+                after = self.MODE_AFTER_LANDING
+                if self._has_flown and after is not None and self.mode in (FlightMode.LAND, FlightMode.RTL):
+                    self._set_mode(after)
                 self._disarm("Disarmed after landing" if self._has_flown else "Disarmed: no takeoff")
 
 

@@ -9,7 +9,7 @@ import sys
 import time
 from typing import Any
 
-from sitl_scenarios.scenario import load_scenario
+from sitl_scenarios.scenario import load_scenario, with_autopilot
 from sitl_scenarios.vehicle.simulator import VehicleSimulator
 from uavloc.errors import ScenarioError, SimulatorError
 
@@ -52,12 +52,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bind", default="0.0.0.0:0", help="local HOST:PORT (port 0: any)")
     ap.add_argument("--seed", type=int, default=None, help="GPS noise seed (default: the scenario's)")
     ap.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    ap.add_argument("--autopilot", choices=("px4", "ardupilot"),
+                    help="whose personality the vehicle has (default: the scenario's [vehicle] autopilot)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     try:
         scenario = load_scenario(args.scenario)
+        if args.autopilot is not None:
+            scenario = with_autopilot(scenario, args.autopilot)
         bind_host, _, bind_port = args.bind.rpartition(":")
         targets = [t for parts in (args.target or [["127.0.0.1:14540"]]) for t in _parse_targets(parts)]
         kwargs: dict[str, Any] = {"speedup": args.speedup, "target": targets,

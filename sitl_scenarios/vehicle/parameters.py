@@ -41,7 +41,7 @@ class ParamProtocol:
     def _send_param(self, index: int) -> None:
         spec, value = self.ap.params.entry(index)
         self._send(mavlink.MAVLink_param_value_message(
-            spec.name.encode(), encode_param_value(value, spec.type), spec.type,
+            spec.name.encode(), encode_param_value(value, spec.type, self.ap.PARAM_BYTEWISE), spec.type,
             len(self.ap.params), index))
 
     def on_param_request_list(self, msg: Any) -> None:
@@ -63,7 +63,7 @@ class ParamProtocol:
             log.debug("vehicle: PARAM_SET of unknown parameter %r", name)
             return
         spec, _ = self.ap.params.entry(k)
-        value = decode_param_value(msg.param_value, spec.type)
+        value = decode_param_value(msg.param_value, spec.type, self.ap.PARAM_BYTEWISE)
         if math.isfinite(value):
             self.ap.params.set(name, value)
             log.info("vehicle: parameter %s = %g", name, value)

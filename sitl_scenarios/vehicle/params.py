@@ -25,18 +25,21 @@ class ParamSpec:
     doc: str
 
 
-def encode_param_value(value: float, param_type: int) -> float:
+def encode_param_value(value: float, param_type: int, bytewise: bool = True) -> float:
     """PARAM_VALUE.param_value with PX4's byte-wise encoding: an INT32 travels as the float whose
-    four bytes are the integer's bytes (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE)."""
-    if param_type == PARAM_TYPE_INT32:
+    four bytes are the integer's bytes (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE); without
+    `bytewise`, ArduPilot's C cast: the integer's value as a float (PARAM_ENCODE_C_CAST)."""
+    if param_type == PARAM_TYPE_INT32 and bytewise:
         return struct.unpack("<f", struct.pack("<i", int(value)))[0]
-    if param_type == PARAM_TYPE_REAL32:
+    if param_type in (PARAM_TYPE_REAL32, PARAM_TYPE_INT32):
         return float(value)
     raise SimulatorError(f"unsupported MAV_PARAM_TYPE {param_type} (only INT32 and REAL32)")
 
 
-def decode_param_value(wire_value: float, param_type: int) -> float:
+def decode_param_value(wire_value: float, param_type: int, bytewise: bool = True) -> float:
     """Inverse of :func:`encode_param_value`."""
+    if param_type == PARAM_TYPE_INT32 and not bytewise:
+        return float(round(wire_value))
     if param_type == PARAM_TYPE_INT32:
         return float(struct.unpack("<i", struct.pack("<f", wire_value))[0])
     if param_type == PARAM_TYPE_REAL32:

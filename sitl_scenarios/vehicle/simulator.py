@@ -25,14 +25,14 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from estimator.geodesy import Origin
 from sitl_scenarios.scenario import Scenario, VehicleConfig
-from sitl_scenarios.vehicle.autopilot import Autopilot, VehicleState
-from sitl_scenarios.vehicle.commands import CommandProtocol
+from sitl_scenarios.vehicle.autopilot import VehicleState
 from sitl_scenarios.vehicle.faults import FaultEvent, VehicleFaults, faults_from_scenario
 from sitl_scenarios.vehicle.link import UdpLink
 from sitl_scenarios.vehicle.mav import DENIED
 from sitl_scenarios.vehicle.missions import MissionProtocol
 from sitl_scenarios.vehicle.parameters import ParamProtocol
-from sitl_scenarios.vehicle.streams import StreamEncoder, StreamSchedule
+from sitl_scenarios.vehicle.personality import personality
+from sitl_scenarios.vehicle.streams import StreamSchedule
 from uavloc.errors import SimulatorError
 
 log = logging.getLogger(__name__)
@@ -94,7 +94,8 @@ class VehicleSimulator:
         self.max_stream_wall_hz = max_stream_wall_hz
         self._clock = clock
         self._rng = np.random.default_rng([int(seed), 0x5EED])
-        self._ap = Autopilot(origin, self.vehicle, self._rng, gps_fix_delay_s=gps_fix_delay_s)
+        kind = personality(self.vehicle.autopilot)  # PX4 or ArduCopter on the wire and in flight
+        self._ap = kind.autopilot(origin, self.vehicle, self._rng, gps_fix_delay_s=gps_fix_delay_s)
         self._faults = VehicleFaults(faults)
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -102,10 +103,10 @@ class VehicleSimulator:
         self._error: BaseException | None = None
         self._link = UdpLink(targets, bind, SYSTEM_ID, COMPONENT_ID)
         self._wall_last_s = 0.0
-        self._schedule = StreamSchedule(self.speedup, max_stream_wall_hz)
-        self._streams = StreamEncoder(self._ap, origin, self.vehicle, time.time(), SYSTEM_ID)
+        self._schedule = StreamSchedule(self.speedup, max_stream_wall_hz, kind.intervals_s)
+        self._streams = kind.streams(self._ap, origin, self.vehicle, time.time(), SYSTEM_ID)
         wall_s = self._wall_now
-        self._commands = CommandProtocol(self._ap, origin, self._send, self._send_stream, self._schedule,
+        self._commands = kind.commands(self._ap, origin, self._send, self._send_stream, self._schedule,
                                          self._faults, wall_s)
         self._missions = MissionProtocol(self._ap, self._send, self._send_stream, wall_s)
         self._handlers: dict[str, Callable[[Any], None]] = {

@@ -62,10 +62,13 @@ class StreamSchedule:
     wall second, whatever the speedup, so a ground station's wall-clock link timeout never fires on
     a healthy link."""
 
-    def __init__(self, speedup: float, max_wall_hz: float) -> None:
+    def __init__(self, speedup: float, max_wall_hz: float,
+                 defaults_s: dict[int, float | None] | None = None) -> None:
         self.speedup = speedup
         self.max_wall_hz = max_wall_hz
-        self.intervals_s: dict[int, float | None] = dict(DEFAULT_INTERVALS_S)
+        #: every message the vehicle can send and its default interval (the personality's)
+        self.defaults_s = DEFAULT_INTERVALS_S if defaults_s is None else defaults_s
+        self.intervals_s: dict[int, float | None] = dict(self.defaults_s)
         self._next_wall_s: dict[int, float] = {}
 
     def can_send(self, msg_id: int) -> bool:
@@ -78,7 +81,7 @@ class StreamSchedule:
         if interval_us < 0:
             self.intervals_s[msg_id] = None
         elif interval_us == 0:
-            self.intervals_s[msg_id] = DEFAULT_INTERVALS_S[msg_id]
+            self.intervals_s[msg_id] = self.defaults_s[msg_id]
         else:
             self.intervals_s[msg_id] = interval_us * 1e-6
         self._next_wall_s[msg_id] = 0.0
