@@ -77,7 +77,10 @@ def test_sigterm_or_sighup_during_the_survey_sends_the_vehicle_home(tmp_path, si
         d1_m = float(np.linalg.norm((rig.vehicle.state().pos_enu_m - home)[:2]))
     assert proc.returncode == EXIT_INTERRUPTED, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
-    assert state.mode == "return_to_launch", state.mode
+    # returning home, or (when uavloc took longer to exit than the 20x-speed return: a loaded
+    # machine) already landed there; a vehicle left alone would hover in Hold where it was
+    landed_home = not state.in_air and d0_m < 5.0
+    assert state.mode == "return_to_launch" or landed_home, (state.mode, state.in_air, d0_m)
     assert d1_m < d0_m or not state.in_air, (d0_m, d1_m)
     kinds = [e.get("kind", "") for e in read_mission_log(log_path).events]
     assert kinds[-3:] == ["interrupted", "rtl", "end"], kinds[-5:]
