@@ -84,6 +84,9 @@ def test_controller_overrides_of_mission_settings_fly_the_mission_with_them(tmp_
         controller_from_mission(m, None, None, tmp_path / "n.jsonl", time_limit_min=10)
     with pytest.raises(MissionConfigError, match="time_limit_s"):
         controller_from_mission(m, None, None, tmp_path / "o.jsonl", time_limit_s=-1.0)
+    # the controller's own settings have bounds too (a 0 Hz telemetry log would divide by zero)
+    with pytest.raises(MissionConfigError, match="controller settings: key 'telemetry_log_hz' = 0.0"):
+        controller_from_mission(m, None, None, tmp_path / "p.jsonl", telemetry_log_hz=0.0)
 
 
 def test_fly_refuses_the_oracle_planner_before_connecting(capsys):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -12,6 +13,7 @@ from estimator.geodesy import Origin
 from estimator.types import Estimate
 from mission.config import FlightConfig, SafetyConfig
 from mission.result import horizontal_error_m, user_entries_of_estimate
+from mission.schema import bounded, check_bounds, positive
 
 CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
     "CONNECT", "PREFLIGHT", "TAKEOFF", "SURVEY", "RETURN", "LANDED", "ABORT")
@@ -27,6 +29,10 @@ STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne
 #: PX4's default horizontal cruise speed (MPC_XY_CRUISE): what the vehicle flies when a speed
 #: command was refused, so the leg timeouts follow it then
 PX4_DEFAULT_CRUISE_MPS = 5.0
+
+#: the largest simulator speedup (mission seconds per wall second) and controller wait [s]
+MAX_TIME_SCALE = 1000.0
+MAX_WAIT_S = 3600.0
 
 #: wall seconds the safe end may spend getting RTL accepted after an error
 SAFE_END_TIMEOUT_S = 60.0
@@ -62,14 +68,18 @@ class ControllerConfig:
 
     flight: FlightConfig = field(default_factory=FlightConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
-    time_scale: float = 1.0
-    connect_timeout_s: float = 30.0
-    ready_timeout_s: float = 60.0
-    gnb_timeout_s: float = 2.0
-    telemetry_log_hz: float = 5.0
-    status_interval_s: float = 2.0
-    position_smooth_s: float = 1.0
-    estimator_mode: str = "process"
+    time_scale: float = positive(1.0, MAX_TIME_SCALE)
+    connect_timeout_s: float = positive(30.0, MAX_WAIT_S)
+    ready_timeout_s: float = positive(60.0, MAX_WAIT_S)
+    gnb_timeout_s: float = positive(2.0, MAX_WAIT_S)
+    telemetry_log_hz: float = positive(5.0, 1000.0)
+    status_interval_s: float = positive(2.0, MAX_WAIT_S)
+    position_smooth_s: float = bounded(1.0, 0.0, 60.0)
+    estimator_mode: Literal["process", "thread"] = "process"
+
+    def __post_init__(self) -> None:
+        # set by code and overrides, not read by the strict loader: checked here, with the same bounds
+        check_bounds(self, "controller settings")
 
     @classmethod
     def from_mission(cls, mission, **overrides) -> ControllerConfig:
