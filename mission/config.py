@@ -179,7 +179,8 @@ class GnbSettings:
     connect_timeout_s: per request / connection attempt [s]; msg2_timeout_s: active stock mode, how
     long to wait for the UE's random access after the trigger [s] (real OAI: about 5 s of log time,
     and the rfsimulator may run at 0.4x real time, hence 15 s); retries: reconnect attempts after a
-    lost connection. :meth:`measure_timeout_s` is what the controller allows one measurement.
+    lost connection. :meth:`measure_timeout_s` is what the controller allows one measurement;
+    the adapter's settings are these and its own (:meth:`mission.gnb_config.GnbConfig.of`).
     """
 
     transport: Literal["telnet", "rest"] = "telnet"
@@ -207,14 +208,6 @@ class GnbSettings:
         if self.mode == "stock" and self.stock_mode == "active":
             t += self.msg2_timeout_s
         return t
-
-    def client_config(self, host: str, port: int, **overrides: Any) -> Any:
-        """The :class:`mission.gnb_config.GnbConfig` of the gNB adapter at host:port: these
-        settings, and overrides of any of its fields."""
-        from mission.gnb_config import GnbConfig
-
-        mine = {f.name: getattr(self, f.name) for f in dataclasses.fields(GnbSettings)}
-        return GnbConfig(**{**mine, "host": host, "port": port, **overrides})
 
 
 @dataclass(frozen=True)

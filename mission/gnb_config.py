@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 from estimator.ranging import MU_VALUES
 from mission.config import GnbSettings
@@ -20,8 +22,8 @@ UE_CI = ("force_reestab", "get_current_bwp")
 class GnbConfig(GnbSettings):
     """Settings of :class:`OaiGnbClient`: a mission file's gNB settings
     (:class:`mission.config.GnbSettings`: transport, mode, stock_mode, rtt_module, rtt_command,
-    discovery, mu, log_path (a str or Path), timeouts, retries; `GnbSettings.client_config` makes
-    one from them) and what only the adapter has.
+    discovery, mu, log_path (a str or Path), timeouts, retries; :meth:`of` makes one from them)
+    and what only the adapter has.
 
     host, port: the gNB telnet server (`--telnetsrv.listenport`, default 9090) or web server
     (`--websrv.listenport`, default 8090); prompt: what ends a telnet answer; backoff_initial_s,
@@ -40,6 +42,13 @@ class GnbConfig(GnbSettings):
     seed: int = 0
     log_poll_s: float = 0.01
     log_history: bool = False
+
+    @classmethod
+    def of(cls, settings: GnbSettings, host: str, port: int, **overrides: Any) -> GnbConfig:
+        """The adapter's settings for the gNB at host:port: a mission file's `settings`, and
+        overrides of any field."""
+        mine = {f.name: getattr(settings, f.name) for f in dataclasses.fields(GnbSettings)}
+        return cls(**{**mine, "host": host, "port": port, **overrides})
 
     def __post_init__(self) -> None:
         if self.transport not in ("telnet", "rest"):

@@ -11,6 +11,7 @@ from estimator.geodesy import Origin
 from mission.config import example_mission_path, load_mission, mission_from_dict
 from mission.control.config import ControllerConfig
 from mission.controller import controller_from_mission
+from mission.gnb_config import GnbConfig
 from mission.safety import SafetyLimits
 from sitl_scenarios.scenario import load_scenario
 from uavloc.errors import MissionConfigError
@@ -37,7 +38,7 @@ def test_active_stock_mode_waits_longer_per_measurement_than_for_the_msg2():
     assert active.measure_timeout_s() > active.msg2_timeout_s + active.request_timeout_s
     assert rtt.measure_timeout_s() < rtt.msg2_timeout_s  # the Msg2 wait is not part of an RTT request
     assert passive.measure_timeout_s() == rtt.measure_timeout_s()
-    c = active.client_config("10.0.0.2", 9090, retries=1)
+    c = GnbConfig.of(active, "10.0.0.2", 9090, retries=1)
     assert (c.host, c.port, c.retries) == ("10.0.0.2", 9090, 1)
     # the rest of the adapter's settings are the mission file's, field for field
     assert all(getattr(c, f.name) == getattr(active, f.name) for f in dataclasses.fields(active) if f.name != "retries")
