@@ -179,7 +179,8 @@ class GnbSettings:
     connect_timeout_s: per request / connection attempt [s]; msg2_timeout_s: active stock mode, how
     long to wait for the UE's random access after the trigger [s] (real OAI: about 5 s of log time,
     and the rfsimulator may run at 0.4x real time, hence 15 s); retries: reconnect attempts after a
-    lost connection. :meth:`measure_timeout_s` is what the controller allows one measurement.
+    lost connection. :meth:`measure_timeout_s` is what the controller allows one measurement;
+    the adapter's settings are these and its own (:meth:`mission.gnb_config.GnbConfig.of`).
     """
 
     transport: Literal["telnet", "rest"] = "telnet"
@@ -207,19 +208,6 @@ class GnbSettings:
         if self.mode == "stock" and self.stock_mode == "active":
             t += self.msg2_timeout_s
         return t
-
-    def client_config(self, host: str, port: int, **overrides: Any) -> Any:
-        """The :class:`mission.gnb_config.GnbConfig` of the gNB adapter at host:port."""
-        from mission.gnb_config import GnbConfig
-
-        kw = dict(host=host, port=port, transport=self.transport, mode=self.mode, stock_mode=self.stock_mode,
-                  rtt_module=self.rtt_module,
-                  rtt_command=self.rtt_command, discovery=self.discovery,
-                  request_timeout_s=self.request_timeout_s, connect_timeout_s=self.connect_timeout_s,
-                  retries=self.retries, log_path=None if self.log_path is None else Path(self.log_path),
-                  msg2_timeout_s=self.msg2_timeout_s, mu=self.mu)
-        kw.update(overrides)
-        return GnbConfig(**kw)
 
 
 @dataclass(frozen=True)
@@ -398,6 +386,15 @@ def setting_tables(flat: dict, where: str, error: type[UavlocError] = MissionCon
             raise schema.fail(where, key, value, "not a setting of a mission file's "
                               f"{', '.join(f'[{t}]' for t in SETTING_TABLES)}", error)
         out.setdefault(table_of[key], {})[key] = value
+    return out
+
+
+def with_settings(mc: MissionConfig, flat: dict, where: str = "settings") -> MissionConfig:
+    """`mc` with the settings of `flat` given by their key alone (:func:`setting_tables`:
+    {"time_limit_s": 600} replaces flight.time_limit_s), checked again as a mission file is."""
+    tables = setting_tables(flat, where)
+    out = dataclasses.replace(mc, **{t: dataclasses.replace(getattr(mc, t), **kv) for t, kv in tables.items()})
+    validate_mission(out, where)
     return out
 
 

@@ -19,6 +19,7 @@ The names these modules define are imported from them, not from here.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +29,7 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.types import SolverParams
+from mission.config import with_settings
 from mission.control.config import ControllerConfig, MissionUser
 from mission.control.flight import MissionController
 from mission.estimation import mission_solver_params
@@ -94,11 +96,18 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
     planner: planner name (default: the mission's `flight.planner`); seed: planner seed;
     time_scale: simulator speedup; truth: simulation only (see MissionController); constraints:
     home -> PlanningConstraints (default `mission.planning_constraints(home)`); overrides:
-    ControllerConfig fields. Geodetic polygons of the mission file become home-ENU once the
-    vehicle's home is known (the planner and the safety limits are built then).
+    ControllerConfig fields, or mission file settings by their key alone (`time_limit_s=600`:
+    the mission is flown with them, mission.config.with_settings). Geodetic polygons of the
+    mission file become home-ENU once the vehicle's home is known (the planner and the safety
+    limits are built then).
     """
     from planner import make_planner
 
+    own = {f.name for f in dataclasses.fields(ControllerConfig)}
+    settings = {k: v for k, v in overrides.items() if k not in own}
+    if settings:
+        mission = with_settings(mission, settings, "controller overrides")
+    overrides = {k: v for k, v in overrides.items() if k in own}
     name = resolve_planner_name(planner or mission.flight.planner, truth_known=truth is not None)
     noise = mission.noise_model()
     make_constraints = constraints or mission.planning_constraints

@@ -3,11 +3,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Literal
+from typing import Any
 
 from estimator.ranging import MU_VALUES
+from mission.config import GnbSettings
 from mission.oai import PROMPT_GNB
 from uavloc.errors import GnbError
 
@@ -18,47 +19,36 @@ UE_CI = ("force_reestab", "get_current_bwp")
 
 
 @dataclass(frozen=True)
-class GnbConfig:
-    """Settings of :class:`OaiGnbClient`.
+class GnbConfig(GnbSettings):
+    """Settings of :class:`OaiGnbClient`: a mission file's gNB settings
+    (:class:`mission.config.GnbSettings`: transport, mode, stock_mode, rtt_module, rtt_command,
+    discovery, mu, log_path (a str or Path), timeouts, retries; :meth:`of` makes one from them)
+    and what only the adapter has.
 
     host, port: the gNB telnet server (`--telnetsrv.listenport`, default 9090) or web server
-    (`--websrv.listenport`, default 8090); transport: "telnet" or "rest" (OAI's web server,
-    `mission.gnb_transport`); prompt: what ends a telnet answer; mode: "rtt" (RTT command set) or
-    "stock" (Msg2 lines of the gNB log); stock_mode:
-    "passive" (only the random accesses that happen anyway; the default) or "active" (trigger with
-    `ci force_reestab`, then wait: on OAI 2025.w36 a discovery a few seconds after the trigger
-    killed the gNB with SIGFPE in our runs, so this is an explicit choice); rtt_module,
-    rtt_command: the RTT command's names; discovery: "o1",
-    "single" or "auto" (o1 stats, falling back to ci get_single_rnti when the o1 module is not
-    loaded); request_timeout_s, connect_timeout_s: per request / connection attempt [s]; retries:
-    reconnect attempts after a lost connection; backoff_initial_s, backoff_max_s: jittered
-    exponential backoff; seed: seeds the jitter; log_path: gNB log file (stock modes);
-    msg2_timeout_s: active mode, how long to wait for the UE's random access after the trigger [s]
-    (real OAI: about 5 s of log time after force_reestab, and the rfsimulator may run at 0.4x real
-    time); log_poll_s: log polling period [s]; log_history: read the gNB log from its start (else
-    from its end when connecting); mu: numerology of the UL BWP, the unit of the Msg2 TA.
+    (`--websrv.listenport`, default 8090); prompt: what ends a telnet answer; backoff_initial_s,
+    backoff_max_s: jittered exponential backoff after a lost connection [s]; seed: seeds the
+    jitter; log_poll_s: gNB log polling period [s]; log_history: read the gNB log from its start
+    (else from its end when connecting). Stock mode "passive" is the default because on OAI
+    2025.w36 a discovery a few seconds after `ci force_reestab` killed the gNB with SIGFPE in our
+    runs: "active" is an explicit choice.
     """
 
     host: str = "127.0.0.1"
     port: int = 9090
-    transport: Literal["telnet", "rest"] = "telnet"
     prompt: str = PROMPT_GNB
-    mode: Literal["rtt", "stock"] = "rtt"
-    stock_mode: Literal["active", "passive"] = "passive"
-    rtt_module: str = "rtt"
-    rtt_command: str = "pdcch_order"
-    discovery: Literal["auto", "o1", "single"] = "auto"
-    request_timeout_s: float = 2.0
-    connect_timeout_s: float = 2.0
-    retries: int = 3
     backoff_initial_s: float = 0.05
     backoff_max_s: float = 2.0
     seed: int = 0
-    log_path: Path | None = None
-    msg2_timeout_s: float = 15.0
     log_poll_s: float = 0.01
     log_history: bool = False
-    mu: int = 1
+
+    @classmethod
+    def of(cls, settings: GnbSettings, host: str, port: int, **overrides: Any) -> GnbConfig:
+        """The adapter's settings for the gNB at host:port: a mission file's `settings`, and
+        overrides of any field."""
+        mine = {f.name: getattr(settings, f.name) for f in dataclasses.fields(GnbSettings)}
+        return cls(**{**mine, "host": host, "port": port, **overrides})
 
     def __post_init__(self) -> None:
         if self.transport not in ("telnet", "rest"):

@@ -71,17 +71,12 @@ def bounded(default: Any, lo: float, hi: float, *, lo_open: bool = False, what: 
 
 def like(cls: type, name: str, default: Any = dataclasses.MISSING) -> Any:
     """A new dataclass field with the default (or `default`) and the bounds of the field `name` of
-    the dataclass `cls`: one definition of a number that two schemas share (:func:`twin_of` says
-    which)."""
+    the dataclass `cls`: one definition of a number that two schemas share (a simulated world's
+    truth and what the mission assumes of it)."""
     f = cls.__dataclass_fields__[name]
     if default is dataclasses.MISSING:
         default = f.default
-    return dataclasses.field(default=default, metadata={**f.metadata, "like": (cls, name)})
-
-
-def twin_of(f: dataclasses.Field) -> tuple[type, str] | None:
-    """(dataclass, field name) a field made by :func:`like` shares its definition with, or None."""
-    return f.metadata.get("like")
+    return dataclasses.field(default=default, metadata=f.metadata)
 
 
 def positive(default: Any, hi: float) -> Any:

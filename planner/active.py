@@ -47,6 +47,7 @@ from planner.base import BasePlanner
 from planner.geometry import convex_cell, legs_feasible
 from planner.information import (
     Hypotheses,
+    PredictionModel,
     explore_waypoint,
     hypotheses_from_estimate,
     hypotheses_from_truth,
@@ -296,8 +297,13 @@ class ActivePlanner(BasePlanner):
         """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after flying candidate leg ends (C, 3) or
         horizons (C, H, 3) from the UAV (no cost term)."""
         norm = self._prior_value(hyp)
-        return objective_values(state.uav_enu_m, paths_enu_m, hyp, self.noise, self.constraints.delta_m,
-                                self.n_quad, self.criterion, compiled=self.compiled) / norm
+        return objective_values(state.uav_enu_m, paths_enu_m, hyp, self.prediction, self.criterion,
+                                compiled=self.compiled) / norm
+
+    @property
+    def prediction(self) -> PredictionModel:
+        """The objective's prediction of a horizon: the planner's noise, the constraints' Δ, n_quad."""
+        return PredictionModel(self.noise, self.constraints.delta_m, self.n_quad)
 
     def _prior_value(self, hyp: Hypotheses) -> float:
         """J₀ = prior_value(hyp) (computed once for the hypotheses of a plan)."""

@@ -245,13 +245,22 @@ def quadrature_points(start_enu_m: np.ndarray, waypoints_enu_m: np.ndarray, n_qu
     return pts.reshape(C, H * n_quad, 3), lengths
 
 
+@dataclass(frozen=True)
+class PredictionModel:
+    """How the objective predicts what a horizon measures: `noise`, the range and GPS noise the
+    estimator assumes (σ(d), σ_gps); a range measurement every `delta_m` metres flown [m] (Δ); and
+    `n_quad` midpoint-rule points per leg (Q, :func:`quadrature_points`)."""
+
+    noise: NoiseModel
+    delta_m: float
+    n_quad: int
+
+
 def predicted_information(
     start_enu_m: np.ndarray,
     waypoints_enu_m: np.ndarray,
     hyp: Hypotheses,
-    noise: NoiseModel,
-    delta_m: float,
-    n_quad: int,
+    model: PredictionModel,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Posterior information after flying each candidate horizon.
 
@@ -263,8 +272,9 @@ def predicted_information(
     UAV at its fix, computed by the solvers' range model (estimator.factors.range_residuals,
     range_jacobian); g differs from the unit vector of `d` only by the 1e-9 m floor of d.
     """
+    noise, n_quad = model.noise, model.n_quad
     pts, lengths = quadrature_points(start_enu_m, waypoints_enu_m, n_quad)
-    n_meas = np.repeat(lengths / (delta_m * n_quad), n_quad, axis=1)  # (C, H·Q)
+    n_meas = np.repeat(lengths / (model.delta_m * n_quad), n_quad, axis=1)  # (C, H·Q)
     # x − u coordinates first, (3, C, K, M, HQ)
     diff = pts.transpose(2, 0, 1)[:, :, None, None, :] - hyp.users_enu_m.transpose(2, 0, 1)[:, None, :, :, None]
     # the range factor's Jacobian on θ_k = (u, [b]) at the noise-free prediction (r = 0, so α = 1/σ_eff),
@@ -306,9 +316,7 @@ def objective_values(
     start_enu_m: np.ndarray,
     waypoints_enu_m: np.ndarray,
     hyp: Hypotheses,
-    noise: NoiseModel,
-    delta_m: float,
-    n_quad: int,
+    model: PredictionModel,
     criterion: str = "A",
     cost_per_m: float = 0.0,
     compiled: bool = True,
@@ -318,9 +326,10 @@ def objective_values(
     W = np.asarray(waypoints_enu_m, dtype=float)
     if W.ndim == 2:
         W = W[:, None, :]
-    shape = Shape(hyp.dim, hyp.bias, criterion, W.shape[1], n_quad)
+    shape = Shape(hyp.dim, hyp.bias, criterion, W.shape[1], model.n_quad)
     users, prior, scale, wts = hypothesis_rows(hyp)
-    f = row_values(shape, start_enu_m, W, users, prior, scale, noise_parameters(noise), delta_m, compiled)
+    f = row_values(shape, start_enu_m, W, users, prior, scale, noise_parameters(model.noise), model.delta_m,
+                   compiled)
     a = np.concatenate([np.broadcast_to(start_enu_m, (len(W), 1, 3)), W[:, :-1]], axis=1)
     lengths = np.sqrt(np.sum((W - a) ** 2, axis=2) + SQRT_EPS_M2)  # as the kernel's ℓ
     return f @ wts + cost_per_m * lengths.sum(axis=1)

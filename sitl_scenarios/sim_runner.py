@@ -54,7 +54,8 @@ class SimulatedMission:
     scenario: the scenario; log_path: the mission log; seed: simulators' and planner's seed
     (default: the scenario's); speedup: built-in vehicle speed factor; planner: planner name;
     connect: MAVSDK URL of a running PX4 SITL (None: built-in vehicle); max_stream_wall_hz: cap of
-    the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields.
+    the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields or
+    mission settings by their key alone (mission.controller.controller_from_mission).
     """
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,

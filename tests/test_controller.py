@@ -177,10 +177,8 @@ def test_loop_lag_monitor_sees_a_blocked_loop():
 def test_config_from_scenario_takes_the_mission_and_vehicle_sections():
     sc = load_scenario("three_users_nlos")
     cfg = ControllerConfig.from_mission(sc.mission_config(), time_scale=20.0)
-    m, v = sc.mission.flight, sc.vehicle
-    assert (cfg.delta_m, cfg.altitude_m, cfg.target_radius_m, cfg.budget_m) == (
-        m.delta_m, m.altitude_m, m.target_radius_m, m.budget_m)
-    assert (cfg.speed_mps, cfg.time_scale) == (v.speed_mps, 20.0)
+    assert cfg.flight == sc.mission.flight and cfg.safety == sc.mission.safety
+    assert (cfg.flight.cruise_speed_mps, cfg.time_scale) == (sc.vehicle.speed_mps, 20.0)
 
 
 def test_result_document_follows_design_section_11(survey):

@@ -11,6 +11,7 @@ from estimator.geodesy import Origin
 from mission.config import example_mission_path, load_mission, mission_from_dict
 from mission.control.config import ControllerConfig
 from mission.controller import controller_from_mission
+from mission.gnb_config import GnbConfig
 from mission.safety import SafetyLimits
 from sitl_scenarios.scenario import load_scenario
 from uavloc.errors import MissionConfigError
@@ -19,19 +20,13 @@ from uavloc.errors import MissionConfigError
 def test_controller_config_from_the_example_mission_file():
     m = load_mission(example_mission_path())
     cfg = ControllerConfig.from_mission(m, time_scale=2.0)
-    f, s = m.flight, m.safety
-    assert (cfg.delta_m, cfg.altitude_m, cfg.target_radius_m, cfg.budget_m, cfg.time_limit_s) == (
-        f.delta_m, f.altitude_m, f.target_radius_m, f.budget_m, f.time_limit_s)
-    assert (cfg.speed_mps, cfg.climb_mps, cfg.descent_mps, cfg.acceptance_m) == (
-        f.cruise_speed_mps, f.climb_mps, f.descent_mps, f.acceptance_m)
-    assert (cfg.link_timeout_s, cfg.link_lost_wait_s, cfg.gnb_lost_wait_s, cfg.max_refusals) == (
-        s.link_timeout_s, s.link_lost_wait_s, s.gnb_lost_wait_s, s.max_refusals)
+    assert cfg.flight is m.flight and cfg.safety is m.safety
     assert cfg.gnb_timeout_s == m.gnb.measure_timeout_s() and cfg.time_scale == 2.0
 
 
 def test_scenario_config_is_its_mission_parts():
     sc = load_scenario("three_users_nlos")
-    assert ControllerConfig.from_mission(sc.mission_config()).speed_mps == sc.vehicle.speed_mps
+    assert ControllerConfig.from_mission(sc.mission_config()).flight.cruise_speed_mps == sc.vehicle.speed_mps
 
 
 def test_active_stock_mode_waits_longer_per_measurement_than_for_the_msg2():
@@ -43,9 +38,10 @@ def test_active_stock_mode_waits_longer_per_measurement_than_for_the_msg2():
     assert active.measure_timeout_s() > active.msg2_timeout_s + active.request_timeout_s
     assert rtt.measure_timeout_s() < rtt.msg2_timeout_s  # the Msg2 wait is not part of an RTT request
     assert passive.measure_timeout_s() == rtt.measure_timeout_s()
-    c = active.client_config("10.0.0.2", 9090)
-    assert (c.host, c.port, c.mode, c.stock_mode, c.msg2_timeout_s, str(c.log_path)) == (
-        "10.0.0.2", 9090, "stock", "active", 15.0, "gnb.log")
+    c = GnbConfig.of(active, "10.0.0.2", 9090, retries=1)
+    assert (c.host, c.port, c.retries) == ("10.0.0.2", 9090, 1)
+    # the rest of the adapter's settings are the mission file's, field for field
+    assert all(getattr(c, f.name) == getattr(active, f.name) for f in dataclasses.fields(active) if f.name != "retries")
 
 
 def test_stock_mode_is_checked():
@@ -73,6 +69,25 @@ def test_geodetic_fence_is_placed_once_home_is_known(tmp_path):
     want = SafetyLimits.from_mission(m, home)
     assert ctl.gate.limits.fence_enu_m == pytest.approx(want.fence_enu_m)
     ctl.journal.close()
+
+
+def test_controller_overrides_of_mission_settings_fly_the_mission_with_them(tmp_path):
+    """A mission file setting given as an override reaches the controller and the safety limits
+    alike (one configuration); an override that is no setting is refused by its key."""
+    m = load_mission(example_mission_path())
+    ctl = controller_from_mission(m, None, None, tmp_path / "m.jsonl", time_limit_s=600.0, battery_rtl_pct=40.0,
+                                  gnb_timeout_s=7.0)
+    assert ctl.config.flight.time_limit_s == 600.0 and ctl.config.gnb_timeout_s == 7.0
+    assert ctl.config.safety.battery_rtl_pct == 40.0 and ctl.gate.limits.battery_rtl_pct == 40.0
+    assert ctl.config.flight.budget_m == m.flight.budget_m
+    ctl.journal.close()
+    with pytest.raises(MissionConfigError, match="time_limit_min"):
+        controller_from_mission(m, None, None, tmp_path / "n.jsonl", time_limit_min=10)
+    with pytest.raises(MissionConfigError, match="time_limit_s"):
+        controller_from_mission(m, None, None, tmp_path / "o.jsonl", time_limit_s=-1.0)
+    # the controller's own settings have bounds too (a 0 Hz telemetry log would divide by zero)
+    with pytest.raises(MissionConfigError, match="controller settings: key 'telemetry_log_hz' = 0.0"):
+        controller_from_mission(m, None, None, tmp_path / "p.jsonl", telemetry_log_hz=0.0)
 
 
 def test_fly_refuses_the_oracle_planner_before_connecting(capsys):

@@ -561,5 +561,5 @@ def test_a_mission_files_transport_applies_to_an_address_without_scheme(tmp_path
     path.write_text(text.replace("[gnb]\n", '[gnb]\ntransport = "rest"\n', 1))
     gnb = load_mission(path).gnb
     address = parse_gnb_address("10.0.0.2", default=gnb.transport)
-    config = gnb.client_config(address.host, address.port)
+    config = GnbConfig.of(gnb, address.host, address.port)
     assert (config.transport, config.port) == ("rest", 8090)

@@ -12,6 +12,7 @@ from planner.active import _Layout, objective_function, pack_params
 from planner.geometry import convex_cell, in_free_space, leg_violations, point_in_polygon
 from planner.information import (
     PRIOR_EPS_PER_M2,
+    PredictionModel,
     hypotheses_from_estimate,
     joint_prior_info,
     objective_values,
@@ -200,7 +201,7 @@ def test_bias_objective_equals_a_brute_force_dense_computation(criterion):
     rng = np.random.default_rng(3)
     for _ in range(4):
         path = start + rng.uniform([-50, -30, -15], [50, 50, 25], size=(2, 3)).cumsum(axis=0)
-        got = objective_values(start, path[None], hyp, NOISE, 2.0, 8, criterion)[0]
+        got = objective_values(start, path[None], hyp, PredictionModel(NOISE, 2.0, 8), criterion)[0]
         assert got == pytest.approx(_dense_bias_objective(start, path, hyp, criterion, 8), rel=1e-9)
         assert prior_value(hyp, criterion) == pytest.approx(
             _dense_bias_objective(start, np.repeat(start[None], 2, axis=0), hyp, criterion, 8), rel=1e-9)
@@ -247,7 +248,7 @@ def test_quadrature_matches_a_dense_sum_of_measurements():
     est = fake_estimate([[20, 30, 0]], np.eye(2) * 1e6)
     hyp = hypotheses_from_estimate(est, sigma_points="none")
     start, end = np.array([-30.0, 0.0, 25.0]), np.array([30.0, 0.0, 25.0])
-    info, _ = predicted_information(start, end[None, None], hyp, NOISE, 2.0, n_quad=8)
+    info, _ = predicted_information(start, end[None, None], hyp, PredictionModel(NOISE, 2.0, 8))
     length = np.linalg.norm(end - start)
     s = (np.arange(1, int(length / 2.0) + 1) - 0.5) * 2.0
     pts = start + (end - start) * (s / length)[:, None]
@@ -432,7 +433,7 @@ def test_greedy_picks_the_best_full_leg_heading():
     theta = np.radians(np.arange(0, 360, 5))
     ends = state.uav_enu_m + c.leg_max_m * np.column_stack([np.cos(theta), np.sin(theta), 0 * theta])
     ok = np.array([not leg_violations(c, state.uav_enu_m, e, c.budget_m) for e in ends])
-    fine = objective_values(state.uav_enu_m, ends[ok], hyp, NOISE, c.delta_m, greedy.n_quad)
+    fine = objective_values(state.uav_enu_m, ends[ok], hyp, PredictionModel(NOISE, c.delta_m, greedy.n_quad))
     # the 15° ring is within a few percent of a 5° search
     assert r.objective <= 1.05 * fine.min() / prior_value(hyp)
 
@@ -522,8 +523,9 @@ def test_predicted_information_uses_each_users_noise_scale():
     hyp = hypotheses_from_estimate(est, sigma_points="none")
     assert hyp.noise_scale is not None and hyp.noise_scale[0] == 2.0
     start, end = np.array([-30.0, 0.0, 25.0]), np.array([30.0, 0.0, 25.0])
-    info, _ = predicted_information(start, end[None, None], hyp, NOISE, 2.0, n_quad=8)
-    plain, _ = predicted_information(start, end[None, None], replace(hyp, noise_scale=None), NOISE, 2.0, n_quad=8)
+    info, _ = predicted_information(start, end[None, None], hyp, PredictionModel(NOISE, 2.0, 8))
+    plain, _ = predicted_information(start, end[None, None], replace(hyp, noise_scale=None),
+                                     PredictionModel(NOISE, 2.0, 8))
     pts = start + (end - start) * np.linspace(0, 1, 50)[:, None]
     d = np.linalg.norm(pts - hyp.users_enu_m[0, 0], axis=1)
     ratio = np.mean((NOISE.range_sigma_m(d) ** 2 + 1.0) / (4.0 * NOISE.range_sigma_m(d) ** 2 + 1.0))
@@ -568,7 +570,7 @@ def test_ipopts_objective_is_the_numpy_prediction_with_noise_scales(criterion, b
         path = state.uav_enu_m + rng.uniform([-50, -30, -15], [50, 50, 25], size=(planner.horizon, 3)).cumsum(axis=0)
         ipopt_f = float(nlp_f(x=path.ravel(), p=par)["f"])
         numpy_f = float(planner.evaluate(state, path[None], hyp, lam)[0])
-        info, lengths = predicted_information(state.uav_enu_m, path[None], hyp, NOISE, c.delta_m, planner.n_quad)
+        info, lengths = predicted_information(state.uav_enu_m, path[None], hyp, planner.prediction)
         pos = position_information(info[0], bias)
         K, M = hyp.sample_w.shape
         ref = sum(hyp.user_w[k] * hyp.sample_w[k, m] * _reference_criterion(pos[k, m], criterion)

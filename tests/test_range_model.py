@@ -15,7 +15,7 @@ from estimator.noise import NoiseModel
 from estimator.numdiff import numerical_jacobian
 from estimator.robust import loss_rho
 from estimator.types import SolverParams
-from planner.information import Hypotheses, predicted_information, quadrature_points
+from planner.information import Hypotheses, PredictionModel, predicted_information, quadrature_points
 
 NOISE_DD = NoiseModel(sigma_gps_m=1.5, s0_m=3.0, a_m=0.5, b_per_m=0.01)
 
@@ -106,7 +106,7 @@ def test_planner_information_is_the_sum_of_range_factor_jacobians(bias, noise):
                      index=np.arange(k_n), bias=bias, noise_scale=scale)
     start = np.array([0.0, 0.0, 30.0])
     way = np.array([[[40.0, 10.0, 30.0], [60.0, 60.0, 45.0]], [[-30.0, 20.0, 25.0], [-50.0, -40.0, 30.0]]])
-    info, lengths = predicted_information(start, way, hyp, noise, 2.0, 4)
+    info, lengths = predicted_information(start, way, hyp, PredictionModel(noise, 2.0, 4))
     pts, _ = quadrature_points(start, way, 4)
     for c in range(2):
         for k in range(k_n):

@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from mission.config import FlightConfig, SafetyConfig
 from mission.control.config import PREFLIGHT, RETURN, STATUS_RETURNED, SURVEY, TAKEOFF, ControllerConfig
 from mission.control.safety_monitor import SafetyView, energy_remaining_m, return_reason
 from mission.log import read_mission_log
@@ -21,7 +22,7 @@ from sitl_scenarios.scenario import load_scenario
 from sitl_scenarios.sim_runner import SimulatedMission
 
 SPEEDUP = 20.0
-CFG = ControllerConfig(time_limit_s=600.0, link_lost_wait_s=10.0, gnb_lost_wait_s=20.0)
+CFG = ControllerConfig(FlightConfig(time_limit_s=600.0), SafetyConfig(link_lost_wait_s=10.0, gnb_lost_wait_s=20.0))
 GATE = SafetyGate(SafetyLimits(battery_rtl_pct=25.0))
 
 

@@ -13,17 +13,14 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from estimator.geodesy import Origin
-from sitl_scenarios import mavlink_px4 as px4
-from sitl_scenarios.mavlink_autopilot import (
-    ACCEPTED,
-    DENIED,
-    LANDED_ON_GROUND,
-    MAX_SUBSTEP_S,
-    Autopilot,
-    GpsError,
-)
-from sitl_scenarios.mavlink_px4 import FlightMode
 from sitl_scenarios.scenario import VehicleConfig
+from sitl_scenarios.vehicle import px4
+from sitl_scenarios.vehicle.autopilot import Autopilot
+from sitl_scenarios.vehicle.kinematics import MAX_SUBSTEP_S
+from sitl_scenarios.vehicle.mav import ACCEPTED, DENIED, LANDED_ON_GROUND
+from sitl_scenarios.vehicle.params import PARAM_TYPE_INT32, decode_param_value, encode_param_value
+from sitl_scenarios.vehicle.px4 import FlightMode
+from sitl_scenarios.vehicle.sensors import GpsError
 
 ORIGIN = Origin(43.6143, 7.0716, 150.0)
 
@@ -83,9 +80,9 @@ def test_base_mode_flags() -> None:
 
 @pytest.mark.parametrize("value", [0, 1, -1, 4001, 2**31 - 1, -(2**31)])
 def test_int32_params_travel_bytewise(value: int) -> None:
-    wire = px4.encode_param_value(value, px4.PARAM_TYPE_INT32)
+    wire = encode_param_value(value, PARAM_TYPE_INT32)
     assert np.float32(wire).tobytes() == np.int32(value).tobytes()
-    assert px4.decode_param_value(wire, px4.PARAM_TYPE_INT32) == value
+    assert decode_param_value(wire, PARAM_TYPE_INT32) == value
 
 
 def test_autopilot_version_numbers() -> None:

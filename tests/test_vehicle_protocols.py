@@ -207,8 +207,7 @@ def test_raw_link_two_targets_and_malformed_command() -> None:
     with PX4's capability bits; an unknown command is UNSUPPORTED."""
     from pymavlink.dialects.v20 import common as mavlink
 
-    from sitl_scenarios import mavlink_px4 as px4
-    from sitl_scenarios.vehicle import VehicleSimulator
+    from sitl_scenarios.vehicle import VehicleSimulator, px4
 
     def recv_until(sock, parser, kind: str, timeout_s: float = 5.0):
         deadline = time.monotonic() + timeout_s

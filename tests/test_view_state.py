@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import asdict
 
 import numpy as np
 import pytest
 
 from estimator.geodesy import Origin
 from estimator.types import CHI2_2DOF_95, Estimate
+from mission.config import FlightConfig
+from mission.control.config import ControllerConfig
 from mission.log import MissionLogWriter, area_fields, read_mission_log
 from mission.view.state import Cursor, Timeline, ViewState, ellipse_95
 from uavloc.errors import MissionLogError
@@ -27,15 +30,17 @@ def lla(e, n, u=0.0) -> dict:
     return {"lat_deg": float(lat), "lon_deg": float(lon), "alt_m": float(alt)}
 
 
-def write_mission(path, listener=None, n_tel: int = 50) -> list[dict]:
-    """A small mission log written by the real writer; returns the records as written."""
+def write_mission(path, listener=None, n_tel: int = 50, controller: dict | None = None) -> list[dict]:
+    """A small mission log written by the real writer; returns the records as written.
+    controller: the header's controller settings (default: those the controller writes)."""
     seen: list[dict] = []
     with MissionLogWriter(path) as w:
         w.subscribe(seen.append)
         if listener is not None:
             w.subscribe(listener)
         w.write_header(ORIGIN, USERS, {"mu": 1, "fs_hz": 46.08e6},
-                       config={"scenario": "t", "controller": {"target_radius_m": 2.5}},
+                       config={"scenario": "t",
+                               "controller": controller or asdict(ControllerConfig(FlightConfig(target_radius_m=2.5)))},
                        area=area_fields(ORIGIN, FENCE_EN_M, NOFLY_EN_M, 10.0, 120.0, 500.0,
                                         [(BUILDING_EN_M, 12.0)]))
         w.write("truth", 0.1, users=[{"id": "ue1", **lla(40, 30)}, {"id": "ue2", **lla(-20, 60)}])
@@ -93,6 +98,12 @@ def test_ellipse_semi_major_is_the_estimates_r95_and_its_boundary_is_the_chi2_co
 
 
 # -- the model ----------------------------------------------------------------------------------
+
+
+def test_a_log_with_the_flat_controller_settings_of_older_uavloc_shows_its_target(tmp_path):
+    state = ViewState()
+    write_mission(tmp_path / "m.jsonl", state.apply, n_tel=2, controller={"target_radius_m": 3.5})
+    assert state.frame()[0]["static"]["target_radius_m"] == 3.5
 
 
 def test_state_from_the_records_the_writer_hands_its_listeners(tmp_path):

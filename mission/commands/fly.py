@@ -42,13 +42,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    import dataclasses
     from datetime import UTC, datetime
 
     from mission.commands.outdir import mission_log_path
-    from mission.config import load_mission, validate_mission
+    from mission.config import load_mission, with_settings
     from mission.controller import controller_from_mission, resolve_planner_name
-    from mission.gnb import OaiGnbClient, parse_gnb_address
+    from mission.gnb import GnbConfig, OaiGnbClient, parse_gnb_address
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
     from mission.view.live import live_view
@@ -65,8 +64,7 @@ def run(args: argparse.Namespace) -> int:
     if args.gnb_log is not None:
         gnb_over["log_path"] = str(args.gnb_log)
     if gnb_over:
-        mission = dataclasses.replace(mission, gnb=dataclasses.replace(mission.gnb, **gnb_over))
-        validate_mission(mission, "command line")
+        mission = with_settings(mission, gnb_over, "command line")
     # a flight knows no true positions: the oracle planner is refused before anything connects
     resolve_planner_name(args.planner or mission.flight.planner, truth_known=False)
     address = parse_gnb_address(args.gnb, default=mission.gnb.transport)
@@ -79,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     held: dict = {}
 
     async def main():
-        gnb_cfg = mission.gnb.client_config(address.host, address.port, transport=address.transport)
+        gnb_cfg = GnbConfig.of(mission.gnb, address.host, address.port, transport=address.transport)
         async with MavsdkVehicle(args.connect) as vehicle, OaiGnbClient(gnb_cfg) as gnb:
             controller = controller_from_mission(
                 mission, vehicle, gnb, log_path, planner=args.planner,

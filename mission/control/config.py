@@ -3,9 +3,9 @@ found (docs/design.md §7, §11). Plain data, no I/O."""
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -13,7 +13,7 @@ from estimator.geodesy import Origin
 from estimator.types import Estimate
 from mission.config import FlightConfig, SafetyConfig
 from mission.result import horizontal_error_m, user_entries_of_estimate
-from mission.schema import like, twin_of
+from mission.schema import bounded, check_bounds, positive
 
 CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
     "CONNECT", "PREFLIGHT", "TAKEOFF", "SURVEY", "RETURN", "LANDED", "ABORT")
@@ -29,6 +29,10 @@ STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne
 #: PX4's default horizontal cruise speed (MPC_XY_CRUISE): what the vehicle flies when a speed
 #: command was refused, so the leg timeouts follow it then
 PX4_DEFAULT_CRUISE_MPS = 5.0
+
+#: the largest simulator speedup (mission seconds per wall second) and controller wait [s]
+MAX_TIME_SCALE = 1000.0
+MAX_WAIT_S = 3600.0
 
 #: wall seconds the safe end may spend getting RTL accepted after an error
 SAFE_END_TIMEOUT_S = 60.0
@@ -47,66 +51,43 @@ class MissionUser:
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """Mission settings. Times marked (mission) are mission seconds; (wall) are real seconds.
+    """Mission settings: the mission file's flight and safety tables as they are
+    (:class:`mission.config.FlightConfig`, :class:`mission.config.SafetyConfig`: survey height,
+    Δ, stop rule, budget, time limit, speeds, lost-link and lost-gNB waits, refusals, breach
+    confirmation, battery floor), and the controller's own settings, which a mission file does not
+    hold. Times marked (mission) are mission seconds; (wall) are real seconds.
 
-    delta_m: keyframe spacing Δ; altitude_m: survey height above home; target_radius_m: stop rule;
-    budget_m: survey metres; time_limit_s (mission); acceptance_m: arrival radius; speed_mps,
-    climb_mps, descent_mps: vehicle speeds used for leg and landing timeouts.
-    time_scale: mission seconds per wall second (simulator speedup).
-    link_timeout_s (wall): no vehicle data for this long counts as a lost link;
-    link_lost_wait_s (mission): wait this long for the link before returning home;
-    gnb_lost_wait_s (mission): keep flying without measurements this long before returning home;
+    time_scale: mission seconds per wall second (simulator speedup);
+    connect_timeout_s, ready_timeout_s (wall): the vehicle's connection and readiness;
     gnb_timeout_s (wall): per measurement request; telemetry_log_hz (mission): telemetry records;
-    status_interval_s (wall): progress lines; max_refusals: consecutive refused waypoints before
-    returning home; alt_margin_m: tolerance of the altitude-band check while surveying;
-    breach_confirm_fixes: consecutive fixes outside a position limit before returning home (one
-    noisy fix near the fence is not a breach, mission.safety.BreachWatch);
+    status_interval_s (wall): progress lines;
     position_smooth_s (mission): the position a waypoint's leg is checked from is the mean of
     the fixes over this long (the vehicle hovers when a leg is planned);
-    estimator_mode: "process" (estimator in a child process) or "thread" (see EstimatorWorker);
-    battery_takeoff_min_pct: no take-off below this charge [%].
+    estimator_mode: "process" (estimator in a child process) or "thread" (see EstimatorWorker).
     """
 
-    delta_m: float = like(FlightConfig, "delta_m")
-    altitude_m: float = like(FlightConfig, "altitude_m")
-    target_radius_m: float = like(FlightConfig, "target_radius_m")
-    budget_m: float = like(FlightConfig, "budget_m")
-    time_limit_s: float = like(FlightConfig, "time_limit_s")
-    acceptance_m: float = like(FlightConfig, "acceptance_m")
-    speed_mps: float = like(FlightConfig, "cruise_speed_mps")
-    climb_mps: float = like(FlightConfig, "climb_mps")
-    descent_mps: float = like(FlightConfig, "descent_mps")
-    time_scale: float = 1.0
-    connect_timeout_s: float = 30.0
-    ready_timeout_s: float = 60.0
-    link_timeout_s: float = like(SafetyConfig, "link_timeout_s")
-    link_lost_wait_s: float = like(SafetyConfig, "link_lost_wait_s")
-    gnb_lost_wait_s: float = like(SafetyConfig, "gnb_lost_wait_s")
-    gnb_timeout_s: float = 2.0
-    telemetry_log_hz: float = 5.0
-    status_interval_s: float = 2.0
-    max_refusals: int = like(SafetyConfig, "max_refusals")
-    alt_margin_m: float = like(SafetyConfig, "alt_margin_m")
-    breach_confirm_fixes: int = like(SafetyConfig, "breach_confirm_fixes")
-    position_smooth_s: float = 1.0
-    estimator_mode: str = "process"
-    # no take-off floor unless a mission file sets one (from_mission)
-    battery_takeoff_min_pct: float = like(SafetyConfig, "battery_takeoff_min_pct", default=0.0)
+    flight: FlightConfig = field(default_factory=FlightConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    time_scale: float = positive(1.0, MAX_TIME_SCALE)
+    connect_timeout_s: float = positive(30.0, MAX_WAIT_S)
+    ready_timeout_s: float = positive(60.0, MAX_WAIT_S)
+    gnb_timeout_s: float = positive(2.0, MAX_WAIT_S)
+    telemetry_log_hz: float = positive(5.0, 1000.0)
+    status_interval_s: float = positive(2.0, MAX_WAIT_S)
+    position_smooth_s: float = bounded(1.0, 0.0, 60.0)
+    estimator_mode: Literal["process", "thread"] = "process"
+
+    def __post_init__(self) -> None:
+        # set by code and overrides, not read by the strict loader: checked here, with the same bounds
+        check_bounds(self, "controller settings")
 
     @classmethod
     def from_mission(cls, mission, **overrides) -> ControllerConfig:
-        """From a :class:`mission.config.MissionConfig` (the fields of its flight and safety tables
-        that :data:`FROM_MISSION` names; the per-measurement timeout is
-        `mission.gnb.measure_timeout_s()`); overrides: any field."""
-        kw = {name: getattr(getattr(mission, table), key) for name, (table, key) in FROM_MISSION.items()}
-        kw["gnb_timeout_s"] = mission.gnb.measure_timeout_s()
+        """From a :class:`mission.config.MissionConfig`: its flight and safety tables, and the
+        per-measurement timeout `mission.gnb.measure_timeout_s()`; overrides: any field."""
+        kw = dict(flight=mission.flight, safety=mission.safety, gnb_timeout_s=mission.gnb.measure_timeout_s())
         kw.update(overrides)
         return cls(**kw)
-
-
-#: ControllerConfig field → (mission file table, key) it is taken from (its twin, mission.schema.like)
-FROM_MISSION = {f.name: ({FlightConfig: "flight", SafetyConfig: "safety"}[twin[0]], twin[1])
-                for f in dataclasses.fields(ControllerConfig) if (twin := twin_of(f)) is not None}
 
 
 @dataclass

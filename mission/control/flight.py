@@ -113,7 +113,7 @@ class MissionController:
         self.vehicle, self.gnb = vehicle, gnb
         self.users = list(users)
         self.noise, self.config = noise, config
-        self.params = params or SolverParams(delta_m=config.delta_m)
+        self.params = params or SolverParams(delta_m=config.flight.delta_m)
         # a planner or limits given as a function of home are built once home is known (PREFLIGHT)
         self._planner_at = None if hasattr(planner, "plan") else planner
         self.planner = planner if self._planner_at is None else None
@@ -138,7 +138,7 @@ class MissionController:
         self._takeoff_over = asyncio.Event()
         self.journal = MissionJournal(MissionLogWriter(self.log_path), self.users, self.now, lambda: self.flight.phase)
         self.flight = FlightState(event=self.journal.event)
-        self.pipeline = MeasurementPipeline(gnb, self.users, config.delta_m, config.gnb_timeout_s, self.flight,
+        self.pipeline = MeasurementPipeline(gnb, self.users, config.flight.delta_m, config.gnb_timeout_s, self.flight,
                                             self._buffer, lambda: self.origin, self.journal.writer, self.now,
                                             self.mission_t)
         self.legs: SurveyLegs | None = None  # once home is known (_at_home)
@@ -329,7 +329,7 @@ class MissionController:
 
     def _preflight_battery(self) -> None:
         """No take-off below battery_takeoff_min_pct (when the vehicle reports its charge)."""
-        pct, floor = self.vehicle.state.battery_pct, self.config.battery_takeoff_min_pct
+        pct, floor = self.vehicle.state.battery_pct, self.config.safety.battery_takeoff_min_pct
         if pct is None:
             self.journal.event("battery charge unknown before take-off", kind="battery_unknown")
         elif pct < floor:
@@ -360,7 +360,7 @@ class MissionController:
     def estimator_setup(self, noise: NoiseModel | None = None) -> MissionEstimator:
         """The mission's estimator (mission.estimation) for these users, settings and stop rule."""
         return MissionEstimator(len(self.users), np.array([u.up_m for u in self.users], float),
-                                self.noise if noise is None else noise, self.params, self.config.target_radius_m)
+                                self.noise if noise is None else noise, self.params, self.config.flight.target_radius_m)
 
     async def _estimator_task(self) -> None:
         f = self.flight
@@ -392,7 +392,7 @@ class MissionController:
         f = self.flight
         home_in = None
         if f.gnb_down_since is not None and f.phase in (TAKEOFF, SURVEY):
-            home_in = max(0.0, self.config.gnb_lost_wait_s - (self.now() - f.gnb_down_since))
+            home_in = max(0.0, self.config.safety.gnb_lost_wait_s - (self.now() - f.gnb_down_since))
         return status_line(f.phase, self.now(), f.flown_m, f.measurements, self.users, f.estimate,
                            f.gnb_problem if f.gnb_down_since is not None else None, home_in)
 

@@ -88,15 +88,15 @@ class SurveyLegs:
         f.set_phase(TAKEOFF)
         await dep.gated.arm()
         dep.journal.event("armed", kind="arm")
-        await dep.gated.takeoff(cfg.altitude_m)
-        dep.journal.event(f"takeoff to {cfg.altitude_m:g} m above home", kind="takeoff")
-        deadline = time.monotonic() + dep.wall(2.0 * cfg.altitude_m / cfg.climb_mps + 30.0)
+        await dep.gated.takeoff(cfg.flight.altitude_m)
+        dep.journal.event(f"takeoff to {cfg.flight.altitude_m:g} m above home", kind="takeoff")
+        deadline = time.monotonic() + dep.wall(2.0 * cfg.flight.altitude_m / cfg.flight.climb_mps + 30.0)
         while f.return_reason is None:
             pos = dep.pos_enu()
-            if pos is not None and pos[2] >= cfg.altitude_m - max(1.5, cfg.acceptance_m):
+            if pos is not None and pos[2] >= cfg.flight.altitude_m - max(1.5, cfg.flight.acceptance_m):
                 return
             if time.monotonic() > deadline:
-                raise VehicleError(f"takeoff to {cfg.altitude_m:g} m not reached in time (at "
+                raise VehicleError(f"takeoff to {cfg.flight.altitude_m:g} m not reached in time (at "
                                    f"{'?' if pos is None else f'{pos[2]:.1f}'} m)")
             await f.wake.wait(0.2)
 
@@ -152,7 +152,7 @@ class SurveyLegs:
                 await dep.gated.goto_enu(wp)
             except SafetyError:
                 refusals += 1
-                if refusals >= cfg.max_refusals:
+                if refusals >= cfg.safety.max_refusals:
                     f.request_return(f"{refusals} waypoints in a row refused by the safety gate")
                 continue
             except VehicleError as exc:
@@ -164,7 +164,7 @@ class SurveyLegs:
                     # MAVSDK 4.1's answer to a MAV_RESULT it does not know (PX4's 9 to a reposition):
                     # it stops delivering telemetry and may crash on later calls, so send nothing but RTL
                     f.request_return(f"the vehicle library answered UNKNOWN: {exc}")
-                elif refusals >= cfg.max_refusals:
+                elif refusals >= cfg.safety.max_refusals:
                     f.request_return(f"{refusals} gotos in a row failed: {exc}")
                 await self.wait_link()
                 continue
@@ -176,19 +176,19 @@ class SurveyLegs:
     async def command_speed(self) -> None:
         """Command the mission's cruise speed before every leg (PX4 keeps it over repositions, but a
         mode change resets it); the leg timeouts follow what the vehicle then flies."""
-        dep, cfg = self.deps, self.deps.config
+        dep, speed_mps = self.deps, self.deps.config.flight.cruise_speed_mps
         try:
-            await dep.set_speed(cfg.speed_mps)
+            await dep.set_speed(speed_mps)
         except VehicleError as exc:
             self.speed_refusals += 1
-            self.leg_speed_mps = min(cfg.speed_mps, PX4_DEFAULT_CRUISE_MPS)
+            self.leg_speed_mps = min(speed_mps, PX4_DEFAULT_CRUISE_MPS)
             if self.speed_refusals == 1:
-                dep.journal.event(f"speed {cfg.speed_mps:g} m/s not accepted ({exc}): legs timed for "
+                dep.journal.event(f"speed {speed_mps:g} m/s not accepted ({exc}): legs timed for "
                                   f"{self.leg_speed_mps:g} m/s", kind="speed_refused")
             return
-        if self.leg_speed_mps != cfg.speed_mps:
-            dep.journal.event(f"cruise speed {cfg.speed_mps:g} m/s commanded", kind="speed", speed_mps=cfg.speed_mps)
-        self.leg_speed_mps = cfg.speed_mps
+        if self.leg_speed_mps != speed_mps:
+            dep.journal.event(f"cruise speed {speed_mps:g} m/s commanded", kind="speed", speed_mps=speed_mps)
+        self.leg_speed_mps = speed_mps
 
     async def wait_link(self) -> None:
         """While the vehicle link is lost (and the survey goes on), wait."""
@@ -197,7 +197,7 @@ class SurveyLegs:
             await asyncio.sleep(0.05)
 
     def budget_spent(self) -> bool:
-        return self.deps.flight.flown_m >= self.deps.config.budget_m
+        return self.deps.flight.flown_m >= self.deps.config.flight.budget_m
 
     async def fly_leg(self, start: np.ndarray, wp: np.ndarray) -> None:
         """Wait for arrival within the acceptance radius, a stop/return request, or the leg timeout;
@@ -218,7 +218,7 @@ class SurveyLegs:
         while True:
             pos = dep.pos_enu()
             f.flown_m = self.odometer.update(pos)
-            if np.linalg.norm(pos - wp) <= cfg.acceptance_m:
+            if np.linalg.norm(pos - wp) <= cfg.flight.acceptance_m:
                 f.flown_m = self.odometer.finish(pos)
                 return
             if f.ending:
@@ -237,5 +237,6 @@ class SurveyLegs:
         dep = self.deps
         pos = dep.pos_enu()
         dist = 0.0 if pos is None else float(np.hypot(pos[0], pos[1]))
-        height = dep.config.altitude_m if pos is None else max(float(pos[2]), 0.0)
-        return 2.0 * (dist / min(self.leg_speed_mps, PX4_DEFAULT_CRUISE_MPS) + height / dep.config.descent_mps) + 60.0
+        height = dep.config.flight.altitude_m if pos is None else max(float(pos[2]), 0.0)
+        return 2.0 * (dist / min(self.leg_speed_mps, PX4_DEFAULT_CRUISE_MPS)
+                      + height / dep.config.flight.descent_mps) + 60.0

@@ -64,15 +64,15 @@ def return_reason(view: SafetyView, cfg: ControllerConfig, gate: SafetyGate) -> 
     if view.flight_mode in AUTOPILOT_FAILSAFE_MODES:
         said = f": {view.vehicle_text}" if view.vehicle_text else ""
         return f"the autopilot switched to {view.flight_mode} on its own (failsafe{said})"
-    if view.link_lost_since_s is not None and view.now_s - view.link_lost_since_s > cfg.link_lost_wait_s:
-        return f"vehicle link lost for more than {cfg.link_lost_wait_s:g} s"
+    if view.link_lost_since_s is not None and view.now_s - view.link_lost_since_s > cfg.safety.link_lost_wait_s:
+        return f"vehicle link lost for more than {cfg.safety.link_lost_wait_s:g} s"
     reason = gate.return_reason(None, view.battery_pct) or view.breach
     if reason:
         return reason
-    if view.gnb_down_since_s is not None and view.now_s - view.gnb_down_since_s > cfg.gnb_lost_wait_s:
-        return f"gNB lost for more than {cfg.gnb_lost_wait_s:g} s: {view.gnb_problem}"
-    if view.now_s > cfg.time_limit_s:
-        return f"mission time limit {cfg.time_limit_s:g} s reached"
+    if view.gnb_down_since_s is not None and view.now_s - view.gnb_down_since_s > cfg.safety.gnb_lost_wait_s:
+        return f"gNB lost for more than {cfg.safety.gnb_lost_wait_s:g} s: {view.gnb_problem}"
+    if view.now_s > cfg.flight.time_limit_s:
+        return f"mission time limit {cfg.flight.time_limit_s:g} s reached"
     return None
 
 
@@ -105,7 +105,7 @@ class SafetyMonitor:
         self.vehicle_state = vehicle_state
         self.latest_fix, self.now = latest_fix, now
         self.period_s = period_s
-        self.breach = BreachWatch(gate, cfg.breach_confirm_fixes)
+        self.breach = BreachWatch(gate, cfg.safety.breach_confirm_fixes)
         self.texts_logged = 0  # vehicle status texts looked at so far
         self.last_text: str | None = None
         self.position_lost = False  # the vehicle reports no valid global position (GPS/estimator)
@@ -126,7 +126,7 @@ class SafetyMonitor:
         """One look at the mission; the return reason it gave (also requested), or None."""
         f, st, cfg = self.flight, self.vehicle_state, self.cfg
         now = self.now()
-        lost = (not st.connected) or st.age_s() > cfg.link_timeout_s
+        lost = (not st.connected) or st.age_s() > cfg.safety.link_timeout_s
         f.link(now, lost)
         self._vehicle_texts()
         position_ok = bool(getattr(st, "global_position_ok", True))
@@ -147,7 +147,7 @@ class SafetyMonitor:
         latest = None if lost else self.latest_fix()
         if latest is not None and f.phase in (TAKEOFF, SURVEY):
             breach = self.breach.update(latest[0], latest[1], check_altitude=f.phase == SURVEY,
-                                        alt_margin_m=cfg.alt_margin_m)
+                                        alt_margin_m=cfg.safety.alt_margin_m)
         view = SafetyView(now_s=now, phase=f.phase, link_lost_since_s=f.link_lost_since,
                           gnb_down_since_s=f.gnb_down_since, gnb_problem=f.gnb_problem,
                           battery_pct=st.battery_pct, breach=breach, position_lost=self.position_lost,

@@ -191,6 +191,8 @@ class ViewState:
                                                   ell=_WGS84, deg=True)
         cfg = rec.get("config") if isinstance(rec.get("config"), dict) else {}
         ctl = cfg.get("controller") if isinstance(cfg.get("controller"), dict) else {}
+        # the controller's flight table (a log before it was nested held its keys at the top)
+        ctl = ctl.get("flight") if isinstance(ctl.get("flight"), dict) else ctl
         self.user_ids = [str(u["id"]) for u in rec["users"]]
         self.meas_per_user = dict.fromkeys(self.user_ids, 0)
         self.static = {

@@ -11,7 +11,7 @@ mission would: the mission's stop rule on a batch estimate, the planner done, or
 the final answer is the mission's (the batch solution over every keyframe, replay's).
 
 A keyframe at arc length s (time t = s / speed):
-- GPS fix = truth + the vehicle simulator's GPS error (sitl_scenarios.mavlink_autopilot.GpsError:
+- GPS fix = truth + the vehicle simulator's GPS error (sitl_scenarios.vehicle.sensors.GpsError:
   independent per fix, or Gauss–Markov with the scenario's `vehicle.gps_tau_s`);
 - a range to every user in coverage from the simulated gNB's radio model
   (sitl_scenarios.radio.RadioModel: σ(d) noise, UE clock sawtooth, NLoS excess behind buildings,
@@ -35,9 +35,9 @@ from mission.estimation import MissionEstimator
 from planner import PlanningConstraints, PlanningState, make_planner
 from sitl_scenarios.campaign.families import _inside
 from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
-from sitl_scenarios.mavlink_autopilot import GpsError
 from sitl_scenarios.radio import RadioModel
 from sitl_scenarios.scenario import Scenario
+from sitl_scenarios.vehicle.sensors import GpsError
 
 
 def leg_violation(c: PlanningConstraints, a: np.ndarray, b: np.ndarray, flown_m: float) -> str | None:
