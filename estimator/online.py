@@ -115,6 +115,9 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self._win_count = np.zeros(self._k, dtype=int)  # ranges per user in the window
         self._min_start = max(self._p + 1, ONLINE_MIN_RANGES)
         self._s: np.ndarray | None = None  # users' information S at the last solution
+        #: a filter step was refused since the last full update whose solve converged (within its
+        #: capped iterations): the users still move by more than a filter step may
+        self._refused = False
         # information of [last window keyframe, Θ] (Gauss–Markov GPS filter steps), or None
         self._s_aug: np.ndarray | None = None
         self._cost = float("nan")
@@ -180,8 +183,9 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self._seen += 1
         self._n = n + 1
         every = int(self._params.online_resolve_every)
+        # (not tried again after a refusal until a solve converges: it would be refused again)
         if (
-            every > 1 and self._s is not None and self._n < self._cap
+            every > 1 and self._s is not None and not self._refused and self._n < self._cap
             and (not self._odom_mask[n] or (self._s_aug is not None and n > 0))
             and (not self._gps_linked or (self._s_aug is not None and n > 0))
             and self._seen % every != 0
@@ -191,6 +195,7 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
             if est is not None:
                 self._estimate = est
                 return est
+            self._refused = True
         est = self._full_update(n, gps, idx, rng, odom)
         self._estimate = est
         return est
@@ -245,6 +250,7 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self._all_active = bool(self._active.all())
         self._nlos_pi_list = self._nlos_pi.tolist()
         self._s = res.s
+        self._refused = self._refused and not res.converged
         self._s_aug = None
         if ((self._gps_linked or bool(self._odom_mask[: self._n].any())) and res.s is not None
                 and int(self._params.online_resolve_every) > 1):
