@@ -228,20 +228,26 @@ def refine_users(
         ok = np.all(np.isfinite(step), axis=1)
         live[idx[~ok]] = False
         idx, th, step = idx[ok], th[ok], step[ok]
-        # step halving per user: up to 8 trials until the cost does not rise
-        pending = np.ones(idx.size, dtype=bool)
-        new_cost = np.empty(idx.size)
-        for _half in range(8):
-            sel = np.flatnonzero(pending)
-            if sel.size == 0:
-                break
+        # step halving per user: the first of the steps 2^-h (h = 0..7) whose cost does not rise;
+        # the full steps first, then the 7 halvings of the users that need them in one pass
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            new_cost = users_cost(uav_enu_m, range_m[:, idx], th + step, up[idx], noise, params, loss, scale)
+        pending = ~(new_cost <= cost[idx])
+        sel = np.flatnonzero(pending)
+        if sel.size:
+            halves = 0.5 ** np.arange(1, 8)
+            cand = th[sel][:, None, :] + halves[None, :, None] * step[sel][:, None, :]  # (s, 7, p)
+            reps = np.repeat(idx[sel], halves.size)
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-                c = users_cost(uav_enu_m, range_m[:, idx[sel]], th[sel] + step[sel], up[idx[sel]], noise,
-                               params, loss, scale)
-            good = c <= cost[idx[sel]]
-            new_cost[sel[good]] = c[good]
-            pending[sel[good]] = False
-            step[sel[~good]] *= 0.5
+                c = users_cost(uav_enu_m, range_m[:, reps], cand.reshape(-1, th.shape[1]), up[reps], noise, params,
+                               loss, scale).reshape(sel.size, halves.size)
+            ok = c <= cost[idx[sel]][:, None]
+            first = np.argmax(ok, axis=1)
+            found = ok[np.arange(sel.size), first]
+            rows = sel[found]
+            step[rows] *= halves[first[found]][:, None]
+            new_cost[rows] = c[found, first[found]]
+            pending[rows] = False
         # no acceptable step: the user stops where it is
         live[idx[pending]] = False
         acc = ~pending

@@ -357,7 +357,7 @@ def _nlos_user_rounds(prob: Problem, x: np.ndarray, theta: np.ndarray, users: np
     other users held fixed: at most NLOS_PARTIAL_ROUNDS rounds of one Gauss–Newton step of each
     user's θ_k at its π_k (kept where it lowers the user's cost, Σ_n ρ + ½ (b/σ_b)², which with x
     held is the user's part of L), then π_k (nlos_prob_update) and, with estimate_noise_scale, s_k
-    (noise_scale_update) re-estimated there, until no π_k moves by NLOS_EM_TOL. Each round raises
+    (noise_scale_update) re-estimated there, until no π_k moves by NLOS_PARTIAL_MOVED. Each round raises
     the likelihood (generalized EM, coordinate-wise) and costs the ranges of these users only;
     the full rounds after them are joint solves. Writes π_k and s_k of these users into prob;
     returns Θ (K, p) with their θ_k updated.
@@ -415,7 +415,7 @@ def _nlos_user_rounds(prob: Problem, x: np.ndarray, theta: np.ndarray, users: np
         sub.nlos_prob_k = pi
         if sub.params.estimate_noise_scale and sub.noise_scale_k is not None:
             sub.noise_scale_k = noise_scale_update(sub, _Weights(w, e), act)
-        if moved <= NLOS_EM_TOL or not better.any():
+        if moved <= NLOS_PARTIAL_MOVED or not better.any():
             break
         cost, e, w, h, g = terms(th)
     theta[ks] = th
