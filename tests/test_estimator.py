@@ -837,3 +837,36 @@ def test_nlos_rounds_by_user_reach_the_joint_em_fixed_point():
         np.testing.assert_allclose(prob.nlos_prob_k, ref_pi, atol=2e-4)
         assert not got.observed  # S is the EM-weighted one
     assert counts[True] < counts[False]
+
+
+@pytest.mark.parametrize("k_all,p,d", [(20, 3, 2), (5, 2, 2), (4, 4, 3)])
+def test_covariances_from_cholesky_equal_the_inverse_of_s(k_all, p, d):
+    """marginals._covariances (S⁻¹ from its Cholesky factor, the position information as the
+    Schur complement of S over the biases) against the slow reference: np.linalg.inv of S and
+    of the covariance's position block; with every user active and one inactive, and with S⁻¹
+    handed in. An indefinite S gives no covariance."""
+    from estimator.marginals import _covariances
+
+    rng = np.random.default_rng(70)
+    a = rng.normal(size=(k_all * p, k_all * p))
+    s = a @ a.T + k_all * p * np.eye(k_all * p)
+    some = np.ones(k_all, dtype=bool)
+    some[1] = False
+    for active in (np.ones(k_all, dtype=bool), some):
+        sel = np.repeat(active, p)
+        ref = np.linalg.inv(s[np.ix_(sel, sel)])
+        na = int(active.sum())
+        r4 = ref.reshape(na, p, na, p)
+        ref_info = np.linalg.inv(r4[:, :d, :, :d].reshape(na * d, na * d))
+        ka = np.flatnonzero(active)
+        ip = (ka[:, None] * d + np.arange(d)).ravel()
+        for given in (None, ref if active.all() else None):
+            cov, info, joint = _covariances(s, active, k_all, p, d, given)
+            np.testing.assert_allclose(joint, ref, rtol=1e-10, atol=1e-14)
+            np.testing.assert_allclose(cov[ka], r4[np.arange(na), :d, np.arange(na), :d], rtol=1e-10, atol=1e-14)
+            np.testing.assert_allclose(info[np.ix_(ip, ip)], ref_info, rtol=1e-9, atol=1e-9)
+            assert np.all(np.isinf(cov[~active]))
+    bad = s.copy()
+    bad[0, 0] = -1.0
+    cov, _, joint = _covariances(bad, np.ones(k_all, dtype=bool), k_all, p, d)
+    assert joint is None and np.all(np.isinf(cov))
