@@ -248,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     sizes_k = [5, 20]
     seeds = 12 if args.quick else 50
     results: list[tuple[str, str, bool]] = []
+    #: (N, K) -> GTSAM LM time / ours (default loss, Huber)
+    vs_gtsam: dict[tuple[int, int], tuple[float, float]] = {}
 
     def target(name: str, value: str, ok: bool) -> None:
         results.append((name, value, ok))
@@ -293,18 +295,23 @@ def main(argv: list[str] | None = None) -> int:
                     gap["gtsam LM"] = u_gt[:, :2]
                 print("       (N=200 K=5: largest distance of a user from the Huber optimum: "
                       + ", ".join(f"{name} {np.abs(u - opt).max() * 1e3:.3f} mm" for name, u in gap.items()) + ")")
-            if n == 200 and k == 5 and gtsam is not None:
-                target("batch N=200 K=5 >= 5x faster than GTSAM LM (ours: default loss)", f"{t_gt / t_ours:.1f}x "
-                       f"(same Huber loss: {t_gt / t_hub:.1f}x)", t_gt / t_ours >= 5)
+            if gtsam is not None:
+                vs_gtsam[(n, k)] = (t_gt / t_ours, t_gt / t_hub)
             if n == 10000 and k == 20:
                 target("batch N=10000 K=20 <= 0.5 s (default loss)", f"{t_ours:.3f} s (Huber {t_hub:.3f} s)",
                        t_ours <= 0.5)
+
+    if vs_gtsam:
+        target("batch >= 5x faster than GTSAM LM at every (N, K) (ours: default loss)", ", ".join(
+            f"N={n} K={k} {r:.1f}x" for (n, k), (r, _) in vs_gtsam.items())
+            + f" (same Huber loss: worst {min(h for _, h in vs_gtsam.values()):.1f}x)",
+            min(r for r, _ in vs_gtsam.values()) >= 5)
 
     print(f"\nOnline update [ms] (median over all updates, best of 3 passes; p90 of each keyframe's fastest of"
           f" the 3 passes, i.e. without the machine's pauses: the spikes themselves recur in every pass;"
           f" window = {PARAMS.window})")
     print(f"{'N':>6} {'K':>3} {'ours med':>9} {'ours p90':>9} {'iSAM2 med':>10} {'iSAM2/ours':>11}")
-    med5, p90_5 = {}, {}
+    med5, p90_5, p90_20 = {}, {}, {}
     for n in sizes_n:
         for k in sizes_k:
             sc = _problem(8, n, k)
@@ -315,6 +322,8 @@ def main(argv: list[str] | None = None) -> int:
             p90 = float(np.percentile(np.min(passes, axis=0), 90)) * 1e3
             if k == 5:
                 med5[n], p90_5[n] = med, p90
+            else:
+                p90_20[n] = p90
             i_med = float("nan")
             if gtsam is not None and n <= 1000:
                 its = gtsam_isam2_update_times(sc, _initial_users(sc))
@@ -327,6 +336,8 @@ def main(argv: list[str] | None = None) -> int:
            med5[big] / med5[200] <= 1.5)
     target("online update p90 <= 2 ms at K=5 (every N)", ", ".join(f"N={n} {v:.3f} ms" for n, v in p90_5.items()),
            max(p90_5.values()) <= 2.0)
+    target("online update p90 <= 2 ms at K=20 (every N)", ", ".join(f"N={n} {v:.3f} ms" for n, v in p90_20.items()),
+           max(p90_20.values()) <= 2.0)
 
     print("\nMemory (tracemalloc peak of solve_batch, K=5)")
     peaks = {}

@@ -20,7 +20,7 @@ from estimator.problem import (
     Problem,
     users_from_theta,
 )
-from estimator.robust import loss_psi_weight, nlos_curvature
+from estimator.robust import loss_psi_weight, nlos_terms_curvature
 
 #: the 6 distinct entries (i ≤ j) of a symmetric 3×3: row and column indices, their flat index,
 #: the flat index of their mirror (i > j) and of the entry they copy; _SYM3_OF[i, j]: which of
@@ -58,7 +58,7 @@ class Linearization:
     gx: np.ndarray  # (N, 3)
     gu: np.ndarray  # (K·p,)
     e: np.ndarray  # (K, N) whitened range residuals, 0 where none
-    w: np.ndarray  # (K, N) IRLS weights, 0 where none
+    w: np.ndarray  # (K, N) IRLS (EM) weights, 0 where none (also when H holds the observed information)
     rho_k: np.ndarray | None = None  # (K,) Σ_n ρ(e) of each user's ranges
 
 
@@ -96,21 +96,27 @@ def _range_terms(
 
     x: (n, 3); theta: (K, p); mask_kn: (K, n) ranges to use; ranges are prob.range_m[:n].
     Arrays are laid out (K, n) so that numpy's inner loops run over keyframes (long), not over
-    3 coordinates. Returns e, w, rho (K, n), J (3 + p, K, n) = [∂e/∂x; ∂e/∂θ_k] and ψ = ρ'(e)
-    (K, n), zero where mask_kn is False.
+    3 coordinates. Returns e, w, rho (K, n), J (3 + p, K, n) = [∂e/∂x; ∂e/∂θ_k], ψ = ρ'(e) and
+    the EM/IRLS weight (K, n) (w itself unless `observed` made w the observed information), zero
+    where mask_kn is False.
     """
     params = prob.params
     n = x.shape[0]
     d_u = prob.user_dim
     diff, d, sig, _r, e, full = _residuals(prob, x, theta, mask_kn)
     nl = _nlos_args(prob, sig) if params.loss == "nlos" else None
-    rho, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl)
     if observed is not None and nl is not None:
         # the observed information ψ'(e) instead of the EM weight γ (robust.nlos_curvature),
         # floored at observed (a float) when the unfloored one is not positive definite
-        w = np.maximum(nlos_curvature(e, *nl), observed)
+        rho, psi, w_em, w = nlos_terms_curvature(e, *nl)
+        if observed > -np.inf:
+            w = np.maximum(w, observed)
+    else:
+        rho, psi, w = loss_psi_weight(e, params.loss, params.loss_scale, nl)
+        w_em = w
     if not full:
         w = w * mask_kn
+        w_em = w if w_em is w else w_em * mask_kn
         psi = psi * mask_kn
         rho = rho * mask_kn
     # α = 1/σ;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −g/σ (estimator.factors)
@@ -118,7 +124,7 @@ def _range_terms(
     alpha = range_alpha(sig, mask)
     jac = range_jacobian(diff, d, alpha, sig, d_u, params.estimate_bias,
                          None if prob.bias_gain is None else prob.bias_gain[:n].T, mask)
-    return e, w, rho, jac, psi
+    return e, w, rho, jac, psi, w_em
 
 
 def linearize(
@@ -139,7 +145,7 @@ def linearize(
     n, k_all = prob.range_m.shape
     p = prob.p
     mask_kn = prob.mask[:n].T & active[:, None]
-    e, w, rho, jac, psi = _range_terms(prob, x, theta, mask_kn, observed)
+    e, w, rho, jac, psi, w_em = _range_terms(prob, x, theta, mask_kn, observed)
     linked = prob.gps_linked
     if linked:
         # Gauss–Markov GPS factors (estimator.gps): diagonal, off-diagonal and gradient terms
@@ -237,4 +243,4 @@ def linearize(
         else:
             huu += prior.info
             gu -= grad
-    return Linearization(cost, hxx, off, hxu, huu, gx, gu, e, w, rho.sum(axis=1))
+    return Linearization(cost, hxx, off, hxu, huu, gx, gu, e, w_em, rho.sum(axis=1))

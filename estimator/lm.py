@@ -16,11 +16,19 @@ from estimator.linearize import (
 from estimator.problem import (
     Problem,
 )
-from estimator.schur import schur_solve
+from estimator.schur import schur_solve, sym3_cofactors
 from uavloc.errors import EstimatorError
 
 _LAM_START = 1e-4
 _LAM_MAX = 1e10
+
+
+def _blocks_pd(hxx: np.ndarray) -> bool:
+    """Every 3×3 block of hxx (N, 3, 3) positive definite (its leading minors positive)."""
+    a00 = hxx[:, 0, 0]
+    m2 = a00 * hxx[:, 1, 1] - hxx[:, 0, 1] * hxx[:, 0, 1]
+    det = sym3_cofactors(a00, hxx[:, 0, 1], hxx[:, 0, 2], hxx[:, 1, 1], hxx[:, 1, 2], hxx[:, 2, 2])[-1]
+    return bool(np.all(a00 > 0.0) and np.all(m2 > 0.0) and np.all(det > 0.0))
 
 
 @dataclass
@@ -34,11 +42,14 @@ class _Result:
     #: the last step was the undamped Gauss–Newton step of `lin` (whose S is `s`): the gradient of
     #: the linear model at (x, θ) is zero
     gn_step: bool = False
+    #: lin's normal equations and s are the observed information's (newton steps; lin.w, lin.e and
+    #: lin.cost are as always): em_information gives the EM-weighted ones
+    observed: bool = False
 
 
 def levenberg_marquardt(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
-    max_iterations: int | None = None, step_tol_m: float | None = None,
+    max_iterations: int | None = None, step_tol_m: float | None = None, newton: bool = False,
 ) -> _Result:
     """Minimise L from (x, Θ); stop when the largest user step component, or the distance still
     to go estimated from the contraction of the last two steps, is below params.step_tol_m (or
@@ -48,12 +59,23 @@ def levenberg_marquardt(
 
     The returned S (undamped Schur complement) belongs to the last linearization point, which
     differs from the returned estimate by the last step (below the tolerances above).
+
+    newton (the "nlos" loss only): the steps use the observed information ψ'(e) of each range
+    (robust.nlos_curvature, unfloored: Newton's method) instead of its EM weight γ, where the
+    keyframe blocks and S are positive definite (else that step is the EM-weighted one). The
+    EM-weighted iteration converges linearly (each step ~0.2 of the last on the benchmark's
+    problems, the LoS/NLoS mixture's tail ranges at π on its floor), Newton's quadratically;
+    the optimum is the same (the gradient is ψ J either way). The returned linearization's
+    weights w are the EM ones; its normal equations and S are the observed information's where
+    newton steps were taken (_Result.observed; em_information gives the EM-weighted ones).
     """
     params = prob.params
     max_it = params.max_iterations if max_iterations is None else max_iterations
     tol = params.step_tol_m if step_tol_m is None else step_tol_m
     sig_tol = float(params.step_tol_sigma)
-    lin = linearize(prob, x, theta, active, prior)
+    newton = newton and params.loss == "nlos"
+    obs = -np.inf if newton else None
+    lin = linearize(prob, x, theta, active, prior, observed=obs)
     lam = 0.0
     s_final = None
     converged = gn_step = False
@@ -62,8 +84,16 @@ def levenberg_marquardt(
     while it < max_it:
         it += 1
         try:
+            if newton and not _blocks_pd(lin.hxx):
+                raise np.linalg.LinAlgError("a keyframe block of the observed information is not positive definite")
             dx, du, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, lam)
         except (np.linalg.LinAlgError, EstimatorError):
+            if newton:
+                # the observed information is not positive definite here: the EM-weighted step
+                newton, obs = False, None
+                lin = linearize(prob, x, theta, active, prior)
+                it -= 1
+                continue
             lam = max(_LAM_START, 10.0 * lam)
             if lam > _LAM_MAX:
                 break
@@ -93,7 +123,7 @@ def levenberg_marquardt(
             converged, gn_step = True, lam == 0.0
             break
         x_t, th_t = x + dx, theta + du
-        lin_t = linearize(prob, x_t, th_t, active, prior)
+        lin_t = linearize(prob, x_t, th_t, active, prior, observed=obs)
         if lin_t.cost <= lin.cost + 1e-12 * abs(lin.cost):
             x, theta, lin = x_t, th_t, lin_t
             prev = (su, sx) if lam == 0.0 else None
@@ -108,4 +138,17 @@ def levenberg_marquardt(
             _, _, s_final = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
         except (np.linalg.LinAlgError, EstimatorError):
             s_final = None
-    return _Result(x, theta, lin, s_final, it, converged, gn_step)
+    return _Result(x, theta, lin, s_final, it, converged, gn_step, observed=newton)
+
+
+def em_information(prob: Problem, res: _Result, active: np.ndarray, prior: Prior | None = None) -> _Result:
+    """res with the EM-weighted linearization and S (at its estimate) where its normal equations
+    are the observed information's (levenberg_marquardt's newton steps); res itself otherwise."""
+    if not res.observed:
+        return res
+    lin = linearize(prob, res.x, res.theta, active, prior)
+    try:
+        _, _, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
+    except (np.linalg.LinAlgError, EstimatorError):
+        s = None
+    return _Result(res.x, res.theta, lin, s, res.iterations, res.converged)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _dpotrf
+from scipy.linalg.lapack import dpotri as _dpotri
 
 from estimator.lm import (
     _Result,
@@ -18,21 +20,32 @@ from estimator.types import Estimate
 
 
 def _covariances(
-    s: np.ndarray | None, active: np.ndarray, k_all: int, p: int, d: int
+    s: np.ndarray | None, active: np.ndarray, k_all: int, p: int, d: int, cov_s: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """From S (K·p, K·p): per-user position covariance (K, d, d), position information (K·d, K·d)
-    with any bias marginalized out, and the full joint covariance of the active users' θ."""
+    with any bias marginalized out, and the full joint covariance of the active users' θ.
+    cov_s: S⁻¹ when already at hand (every user active), else from S's Cholesky factor.
+
+    With biases the position information is the Schur complement of S over them (the inverse of
+    the covariance's position block): S_pp − S_pb S_bb⁻¹ S_bp."""
     cov = np.full((k_all, d, d), np.inf)
     info = np.zeros((k_all * d, k_all * d))
     if s is None or not np.any(active):
         return cov, info, None
     all_active = bool(active.all())
     s_a = s if all_active else s[np.ix_(np.repeat(active, p), np.repeat(active, p))]
-    try:
-        np.linalg.cholesky(s_a)
-        cov_a = np.linalg.inv(s_a)
-    except np.linalg.LinAlgError:
+    # S = L Lᵀ (positive definite, else no covariance), S⁻¹ from L
+    c, bad = _dpotrf(s_a, lower=1, clean=1)
+    if bad != 0:
         return cov, info, None
+    if cov_s is not None and all_active:
+        cov_a = cov_s
+    else:
+        cov_a, bad = _dpotri(c, lower=1)
+        if bad != 0:
+            return cov, info, None
+        cov_a = np.tril(cov_a)
+        cov_a = cov_a + np.tril(cov_a, -1).T
     cov_a = 0.5 * (cov_a + cov_a.T)
     na = s_a.shape[0] // p
     cov_a4 = cov_a.reshape(na, p, na, p)
@@ -41,7 +54,11 @@ def _covariances(
     if p == d:
         info_pos = s_a
     else:
-        info_pos = np.linalg.inv(cov_a4[:, :d, :, :d].reshape(na * d, na * d))
+        s4 = s_a.reshape(na, p, na, p)
+        s_pp = s4[:, :d, :, :d].reshape(na * d, na * d)
+        s_pb = s4[:, :d, :, d:].reshape(na * d, na * (p - d))
+        s_bb = s4[:, d:, :, d:].reshape(na * (p - d), na * (p - d))
+        info_pos = s_pp - s_pb @ np.linalg.solve(s_bb, s_pb.T)
         info_pos = 0.5 * (info_pos + info_pos.T)
     if all_active:
         cov[:] = blocks

@@ -10,7 +10,7 @@ from estimator.batch import (
     _grid_init,
     _mirror_all,
 )
-from estimator.init import init_user, user_cost
+from estimator.init import users_cost
 from estimator.linearize import (
     Prior,
 )
@@ -59,6 +59,9 @@ ONLINE_CHECK_MARGIN = 4.0
 ONLINE_MAX_ITERATIONS = 3
 ONLINE_CHECK_BACKOFF_MAX = 8
 ONLINE_CHECK_EVIDENCE = 0.1
+#: a restarted user that the joint solve takes back to within this of its estimate [m] was not in
+#: another basin (_check_mirrors: the restart is dropped, the prior kept)
+RESTART_SAME_BASIN_M = 2.0
 
 
 
@@ -112,6 +115,9 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self._win_count = np.zeros(self._k, dtype=int)  # ranges per user in the window
         self._min_start = max(self._p + 1, ONLINE_MIN_RANGES)
         self._s: np.ndarray | None = None  # users' information S at the last solution
+        #: a filter step was refused since the last full update whose solve converged (within its
+        #: capped iterations): the users still move by more than a filter step may
+        self._refused = False
         # information of [last window keyframe, Θ] (Gauss–Markov GPS filter steps), or None
         self._s_aug: np.ndarray | None = None
         self._cost = float("nan")
@@ -177,8 +183,9 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self._seen += 1
         self._n = n + 1
         every = int(self._params.online_resolve_every)
+        # (not tried again after a refusal until a solve converges: it would be refused again)
         if (
-            every > 1 and self._s is not None and self._n < self._cap
+            every > 1 and self._s is not None and not self._refused and self._n < self._cap
             and (not self._odom_mask[n] or (self._s_aug is not None and n > 0))
             and (not self._gps_linked or (self._s_aug is not None and n > 0))
             and self._seen % every != 0
@@ -188,6 +195,7 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
             if est is not None:
                 self._estimate = est
                 return est
+            self._refused = True
         est = self._full_update(n, gps, idx, rng, odom)
         self._estimate = est
         return est
@@ -242,6 +250,7 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self._all_active = bool(self._active.all())
         self._nlos_pi_list = self._nlos_pi.tolist()
         self._s = res.s
+        self._refused = self._refused and not res.converged
         self._s_aug = None
         if ((self._gps_linked or bool(self._odom_mask[: self._n].any())) and res.s is not None
                 and int(self._params.online_resolve_every) > 1):
@@ -333,37 +342,53 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         flipped = False
         x_win = res.x
         restart: dict[int, np.ndarray] = {}
-        for k in np.flatnonzero(self._active):
-            rows = prob.mask[:, k]
-            up = float(self._up[k])
-            fit = init_user(x_win[rows], prob.range_m[rows, k], up, self._noise, self._params)
-            cur = user_cost(x_win[rows], prob.range_m[rows, k], res.theta[k], up, self._noise, self._params)
-            new = user_cost(x_win[rows], prob.range_m[rows, k], fit.theta, up, self._noise, self._params)
-            # not when the fresh start is the current estimate's mirror: that is the mirror test's call
-            mt = (self._mirrors[k] if k < len(self._mirrors) else None)
-            near_mirror = (
-                mt is not None and mt.mirror_theta is not None
-                and np.linalg.norm(fit.theta[:2] - mt.mirror_theta[:2]) < 0.1 * np.linalg.norm(
-                    mt.mirror_theta[:2] - res.theta[k, :2])
-            )
-            if (2.0 * (cur - new) > chi2 and not near_mirror
-                    and np.linalg.norm(fit.theta[:2] - res.theta[k, :2]) > 2.0):
-                restart[int(k)] = fit.theta
+        # users ranged from the same keyframes are initialized and costed together (the same
+        # numbers as one at a time: estimator.init.init_users, users_cost)
+        active = np.flatnonzero(self._active).tolist()
+        fresh = _grid_init(prob, x_win, active)
+        groups: dict[bytes, list[int]] = {}
+        for k in active:
+            groups.setdefault(prob.mask[:, k].tobytes(), []).append(k)
+        for ks in groups.values():
+            rows = prob.mask[:, ks[0]]
+            uav, rng_g, up = x_win[rows], prob.range_m[rows][:, ks], self._up[ks]
+            fit_theta = np.array([fresh[k] for k in ks])
+            cur = users_cost(uav, rng_g, res.theta[ks], up, self._noise, self._params)
+            new = users_cost(uav, rng_g, fit_theta, up, self._noise, self._params)
+            for i, k in enumerate(ks):
+                th = fit_theta[i]
+                # not when the fresh start is the current estimate's mirror: that is the mirror
+                # test's call
+                mt = (self._mirrors[k] if k < len(self._mirrors) else None)
+                near_mirror = (
+                    mt is not None and mt.mirror_theta is not None
+                    and np.linalg.norm(th[:2] - mt.mirror_theta[:2]) < 0.1 * np.linalg.norm(
+                        mt.mirror_theta[:2] - res.theta[k, :2])
+                )
+                if (2.0 * (cur[i] - new[i]) > chi2 and not near_mirror
+                        and np.linalg.norm(th[:2] - res.theta[k, :2]) > 2.0):
+                    restart[int(k)] = th
         if restart:
             theta = res.theta.copy()
             prior = self._prior
             for k, th in restart.items():
                 theta[k] = th
                 prior = _dropped_prior(prior, self._user_offset(k), self._p)
-            res = levenberg_marquardt(prob, res.x, theta, self._active, prior)
-            self._prior, flipped = prior, True
+            trial = levenberg_marquardt(prob, res.x, theta, self._active, prior)
+            # a restart is kept when some restarted user stays in another basin; when all of them
+            # come back to where they were, the fresh start only looked better under the
+            # initialization's simpler model (π, noise scale): the estimate and its prior are kept
+            back = all(np.linalg.norm(trial.theta[k, :2] - res.theta[k, :2]) <= RESTART_SAME_BASIN_M
+                       for k in restart)
+            if not back:
+                res, self._prior, flipped = trial, prior, True
         mirrors = _mirror_all(prob, res.theta, self._active)
         # a prior that also holds the first keyframe (Gauss–Markov GPS or motion links) ties the
         # users to the whole marginalized track: reflecting one user's part of it is no longer a
         # consistent mirror hypothesis, so the window's mirror test only flags, it does not flip
         can_flip = self._prior is None or not self._prior.has_x
         flip = [k for k, mt in enumerate(mirrors) if can_flip and mt is not None and mt.mirror_is_better(chi2)]
-        for group in ([flip] + ([[k] for k in flip] if len(flip) > 1 else [])):
+        for group in (([flip] if flip else []) + ([[k] for k in flip] if len(flip) > 1 else [])):
             theta, prior = res.theta.copy(), self._prior
             for k in group:
                 theta[k] = mirrors[k].mirror_theta

@@ -252,7 +252,7 @@ class FilterSteps:
             info, cov_joint = s, cov_all
         else:
             users[~self._active] = np.nan
-            cov, info, cov_joint = _covariances(s, self._active, k_all, p, d)
+            cov, info, cov_joint = _covariances(s, self._active, k_all, p, d, cov_all)
         bias = np.where(self._active, self._theta[:, -1], np.nan) if self._params.estimate_bias else None
         return Estimate(
             users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias,

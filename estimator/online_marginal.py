@@ -40,7 +40,7 @@ class WindowMarginalization:
         x = self._x[:m]
         theta = self._theta
         mask = prob.mask[:m].T & self._active[:, None]
-        _e, w, _rho, jac, psi = _range_terms(prob, x, theta, mask)
+        _e, w, _rho, jac, psi, _ = _range_terms(prob, x, theta, mask)
         jx, jt = jac[:3], jac[3:]  # (3, K, m), (p, K, m)
         inv_g2 = 1.0 / self._noise.sigma_gps_m**2
         # H_ii (m, 3, 3), H_iθ (m, 3, K, p), ∇_i (m, 3)
@@ -115,7 +115,7 @@ class WindowMarginalization:
         h = np.zeros((dim, dim))
         grad = np.zeros(dim)
         mask0 = prob.mask[:1].T & self._active[:, None]
-        _e, w, _rho, jac, psi = _range_terms(prob, x[:1], theta, mask0)
+        _e, w, _rho, jac, psi, _ = _range_terms(prob, x[:1], theta, mask0)
         # H += Σ w JᵀJ,  ∇ += Σ ψ J
         jfull = np.zeros((k_all, dim))
         jfull[:, :3] = jac[:3, :, 0].T  # (K, 3)

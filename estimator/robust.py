@@ -110,6 +110,33 @@ def nlos_terms(
     return rho, psi, gamma
 
 
+def nlos_terms_curvature(
+    e: np.ndarray, prob: np.ndarray | float = NLOS_PROB, mean_w: np.ndarray | float = NLOS_MEAN_WHITENED,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(ρ, ψ, γ, ψ') of the "nlos" loss at e in one pass: nlos_terms and nlos_curvature sharing
+    M(t) (the costly part; the same formulas, tests check both against this)."""
+    e = np.asarray(e, dtype=float)
+    inv_m = 1.0 / mean_w
+    t = e - inv_m
+    mills = _mills(t)
+    one_m_pi = 1.0 - prob
+    q = (prob * inv_m) * mills
+    g = one_m_pi + q
+    gamma = one_m_pi / g
+    inv_mills = 1.0 / mills
+    h = t + inv_mills
+    one_m_g = q / g
+    psi = e - one_m_g * h
+    log_g = np.log(g)
+    over = t > _MILLS_T_MAX
+    if over.any():
+        log_g = log_g + np.where(over, 0.5 * (t * t - _MILLS_T_MAX**2), 0.0)
+    g0 = one_m_pi + (prob * inv_m) * _mills(-inv_m)
+    rho = 0.5 * e * e - log_g + np.log(g0)
+    curv = gamma + one_m_g * (inv_mills * (inv_mills + t) - gamma * h * h)
+    return rho, psi, gamma, curv
+
+
 def nlos_curvature(
     e: np.ndarray, prob: np.ndarray | float = NLOS_PROB, mean_w: np.ndarray | float = NLOS_MEAN_WHITENED,
 ) -> np.ndarray:

@@ -4,7 +4,7 @@ selection (a score test from the bias-free solution)."""
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -18,6 +18,7 @@ from estimator.linearize import (
 )
 from estimator.lm import (
     _Result,
+    em_information,
     levenberg_marquardt,
 )
 from estimator.problem import (
@@ -208,7 +209,7 @@ def _nlos_prob_blocks(
     n = x.shape[0]
     mask_kn = prob.mask[:n].T & active[:, None]
     _, _, sig, _, e, _ = _residuals(prob, x, theta, mask_kn)
-    _, _, _, jac, _ = _range_terms(prob, x, theta, mask_kn)
+    _, _, _, jac, _, _ = _range_terms(prob, x, theta, mask_kn)
     pi, m = _nlos_args(prob, sig)
     inv_m = 1.0 / m
     t = e - inv_m
@@ -278,7 +279,7 @@ def _solve_robust(
             g[ib] = res.theta[:, -1] * (inv_off2 / np.square(rescaled) - inv_free2)
         else:
             n = res.x.shape[0]
-            _, _, _, jac, psi = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
+            _, _, _, jac, psi, _ = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
             g[ib] = -(psi * jac[-1]).sum(axis=1) - res.theta[:, -1] * inv_free2
         try:
             cov = np.linalg.inv(s_free)
@@ -338,9 +339,106 @@ def _solve_scaled(
     return res, ones
 
 
+def user_subproblem(prob: Problem, users: np.ndarray) -> Problem:
+    """The problem of the users with indices `users` alone (their ranges, per-user settings and
+    bias gains; every keyframe kept). With the keyframes held fixed it is the conditional problem of
+    those users: the others' ranges then do not involve them."""
+    def cols(a):
+        return None if a is None else a[..., users]
+    return replace(
+        prob, range_m=prob.range_m[:, users], mask=prob.mask[:, users], user_up_m=prob.user_up_m[users],
+        nlos_prob_k=cols(prob.nlos_prob_k), noise_scale_k=cols(prob.noise_scale_k),
+        bias_sigma_k=cols(prob.bias_sigma_k), bias_force_k=cols(prob.bias_force_k), bias_gain=cols(prob.bias_gain),
+    )
+
+
+def _nlos_user_rounds(prob: Problem, x: np.ndarray, theta: np.ndarray, users: np.ndarray) -> np.ndarray:
+    """The partial rounds of solve_loss on the users in `users` (K,) alone, the keyframes x and the
+    other users held fixed: at most NLOS_PARTIAL_ROUNDS rounds of one Gauss–Newton step of each
+    user's θ_k at its π_k (kept where it lowers the user's cost, Σ_n ρ + ½ (b/σ_b)², which with x
+    held is the user's part of L), then π_k (nlos_prob_update) and, with estimate_noise_scale, s_k
+    (noise_scale_update) re-estimated there, until no π_k moves by NLOS_PARTIAL_MOVED. Each round raises
+    the likelihood (generalized EM, coordinate-wise) and costs the ranges of these users only;
+    the full rounds after them are joint solves. Writes π_k and s_k of these users into prob;
+    returns Θ (K, p) with their θ_k updated.
+
+    With x held the normal equations of user k are its own block (linearize's H_kk, g_k):
+
+        H_kk = Σ_n w J_θ J_θᵀ (+ 1/σ_b² on the bias),   g_k = −Σ_n ψ J_θ (− b/σ_b²),   H_kk Δθ_k = g_k
+    """
+    ks = np.flatnonzero(users)
+    theta = theta.copy()
+    if ks.size == 0:
+        return theta
+    sub = user_subproblem(prob, ks)
+    n = x.shape[0]
+    mask_kn = sub.mask[:n].T
+    d_u = sub.user_dim
+    bias = sub.params.estimate_bias
+    inv_b2 = 0.0
+    if bias:
+        sb = sub.params.bias_prior_sigma_m if sub.bias_sigma_k is None else sub.bias_sigma_k
+        inv_b2 = 1.0 / np.square(sb) * np.ones(ks.size)
+    act = np.ones(ks.size, dtype=bool)
+    th = theta[ks].copy()
+
+    def terms(th: np.ndarray) -> tuple:
+        # (cost (k,), e, w, H (k, p, p), g (k, p)) of each user at θ, x held
+        e, w, rho, jac, psi, _ = _range_terms(sub, x, th, mask_kn)
+        jt = jac[3:]  # (p, k, n)
+        # J_θ = [α û (user coordinates), −g/σ (bias)]: ∂e/∂u = −∂e/∂x
+        h = np.einsum("akn,bkn->kab", jt * w, jt)
+        g = -np.einsum("akn,kn->ka", jt, psi)
+        cost = rho.sum(axis=1)
+        if bias:
+            b = th[:, d_u]
+            h[:, -1, -1] += inv_b2
+            g[:, -1] -= b * inv_b2
+            cost = cost + 0.5 * inv_b2 * b * b
+        return cost, e, w, h, g
+
+    cost, e, w, h, g = terms(th)
+    for _ in range(NLOS_PARTIAL_ROUNDS):
+        try:
+            step = np.linalg.solve(h, g[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            break
+        trial = th + step
+        c_t, e_t, w_t, _, _ = terms(trial)
+        better = c_t <= cost
+        th = np.where(better[:, None], trial, th)
+        # the weights and residuals where each user now is (at the current π and s)
+        w = np.where(better[:, None], w_t, w)
+        e = np.where(better[:, None], e_t, e)
+        pi = nlos_prob_update(sub, w, act)
+        moved = float(np.max(np.abs(pi - sub.nlos_prob_k)))
+        sub.nlos_prob_k = pi
+        if sub.params.estimate_noise_scale and sub.noise_scale_k is not None:
+            sub.noise_scale_k = noise_scale_update(sub, _Weights(w, e), act)
+        if moved <= NLOS_PARTIAL_MOVED or not better.any():
+            break
+        cost, e, w, h, g = terms(th)
+    theta[ks] = th
+    prob.nlos_prob_k = prob.nlos_prob_k.copy()
+    prob.nlos_prob_k[ks] = sub.nlos_prob_k
+    if sub.noise_scale_k is not None:
+        prob.noise_scale_k = prob.noise_scale_k.copy()
+        prob.noise_scale_k[ks] = sub.noise_scale_k
+    return theta
+
+
+@dataclass
+class _Weights:
+    """The part of a Linearization noise_scale_update reads: w and e (K, N)."""
+
+    w: np.ndarray
+    e: np.ndarray
+
+
 def solve_loss(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     step_tol_m: float | None = None, max_iterations: int | None = None, rounds: int | None = None,
+    conditional: bool = True,
 ) -> _Result:
     """Levenberg–Marquardt with the loss's schedule: a redescending loss starts from a Huber
     solution; "nlos" with params.nlos_adapt alternates solves with the maximum-likelihood π_k at
@@ -364,26 +462,43 @@ def solve_loss(
         prob.nlos_prob_k = nlos_prob_update(prob, gamma, active)
     tol = params.step_tol_m if step_tol_m is None else step_tol_m
     # while π_k still moves, solve only to NLOS_ROUND_STEP_M; then to tol (all π_k on the
-    # floor, i.e. LoS: to tol at once). While it moves a lot, a round is a partial M-step (a few
-    # iterations, generalized EM: the likelihood still rises every round), so that the slow
-    # (linear) convergence of π does not cost a full solve per round; the rounds that decide
-    # convergence are full solves.
+    # floor, i.e. LoS: to tol at once). While it moves a lot (more than NLOS_PARTIAL_MOVED),
+    # rounds are partial M-steps (generalized EM: the likelihood still rises every round), so that
+    # the slow (linear) convergence of π does not cost a full solve per round; the rounds that
+    # decide convergence are full solves. The partial rounds are, by default (`conditional`,
+    # without a prior, all rounds allowed), those of the users whose π moves alone, the keyframes
+    # and the other users held (_nlos_user_rounds: they cost the LoS users nothing), after which
+    # the full rounds solve to tol; otherwise they are joint solves of a few iterations. While some
+    # π_k is off its floor a solve takes Newton steps (levenberg_marquardt's newton: the EM-weighted
+    # iteration converges linearly there), and the result's S is the EM-weighted one
+    # (em_information); with every π_k on its floor the EM-weighted iteration is as fast.
     tight = bool(np.all(prob.nlos_prob_k[active] <= NLOS_PROB_MIN))
+    users_only = conditional and rounds is None and prior is None
     moved = np.inf
     n_full = n_partial = 0
     while True:
-        partial = rounds is None and not tight and moved > NLOS_PARTIAL_MOVED and n_partial < NLOS_PARTIAL_ROUNDS
+        partial = (not users_only and rounds is None and not tight and moved > NLOS_PARTIAL_MOVED
+                   and n_partial < NLOS_PARTIAL_ROUNDS)
         res = levenberg_marquardt(
             prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M),
-            max_iterations=NLOS_PARTIAL_ITERATIONS if partial else max_iterations)
+            max_iterations=NLOS_PARTIAL_ITERATIONS if partial else max_iterations,
+            newton=rounds is None and bool(np.any(prob.nlos_prob_k[active] > NLOS_PROB_MIN)))
         n_partial += partial
         n_full += not partial
         pi = nlos_prob_update(prob, res.lin.w, active)
-        if partial and params.estimate_noise_scale and prob.noise_scale_k is not None:
+        moved_k = np.abs(pi - prob.nlos_prob_k)
+        moved = float(np.max(moved_k))
+        by_user = users_only and moved > NLOS_EM_TOL and n_full < NLOS_EM_ROUNDS
+        if (partial or by_user) and params.estimate_noise_scale and prob.noise_scale_k is not None:
             # the noise scale (solve_robust) moves with π: re-estimated with it while π moves a
             # lot, so that its own rounds (_solve_scaled) start near their fixed point
             prob.noise_scale_k = noise_scale_update(prob, res.lin, active)
-        moved = float(np.max(np.abs(pi - prob.nlos_prob_k)))
+        if by_user:
+            prob.nlos_prob_k = pi
+            users = active & ((pi > NLOS_PROB_MIN) | (moved_k > NLOS_EM_TOL))
+            x, theta = res.x, _nlos_user_rounds(prob, res.x, res.theta, users)
+            tight = True
+            continue
         if not partial and moved <= NLOS_EM_TOL:
             if tight:
                 break
@@ -392,4 +507,4 @@ def solve_loss(
         x, theta = res.x, res.theta
         if n_full >= (NLOS_EM_ROUNDS if rounds is None else rounds):
             break
-    return res
+    return em_information(prob, res, active, prior)

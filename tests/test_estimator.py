@@ -23,6 +23,10 @@ from estimator.init import (
     init_users,
     mirror_test,
     mirror_tests,
+    refine_user,
+    refine_users,
+    user_cost,
+    users_cost,
 )
 from estimator.linearize import linearize
 from estimator.noise import NoiseModel
@@ -397,6 +401,49 @@ def test_grouped_mirror_tests_equal_one_user_at_a_time(pattern, params, noise):
         assert any(t.mirror_theta is None and np.isinf(t.separation_chi2) for t in got)  # the shortcut did
 
 
+@pytest.mark.parametrize(
+    "params,noise",
+    [
+        (SolverParams(), NOISE),
+        (SolverParams(), NOISE_DD),
+        (SolverParams(loss="huber", estimate_bias=False), NOISE),
+        (SolverParams(loss="cauchy", user_dim=3), NOISE_DD),
+        (SolverParams(loss="tukey", loss_scale=3.0), NOISE),
+    ],
+    ids=["nlos", "nlos-sigma-of-d", "huber-no-bias", "cauchy-3d", "tukey"],
+)
+def test_refine_users_equal_refine_user_one_at_a_time(params, noise):
+    """refine_users (users sharing their fixes, one pass) against refine_user per user and
+    users_cost against user_cost, from starts near the truth, far off (several halvings) and at
+    a user's reflection; and a user whose start is on its optimum already stops at once."""
+    # (a lawnmower: on a line, 3-D users have a flat valley of rotations about it, along which
+    # both wander by rounding-level decisions)
+    sc = simulate(np.random.default_rng(36), n_users=6, n_keyframes=120, pattern="lawnmower", noise=noise,
+                  p_nlos=0.15)
+    rng = np.random.default_rng(37)
+    p = params.user_dim + (1 if params.estimate_bias else 0)
+    theta = np.zeros((6, p))
+    d_u = params.user_dim
+    theta[:, :d_u] = sc.users_enu_m[:, :d_u] + rng.normal(scale=3.0, size=(6, d_u))
+    theta[1, :2] += 60.0  # far off
+    theta[2, 1] = -theta[2, 1]  # near the reflection across the east axis
+    if params.estimate_bias:
+        theta[:, -1] = rng.normal(size=6)
+    uav = np.array([kf.gps_enu_m for kf in sc.keyframes])
+    rng_m = np.array([kf.range_m for kf in sc.keyframes])
+    theta[3] = refine_user(uav, rng_m[:, 3], theta[3], float(sc.user_up_m[3]), noise, params, 50).theta
+    costs = users_cost(uav, rng_m, theta, sc.user_up_m, noise, params)
+    got = refine_users(uav, rng_m, theta, sc.user_up_m, noise, params, 15)
+    for k in range(6):
+        up = float(sc.user_up_m[k])
+        assert costs[k] == pytest.approx(user_cost(uav, rng_m[:, k], theta[k], up, noise, params), rel=1e-12)
+        ref = refine_user(uav, rng_m[:, k], theta[k], up, noise, params, 15)
+        np.testing.assert_allclose(got[k].theta, ref.theta, rtol=1e-10, atol=1e-9)
+        assert got[k].cost == pytest.approx(ref.cost, rel=1e-10)
+    assert np.linalg.norm(got[1].theta[:2] - theta[1, :2]) > 10.0  # the far start moved
+    np.testing.assert_allclose(got[3].theta, theta[3], atol=1e-3)
+
+
 @pytest.mark.parametrize("noise", [NOISE, NOISE_DD], ids=["sigma", "sigma-of-d"])
 def test_grid_search_of_several_users_equals_one_at_a_time(noise):
     """_grid_starts searches all users' grids in one pass; each user's starts and costs must be the
@@ -691,3 +738,135 @@ def test_online_block_marginalization_equals_one_keyframe_at_a_time():
     np.testing.assert_array_equal(seq._win_count, blk._win_count)
     np.testing.assert_array_equal(seq._x[:60], blk._x[:60])
     np.testing.assert_array_equal(seq._rng[:60], blk._rng[:60])
+
+
+def _nlos_problem(seed: int, p_nlos: float, params: SolverParams = SolverParams()):  # noqa: B008
+    """A 6-user N = 200 circle with NLoS on users 0–2 (3–5 LoS): the scenario and fresh() -> (the
+    packed problem, the grid starts)."""
+    from estimator.batch import _grid_init
+
+    rng = np.random.default_rng(seed)
+    sc = simulate(rng, n_users=6, n_keyframes=200, noise=NOISE, p_nlos=p_nlos)
+    # users 3..5 LoS: their ranges redrawn without NLoS excess
+    kfs = []
+    for n, kf in enumerate(sc.keyframes):
+        r = kf.range_m.copy()
+        los = kf.user_idx >= 3
+        d = np.linalg.norm(sc.uav_enu_m[n] - sc.users_enu_m[kf.user_idx[los]], axis=1)
+        r[los] = d + rng.normal(scale=NOISE.s0_m, size=d.size)
+        kfs.append(replace(kf, range_m=r))
+
+    def fresh():
+        prob = pack_keyframes(kfs, 6, sc.user_up_m, NOISE, params)
+        theta = np.zeros((6, prob.p))
+        for k, th in _grid_init(prob, prob.gps_enu_m, range(6)).items():
+            theta[k] = th
+        return prob, theta
+
+    return sc, fresh
+
+
+def test_newton_steps_reach_the_em_weighted_optimum_in_fewer_iterations():
+    """levenberg_marquardt with newton steps (the observed information) against the EM-weighted
+    iteration, the slow reference: the same optimum to 1e-6 m, the same EM-weighted S after
+    em_information, fewer iterations; at fixed π on and off its floor."""
+    from estimator.lm import em_information, levenberg_marquardt
+
+    # converged tightly: no σ-relative stop, keyframes to the same tolerance
+    params = SolverParams(step_tol_sigma=0.0, step_tol_uav_m=1e-9, max_iterations=500)
+    _, fresh = _nlos_problem(60, 0.2, params)
+    tight = dict(step_tol_m=1e-9)
+    for pi in (np.full(6, 0.005), np.array([0.2, 0.15, 0.25, 0.005, 0.005, 0.005])):
+        prob, theta = fresh()
+        prob.nlos_prob_k = pi
+        active = np.ones(6, dtype=bool)
+        ref = levenberg_marquardt(prob, prob.gps_enu_m.copy(), theta, active, **tight)
+        got = levenberg_marquardt(prob, prob.gps_enu_m.copy(), theta, active, newton=True, **tight)
+        assert got.observed and not ref.observed
+        np.testing.assert_allclose(got.theta, ref.theta, atol=1e-6)
+        np.testing.assert_allclose(got.x, ref.x, atol=1e-6)
+        assert got.iterations < ref.iterations
+        em = em_information(prob, got, active)
+        np.testing.assert_allclose(em.s, ref.s, rtol=1e-5, atol=1e-8)
+        np.testing.assert_allclose(em.lin.w, ref.lin.w, atol=1e-6)
+        assert em.lin.cost == pytest.approx(ref.lin.cost, rel=1e-9)
+
+
+def test_nlos_rounds_by_user_reach_the_joint_em_fixed_point():
+    """solve_loss's partial rounds on the NLoS users alone (keyframes and LoS users held) against
+    the joint partial rounds and against the slow reference, joint EM of full tight solves until π
+    stops moving: the same positions (to 1 mm, ~0.003 σ), the same π (to 2e-4), with fewer joint
+    linearizations than the joint rounds."""
+    import estimator.lm as lm_mod
+    from estimator.lm import levenberg_marquardt
+    from estimator.solve import nlos_prob_update, solve_loss
+
+    _, fresh = _nlos_problem(61, 0.25)
+    active = np.ones(6, dtype=bool)
+    # the reference: full EM-weighted solves to 1e-9 m, π re-estimated, until it moves < 1e-10
+    prob, theta = fresh()
+    prob.nlos_prob_k = np.full(6, 0.1)
+    x = prob.gps_enu_m.copy()
+    for _ in range(300):
+        res = levenberg_marquardt(prob, x, theta, active, step_tol_m=1e-9)
+        pi = nlos_prob_update(prob, res.lin.w, active)
+        done = np.max(np.abs(pi - prob.nlos_prob_k)) < 1e-10
+        prob.nlos_prob_k, x, theta = pi, res.x, res.theta
+        if done:
+            break
+    ref_theta, ref_pi = res.theta, prob.nlos_prob_k
+    assert np.all(ref_pi[:3] > 0.05) and np.all(ref_pi[3:] <= 0.0051)  # NLoS users and LoS users
+    counts = {}
+    calls = []
+    orig = lm_mod.linearize
+
+    def counting(prob, *a, **kw):
+        calls.append(prob.n_users)
+        return orig(prob, *a, **kw)
+
+    for conditional in (True, False):
+        prob, theta = fresh()
+        calls.clear()
+        lm_mod.linearize = counting
+        try:
+            got = solve_loss(prob, prob.gps_enu_m.copy(), theta, active, conditional=conditional)
+        finally:
+            lm_mod.linearize = orig
+        counts[conditional] = sum(1 for k in calls if k == 6)
+        np.testing.assert_allclose(got.theta[:, :2], ref_theta[:, :2], atol=1e-3)
+        np.testing.assert_allclose(prob.nlos_prob_k, ref_pi, atol=2e-4)
+        assert not got.observed  # S is the EM-weighted one
+    assert counts[True] < counts[False]
+
+
+@pytest.mark.parametrize("k_all,p,d", [(20, 3, 2), (5, 2, 2), (4, 4, 3)])
+def test_covariances_from_cholesky_equal_the_inverse_of_s(k_all, p, d):
+    """marginals._covariances (S⁻¹ from its Cholesky factor, the position information as the
+    Schur complement of S over the biases) against the slow reference: np.linalg.inv of S and
+    of the covariance's position block; with every user active and one inactive, and with S⁻¹
+    handed in. An indefinite S gives no covariance."""
+    from estimator.marginals import _covariances
+
+    rng = np.random.default_rng(70)
+    a = rng.normal(size=(k_all * p, k_all * p))
+    s = a @ a.T + k_all * p * np.eye(k_all * p)
+    some = np.ones(k_all, dtype=bool)
+    some[1] = False
+    for active in (np.ones(k_all, dtype=bool), some):
+        sel = np.repeat(active, p)
+        ref = np.linalg.inv(s[np.ix_(sel, sel)])
+        na = int(active.sum())
+        r4 = ref.reshape(na, p, na, p)
+        ref_info = np.linalg.inv(r4[:, :d, :, :d].reshape(na * d, na * d))
+        ka = np.flatnonzero(active)
+        ip = (ka[:, None] * d + np.arange(d)).ravel()
+        for given in (None, ref if active.all() else None):
+            cov, info, joint = _covariances(s, active, k_all, p, d, given)
+            np.testing.assert_allclose(joint, ref, rtol=1e-10, atol=1e-14)
+            np.testing.assert_allclose(cov[ka], r4[np.arange(na), :d, np.arange(na), :d], rtol=1e-10, atol=1e-14)
+            np.testing.assert_allclose(info[np.ix_(ip, ip)], ref_info, rtol=1e-9, atol=1e-9)
+            assert np.all(np.isinf(cov[~active]))
+    bad = s.copy()
+    bad[0, 0] = -1.0
+    cov, _, joint = _covariances(bad, np.ones(k_all, dtype=bool), k_all, p, d)
+    assert joint is None and np.all(np.isinf(cov))

@@ -88,7 +88,7 @@ def test_vectorised_range_jacobian_matches_central_differences(estimate_bias, us
     if estimate_bias:
         theta[:, -1] = rng.normal(size=3)
     mask = prob.mask.T.copy()
-    e, _w, _rho, jac, _psi = _range_terms(prob, x, theta, mask)
+    e, _w, _rho, jac, _psi, _w_em = _range_terms(prob, x, theta, mask)
     for k in range(3):
         for n in np.flatnonzero(mask[k])[:4]:
             def e_of_x(v, n=n, k=k):

@@ -356,6 +356,13 @@ def test_nlos_curvature_is_the_derivative_of_psi(pi, m):
     c = nlos_curvature(e, pi, m)
     np.testing.assert_allclose(c, fd, atol=1e-8)
     assert c.min() < 0.0  # ranges the mixture cannot classify carry negative curvature
+    # the one-pass form (robust.nlos_terms_curvature, the solver's Newton steps) gives the same
+    from estimator.robust import nlos_terms_curvature
+
+    rho, psi, gamma = nlos_terms(e, pi, m)
+    one = nlos_terms_curvature(e, pi, m)
+    for got, want in zip(one, (rho, psi, gamma, c), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize("seed", range(6))
