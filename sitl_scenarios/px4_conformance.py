@@ -104,7 +104,8 @@ class Telemetry:
     t_s (n,) / pos_ned_m (n, 3) / vel_ned_mps (n, 3): LOCAL_POSITION_NED; gpi_t_s: GLOBAL_POSITION_INT
     times; target_t_s (m,) / target_ne_m (m, 2): POSITION_TARGET_LOCAL_NED's horizontal position,
     where it has one (the position controller's setpoint, in the autopilot's own local frame);
-    heartbeats: (t, armed, main mode, sub mode, system status) at each change; fixes: (t, fix type)
+    heartbeats: (t, armed, main mode, sub mode, system status) at each change (t NaN for those before
+    the autopilot's first time stamp); fixes: (t, fix type)
     at each change; landed: (t, MAV_LANDED_STATE) at each change; counts: messages per type; span_s:
     autopilot time the log covers.
     """
@@ -175,7 +176,9 @@ def read_telemetry(path: Path) -> Telemetry:
             if boot_ms is not None and kind in ("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "ATTITUDE"):
                 t_now = boot_ms * 1e-3
                 t_first = t_now if t_first is None else t_first
-            if t_now is None:
+            if t_now is None:  # before the autopilot's first time stamp: only its heartbeat counts
+                if kind == "HEARTBEAT" and msg.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID:
+                    _note_heartbeat(tel, math.nan, msg)  # (a late ground station's first message)
                 continue
             tel.counts[kind] += 1
             if kind == "LOCAL_POSITION_NED":
@@ -188,10 +191,7 @@ def read_telemetry(path: Path) -> Telemetry:
                 sp_t.append(t_now)
                 sp_ne.append((msg.x, msg.y))
             elif kind == "HEARTBEAT" and msg.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID:
-                hb = (bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED),
-                      (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF, msg.system_status)
-                if not tel.heartbeats or tel.heartbeats[-1][1:] != hb:
-                    tel.heartbeats.append((t_now, *hb))
+                _note_heartbeat(tel, t_now, msg)
             elif kind == "GPS_RAW_INT":
                 if not tel.fixes or tel.fixes[-1][1] != msg.fix_type:
                     tel.fixes.append((t_now, msg.fix_type))
@@ -209,6 +209,15 @@ def read_telemetry(path: Path) -> Telemetry:
         tel.target_t_s, tel.target_ne_m = np.array(sp_t), np.array(sp_ne)
     tel.span_s = float(t_now - t_first)
     return tel
+
+
+def _note_heartbeat(tel: Telemetry, t_s: float, msg) -> None:
+    """Add an autopilot HEARTBEAT to tel.heartbeats when its [armed, main mode, sub mode, system
+    status] changed (t_s: NaN before the autopilot's first time stamp)."""
+    hb = (bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED),
+          (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF, msg.system_status)
+    if not tel.heartbeats or tel.heartbeats[-1][1:] != hb:
+        tel.heartbeats.append((t_s, *hb))
 
 
 # --- figures -----------------------------------------------------------------------------------
