@@ -105,9 +105,9 @@ class Telemetry:
     times; target_t_s (m,) / target_ne_m (m, 2): POSITION_TARGET_LOCAL_NED's horizontal position,
     where it has one (the position controller's setpoint, in the autopilot's own local frame);
     heartbeats: (t, armed, main mode, sub mode, system status) at each change (t NaN for those before
-    the autopilot's first time stamp); fixes: (t, fix type)
-    at each change; landed: (t, MAV_LANDED_STATE) at each change; counts: messages per type; span_s:
-    autopilot time the log covers.
+    the autopilot's first time stamp); fixes: (t, fix type) at each change; landed: (t,
+    MAV_LANDED_STATE) at each change; counts: messages per type; span_s: autopilot time the log
+    covers.
     """
 
     t_s: np.ndarray
