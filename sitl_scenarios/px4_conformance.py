@@ -12,7 +12,7 @@ The legs flight: NAV_TAKEOFF to 20 m above home and arm; after the climb, DO_CHA
 DO_REPOSITION (COMMAND_INT, MAV_FRAME_GLOBAL, 20 m above home) legs of 15 m east, 40 m north, 80 m
 east, 300 m north, each from rest at the end of the last (the next one 2 s after the vehicle was
 within 1 m of its target and slower than 0.3 m/s); then RTL until disarmed. The GPS-loss flight:
-takeoff, DO_CHANGE_SPEED, one DO_REPOSITION 200 m east, the GPS stopped a while into that leg.
+takeoff, DO_CHANGE_SPEED, one DO_REPOSITION 200 m east, the GPS stopped as the vehicle brakes at its end.
 
 Times are the autopilot's (`time_boot_ms`, simulated time in SITL), so figures do not depend on
 the speed factor. Heights are above the local origin (-z of LOCAL_POSITION_NED), which is where
@@ -29,6 +29,7 @@ import itertools
 import json
 import math
 import shutil
+import socket
 import struct
 import sys
 import tempfile
@@ -62,19 +63,32 @@ SUB_TAKEOFF, SUB_LOITER, SUB_RTL, SUB_LAND = 2, 3, 5, 6
 ARDUCOPTER_RTL = 6
 
 
+#: the rest criteria of a leg take the speed from the positions over this window [s]
+REST_SPEED_WINDOW_S = 1.0
+
+
 def leg_figures(t_s: np.ndarray, pos_m: np.ndarray, target_m: np.ndarray, length_m: float,
                 vel_mps: np.ndarray | None = None) -> dict:
     """t_s (n,), pos_m (n, 2) horizontal, target (2,), vel_mps (n, 2) the reported velocity (None:
     differentiate the positions): peak / p99 ground speed, settle time (within SETTLE_DIST_M of the
-    target and slower than SETTLE_SPEED_MPS), stop time (first slower than SETTLE_SPEED_MPS after
-    the peak), mean speed (length / settle time), overshoot beyond the target along the leg [m]."""
+    target and at rest: slower than SETTLE_SPEED_MPS), stop time (first at rest after the peak),
+    mean speed (length / settle time), overshoot beyond the target along the leg [m].
+
+    "At rest" is judged on the speed the positions themselves show (their displacement over
+    REST_SPEED_WINDOW_S): the criteria are then those of the track they are measured on. PX4's
+    reported velocity is not: on the slow creep back after an overshoot it reports about twice
+    what its positions move (0.35-0.4 against 0.2 m/s on the 80 m leg), right across the
+    threshold."""
     v = np.hypot(*(np.gradient(pos_m, t_s, axis=0) if vel_mps is None else vel_mps).T)
+    lo = np.searchsorted(t_s, t_s - REST_SPEED_WINDOW_S / 2)
+    hi = np.minimum(np.searchsorted(t_s, t_s + REST_SPEED_WINDOW_S / 2), len(t_s) - 1)
+    v_rest = np.hypot(*(pos_m[hi] - pos_m[lo]).T) / np.maximum(t_s[hi] - t_s[lo], 1e-9)
     d = np.hypot(*(pos_m - target_m).T)
-    settled = np.nonzero((d < SETTLE_DIST_M) & (v < SETTLE_SPEED_MPS))[0]
+    settled = np.nonzero((d < SETTLE_DIST_M) & (v_rest < SETTLE_SPEED_MPS))[0]
     t_settle = float(t_s[settled[0]] - t_s[0]) if len(settled) else float("nan")
     beyond_m = np.dot(pos_m - target_m, _unit(target_m - pos_m[0]))
     k_peak = int(np.argmax(v))
-    stopped = np.nonzero(v[k_peak:] < SETTLE_SPEED_MPS)[0]
+    stopped = np.nonzero(v_rest[k_peak:] < SETTLE_SPEED_MPS)[0]
     t_stop = float(t_s[k_peak + stopped[0]] - t_s[0]) if len(stopped) else float("nan")
     return {"peak": float(v.max()), "p99": float(np.percentile(v, 99)), "settle_s": t_settle,
             "stop_s": t_stop, "mean": length_m / t_settle, "overshoot": float(np.max(beyond_m))}
@@ -90,16 +104,20 @@ class Telemetry:
     """What one autopilot sent, in its own time.
 
     t_s (n,) / pos_ned_m (n, 3) / vel_ned_mps (n, 3): LOCAL_POSITION_NED; gpi_t_s: GLOBAL_POSITION_INT
-    times; heartbeats: (t, armed, main mode, sub mode, system status) at each change (ArduPilot:
-    (t, armed, custom mode, system status)); fixes: (t, fix type) at each change; landed: (t,
-    MAV_LANDED_STATE) at each change; counts: messages per type; span_s: autopilot time the log
-    covers; autopilot: the HEARTBEAT's MAV_AUTOPILOT.
+    times; target_t_s (m,) / target_ne_m (m, 2): POSITION_TARGET_LOCAL_NED's horizontal position,
+    where it has one (the position controller's setpoint, in the autopilot's own local frame);
+    heartbeats: (t, armed, main mode, sub mode, system status) at each change (ArduPilot: (t, armed,
+    custom mode, system status); t NaN for those before the autopilot's first time stamp); fixes:
+    (t, fix type) at each change; landed: (t, MAV_LANDED_STATE) at each change; counts: messages
+    per type; span_s: autopilot time the log covers; autopilot: the HEARTBEAT's MAV_AUTOPILOT.
     """
 
     t_s: np.ndarray
     pos_ned_m: np.ndarray
     vel_ned_mps: np.ndarray
     gpi_t_s: np.ndarray
+    target_t_s: np.ndarray = field(default_factory=lambda: np.empty(0))
+    target_ne_m: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
     heartbeats: list[tuple[float, bool, int, int, int]] = field(default_factory=list)
     fixes: list[tuple[float, int]] = field(default_factory=list)
     landed: list[tuple[float, int]] = field(default_factory=list)
@@ -139,7 +157,7 @@ def read_telemetry(path: Path) -> Telemetry:
     try:
         m = mavutil.mavlink_connection(str(plain), dialect="common")
         t_now = None
-        lp_t, lp_p, lp_v, gpi_t = [], [], [], []
+        lp_t, lp_p, lp_v, gpi_t, sp_t, sp_ne = [], [], [], [], [], []
         tel = Telemetry(np.empty(0), np.empty((0, 3)), np.empty((0, 3)), np.empty(0))
         sysid = None
         t_first = None
@@ -162,7 +180,9 @@ def read_telemetry(path: Path) -> Telemetry:
             if boot_ms is not None and kind in ("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "ATTITUDE"):
                 t_now = boot_ms * 1e-3
                 t_first = t_now if t_first is None else t_first
-            if t_now is None:
+            if t_now is None:  # before the autopilot's first time stamp: only its heartbeat counts
+                if kind == "HEARTBEAT" and msg.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID:
+                    _note_heartbeat(tel, math.nan, msg)  # (a late ground station's first message)
                 continue
             tel.counts[kind] += 1
             if kind == "LOCAL_POSITION_NED":
@@ -171,11 +191,11 @@ def read_telemetry(path: Path) -> Telemetry:
                 lp_v.append((msg.vx, msg.vy, msg.vz))
             elif kind == "GLOBAL_POSITION_INT":
                 gpi_t.append(t_now)
+            elif kind == "POSITION_TARGET_LOCAL_NED" and math.isfinite(msg.x) and math.isfinite(msg.y):
+                sp_t.append(t_now)
+                sp_ne.append((msg.x, msg.y))
             elif kind == "HEARTBEAT" and msg.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID:
-                hb = (bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED), *_mode_fields(msg),
-                      msg.system_status)
-                if not tel.heartbeats or tel.heartbeats[-1][1:] != hb:
-                    tel.heartbeats.append((t_now, *hb))
+                _note_heartbeat(tel, t_now, msg)
             elif kind == "GPS_RAW_INT":
                 if not tel.fixes or tel.fixes[-1][1] != msg.fix_type:
                     tel.fixes.append((t_now, msg.fix_type))
@@ -189,6 +209,8 @@ def read_telemetry(path: Path) -> Telemetry:
         raise SimulatorError(f"{path}: no LOCAL_POSITION_NED from an autopilot")
     tel.t_s, tel.pos_ned_m, tel.vel_ned_mps = np.array(lp_t), np.array(lp_p), np.array(lp_v)
     tel.gpi_t_s = np.array(gpi_t)
+    if sp_t:
+        tel.target_t_s, tel.target_ne_m = np.array(sp_t), np.array(sp_ne)
     tel.span_s = float(t_now - t_first)
     return tel
 
@@ -205,6 +227,14 @@ def _is_rtl(tel: Telemetry) -> Callable[[tuple], bool]:
     if tel.autopilot == mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
         return lambda h: h[2] == ARDUCOPTER_RTL
     return lambda h: h[3] == SUB_RTL
+
+
+def _note_heartbeat(tel: Telemetry, t_s: float, msg) -> None:
+    """Add an autopilot HEARTBEAT to tel.heartbeats when its [armed, mode (_mode_fields), system
+    status] changed (t_s: NaN before the autopilot's first time stamp)."""
+    hb = (bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED), *_mode_fields(msg), msg.system_status)
+    if not tel.heartbeats or tel.heartbeats[-1][1:] != hb:
+        tel.heartbeats.append((t_s, *hb))
 
 
 # --- figures -----------------------------------------------------------------------------------
@@ -274,24 +304,59 @@ def takeoff_figures(tel: Telemetry) -> tuple[dict, int]:
     return figs, k_rest
 
 
+#: where the log has the autopilot's setpoints, a leg starts when its setpoint has moved this far
+#: [m] along the way from where it rested SETPOINT_REST_S before the vehicle was 1 m along
+SETPOINT_MOVED_M, SETPOINT_REST_S = 0.05, 3.0
+
+
 def _leaves(tel: Telemetry, k0: int, origin_ne: np.ndarray, toward_ne: np.ndarray, by_m: float = 1.0) -> int:
-    """The sample from k0 on where the vehicle set off from origin_ne toward toward_ne: the first
-    one `by_m` along that way, walked back over the samples faster than SETTLE_SPEED_MPS."""
+    """The sample from k0 on where the vehicle set off from origin_ne toward toward_ne. Where the log
+    has the autopilot's setpoints (POSITION_TARGET_LOCAL_NED): where its setpoint set off, the
+    command's first effect (SETPOINT_MOVED_M, SETPOINT_REST_S); else the first sample `by_m` along
+    that way, walked back over the samples faster than SETTLE_SPEED_MPS. The setpoint is the robust
+    one: PX4's estimated speed wanders by 0.3-0.4 m/s at rest, which walks a leg's start back by
+    up to a second before its command."""
     way = _unit(toward_ne - origin_ne)
     along = (tel.pos_ned_m[k0:, :2] - origin_ne) @ way
     out = np.nonzero(along > by_m)[0]
     if not len(out):
         raise SimulatorError(f"the vehicle never set off toward {toward_ne} (NE) after {tel.t_s[k0]:.1f} s")
     k = k0 + int(out[0])
+    t_out = tel.t_s[k]
+    j_rest = int(np.searchsorted(tel.target_t_s, t_out - SETPOINT_REST_S))
+    j_out = int(np.searchsorted(tel.target_t_s, t_out))
+    if tel.target_t_s.size and j_rest > 0 and tel.target_t_s[j_rest - 1] >= tel.t_s[k0]:
+        sp_along = (tel.target_ne_m[j_rest:j_out] - origin_ne) @ way
+        resting = np.nonzero(sp_along <= sp_along[0] + SETPOINT_MOVED_M)[0]
+        return max(k0, min(k, tel.index(tel.target_t_s[j_rest + int(resting[-1])])))
     while k > k0 and tel.ground_speed_mps[k - 1] > SETTLE_SPEED_MPS:
         k -= 1
     return k
 
 
+#: a leg's target is the autopilot's position setpoint this long before the leg's end [s]: the
+#: trajectory has come to its end by then, and the next command is not yet there (it comes at most
+#: about a second before the vehicle sets off; a leg's start walks back over the acceleration)
+TARGET_BEFORE_END_S = 2.0
+
+
+def _leg_target_ne(tel: Telemetry, t_start_s: float, t_end_s: float, commanded_ne: np.ndarray) -> np.ndarray:
+    """Where the autopilot flew a leg to, NE [m] in its own local frame: its position setpoint
+    (POSITION_TARGET_LOCAL_NED) TARGET_BEFORE_END_S before the leg's end; the commanded point where
+    the log has none. PX4 maps the commanded latitude and longitude with its own projection (a
+    sphere) and origin: its setpoint is 0.1-0.3 m from the command's WGS-84 ENU on these legs."""
+    k = int(np.searchsorted(tel.target_t_s, t_end_s - TARGET_BEFORE_END_S)) - 1
+    if k < 0 or tel.target_t_s[k] < t_start_s:
+        return commanded_ne
+    return tel.target_ne_m[k]
+
+
 def legs_figures(path: Path) -> dict:
-    """The figures of a legs flight's tlog (see the module docstring). Each leg's target is where
-    it was commanded: the take-off point plus the legs so far (LEGS_ENU_M); a leg runs from the
-    vehicle setting off toward it until it sets off toward the next one (or the RTL's climb)."""
+    """The figures of a legs flight's tlog (see the module docstring). Each leg's geometry is the
+    commanded one (the take-off point plus the legs so far, LEGS_ENU_M); its target, from which
+    the settle time and the overshoot are measured, is the autopilot's own (:func:`_leg_target_ne`).
+    A leg runs from the vehicle setting off toward it until it sets off toward the next one (or
+    the RTL's climb)."""
     tel = read_telemetry(path)
     takeoff, k = takeoff_figures(tel)
     ground_ne = np.median(tel.pos_ned_m[: max(5, tel.index(tel.t_s[0] + 1.0)), :2], axis=0)
@@ -311,7 +376,8 @@ def legs_figures(path: Path) -> dict:
     for i, (east, north) in enumerate(LEGS_ENU_M):
         k0, k_end = starts[i], (starts[i + 1] if i + 1 < len(starts) else k_rtl)
         sl = slice(k0, k_end)
-        pos_en, vel_en, target_en = tel.pos_ned_m[sl][:, [1, 0]], tel.vel_ned_mps[sl][:, [1, 0]], points[i + 1][::-1]
+        target_en = _leg_target_ne(tel, tel.t_s[k0], tel.t_s[k_end], points[i + 1])[::-1]
+        pos_en, vel_en = tel.pos_ned_m[sl][:, [1, 0]], tel.vel_ned_mps[sl][:, [1, 0]]
         legs.append({key: round(v, 4) for key, v in
                      leg_figures(tel.t_s[sl], pos_en, target_en, math.hypot(east, north), vel_en).items()})
     rtl = rtl_figures(tel, k_rtl, t_rtl_hb)
@@ -373,6 +439,7 @@ def gpsloss_figures(path: Path) -> dict:
     k_top = int(np.argmax(h > ground + 0.9 * HEIGHT_M))
     leg_start = _leaves(tel, k_top, ground_ne, ground_ne + np.array(GPSLOSS_LEG_ENU_M[::-1]))
     return {"loss_after_leg_start_s": round(float(t_loss - tel.t_s[leg_start]), 3),
+            "speed_at_loss_mps": round(float(tel.ground_speed_mps[k_loss]), 3),
             "loss_to_descent_s": t_dn - t_loss,
             "drift_at_descent_m": drift(t_dn - t_loss),
             "gpi_hz_dead_reckoning": float(np.sum((gpi >= t_loss) & (gpi < t_dn)) / (t_dn - t_loss)),
@@ -499,35 +566,38 @@ def fly_legs(conn, timeout_s: float = 120.0, tlog: BinaryIO | None = None,
     f.rtl()
 
 
-def fly_gpsloss(conn, lose_gps: Callable[[], None], loss_after_leg_start_s: float, timeout_s: float = 120.0,
-                tlog: BinaryIO | None = None, clock_s: Callable[[], float] | None = None) -> None:
-    """The recorded GPS-loss flight: takeoff, DO_CHANGE_SPEED, a DO_REPOSITION 200 m east, and
-    `lose_gps()` once loss_after_leg_start_s of autopilot time have passed since the leg's command
-    (clock_s: the autopilot's time now; default: that of the last LOCAL_POSITION_NED received);
-    then until the autopilot disarmed by itself."""
+def fly_gpsloss(conn, lose_gps_below: Callable[[float], None], loss_below_mps: float, timeout_s: float = 120.0,
+                tlog: BinaryIO | None = None) -> None:
+    """The recorded GPS-loss flight: takeoff, DO_CHANGE_SPEED, a DO_REPOSITION 200 m east, and the
+    GPS lost where the recorded one lost it, braking at the leg's end: once the vehicle has flown
+    faster than half of SPEED_MPS, `lose_gps_below(loss_below_mps)` has the autopilot's side drop
+    the fix as the vehicle slows to that ground speed [m/s]; then until the autopilot disarmed by
+    itself. The moment is the flight's phase, not a time: what the published position does after
+    the loss hinges on how fast the vehicle still goes then."""
     f = Flight(conn, timeout_s, tlog)
     f.start()
     f.takeoff()
-    now_s = clock_s or (lambda: f.lp.time_boot_ms * 1e-3)
-    t0 = now_s()
     f.reposition(*GPSLOSS_LEG_ENU_M)
-    f.wait(lambda: now_s() - t0 >= loss_after_leg_start_s, "the moment of the GPS loss")
-    lose_gps()
+    f.wait(lambda: math.hypot(f.lp.vx, f.lp.vy) > SPEED_MPS / 2, "the leg's cruise")
+    lose_gps_below(loss_below_mps)
     f.wait(lambda: not f.armed(), "the failsafe's landing and disarm")
     f.sleep(1.0)
 
 
 #: where the recorded PX4 stood (SIH_LOC_*: lat, lon [deg], alt AMSL [m])
 RECORDED_HOME = (43.6143, 7.0716, 150.0)
+#: the receive buffer asked for the built-in vehicle's link [bytes]
+RECEIVE_BUFFER_BYTES = 4 << 20
 
 
-def fly_builtin(flight: str, tlog: Path, speedup: float = 4.0, gps_loss_after_s: float | None = None,
+def fly_builtin(flight: str, tlog: Path, speedup: float = 4.0, gps_loss_below_mps: float | None = None,
                 vehicle=None, timeout_s: float = 120.0, primitives: type[Flight] = Flight) -> Path:
     """Fly the recorded `flight` ("legs" or "gpsloss") on the built-in vehicle at the recorded
     home, over MAVLink from pymavlink; returns `tlog`, what the vehicle sent. The streams run at
     their simulated rates (the simulator's wall-clock cap and tick raised to carry 50 Hz at this
     speedup). vehicle: its VehicleConfig (default: PX4's defaults, no GPS error: the recorded
-    SIH's estimate is smooth). gps_loss_after_s: the GPS-loss flight's moment of the loss.
+    SIH's estimate is smooth). gps_loss_below_mps: the GPS-loss flight's moment of the loss
+    (:func:`fly_gpsloss`), judged by the simulator on its vehicle's speed at each step.
     primitives: the :class:`Flight` (sub)class whose commands fly the legs."""
     from sitl_scenarios.scenario import VehicleConfig
     from sitl_scenarios.vehicle import VehicleSimulator
@@ -541,13 +611,19 @@ def fly_builtin(flight: str, tlog: Path, speedup: float = 4.0, gps_loss_after_s:
     with sim:
         conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{sim.local_address[1]}", source_system=255,
                                           dialect=primitives.DIALECT)
+        # room for a few seconds of the 50 Hz streams: a busy machine may hold this thread back for a
+        # while, and the vehicle's datagrams must wait in the socket, not be dropped (the kernel
+        # caps the size at net.core.rmem_max)
+        conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
         try:
             with open(tlog, "wb") as fh:
                 if flight == "legs":
                     fly_legs(conn, timeout_s, fh, primitives)
                 else:
-                    fly_gpsloss(conn, sim.lose_gps, gps_loss_after_s or 0.0, timeout_s, fh,
-                                clock_s=lambda: sim.state().t_s)
+                    def lose_gps_below(v_mps: float) -> None:
+                        sim.lose_gps_when(lambda st: math.hypot(st.vel_enu_mps[0], st.vel_enu_mps[1]) <= v_mps)
+
+                    fly_gpsloss(conn, lose_gps_below, gps_loss_below_mps or 0.0, timeout_s, fh)
         finally:
             conn.close()
     return tlog

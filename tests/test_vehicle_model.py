@@ -363,14 +363,14 @@ def test_euler_to_quaternion_table(rpy: tuple, q: tuple) -> None:
 def test_stream_schedule_rates_follow_vehicle_time_with_wall_caps(
     speedup: float, heartbeats: int, attitudes: int
 ) -> None:
-    """Two wall seconds of 10 ms ticks on a synthetic clock: streams are timed in vehicle time,
+    """Two wall seconds of 10 ms steps on a synthetic clock: streams are timed in vehicle time,
     capped at 25 Hz on the wire, the heartbeat at least once per wall second."""
     from collections import Counter
 
     from sitl_scenarios.vehicle.streams import StreamSchedule
 
     sched = StreamSchedule(speedup, max_wall_hz=25.0)
-    sent = Counter(m for k in range(200) for m in sched.due(k * 0.01))
+    sent = Counter(m for k in range(200) for m in sched.due(k * 0.01 * speedup, k * 0.01))
     assert sent[mavlink.MAVLINK_MSG_ID_HEARTBEAT] == heartbeats
     assert sent[mavlink.MAVLINK_MSG_ID_ATTITUDE] == attitudes
     assert sent[mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION] == 0  # only on request
@@ -386,7 +386,7 @@ def test_stream_schedule_set_interval_stop_and_default() -> None:
     sched = StreamSchedule(1.0, max_wall_hz=25.0)
 
     def count(t0_s: float) -> int:
-        return sum(bat in sched.due(t0_s + k * 0.01) for k in range(100))  # one wall second
+        return sum(bat in sched.due(t0_s + k * 0.01, t0_s + k * 0.01) for k in range(100))  # one second
 
     assert sched.set_interval(bat, 100_000) == ACCEPTED and sched.interval_us(bat) == 100_000
     assert count(0.0) == 10

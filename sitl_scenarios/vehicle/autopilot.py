@@ -104,6 +104,7 @@ class Autopilot(Navigator):
         self.vel = [0.0, 0.0, 0.0]
         self.acc = [0.0, 0.0, 0.0]  # last commanded acceleration, ENU [m/s²]
         self._setpoint: kinematics.Setpoint | None = None  # PX4's smoothed trajectory setpoint
+        self._position_target: list[float] | None = None  # what the guidance flies to, ENU [m]
         self.yaw_rad = 0.0
         self.armed = False
         self.in_air = False
@@ -194,6 +195,16 @@ class Autopilot(Navigator):
             armed=self.armed, in_air=self.in_air, landed_state=self.landed_state,
             mode=self.mode.value, battery_pct=self.battery_pct, gps_ok=self.gps_ok, link_up=link_up,
         )
+
+    def trajectory_setpoint(self) -> tuple[list[float], list[float], list[float]] | None:
+        """What the position controller tracks now (PX4's vehicle_local_position_setpoint), each (3,)
+        ENU: position, velocity, acceleration of the smoothed horizontal trajectory
+        (kinematics.Setpoint) with the target height and the vertical velocity and acceleration;
+        None when it tracks no position (disarmed, on the ground, a velocity command)."""
+        t, sp = self._position_target, self._setpoint
+        if t is None or sp is None or not self.armed:
+            return None
+        return [sp.pos[0], sp.pos[1], t[2]], [sp.vel[0], sp.vel[1], self.vel[2]], [sp.acc[0], sp.acc[1], self.acc[2]]
 
     def tilt_rad(self) -> tuple[float, float]:
         """(roll, pitch) [rad] a multicopter needs for its horizontal acceleration (no wind)."""
@@ -553,8 +564,10 @@ class Autopilot(Navigator):
     ) -> None:
         p = self.params
         v_up = self._takeoff_climb_mps() if self.mode is FlightMode.TAKEOFF else p["MPC_Z_V_AUTO_UP"]
+        self._position_target = None if target is None else list(target)
         trk = kinematics.Tracking(p["MPC_JERK_AUTO"], p["MPC_XY_ERR_MAX"], p["MPC_XY_P"], p["MPC_XY_VEL_P_ACC"],
-                                  vel_int=p["MPC_XY_VEL_I_ACC"])
+                                  vel_int=p["MPC_XY_VEL_I_ACC"], vel_d=p["MPC_XY_VEL_D_ACC"],
+                                  tilt_max_rad=math.radians(p["MPC_TILTMAX_AIR"]))
         self.acc, self.yaw_rad, self._setpoint = kinematics.move(
             self.pos, self.vel, self.yaw_rad, dt, target, v_h, vel_cmd, v_up, v_dn,
             p["MPC_ACC_HOR"], p["MPC_ACC_UP_MAX"], p["MPC_ACC_DOWN_MAX"], self.in_air,

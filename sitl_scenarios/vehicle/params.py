@@ -78,6 +78,8 @@ def px4_params(speed_mps: float, climb_mps: float, descent_mps: float, accel_mps
         ParamSpec("MPC_XY_P", f, 0.95, "horizontal position gain [1/s]"),
         ParamSpec("MPC_XY_VEL_P_ACC", f, 1.8, "horizontal velocity gain [m/s² per m/s]"),
         ParamSpec("MPC_XY_VEL_I_ACC", f, 0.4, "horizontal velocity integral gain [m/s² per m]"),
+        ParamSpec("MPC_XY_VEL_D_ACC", f, 0.2, "horizontal velocity derivative gain [m/s² per m/s²]"),
+        ParamSpec("MPC_TILTMAX_AIR", f, 45.0, "largest tilt in the air [deg]"),
         ParamSpec("MPC_ACC_UP_MAX", f, 4.0, "upward acceleration limit [m/s²]"),
         ParamSpec("MPC_ACC_DOWN_MAX", f, 3.0, "downward acceleration limit [m/s²]"),
         ParamSpec("NAV_ACC_RAD", f, 2.0, "mission waypoint acceptance radius [m]"),

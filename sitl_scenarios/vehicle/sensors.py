@@ -93,23 +93,26 @@ class VelocityError:
 #: GPS_RAW_INT's fix type 0 to the failsafe's descent ("Failsafe: blind land": EKF2_NOAID_TOUT, 5 s,
 #: counts from the last GPS fusion, before the fix is reported lost)
 DEAD_RECKONING_S = 4.3
-#: how the dead-reckoned horizontal position drifts after the fix is lost, d(t) = a t²/2 + j t³/6
-#: [m], fitted to the same recording (2 m after 6 s, 13 m after 11 s, 31 m after 16 s, 93 m after
-#: 26 s, 210 m after 36 s: an acceleration error and a growing tilt error)
-DRIFT_ACC_MPS2 = 0.16
-DRIFT_JERK_MPS3 = 0.013
+#: how the dead-reckoned horizontal position drifts after the fix is lost, d(t) = a τ²/2 + j τ³/6
+#: with τ = t − DRIFT_DELAY_S [m], fitted to the same recording: nothing for the first 3 s (the
+#: position goes on as flown: 2.1 m at the descent, 4.3 s, all of it the braking the vehicle was
+#: in), then 1.6 m more after 6 s, 12 m after 11 s, 30 m after 16 s, 89 m after 26 s, 206 m after
+#: 36 s (an acceleration error and a growing tilt error)
+DRIFT_DELAY_S = 2.9
+DRIFT_ACC_MPS2 = 0.34
+DRIFT_JERK_MPS3 = 0.0017
 
 
 class DeadReckoning:
-    """The horizontal error an EKF's position gathers once GPS stops: d(t) = a t²/2 + j t³/6 along
-    one direction drawn at the loss (seeded), on top of the GPS error it had then. Velocity: its
-    derivative, v(t) = a t + j t²/2."""
+    """The horizontal error an EKF's position gathers once GPS stops: d(t) = a τ²/2 + j τ³/6, τ =
+    max(t − delay, 0) since the loss, along one direction drawn at the loss (seeded), on top of the
+    GPS error it had then. Velocity: its derivative, v(t) = a τ + j τ²/2."""
 
     def __init__(self, rng: np.random.Generator, acc_mps2: float = DRIFT_ACC_MPS2,
-                 jerk_mps3: float = DRIFT_JERK_MPS3) -> None:
+                 jerk_mps3: float = DRIFT_JERK_MPS3, delay_s: float = DRIFT_DELAY_S) -> None:
         seq = getattr(rng.bit_generator, "seed_seq", None)
         self._rng = np.random.default_rng(seq.spawn(1)[0] if seq is not None else 1)
-        self.acc_mps2, self.jerk_mps3 = float(acc_mps2), float(jerk_mps3)
+        self.acc_mps2, self.jerk_mps3, self.delay_s = float(acc_mps2), float(jerk_mps3), float(delay_s)
         self.since_s: float | None = None
         self._dir = np.zeros(3)
 
@@ -126,13 +129,13 @@ class DeadReckoning:
         """(3,) ENU [m] at simulated time t_s (zeros while GPS is fine)."""
         if self.since_s is None:
             return np.zeros(3)
-        dt = max(t_s - self.since_s, 0.0)
+        dt = max(t_s - self.since_s - self.delay_s, 0.0)
         return self._dir * (self.acc_mps2 * dt**2 / 2.0 + self.jerk_mps3 * dt**3 / 6.0)
 
     def velocity_mps(self, t_s: float) -> np.ndarray:
         if self.since_s is None:
             return np.zeros(3)
-        dt = max(t_s - self.since_s, 0.0)
+        dt = max(t_s - self.since_s - self.delay_s, 0.0)
         return self._dir * (self.acc_mps2 * dt + self.jerk_mps3 * dt**2 / 2.0)
 
 

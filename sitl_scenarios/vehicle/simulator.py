@@ -1,11 +1,17 @@
 """The built-in vehicle's simulator: the autopilot, its link and protocols, run in a thread
 (docs/design.md §9). :class:`VehicleSimulator` is the public API; see :mod:`sitl_scenarios.vehicle`.
 
-Time: the simulation runs `speedup` times faster than the wall clock; every MAVLink timestamp is
-simulated time, and so are the message intervals a ground station sets (SET_MESSAGE_INTERVAL). On
-the wire a stream is capped at `max_stream_wall_hz` and the heartbeat is sent at least once per
-wall second, whatever the speedup, so MAVSDK's wall-clock link timeout (about 3 s) never fires on a
-healthy link. Fault durations are simulated seconds.
+Time: the simulation runs `speedup` times faster than the wall clock, in fixed steps of
+SIM_STEP_S simulated seconds (the wall time a tick brings is owed to it and worked off step by
+step), and the streams are scheduled in simulated time after each step: what the vehicle does and
+sends, every MAVLink timestamp and every stream's rate, is the same on an idle and on a busy
+machine, only later. Should the simulation thread fall more than MAX_BEHIND_WALL_S behind the wall
+clock (a starved process), it drops the excess and runs on from there, slower than `speedup` (and
+says so in the log), rather than leaping. The message intervals a ground station sets
+(SET_MESSAGE_INTERVAL) are simulated time too. On the wire a stream is capped at
+`max_stream_wall_hz` and the heartbeat is sent at least once per wall second, whatever the
+speedup, so MAVSDK's wall-clock link timeout (about 3 s) never fires on a healthy link. Fault
+durations are simulated seconds.
 """
 
 from __future__ import annotations
@@ -42,6 +48,10 @@ COMPONENT_ID = 1
 DEFAULT_TARGET = ("127.0.0.1", 14540)
 #: messages a ground station sends that need no answer
 _SILENT = ("HEARTBEAT", "SYSTEM_TIME", "PING")
+#: the simulation step [simulated s]: the 50 Hz streams get a fresh state each
+SIM_STEP_S = 0.02
+#: the most wall time [s] the simulation works off at once; beyond it falls behind the wall clock
+MAX_BEHIND_WALL_S = 1.0
 
 
 class VehicleSimulator:
@@ -103,6 +113,9 @@ class VehicleSimulator:
         self._error: BaseException | None = None
         self._link = UdpLink(targets, bind, SYSTEM_ID, COMPONENT_ID)
         self._wall_last_s = 0.0
+        self._owed_s = 0.0  # simulated time the wall clock brought that is not yet simulated
+        self.behind_s = 0.0  # simulated time dropped when the thread fell behind the wall clock
+        self._gps_loss_when: Callable[[VehicleState], bool] | None = None
         self._schedule = StreamSchedule(self.speedup, max_stream_wall_hz, kind.intervals_s)
         self._streams = kind.streams(self._ap, origin, self.vehicle, time.time(), SYSTEM_ID)
         wall_s = self._wall_now
@@ -215,6 +228,12 @@ class VehicleSimulator:
         with self._lock:
             self._faults.lose_gps(self._ap, duration_s)
 
+    def lose_gps_when(self, predicate: Callable[[VehicleState], bool]) -> None:
+        """No GPS fix from the first simulation step after which predicate(true state) holds: the
+        simulation thread judges it at each step, however late a ground station would notice."""
+        with self._lock:
+            self._gps_loss_when = predicate
+
     def restore_gps(self) -> None:
         with self._lock:
             self._faults.restore_gps(self._ap)
@@ -279,8 +298,26 @@ class VehicleSimulator:
     def _tick(self, now: float) -> None:
         dt_wall = now - self._wall_last_s
         self._wall_last_s = now
+        owed = self._owed_s + dt_wall * self.speedup
+        max_owed = MAX_BEHIND_WALL_S * self.speedup
+        if owed > max_owed:
+            log.warning("vehicle simulator fell %.2f s (simulated) behind the wall clock; running on from here",
+                        owed - max_owed)
+            self.behind_s += owed - max_owed
+            owed = max_owed
+        while owed >= SIM_STEP_S - 1e-9:
+            owed -= SIM_STEP_S
+            self._step(now)
+        self._owed_s = max(owed, 0.0)
+        self._missions.upload_timeouts(now)
+
+    def _step(self, now: float) -> None:
+        """One SIM_STEP_S of simulation, then what the vehicle sends at its end."""
         ap = self._ap
-        ap.step(dt_wall * self.speedup, now)
+        ap.step(SIM_STEP_S, now)
+        if self._gps_loss_when is not None and self._gps_loss_when(ap.snapshot(link_up=not self._link_down())):
+            self._gps_loss_when = None
+            self._faults.lose_gps(ap, None)
         self._faults.apply(ap)
         if self._link_down():
             ap.messages.clear()
@@ -294,8 +331,7 @@ class VehicleSimulator:
         for seq in ap.reached:
             self._send(mavlink.MAVLink_mission_item_reached_message(seq))
         ap.reached.clear()
-        self._missions.upload_timeouts(now)
-        for msg_id in self._schedule.due(now):
+        for msg_id in self._schedule.due(ap.t_s, now):
             self._send_stream(msg_id)
 
     def _send(self, msg: Any) -> None:

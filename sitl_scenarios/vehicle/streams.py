@@ -43,6 +43,7 @@ DEFAULT_INTERVALS_S: dict[int, float | None] = {
     mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 0.02,
     mavlink.MAVLINK_MSG_ID_ATTITUDE: 0.02,
     mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 0.02,
+    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 0.02,
     mavlink.MAVLINK_MSG_ID_ALTITUDE: 1.0,
     mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 0.2,
     mavlink.MAVLINK_MSG_ID_VFR_HUD: 0.25,
@@ -56,11 +57,14 @@ DEFAULT_INTERVALS_S: dict[int, float | None] = {
 
 
 class StreamSchedule:
-    """Per message: its interval [simulated s] (None: only on request) and its next wall send time.
+    """Per message: its interval [simulated s] (None: only on request) and its next send time
+    [simulated s]. The simulator asks after every simulation step, so each stream keeps its rate
+    in vehicle time however the steps fall on the wall clock (a busy machine delays them, it does
+    not thin the streams out).
 
-    On the wire a stream is capped at `max_wall_hz` and the heartbeat is sent at least once per
-    wall second, whatever the speedup, so a ground station's wall-clock link timeout never fires on
-    a healthy link."""
+    On the wire a stream is capped at `max_wall_hz` (an interval of at least speedup / max_wall_hz
+    simulated seconds) and the heartbeat is sent at least once per wall second, whatever the
+    speedup, so a ground station's wall-clock link timeout never fires on a healthy link."""
 
     def __init__(self, speedup: float, max_wall_hz: float,
                  defaults_s: dict[int, float | None] | None = None) -> None:
@@ -69,7 +73,8 @@ class StreamSchedule:
         #: every message the vehicle can send and its default interval (the personality's)
         self.defaults_s = DEFAULT_INTERVALS_S if defaults_s is None else defaults_s
         self.intervals_s: dict[int, float | None] = dict(self.defaults_s)
-        self._next_wall_s: dict[int, float] = {}
+        self._next_s: dict[int, float] = {}
+        self._heartbeat_wall_s = -math.inf
 
     def can_send(self, msg_id: int) -> bool:
         return msg_id in self.intervals_s
@@ -84,7 +89,7 @@ class StreamSchedule:
             self.intervals_s[msg_id] = self.defaults_s[msg_id]
         else:
             self.intervals_s[msg_id] = interval_us * 1e-6
-        self._next_wall_s[msg_id] = 0.0
+        self._next_s[msg_id] = -math.inf
         return ACCEPTED
 
     def interval_us(self, msg_id: int) -> int:
@@ -92,19 +97,23 @@ class StreamSchedule:
         iv = self.intervals_s[msg_id]
         return -1 if iv is None else round(iv * 1e6)
 
-    def due(self, now: float) -> list[int]:
-        """The streams to send at wall time `now` [s], their next send times moved on."""
+    def due(self, t_s: float, wall_s: float) -> list[int]:
+        """The streams to send at vehicle time t_s [s] (wall time wall_s [s]), their next send
+        times moved on: by one period, or to a period from now when they fell further behind."""
         out = []
+        min_period_s = self.speedup / self.max_wall_hz
         for msg_id, interval_s in self.intervals_s.items():
             if interval_s is None:
                 continue
-            due = self._next_wall_s.get(msg_id, 0.0)
-            if now >= due:
+            due = self._next_s.get(msg_id, -math.inf)
+            heartbeat = msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT
+            if t_s >= due - 1e-9 or (heartbeat and wall_s - self._heartbeat_wall_s >= 1.0):
                 out.append(msg_id)
-                period = max(interval_s / self.speedup, 1.0 / self.max_wall_hz)
-                if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
-                    period = min(period, 1.0)
-                self._next_wall_s[msg_id] = max(due + period, now) if now - due < period else now + period
+                period_s = max(interval_s, min_period_s)
+                nxt = due + period_s
+                self._next_s[msg_id] = nxt if nxt > t_s + 1e-9 else t_s + period_s
+                if heartbeat:
+                    self._heartbeat_wall_s = wall_s
         return out
 
 
@@ -181,6 +190,16 @@ class StreamEncoder:
             roll, pitch = ap.tilt_rad()
             q = quaternion(roll, pitch, wrap_pi(ap.yaw_rad))
             return M.MAVLink_attitude_quaternion_message(t_ms, *q, 0.0, 0.0, 0.0, [0.0, 0.0, 0.0, 0.0])
+        elif msg_id == M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED:
+            sp = ap.trajectory_setpoint()
+            yaw = wrap_pi(ap.yaw_rad)
+            if sp is None:  # as PX4 on the ground: position and velocity ignored (type_mask 63)
+                nan = math.nan
+                return M.MAVLink_position_target_local_ned_message(
+                    t_ms, M.MAV_FRAME_LOCAL_NED, 63, nan, nan, nan, nan, nan, nan, 0.0, 0.0, 0.0, yaw, 0.0)
+            (pe, pn, pu), (ve, vn, vu), (ae, an, au) = sp
+            return M.MAVLink_position_target_local_ned_message(
+                t_ms, M.MAV_FRAME_LOCAL_NED, 0, pn, pe, -pu, vn, ve, -vu, an, ae, -au, yaw, 0.0)
         elif msg_id == M.MAVLINK_MSG_ID_ALTITUDE:
             est_up = float(ap.estimated_position()[2]) if ap.position_published else ap.pos[2]
             amsl = self.origin.alt_m + est_up
