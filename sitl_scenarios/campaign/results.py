@@ -90,10 +90,13 @@ class ResultsStore:
             p.unlink()
 
 
-def same_value(a, b) -> bool:
-    """Equality of record values with NaN equal to NaN (lists element-wise)."""
+def same_value(a, b, rel: float = 0.0) -> bool:
+    """Equality of record values with NaN equal to NaN (lists element-wise); floats within `rel`
+    of each other (relative) count as equal."""
     if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(same_value(x, y) for x, y in zip(a, b, strict=True))
-    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
-        return True
+        return len(a) == len(b) and all(same_value(x, y, rel) for x, y in zip(a, b, strict=True))
+    if isinstance(a, float) and isinstance(b, float):
+        if math.isnan(a) and math.isnan(b):
+            return True
+        return a == b or abs(a - b) <= rel * max(abs(a), abs(b))
     return a == b
