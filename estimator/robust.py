@@ -73,20 +73,21 @@ def _mills(t: np.ndarray) -> np.ndarray:
     return _SQRT_HALF_PI * erfcx(np.minimum(t, _MILLS_T_MAX) * -_SQRT_HALF)
 
 
-def nlos_terms(
-    e: np.ndarray, prob: np.ndarray | float = NLOS_PROB, mean_w: np.ndarray | float = NLOS_MEAN_WHITENED,
-    need_rho: bool = True, need_psi: bool = True,
-) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
-    """ρ, ψ = ρ', γ of the LoS/NLoS mixture loss (module docstring) at whitened residuals e.
+def _nlos_all(
+    e: np.ndarray, prob: np.ndarray | float, mean_w: np.ndarray | float,
+    need_rho: bool, need_psi: bool, need_curv: bool,
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """(ρ, ψ, γ, ψ') of the "nlos" loss at whitened residuals e, each None unless asked for,
+    sharing M(t) (the costly part) — the one evaluation behind nlos_terms, nlos_terms_curvature
+    and nlos_curvature.
 
-    prob: π in (0, 1) and mean_w: whitened NLoS mean m > 0, each scalar or broadcastable to e.
-    Returns (ρ or None when need_rho is False, ψ and γ or None when need_psi is False), each the
-    shape of e.
-
-    With q = (π/m) M(t) and g = (1 − π) + q:  γ = (1 − π)/g,  ψ = e − (q/g)(t + 1/M(t)),
-    ρ = ½e² − log g + log g(0). M is evaluated at min(t, T) (T = 37, where Φ(T) = 1 in double
-    precision and M(T) ≈ 1e297 is still finite); beyond T, γ ≈ 0 and 1/M ≈ 0 already, and
-    log g(t) = log g(T) + (t² − T²)/2 (log M grows like t²/2 there).
+    With q = (π/m) M(t), g = (1 − π) + q and h = t + 1/M(t):
+        γ = (1 − π)/g,   ψ = e − (1 − γ) h   (1 − γ = q/g),
+        ρ = ½e² − log g + log g(0),
+        ψ' = γ + (1 − γ)(1/M² + t/M) − γ(1 − γ)h²   (nlos_curvature).
+    M is evaluated at min(t, T) (T = 37, where Φ(T) = 1 in double precision and M(T) ≈ 1e297 is
+    still finite); beyond T, γ ≈ 0 and 1/M ≈ 0 already, and log g(t) = log g(T) + (t² − T²)/2
+    (log M grows like t²/2 there).
     """
     e = np.asarray(e, dtype=float)
     inv_m = 1.0 / mean_w
@@ -95,11 +96,16 @@ def nlos_terms(
     one_m_pi = 1.0 - prob
     q = (prob * inv_m) * mills
     g = one_m_pi + q
-    gamma = psi = rho = None
-    if need_psi:
+    rho = psi = gamma = curv = None
+    if need_psi or need_curv:
         gamma = one_m_pi / g
-        # ψ = e − (1 − γ)(t + 1/M(t)),  1 − γ = q/g
-        psi = e - (q / g) * (t + 1.0 / mills)
+        inv_mills = 1.0 / mills
+        h = t + inv_mills
+        one_m_g = q / g
+        if need_psi:
+            psi = e - one_m_g * h
+        if need_curv:
+            curv = gamma + one_m_g * (inv_mills * (inv_mills + t) - gamma * h * h)
     if need_rho:
         log_g = np.log(g)
         over = t > _MILLS_T_MAX
@@ -107,34 +113,29 @@ def nlos_terms(
             log_g = log_g + np.where(over, 0.5 * (t * t - _MILLS_T_MAX**2), 0.0)
         g0 = one_m_pi + (prob * inv_m) * _mills(-inv_m)
         rho = 0.5 * e * e - log_g + np.log(g0)
+    return rho, psi, gamma, curv
+
+
+def nlos_terms(
+    e: np.ndarray, prob: np.ndarray | float = NLOS_PROB, mean_w: np.ndarray | float = NLOS_MEAN_WHITENED,
+    need_rho: bool = True, need_psi: bool = True,
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """ρ, ψ = ρ', γ of the LoS/NLoS mixture loss (module docstring) at whitened residuals e.
+
+    prob: π in (0, 1) and mean_w: whitened NLoS mean m > 0, each scalar or broadcastable to e.
+    Returns (ρ or None when need_rho is False, ψ and γ or None when need_psi is False), each the
+    shape of e (formulas: _nlos_all).
+    """
+    rho, psi, gamma, _ = _nlos_all(e, prob, mean_w, need_rho, need_psi, False)
     return rho, psi, gamma
 
 
 def nlos_terms_curvature(
     e: np.ndarray, prob: np.ndarray | float = NLOS_PROB, mean_w: np.ndarray | float = NLOS_MEAN_WHITENED,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(ρ, ψ, γ, ψ') of the "nlos" loss at e in one pass: nlos_terms and nlos_curvature sharing
-    M(t) (the costly part; the same formulas, tests check both against this)."""
-    e = np.asarray(e, dtype=float)
-    inv_m = 1.0 / mean_w
-    t = e - inv_m
-    mills = _mills(t)
-    one_m_pi = 1.0 - prob
-    q = (prob * inv_m) * mills
-    g = one_m_pi + q
-    gamma = one_m_pi / g
-    inv_mills = 1.0 / mills
-    h = t + inv_mills
-    one_m_g = q / g
-    psi = e - one_m_g * h
-    log_g = np.log(g)
-    over = t > _MILLS_T_MAX
-    if over.any():
-        log_g = log_g + np.where(over, 0.5 * (t * t - _MILLS_T_MAX**2), 0.0)
-    g0 = one_m_pi + (prob * inv_m) * _mills(-inv_m)
-    rho = 0.5 * e * e - log_g + np.log(g0)
-    curv = gamma + one_m_g * (inv_mills * (inv_mills + t) - gamma * h * h)
-    return rho, psi, gamma, curv
+    """(ρ, ψ, γ, ψ') of the "nlos" loss at e in one pass (nlos_terms and nlos_curvature sharing
+    M(t))."""
+    return _nlos_all(e, prob, mean_w, True, True, True)
 
 
 def nlos_curvature(
@@ -152,17 +153,7 @@ def nlos_curvature(
     negative for ranges the mixture cannot tell apart (e ≈ 2–4), which the EM weight counts as half
     a LoS range: a covariance from γ is too optimistic under NLoS.
     """
-    e = np.asarray(e, dtype=float)
-    inv_m = 1.0 / mean_w
-    t = e - inv_m
-    mills = _mills(t)
-    q = (prob * inv_m) * mills
-    g = (1.0 - prob) + q
-    gamma = (1.0 - prob) / g
-    inv_mills = 1.0 / mills
-    h = t + inv_mills
-    # ψ' = γ + (1 − γ)(1/M² + t/M) − γ(1 − γ)h²
-    return gamma + (1.0 - gamma) * (inv_mills * (inv_mills + t) - gamma * h * h)
+    return _nlos_all(e, prob, mean_w, False, False, True)[3]
 
 
 def loss_rho(e: np.ndarray, loss: str, c: float, nlos: tuple | None = None) -> np.ndarray:

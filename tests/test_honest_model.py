@@ -356,13 +356,21 @@ def test_nlos_curvature_is_the_derivative_of_psi(pi, m):
     c = nlos_curvature(e, pi, m)
     np.testing.assert_allclose(c, fd, atol=1e-8)
     assert c.min() < 0.0  # ranges the mixture cannot classify carry negative curvature
-    # the one-pass form (robust.nlos_terms_curvature, the solver's Newton steps) gives the same
+    # the one-pass form (robust.nlos_terms_curvature, the solver's Newton steps): ρ' = ψ by finite
+    # differences, and γ the posterior LoS probability (1 − π)φ / ((1 − π)φ + π f) of the module
+    # docstring's mixture, with f evaluated by quadrature of the convolution
+    from scipy import integrate, stats
+
     from estimator.robust import nlos_terms_curvature
 
-    rho, psi, gamma = nlos_terms(e, pi, m)
-    one = nlos_terms_curvature(e, pi, m)
-    for got, want in zip(one, (rho, psi, gamma, c), strict=True):
-        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+    _, psi, gamma, _ = nlos_terms_curvature(e, pi, m)
+    fd_rho = (nlos_terms_curvature(e + h, pi, m)[0] - nlos_terms_curvature(e - h, pi, m)[0]) / (2 * h)
+    np.testing.assert_allclose(psi, fd_rho, atol=1e-7)
+    for ei in (-2.0, 0.5, 3.0, 8.0):
+        f = integrate.quad(lambda x, ei=ei: stats.norm.pdf(ei - x) * np.exp(-x / m) / m, 0, np.inf)[0]
+        los = (1 - pi) * stats.norm.pdf(ei)
+        assert nlos_terms_curvature(np.array([ei]), pi, m)[2][0] == pytest.approx(los / (los + pi * f), rel=1e-7)
+    assert gamma.shape == e.shape
 
 
 @pytest.mark.parametrize("seed", range(6))
