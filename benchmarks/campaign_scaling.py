@@ -40,7 +40,7 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 from benchmarks.planner import benchmark_campaign  # noqa: E402
-from sitl_scenarios.campaign import TIMING_FIELDS, Campaign, run_campaign, same_value  # noqa: E402
+from sitl_scenarios.campaign import TIMING_FIELDS, Campaign, quiet_logs, run_campaign, same_value  # noqa: E402
 
 
 def _load() -> str:
@@ -114,11 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                          f"(port {SCHEDULER_PORT})")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    import distributed  # noqa: F401  (its import configures its loggers: quieted after it)
-
-    logging.getLogger("distributed").setLevel(logging.ERROR)
-    for name in ("sitl_scenarios", "estimator", "planner", "mission"):
-        logging.getLogger(name).setLevel(logging.ERROR)
+    quiet_logs(logging.ERROR, logging.ERROR)
     planners = tuple(p.strip() for p in args.planners.split(",") if p.strip())
     campaign = scaling_campaign(args.runs, planners)
     n_worlds = len({r.scenario.name for r in campaign.runs})

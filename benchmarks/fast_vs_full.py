@@ -32,7 +32,7 @@ from scipy import stats
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
-from sitl_scenarios.campaign import run_campaign, spec_from_dict  # noqa: E402
+from sitl_scenarios.campaign import quiet_logs, run_campaign, spec_from_dict  # noqa: E402
 from sitl_scenarios.scenario import load_scenario, resolve_scenario_path  # noqa: E402
 
 Z95 = 1.959963984540054
@@ -88,10 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
     if not args.verbose:
-        import distributed  # noqa: F401  (its import configures its loggers: quieted after it)
-
-        for name in ("distributed", "sitl_scenarios", "mission", "estimator", "planner"):
-            logging.getLogger(name).setLevel(logging.CRITICAL)
+        quiet_logs(logging.CRITICAL, logging.CRITICAL)
     sc = load_scenario(resolve_scenario_path(args.scenario))
     result = {}
     with tempfile.TemporaryDirectory(prefix="uavloc-fast-vs-full-") as tmp:

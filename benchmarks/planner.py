@@ -58,7 +58,7 @@ sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resol
 
 import numpy as np  # noqa: E402
 
-from sitl_scenarios.campaign import Campaign, run_campaign, spec_from_dict  # noqa: E402
+from sitl_scenarios.campaign import Campaign, quiet_logs, run_campaign, spec_from_dict  # noqa: E402
 from sitl_scenarios.campaign.summary import metres_or_budget  # noqa: E402
 
 SPEC = _HERE / "planner_campaign.toml"
@@ -180,6 +180,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="campaign output folder (default: a fresh temporary one; an existing one resumes)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    quiet_logs()
     n = args.scenarios or (8 if args.quick else None)
     planners = tuple(p.strip() for p in args.planners.split(",") if p.strip()) if args.planners else None
     campaign = benchmark_campaign(n, planners, args.distance_noise)

@@ -39,7 +39,7 @@ import numpy as np
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
-from sitl_scenarios.campaign import Campaign, run_campaign, spec_from_dict  # noqa: E402
+from sitl_scenarios.campaign import Campaign, quiet_logs, run_campaign, spec_from_dict  # noqa: E402
 
 SPEC = _HERE / "soak.toml"
 #: full mode: simulated seconds per wall second, and the planners it flies
@@ -121,13 +121,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    import distributed  # noqa: F401  (its import configures its loggers: set after it)
-
     if not args.verbose:
-        # what the runs log (a degraded estimator, a planner exploring, a caught failure) is counted
-        # and listed below, not printed as it happens
-        for name in ("distributed", "sitl_scenarios", "mission", "estimator", "planner"):
-            logging.getLogger(name).setLevel(logging.CRITICAL)
+        # what the runs log is counted and listed below, not printed as it happens
+        quiet_logs(logging.CRITICAL, logging.CRITICAL)
     records: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="uavloc-soak-", dir=None) as tmp:
         for campaign in soak_campaigns(args.fast, args.full):

@@ -12,7 +12,7 @@
 - summary.py: the summary table and figures.
 """
 
-from sitl_scenarios.campaign.execute import CampaignRun, run_campaign
+from sitl_scenarios.campaign.execute import CampaignRun, quiet_logs, run_campaign
 from sitl_scenarios.campaign.results import ResultsStore, same_value
 from sitl_scenarios.campaign.spec import Campaign, RunSpec, load_spec, spec_from_dict
 from sitl_scenarios.campaign.summary import format_table, summary_rows, write_summary
@@ -26,6 +26,7 @@ __all__ = [
     "RunSpec",
     "format_table",
     "load_spec",
+    "quiet_logs",
     "run_campaign",
     "run_one",
     "same_value",

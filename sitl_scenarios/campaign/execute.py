@@ -30,6 +30,22 @@ from uavloc.errors import CampaignError
 
 log = logging.getLogger(__name__)
 
+#: the loggers of a campaign's own runs (what a run logs — a degraded estimator, a planner exploring,
+#: a caught failure — is in its record)
+RUN_LOGGERS = ("sitl_scenarios", "mission", "estimator", "planner")
+
+
+def quiet_logs(dask_level: int = logging.WARNING, runs_level: int | None = None) -> None:
+    """Keep Dask's INFO lines (workers starting and closing) out of a user's terminal: the
+    "distributed" loggers at `dask_level`, and the runs' own loggers at `runs_level` (None: as
+    they are). Importing distributed configures its loggers (at INFO), so it is imported first."""
+    import distributed  # noqa: F401
+
+    logging.getLogger("distributed").setLevel(dask_level)
+    if runs_level is not None:
+        for name in RUN_LOGGERS:
+            logging.getLogger(name).setLevel(runs_level)
+
 
 @dataclass
 class CampaignRun:

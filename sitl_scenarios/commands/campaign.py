@@ -29,11 +29,10 @@ def run(args: argparse.Namespace) -> int:
     from sitl_scenarios.campaign.summary import format_table, summary_rows
 
     if args.workers != 0:
-        # Dask's own INFO lines (workers starting, closing) drown the rest unless asked for (-v).
-        # Importing distributed configures its loggers, so their level is set after it
-        import distributed  # noqa: F401
+        # Dask's own INFO lines (workers starting, closing) drown the rest unless asked for (-v)
+        from sitl_scenarios.campaign.execute import quiet_logs
 
-        logging.getLogger("distributed").setLevel(logging.INFO if getattr(args, "verbose", 0) else logging.WARNING)
+        quiet_logs(logging.INFO if getattr(args, "verbose", 0) else logging.WARNING)
     campaign = load_spec(args.spec)
     out = args.out if args.out is not None else Path(f"campaign-{campaign.name}")
     log.info("campaign %s: %d runs (%s mode) -> %s", campaign.name, len(campaign.runs), campaign.section.mode, out)
