@@ -16,16 +16,12 @@ reads either autopilot's heartbeats), and :class:`ArduPilotFlight` flies the rec
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
 from pymavlink import mavutil
 
-from sitl_scenarios.px4_conformance import HEIGHT_M, SPEED_MPS, Flight, fly_builtin, legs_figures
-from uavloc.errors import SimulatorError
+from sitl_scenarios.px4_conformance import HEIGHT_M, SPEED_MPS, Flight, figures_main, fly_builtin, legs_figures
 
 #: ArduCopter's custom modes used (pymavlink mavutil.mode_mapping_acm)
 GUIDED, RTL = 4, 6
@@ -114,18 +110,7 @@ def fly_builtin_legs(tlog: Path, speedup: float = 4.0, timeout_s: float = 120.0,
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sitl_scenarios.ardupilot_conformance",
-                                 description=__doc__.splitlines()[0])
-    ap.add_argument("legs", type=Path, help="the legs flight's tlog (.gz too)")
-    args = ap.parse_args(argv)
-    try:
-        out = {"source": {"legs": args.legs.name}, "legs": legs_figures(args.legs)}
-    except SimulatorError as exc:
-        print(f"ardupilot_conformance: {exc}", file=sys.stderr)
-        return 1
-    json.dump(out, sys.stdout, indent=1)
-    sys.stdout.write("\n")
-    return 0
+    return figures_main("sitl_scenarios.ardupilot_conformance", __doc__.splitlines()[0], {"legs": legs_figures}, argv)
 
 
 if __name__ == "__main__":

@@ -629,20 +629,29 @@ def fly_builtin(flight: str, tlog: Path, speedup: float = 4.0, gps_loss_below_mp
     return tlog
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sitl_scenarios.px4_conformance", description=__doc__.splitlines()[0])
-    ap.add_argument("legs", type=Path, help="the legs flight's tlog (.gz too)")
-    ap.add_argument("gpsloss", type=Path, help="the GPS-loss flight's tlog (.gz too)")
+def figures_main(module: str, description: str, extractors: dict[str, Callable[[Path], dict]],
+                 argv: list[str] | None = None) -> int:
+    """A conformance module's command line: one tlog argument per flight of `extractors`
+    ({flight: its figures from a tlog}), the figures as JSON on stdout; exit 1 with the message on a
+    tlog that cannot be read."""
+    ap = argparse.ArgumentParser(prog=f"python -m {module}", description=description)
+    for flight in extractors:
+        ap.add_argument(flight, type=Path, help=f"the {flight} flight's tlog (.gz too)")
     args = ap.parse_args(argv)
     try:
-        out = {"source": {"legs": args.legs.name, "gpsloss": args.gpsloss.name},
-               "legs": legs_figures(args.legs), "gpsloss": _rounded_tree(gpsloss_figures(args.gpsloss))}
+        out: dict = {"source": {flight: getattr(args, flight).name for flight in extractors}}
+        out.update({flight: figures(getattr(args, flight)) for flight, figures in extractors.items()})
     except SimulatorError as exc:
-        print(f"px4_conformance: {exc}", file=sys.stderr)
+        print(f"{module.rsplit('.', 1)[-1]}: {exc}", file=sys.stderr)
         return 1
     json.dump(out, sys.stdout, indent=1)
     sys.stdout.write("\n")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return figures_main("sitl_scenarios.px4_conformance", __doc__.splitlines()[0],
+                        {"legs": legs_figures, "gpsloss": lambda p: _rounded_tree(gpsloss_figures(p))}, argv)
 
 
 def _rounded_tree(d: dict) -> dict:
