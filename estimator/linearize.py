@@ -101,8 +101,6 @@ def _range_terms(
     where mask_kn is False.
     """
     params = prob.params
-    n = x.shape[0]
-    d_u = prob.user_dim
     diff, d, sig, _r, e, full = _residuals(prob, x, theta, mask_kn)
     nl = _nlos_args(prob, sig) if params.loss == "nlos" else None
     if observed is not None and nl is not None:
@@ -119,12 +117,18 @@ def _range_terms(
         w_em = w if w_em is w else w_em * mask_kn
         psi = psi * mask_kn
         rho = rho * mask_kn
-    # α = 1/σ;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −g/σ (estimator.factors)
-    mask = None if full else mask_kn
-    alpha = range_alpha(sig, mask)
-    jac = range_jacobian(diff, d, alpha, sig, d_u, params.estimate_bias,
-                         None if prob.bias_gain is None else prob.bias_gain[:n].T, mask)
+    jac = _range_jac(prob, diff, d, sig, None if full else mask_kn)
     return e, w, rho, jac, psi, w_em
+
+
+def _range_jac(prob: Problem, diff: np.ndarray, d: np.ndarray, sig: np.ndarray | float,
+               mask_kn: np.ndarray | None) -> np.ndarray:
+    """(3 + p, K, n) range Jacobians [∂e/∂x; ∂e/∂θ_k] at _residuals' diff, d, σ (mask_kn None: every
+    range), zero where mask_kn is False:  α = 1/σ;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −g/σ
+    (estimator.factors)."""
+    n = d.shape[1]
+    return range_jacobian(diff, d, range_alpha(sig, mask_kn), sig, prob.user_dim, prob.params.estimate_bias,
+                          None if prob.bias_gain is None else prob.bias_gain[:n].T, mask_kn)
 
 
 def linearize(

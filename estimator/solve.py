@@ -12,6 +12,7 @@ from estimator.linearize import (
     Linearization,
     Prior,
     _nlos_args,
+    _range_jac,
     _range_terms,
     _residuals,
     linearize,
@@ -208,8 +209,8 @@ def _nlos_prob_blocks(
     Returns H_xπ (N, 3, F) = Σ_k ∂ψ/∂π J_x, H_θπ (K·p, F) = Σ_n ∂ψ/∂π J_θ, H_ππ (F,)."""
     n = x.shape[0]
     mask_kn = prob.mask[:n].T & active[:, None]
-    _, _, sig, _, e, _ = _residuals(prob, x, theta, mask_kn)
-    _, _, _, jac, _, _ = _range_terms(prob, x, theta, mask_kn)
+    diff, d, sig, _, e, full = _residuals(prob, x, theta, mask_kn)
+    jac = _range_jac(prob, diff, d, sig, None if full else mask_kn)
     pi, m = _nlos_args(prob, sig)
     inv_m = 1.0 / m
     t = e - inv_m
