@@ -65,6 +65,11 @@ LINEAR_INIT_MAX_COST = 1.5
 REFINE_MAX_RANGES = 400
 #: half-width (in fixes) of the moving average that smooths GPS noise out of the track
 SMOOTH_HALF = 10
+#: a user's refinement (refine_user, refine_users) stops after a step of under 1 mm, or after a
+#: whole (not halved) Gauss–Newton step that lowered its cost Σρ by less than this: the steps after
+#: it lower it by less again (χ² = 2 Σρ moves by under 1e-3: the mirror test's Δχ² is compared
+#: with thresholds of several units, and a solve refines every start further)
+REFINE_COST_TOL = 5e-4
 
 
 @dataclass(frozen=True)
@@ -107,10 +112,13 @@ def user_cost(
 def refine_user(
     uav_enu_m: np.ndarray, range_m: np.ndarray, theta0: np.ndarray, up_m: float, noise: NoiseModel,
     params: SolverParams, iterations: int = 25, loss: str | None = None, scale: float | None = None,
+    stop_near: np.ndarray | None = None, near_m: float = 0.0,
 ) -> UserFit:
     """Robust Gauss–Newton (with step halving) on one user, UAV fixed. Shapes as in `user_cost`.
 
-    σ_eff is the range factor's, at the measured ranges (estimator.factors).
+    σ_eff is the range factor's, at the measured ranges (estimator.factors). stop_near (2,): stop
+    as soon as an iterate is within near_m of this horizontal point (the mirror test's refinement
+    of a reflection that walks back to the estimate: its outcome is known then).
     """
     loss = params.loss if loss is None else loss
     scale = params.loss_scale if scale is None else scale
@@ -137,6 +145,7 @@ def refine_user(
             step = np.linalg.solve(h, g)
         except np.linalg.LinAlgError:
             break
+        whole = True  # the whole Gauss–Newton step accepted (REFINE_COST_TOL)
         for _half in range(8):
             trial = theta + step
             # a wild first step (near-singular h) may reach absurd distances: its cost is then
@@ -146,10 +155,14 @@ def refine_user(
             if c <= cost:
                 break
             step *= 0.5
+            whole = False
         else:
             break
+        gain = cost - c
         theta, cost = trial, c
-        if np.max(np.abs(step)) < 1e-3:
+        if np.max(np.abs(step)) < 1e-3 or (whole and gain < REFINE_COST_TOL):
+            break
+        if stop_near is not None and np.linalg.norm(theta[:2] - stop_near) < near_m:
             break
     return UserFit(theta, cost)
 
@@ -180,11 +193,13 @@ def users_cost(
 def refine_users(
     uav_enu_m: np.ndarray, range_m: np.ndarray, theta0: np.ndarray, up_m: np.ndarray, noise: NoiseModel,
     params: SolverParams, iterations: int = 25, loss: str | None = None, scale: float | None = None,
+    stop_near: np.ndarray | None = None, near_m: float = 0.0,
 ) -> list[UserFit]:
     """`refine_user` of K users ranged from the same fixes, at once (the same iterations, step
-    halving and stopping rule per user; tests check it against refine_user).
+    halving and stopping rules per user; tests check it against refine_user).
 
-    uav_enu_m: (M, 3) [m]; range_m: (M, K) [m]; theta0: (K, p); up_m: (K,) [m]. Returns K UserFit.
+    uav_enu_m: (M, 3) [m]; range_m: (M, K) [m]; theta0: (K, p); up_m: (K,) [m]; stop_near:
+    (K, 2) or None (refine_user). Returns K UserFit.
     """
     loss = params.loss if loss is None else loss
     scale = params.loss_scale if scale is None else scale
@@ -233,6 +248,7 @@ def refine_users(
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             new_cost = users_cost(uav_enu_m, range_m[:, idx], th + step, up[idx], noise, params, loss, scale)
         pending = ~(new_cost <= cost[idx])
+        whole = ~pending  # the whole step accepted (REFINE_COST_TOL)
         sel = np.flatnonzero(pending)
         if sel.size:
             halves = 0.5 ** np.arange(1, 8)
@@ -253,8 +269,12 @@ def refine_users(
         acc = ~pending
         ia = idx[acc]
         theta[ia] = th[acc] + step[acc]
+        gain = cost[ia] - new_cost[acc]
         cost[ia] = new_cost[acc]
-        live[ia[np.max(np.abs(step[acc]), axis=1) < 1e-3]] = False
+        done = (np.max(np.abs(step[acc]), axis=1) < 1e-3) | (whole[acc] & (gain < REFINE_COST_TOL))
+        if stop_near is not None:
+            done |= np.linalg.norm(theta[ia, :2] - stop_near[ia], axis=1) < near_m
+        live[ia[done]] = False
     return [UserFit(theta[k].copy(), float(cost[k])) for k in range(theta.shape[0])]
 
 
@@ -644,7 +664,8 @@ def mirror_test(
         cost_m = user_cost(uav_enu_m, range_m, t_m, up_m, noise, params)
         if cost_m - cost_u > 50.0 * chi2_threshold:
             return MirrorTest(False, None, 2.0 * (cost_m - cost_u), np.inf, lin)
-    fit = refine_user(uav_enu_m, range_m, t_m, up_m, noise, params, 15)
+    # (a reflection that walks back to within min_offset_m of u has its outcome: refined no further)
+    fit = refine_user(uav_enu_m, range_m, t_m, up_m, noise, params, 15, stop_near=u_h, near_m=min_offset_m)
     if np.linalg.norm(fit.theta[:2] - u_h) < min_offset_m:
         return MirrorTest(False, None, np.inf, 0.0, lin)
     delta = 2.0 * (fit.cost - cost_u)
@@ -715,7 +736,8 @@ def mirror_tests(
     if refine:
         # the rest as mirror_test does them: the reflection refined to the mirror solution, all
         # of them in one pass
-        fits = refine_users(uav_enu_m, range_m[:, refine], t_m[refine], up_m[refine], noise, params, 15)
+        fits = refine_users(uav_enu_m, range_m[:, refine], t_m[refine], up_m[refine], noise, params, 15,
+                            stop_near=theta[refine, :2], near_m=min_offset_m)
         for k, fit in zip(refine, fits, strict=True):
             if np.linalg.norm(fit.theta[:2] - theta[k, :2]) < min_offset_m:
                 out[k] = MirrorTest(False, None, np.inf, 0.0, lin)

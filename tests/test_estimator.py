@@ -13,6 +13,7 @@ from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
 from estimator.init import (
     LINEAR_INIT_MAX_COST,
+    REFINE_COST_TOL,
     _grid_cost,
     _grid_starts,
     _linear_starts,
@@ -441,7 +442,9 @@ def test_refine_users_equal_refine_user_one_at_a_time(params, noise):
         np.testing.assert_allclose(got[k].theta, ref.theta, rtol=1e-10, atol=1e-9)
         assert got[k].cost == pytest.approx(ref.cost, rel=1e-10)
     assert np.linalg.norm(got[1].theta[:2] - theta[1, :2]) > 10.0  # the far start moved
-    np.testing.assert_allclose(got[3].theta, theta[3], atol=1e-3)
+    # a start on its optimum (to REFINE_COST_TOL) gains less than that again (it may still slide
+    # by centimetres along the flat valleys of a line: a 3-D user's rotation, a bias's bearing)
+    assert 0.0 <= costs[3] - got[3].cost < REFINE_COST_TOL
 
 
 @pytest.mark.parametrize("noise", [NOISE, NOISE_DD], ids=["sigma", "sigma-of-d"])
