@@ -197,6 +197,18 @@ class GnbSettings:
     msg2_timeout_s: float = positive(15.0, 600.0)
     retries: int = bounded(3, 0, 100)
 
+    def problems(self) -> list[tuple[str, Any, str]]:
+        """(field, value, why) of each setting that cannot work with the others or with OAI: the
+        one check of a mission file's [gnb] (validate_mission) and of the adapter's settings
+        (mission.gnb_config.GnbConfig)."""
+        out: list[tuple[str, Any, str]] = []
+        if self.mode == "stock" and not self.log_path:
+            out.append(("mode", self.mode, "stock mode reads the TA from the gNB log: set gnb.log_path"))
+        for key in ("rtt_module", "rtt_command"):
+            if not re.fullmatch(r"[A-Za-z0-9_]+", getattr(self, key)):
+                out.append((key, getattr(self, key), "a telnet module/command name is one word of [A-Za-z0-9_]"))
+        return out
+
     def measure_timeout_s(self) -> float:
         """The controller's bound on one measurement [s]: the adapter's own request timeout and one
         reconnect, plus (active stock mode) the wait for the Msg2, so that the adapter, not the
@@ -358,12 +370,8 @@ def validate_mission(mc: MissionConfig, where: str) -> None:
     if not 0 <= f.alt_min_m <= f.altitude_m <= f.alt_max_m:
         raise bad("flight.altitude_m", f.altitude_m,
                   f"need 0 <= alt_min_m ({f.alt_min_m:g}) <= altitude_m <= alt_max_m ({f.alt_max_m:g})")
-    gn = mc.gnb
-    if gn.mode == "stock" and not gn.log_path:
-        raise bad("gnb.mode", gn.mode, "stock mode reads the TA from the gNB log: set gnb.log_path")
-    for key in ("rtt_module", "rtt_command"):
-        if not re.fullmatch(r"[A-Za-z0-9_]+", getattr(gn, key)):
-            raise bad(f"gnb.{key}", getattr(gn, key), "a telnet module/command name is one word of [A-Za-z0-9_]")
+    for key, value, why in mc.gnb.problems():
+        raise bad(f"gnb.{key}", value, why)
     s = mc.safety
     if s.battery_takeoff_min_pct < s.battery_rtl_pct:
         raise bad("safety.battery_takeoff_min_pct", s.battery_takeoff_min_pct,

@@ -59,8 +59,6 @@ class GnbConfig(GnbSettings):
             raise GnbError(f"stock mode must be 'active' or 'passive', got {self.stock_mode!r}")
         if self.discovery not in ("auto", "o1", "single"):
             raise GnbError(f"gNB discovery must be 'auto', 'o1' or 'single', got {self.discovery!r}")
-        if self.mode == "stock" and self.log_path is None:
-            raise GnbError("stock mode reads the TA from the gNB log: set log_path")
         if self.mu not in MU_VALUES:
             raise GnbError(f"mu must be one of {MU_VALUES}, got {self.mu!r}")
         for name in ("request_timeout_s", "connect_timeout_s", "msg2_timeout_s", "log_poll_s"):
@@ -68,10 +66,8 @@ class GnbConfig(GnbSettings):
                 raise GnbError(f"{name} must be positive, got {getattr(self, name)!r}")
         if self.retries < 0 or self.backoff_initial_s < 0 or self.backoff_max_s < 0:
             raise GnbError("retries and backoff times must be non-negative")
-        for name in ("rtt_module", "rtt_command"):
-            v = getattr(self, name)
-            if not v or any(c.isspace() for c in v):
-                raise GnbError(f"{name} must be one word, got {v!r}")
+        for key, value, why in self.problems():
+            raise GnbError(f"{key} {value!r}: {why}")
 
 
 def parse_host_port(text: str, default_port: int = 9090) -> tuple[str, int]:

@@ -23,6 +23,7 @@ from uavloc.errors import (
     GnbProtocolError,
     GnbTimeoutError,
     GnbUnknownCommandError,
+    MissionConfigError,
     ScenarioError,
     SimulatorError,
 )
@@ -554,6 +555,23 @@ def test_config_validation():
         GnbConfig(mode="stock")
     with pytest.raises(GnbError):
         GnbConfig(rtt_command="pdcch order")
+
+
+@pytest.mark.parametrize("field, value", [("rtt_command", "pdcch-order"), ("rtt_module", "rtt;ci"),
+                                          ("rtt_command", "pdcch order"), ("mode", "stock")])
+def test_a_mission_file_and_the_adapter_refuse_the_same_gnb_settings(field, value):
+    """One rule (GnbSettings.problems) for a mission file's [gnb] and the adapter's settings: what
+    one refuses the other does, naming the same field."""
+    import tomllib
+
+    from mission.config import example_mission_path, mission_from_dict
+
+    doc = tomllib.loads(example_mission_path().read_text())
+    doc.setdefault("gnb", {})[field] = value
+    with pytest.raises(MissionConfigError, match=f"gnb.{field}"):
+        mission_from_dict(doc)
+    with pytest.raises(GnbError, match=field):
+        GnbConfig(**{field: value})
 
 
 def test_request_refuses_multiline_input():
