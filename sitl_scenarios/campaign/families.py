@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from mission import schema
+from mission import geometry, schema
 from mission.config import MissionConfig, setting_tables
 from sitl_scenarios.scenario import Scenario, scenario_from_dict, user_tables
 from uavloc.errors import ScenarioError
@@ -116,16 +116,6 @@ def validate_family(fam: FamilySpec, where: str) -> None:
                      error=ScenarioError)
 
 
-def _inside(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Winding-number test of points p (..., 2) in a polygon (P, 2)."""
-    p = np.asarray(p, dtype=float)[..., None, :]
-    a, b = poly, np.roll(poly, -1, axis=0)
-    cross = (b[:, 0] - a[:, 0]) * (p[..., 1] - a[:, 1]) - (p[..., 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
-    up = (a[:, 1] <= p[..., 1]) & (p[..., 1] < b[:, 1]) & (cross > 0)
-    down = (b[:, 1] <= p[..., 1]) & (p[..., 1] < a[:, 1]) & (cross < 0)
-    return np.sum(up, axis=-1) - np.sum(down, axis=-1) != 0
-
-
 def generate_scenario(fam: FamilySpec, j: int, where: str = "") -> Scenario:
     """Scenario j of the family (seeded by fam.seed + j; named `<family><j>`); `where` prefixes errors."""
     rng = np.random.default_rng(fam.seed + j)
@@ -160,8 +150,8 @@ def generate_scenario(fam: FamilySpec, j: int, where: str = "") -> Scenario:
     def random_inside(clear: float) -> np.ndarray:
         for _ in range(100_000):
             p = rng.uniform([x0 + clear, y0 + clear], [x1 - clear, y1 - clear])
-            if _inside(p, poly) and all(
-                _inside(p + d, poly) for d in clear * np.array([[1, 0], [-1, 0], [0, 1], [0, -1]])
+            if geometry.contains_point(poly, p) and all(
+                geometry.contains_point(poly, p + d) for d in clear * np.array([[1, 0], [-1, 0], [0, 1], [0, -1]])
             ):
                 return p
         raise ScenarioError(f"family {fam.name!r}: no room for a {clear} m clearance in scenario {j}")

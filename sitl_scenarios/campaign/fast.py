@@ -30,10 +30,10 @@ import numpy as np
 
 from estimator.ranging import range_m_from_raw
 from estimator.types import Estimate, Keyframe, SolverParams
+from mission import geometry
 from mission.controller import compile_planner_in_tmp
 from mission.estimation import MissionEstimator
 from planner import PlanningConstraints, PlanningState, make_planner
-from sitl_scenarios.campaign.families import _inside
 from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
 from sitl_scenarios.radio import RadioModel
 from sitl_scenarios.scenario import Scenario
@@ -41,22 +41,24 @@ from sitl_scenarios.vehicle.sensors import GpsError
 
 
 def leg_violation(c: PlanningConstraints, a: np.ndarray, b: np.ndarray, flown_m: float) -> str | None:
-    """Sample the straight leg a → b (both (3,) ENU [m]) every 0.25 m; name the first constraint it
-    breaks, or None. Independent of planner.geometry on purpose."""
+    """Name the first constraint the straight leg a → b (both (3,) ENU [m]) breaks, or None.
+    Independent of planner.geometry on purpose: the fence and no-fly zones are judged by the
+    safety gate's geometry (mission.geometry on shapely: the whole segment, the boundary inside
+    the fence and inside a zone), the distance from home at the leg's farthest point."""
     length = float(np.linalg.norm(b - a))
     if length > c.leg_max_m + 1e-6 or flown_m + length > c.budget_m + 1e-6:
         return f"leg {length:.2f} m"
     if not c.alt_min_m - 1e-6 <= b[2] <= c.alt_max_m + 1e-6:
         return f"altitude {b[2]:.2f} m"
-    t = np.linspace(0.0, 1.0, max(2, int(length / 0.25) + 1))[:, None]
-    pts = a[:2] + t * (b[:2] - a[:2])
-    if np.any(np.linalg.norm(pts - c.home_enu_m[:2], axis=1) > c.max_distance_m + 1e-6):
+    # |p(t) − h| is convex along the leg: its largest value is at an end
+    far_m = max(np.linalg.norm(a[:2] - c.home_enu_m[:2]), np.linalg.norm(b[:2] - c.home_enu_m[:2]))
+    if far_m > c.max_distance_m + 1e-6:
         return "distance from home"
-    if len(c.fence_enu_m) and not np.all(_inside(pts, c.fence_enu_m)):
-        return f"outside the fence near {pts[~_inside(pts, c.fence_enu_m)][0]}"
+    if len(c.fence_enu_m) and not geometry.segment_inside(c.fence_enu_m, a, b):
+        return f"outside the fence: leg {np.round(a[:2], 2).tolist()} -> {np.round(b[:2], 2).tolist()}"
     for zone in c.no_fly_enu_m:
-        if np.any(_inside(pts, zone)):
-            return f"in a no-fly zone near {pts[_inside(pts, zone)][0]}"
+        if geometry.segment_meets(zone, a, b):
+            return f"in a no-fly zone: leg {np.round(a[:2], 2).tolist()} -> {np.round(b[:2], 2).tolist()}"
     return None
 
 
