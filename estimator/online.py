@@ -59,6 +59,10 @@ ONLINE_CHECK_MARGIN = 4.0
 ONLINE_MAX_ITERATIONS = 3
 ONLINE_CHECK_BACKOFF_MAX = 8
 ONLINE_CHECK_EVIDENCE = 0.1
+#: ... and, for the noise scale, by more than ONLINE_SCALE_EVIDENCE_Z of its own standard errors:
+#: s_k estimated from n_k whitened residuals has a relative standard error of about 1/√(2 n_k)
+#: (7 % from a window's 100 ranges), so a 10 % move of it is mostly its noise, not evidence
+ONLINE_SCALE_EVIDENCE_Z = 3.0
 #: a restarted user that the joint solve takes back to within this of its estimate [m] was not in
 #: another basin (_check_mirrors: the restart is dropped, the prior kept)
 RESTART_SAME_BASIN_M = 2.0
@@ -298,9 +302,12 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
             return True
         if self._check_state is not None:
             scale0, pi0, _ = self._check_state
-            moved = max(float(np.max(np.abs(self._scale / scale0 - 1.0))),
-                        float(np.max(np.abs(self._nlos_pi / pi0 - 1.0))))
-            if moved > ONLINE_CHECK_EVIDENCE:
+            # a noise scale's move counted in its standard errors, 1/√(2 n_k) relative
+            scale_tol = np.maximum(ONLINE_CHECK_EVIDENCE,
+                                   ONLINE_SCALE_EVIDENCE_Z / np.sqrt(2.0 * np.maximum(self._win_count, 1)))
+            moved = bool(np.any(np.abs(self._scale / scale0 - 1.0) > scale_tol)
+                         or np.any(np.abs(self._nlos_pi / pi0 - 1.0) > ONLINE_CHECK_EVIDENCE))
+            if moved:
                 self._check_interval = max(int(self._params.online_check_every), 1)
         # the first full update past a multiple of the interval
         return self._seen // self._check_interval > self._last_check // self._check_interval

@@ -873,3 +873,25 @@ def test_covariances_from_cholesky_equal_the_inverse_of_s(k_all, p, d):
     bad[0, 0] = -1.0
     cov, _, joint = _covariances(bad, np.ones(k_all, dtype=bool), k_all, p, d)
     assert joint is None and np.all(np.isinf(cov))
+
+
+def test_a_noise_scale_moving_within_its_standard_errors_does_not_call_the_checks_back():
+    """The checks' back-off (online._check_due) returns to online_check_every when a user's noise
+    scale moved by more than 3 of its standard errors 1/√(2 n) since the last check: with 100
+    ranges in the window a 15 % move is noise, a 30 % one is evidence."""
+    from estimator.online import ONLINE_SCALE_EVIDENCE_Z
+
+    sc = simulate(np.random.default_rng(5), n_users=2, n_keyframes=130, pattern="circle", noise=NOISE)
+    on = OnlineEstimator(2, sc.user_up_m, NOISE, SolverParams())
+    for kf in sc.keyframes:
+        on.add_keyframe(kf)
+    assert on._check_state is not None and np.all(on._win_count >= 100)
+    every = SolverParams().online_check_every
+    scale0, pi0, _ = on._check_state
+    tol = ONLINE_SCALE_EVIDENCE_Z / np.sqrt(2.0 * on._win_count[0])
+    for move, resets in ((0.7 * tol, False), (1.3 * tol, True)):
+        on._check_interval = 4 * every
+        on._scale = scale0 * np.array([1.0 + move, 1.0])
+        on._nlos_pi = pi0.copy()
+        on._check_due(np.zeros(2, dtype=bool))
+        assert (on._check_interval == every) == resets, move
