@@ -242,6 +242,19 @@ def test_the_planner_benchmark_spec_loads():
     assert {r.params.window for r in campaign.runs} == {40}
 
 
+@pytest.mark.parametrize("planners", [("lawnmower", "greedy", "casadi"), ("lawnmower",), ("oracle", "random")])
+def test_the_benchmarks_campaign_takes_any_planners_of_it(planners):
+    """benchmarks/planner.py --planners and benchmarks/campaign_scaling.py (lawnmower, greedy,
+    casadi by default) pick planners of the spec; the options of the others go with them."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("planner_bench", REPO / "benchmarks" / "planner.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    campaign = bench.benchmark_campaign(2, planners)
+    assert {r.planner for r in campaign.runs} == set(planners) and len(campaign.runs) == 2 * 2 * len(planners)
+
+
 def test_the_command_writes_results_summary_and_figures_and_exits_non_zero_on_failed_runs(tmp_path, capsys):
     from mission.cli import main
 
