@@ -78,10 +78,8 @@ def benchmark_campaign(n_scenarios: int | None = None, planners: tuple[str, ...]
         data["campaign"]["planners"] = list(planners)
         # the options of the planners left out go with them (a spec refuses options of a planner it
         # does not run)
-        options = {k: v for k, v in data.get("planner_options", {}).items() if k in planners}
-        data.pop("planner_options", None)
-        if options:
-            data["planner_options"] = options
+        if "planner_options" in data:
+            data["planner_options"] = {k: v for k, v in data["planner_options"].items() if k in planners}
     return spec_from_dict(data, str(SPEC), base_dir=_HERE, path=SPEC)
 
 

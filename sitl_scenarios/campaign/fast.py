@@ -54,11 +54,11 @@ def leg_violation(c: PlanningConstraints, a: np.ndarray, b: np.ndarray, flown_m:
     far_m = max(np.linalg.norm(a[:2] - c.home_enu_m[:2]), np.linalg.norm(b[:2] - c.home_enu_m[:2]))
     if far_m > c.max_distance_m + 1e-6:
         return "distance from home"
+    leg = f"leg {np.round(a[:2], 2).tolist()} -> {np.round(b[:2], 2).tolist()}"
     if len(c.fence_enu_m) and not geometry.segment_inside(c.fence_enu_m, a, b):
-        return f"outside the fence: leg {np.round(a[:2], 2).tolist()} -> {np.round(b[:2], 2).tolist()}"
-    for zone in c.no_fly_enu_m:
-        if geometry.segment_meets(zone, a, b):
-            return f"in a no-fly zone: leg {np.round(a[:2], 2).tolist()} -> {np.round(b[:2], 2).tolist()}"
+        return f"outside the fence: {leg}"
+    if any(geometry.segment_meets(zone, a, b) for zone in c.no_fly_enu_m):
+        return f"in a no-fly zone: {leg}"
     return None
 
 
