@@ -80,7 +80,7 @@ from estimator.crlb import crlb_users
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from estimator.ranging import C_MPS
-from estimator.types import CHI2_2DOF_95, SolverParams
+from estimator.types import CHI2_2DOF_95, CHI2_2DOF_999, SolverParams
 from mission.log import MissionLogWriter, read_mission_log
 from mission.replay import ReplayOptions, replay
 
@@ -107,8 +107,6 @@ SAMPLES = 200
 SAMPLES_QUICK = 60
 GTSAM_LOGS = 16
 GTSAM_LOGS_QUICK = 4
-#: χ² with 2 degrees of freedom at 99.9 %, −2 ln(0.001): a user beyond it is 1 in 1000 when honest
-CHI2_2DOF_999 = 13.815510557964274
 #: two-sided 95 % normal quantile
 Z_95 = 1.959963984540054
 

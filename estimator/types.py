@@ -14,6 +14,8 @@ import numpy as np
 
 #: χ²(2 dof) quantile for a 95 % ellipse: P(χ²₂ ≤ 5.991) = 0.95.
 CHI2_2DOF_95 = 5.991464547107979
+#: χ²(2 dof) quantile for a 99.9 % ellipse, −2 ln(0.001): a user beyond it is 1 in 1000 when honest.
+CHI2_2DOF_999 = 13.815510557964274
 
 LossName = Literal["none", "huber", "cauchy", "tukey", "nlos"]
 

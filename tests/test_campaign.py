@@ -6,8 +6,10 @@ import copy
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from estimator.types import CHI2_2DOF_95, CHI2_2DOF_999
 from sitl_scenarios.campaign import (
     TIMING_FIELDS,
     ResultsStore,
@@ -18,6 +20,7 @@ from sitl_scenarios.campaign import (
     spec_from_dict,
 )
 from sitl_scenarios.campaign.families import FamilySpec, generate_scenario
+from sitl_scenarios.campaign.summary import format_table, summary_rows
 from uavloc.errors import CampaignError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -91,6 +94,12 @@ def test_six_runs_on_a_local_cluster_of_two_workers_equal_the_runs_one_by_one(tm
     # the runs measured something: every run located its users to the first target within the budget
     assert all(r["metres_to_m"][0] > 0 for r in one_by_one)
     assert all(len(r["final_error_m"]) == r["users"] for r in one_by_one)
+    # each user's final NEES eᵀΣ⁻¹e is at least |e|²/λmax = χ²₂(0.95)·(error / 95 % bound)²
+    for r in one_by_one:
+        err, bound, nees = (np.array(r[k]) for k in ("final_error_m", "final_bound95_m", "final_nees"))
+        assert np.all(np.isfinite(nees) == np.isfinite(err)), r["key"]
+        ok = np.isfinite(err)
+        assert np.all(nees[ok] >= CHI2_2DOF_95 * (err[ok] / bound[ok]) ** 2 * (1 - 1e-9)), r["key"]
 
 
 def test_a_run_that_raises_is_recorded_and_the_others_finish(tmp_path, cluster):
@@ -273,3 +282,21 @@ def test_the_command_writes_results_summary_and_figures_and_exits_non_zero_on_fa
     (tmp_path / "spec.toml").write_text(_toml(data))
     assert main(["campaign", str(tmp_path / "spec.toml"), "--workers", "0", "--out", str(out), "--no-progress"]) == 1
     assert "1 already done, 1 failed" in capsys.readouterr().out
+
+
+def test_the_summary_counts_users_inside_their_final_95_and_beyond_their_99_9_ellipse():
+    """end95 and >99.9 come from every located user's final NEES; records written before final_nees
+    (no such column) and users never located (NaN) count in neither."""
+    def rec(seed, nees):
+        return {"key": f"k{seed}", "condition": "c", "planner": "p", "estimator": "e", "status": "ok",
+                "metres_to_m": [100.0], "budget_m": 400.0, "mean_error_m": 1.0, "inside95": 0.5,
+                "plan_times_s": [0.01], "violations": 0, "final_nees": nees}
+
+    old = rec(0, None)
+    records = [rec(1, [1.0, CHI2_2DOF_95 + 0.01, float("nan")]), rec(2, [CHI2_2DOF_999 + 0.01, 0.2]), old]
+    (row,) = summary_rows(records, (4.0,))
+    assert row["final_users"] == 4
+    assert row["final_inside95"] == pytest.approx(2 / 4)
+    assert row["final_beyond999"] == 1
+    table = format_table([row], (4.0,))
+    assert "end95" in table and " 0.50     1 " in table

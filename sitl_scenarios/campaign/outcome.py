@@ -19,7 +19,9 @@ class Outcome:
     plan_times_s: compute time of every plan() call [s]; violations: constraint breaks found by an
         independent check of each leg (fast mode); flown_m: metres flown; end: why the run ended;
     keyframes: keyframes fed to the estimator; final_error_m / final_bound95_m: (K,) per user at the
-        end [m] (NaN where the user was never located); inside95: share of (estimate, user) pairs
+        end [m] (NaN where the user was never located); final_nees: (K,) eᵀ Σ⁻¹ e of each user's final
+        east-north error e and covariance Σ (NaN where never located: inside the 95 % ellipse at
+        ≤ χ²₂(0.95) = 5.99, the 99.9 % one at ≤ 13.8); inside95: share of (estimate, user) pairs
         after a user's first estimate whose true error lies inside its own 95 % ellipse;
         nlos_share: share of ranges whose line of sight a building blocked; estimator_errors: what
         the estimator reported failing during the run (the mission went on: estimator.refresh drops a
@@ -35,6 +37,7 @@ class Outcome:
     keyframes: int = 0
     final_error_m: list = field(default_factory=list)
     final_bound95_m: list = field(default_factory=list)
+    final_nees: list = field(default_factory=list)
     inside95: float = math.nan
     nlos_share: float = math.nan
     estimator_errors: list = field(default_factory=list)
@@ -55,6 +58,7 @@ class AccuracyTrack:
         self.seen = 0
         self.error_m = np.full(len(self.truth_en), np.nan)
         self.bound95_m = np.full(len(self.truth_en), np.nan)
+        self.nees = np.full(len(self.truth_en), np.nan)
 
     def update(self, users_en_m: np.ndarray, cov_en_m2: np.ndarray, at_m: float) -> None:
         """One estimate: users_en_m (K, 2) [m] (NaN rows: not located), cov_en_m2 (K, 2, 2) [m²],
@@ -70,6 +74,8 @@ class AccuracyTrack:
         if np.any(ok):
             # inside the ellipse: eᵀ Σ⁻¹ e ≤ χ²₂(0.95)
             nees = np.einsum("ki,ki->k", e[ok], np.linalg.solve(cov[ok], e[ok][:, :, None])[:, :, 0])
+            self.nees = np.full(len(self.truth_en), np.nan)
+            self.nees[ok] = nees
             self.inside += int(np.sum(nees <= CHI2_2DOF_95))
             self.seen += int(np.sum(ok))
         bound = float(np.mean(self.bound95_m))
@@ -83,5 +89,6 @@ class AccuracyTrack:
         out.metres_to, out.error_at = dict(self.metres_to), dict(self.error_at)
         out.final_error_m = [float(v) for v in self.error_m]
         out.final_bound95_m = [float(v) for v in self.bound95_m]
+        out.final_nees = [float(v) for v in self.nees]
         out.inside95 = self.inside / self.seen if self.seen else math.nan
         return out

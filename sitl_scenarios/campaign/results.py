@@ -30,9 +30,9 @@ SCHEMA = pa.schema([
     ("status", _s), ("error", _s), ("traceback", _s), ("end", _s),
     ("targets_m", _fl), ("budget_m", _f), ("metres_to_m", _fl), ("error_at_m", _fl),
     ("flown_m", _f), ("keyframes", _i), ("replans", _i), ("plan_times_s", _fl), ("plan_median_s", _f),
-    ("plan_p95_s", _f), ("final_error_m", _fl), ("final_bound95_m", _fl), ("mean_error_m", _f),
-    ("max_error_m", _f), ("inside95", _f), ("nlos_share", _f), ("violations", _i), ("first_violation", _s),
-    ("estimator_errors", _i), ("first_estimator_error", _s),
+    ("plan_p95_s", _f), ("final_error_m", _fl), ("final_bound95_m", _fl), ("final_nees", _fl),
+    ("mean_error_m", _f), ("max_error_m", _f), ("inside95", _f), ("nlos_share", _f), ("violations", _i),
+    ("first_violation", _s), ("estimator_errors", _i), ("first_estimator_error", _s),
     ("wall_s", _f), ("worker", _s),
 ])
 

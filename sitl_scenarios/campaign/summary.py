@@ -4,6 +4,7 @@ Per (condition, planner, estimator): runs, failures, and for each accuracy targe
 reached it and the median and 95 % interval (2.5th–97.5th percentile) of the metres flown to it
 (a run that never reached it counts its budget, so a planner that fails is not flattered); the same
 statistics of the final mean true error, the share of estimates inside their own 95 % ellipse, the
+share of users inside their own final 95 % ellipse and the users beyond their final 99.9 % one, the
 median replan and run times, and the runs whose estimator reported a failure.
 Written to `summary.csv` and `summary.txt`; figures `metres_to_target.png`
 (metres to each target per planner and condition) and `error_vs_bound.png` (each user's final true
@@ -18,6 +19,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+
+from estimator.types import CHI2_2DOF_95, CHI2_2DOF_999
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +55,11 @@ def summary_rows(records: list[dict], targets_m: tuple[float, ...]) -> list[dict
         med, lo, hi = _stats([r["mean_error_m"] for r in ok])
         row.update({"error_median_m": med, "error_lo95_m": lo, "error_hi95_m": hi})
         row["inside95_median"] = _stats([r["inside95"] for r in ok])[0]
+        # the final NEES of every located user (records written before final_nees: none)
+        nees = np.array([v for r in ok for v in (r.get("final_nees") or []) if v is not None and math.isfinite(v)])
+        row["final_users"] = len(nees)
+        row["final_inside95"] = float(np.mean(nees <= CHI2_2DOF_95)) if len(nees) else math.nan
+        row["final_beyond999"] = int(np.sum(nees > CHI2_2DOF_999))
         row["replan_median_ms"] = _stats([1e3 * t for r in ok for t in r["plan_times_s"]])[0]
         row["run_median_s"] = _stats([r.get("wall_s", math.nan) for r in rs])[0]
         row["estimator_errors"] = sum(r.get("estimator_errors") or 0 for r in ok)
@@ -65,7 +73,8 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
     head = f"{'condition':<14} {'planner':<10} {'estimator':<10} {'runs':>4} {'fail':>4}"
     for t in targets_m:
         head += f" {'reach@' + format(t, 'g'):>9} {'m@' + format(t, 'g') + ' median [95 %]':>24}"
-    head += f" {'error m median [95 %]':>24} {'in95':>5} {'replan ms':>9} {'run s':>6} {'viol':>4} {'est!':>4}"
+    head += (f" {'error m median [95 %]':>24} {'in95':>5} {'end95':>5} {'>99.9':>5} {'replan ms':>9} {'run s':>6}"
+             f" {'viol':>4} {'est!':>4}")
     lines = [head, "-" * len(head)]
     for r in rows:
         line = f"{r['condition']:<14} {r['planner']:<10} {r['estimator']:<10} {r['runs']:>4} {r['failed']:>4}"
@@ -75,7 +84,8 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
             line += f" {r[f'reached@{t:g}']:>5}/{ok:<3} {r[k + '_median']:>7.0f} [{r[k + '_lo95']:>6.0f}, " \
                     f"{r[k + '_hi95']:>6.0f}]"
         line += f" {r['error_median_m']:>7.2f} [{r['error_lo95_m']:>5.2f}, {r['error_hi95_m']:>6.2f}]"
-        line += (f" {r['inside95_median']:>5.2f} {r['replan_median_ms']:>9.1f} {r['run_median_s']:>6.2f}"
+        line += (f" {r['inside95_median']:>5.2f} {r['final_inside95']:>5.2f} {r['final_beyond999']:>5}"
+                 f" {r['replan_median_ms']:>9.1f} {r['run_median_s']:>6.2f}"
                  f" {r['violations']:>4} {r['estimator_errors']:>4}")
         lines.append(line)
     lines.append("")
@@ -83,6 +93,8 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
                  "budget); [95 %]: 2.5th-97.5th percentile over runs;")
     lines.append("error: final mean true error per run; in95: median share of estimates inside their own 95 % "
                  "ellipse; fail: runs that raised (see the results' error column);")
+    lines.append("end95: share of users inside their own final 95 % ellipse; >99.9: users beyond their final 99.9 % "
+                 "ellipse;")
     lines.append("run s: median wall time of a run; est!: runs whose estimator reported a failure and went on "
                  "(first_estimator_error column).")
     return "\n".join(lines)

@@ -49,6 +49,7 @@ def _outcome_fields(out: Outcome, targets_m: tuple[float, ...]) -> dict:
         "plan_p95_s": float(np.percentile(times, 95)) if len(times) else math.nan,
         "final_error_m": [float(v) for v in out.final_error_m],
         "final_bound95_m": [float(v) for v in out.final_bound95_m],
+        "final_nees": [float(v) for v in out.final_nees],
         "mean_error_m": float(np.mean(err)) if len(err) else math.nan,
         "max_error_m": float(np.max(err)) if len(err) else math.nan,
         "inside95": float(out.inside95), "nlos_share": float(out.nlos_share),
