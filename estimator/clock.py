@@ -221,6 +221,20 @@ def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndar
     return _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance)
 
 
+def _finite_samples(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | None) -> tuple:
+    """(t (m,), r (m,), z (m, c) or None): the samples whose time, residual and nuisance columns
+    (_columns of nuisance) are all finite."""
+    t = np.asarray(t_s, dtype=float)
+    r = np.asarray(resid_m, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(r)
+    z = None
+    if nuisance is not None:
+        z = _columns(nuisance, t.size)
+        ok &= np.all(np.isfinite(z), axis=1)
+        z = z[ok]
+    return t[ok], r[ok], z
+
+
 def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | None = None) -> SawtoothFit | None:
     """Fit a clock sawtooth to one user's range residuals.
 
@@ -238,15 +252,7 @@ def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | No
     outshine it (seen on simulated missions: P = 7.5 s and 8.5 s fitted for a 15 s sawtooth, the
     user 3–11 m off).
     """
-    t = np.asarray(t_s, dtype=float)
-    r = np.asarray(resid_m, dtype=float)
-    ok = np.isfinite(t) & np.isfinite(r)
-    z = None
-    if nuisance is not None:
-        z = _columns(nuisance, t.size)
-        ok &= np.all(np.isfinite(z), axis=1)
-        z = z[ok]
-    t, r = t[ok], r[ok]
+    t, r, z = _finite_samples(t_s, resid_m, nuisance)
     if t.size < 16:
         return None
     t0 = float(t.min())
@@ -311,15 +317,7 @@ def refine_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, prev: SawtoothFit,
     pin a period, and the grid 1/P0 ± CLOCK_REFINE_BINS·df would reach zero frequency, an
     infinite period, at span ≤ P0). explained: as in fit_sawtooth (no acceptance test: the
     user's sawtooth was accepted when first fitted)."""
-    t = np.asarray(t_s, dtype=float)
-    r = np.asarray(resid_m, dtype=float)
-    ok = np.isfinite(t) & np.isfinite(r)
-    z = None
-    if nuisance is not None:
-        z = _columns(nuisance, t.size)
-        ok &= np.all(np.isfinite(z), axis=1)
-        z = z[ok]
-    t, r = t[ok], r[ok]
+    t, r, z = _finite_samples(t_s, resid_m, nuisance)
     p0 = prev.period_s
     if t.size < 16 or not (math.isfinite(p0) and p0 > 0 and math.isfinite(prev.phase)):
         return prev
