@@ -300,3 +300,14 @@ def test_the_summary_counts_users_inside_their_final_95_and_beyond_their_99_9_el
     assert row["final_beyond999"] == 1
     table = format_table([row], (4.0,))
     assert "end95" in table and " 0.50     1 " in table
+
+
+@pytest.mark.parametrize("doc", ["README.md", "docs/campaigns.md"])
+def test_the_documented_campaign_example_loads_as_written(doc):
+    """The spec shown in the README's "Campaigns" section (and in docs/campaigns.md) is a valid
+    spec: the bundled scenario and 20 generated worlds, 3 seeds, 2 planners."""
+    text = (REPO / doc).read_text()
+    block = text.split("```toml\n[campaign]", 1)[1].split("```", 1)[0]
+    campaign = spec_from_dict(tomllib.loads("[campaign]" + block), where=doc)
+    assert len(campaign.runs) == (1 + 20) * 3 * 2
+    assert campaign.targets_m == (3.0, 2.0)
