@@ -30,14 +30,17 @@ THREE_USERS = {
 
 
 def _same_record(a, b) -> bool:
-    """Equal JSON values, floats to 1e-12 relative (the last digit of a double's repr depends on
-    the platform's libm and numpy build; the bundled log was written on another machine)."""
+    """Equal JSON values, floats to 1e-12 relative or 1e-8 absolute (the last digit of a double's
+    repr depends on the platform's libm and numpy build, and the bundled log was written on another
+    machine; an altitude comes back from ECEF, where a double's step at the Earth's radius is
+    ~1e-9 m: one such altitude was 6.4e-10 m apart on another CPU)."""
     if isinstance(a, dict) and isinstance(b, dict):
         return a.keys() == b.keys() and all(_same_record(a[k], b[k]) for k in a)
     if isinstance(a, list) and isinstance(b, list):
         return len(a) == len(b) and all(_same_record(x, y) for x, y in zip(a, b, strict=True))
     if isinstance(a, float) or isinstance(b, float):
-        return isinstance(a, int | float) and isinstance(b, int | float) and math.isclose(a, b, rel_tol=1e-12)
+        return (isinstance(a, int | float) and isinstance(b, int | float)
+                and math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-8))
     return a == b
 
 
