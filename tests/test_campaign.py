@@ -311,3 +311,16 @@ def test_the_documented_campaign_example_loads_as_written(doc):
     campaign = spec_from_dict(tomllib.loads("[campaign]" + block), where=doc)
     assert len(campaign.runs) == (1 + 20) * 3 * 2
     assert campaign.targets_m == (3.0, 2.0)
+
+
+def test_the_final_nees_is_the_last_estimate_s_even_when_it_lost_every_user():
+    """final_nees follows final_error_m: an estimate that locates nobody leaves NaN in both."""
+    from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
+
+    track = AccuracyTrack(np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]), (4.0,))
+    track.update(np.array([[1.0, 0.0], [10.0, 2.0]]), np.array([np.eye(2), 4.0 * np.eye(2)]), 1.0)
+    out = track.fill(Outcome())
+    assert out.final_nees == pytest.approx([1.0, 1.0])
+    track.update(np.full((2, 2), np.nan), np.full((2, 2, 2), np.inf), 2.0)
+    out = track.fill(Outcome())
+    assert np.all(np.isnan(out.final_error_m)) and np.all(np.isnan(out.final_nees))

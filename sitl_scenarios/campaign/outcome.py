@@ -71,11 +71,12 @@ class AccuracyTrack:
         # r95 = sqrt(χ²₂(0.95) · λ_max(Σ_en)) (Estimate.error_bound_95_m)
         lam = np.linalg.eigvalsh(np.where(ok[:, None, None], cov, np.eye(2)))[:, -1]
         self.bound95_m = np.where(ok, np.sqrt(CHI2_2DOF_95 * np.maximum(lam, 0.0)), np.inf)
+        # the user's NEES eᵀ Σ⁻¹ e, NaN where not located (like error_m)
+        self.nees = np.full(len(self.truth_en), np.nan)
         if np.any(ok):
-            # inside the ellipse: eᵀ Σ⁻¹ e ≤ χ²₂(0.95)
             nees = np.einsum("ki,ki->k", e[ok], np.linalg.solve(cov[ok], e[ok][:, :, None])[:, :, 0])
-            self.nees = np.full(len(self.truth_en), np.nan)
             self.nees[ok] = nees
+            # inside the ellipse: eᵀ Σ⁻¹ e ≤ χ²₂(0.95)
             self.inside += int(np.sum(nees <= CHI2_2DOF_95))
             self.seen += int(np.sum(ok))
         bound = float(np.mean(self.bound95_m))
