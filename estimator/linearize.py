@@ -22,15 +22,9 @@ from estimator.problem import (
 )
 from estimator.robust import loss_psi_weight, nlos_terms_curvature
 
-#: the 6 distinct entries (i ≤ j) of a symmetric 3×3: row and column indices, their flat index,
-#: the flat index of their mirror (i > j) and of the entry they copy; _SYM3_OF[i, j]: which of
-#: the 6 holds entry (i, j)
-_SYM3_I = np.array([0, 0, 0, 1, 1, 2])
-_SYM3_J = np.array([0, 1, 2, 1, 2, 2])
-_SYM3_FLAT = 3 * _SYM3_I + _SYM3_J
+#: flat indices of a 3×3's lower triangle (i > j) and of the upper entries they mirror
 _SYM3_LOWER = np.array([3, 6, 7])
 _SYM3_UPPER = np.array([1, 2, 5])
-_SYM3_OF = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
 
 @dataclass
@@ -161,39 +155,26 @@ def linearize(
         inv_g2 = 1.0 / noise.sigma_gps_m**2
         dgps = x - prob.gps_enu_m
         cost = 0.5 * inv_g2 * float(np.vdot(dgps, dgps)) + float(rho.sum())
-    # J_θ = [−J_x[:d], (J_b)]: every block comes from the 6 distinct products O_ij = w J_x,i J_x,j
-    # (i ≤ j, each (K, n)) and, with a bias, B_i = w J_x,i J_b and w J_b²:
-    #   H_nn = Σ_k O (+ GPS),  H_(n,k) = [−O[:, :d], B],  H_kk = [[Σ_n O[:d, :d], −Σ_n B[:d]], [·, Σ_n w J_b²]]
-    d_u = prob.user_dim
-    # the 6 products, stacked (6, K, n) in the order of _SYM3 (one pass each for all of them)
-    o6 = (jac[_SYM3_I] * w) * jac[_SYM3_J]
-    hxx = np.empty((n, 9))
-    hxx[:, _SYM3_FLAT] = o6.sum(axis=1).T
-    hxx[:, _SYM3_LOWER] = hxx[:, _SYM3_UPPER]
-    hxx = hxx.reshape(n, 3, 3)
-    # H_(n,k)[i, j] = −O_ij (i < 3, j < d), and B_i (j = d) with a bias: staged (3, p, K, n), the
-    # layout of the products, then one transposing copy to (n, 3, K, p)
-    sel = _SYM3_OF[:, :d_u].ravel()
-    hxu_s = np.empty((3, p, k_all, n))
-    np.negative(o6[sel].reshape(3, d_u, k_all, n), out=hxu_s[:, :d_u])
-    # H_kk[i, j] = Σ_n O_ij (i, j < d)
-    huu_blocks = np.empty((k_all, p, p))
-    huu_blocks[:, :d_u, :d_u] = o6[_SYM3_OF[:d_u, :d_u].ravel()].sum(axis=2).reshape(d_u, d_u, k_all).transpose(2, 0, 1)
-    # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ = [Σ_n ψ J_x[:d], −Σ_n ψ J_b]
-    jpsi = jac[:3] * psi
-    gx = -dgps * inv_g2 - jpsi.sum(axis=1).T
-    gu = np.empty((k_all, p))
-    gu[:, :d_u] = jpsi[:d_u].sum(axis=2).T
-    if params.estimate_bias:
-        jb = jac[-1]
-        wjb = w * jb
-        ob = np.multiply(jac[:3], wjb, out=hxu_s[:, d_u])  # B_i = w J_x,i J_b, (3, K, n)
-        sb_u = ob[:d_u].sum(axis=2).T  # (K, d)
-        huu_blocks[:, :d_u, d_u] = -sb_u
-        huu_blocks[:, d_u, :d_u] = -sb_u
-        huu_blocks[:, d_u, d_u] = (wjb * jb).sum(axis=1)
-        gu[:, d_u] = -(psi * jb).sum(axis=1)
-    hxu = hxu_s.transpose(3, 0, 2, 1).reshape(n, 3, k_all * p)  # (a copy: the axes are not adjacent)
+    # with w J_x (3, K, n) and J_θ (p, K, n) = [−J_x[:d]; (J_b)], each block is one product:
+    #   H_nn = Σ_k w J_x J_xᵀ (+ GPS),  H_(n,k) = w J_x J_θᵀ,  H_kk = Σ_n w J_θ J_θᵀ
+    jx, jt = jac[:3], jac[3:]
+    jw = jx * w
+    hxx = np.einsum("ikn,jkn->nij", jw, jx)
+    # exactly symmetric (the two triangles' products round differently)
+    hxx.reshape(n, 9)[:, _SYM3_LOWER] = hxx.reshape(n, 9)[:, _SYM3_UPPER]
+    hxu4 = np.empty((n, 3, k_all, p))
+    for i in range(3):
+        for j in range(p):
+            # one (K, n) product each, written through a strided view (a broadcast product over
+            # all four axes would run its inner loop over the p columns: 3× slower)
+            np.multiply(jw[i], jt[j], out=hxu4[:, i, :, j].T)
+    hxu = hxu4.reshape(n, 3, k_all * p)
+    huu_blocks = np.einsum("akn,bkn->kab", jt * w, jt)
+    iu, ju = np.triu_indices(p, 1)
+    huu_blocks[:, ju, iu] = huu_blocks[:, iu, ju]
+    # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ
+    gx = -dgps * inv_g2 - np.einsum("ikn,kn->ni", jx, psi)
+    gu = -np.einsum("akn,kn->ka", jt, psi)
     off = None
     if linked:
         hxx.reshape(n, 9)[:, ::4] += gt.diag[:, None]
