@@ -10,6 +10,7 @@ marginalization prior. The batch solver, the online window and its marginalizati
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,13 @@ from estimator.robust import loss_psi_weight, nlos_terms_curvature
 #: flat indices of a 3×3's lower triangle (i > j) and of the upper entries they mirror
 _SYM3_LOWER = np.array([3, 6, 7])
 _SYM3_UPPER = np.array([1, 2, 5])
+
+
+@functools.cache
+def _upper_pairs(p: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns) of the strict upper triangle of a p×p matrix (np.triu_indices costs more
+    than the products it indexes)."""
+    return np.triu_indices(p, 1)
 
 
 @dataclass
@@ -170,7 +178,7 @@ def linearize(
             np.multiply(jw[i], jt[j], out=hxu4[:, i, :, j].T)
     hxu = hxu4.reshape(n, 3, k_all * p)
     huu_blocks = np.einsum("akn,bkn->kab", jt * w, jt)
-    iu, ju = np.triu_indices(p, 1)
+    iu, ju = _upper_pairs(p)
     huu_blocks[:, ju, iu] = huu_blocks[:, iu, ju]
     # g_n = −(x_n − x̂_n)/σ_gps² − Σ_k ψ J_x,  g_k = −Σ_n ψ J_θ
     gx = -dgps * inv_g2 - np.einsum("ikn,kn->ni", jx, psi)
