@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
             # best of several runs (the machines are shared and noisy, and their speed drifts over
             # seconds): the solvers take turns in rounds of a few consecutive runs each, so that
             # all of them meet the same slow and fast spells and each runs with warm caches
-            rounds, per = (6, 5) if n <= 200 else (3, 1) if n <= 1000 else (1, 1)
+            rounds, per = (15, 5) if n <= 200 else (3, 1) if n <= 1000 else (1, 1)
             init = _initial_users(sc)
             solvers = [
                 lambda sc=sc, k=k: solve_batch(sc.keyframes, k, sc.user_up_m, NOISE, PARAMS),
