@@ -79,48 +79,37 @@ def nlos_prob_update(prob: Problem, gamma: np.ndarray, active: np.ndarray) -> np
     n = gamma.shape[1]
     use = prob.mask[:n].T & active[:, None]
     pi0 = prob.nlos_prob_k.copy()
+    gam = gamma
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        q = (1.0 - pi0)[:, None] * (1.0 - gamma) / (pi0[:, None] * gamma)
-    fin = np.isfinite(q)
-    huge = use & ~fin
-    a = np.where(use & fin, q - 1.0, 0.0)
+        q = (1.0 - pi0)[:, None] * (1.0 - gam) / (pi0[:, None] * gam)
+    huge = use & ~np.isfinite(q)
+    a = np.where(use & ~huge, q - 1.0, 0.0)
     n_huge = huge.sum(axis=1)
-    any_huge = bool(n_huge.any())
 
-    def slope(p: np.ndarray, a: np.ndarray, n_huge: np.ndarray) -> tuple:
-        # D(π) and D'(π) of every row of a, p (rows,)
-        t = a / (1.0 + p[:, None] * a)
-        d = t.sum(axis=1)
-        dp = -(t * t).sum(axis=1)
-        if any_huge:
-            d += n_huge / p
-            dp -= n_huge / (p * p)
-        return d, dp
-
-    def slope_at(p: float) -> np.ndarray:
-        # D(π) of every row at one π
-        d = (a / (1.0 + p * a)).sum(axis=1)
-        return d + n_huge / p if any_huge else d
+    def slope(p: np.ndarray | float, a: np.ndarray, n_huge: np.ndarray, curvature: bool = True) -> tuple:
+        # D(π) and D'(π) of every row of a; p scalar or (rows,)
+        t = a / (1.0 + (p[:, None] if np.ndim(p) else p) * a)
+        d = t.sum(axis=1) + n_huge / p
+        return (d, -(t * t).sum(axis=1) - n_huge / (p * p)) if curvature else (d, None)
 
     # D is decreasing: D(π_min) ≤ 0 puts the maximum on the lower bound (the LoS case, no
     # iteration), D(π_max) ≥ 0 on the upper one; Newton's method for the others
     pi = np.minimum(np.maximum(pi0, NLOS_PROB_MIN), NLOS_PROB_MAX)
-    lo = slope_at(NLOS_PROB_MIN) <= 0.0
+    lo = slope(NLOS_PROB_MIN, a, n_huge, curvature=False)[0] <= 0.0
     pi[lo] = NLOS_PROB_MIN
     free = ~lo
     if free.any():
-        hi = free & (slope_at(NLOS_PROB_MAX) >= 0.0)
+        hi = free & (slope(NLOS_PROB_MAX, a, n_huge, curvature=False)[0] >= 0.0)
         pi[hi] = NLOS_PROB_MAX
         free &= ~hi
     if free.any():
         af, nf, pf = a[free], n_huge[free], pi[free]
         for _ in range(40):
             d, dp = slope(pf, af, nf)
-            new = pf - d / np.minimum(dp, -1e-300)
-            np.minimum(np.maximum(new, NLOS_PROB_MIN, out=new), NLOS_PROB_MAX, out=new)
-            step = np.abs(new - pf).max()
+            new = np.clip(pf - d / np.minimum(dp, -1e-300), NLOS_PROB_MIN, NLOS_PROB_MAX)
+            done = float(np.max(np.abs(new - pf))) < 1e-13
             pf = new
-            if step < 1e-13:
+            if done:
                 break
         pi[free] = pf
     pi[~active] = pi0[~active]
