@@ -32,7 +32,7 @@ from estimator.problem import (
     check_users,
     users_from_theta,
 )
-from estimator.robust import loss_psi_weight, nlos_args
+from estimator.robust import loss_psi_weight
 from estimator.solve import (
     observed_s,
     solve_robust,
@@ -288,8 +288,9 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
             d = np.maximum(np.sqrt((diff * diff).sum(axis=1)), 1e-9)
             sig = self._noise.range_sigma_m(np.maximum(r_meas, 0.0)) * self._scale[k]
             e = (r_meas - d - bias) / sig
+            nl = (self._nlos_pi[k], self._params.nlos_mean_m / sig)
             _, psi, w = loss_psi_weight(
-                e, self._params.loss, self._params.loss_scale, nlos_args(self._params, sig), need_rho=False)
+                e, self._params.loss, self._params.loss_scale, nl, need_rho=False)
             j = -diff / (d * sig)[:, None]
             h = (j * w[:, None]).T @ j + np.eye(3) * inv_g2
             g = -(x - gps) * inv_g2 - (j * psi[:, None]).sum(axis=0)
