@@ -144,6 +144,7 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self._scale = np.ones(self._k)  # per-user range noise scale s_k, re-estimated by each full solve
         self._scale_list = self._scale.tolist()
         self._bias_sigma: np.ndarray | None = None  # bias selection of the last full solve
+        self._marginalize_due = False  # the last full solve left the window beyond params.window
 
     @property
     def estimate(self) -> Estimate | None:
@@ -172,6 +173,8 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         is large) the keyframe is folded in by one information-filter step (_filter_step).
         """
         gps, idx, rng, odom = check_keyframe(kf, self._k)
+        if self._marginalize_due:
+            self._marginalize_window()
         n = self._n
         self._gps[n] = gps
         self._rng[n] = np.nan
@@ -261,12 +264,21 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
             # the summary of the Gauss–Markov filter steps (estimator.online_chain)
             self._s_aug = last_keyframe_information(res.lin, res.s)
         self._cost = res.lin.cost
+        # the window is marginalized down to params.window at this solution, but at the start of
+        # the next update (_marginalize_window): the same prior, while this update, the one that
+        # carries the solve, returns sooner
+        self._marginalize_due = self._n > self._params.window
+        return est
+
+    def _marginalize_window(self) -> None:
+        """Fold the keyframes beyond params.window into the prior, at the last full solve's
+        estimate (nothing has moved since: the update that solved deferred this)."""
+        self._marginalize_due = False
         if self._n > self._params.window:
             m = self._n - self._params.window
             if not (self._marginalize_block(m) or self._marginalize_chain(m)):
                 while self._n > self._params.window:
                     self._marginalize_oldest()
-        return est
 
     def _place_keyframe(self, x0: np.ndarray, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> np.ndarray:
         """One Gauss–Newton step on the new keyframe alone (users fixed): a warm start that
