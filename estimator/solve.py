@@ -208,10 +208,14 @@ def _nlos_prob_blocks(
 
     Returns H_xπ (N, 3, F) = Σ_k ∂ψ/∂π J_x, H_θπ (K·p, F) = Σ_n ∂ψ/∂π J_θ, H_ππ (F,)."""
     n = x.shape[0]
-    mask_kn = prob.mask[:n].T & active[:, None]
-    diff, d, sig, _, e, full = _residuals(prob, x, theta, mask_kn)
-    jac = _range_jac(prob, diff, d, sig, None if full else mask_kn)
-    pi, m = _nlos_args(prob, sig)
+    ks = np.flatnonzero(free)
+    nf, p = ks.size, prob.p
+    # only the free users' ranges enter: their residuals and Jacobians alone
+    sub = user_subproblem(prob, ks)
+    mask_kn = sub.mask[:n].T & active[ks][:, None]
+    diff, d, sig, _, e, full = _residuals(sub, x, theta[ks], mask_kn)
+    jac = _range_jac(sub, diff, d, sig, None if full else mask_kn)
+    pi, m = _nlos_args(sub, sig)
     inv_m = 1.0 / m
     t = e - inv_m
     mills = _mills(t)
@@ -219,14 +223,12 @@ def _nlos_prob_blocks(
     mm = inv_m * mills
     dpsi = np.where(mask_kn, -(t + 1.0 / mills) * (mm / g) / g, 0.0)
     dpp = np.where(mask_kn, ((mm - 1.0) / g) ** 2, 0.0)
-    ks = np.flatnonzero(free)
-    nf, p = ks.size, prob.p
     hxp = np.zeros((n, 3, nf))
     c_up = np.zeros((prob.n_users * p, nf))
     for j, k in enumerate(ks.tolist()):
-        hxp[:, :, j] = (jac[:3, k] * dpsi[k]).T
-        c_up[k * p : (k + 1) * p, j] = (jac[3:, k] * dpsi[k]).sum(axis=1)
-    return hxp, c_up, dpp[ks].sum(axis=1)
+        hxp[:, :, j] = (jac[:3, j] * dpsi[j]).T
+        c_up[k * p : (k + 1) * p, j] = (jac[3:, j] * dpsi[j]).sum(axis=1)
+    return hxp, c_up, dpp.sum(axis=1)
 
 
 def _solve_robust(
