@@ -32,7 +32,6 @@ from estimator.problem import (
     check_users,
     users_from_theta,
 )
-from estimator.robust import loss_psi_weight
 from estimator.solve import (
     observed_s,
     solve_robust,
@@ -279,35 +278,6 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
             if not (self._marginalize_block(m) or self._marginalize_chain(m)):
                 while self._n > self._params.window:
                     self._marginalize_oldest()
-
-    def _place_keyframe(self, x0: np.ndarray, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> np.ndarray:
-        """One Gauss–Newton step on the new keyframe alone (users fixed): a warm start that
-        leaves the joint iterations only the users' small shift to absorb.
-
-            min_x ||x − x̂||²/σ_gps² + Σ_k w (r̂_k − ||x − u_k|| − b_k)²/σ²
-        """
-        use = self._active[idx]
-        if not use.any():
-            return x0
-        k = idx[use]
-        users = users_from_theta(self._theta[k], self._up[k], self._params.user_dim)
-        bias = self._theta[k, -1] if self._params.estimate_bias else 0.0
-        r_meas = rng[use]
-        inv_g2 = 1.0 / self._noise.sigma_gps_m**2
-        x = x0.copy()
-        for _ in range(1):
-            diff = x - users
-            d = np.maximum(np.sqrt((diff * diff).sum(axis=1)), 1e-9)
-            sig = self._noise.range_sigma_m(np.maximum(r_meas, 0.0)) * self._scale[k]
-            e = (r_meas - d - bias) / sig
-            nl = (self._nlos_pi[k], self._params.nlos_mean_m / sig)
-            _, psi, w = loss_psi_weight(
-                e, self._params.loss, self._params.loss_scale, nl, need_rho=False)
-            j = -diff / (d * sig)[:, None]
-            h = (j * w[:, None]).T @ j + np.eye(3) * inv_g2
-            g = -(x - gps) * inv_g2 - (j * psi[:, None]).sum(axis=0)
-            x = x + np.linalg.solve(h, g)
-        return x
 
     def _check_due(self, newly: np.ndarray) -> bool:
         """Whether this full update re-runs the checks (ONLINE_CHECK_BACKOFF_MAX docstring)."""

@@ -34,6 +34,27 @@ def _inv3_sym(a00: float, a01: float, a02: float, a11: float, a12: float, a22: f
     return np.array([[c00 * r, c01 * r, c02 * r], [c01 * r, c11 * r, c12 * r], [c02 * r, c12 * r, c22 * r]])
 
 
+def _keyframe_normal(us: list, w: list, psi: list, inv_g2: float, g_start: tuple) -> tuple[float, ...]:
+    """One keyframe's normal equations in x from its ranges (_range_rows: α û, w, ψ per range),
+    with J_x = −α û:  H_nn = I·inv_g2 + Σ w J_xᵀ J_x,  g_n = g_start − Σ ψ J_x.
+    Returns the 6 entries of H_nn (00, 01, 02, 11, 12, 22) and g_n's 3, in Python floats."""
+    h00 = h11 = h22 = inv_g2
+    h01 = h02 = h12 = 0.0
+    g0, g1, g2 = g_start
+    for (vx, vy, vz), wj, pj in zip(us, w, psi, strict=True):
+        wx, wy = wj * vx, wj * vy
+        h00 += wx * vx
+        h01 += wx * vy
+        h02 += wx * vz
+        h11 += wy * vy
+        h12 += wy * vz
+        h22 += wj * vz * vz
+        g0 += pj * vx
+        g1 += pj * vy
+        g2 += pj * vz
+    return h00, h01, h02, h11, h12, h22, g0, g1, g2
+
+
 class FilterSteps:
     """The filter steps of OnlineEstimator (a mixin: the state is the estimator's)."""
 
@@ -83,57 +104,12 @@ class FilterSteps:
         full = ka_list == self._k_list
         p, d_u = self._p, params.user_dim
         with_bias = params.estimate_bias
-        # per range, in Python floats (m ≤ K small): geometry, residual, Jacobian factors
-        gx, gy, gz = x0.tolist()
-        users = self._users[ka].tolist()
-        biases = self._theta[ka, -1].tolist() if with_bias else None
-        s0, a_m, b_m = noise.s0_m, noise.a_m, noise.b_per_m
-        us, sigs, es = [], [], []
-        for j, (r_j, (ux, uy, uz)) in enumerate(zip(r_list, users, strict=True)):
-            dx, dy, dz = gx - ux, gy - uy, gz - uz
-            d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
-            # σ(r̂) = s0 + a·exp(b·r̂), the spread at the measured range (estimator.factors)
-            sc = self._scale_list[ka_list[j]]
-            sig = (s0 + a_m * math.exp(min(b_m * max(r_j, 0.0), SIGMA_EXPONENT_MAX)) if a_m != 0.0 else s0) * sc
-            res = r_j - d - (biases[j] if with_bias else 0.0)
-            # α = 1/σ
-            f = 1.0 / (sig * d)
-            us.append((dx * f, dy * f, dz * f))  # α û = ∂e/∂u = −∂e/∂x
-            sigs.append(sig)
-            es.append(res / sig)
-        if params.loss == "nlos":
-            # the mixture loss in Python floats (estimator.robust.nlos_terms, same formulas)
-            psi, w = [], []
-            for e_j, sig_j, k in zip(es, sigs, ka_list, strict=True):
-                pi_j = self._nlos_pi_list[k]
-                inv_m = sig_j / params.nlos_mean_m
-                t = e_j - inv_m
-                mills = _SQRT_HALF_PI * float(erfcx(-_SQRT_HALF * min(t, 37.0)))
-                q = pi_j * inv_m * mills
-                g = 1.0 - pi_j + q
-                w.append((1.0 - pi_j) / g)
-                psi.append(e_j - q / g * (t + 1.0 / mills))
-        else:
-            _, psi_a, w_a = loss_psi_weight(np.array(es), params.loss, params.loss_scale, None, need_rho=False)
-            psi, w = psi_a.tolist(), w_a.tolist()
+        us, sigs, psi, w = self._range_rows(x0, ka_list, r_list)
         # J_x = −α û, J_θ = [α û_(:d), (−1/σ)]: H_nn = I/σ_gps² + Σ w J_xᵀJ_x, g_n = −Σ ψ J_x,
         # B = H_nθ (3, m·p) with blocks w J_xᵀ J_θ, blockdiag H_θθ = w J_θᵀ J_θ, g_θ = −ψ J_θ
         # (the GPS factor of a linked keyframe enters in _chain_step)
-        ig = 0.0 if linked else self._inv_g2
-        h00 = h11 = h22 = ig
-        h01 = h02 = h12 = 0.0
-        g0 = g1 = g2 = 0.0
-        for (vx, vy, vz), wj, pj in zip(us, w, psi, strict=True):
-            wx, wy = wj * vx, wj * vy
-            h00 += wx * vx
-            h01 += wx * vy
-            h02 += wx * vz
-            h11 += wy * vy
-            h12 += wy * vz
-            h22 += wj * vz * vz
-            g0 += pj * vx
-            g1 += pj * vy
-            g2 += pj * vz
+        h00, h01, h02, h11, h12, h22, g0, g1, g2 = _keyframe_normal(
+            us, w, psi, 0.0 if linked else self._inv_g2, (0.0, 0.0, 0.0))
         m = ka.size
         u_a = np.array(us)  # α û, (m, 3)
         w_a = np.array(w)
@@ -182,6 +158,62 @@ class FilterSteps:
         self._users[:, :d_u] = self._theta[:, :d_u]
         self._s = s_new
         return self._filter_estimate(s_new, cov)
+
+    def _range_rows(self, x0: np.ndarray, ka_list: list[int], r_list: list[float]) -> tuple[list, list, list, list]:
+        """The ranges r_list to the active users ka_list from a keyframe at x0 (3,), at the
+        current users, biases, noise scales and NLoS probabilities, in Python floats (m ≤ K
+        ranges: cheaper than numpy): per range α û = ∂e/∂u = −∂e/∂x (3-tuples), σ, ψ = ρ'(e)
+        and the weight w of the loss (estimator.factors, estimator.robust: the same formulas)."""
+        params, noise = self._params, self._noise
+        gx, gy, gz = x0.tolist()
+        users = self._users[ka_list].tolist()
+        with_bias = params.estimate_bias
+        biases = self._theta[ka_list, -1].tolist() if with_bias else None
+        s0, a_m, b_m = noise.s0_m, noise.a_m, noise.b_per_m
+        us, sigs, es = [], [], []
+        for j, (r_j, (ux, uy, uz)) in enumerate(zip(r_list, users, strict=True)):
+            dx, dy, dz = gx - ux, gy - uy, gz - uz
+            d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
+            # σ(r̂) = s0 + a·exp(b·r̂), the spread at the measured range (estimator.factors)
+            sc = self._scale_list[ka_list[j]]
+            sig = (s0 + a_m * math.exp(min(b_m * max(r_j, 0.0), SIGMA_EXPONENT_MAX)) if a_m != 0.0 else s0) * sc
+            res = r_j - d - (biases[j] if with_bias else 0.0)
+            # α = 1/σ
+            f = 1.0 / (sig * d)
+            us.append((dx * f, dy * f, dz * f))
+            sigs.append(sig)
+            es.append(res / sig)
+        if params.loss == "nlos":
+            # the mixture loss in Python floats (estimator.robust.nlos_terms, same formulas)
+            psi, w = [], []
+            for e_j, sig_j, k in zip(es, sigs, ka_list, strict=True):
+                pi_j = self._nlos_pi_list[k]
+                inv_m = sig_j / params.nlos_mean_m
+                t = e_j - inv_m
+                mills = _SQRT_HALF_PI * float(erfcx(-_SQRT_HALF * min(t, 37.0)))
+                q = pi_j * inv_m * mills
+                g = 1.0 - pi_j + q
+                w.append((1.0 - pi_j) / g)
+                psi.append(e_j - q / g * (t + 1.0 / mills))
+        else:
+            _, psi_a, w_a = loss_psi_weight(np.array(es), params.loss, params.loss_scale, None, need_rho=False)
+            psi, w = psi_a.tolist(), w_a.tolist()
+        return us, sigs, psi, w
+
+    def _place_keyframe(self, x0: np.ndarray, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray) -> np.ndarray:
+        """One Gauss–Newton step on a new keyframe alone (users fixed) from x0: a warm start that
+        leaves the joint iterations only the users' small shift to absorb.
+
+            min_x ||x − x̂||²/σ_gps² + Σ_k w (r̂_k − ||x − u_k|| − b_k)²/σ²
+        """
+        use = self._active[idx]
+        if not use.any():
+            return x0
+        us, _, psi, w = self._range_rows(x0, idx[use].tolist(), rng[use].tolist())
+        ig = self._inv_g2
+        # g = −(x0 − x̂)/σ_gps² − Σ ψ J_x
+        h00, h01, h02, h11, h12, h22, g0, g1, g2 = _keyframe_normal(us, w, psi, ig, ((gps - x0) * ig).tolist())
+        return x0 + _inv3_sym(h00, h01, h02, h11, h12, h22) @ np.array([g0, g1, g2])
 
     def _chain_step(self, n: int, x0: np.ndarray, phi: float, ranges: tuple | None) -> Estimate | None:
         """The filter step of a keyframe linked to the last one by its Gauss–Markov GPS factor
