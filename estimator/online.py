@@ -210,7 +210,8 @@ class OnlineEstimator(FilterSteps, WindowMarginalization):
         self, n: int, gps: np.ndarray, idx: np.ndarray, rng: np.ndarray, odom: np.ndarray | None,
     ) -> Estimate:
         """Start users that are ready, re-solve the window (Levenberg–Marquardt from the previous
-        solution, with the prior), re-check mirrors, marginalize down to params.window."""
+        solution, with the prior) and re-check mirrors; the window is marginalized down to
+        params.window at this solution when the next keyframe arrives (_marginalize_window)."""
         # a new keyframe starts at its GPS fix, or dead-reckoned from the previous one, moved to
         # where the ranges to the users already estimated put it
         self._x[n] = self._x[n - 1] + odom if (self._odom_mask[n] and n > 0) else gps

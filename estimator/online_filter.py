@@ -1,6 +1,7 @@
 """Information-filter steps of the online estimator between window solves (estimator.online):
 one keyframe folded into the users' information, white GPS (_filter_step) or linked to the
-previous keyframe by its Gauss–Markov GPS or motion factor (_chain_step)."""
+previous keyframe by its Gauss–Markov GPS or motion factor (_chain_step); and the placement of
+a window solve's new keyframe (_place_keyframe), from the same per-range terms (_range_rows)."""
 
 from __future__ import annotations
 
