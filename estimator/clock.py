@@ -182,40 +182,44 @@ def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndar
 
     With Q (n, q) an orthonormal basis of [1, Z] (_basis), the sawtooth s and r projected off it,
     ř = r − Q Qᵀ r:  A = S_xy / S_xx,  S_xy = sᵀ ř,  S_xx = sᵀ s − |Qᵀ s|²,  rss = |ř|² − A² S_xx.
-    Per period, with u_n = frac(t_n/P) sorted and k(φ) = #{u_n < φ} (phases in [0, 1)):
-    s_n = frac(u_n − φ) = u_n − φ + [u_n < φ], so with prefix sums over the sorted order
-    U_k = Σ_(i<k) u_(i), Ř_k = Σ_(i<k) ř_(i), Q_k = Σ_(i<k) q_(i) (Σ ř = 0: ř ⊥ 1),
+    Per period, with u_n = frac(t_n/P) and the phases in [0, 1):
+    s_n = frac(u_n − φ) = u_n − φ + [u_n < φ], so with the sums over the samples below φ,
+    k(φ) = #{u_n < φ}, U(φ) = Σ_(u_n<φ) u_n, Ř(φ) = Σ_(u_n<φ) ř_n, Q(φ) = Σ_(u_n<φ) q_n (Σ ř = 0),
 
-        Σ s² = Σu² − 2φΣu + nφ² + 2(U_k − kφ) + k,   sᵀ ř = Σ u ř + Ř_k,   Qᵀ s = Σ u q − φ Σ q + Q_k
+        Σ s² = Σu² − 2φΣu + nφ² + 2(U − kφ) + k,   sᵀ ř = Σ u ř + Ř,   Qᵀ s = Σ u q − φ Σ q + Q
 
-    O(P·(q + 1)·(n log n + Φ)) instead of the O(P·Φ·n·q) of frac on the whole grid
-    (_fit_grid_dense, the same numbers up to rounding)."""
+    Those sums come from one histogram per quantity: sample n of period P falls in bin
+    b = #{φ_j ≤ u_n} of the sorted phases, u_n < φ_(j) ⟺ b ≤ j, and a prefix sum over the Φ + 1
+    bins gives them at every phase. O(P·n·(q + 3) + P·Φ·q) instead of the O(P·Φ·n·q) of frac on
+    the whole grid (_fit_grid_dense, the same numbers up to rounding)."""
     n = t.size
     q = _basis(n, nuisance)
     rq = r - q @ (q.T @ r)
     ph = np.mod(np.asarray(phases, dtype=float), 1.0)
-    n_p = periods.size
-    rows = np.arange(n_p)[:, None]
+    n_p, n_f = periods.size, ph.size
+    order = np.argsort(ph, kind="stable")
     u = t[None, :] / periods[:, None]
     u -= np.floor(u)
-    order = np.argsort(u, axis=1, kind="stable")
-    us = np.take_along_axis(u, order, axis=1)
-    cu = np.zeros((n_p, n + 1))
-    np.cumsum(us, axis=1, out=cu[:, 1:])
-    # k(φ) per period by one search: row i's sorted u shifted by i keeps the whole array sorted
-    k = np.searchsorted((us + rows).ravel(), (ph[None, :] + rows).ravel(), side="left").reshape(n_p, -1)
-    k = np.clip(k - rows * n, 0, n)
-    su = cu[:, -1:]
-    su2 = np.einsum("pn,pn->p", us, us)[:, None]
-    s2 = su2 - 2.0 * ph[None, :] * su + n * ph[None, :] ** 2 + 2.0 * (np.take_along_axis(cu, k, axis=1) - k * ph) + k
-    # sᵀ ř and Qᵀ s, the columns [ř, Q] sorted and summed together
-    cols = np.column_stack([rq, q])[order]  # (P, n, 1 + q)
-    cc = np.zeros((n_p, n + 1, cols.shape[2]))
-    np.cumsum(cols, axis=1, out=cc[:, 1:])
-    suc = np.einsum("pn,pnc->pc", us, cols)  # Σ u ř, Σ u q
-    tot = cc[:, -1, :]  # Σ ř (0), Σ q
-    kc = np.take_along_axis(cc, k[:, :, None], axis=1)  # (P, Φ, 1 + q)
-    proj = suc[:, None, :] - ph[None, :, None] * tot[:, None, :] + kc
+    # each (period, sample)'s bin, offset by period: one bincount histograms every period
+    b = np.searchsorted(ph[order], u, side="right")
+    b += (np.arange(n_p) * (n_f + 1))[:, None]
+    b = b.ravel()
+    cols = np.column_stack([rq, q])  # (n, 1 + q): ř, Q
+    n_c = cols.shape[1]
+    w = np.empty((2 + n_c, n_p * n))
+    w[0] = 1.0
+    w[1] = u.ravel()
+    w[2:].reshape(n_c, n_p, n)[...] = cols.T[:, None, :]
+    hist = np.stack([np.bincount(b, weights=wi, minlength=n_p * (n_f + 1)) for wi in w])
+    below = np.empty((2 + n_c, n_p, n_f))
+    below[:, :, order] = np.cumsum(hist.reshape(2 + n_c, n_p, n_f + 1), axis=2)[:, :, :n_f]
+    k, uk, kc = below[0], below[1], np.moveaxis(below[2:], 0, 2)  # (P, Φ), (P, Φ), (P, Φ, 1 + q)
+    su = u.sum(axis=1)[:, None]
+    su2 = np.einsum("pn,pn->p", u, u)[:, None]
+    s2 = su2 - 2.0 * ph[None, :] * su + n * ph[None, :] ** 2 + 2.0 * (uk - k * ph) + k
+    suc = u @ cols  # Σ u ř, Σ u q (P, 1 + q)
+    tot = cols.sum(axis=0)  # Σ ř (0), Σ q
+    proj = suc[:, None, :] - ph[None, :, None] * tot[None, None, :] + kc
     sxy = proj[:, :, 0]
     sxx = s2 - np.einsum("pfq,pfq->pf", proj[:, :, 1:], proj[:, :, 1:])
     return _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance)
