@@ -81,6 +81,10 @@ def test_gps_loss_in_the_air_is_an_ekf_failsafe_that_lands_at_once():
     assert ap.custom_mode == LAND and ap.ekf_failsafe
     assert ap.system_status() == M.MAV_STATE_CRITICAL
     assert any("EKF" in text for _, text in ap.messages)
+    # Copter::position_ok() is false in the EKF failsafe: a ground station's RTL (sent before it
+    # saw the LAND) is refused, as are GUIDED and AUTO
+    assert ap.set_custom_mode(RTL)[0] == DENIED and ap.return_to_launch()[0] == DENIED
+    assert ap.set_custom_mode(GUIDED)[0] == DENIED
     _until(ap, lambda: not ap.armed)
     assert ap.custom_mode == LAND
 

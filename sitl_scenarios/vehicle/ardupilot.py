@@ -232,8 +232,11 @@ class ArduCopter(Autopilot):
 
     @property
     def position_valid(self) -> bool:
-        """The EKF has a global position once it uses GPS; after a loss it dead-reckons."""
-        return super().position_valid and self.t_s >= self.gps_fix_delay_s + EKF_GPS_AFTER_FIX_S
+        """The EKF has a global position once it uses GPS; after a loss it dead-reckons, except in
+        the EKF failsafe: ArduCopter's Copter::position_ok() is false while failsafe.ekf is set,
+        so the LAND it switched to cannot be changed to GUIDED, AUTO or RTL."""
+        return (not self.ekf_failsafe and super().position_valid
+                and self.t_s >= self.gps_fix_delay_s + EKF_GPS_AFTER_FIX_S)
 
     def _home_ready(self) -> bool:
         return self.gps_ok and self.t_s >= self.gps_fix_delay_s + ORIGIN_AFTER_FIX_S
