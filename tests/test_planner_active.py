@@ -624,3 +624,23 @@ def test_the_mission_compiles_planner_kernels_outside_the_working_folder(tmp_pat
     f = objective.compile_hook("uavloc_test_kernel", [x], [ca.sumsqr(x)])
     assert float(f([1.0, 2.0])) == 5.0
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_campaign_spec_compiles_planner_kernels_outside_the_working_folder(tmp_path, monkeypatch):
+    """Loading a spec builds each planner to check its options; with `precompile = true` that
+    compiles the kernels, which must not land in the user's folder either (they did: 18 files in
+    the working folder for as long as a campaign ran)."""
+    from planner import objective
+    from sitl_scenarios.campaign import load_spec
+
+    monkeypatch.setattr(objective, "compile_hook", objective.jit_function)
+    monkeypatch.setattr(objective, "_KERNELS", {})  # built anew, not taken from this process's cache
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "spec.toml").write_text(
+        '[campaign]\nname = "jit"\nmode = "fast"\nseeds = [1]\nplanners = ["casadi"]\n\n'
+        "[planner_options.casadi]\nprecompile = true\n\n"
+        '[[scenarios]]\nfile = "three_users_nlos"\n'
+    )
+    load_spec(tmp_path / "spec.toml")
+    assert objective._KERNELS, "the spec check compiled no kernel: the test tests nothing"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["spec.toml"]
