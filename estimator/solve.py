@@ -53,15 +53,10 @@ NLOS_PARTIAL_MOVED = 1e-3
 NLOS_PARTIAL_ITERATIONS = 2
 NLOS_PARTIAL_ROUNDS = 20
 #: per-user range-noise scale (params.estimate_noise_scale): upper bound, fewest degrees of
-#: freedom to estimate it from, relative change below which it is not re-solved, and most rounds.
-#: A scale s_k weighs all of user k's ranges alike, which leaves its own θ_k where it is in least
-#: squares; the solution moves through the keyframes alone. Re-solving after changes of 10–25 %
-#: moved users by at most 0.066 σ on 225 simulated problems (N = 200–600, K = 5–20, white, 20 %
-#: NLoS, noise scales 0.7–1.8, biases), with the mean NEES equal to three decimals; at 0.1 a white
-#: user's 2-σ fluke of its scale (1.11 at 200 ranges) cost a K = 20 problem a whole re-solve
+#: freedom to estimate it from, relative change below which it is not re-solved, and most rounds
 NOISE_SCALE_MAX = 10.0
 NOISE_SCALE_MIN_DOF = 8
-NOISE_SCALE_RESOLVE = 0.25
+NOISE_SCALE_RESOLVE = 0.1
 NOISE_SCALE_ROUNDS = 6
 #: bias selection (params.bias_select): a bias below this many of its standard deviations is
 #: fixed at 0 by a prior of BIAS_OFF_SIGMA_M
