@@ -114,7 +114,7 @@ def solve_batch(
         with NaN are initialised by grid search.
     Users with fewer than p + 1 ranges (p unknowns) are not estimated: NaN rows, inf covariance.
     warm: an Estimate solve_batch returned for a prefix of these keyframes (a refresh,
-        estimator.refresh): see _warm_solve; extra["warm_started"] says whether it was used.
+        estimator.refresh): see _warm_solve; state.warm_started says whether it was used.
     Raises EstimatorError on malformed input, naming the offending value.
     """
     prob = pack_keyframes(keyframes, n_users, user_up_m, noise, params)
@@ -151,13 +151,9 @@ def solve_batch(
         res, clocks, triggered = _track_clocks(prob, res, active)
     solved = res
     res, mirrors = _resolve_mirrors(prob, res, active)
-    est = _estimate(prob, res, active, mirrors, n_ranges)
-    est.extra["clock"] = clocks
     if triggered is None or res is not solved:
         triggered = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
-    est.extra["clock_triggered"] = triggered
-    est.extra["warm_started"] = False
-    return est
+    return _estimate(prob, res, active, mirrors, n_ranges, clock=clocks, clock_triggered=triggered)
 
 
 def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.ndarray) -> Estimate | None:
@@ -173,15 +169,17 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
     whose residuals now trigger the clock test (_clock_trigger) and did not in the cold solve."""
     n, k_all, p = prob.n_keyframes, prob.n_users, prob.p
     x_prev = np.asarray(warm.uav_enu_m, dtype=float)
-    ex = warm.extra or {}
-    warm_active = np.asarray(ex.get("active", np.zeros(k_all, dtype=bool)), dtype=bool)
-    clocks = ex.get("clock")
+    st = warm.state
+    if st is None:
+        return None
+    warm_active = np.asarray(st.active, dtype=bool)
+    clocks = st.clock
     if (
         warm.n_users != k_all or x_prev.ndim != 2 or not 0 < x_prev.shape[0] <= n
         or warm_active.shape != (k_all,) or np.any(active & ~warm_active)
-        or clocks is None or len(clocks) != k_all or "noise_scale" not in ex
-        or (prob.params.estimate_bias and (warm.bias_m is None or "bias_on" not in ex))
-        or (prob.params.loss == "nlos" and prob.params.nlos_adapt and "nlos_prob_k" not in ex)
+        or clocks is None or len(clocks) != k_all
+        or (prob.params.estimate_bias and (warm.bias_m is None or st.bias_on is None))
+        or (prob.params.loss == "nlos" and prob.params.nlos_adapt and st.nlos_prob_k is None)
     ):
         return None
     x = prob.gps_enu_m.copy()
@@ -190,7 +188,7 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
     theta[:, : prob.user_dim] = np.asarray(warm.users_enu_m, dtype=float)[:, : prob.user_dim]
     if prob.params.estimate_bias:
         theta[:, -1] = np.nan_to_num(np.asarray(warm.bias_m, dtype=float))
-        prob.bias_sigma_k = np.where(np.asarray(ex["bias_on"], dtype=bool), prob.params.bias_prior_sigma_m,
+        prob.bias_sigma_k = np.where(np.asarray(st.bias_on, dtype=bool), prob.params.bias_prior_sigma_m,
                                      BIAS_OFF_SIGMA_M)
         if any(c is not None for c in clocks):
             t = prob.t_s[:n]
@@ -203,10 +201,10 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
     theta[~active] = 0.0
     if not np.all(np.isfinite(theta[active])):
         return None
-    if "nlos_prob_k" in ex:
-        prob.nlos_prob_k = np.asarray(ex["nlos_prob_k"], dtype=float).copy()
+    if st.nlos_prob_k is not None:
+        prob.nlos_prob_k = np.asarray(st.nlos_prob_k, dtype=float).copy()
     if prob.params.estimate_noise_scale:
-        prob.noise_scale_k = np.asarray(ex["noise_scale"], dtype=float).copy()
+        prob.noise_scale_k = np.asarray(st.noise_scale, dtype=float).copy()
     res = solve_robust(prob, x, theta, active)
     if prob.params.estimate_bias and any(c is not None for c in clocks):
         res, clocks = _refine_clocks(prob, res, active, clocks)
@@ -214,16 +212,15 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
     if prob.params.track_clock and prob.params.estimate_bias:
         # a user without a sawtooth whose residuals now call for one (more periods seen since the
         # cold solve, which did not test it): the clock detection needs the cold solve
-        tested = np.asarray(ex.get("clock_triggered", np.zeros(k_all, dtype=bool)), dtype=bool)
+        tested = np.zeros(k_all, dtype=bool) if st.clock_triggered is None else st.clock_triggered
         untracked = np.array([c is None for c in clocks])
         if np.any(triggered & untracked & ~tested):
             return None
     res, mirrors = _resolve_mirrors(prob, res, active)
-    est = _estimate(prob, res, active, mirrors, n_ranges)
-    est.extra["clock"] = list(clocks) if prob.params.estimate_bias else [None] * k_all
-    est.extra["clock_triggered"] = triggered | np.asarray(ex.get("clock_triggered", triggered), dtype=bool)
-    est.extra["warm_started"] = True
-    return est
+    was = triggered if st.clock_triggered is None else st.clock_triggered
+    return _estimate(prob, res, active, mirrors, n_ranges,
+                     clock=list(clocks) if prob.params.estimate_bias else [None] * k_all,
+                     clock_triggered=triggered | was, warm_started=True)
 
 
 def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from estimator.problem import (
 from estimator.solve import (
     BIAS_OFF_SIGMA_M,
 )
-from estimator.types import Estimate
+from estimator.types import Estimate, ModelState
 
 
 def _covariances(
@@ -73,30 +73,39 @@ def _covariances(
 
 def _estimate(
     prob: Problem, res: _Result, active: np.ndarray, mirrors: list, n_ranges: np.ndarray,
+    clock: list | None = None, clock_triggered: np.ndarray | None = None, warm_started: bool = False,
 ) -> Estimate:
+    """The Estimate of solution `res` (its users, covariances and model state).
+
+    mirrors: (K,) mirror test per user (None: not tested); n_ranges: (K,) ranges per user;
+    clock, clock_triggered, warm_started: the batch solve's clock tracking and warm start
+    (ModelState)."""
     k_all, p, d = prob.n_users, prob.p, prob.user_dim
     users = users_from_theta(res.theta, prob.user_up_m, d)
     users[~active] = np.nan
     cov, info, cov_joint = _covariances(res.s, active, k_all, p, d)
     bias = None
+    bias_on = None
     if prob.params.estimate_bias:
         bias = np.where(active, res.theta[:, -1], np.nan)
+        sb = prob.bias_sigma_k
+        bias_on = np.ones(k_all, dtype=bool) if sb is None else sb > BIAS_OFF_SIGMA_M
     ambiguous = np.zeros(k_all, dtype=bool)
     mirror = np.full((k_all, 3), np.nan)
     for k, mt in enumerate(mirrors):
         if mt is not None and mt.ambiguous:
             ambiguous[k] = True
             mirror[k] = users_from_theta(mt.mirror_theta[None, :], prob.user_up_m[k : k + 1], d)[0]
-    extra = {"active": active.copy(), "cov_theta_joint": cov_joint, "lin_cost": res.lin.cost}
-    if prob.nlos_prob_k is not None:
-        extra["nlos_prob_k"] = prob.nlos_prob_k.copy()  # (K,) π_k the "nlos" loss ended with
-    extra["noise_scale"] = (np.ones(k_all) if prob.noise_scale_k is None else prob.noise_scale_k.copy())
-    if prob.params.estimate_bias:
-        # (K,) True where the range bias is estimated (False: selected off, fixed at 0)
-        sb = prob.bias_sigma_k
-        extra["bias_on"] = np.ones(k_all, dtype=bool) if sb is None else sb > BIAS_OFF_SIGMA_M
+    state = ModelState(
+        active=active.copy(), cov_theta_joint=cov_joint,
+        noise_scale=np.ones(k_all) if prob.noise_scale_k is None else prob.noise_scale_k.copy(),
+        nlos_prob_k=None if prob.nlos_prob_k is None else prob.nlos_prob_k.copy(),
+        bias_on=bias_on, clock=None if clock is None else tuple(clock),
+        clock_triggered=None if clock_triggered is None else np.asarray(clock_triggered, dtype=bool).copy(),
+        warm_started=warm_started,
+    )
     return Estimate(
         users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias, uav_enu_m=res.x.copy(),
         ambiguous=ambiguous, mirror_enu_m=mirror, n_ranges=n_ranges.copy(), cost=res.lin.cost,
-        iterations=res.iterations, converged=res.converged, extra=extra,
+        iterations=res.iterations, converged=res.converged, state=state,
     )

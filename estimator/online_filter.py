@@ -18,7 +18,7 @@ from estimator.noise import SIGMA_EXPONENT_MAX
 from estimator.online_chain import chain_step
 from estimator.robust import loss_psi_weight
 from estimator.schur import sym3_cofactors
-from estimator.types import Estimate
+from estimator.types import Estimate, ModelState
 
 _SQRT_HALF_PI = math.sqrt(0.5 * math.pi)
 _SQRT_HALF = math.sqrt(0.5)
@@ -292,6 +292,6 @@ class FilterSteps:
             uav_enu_m=self._x[: self._n].copy(), ambiguous=prev.ambiguous.copy(),
             mirror_enu_m=prev.mirror_enu_m.copy(), n_ranges=self._n_ranges.copy(), cost=float("nan"),
             iterations=0, converged=True,
-            extra={"active": self._active.copy(), "cov_theta_joint": cov_joint, "filter_step": True,
-                   "noise_scale": self._scale.copy()},
+            state=ModelState(active=self._active.copy(), cov_theta_joint=cov_joint,
+                             noise_scale=self._scale.copy(), filter_step=True),
         )

@@ -27,13 +27,14 @@ Keyframes that queued up while the estimator was busy are added together and pub
 (`add_keyframes`): at most one refresh for all of them, so an estimator that falls behind (a
 loaded machine, a sped-up simulation) catches up instead of lagging further.
 
-Each published Estimate says which it is: extra["source"] is "batch" or "online", and
-extra["keyframes_used"] the number of keyframes it is the answer for.
+Each published Estimate says which it is: Estimate.source is SOURCE_BATCH or SOURCE_ONLINE, and
+Estimate.keyframes_used the number of keyframes it is the answer for.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -44,7 +45,7 @@ from estimator.batch import solve_batch
 from estimator.noise import NoiseModel
 from estimator.online import OnlineEstimator
 from estimator.problem import check_keyframe
-from estimator.types import Estimate, Keyframe, SolverParams
+from estimator.types import SOURCE_BATCH, SOURCE_ONLINE, Estimate, Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
 log = logging.getLogger(__name__)
@@ -57,8 +58,6 @@ COLD_GROWTH = 2.0
 #: a refresh asked for by `confirm` comes at most this often [keyframes]
 CONFIRM_MIN_KEYFRAMES = 2
 
-SOURCE_BATCH = "batch"
-SOURCE_ONLINE = "online"
 
 
 class _OnlineFailed(EstimatorError):
@@ -185,7 +184,7 @@ class RefreshedEstimator:
         warm = None if self._batch is None or n >= COLD_GROWTH * self._cold_at else self._batch
         init = None if self._batch is None else self._batch.users_enu_m
         est = solve_batch(self._keyframes, n_users, up, noise, params, init_users_enu_m=init, warm=warm)
-        if not est.extra.get("warm_started"):
+        if est.state is None or not est.state.warm_started:
             self._cold_at = n
         self._batch = _tagged(est, SOURCE_BATCH, n)
         self._batch_at = n
@@ -194,6 +193,4 @@ class RefreshedEstimator:
 
 
 def _tagged(est: Estimate, source: str, n_keyframes: int) -> Estimate:
-    est.extra["source"] = source
-    est.extra["keyframes_used"] = int(n_keyframes)
-    return est
+    return dataclasses.replace(est, source=source, keyframes_used=int(n_keyframes))

@@ -7,10 +7,13 @@ north) or 3 user coordinates.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from estimator.clock import SawtoothFit
 
 #: χ²(2 dof) quantile for a 95 % ellipse: P(χ²₂ ≤ 5.991) = 0.95.
 CHI2_2DOF_95 = 5.991464547107979
@@ -46,7 +49,7 @@ class SolverParams:
         to each user whose residuals are noisier than σ(d) and removes it from its ranges.
     estimate_noise_scale: re-estimate a per-user scale s_k ≥ 1 of the range noise from the
         residuals, σ_k(d) = s_k σ(d) (estimator.solve.noise_scale_update), so that a UE noisier
-        than the assumed σ(d) gets an honest covariance. Reported as Estimate.extra["noise_scale"].
+        than the assumed σ(d) gets an honest covariance. Reported as Estimate.state.noise_scale.
     user_dim: 2 (east, north; up fixed at the known ground height) or 3.
     motion_sigma_m: per-axis σ of the relative-motion factor of a keyframe that carries a
         displacement (Keyframe.odom_enu_m) without its own σ (None: such keyframes get no motion
@@ -130,6 +133,42 @@ class Keyframe:
     odom_sigma_m: float | None = None
 
 
+#: Estimate.source: a batch solution over every keyframe seen, or the online estimator's
+SOURCE_BATCH = "batch"
+SOURCE_ONLINE = "online"
+
+
+@dataclass(frozen=True)
+class ModelState:
+    """The model choices and the joint uncertainty a solve ended with: a warm-started batch refresh
+    keeps the choices (estimator.batch), the planner predicts with the uncertainty and the noise
+    scales (planner.information), the mission's report shows them (mission.result).
+
+    active: (K,) users estimated (enough ranges).
+    cov_theta_joint: (A·p, A·p) joint covariance of the A active users' parameters θ_k (position,
+        then the bias when estimated), users in index order, p rows each; None when S is singular.
+    noise_scale: (K,) factor s_k by which user k's ranges are noisier than σ(d) (1: as assumed).
+    nlos_prob_k: (K,) NLoS probability π_k the "nlos" loss ended with; None for other losses.
+    bias_on: (K,) True where the range bias is estimated (False: selected off, held at 0); None
+        when biases are not estimated.
+    clock: (K,) the tracked UE clock sawtooth of each user (None: none); None when the solve does
+        not track clocks (the online estimator).
+    clock_triggered: (K,) users whose residuals called for a clock test; None when not tested.
+    warm_started: a batch solve started from an earlier one's choices (estimator.batch._warm_solve).
+    filter_step: the online estimator's information-filter step between its solves.
+    """
+
+    active: np.ndarray
+    cov_theta_joint: np.ndarray | None
+    noise_scale: np.ndarray
+    nlos_prob_k: np.ndarray | None = None
+    bias_on: np.ndarray | None = None
+    clock: tuple[SawtoothFit | None, ...] | None = None
+    clock_triggered: np.ndarray | None = None
+    warm_started: bool = False
+    filter_step: bool = False
+
+
 @dataclass(frozen=True)
 class Estimate:
     """What the estimator knows about the users (and the UAV track it corrected).
@@ -144,6 +183,9 @@ class Estimate:
     ambiguous: (K,) True where a mirror solution explains the ranges about as well.
     mirror_enu_m: (K, 3) the reflected solution where ambiguous, NaN elsewhere.
     n_ranges: (K,) number of range measurements used per user.
+    state: the solve's model choices and joint covariance (None: not from a solve, e.g. made by hand).
+    source: SOURCE_BATCH or SOURCE_ONLINE once estimator.refresh publishes it ("" before);
+        keyframes_used: the number of keyframes it is the answer for (0: not said).
     """
 
     users_enu_m: np.ndarray
@@ -157,7 +199,9 @@ class Estimate:
     cost: float = float("nan")
     iterations: int = 0
     converged: bool = False
-    extra: dict = field(default_factory=dict)
+    state: ModelState | None = None
+    source: str = ""
+    keyframes_used: int = 0
 
     @property
     def n_users(self) -> int:

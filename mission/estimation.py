@@ -23,8 +23,8 @@ import numpy as np
 
 from estimator.batch import solve_batch
 from estimator.noise import NoiseModel
-from estimator.refresh import SOURCE_BATCH, RefreshedEstimator
-from estimator.types import Estimate, Keyframe, SolverParams
+from estimator.refresh import RefreshedEstimator
+from estimator.types import SOURCE_BATCH, Estimate, Keyframe, SolverParams
 from planner.stop import targets_reached
 
 
@@ -79,7 +79,7 @@ class MissionEstimator:
         """The stop rule on an estimate the mission acts on: a batch estimate with every user's 95 %
         bound within the target radius."""
         return (self.target_radius_m is not None and estimate is not None
-                and estimate.extra.get("source") == SOURCE_BATCH and targets_reached(estimate, self.target_radius_m))
+                and estimate.source == SOURCE_BATCH and targets_reached(estimate, self.target_radius_m))
 
     def final(self, keyframes: Sequence[Keyframe]) -> Estimate:
         """The mission's final answer: the batch solution over every keyframe."""

@@ -150,8 +150,9 @@ def user_entries_of_estimate(estimate: Any, origin: Origin | None, user_ids: Seq
     clock_doc: list[dict | None] | None = None
     if estimate.bias_m is not None:
         bias = np.array(estimate.bias_m, dtype=float)
-        on = estimate.extra.get("bias_on")
-        clocks = estimate.extra.get("clock") or [None] * k
+        st = estimate.state
+        on = None if st is None else st.bias_on
+        clocks = (None if st is None else st.clock) or [None] * k
         clock_doc = [None] * k
         for j in range(k):
             if clocks[j] is not None and np.isfinite(bias[j]):
@@ -160,7 +161,7 @@ def user_entries_of_estimate(estimate: Any, origin: Origin | None, user_ids: Seq
                 bias[j] *= 0.5
             elif on is not None and not on[j]:
                 bias[j] = 0.0  # selected off
-    scale = estimate.extra.get("noise_scale")
+    scale = None if estimate.state is None else estimate.state.noise_scale
     return user_entries(
         user_ids, origin, estimate.users_enu_m,
         np.array([estimate.cov_en_m2(j) for j in range(k)]).reshape(k, 2, 2),

@@ -142,5 +142,4 @@ class BasePlanner:
             done=False,
             objective=float(objective),
             status=status,
-            extra={"leg_m": length},
         )

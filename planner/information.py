@@ -26,7 +26,7 @@ The information is then predicted in the joint (position, bias) space,
 
     J_k(u) = P_k + Σ_legs (ℓ/(Δ·Q)) Σ_q h_q h_qᵀ / σ_eff²(d_q),   h_q = [−g_q; 1]
 
-with P_k the inverse of user k's (d+1)×(d+1) block of `Estimate.extra["cov_theta_joint"]` (plus
+with P_k the inverse of user k's (d+1)×(d+1) block of `Estimate.state.cov_theta_joint` (plus
 ε·I), and the position accuracy is that of the position block of J_k⁻¹, whose inverse is the Schur
 complement I_k = A − c cᵀ / s (J_k = [[A, c], [cᵀ, s]]): the criterion below is applied to it. A
 bias is only separable from the position with ranges at diverse distances and elevations, and this
@@ -70,7 +70,7 @@ class Hypotheses:
     user_w: (K,) per-user weights; index: (K,) rows of the Estimate these users are;
     bias: True when each user has a range bias (joint position + bias information);
     noise_scale: (K,) factor by which each user's ranges are noisier than σ(d), as the estimator
-        found (Estimate.extra["noise_scale"]); None: 1.
+        found (Estimate.state.noise_scale); None: 1.
     """
 
     users_enu_m: np.ndarray
@@ -109,16 +109,16 @@ def _info_from_cov(cov: np.ndarray) -> np.ndarray:
 def joint_prior_info(estimate: Estimate, k: int) -> np.ndarray:
     """(d+1, d+1) prior information of user k's (position, bias), bias last [1/m², 1/m²].
 
-    The inverse of user k's block of `estimate.extra["cov_theta_joint"]` (rows: the active users of
-    `extra["active"]` in order, d + 1 each), plus ε·I. Without a usable joint covariance: the
+    The inverse of user k's block of `estimate.state.cov_theta_joint` (rows: the active users of
+    `state.active` in order, d + 1 each), plus ε·I. Without a usable joint covariance: the
     position marginal's information and ε for the bias (an unknown bias, uncorrelated).
     """
     d = int(estimate.cov_users_m2.shape[1])
     p = d + 1
-    joint = estimate.extra.get("cov_theta_joint") if estimate.extra else None
-    if joint is not None:
-        joint = np.asarray(joint, dtype=float)
-        active = np.asarray(estimate.extra.get("active", np.ones(estimate.n_users, dtype=bool)), dtype=bool)
+    st = estimate.state
+    if st is not None and st.cov_theta_joint is not None:
+        joint = np.asarray(st.cov_theta_joint, dtype=float)
+        active = np.asarray(st.active, dtype=bool)
         na = int(active.sum())
         if joint.shape == (na * p, na * p) and 0 <= k < len(active) and active[k]:
             j = int(np.count_nonzero(active[:k]))
@@ -202,8 +202,7 @@ def hypotheses_from_estimate(
                     U[row, s0 + j, :d] += sgn * scale * offset
                     W[row, s0 + j] = share / (2 * (r + kappa))
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)[idx]
-    scale = estimate.extra.get("noise_scale")
-    scale = None if scale is None else np.asarray(scale, dtype=float)[idx]
+    scale = None if estimate.state is None else np.asarray(estimate.state.noise_scale, dtype=float)[idx]
     return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx, bias=bias, noise_scale=scale)
 
 

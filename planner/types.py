@@ -12,7 +12,7 @@ Plain dataclasses on numpy arrays, all positions in the mission's local ENU fram
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -144,12 +144,6 @@ class PlanResult:
     objective: float = float("nan")
     status: str = ""
     solve_time_s: float = 0.0
-    extra: dict = field(default_factory=dict)
-
-    @property
-    def leg_m(self) -> float:
-        """Length of the first leg [m] (nan when done)."""
-        return float(self.extra.get("leg_m", float("nan")))
 
 
 class Planner(Protocol):

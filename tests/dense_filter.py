@@ -20,13 +20,13 @@ def step_to_dense(on, keyframes, j):
     H and g holding Ŝ only (dim = 6 + K·p)."""
     for kf in keyframes[:j]:
         est = on.add_keyframe(kf)
-    assert est.extra["active"].all()
+    assert est.state.active.all()
     last = keyframes[j - 1]
     on._full_update(on._n - 1, last.gps_enu_m, last.user_idx, last.range_m, last.odom_enu_m)
     theta0, s_aug, pi = on._theta.copy(), on._s_aug.copy(), on._nlos_pi.copy()
     x_l = on._x[on._n - 1].copy()
     est = on.add_keyframe(keyframes[j])
-    assert est.extra.get("filter_step")
+    assert est.state.filter_step
     dim = 6 + on._k * on._p
     h, g = np.zeros((dim, dim)), np.zeros(dim)
     sel = np.r_[0:3, 6:dim]

@@ -14,8 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimator.refresh import SOURCE_BATCH
-from estimator.types import SolverParams
+from estimator.types import SOURCE_BATCH, SolverParams
 from mission.controller import controller_from_mission
 from mission.estimation import MissionEstimator
 from sitl_scenarios.campaign.fast import fly_fast
@@ -40,8 +39,8 @@ def test_the_fast_mode_acts_on_the_mission_s_estimator_and_ends_with_its_final_a
     sources = []
     for kf, acted_on in seen:
         ref = fresh.add_keyframe(kf, setup.confirm)
-        sources.append(acted_on.extra.get("source"))
-        assert acted_on.extra.get("source") == ref.extra["source"]
+        sources.append(acted_on.source)
+        assert acted_on.source == ref.source
         np.testing.assert_allclose(acted_on.users_enu_m, ref.users_enu_m, rtol=0, atol=1e-9)
         np.testing.assert_allclose(acted_on.cov_users_m2, ref.cov_users_m2, rtol=0, atol=1e-9)
     assert sources.count(SOURCE_BATCH) >= 3, "the batch refreshes are the estimate acted on"

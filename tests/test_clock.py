@@ -135,10 +135,10 @@ def test_no_clock_tracking_without_a_bias_to_carry_it():
     off = SolverParams(estimate_bias=False)
     est = solve_batch(kfs, 2, sc.user_up_m, NoiseModel(), off)
     ref = solve_batch(kfs, 2, sc.user_up_m, NoiseModel(), replace(off, track_clock=False))
-    assert est.extra["clock"] == [None, None]
+    assert est.state.clock == (None, None)
     np.testing.assert_array_equal(est.users_enu_m, ref.users_enu_m)
     # with the bias the same log's sawtooth is tracked
-    assert all(c is not None for c in solve_batch(kfs, 2, sc.user_up_m, NoiseModel()).extra["clock"])
+    assert all(c is not None for c in solve_batch(kfs, 2, sc.user_up_m, NoiseModel()).state.clock)
 
 
 def test_batch_finds_a_weak_sawtooth_in_a_short_log():
@@ -156,7 +156,7 @@ def test_batch_finds_a_weak_sawtooth_in_a_short_log():
                for i, kf in enumerate(sc.keyframes)]
         est = solve_batch(kfs, 3, sc.user_up_m, NoiseModel(sigma_gps_m=1.0, s0_m=3.0))
         for k in range(3):
-            fit = est.extra["clock"][k]
+            fit = est.state.clock[k]
             assert fit is not None, (seed, k)
             # over 3.2 periods the period is loose: 14.2–15.6 s over these 18 users (the range's
             # gradient in the user's position, fitted with the sawtooth, takes some of it)

@@ -78,7 +78,7 @@ def test_the_estimator_solves_in_a_child_process_off_the_event_loop(survey):
     worker, got = asyncio.run(go())
     assert worker.mode == "process" and worker.child_pid not in (None, os.getpid())
     # keyframes that queued up while the child was busy come back as one estimate
-    assert 1 <= len(got) <= 20 and got[-1].extra["keyframes_used"] == 20
+    assert 1 <= len(got) <= 20 and got[-1].keyframes_used == 20
 
 
 def test_estimator_child_dying_mid_mission_falls_back_to_a_thread_with_every_keyframe(survey):
@@ -145,7 +145,7 @@ def test_worker_reports_estimator_errors_and_keeps_going(survey):
     got = asyncio.run(go())
     # the three queued together: the bad one is left out, the two others make the estimate
     assert len(errors) == 1 and isinstance(errors[0], EstimatorError) and "gps" in str(errors[0]).lower()
-    assert len(got) == 1 and got[0].extra["keyframes_used"] == 2
+    assert len(got) == 1 and got[0].keyframes_used == 2
 
 
 def test_first_error_prefers_cancellation_then_project_errors():
@@ -220,7 +220,7 @@ def test_worker_takes_queued_keyframes_together_with_one_estimate(survey):
     """Keyframes that queued up while the estimator was busy are solved together: one estimate,
     the batch answer for all of them (an estimator that falls behind catches up)."""
     from estimator.batch import solve_batch
-    from estimator.refresh import SOURCE_BATCH
+    from estimator.types import SOURCE_BATCH
 
     kfs = survey.keyframes[:50]
 
@@ -236,7 +236,7 @@ def test_worker_takes_queued_keyframes_together_with_one_estimate(survey):
         return got
 
     got = asyncio.run(go())
-    assert len(got) == 1 and got[0].extra["source"] == SOURCE_BATCH and got[0].extra["keyframes_used"] == 50
+    assert len(got) == 1 and got[0].source == SOURCE_BATCH and got[0].keyframes_used == 50
     cold = solve_batch(kfs, N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams())
     np.testing.assert_allclose(got[0].users_enu_m, cold.users_enu_m, atol=1e-9)
 

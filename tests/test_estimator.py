@@ -132,7 +132,7 @@ def test_reported_covariance_is_inverse_of_dense_normal_matrix_at_solution():
                           estimate_noise_scale=False)
     est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, params)
     prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, NOISE, params)
-    prob.nlos_prob_k = est.extra.get("nlos_prob_k")  # the per-user NLoS probability the solve ended with
+    prob.nlos_prob_k = est.state.nlos_prob_k  # the per-user NLoS probability the solve ended with
     theta = est.users_enu_m[:, :2]
     h, _, _ = dense_normal_equations(prob, est.uav_enu_m, theta, np.ones(3, dtype=bool))
     cov_ref = np.linalg.inv(h)[3 * 40 :, 3 * 40 :]
@@ -195,14 +195,14 @@ def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params
     on = OnlineEstimator(3, sc.user_up_m, noise, params)
     for kf in sc.keyframes[:j]:
         est = on.add_keyframe(kf)
-    assert est.extra["active"].all()
+    assert est.state.active.all()
     # force a full solve, then take its state as the linearization point
     last = sc.keyframes[j - 1]
     on._full_update(on._n - 1, last.gps_enu_m, last.user_idx, last.range_m, None)
     theta0, s0, pi = on._theta.copy(), on._s.copy(), on._nlos_pi.copy()
     kf = sc.keyframes[j]
     est = on.add_keyframe(kf)
-    assert est.extra.get("filter_step")
+    assert est.state.filter_step
     p, k_all = on._p, 3
     dim = 3 + k_all * p
     h = np.zeros((dim, dim))
@@ -242,8 +242,8 @@ def test_online_filter_steps_stay_close_to_full_resolves():
     n_filter = 0
     for i, kf in enumerate(sc.keyframes):
         a, b = fast.add_keyframe(kf), full.add_keyframe(kf)
-        n_filter += bool(a.extra.get("filter_step"))
-        if i >= 60 and np.all(b.extra["active"]):
+        n_filter += bool(a.state.filter_step)
+        if i >= 60 and np.all(b.state.active):
             sd = np.sqrt(np.trace(b.cov_users_m2, axis1=1, axis2=2))
             assert np.all(np.linalg.norm(a.users_enu_m - b.users_enu_m, axis=1) < 0.3 * sd), i
             diff = np.linalg.norm(a.cov_users_m2 - b.cov_users_m2, axis=(1, 2))
@@ -609,7 +609,7 @@ def test_range_bias_is_estimated():
     sc = simulate(np.random.default_rng(41), n_users=3, n_keyframes=200, bias_m=np.array([4.0, 6.0, 2.0]))
     est = solve_batch(sc.keyframes, 3, sc.user_up_m, NOISE, SolverParams(estimate_bias=True, bias_select=False))
     # within 3σ of the reported bias uncertainty (joint covariance of θ_k = [e, n, b])
-    sigma_b = np.sqrt(np.diag(est.extra["cov_theta_joint"])[2::3])
+    sigma_b = np.sqrt(np.diag(est.state.cov_theta_joint)[2::3])
     assert np.all(np.abs(est.bias_m - [4.0, 6.0, 2.0]) < 3 * sigma_b), (est.bias_m, sigma_b)
     assert np.all(sigma_b < 2.5)
     assert np.all(_user_errors(est, sc) < 2.0)

@@ -128,7 +128,7 @@ def test_batch_covariance_is_the_dense_inverse_at_its_linearization_point():
     params = replace(FIXED, step_tol_m=1e-11, step_tol_uav_m=1e-11, step_tol_sigma=0.0)
     est = solve_batch(sc.keyframes, 3, sc.user_up_m, GM, params)
     prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, GM, params)
-    prob.nlos_prob_k = est.extra["nlos_prob_k"]
+    prob.nlos_prob_k = est.state.nlos_prob_k
     theta = np.column_stack([est.users_enu_m[:, :2], est.bias_m])
     h, g, _ = dense_normal_equations(prob, est.uav_enu_m, theta, np.ones(3, dtype=bool))
     assert np.abs(g).max() < 1e-6  # a stationary point
@@ -184,7 +184,7 @@ def test_covariance_honest_on_drifting_gps_and_a_noisier_ue():
                       noise_scale=np.array([1.0, 1.0, 2.0]))
         est = solve_batch(sc.keyframes, 3, sc.user_up_m, NoiseModel(gps_tau_s=120.0))
         nees.extend(_nees(est, sc))
-        scale.append(est.extra["noise_scale"][2])
+        scale.append(est.state.noise_scale[2])
         plain = SolverParams(estimate_bias=False, estimate_noise_scale=False)
         nees_white.extend(_nees(solve_batch(sc.keyframes, 3, sc.user_up_m, NoiseModel(), plain), sc))
     assert 1.2 < np.mean(nees) < 3.5, np.mean(nees)
@@ -259,7 +259,7 @@ def test_batch_tracks_a_clock_sawtooth_and_stays_honest():
     kfs = [replace(kf, range_m=kf.range_m + np.where(kf.user_idx == 1, saw[i], 0.0))
            for i, kf in enumerate(sc.keyframes)]
     est = solve_batch(kfs, 3, sc.user_up_m, NoiseModel())
-    clock = est.extra["clock"]
+    clock = est.state.clock
     assert clock[0] is None and clock[2] is None
     assert clock[1] is not None and clock[1].period_s == pytest.approx(15.0, rel=0.01)
     nees = _nees(est, sc)
@@ -302,7 +302,7 @@ def test_nlos_covariance_is_the_observed_information_with_pi_estimated_dense_ref
     params = SolverParams(estimate_bias=False, estimate_noise_scale=False, track_clock=False,
                           step_tol_m=1e-10, step_tol_uav_m=1e-10, step_tol_sigma=0.0)
     est = solve_batch(sc.keyframes, k_all, sc.user_up_m, noise, params)
-    pi = est.extra["nlos_prob_k"]
+    pi = est.state.nlos_prob_k
     assert np.all((pi > NLOS_PROB_MIN) & (pi < NLOS_PROB_MAX)), pi  # both π free
     dim = 3 * n + 2 * k_all + k_all
     h = np.zeros((dim, dim))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from estimator.noise import NoiseModel
+from estimator.types import ModelState
 from planner import REASON_TARGET, PlanningConstraints, PlanningState, make_planner
 from planner import active as active_mod
 from planner.active import _Layout, objective_function, pack_params
@@ -55,7 +56,8 @@ def with_bias(est, joint_blocks, bias_m=None, active=None):
     for j, k in enumerate(np.flatnonzero(active)):
         np.testing.assert_allclose(blocks[j, :p - 1, :p - 1], est.cov_users_m2[k])
     bias = np.where(active, 4.0, np.nan) if bias_m is None else np.asarray(bias_m, dtype=float)
-    return replace(est, bias_m=bias, extra={"active": active, "cov_theta_joint": joint})
+    return replace(est, bias_m=bias, state=ModelState(active=active, cov_theta_joint=joint,
+                                                       noise_scale=np.ones(est.n_users)))
 
 
 def _estimate_two_users_bias(ambiguous: bool = True):
@@ -128,7 +130,7 @@ def test_bias_prior_is_the_inverse_joint_block_and_its_schur_complement_the_posi
     est = _estimate_two_users_bias(ambiguous)
     hyp = hypotheses_from_estimate(est)
     p = 3
-    joint = est.extra["cov_theta_joint"]
+    joint = est.state.cov_theta_joint
     for k in range(2):
         block = joint[k * p:(k + 1) * p, k * p:(k + 1) * p]
         np.testing.assert_allclose(joint_prior_info(est, k), np.linalg.inv(block) + PRIOR_EPS_PER_M2 * np.eye(3),
@@ -157,7 +159,7 @@ def test_bias_prior_follows_the_active_layout_and_falls_back_without_a_joint_cov
     assert hyp.index.tolist() == [0, 2] and hyp.bias
     np.testing.assert_allclose(hyp.prior_info[1, 0], np.linalg.inv(blocks[1]) + PRIOR_EPS_PER_M2 * np.eye(3))
     # no joint covariance: the position marginal's information, ε for the bias, uncorrelated
-    bare = replace(est, extra={})
+    bare = replace(est, state=None)
     P = joint_prior_info(bare, 2)
     np.testing.assert_allclose(P[:2, :2], np.diag([1 / 4, 1 / 9]) + PRIOR_EPS_PER_M2 * np.eye(2))
     assert P[2, 2] == PRIOR_EPS_PER_M2 and np.all(P[:2, 2] == 0)
@@ -519,7 +521,8 @@ def test_predicted_information_uses_each_users_noise_scale():
     from dataclasses import replace
 
     est = fake_estimate([[20, 30, 0]], np.eye(2) * 1e6)
-    est = replace(est, extra={**est.extra, "noise_scale": np.array([2.0])})
+    est = replace(est, state=ModelState(active=np.ones(1, dtype=bool), cov_theta_joint=None,
+                                        noise_scale=np.array([2.0])))
     hyp = hypotheses_from_estimate(est, sigma_points="none")
     assert hyp.noise_scale is not None and hyp.noise_scale[0] == 2.0
     start, end = np.array([-30.0, 0.0, 25.0]), np.array([30.0, 0.0, 25.0])
@@ -553,7 +556,9 @@ def test_ipopts_objective_is_the_numpy_prediction_with_noise_scales(criterion, b
     from dataclasses import replace
 
     est = _estimate_two_users_bias(True) if bias else _estimate_two_users(True)
-    est = replace(est, extra={**est.extra, "noise_scale": np.array([2.5, 0.7])})
+    scale = np.array([2.5, 0.7])
+    est = replace(est, state=replace(est.state, noise_scale=scale) if est.state is not None else
+                  ModelState(active=np.ones(2, dtype=bool), cov_theta_joint=None, noise_scale=scale))
     planner = make_planner("casadi", u_constraints(), NOISE, criterion=criterion)
     state = PlanningState([0.0, -60.0, 30.0], est)
     hyp = planner.hypotheses(state)

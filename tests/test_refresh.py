@@ -11,9 +11,9 @@ import pytest
 from estimator.batch import solve_batch
 from estimator.noise import NoiseModel
 from estimator.online import OnlineEstimator
-from estimator.refresh import CONFIRM_MIN_KEYFRAMES, SOURCE_BATCH, SOURCE_ONLINE, RefreshedEstimator
+from estimator.refresh import CONFIRM_MIN_KEYFRAMES, RefreshedEstimator
 from estimator.simulate import simulate
-from estimator.types import CHI2_2DOF_95
+from estimator.types import CHI2_2DOF_95, SOURCE_BATCH, SOURCE_ONLINE
 from uavloc.errors import EstimatorError
 
 
@@ -40,11 +40,11 @@ def test_refresh_schedule_and_each_refresh_is_the_batch_answer_for_its_keyframes
     refreshed_at = []
     for n, kf in enumerate(kfs, start=1):
         est = ref.add_keyframe(kf)
-        assert est.extra["source"] == SOURCE_BATCH
-        if est.extra["keyframes_used"] == n and (not refreshed_at or refreshed_at[-1] != n):
+        assert est.source == SOURCE_BATCH
+        if est.keyframes_used == n and (not refreshed_at or refreshed_at[-1] != n):
             refreshed_at.append(n)
         else:  # between refreshes the last batch answer stands
-            assert est.extra["keyframes_used"] == refreshed_at[-1]
+            assert est.keyframes_used == refreshed_at[-1]
     # at the first keyframe (no online part to publish), then every 3 keyframes while
     # ⌊0.05 n⌋ ≤ 3, then every ⌊0.05 n⌋ keyframes
     gaps = np.diff(refreshed_at)
@@ -70,16 +70,16 @@ def test_confirm_asks_for_a_batch_refresh_at_once_rate_limited(sawtooth_survey):
     asked = []
 
     def confirm(est):
-        asked.append(est.extra.get("source"))
+        asked.append(est.source)
         return True
 
     ref = RefreshedEstimator(3, sc.user_up_m, NoiseModel())
     out = [ref.add_keyframe(kf, confirm) for kf in kfs[:200]]
     # the predicate sees online estimates only, and each True it returns is answered by a batch
     # solve of every keyframe so far, at most every CONFIRM_MIN_KEYFRAMES keyframes
-    assert asked and all(a is None or a == SOURCE_ONLINE for a in asked)
-    used = [e.extra["keyframes_used"] for e in out]
-    assert all(e.extra["source"] == SOURCE_BATCH for e in out)
+    assert asked and all(a in ("", SOURCE_ONLINE) for a in asked)
+    used = [e.keyframes_used for e in out]
+    assert all(e.source == SOURCE_BATCH for e in out)
     assert all(n - u < CONFIRM_MIN_KEYFRAMES for n, u in enumerate(used, start=1))
     never = RefreshedEstimator(3, sc.user_up_m, NoiseModel())
     for kf in kfs[:200]:
@@ -94,13 +94,13 @@ def test_published_estimate_tracks_a_sawtooth_that_the_online_one_covers_by_nois
     for kf in kfs:
         est = ref.add_keyframe(kf)
     online = ref.online_estimate
-    assert est.extra["clock"][1] is not None
+    assert est.state.clock[1] is not None
     assert _inside_95(est, sc.users_enu_m, 1)
     # the online estimate covers the unmodelled sawtooth by an inflated noise scale: 1.9 m off
     # with a wide ellipse; the batch tracks it: closer, with a tighter one
     err = [np.linalg.norm(e.users_enu_m[1, :2] - sc.users_enu_m[1, :2]) for e in (est, online)]
     assert err[0] < 0.5 * err[1], err
-    assert est.extra["noise_scale"][1] < online.extra["noise_scale"][1]
+    assert est.state.noise_scale[1] < online.state.noise_scale[1]
 
 
 def test_online_part_is_the_online_estimator(sawtooth_survey):
@@ -134,15 +134,15 @@ def test_warm_batch_solve_keeps_the_choices_and_lands_on_the_cold_answer(sawtoot
     scales, the bias selection and the clock sawtooth; it lands where the cold solve does."""
     sc, kfs = sawtooth_survey
     prefix = solve_batch(kfs[:280], 3, sc.user_up_m, NoiseModel())
-    assert prefix.extra["clock"][1] is not None and not prefix.extra["warm_started"]
+    assert prefix.state.clock[1] is not None and not prefix.state.warm_started
     warm = solve_batch(kfs[:300], 3, sc.user_up_m, NoiseModel(), warm=prefix)
     cold = solve_batch(kfs[:300], 3, sc.user_up_m, NoiseModel())
     # the sawtooth kept, refined near its period and phase on the 20 more keyframes
-    before, after = prefix.extra["clock"][1], warm.extra["clock"][1]
-    assert warm.extra["warm_started"] and after is not None
+    before, after = prefix.state.clock[1], warm.state.clock[1]
+    assert warm.state.warm_started and after is not None
     assert after.period_s == pytest.approx(before.period_s, rel=0.01)
     assert abs((after.phase - before.phase + 0.5) % 1.0 - 0.5) < 0.05
-    np.testing.assert_array_equal(warm.extra["bias_on"], prefix.extra["bias_on"])
+    np.testing.assert_array_equal(warm.state.bias_on, prefix.state.bias_on)
     # the cold solve refits the sawtooth's period and phase on 20 more keyframes: the clock user
     # moves by a tenth of its bound (0.1 m of 1.05 m), the others by millimetres
     shift = np.linalg.norm(warm.users_enu_m[:, :2] - cold.users_enu_m[:, :2], axis=1)
@@ -156,13 +156,13 @@ def test_warm_batch_solve_falls_back_to_cold_when_a_user_started_since(sawtooth_
     late = [replace(kf, user_idx=kf.user_idx[kf.user_idx != 2], range_m=kf.range_m[kf.user_idx != 2])
             if i < 40 else kf for i, kf in enumerate(kfs[:120])]
     prefix = solve_batch(late[:30], 3, sc.user_up_m, NoiseModel())
-    assert not prefix.extra["active"][2]
+    assert not prefix.state.active[2]
     est = solve_batch(late, 3, sc.user_up_m, NoiseModel(), warm=prefix)
-    assert not est.extra["warm_started"] and est.extra["active"][2]
+    assert not est.state.warm_started and est.state.active[2]
     cold = solve_batch(late, 3, sc.user_up_m, NoiseModel())
     np.testing.assert_allclose(est.users_enu_m, cold.users_enu_m, atol=1e-9)
     # an answer for more keyframes than given is no warm start either
-    assert not solve_batch(kfs[:100], 3, sc.user_up_m, NoiseModel(), warm=cold).extra["warm_started"]
+    assert not solve_batch(kfs[:100], 3, sc.user_up_m, NoiseModel(), warm=cold).state.warm_started
 
 
 def test_online_marginalizes_a_gauss_markov_chain_with_per_keyframe_motion_sigmas():
@@ -203,10 +203,10 @@ def test_a_failing_online_part_is_dropped_and_the_batch_refreshes_go_on(sawtooth
     assert len(errors) == 1 and "online estimator failed at keyframe 31" in str(errors[0])
     assert "ValueError" in str(errors[0]) and isinstance(errors[0], EstimatorError)
     assert ref.n_keyframes_seen == 33 and ref.online_estimate is None
-    assert est.extra["source"] == SOURCE_BATCH and est.extra["keyframes_used"] == 33
+    assert est.source == SOURCE_BATCH and est.keyframes_used == 33
     for kf in kfs[33:60]:
         est = ref.add_keyframe(kf, confirm=lambda e: True)  # no online estimate to confirm on
-    assert est.extra["keyframes_used"] >= 57 and ref.online_failure is not None
-    cold = solve_batch(kfs[: est.extra["keyframes_used"]], 3, sc.user_up_m, NoiseModel())
+    assert est.keyframes_used >= 57 and ref.online_failure is not None
+    cold = solve_batch(kfs[: est.keyframes_used], 3, sc.user_up_m, NoiseModel())
     assert np.all(np.linalg.norm(est.users_enu_m[:, :2] - cold.users_enu_m[:, :2], axis=1)
                   <= 0.15 * cold.error_bound_95_m())
