@@ -1,7 +1,7 @@
 """The online filter step when GPS factors link consecutive keyframes (Gauss–Markov GPS, estimator.gps).
 
 With white GPS a new keyframe touches only the users, and the window is summarized by the users'
-information S (OnlineEstimator._filter_step). A Gauss–Markov GPS factor links keyframe n to
+information S (estimator.online_filter.filter_step). A Gauss–Markov GPS factor links keyframe n to
 keyframe n − 1 as well, so the summary keeps the last keyframe: the information Ŝ of
 z = [x_l (3), Θ (K·p)] (x_l the window's last keyframe), every older keyframe eliminated. The
 keyframe part of the normal matrix is a block-tridiagonal chain, so this is one more link of the

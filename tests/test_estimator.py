@@ -31,7 +31,8 @@ from estimator.init import (
 )
 from estimator.linearize import linearize
 from estimator.noise import NoiseModel
-from estimator.online import OnlineEstimator
+from estimator.online import OnlineEstimator, check_due, full_update
+from estimator.online_marginal import marginalize_block, marginalize_oldest
 from estimator.problem import pack_keyframes
 from estimator.schur import schur_solve
 from estimator.simulate import simulate
@@ -198,12 +199,13 @@ def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params
     assert est.state.active.all()
     # force a full solve, then take its state as the linearization point
     last = sc.keyframes[j - 1]
-    on._full_update(on._n - 1, last.gps_enu_m, last.user_idx, last.range_m, None)
-    theta0, s0, pi = on._theta.copy(), on._s.copy(), on._nlos_pi.copy()
+    st = on.state
+    full_update(st, st.n - 1, last.gps_enu_m, last.user_idx, last.range_m, None)
+    theta0, s0, pi = st.theta.copy(), st.s.copy(), st.nlos_pi.copy()
     kf = sc.keyframes[j]
     est = on.add_keyframe(kf)
     assert est.state.filter_step
-    p, k_all = on._p, 3
+    p, k_all = st.p, 3
     dim = 3 + k_all * p
     h = np.zeros((dim, dim))
     g = np.zeros(dim)
@@ -222,10 +224,10 @@ def test_online_filter_step_matches_dense_elimination_of_the_new_keyframe(params
         h += w[0] * np.outer(j, j)
         g -= psi[0] * j
     dz = np.linalg.solve(h, g)
-    np.testing.assert_allclose(on._theta.ravel() - theta0.ravel(), dz[3:], rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(st.theta.ravel() - theta0.ravel(), dz[3:], rtol=1e-9, atol=1e-11)
     np.testing.assert_allclose(est.uav_enu_m[-1], x0 + dz[:3], rtol=1e-9, atol=1e-11)
     s_ref = h[3:, 3:] - h[3:, :3] @ np.linalg.solve(h[:3, :3], h[:3, 3:])
-    np.testing.assert_allclose(on._s, s_ref, rtol=1e-9, atol=1e-12 * np.abs(s_ref).max())
+    np.testing.assert_allclose(st.s, s_ref, rtol=1e-9, atol=1e-12 * np.abs(s_ref).max())
     cov_ref = np.linalg.inv(s_ref).reshape(k_all, p, k_all, p)
     for k in range(k_all):
         d = params.user_dim
@@ -728,19 +730,19 @@ def test_online_block_marginalization_equals_one_keyframe_at_a_time():
     on = OnlineEstimator(4, sc.user_up_m, NOISE, params)
     for kf in sc.keyframes[:130]:
         on.add_keyframe(kf)
-    assert on._prior is not None and on._n > 60
-    m = on._n - 60
-    seq, blk = copy.deepcopy(on), copy.deepcopy(on)
+    assert on.state.prior is not None and on.state.n > 60
+    m = on.state.n - 60
+    seq, blk = copy.deepcopy(on.state), copy.deepcopy(on.state)
     for _ in range(m):
-        seq._marginalize_oldest()
-    assert blk._marginalize_block(m)
-    ps, pb = seq._prior, blk._prior
+        marginalize_oldest(seq)
+    assert marginalize_block(blk, m)
+    ps, pb = seq.prior, blk.prior
     for a, b in ((ps.info, pb.info), (ps.grad, pb.grad), (ps.z0, pb.z0)):
         np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-9 * np.abs(a).max())
-    assert seq._n == blk._n == 60
-    np.testing.assert_array_equal(seq._win_count, blk._win_count)
-    np.testing.assert_array_equal(seq._x[:60], blk._x[:60])
-    np.testing.assert_array_equal(seq._rng[:60], blk._rng[:60])
+    assert seq.n == blk.n == 60
+    np.testing.assert_array_equal(seq.win_count, blk.win_count)
+    np.testing.assert_array_equal(seq.x[:60], blk.x[:60])
+    np.testing.assert_array_equal(seq.range_m[:60], blk.range_m[:60])
 
 
 def _nlos_problem(seed: int, p_nlos: float, params: SolverParams = SolverParams()):  # noqa: B008
@@ -876,7 +878,7 @@ def test_covariances_from_cholesky_equal_the_inverse_of_s(k_all, p, d):
 
 
 def test_a_noise_scale_moving_within_its_standard_errors_does_not_call_the_checks_back():
-    """The checks' back-off (online._check_due) returns to online_check_every when a user's noise
+    """The checks' back-off (online.check_due) returns to online_check_every when a user's noise
     scale moved by more than 3 of its standard errors 1/√(2 n) since the last check: with 100
     ranges in the window a 15 % move is noise, a 30 % one is evidence."""
     from estimator.online import ONLINE_SCALE_EVIDENCE_Z
@@ -885,13 +887,35 @@ def test_a_noise_scale_moving_within_its_standard_errors_does_not_call_the_check
     on = OnlineEstimator(2, sc.user_up_m, NOISE, SolverParams())
     for kf in sc.keyframes:
         on.add_keyframe(kf)
-    assert on._check_state is not None and np.all(on._win_count >= 100)
+    st = on.state
+    assert st.check_state is not None and np.all(st.win_count >= 100)
     every = SolverParams().online_check_every
-    scale0, pi0, _ = on._check_state
-    tol = ONLINE_SCALE_EVIDENCE_Z / np.sqrt(2.0 * on._win_count[0])
+    scale0, pi0, _ = st.check_state
+    tol = ONLINE_SCALE_EVIDENCE_Z / np.sqrt(2.0 * st.win_count[0])
     for move, resets in ((0.7 * tol, False), (1.3 * tol, True)):
-        on._check_interval = 4 * every
-        on._scale = scale0 * np.array([1.0 + move, 1.0])
-        on._nlos_pi = pi0.copy()
-        on._check_due(np.zeros(2, dtype=bool))
-        assert (on._check_interval == every) == resets, move
+        st.check_interval = 4 * every
+        st.noise_scale = scale0 * np.array([1.0 + move, 1.0])
+        st.nlos_pi = pi0.copy()
+        check_due(st, np.zeros(2, dtype=bool))
+        assert (st.check_interval == every) == resets, move
+
+
+def test_the_online_estimators_state_is_one_slotted_object():
+    """OnlineEstimator carries nothing but its OnlineState (estimator.online_state), a slotted
+    dataclass: every step is a function of it, and a copy of it is a copy of the estimator."""
+    import copy
+
+    from estimator.online_state import OnlineState
+
+    sc = simulate(np.random.default_rng(9), n_users=3, n_keyframes=40, noise=NOISE)
+    on = OnlineEstimator(3, sc.user_up_m, NOISE)
+    for kf in sc.keyframes[:30]:
+        on.add_keyframe(kf)
+    assert vars(on) == {"state": on.state} and isinstance(on.state, OnlineState)
+    assert not hasattr(on.state, "__dict__")
+    twin = OnlineEstimator(3, sc.user_up_m, NOISE)
+    twin.state = copy.deepcopy(on.state)
+    for kf in sc.keyframes[30:]:
+        a, b = on.add_keyframe(kf), twin.add_keyframe(kf)
+        np.testing.assert_array_equal(a.users_enu_m, b.users_enu_m)
+    assert on.n_keyframes_seen == twin.n_keyframes_seen == 40

@@ -21,6 +21,7 @@ from estimator.linearize import linearize
 from estimator.noise import NoiseModel
 from estimator.numdiff import numerical_jacobian
 from estimator.online import OnlineEstimator
+from estimator.online_marginal import marginalize_chain, marginalize_oldest
 from estimator.problem import pack_keyframes
 from estimator.schur import schur_solve
 from estimator.simulate import gps_error_m, simulate
@@ -465,19 +466,20 @@ def test_online_chain_block_marginalization_equals_one_keyframe_at_a_time(params
     on = OnlineEstimator(3, sc.user_up_m, GM, replace(params, window=1000))
     for kf in sc.keyframes[:50]:
         on.add_keyframe(kf)
-    on._marginalize_oldest()  # a prior that already holds a keyframe
-    one = copy.deepcopy(on)
-    assert on._marginalize_chain(7)
+    st = on.state
+    marginalize_oldest(st)  # a prior that already holds a keyframe
+    one = copy.deepcopy(st)
+    assert marginalize_chain(st, 7)
     for _ in range(7):
-        one._marginalize_oldest()
-    assert on._n == one._n and on._prior.has_x and one._prior.has_x
-    np.testing.assert_allclose(on._prior.z0, one._prior.z0, rtol=0, atol=1e-12)
-    scale = np.abs(one._prior.info).max()
-    np.testing.assert_allclose(on._prior.info, one._prior.info, rtol=1e-9, atol=1e-9 * scale)
-    np.testing.assert_allclose(on._prior.grad, one._prior.grad, rtol=1e-7, atol=1e-9 * scale)
-    np.testing.assert_array_equal(on._win_count, one._win_count)
-    np.testing.assert_array_equal(on._x[: on._n], one._x[: one._n])
-    np.testing.assert_array_equal(on._odom_sigma[: on._n], one._odom_sigma[: one._n])
+        marginalize_oldest(one)
+    assert st.n == one.n and st.prior.has_x and one.prior.has_x
+    np.testing.assert_allclose(st.prior.z0, one.prior.z0, rtol=0, atol=1e-12)
+    scale = np.abs(one.prior.info).max()
+    np.testing.assert_allclose(st.prior.info, one.prior.info, rtol=1e-9, atol=1e-9 * scale)
+    np.testing.assert_allclose(st.prior.grad, one.prior.grad, rtol=1e-7, atol=1e-9 * scale)
+    np.testing.assert_array_equal(st.win_count, one.win_count)
+    np.testing.assert_array_equal(st.x[: st.n], one.x[: one.n])
+    np.testing.assert_array_equal(st.odom_sigma_m[: st.n], one.odom_sigma_m[: one.n])
 
 
 def _bursty_times(rng: np.random.Generator) -> np.ndarray:
