@@ -25,7 +25,7 @@ from estimator.problem import (
     users_from_theta,
 )
 from estimator.solve import (
-    BIAS_OFF_SIGMA_M,
+    held_bias_prior,
     observed_s,
     solve_robust,
 )
@@ -188,8 +188,6 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
     theta[:, : prob.user_dim] = np.asarray(warm.users_enu_m, dtype=float)[:, : prob.user_dim]
     if prob.params.estimate_bias:
         theta[:, -1] = np.nan_to_num(np.asarray(warm.bias_m, dtype=float))
-        prob.bias_sigma_k = np.where(np.asarray(st.bias_on, dtype=bool), prob.params.bias_prior_sigma_m,
-                                     BIAS_OFF_SIGMA_M)
         if any(c is not None for c in clocks):
             t = prob.t_s[:n]
             gain = np.ones((n, k_all))
@@ -205,6 +203,12 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
         prob.nlos_prob_k = np.asarray(st.nlos_prob_k, dtype=float).copy()
     if prob.params.estimate_noise_scale:
         prob.noise_scale_k = np.asarray(st.noise_scale, dtype=float).copy()
+    if prob.params.estimate_bias:
+        # the warm answer's bias selection: free biases, the others held (held_bias_prior)
+        on = np.asarray(st.bias_on, dtype=bool)
+        mu_h, sd_h = held_bias_prior(prob)
+        prob.bias_sigma_k = np.where(on, prob.params.bias_prior_sigma_m, sd_h)
+        prob.bias_mean_k = np.where(on, 0.0, mu_h)
     res = solve_robust(prob, x, theta, active)
     if prob.params.estimate_bias and any(c is not None for c in clocks):
         res, clocks = _refine_clocks(prob, res, active, clocks)
@@ -342,7 +346,7 @@ def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Res
             fits[k] = fit
             theta[k, -1] = fit.amplitude_m
         prob.bias_gain = gain.copy()
-        prob.noise_scale_k, prob.bias_sigma_k = None, None
+        prob.noise_scale_k, prob.bias_sigma_k, prob.bias_mean_k = None, None, None
         prob.bias_force_k = np.array([f is not None for f in fits])
         res = solve_robust(prob, res.x, theta, active)
     return res, fits, None

@@ -239,6 +239,22 @@ def _finite_samples(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray |
     return t[ok], r[ok], z
 
 
+def undetected_sawtooth_bias(sigma_m: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation [m] of the range bias a commercial UE's clock sawtooth leaves
+    when it is too small for fit_sawtooth to accept, at range noise σ [m] (scalar or (K,)).
+
+    A sawtooth A·frac(·) has variance A²/12, so it explains the share c = CLOCK_MIN_EXPLAINED of
+    the residual variance σ² + A²/12 (the long-log floor of the acceptance test) from
+
+        A_det = σ √(12 c / (1 − c))        (σ = 3 m: 4.37 m)
+
+    on. Below that it is not tracked and its mean A/2 is a bias of b ~ U[0, A_det/2] (A uniform
+    on [0, A_det]): mean A_det/4, standard deviation A_det/(4√3).
+    """
+    a_det = np.asarray(sigma_m, dtype=float) * math.sqrt(12.0 * CLOCK_MIN_EXPLAINED / (1.0 - CLOCK_MIN_EXPLAINED))
+    return a_det / 4.0, a_det / (4.0 * math.sqrt(3.0))
+
+
 def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | None = None) -> SawtoothFit | None:
     """Fit a clock sawtooth to one user's range residuals.
 

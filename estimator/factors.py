@@ -182,12 +182,14 @@ def range_jacobian(
 
 @dataclass(frozen=True)
 class BiasPriorFactor:
-    """Weak zero-mean prior on a range bias: e = b / σ_b."""
+    """Prior on a range bias: e = (b − μ_b) / σ_b (weak and zero-mean while the bias is free;
+    the held prior of SolverParams.bias_held where the selection held it)."""
 
     sigma_m: float
+    mean_m: float = 0.0
 
     def error(self, bias_m: float) -> float:
-        return float(bias_m) / self.sigma_m
+        return (float(bias_m) - self.mean_m) / self.sigma_m
 
     def jacobian(self, bias_m: float) -> float:
         return 1.0 / self.sigma_m
@@ -273,7 +275,8 @@ def dense_normal_equations(
     if params.estimate_bias:
         for k in users:
             f = BiasPriorFactor(params.bias_prior_sigma_m if prob.bias_sigma_k is None
-                                else float(prob.bias_sigma_k[k]))
+                                else float(prob.bias_sigma_k[k]),
+                                0.0 if prob.bias_mean_k is None else float(prob.bias_mean_k[k]))
             e = f.error(theta[k, -1])
             cost += 0.5 * e * e
             jb = np.zeros((1, p))

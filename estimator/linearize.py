@@ -191,10 +191,10 @@ def linearize(
     else:
         hxx.reshape(n, 9)[:, ::4] += inv_g2
     if params.estimate_bias:
-        # bias prior e_k = b_k / σ_b,k (σ_b,k tiny where the bias was selected off)
+        # bias prior e_k = (b_k − μ_b,k) / σ_b,k (the held prior where the bias was selected off)
         sb = params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
         inv_b2 = 1.0 / np.square(sb)  # scalar or (K,)
-        bias = theta[:, -1]
+        bias = theta[:, -1] if prob.bias_mean_k is None else theta[:, -1] - prob.bias_mean_k
         huu_blocks[:, -1, -1] += inv_b2
         gu[:, -1] -= bias * inv_b2
         bb = inv_b2 * bias * bias

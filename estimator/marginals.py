@@ -13,9 +13,6 @@ from estimator.problem import (
     Problem,
     users_from_theta,
 )
-from estimator.solve import (
-    BIAS_OFF_SIGMA_M,
-)
 from estimator.types import Estimate, ModelState
 
 
@@ -85,11 +82,13 @@ def _estimate(
     users[~active] = np.nan
     cov, info, cov_joint = _covariances(res.s, active, k_all, p, d)
     bias = None
-    bias_on = None
+    bias_on = bias_held = None
     if prob.params.estimate_bias:
         bias = np.where(active, res.theta[:, -1], np.nan)
         sb = prob.bias_sigma_k
-        bias_on = np.ones(k_all, dtype=bool) if sb is None else sb > BIAS_OFF_SIGMA_M
+        # (free biases have the free prior's σ exactly; held ones the held prior's)
+        bias_on = np.ones(k_all, dtype=bool) if sb is None else sb >= prob.params.bias_prior_sigma_m
+        bias_held = np.zeros(k_all) if prob.bias_mean_k is None else np.where(bias_on, 0.0, prob.bias_mean_k)
     ambiguous = np.zeros(k_all, dtype=bool)
     mirror = np.full((k_all, 3), np.nan)
     for k, mt in enumerate(mirrors):
@@ -100,7 +99,7 @@ def _estimate(
         active=active.copy(), cov_theta_joint=cov_joint,
         noise_scale=np.ones(k_all) if prob.noise_scale_k is None else prob.noise_scale_k.copy(),
         nlos_prob_k=None if prob.nlos_prob_k is None else prob.nlos_prob_k.copy(),
-        bias_on=bias_on, clock=None if clock is None else tuple(clock),
+        bias_on=bias_on, bias_held_m=bias_held, clock=None if clock is None else tuple(clock),
         clock_triggered=None if clock_triggered is None else np.asarray(clock_triggered, dtype=bool).copy(),
         warm_started=warm_started,
     )

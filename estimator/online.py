@@ -180,7 +180,7 @@ def full_update(
         st.active[k] = newly[k] = True
     check = check_due(st, newly)
     if check:
-        prob.bias_sigma_k = None  # choose again which biases to estimate
+        prob.bias_sigma_k = prob.bias_mean_k = None  # choose again which biases to estimate
     # with filter steps in between (online_resolve_every > 1) a solve is amortized over the
     # updates: capped iterations, one round of the NLoS-probability and noise-scale estimates
     # (the next update goes on from here); online_resolve_every = 1 solves fully every time
@@ -197,7 +197,7 @@ def full_update(
     if prob.noise_scale_k is not None:
         st.noise_scale = prob.noise_scale_k.copy()
         st.noise_scale_list = st.noise_scale.tolist()
-    st.bias_sigma_m = prob.bias_sigma_k
+    st.bias_sigma_m, st.bias_mean_m = prob.bias_sigma_k, prob.bias_mean_k
     if check:
         res = check_mirrors(st, prob, res)
         st.last_check = st.seen
@@ -247,7 +247,8 @@ def after_check(st: OnlineState, newly: np.ndarray, flipped: bool) -> None:
         and (mt.ambiguous or mt.delta_chi2 <= ONLINE_CHECK_MARGIN * chi2)
         for mt in st.mirrors
     )
-    bias_on = None if st.bias_sigma_m is None else st.bias_sigma_m.copy()
+    # which biases are free (a held one's σ moves with its noise scale under bias_held "sawtooth")
+    bias_on = None if st.bias_sigma_m is None else st.bias_sigma_m >= st.params.bias_prior_sigma_m
     prev = st.check_state
     bias_changed = prev is not None and not (
         (prev[2] is None and bias_on is None)

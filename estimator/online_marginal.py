@@ -101,7 +101,8 @@ def marginalize_chain(st: OnlineState, m: int) -> bool:
         inv_b2 = np.broadcast_to(1.0 / np.square(sb), (k_all,))
         act = np.flatnonzero(st.active)
         blocks[act, -1, act, -1] -= inv_b2[act]
-        lin.gu.reshape(k_all, p)[act, -1] += st.theta[act, -1] * inv_b2[act]
+        b = st.theta[act, -1] if st.bias_mean_m is None else st.theta[act, -1] - st.bias_mean_m[act]
+        lin.gu.reshape(k_all, p)[act, -1] += b * inv_b2[act]
     for k in np.flatnonzero(~st.active):
         blocks[k, :, k, :] -= np.eye(p)
     info, grad = chain_marginal_prior(lin, m)

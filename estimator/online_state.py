@@ -64,8 +64,9 @@ class OnlineState:
     The model choices, re-estimated by each full solve:
         nlos_pi: (K,) NLoS probability π_k of the "nlos" loss.
         noise_scale: (K,) range noise scale s_k (1: as the NoiseModel says).
-        bias_sigma_m: (K,) prior σ of each user's range bias [m] chosen by the last full solve's
-            bias selection (a tiny σ holds a bias at 0); None: params.bias_prior_sigma_m for all.
+        bias_sigma_m, bias_mean_m: (K,) prior σ and mean of each user's range bias [m] chosen by
+            the last full solve's bias selection (the held prior of params.bias_held where it
+            held a bias); None: params.bias_prior_sigma_m and 0 for all.
 
     The schedule:
         seen: keyframes added in all.
@@ -122,6 +123,7 @@ class OnlineState:
     nlos_pi: np.ndarray
     noise_scale: np.ndarray
     bias_sigma_m: np.ndarray | None
+    bias_mean_m: np.ndarray | None
     # the schedule
     seen: int
     refused: bool
@@ -160,7 +162,7 @@ class OnlineState:
             theta=np.zeros((k, p)), users_enu_m=np.zeros((k, 3)), active=np.zeros(k, dtype=bool),
             n_ranges=np.zeros(k, dtype=int),
             prior=None, s=None, s_aug=None, cost=float("nan"),
-            nlos_pi=nlos_pi, noise_scale=noise_scale, bias_sigma_m=None,
+            nlos_pi=nlos_pi, noise_scale=noise_scale, bias_sigma_m=None, bias_mean_m=None,
             seen=0, refused=False, marginalize_due=False, last_check=0,
             check_interval=max(int(params.online_check_every), 1), check_state=None, flipped=False,
             mirrors=[None] * k, estimate=None,
@@ -178,5 +180,5 @@ def window_problem(st: OnlineState) -> Problem:
         st.gps_enu_m[:n], rng, ~np.isnan(rng), st.odom_enu_m[:n], st.odom_mask[:n], st.user_up_m,
         st.noise, st.params, st.nlos_pi, t_s=st.t_s[:n], gps_first=st.gps_first,
         noise_scale_k=st.noise_scale if st.params.estimate_noise_scale else None,
-        bias_sigma_k=st.bias_sigma_m, odom_sigma_m=st.odom_sigma_m[:n],
+        bias_sigma_k=st.bias_sigma_m, bias_mean_k=st.bias_mean_m, odom_sigma_m=st.odom_sigma_m[:n],
     )

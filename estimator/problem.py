@@ -42,6 +42,8 @@ def check_params(params: SolverParams) -> None:
         raise EstimatorError(f"user_dim must be 2 or 3, got {params.user_dim!r}")
     if not (np.isfinite(params.bias_prior_sigma_m) and params.bias_prior_sigma_m > 0):
         raise EstimatorError(f"bias_prior_sigma_m must be positive, got {params.bias_prior_sigma_m!r}")
+    if params.bias_held not in ("zero", "sawtooth"):
+        raise EstimatorError(f"bias_held must be 'zero' or 'sawtooth', got {params.bias_held!r}")
     if params.motion_sigma_m is not None and not (
         np.isfinite(params.motion_sigma_m) and params.motion_sigma_m > 0
     ):
@@ -147,8 +149,11 @@ class Problem:
     #: (K,) per-user scale s_k of the range noise, σ_k(d) = s_k σ(d) (None: 1 for all)
     noise_scale_k: np.ndarray | None = None
     #: (K,) per-user σ of the bias prior (None: params.bias_prior_sigma_m for all; estimator.solve
-    #: sets a tiny one where the bias selection fixed a bias at 0)
+    #: sets the held σ of params.bias_held where the bias selection held a bias)
     bias_sigma_k: np.ndarray | None = None
+    #: (K,) per-user mean of the bias prior [m] (None: 0 for all; estimator.solve sets the held
+    #: mean of params.bias_held where the bias selection held a bias)
+    bias_mean_k: np.ndarray | None = None
     #: (K,) users whose bias the selection keeps whatever the test says (a tracked clock sawtooth:
     #: its fitted offset is uncertain, and the free bias carries that into the covariance)
     bias_force_k: np.ndarray | None = None

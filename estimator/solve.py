@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from estimator.clock import undetected_sawtooth_bias
 from estimator.linearize import (
     Linearization,
     Prior,
@@ -59,7 +60,7 @@ NOISE_SCALE_MIN_DOF = 8
 NOISE_SCALE_RESOLVE = 0.1
 NOISE_SCALE_ROUNDS = 6
 #: bias selection (params.bias_select): a bias below this many of its standard deviations is
-#: fixed at 0 by a prior of BIAS_OFF_SIGMA_M
+#: held (held_bias_prior); with params.bias_held "zero" at 0 by a prior of BIAS_OFF_SIGMA_M
 BIAS_SELECT_Z = 4.0
 BIAS_OFF_SIGMA_M = 1e-3
 #: ... and kept only when determined to this standard deviation [m] (a bias the geometry barely
@@ -67,6 +68,19 @@ BIAS_OFF_SIGMA_M = 1e-3
 #: 1.5 m: a commercial UE's 8.3 m bias at 5.3 σ (sd 1.56 m) was dropped, the sawtooth then called
 #: NLoS (π 0.5), and the user ended 12.8 m off with a 95 % bound of 3.6 m
 BIAS_SELECT_MAX_SD_M = 3.0
+
+
+def held_bias_prior(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) mean and (K,) σ [m] of the prior that holds a bias the selection turned off
+    (params.bias_held): 0 and BIAS_OFF_SIGMA_M ("zero"), or the mean offset of a clock sawtooth
+    too small to track at the user's range noise s_k·σ0 ("sawtooth",
+    estimator.clock.undetected_sawtooth_bias; σ0 = noise.s0_m, the noise at short range)."""
+    k_all = prob.n_users
+    if prob.params.bias_held == "sawtooth":
+        scale = np.ones(k_all) if prob.noise_scale_k is None else np.asarray(prob.noise_scale_k, dtype=float)
+        mean, sd = undetected_sawtooth_bias(prob.noise.s0_m * scale)
+        return np.asarray(mean, dtype=float), np.asarray(sd, dtype=float)
+    return np.zeros(k_all), np.full(k_all, BIAS_OFF_SIGMA_M)
 
 
 def nlos_prob_update(prob: Problem, gamma: np.ndarray, active: np.ndarray) -> np.ndarray:
@@ -267,12 +281,13 @@ def _solve_robust(
     if not (params.estimate_bias and params.bias_select and prob.bias_sigma_k is None):
         return _solve_scaled(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)[0]
     k_all, d_u = prob.n_users, prob.user_dim
-    # every bias held at 0 by the tight prior σ_off
-    inv_off2 = 1.0 / BIAS_OFF_SIGMA_M**2
+    # every bias held by its prior N(μ_h, σ_h²) (held_bias_prior: 0 and a tiny σ_h for "zero")
+    mu_h, sd_h = held_bias_prior(prob)
+    inv_off2 = 1.0 / np.square(sd_h)
     inv_free2 = 1.0 / params.bias_prior_sigma_m**2
-    prob.bias_sigma_k = np.full(k_all, BIAS_OFF_SIGMA_M)
+    prob.bias_sigma_k, prob.bias_mean_k = sd_h, mu_h
     theta = theta.copy()
-    theta[:, -1] = 0.0
+    theta[:, -1] = mu_h
     res, rescaled = _solve_scaled(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)
     ib = np.arange(k_all) * prob.p + d_u
     keep = np.zeros(k_all, dtype=bool)
@@ -286,11 +301,12 @@ def _solve_robust(
         s_free[ib, ib] -= inv_off2 - inv_free2
         g = np.zeros(s_free.shape[0])
         if res.gn_step:
-            # after the Gauss–Newton step the linear model's gradient of the bias-off problem is
-            # zero: the ranges' pull −Σ ψ J_b there balances the tight prior's b/σ_off², so
-            # −Σ ψ J_b − b/σ_b² = b (1/(ρ_k² σ_off²) − 1/σ_b²) without evaluating the ranges
+            # after the Gauss–Newton step the linear model's gradient of the held problem is
+            # zero: the ranges' pull −Σ ψ J_b there balances the held prior's (b − μ_h)/σ_h², so
+            # −Σ ψ J_b − b/σ_b² = (b − μ_h)/(ρ_k² σ_h²) − b/σ_b² without evaluating the ranges
             # again (ρ_k: the noise scale's last change if it only rescaled S; ψ J_b ∝ 1/ρ_k²)
-            g[ib] = res.theta[:, -1] * (inv_off2 / np.square(rescaled) - inv_free2)
+            b_h = res.theta[:, -1]
+            g[ib] = (b_h - mu_h) * inv_off2 / np.square(rescaled) - b_h * inv_free2
         else:
             n = res.x.shape[0]
             _, _, _, jac, psi, _ = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
@@ -302,12 +318,13 @@ def _solve_robust(
         if cov is not None and np.all(np.isfinite(cov)):
             b_step = res.theta[:, -1] + (cov @ g)[ib]
             sd = np.sqrt(np.maximum(np.diag(cov)[ib], 0.0))
-            keep = active & (np.abs(b_step) >= BIAS_SELECT_Z * sd) & (sd <= BIAS_SELECT_MAX_SD_M)
+            keep = active & (np.abs(b_step - mu_h) >= BIAS_SELECT_Z * sd) & (sd <= BIAS_SELECT_MAX_SD_M)
     if prob.bias_force_k is not None:
         keep |= active & prob.bias_force_k
     if not keep.any():
         return res
-    prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, BIAS_OFF_SIGMA_M)
+    prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, sd_h)
+    prob.bias_mean_k = np.where(keep, 0.0, mu_h)
     theta = res.theta.copy()
     theta[keep, -1] = b_step[keep]
     return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m, max_iterations, rounds)[0]
@@ -362,7 +379,8 @@ def user_subproblem(prob: Problem, users: np.ndarray) -> Problem:
     return replace(
         prob, range_m=prob.range_m[:, users], mask=prob.mask[:, users], user_up_m=prob.user_up_m[users],
         nlos_prob_k=cols(prob.nlos_prob_k), noise_scale_k=cols(prob.noise_scale_k),
-        bias_sigma_k=cols(prob.bias_sigma_k), bias_force_k=cols(prob.bias_force_k), bias_gain=cols(prob.bias_gain),
+        bias_sigma_k=cols(prob.bias_sigma_k), bias_mean_k=cols(prob.bias_mean_k), bias_force_k=cols(prob.bias_force_k),
+        bias_gain=cols(prob.bias_gain),
     )
 
 
@@ -393,6 +411,7 @@ def _nlos_user_rounds(prob: Problem, x: np.ndarray, theta: np.ndarray, users: np
     if bias:
         sb = sub.params.bias_prior_sigma_m if sub.bias_sigma_k is None else sub.bias_sigma_k
         inv_b2 = 1.0 / np.square(sb) * np.ones(ks.size)
+        mu_b = np.zeros(ks.size) if sub.bias_mean_k is None else sub.bias_mean_k
     act = np.ones(ks.size, dtype=bool)
     th = theta[ks].copy()
 
@@ -407,8 +426,9 @@ def _nlos_user_rounds(prob: Problem, x: np.ndarray, theta: np.ndarray, users: np
         if bias:
             b = th[:, d_u]
             h[:, -1, -1] += inv_b2
-            g[:, -1] -= b * inv_b2
-            cost = cost + 0.5 * inv_b2 * b * b
+            bm = b - mu_b
+            g[:, -1] -= bm * inv_b2
+            cost = cost + 0.5 * inv_b2 * bm * bm
         return cost, e, w, h, g
 
     cost, e, w, h, g = terms(th)

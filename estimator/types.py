@@ -43,8 +43,14 @@ class SolverParams:
     estimate_bias: add a range bias b_k per user, with a zero-mean prior of bias_prior_sigma_m.
         Default True (it was False): a commercial UE's clock sawtooth has a positive mean, and a
         UE without one pays little for the extra unknown under the weak prior.
-    bias_select: with estimate_bias, fix at 0 the bias of a user whose estimate is insignificant
-        (|b̂| < 4 sd, estimator.solve.solve_robust), so a UE without a clock offset loses nothing.
+    bias_select: with estimate_bias, hold the bias of a user whose estimate is insignificant
+        (|b̂ − μ_h| < 4 sd, estimator.solve.solve_robust) under the prior of `bias_held`, so a UE
+        without a clock offset loses nothing.
+    bias_held: what a held bias is. "zero": 0, known (an ideal UE's clock, or an offset
+        calibrated out). "sawtooth": a commercial UE's clock sawtooth too small to track, whose
+        mean offset is unknown in [0, A_det/2] (estimator.clock.undetected_sawtooth_bias: mean
+        1.09 m, σ 0.63 m at σ = 3 m); held at 0 as if known, such users ended 3–5 m off along
+        their bearing with NEES 10–25 in the planner benchmark's hardware world.
     track_clock: the batch solver fits a UE clock sawtooth (drift and resets, estimator.clock)
         to each user whose residuals are noisier than σ(d) and removes it from its ranges.
     estimate_noise_scale: re-estimate a per-user scale s_k ≥ 1 of the range noise from the
@@ -97,6 +103,7 @@ class SolverParams:
     bias_prior_sigma_m: float = 10.0
     estimate_noise_scale: bool = True
     bias_select: bool = True
+    bias_held: Literal["zero", "sawtooth"] = "zero"
     track_clock: bool = True
     user_dim: int = 2
     motion_sigma_m: float | None = None
@@ -149,8 +156,10 @@ class ModelState:
         then the bias when estimated), users in index order, p rows each; None when S is singular.
     noise_scale: (K,) factor s_k by which user k's ranges are noisier than σ(d) (1: as assumed).
     nlos_prob_k: (K,) NLoS probability π_k the "nlos" loss ended with; None for other losses.
-    bias_on: (K,) True where the range bias is estimated (False: selected off, held at 0); None
+    bias_on: (K,) True where the range bias is estimated (False: selected off, held); None
         when biases are not estimated.
+    bias_held_m: (K,) the mean of the prior a held bias is held under (0 with
+        SolverParams.bias_held "zero"); None when biases are not estimated.
     clock: (K,) the tracked UE clock sawtooth of each user (None: none); None when the solve does
         not track clocks (the online estimator).
     clock_triggered: (K,) users whose residuals called for a clock test; None when not tested.
@@ -163,6 +172,7 @@ class ModelState:
     noise_scale: np.ndarray
     nlos_prob_k: np.ndarray | None = None
     bias_on: np.ndarray | None = None
+    bias_held_m: np.ndarray | None = None
     clock: tuple[SawtoothFit | None, ...] | None = None
     clock_triggered: np.ndarray | None = None
     warm_started: bool = False

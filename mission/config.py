@@ -144,7 +144,9 @@ class NoiseConfig:
     sigma_gps_m: per-axis GPS error [m]; gps_tau_s: its correlation time [s] (absent: unknown);
     σ(d) = range_s0_m + range_a_m·exp(range_b_per_m·d) one-way range spread [m];
     estimate_bias: estimate a range bias per user (a UE clock sawtooth has a positive mean), with a
-    zero-mean prior of bias_prior_sigma_m [m].
+    zero-mean prior of bias_prior_sigma_m [m]; bias_held: what a bias too small to show is held at
+    (estimator.types.SolverParams.bias_held): "zero" (ideal UEs, or offsets calibrated out) or
+    "sawtooth" (commercial UEs: the mean of a clock sawtooth too small to track, and its spread).
     """
 
     sigma_gps_m: float = positive(1.0, 100.0)
@@ -154,6 +156,7 @@ class NoiseConfig:
     range_b_per_m: float = bounded(0.0, -1.0, 1.0)
     estimate_bias: bool = False
     bias_prior_sigma_m: float = positive(10.0, 1000.0)
+    bias_held: Literal["zero", "sawtooth"] = "zero"
 
     def noise_model(self) -> NoiseModel:
         """The estimator's :class:`NoiseModel`."""

@@ -32,7 +32,7 @@ def mission_solver_params(mission) -> SolverParams:
     """The estimator settings of a :class:`mission.config.MissionConfig`: its keyframe spacing Δ and
     range-bias model, the solver's defaults otherwise."""
     return SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
-                        bias_prior_sigma_m=mission.noise.bias_prior_sigma_m)
+                        bias_prior_sigma_m=mission.noise.bias_prior_sigma_m, bias_held=mission.noise.bias_held)
 
 
 @dataclass(frozen=True)

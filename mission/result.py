@@ -9,7 +9,9 @@ way (docs/design.md §11): :func:`user_entries` builds that list from plain arra
     error_bound_95_m                               semi-major axis of the 95 % ellipse [m]
     measurements, ambiguous                        when known
     bias_m                                         when range biases were estimated (mean range
-                                                   bias [m]; 0 where a user's bias was selected off)
+                                                   bias [m]; where a user's bias was selected off, the
+                                                   value it is held at: 0, or with bias_held
+                                                   "sawtooth" an untracked sawtooth's mean)
     clock_sawtooth                                 {period_s, amplitude_m} where a UE clock sawtooth
                                                    was tracked (then bias_m is its mean, A/2)
     noise_scale                                    when estimated: how much noisier than the assumed
@@ -160,7 +162,8 @@ def user_entries_of_estimate(estimate: Any, origin: Origin | None, user_ids: Seq
                 clock_doc[j] = {"period_s": float(clocks[j].period_s), "amplitude_m": float(bias[j])}
                 bias[j] *= 0.5
             elif on is not None and not on[j]:
-                bias[j] = 0.0  # selected off
+                # selected off: the value it is held at
+                bias[j] = 0.0 if st.bias_held_m is None else float(st.bias_held_m[j])
     scale = None if estimate.state is None else estimate.state.noise_scale
     return user_entries(
         user_ids, origin, estimate.users_enu_m,

@@ -281,6 +281,13 @@ _OLD_MISSION_TABLE = ("a scenario file is a mission file plus world sections: th
                       "in [truth.<id>]")
 
 
+def _commercial_ues(world: World) -> bool:
+    """Whether any user of the world is a commercial UE (a clock sawtooth of positive amplitude,
+    its own or the radio's default)."""
+    amp = world.radio.ue_sawtooth_amplitude_m
+    return any((amp if t.sawtooth_amplitude_m is None else t.sawtooth_amplitude_m) > 0 for t in world.truth.values())
+
+
 def _mission_table(data: dict, world: World) -> dict:
     """The mission file part of a scenario document, with the defaults its world gives."""
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items() if k not in WORLD_KEYS}
@@ -290,6 +297,10 @@ def _mission_table(data: dict, world: World) -> dict:
     for table, key, value in SCENARIO_MISSION_DEFAULTS:
         if isinstance(out.setdefault(table, {}), dict):
             out[table].setdefault(key, value)
+    if isinstance(out["noise"], dict):
+        # the operator knows the kind of UEs: commercial ones (a clock sawtooth) hold an
+        # insignificant bias at an untracked sawtooth's mean, ideal ones at 0
+        out["noise"].setdefault("bias_held", "sawtooth" if _commercial_ues(world) else "zero")
     safety = out.setdefault("safety", {})
     if isinstance(safety, dict) and "battery_rtl_pct" in safety:
         # a low-battery return threshold above the take-off floor raises the floor with it

@@ -3,9 +3,13 @@ dense Fisher information, and how it compares with the bias-free and the constan
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from estimator.batch import solve_batch
+from estimator.clock import CLOCK_MIN_EXPLAINED, undetected_sawtooth_bias
 from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
 from estimator.noise import NoiseModel
@@ -198,3 +202,42 @@ def test_refine_sawtooth_over_two_periods_stays_on_its_grid():
     df = 1.0 / (4.0 * (t[-1] - t[0]))
     assert abs(1.0 / fit.period_s - 1.0 / 15.0) <= (CLOCK_REFINE_BINS + 1) * df
     assert fit.amplitude_m == pytest.approx(12.0, abs=1.5)
+
+
+def test_undetected_sawtooth_bias_is_that_of_a_sawtooth_below_the_fits_threshold():
+    """A_det = 4 · mean explains exactly CLOCK_MIN_EXPLAINED of σ² + A²/12 (the fit's long-log
+    acceptance floor); the mean and σ are those of A/2 with A uniform on [0, A_det] (sampled)."""
+    sigma = np.array([3.0, 5.0])
+    mean, sd = undetected_sawtooth_bias(sigma)
+    a_det = 4.0 * mean
+    np.testing.assert_allclose((a_det**2 / 12.0) / (sigma**2 + a_det**2 / 12.0), CLOCK_MIN_EXPLAINED, rtol=1e-12)
+    assert mean[0] == pytest.approx(1.09, abs=0.01) and sd[0] == pytest.approx(0.63, abs=0.01)
+    b = 0.5 * np.random.default_rng(0).uniform(0.0, a_det[0], 200_000)
+    assert b.mean() == pytest.approx(mean[0], rel=0.01) and b.std() == pytest.approx(sd[0], rel=0.01)
+
+
+def _small_sawtooth_users(seed: int, held: str):
+    """Three commercial UEs whose 2 m clock sawtooth (15 s) is too small to track, 300 keyframes of
+    a circle: the batch estimate with bias_held `held`, and the true users."""
+    sc = simulate(np.random.default_rng(seed), n_users=3, n_keyframes=300, dt_s=0.4, noise=NoiseModel())
+    t = np.array([kf.t_s for kf in sc.keyframes])
+    saw = 2.0 * np.mod(t / 15.0 + 0.1 * np.arange(3)[:, None] + 0.3, 1.0)  # (3, n)
+    kfs = [replace(kf, range_m=kf.range_m + saw[kf.user_idx, i]) for i, kf in enumerate(sc.keyframes)]
+    return solve_batch(kfs, 3, sc.user_up_m, NoiseModel(), SolverParams(bias_held=held)), sc.users_enu_m
+
+
+@pytest.mark.slow
+def test_a_small_untracked_sawtooths_bias_is_held_at_its_mean_not_at_zero():
+    """Held at 0 as if known, a 1 m mean offset the selection cannot show puts users far outside
+    their ellipses; held under the untracked sawtooth's prior they are honest (12 problems)."""
+    nees = {"zero": [], "sawtooth": []}
+    for held in nees:
+        for seed in range(12):
+            est, truth = _small_sawtooth_users(seed, held)
+            assert all(c is None for c in est.state.clock)
+            for k in range(3):
+                e = est.users_enu_m[k, :2] - truth[k, :2]
+                nees[held].append(float(e @ np.linalg.solve(est.cov_en_m2(k), e)))
+    zero, saw = np.array(nees["zero"]), np.array(nees["sawtooth"])
+    assert np.mean(zero > 5.99) > 0.5, zero
+    assert np.mean(saw <= 5.99) >= 0.9 and np.mean(saw) <= 3.0, saw

@@ -56,3 +56,20 @@ def test_family_members_are_the_same_objects():
     assert isinstance(sc.mission, MissionConfig) and type(sc) is type(load_scenario("paper"))
     assert [u.id for u in sc.users] == [u.id for u in sc.mission.users] == sorted(sc.world.truth)
     assert sc.mission.flight.target_radius_m == 0.6 and sc.mission.noise.estimate_bias is True
+
+
+def test_a_scenarios_held_bias_follows_the_kind_of_its_ues():
+    """Commercial UEs (a clock sawtooth, the radio's default) hold an insignificant bias at an
+    untracked sawtooth's mean; a world of ideal UEs at 0; the file's own [noise] key wins."""
+    assert load_scenario("three_users_nlos").mission.noise.bias_held == "sawtooth"
+    ideal = generate_scenario(FamilySpec(name="f", seed=3, users=[2, 4], sawtooth_amplitude_m=0.0), 0)
+    assert ideal.mission.noise.bias_held == "zero"
+    commercial = generate_scenario(FamilySpec(name="f", seed=3, users=[2, 4], sawtooth_amplitude_m=[1.0, 12.0]), 0)
+    assert commercial.mission.noise.bias_held == "sawtooth"
+    path = next(p for p in PATHS if p.stem == "three_users_nlos")
+    data = tomllib.loads(path.read_text(encoding="utf-8"))
+    data.setdefault("noise", {})["bias_held"] = "zero"
+    assert scenario_from_dict(data, str(path)).mission.noise.bias_held == "zero"
+    data["noise"]["bias_held"] = "always"
+    with pytest.raises(ScenarioError, match="bias_held"):
+        scenario_from_dict(data, str(path))

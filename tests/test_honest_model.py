@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from estimator.batch import solve_batch
+from estimator.clock import undetected_sawtooth_bias
 from estimator.crlb import crlb_users
 from estimator.factors import dense_normal_equations
 from estimator.gps import GpsFactor, gps_chain_terms, gps_phi
@@ -91,18 +92,24 @@ def test_gps_phi_white_and_links():
     assert phi[3] < 1.0  # two fixes at the same time: floored q, finite weight
 
 
-@pytest.mark.parametrize("noise, scale, gain", [(GM, None, False), (GM_DD, np.array([1.0, 1.7, 2.5]), False),
-                                               (GM, np.array([1.2, 1.0, 1.0]), True)],
-                         ids=["gm", "gm-dd-scale", "gm-clock-gain"])
-def test_gm_bias_scale_solve_and_covariance_match_dense_reference(noise, scale, gain):
+@pytest.mark.parametrize("noise, scale, gain, held", [
+    (GM, None, False, False), (GM_DD, np.array([1.0, 1.7, 2.5]), False, False),
+    (GM, np.array([1.2, 1.0, 1.0]), True, False), (GM, None, False, True)],
+    ids=["gm", "gm-dd-scale", "gm-clock-gain", "gm-held-sawtooth"])
+def test_gm_bias_scale_solve_and_covariance_match_dense_reference(noise, scale, gain, held):
     """At one linearization point: the Schur step and S⁻¹ against np.linalg on the dense normal
-    equations built from the factor objects (GPS chain, ranges with bias and noise scale, bias prior)."""
+    equations built from the factor objects (GPS chain, ranges with bias and noise scale, bias
+    prior; `held`: user 0's bias held under bias_held "sawtooth"'s prior, mean 1.09 m)."""
     sc = simulate(np.random.default_rng(7), n_users=3, n_keyframes=30, noise=noise, gps_tau_s=noise.gps_tau_s,
                   bias_m=np.array([0.0, 4.0, 2.0]), p_visible=0.8)
     params = replace(FIXED, loss="huber")
     prob = pack_keyframes(sc.keyframes, 3, sc.user_up_m, noise, params)
     prob.noise_scale_k = scale
     prob.bias_sigma_k = np.array([1e-3, 10.0, 10.0])
+    if held:
+        mean, sd = undetected_sawtooth_bias(3.0)
+        prob.bias_sigma_k[0] = sd
+        prob.bias_mean_k = np.array([mean, 0.0, 0.0])
     rng = np.random.default_rng(8)
     if gain:
         # user 1's bias is a clock sawtooth's amplitude: r̂ = d + b g, g = frac(t/P − φ)
