@@ -112,6 +112,34 @@ def test_schur_solve_and_covariance_match_dense_reference(params, noise, lam, p_
     np.testing.assert_allclose(np.linalg.inv(s), np.linalg.inv(h_damped)[3 * n :, 3 * n :], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("indefinite", [False, True], ids=["cholesky", "cofactor-fallback"])
+def test_schur_solve_block_diagonal_paths_match_dense_solve(indefinite):
+    """Block-diagonal H_xx: the Cholesky path (every 3×3 block positive definite) and the cofactor
+    inverse it falls back to (a block indefinite, as the observed information can make one)
+    both give the dense solve of the whole system and its Schur complement."""
+    rng = np.random.default_rng(5)
+    n, p = 30, 7
+    a = rng.normal(size=(n, 3, 3))
+    hxx = a @ a.transpose(0, 2, 1) + 0.5 * np.eye(3)
+    if indefinite:
+        hxx[4] = np.diag([2.0, -1.0, 3.0])
+    hxu = rng.normal(size=(n, 3, p)) * 0.1
+    b = rng.normal(size=(p, p))
+    huu = b @ b.T + 50.0 * np.eye(p)
+    gx, gu = rng.normal(size=(n, 3)), rng.normal(size=p)
+    h = np.zeros((3 * n + p, 3 * n + p))
+    for i in range(n):
+        h[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = hxx[i]
+        h[3 * i : 3 * i + 3, 3 * n :] = hxu[i]
+    h[3 * n :, : 3 * n] = h[: 3 * n, 3 * n :].T
+    h[3 * n :, 3 * n :] = huu
+    dx, du, s = schur_solve(hxx, None, hxu, huu, gx, gu)
+    step = np.linalg.solve(h, np.concatenate([gx.ravel(), gu]))
+    np.testing.assert_allclose(np.concatenate([dx.ravel(), du]), step, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.inv(s), np.linalg.inv(h)[3 * n :, 3 * n :], rtol=1e-9, atol=1e-14)
+    np.testing.assert_array_equal(s, s.T)
+
+
 @pytest.mark.parametrize("pattern,n", [("circle", 200), ("lawnmower", 400)])
 def test_solve_stops_within_step_tol_sigma_of_the_optimum(pattern, n):
     """The default stop (step still to go below 0.001 σ in the users' Mahalanobis norm) lands
