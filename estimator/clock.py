@@ -158,16 +158,18 @@ def _fit_grid_dense(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: n
     return _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance)
 
 
-def _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance) -> tuple:
+def _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance, need_offset: bool = True) -> tuple:
     """The best (P, φ) of a grid from S_xx, S_xy (P, Φ) of the projected sawtooth and the
     projected residuals rq: (rss, P, φ, A, c, n), c the constant of the least-squares fit of
-    r − A·s on [1, nuisance]."""
+    r − A·s on [1, nuisance] (NaN unless need_offset: a scan that only picks the period)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         a = np.where(sxx > 1e-12, sxy / sxx, 0.0)
     # rss = Σ rq² − A² Sxx
     rss = float(rq @ rq) - a * a * sxx
     i, j = np.unravel_index(int(np.argmin(rss)), rss.shape)
     amp, period, phase = float(a[i, j]), float(periods[i]), float(phases[j])
+    if not need_offset:
+        return float(rss[i, j]), period, phase, amp, math.nan, t.size
     u = t / period - phase
     rest = r - amp * (u - np.floor(u))
     cols = np.ones((t.size, 1)) if nuisance is None else np.column_stack([np.ones(t.size), nuisance])
@@ -176,9 +178,10 @@ def _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance) -> tuple:
 
 
 def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndarray,
-              nuisance: np.ndarray | None = None) -> tuple:
+              nuisance: np.ndarray | None = None, q: np.ndarray | None = None, need_offset: bool = True) -> tuple:
     """Least squares r ≈ c + A·frac(t/P − φ) + Z β over the (P, φ) grid (Z: the (n, m) nuisance
-    columns, or none); (rss, P, φ, A, c, n) of the best.
+    columns, or none); (rss, P, φ, A, c, n) of the best (c NaN unless need_offset). q: _basis(n,
+    nuisance) when the caller has it already.
 
     With Q (n, q) an orthonormal basis of [1, Z] (_basis), the sawtooth s and r projected off it,
     ř = r − Q Qᵀ r:  A = S_xy / S_xx,  S_xy = sᵀ ř,  S_xx = sᵀ s − |Qᵀ s|²,  rss = |ř|² − A² S_xx.
@@ -193,7 +196,8 @@ def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndar
     bins gives them at every phase. O(P·n·(q + 3) + P·Φ·q) instead of the O(P·Φ·n·q) of frac on
     the whole grid (_fit_grid_dense, the same numbers up to rounding)."""
     n = t.size
-    q = _basis(n, nuisance)
+    if q is None:
+        q = _basis(n, nuisance)
     rq = r - q @ (q.T @ r)
     ph = np.mod(np.asarray(phases, dtype=float), 1.0)
     n_p, n_f = periods.size, ph.size
@@ -222,7 +226,7 @@ def _fit_grid(t: np.ndarray, r: np.ndarray, periods: np.ndarray, phases: np.ndar
     proj = suc[:, None, :] - ph[None, :, None] * tot[None, None, :] + kc
     sxy = proj[:, :, 0]
     sxx = s2 - np.einsum("pfq,pfq->pf", proj[:, :, 1:], proj[:, :, 1:])
-    return _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance)
+    return _grid_best(t, r, rq, sxx, sxy, periods, phases, nuisance, need_offset)
 
 
 def _finite_samples(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | None) -> tuple:
@@ -302,14 +306,15 @@ def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | No
     # sample: it only picks the candidate), then the coarse grid around the best of them
     periods = np.concatenate([1.0 / np.linspace(max(f - 1.5 * df, 0.5 * f_min), f + 1.5 * df, _N_PERIOD_SCAN)
                               for f in cands])
-    sub = slice(None, None, -(-t.size // CLOCK_SCAN_MAX_SAMPLES))
+    every = -(-t.size // CLOCK_SCAN_MAX_SAMPLES)
+    sub = slice(None, None, every)
     _, p_scan, _, _, _, _ = _fit_grid(t[sub], r[sub], periods, np.arange(_N_PHASE_SCAN) / _N_PHASE_SCAN,
-                                      None if z is None else z[sub])
+                                      None if z is None else z[sub], q if every == 1 else None, need_offset=False)
     f_scan = 1.0 / p_scan
     step = 3.0 * df / (_N_PERIOD_SCAN - 1)
     periods = 1.0 / np.linspace(max(f_scan - step, 0.5 * f_min), f_scan + step, _N_PERIOD)
     phases = np.arange(_N_PHASE) / _N_PHASE
-    rss, p_best, ph_best, _, _, _ = _fit_grid(t, r, periods, phases, z)
+    rss, p_best, ph_best, _, _, _ = _fit_grid(t, r, periods, phases, z, q, need_offset=False)
     need = max(CLOCK_MIN_EXPLAINED, CLOCK_NULL_EXPLAINED_N / t.size)
     if 1.0 - rss / total < CLOCK_COARSE_SHARE * need:
         # the refinement (± one coarse step) cannot make up for that much: no sawtooth
@@ -317,7 +322,7 @@ def fit_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, nuisance: np.ndarray | No
     dp = 2.0 * step * p_best**2 / (_N_PERIOD - 1)
     periods = p_best + np.linspace(-dp, dp, 21)
     phases = ph_best + np.linspace(-1.0, 1.0, 21) / _N_PHASE
-    rss, p_best, ph_best, amp, off, _ = _fit_grid(t, r, periods, phases, z)
+    rss, p_best, ph_best, amp, off, _ = _fit_grid(t, r, periods, phases, z, q)
     explained = 1.0 - rss / total
     if explained < need:
         return None
@@ -356,10 +361,10 @@ def refine_sawtooth(t_s: np.ndarray, resid_m: np.ndarray, prev: SawtoothFit,
     q = _basis(t.size, z)
     rq = r - q @ (q.T @ r)
     total = float(rq @ rq)
-    _, p_best, ph_best, _, _, _ = _fit_grid(tc, r, periods, phases, z)
+    _, p_best, ph_best, _, _, _ = _fit_grid(tc, r, periods, phases, z, q, need_offset=False)
     # the finer grid: ± one step df in frequency around the best (1/p_best − df ≥ 1/(4 P0) > 0)
     periods = 1.0 / (1.0 / p_best + np.linspace(-df, df, 11))
     phases = ph_best + np.linspace(-1.0, 1.0, 11) * (2.0 * CLOCK_REFINE_PHASE / 24)
-    rss, p_best, ph_best, amp, off, _ = _fit_grid(tc, r, periods, phases, z)
+    rss, p_best, ph_best, amp, off, _ = _fit_grid(tc, r, periods, phases, z, q)
     explained = 1.0 - rss / total if total > 0 else 0.0
     return SawtoothFit(p_best, (ph_best + tm / p_best) % 1.0, amp, off, explained)

@@ -21,6 +21,9 @@ from uavloc.errors import EstimatorError
 
 _LAM_START = 1e-4
 _LAM_MAX = 1e10
+#: levenberg_marquardt's `rescale` is offered the linearization once the users' undamped step is
+#: below this many of their standard deviations, ||Δθ||_S
+RESCALE_STEP_SIGMA = 0.25
 
 
 def _blocks_pd(hxx: np.ndarray) -> bool:
@@ -50,6 +53,7 @@ class _Result:
 def levenberg_marquardt(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     max_iterations: int | None = None, step_tol_m: float | None = None, newton: bool = False,
+    rescale=None,
 ) -> _Result:
     """Minimise L from (x, Θ); stop when the largest user step component, or the distance still
     to go estimated from the contraction of the last two steps, is below params.step_tol_m (or
@@ -68,6 +72,12 @@ def levenberg_marquardt(
     the optimum is the same (the gradient is ψ J either way). The returned linearization's
     weights w are the EM ones; its normal equations and S are the observed information's where
     newton steps were taken (_Result.observed; em_information gives the EM-weighted ones).
+
+    rescale: None, or rescale(lin) -> bool, called once, at the first undamped step that does not
+    end the solve and is below RESCALE_STEP_SIGMA of the users' standard deviations, with that
+    step's linearization; True when it changed the problem's model (estimator.solve's per-user
+    noise scales, in prob): the step is then taken without the cost test (the costs of two models
+    do not compare; the step is a small Gauss–Newton one) and the solve goes on under the new model.
     """
     params = prob.params
     max_it = params.max_iterations if max_iterations is None else max_iterations
@@ -123,6 +133,12 @@ def levenberg_marquardt(
             converged, gn_step = True, lam == 0.0
             break
         x_t, th_t = x + dx, theta + du
+        if rescale is not None and su_sigma < RESCALE_STEP_SIGMA and lam == 0.0:
+            changed, rescale = rescale(lin), None
+            if changed:
+                x, theta, prev = x_t, th_t, None
+                lin = linearize(prob, x, theta, active, prior, observed=obs)
+                continue
         lin_t = linearize(prob, x_t, th_t, active, prior, observed=obs)
         if lin_t.cost <= lin.cost + 1e-12 * abs(lin.cost):
             x, theta, lin = x_t, th_t, lin_t

@@ -264,8 +264,9 @@ def _solve_robust(
     re-estimated from the solution's residuals (noise_scale_update, stored in prob.noise_scale_k):
     the problem is re-solved while a scale moves by more than NOISE_SCALE_RESOLVE (relative), and
     a smaller last change only re-linearizes at the solution so that the covariance uses it; at
-    most NOISE_SCALE_ROUNDS rounds. A user whose ranges are noisier than the assumed σ(d) then
-    gets a covariance that says so.
+    most NOISE_SCALE_ROUNDS rounds. A solve takes a change above NOISE_SCALE_RESOLVE already on
+    its way, near the optimum (_rescale_midway), instead of a re-solve from the optimum. A user
+    whose ranges are noisier than the assumed σ(d) then gets a covariance that says so.
 
     With params.estimate_bias and params.bias_select (and prob.bias_sigma_k not yet chosen) the
     biases are selected: the problem is solved with every bias fixed at 0 (prior σ
@@ -330,6 +331,32 @@ def _solve_robust(
     return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m, max_iterations, rounds)[0]
 
 
+def _rescale_midway(prob: Problem, active: np.ndarray, rounds: int | None):
+    """The noise-scale update a solve of _solve_scaled makes on its way (levenberg_marquardt's
+    `rescale`, once, near the optimum: the users' step below lm.RESCALE_STEP_SIGMA of their σ):
+    where some s_k would move by more than NOISE_SCALE_RESOLVE at the solution, _solve_scaled
+    would re-solve from there; the new s_k are taken there instead, and the solve converges to
+    the optimum under them (the re-solve's iterations saved; the residuals that far from the
+    optimum give the same s_k to a small fraction of the change). Smaller changes are left to
+    _solve_scaled at the solution (the model unchanged). None (no update) without
+    params.estimate_noise_scale or with `rounds` given (the online estimator's one round)."""
+    if not prob.params.estimate_noise_scale or rounds is not None:
+        return None
+    pending = [True]
+
+    def rescale(lin: Linearization) -> bool:
+        if not pending[0] or prob.noise_scale_k is None:
+            return False
+        pending[0] = False
+        new = noise_scale_update(prob, lin, active)
+        if float(np.max(np.abs(new / prob.noise_scale_k - 1.0))) <= NOISE_SCALE_RESOLVE:
+            return False
+        prob.noise_scale_k = new
+        return True
+
+    return rescale
+
+
 def _solve_scaled(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None,
     step_tol_m: float | None, max_iterations: int | None = None, rounds: int | None = None,
@@ -340,7 +367,8 @@ def _solve_scaled(
     ones = np.ones(prob.n_users)
     if prob.params.estimate_noise_scale and prob.noise_scale_k is None:
         prob.noise_scale_k = ones.copy()
-    res = solve_loss(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)
+    res = solve_loss(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds,
+                     rescale=_rescale_midway(prob, active, rounds))
     if not prob.params.estimate_noise_scale:
         return res, ones
     n_rounds = NOISE_SCALE_ROUNDS if rounds is None else rounds
@@ -366,7 +394,8 @@ def _solve_scaled(
                 s_new = (res.s - np.diag(prior_b)) * dvec[:, None] * dvec[None, :] + np.diag(prior_b)
                 res = _Result(res.x, res.theta, res.lin, s_new, res.iterations, res.converged, res.gn_step)
             return res, ratio
-        res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m, max_iterations, rounds)
+        res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m, max_iterations, rounds,
+                         rescale=_rescale_midway(prob, active, rounds))
     return res, ones
 
 
@@ -472,7 +501,7 @@ class _Weights:
 def solve_loss(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     step_tol_m: float | None = None, max_iterations: int | None = None, rounds: int | None = None,
-    conditional: bool = True,
+    conditional: bool = True, rescale=None,
 ) -> _Result:
     """Levenberg–Marquardt with the loss's schedule: a redescending loss starts from a Huber
     solution; "nlos" with params.nlos_adapt alternates solves with the maximum-likelihood π_k at
@@ -485,7 +514,8 @@ def solve_loss(
         pre = levenberg_marquardt(warm, x, theta, active, prior, max_iterations, step_tol_m=step_tol_m)
         x, theta = pre.x, pre.theta
     if params.loss != "nlos" or not params.nlos_adapt:
-        return levenberg_marquardt(prob, x, theta, active, prior, max_iterations, step_tol_m=step_tol_m)
+        return levenberg_marquardt(prob, x, theta, active, prior, max_iterations, step_tol_m=step_tol_m,
+                                   rescale=rescale)
     if prob.nlos_prob_k is None:
         # π_k from params.nlos_prob re-estimated at the starting residuals (at LoS it drops to
         # the floor at once, and the solve runs near-quadratic from the first iteration)
@@ -516,7 +546,8 @@ def solve_loss(
         res = levenberg_marquardt(
             prob, x, theta, active, prior, step_tol_m=tol if tight else max(tol, NLOS_ROUND_STEP_M),
             max_iterations=NLOS_PARTIAL_ITERATIONS if partial else max_iterations,
-            newton=rounds is None and bool(np.any(prob.nlos_prob_k[active] > NLOS_PROB_MIN)))
+            newton=rounds is None and bool(np.any(prob.nlos_prob_k[active] > NLOS_PROB_MIN)),
+            rescale=None if partial else rescale)
         n_partial += partial
         n_full += not partial
         pi = nlos_prob_update(prob, res.lin.w, active)
