@@ -6,6 +6,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf as _dpotrf
 from scipy.linalg.lapack import dpotri as _dpotri
 
+from estimator.jackknife import jackknife_cov, jackknife_inflate
 from estimator.lm import (
     _Result,
 )
@@ -71,16 +72,28 @@ def _covariances(
 def _estimate(
     prob: Problem, res: _Result, active: np.ndarray, mirrors: list, n_ranges: np.ndarray,
     clock: list | None = None, clock_triggered: np.ndarray | None = None, warm_started: bool = False,
+    jackknife: bool = False,
 ) -> Estimate:
     """The Estimate of solution `res` (its users, covariances and model state).
 
     mirrors: (K,) mirror test per user (None: not tested); n_ranges: (K,) ranges per user;
     clock, clock_triggered, warm_started: the batch solve's clock tracking and warm start
-    (ModelState)."""
+    (ModelState); jackknife: a batch solve's answer, whose users' covariances (cov_users_m2 and
+    the diagonal blocks of cov_theta_joint) are widened to their delete-a-block jackknife where
+    params.jackknife_blocks asks (estimator.jackknife; info_users stays the model's S)."""
     k_all, p, d = prob.n_users, prob.p, prob.user_dim
     users = users_from_theta(res.theta, prob.user_up_m, d)
     users[~active] = np.nan
     cov, info, cov_joint = _covariances(res.s, active, k_all, p, d)
+    if jackknife and prob.params.jackknife_blocks and cov_joint is not None:
+        v_j = jackknife_cov(prob, res.x, res.theta, active, int(prob.params.jackknife_blocks))
+        for j, k in enumerate(np.flatnonzero(active)):
+            sl = slice(j * p, (j + 1) * p)
+            block = cov_joint[sl, sl]
+            wide = jackknife_inflate(block, v_j[k])
+            if wide is not block:
+                cov_joint[sl, sl] = wide
+                cov[k] = wide[:d, :d]
     bias = None
     bias_on = bias_held = None
     if prob.params.estimate_bias:

@@ -56,6 +56,10 @@ class SolverParams:
     estimate_noise_scale: re-estimate a per-user scale s_k ≥ 1 of the range noise from the
         residuals, σ_k(d) = s_k σ(d) (estimator.solve.noise_scale_update), so that a UE noisier
         than the assumed σ(d) gets an honest covariance. Reported as Estimate.state.noise_scale.
+    jackknife_blocks: G > 1: a batch solve reports each user's covariance as the larger, in every
+        direction, of the model's S⁻¹ and the delete-a-block jackknife over G contiguous time
+        blocks of its ranges (estimator.jackknife: what the model's independence misses, such as a
+        block of NLoS excess from one side of the user); 0: the model's alone.
     user_dim: 2 (east, north; up fixed at the known ground height) or 3.
     motion_sigma_m: per-axis σ of the relative-motion factor of a keyframe that carries a
         displacement (Keyframe.odom_enu_m) without its own σ (None: such keyframes get no motion
@@ -104,6 +108,7 @@ class SolverParams:
     estimate_noise_scale: bool = True
     bias_select: bool = True
     bias_held: Literal["zero", "sawtooth"] = "zero"
+    jackknife_blocks: int = 0
     track_clock: bool = True
     user_dim: int = 2
     motion_sigma_m: float | None = None

@@ -27,12 +27,18 @@ from estimator.refresh import RefreshedEstimator
 from estimator.types import SOURCE_BATCH, Estimate, Keyframe, SolverParams
 from planner.stop import targets_reached
 
+#: a mission's batch answers report each user's covariance widened to its delete-a-block
+#: jackknife over this many time blocks (SolverParams.jackknife_blocks, estimator.jackknife)
+MISSION_JACKKNIFE_BLOCKS = 4
+
 
 def mission_solver_params(mission) -> SolverParams:
     """The estimator settings of a :class:`mission.config.MissionConfig`: its keyframe spacing Δ and
-    range-bias model, the solver's defaults otherwise."""
+    range-bias model, the jackknifed covariance (MISSION_JACKKNIFE_BLOCKS), the solver's defaults
+    otherwise."""
     return SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
-                        bias_prior_sigma_m=mission.noise.bias_prior_sigma_m, bias_held=mission.noise.bias_held)
+                        bias_prior_sigma_m=mission.noise.bias_prior_sigma_m, bias_held=mission.noise.bias_held,
+                        jackknife_blocks=MISSION_JACKKNIFE_BLOCKS)
 
 
 @dataclass(frozen=True)
