@@ -12,11 +12,11 @@ from estimator.linearize import (
     Prior,
 )
 from estimator.lm import (
-    _Result,
+    SolveResult,
     levenberg_marquardt,
 )
 from estimator.marginals import (
-    _estimate,
+    estimate_of,
 )
 from estimator.noise import NoiseModel
 from estimator.problem import (
@@ -46,7 +46,7 @@ CLOCK_MIN_RANGES = 40
 CLOCK_ROUNDS = 3
 
 
-def _grid_init(prob: Problem, uav: np.ndarray, users: Sequence[int]) -> dict[int, np.ndarray]:
+def grid_init(prob: Problem, uav: np.ndarray, users: Sequence[int]) -> dict[int, np.ndarray]:
     """Initial θ_k of the given users by grid search, UAV at `uav` (n, 3), users ranged from the
     same keyframes searched together (estimator.init.init_users). Returns {k: θ_k (p,)}."""
     n = uav.shape[0]
@@ -62,7 +62,7 @@ def _grid_init(prob: Problem, uav: np.ndarray, users: Sequence[int]) -> dict[int
     return out
 
 
-def _mirror_all(
+def mirror_all(
     prob: Problem, theta: np.ndarray, active: np.ndarray, n_rows: int | None = None
 ) -> list:
     """Mirror test per user on the first n_rows keyframes (UAV at GPS). None for inactive users."""
@@ -85,10 +85,10 @@ def _mirror_all(
     return out
 
 
-def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Prior | None = None):
+def _resolve_mirrors(prob: Problem, res: SolveResult, active: np.ndarray, prior: Prior | None = None):
     """Mirror tests; a user whose mirror fits clearly better (Δχ² < −χ²_amb) jumps there and
     the problem is re-solved once. Returns (result, mirror tests)."""
-    mirrors = _mirror_all(prob, res.theta, active)
+    mirrors = mirror_all(prob, res.theta, active)
     flip = [k for k, mt in enumerate(mirrors) if mt is not None and mt.mirror_is_better(prob.params.ambiguity_chi2)]
     if flip:
         theta = res.theta.copy()
@@ -97,7 +97,7 @@ def _resolve_mirrors(prob: Problem, res: _Result, active: np.ndarray, prior: Pri
         res2 = observed_s(prob, levenberg_marquardt(prob, res.x, theta, active, prior), active, prior)
         if res2.lin.cost < res.lin.cost:
             res = res2
-            mirrors = _mirror_all(prob, res.theta, active)
+            mirrors = mirror_all(prob, res.theta, active)
     return res, mirrors
 
 
@@ -140,7 +140,7 @@ def solve_batch(
             theta[k, : prob.user_dim] = given[k, : prob.user_dim]
         else:
             search.append(k)
-    for k, th in _grid_init(prob, x, search).items():
+    for k, th in grid_init(prob, x, search).items():
         theta[k] = th
     theta[~active] = 0.0
     res = solve_robust(prob, x, theta, active)
@@ -153,7 +153,7 @@ def solve_batch(
     res, mirrors = _resolve_mirrors(prob, res, active)
     if triggered is None or res is not solved:
         triggered = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
-    return _estimate(prob, res, active, mirrors, n_ranges, clock=clocks, clock_triggered=triggered, jackknife=True)
+    return estimate_of(prob, res, active, mirrors, n_ranges, clock=clocks, clock_triggered=triggered, jackknife=True)
 
 
 def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.ndarray) -> Estimate | None:
@@ -222,12 +222,12 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
             return None
     res, mirrors = _resolve_mirrors(prob, res, active)
     was = triggered if st.clock_triggered is None else st.clock_triggered
-    return _estimate(prob, res, active, mirrors, n_ranges,
+    return estimate_of(prob, res, active, mirrors, n_ranges,
                      clock=list(clocks) if prob.params.estimate_bias else [None] * k_all,
                      clock_triggered=triggered | was, warm_started=True, jackknife=True)
 
 
-def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.ndarray) -> np.ndarray:
+def _clock_trigger(prob: Problem, res: SolveResult, kept: np.ndarray, active: np.ndarray) -> np.ndarray:
     """(K,) users to test for a clock sawtooth: active, with CLOCK_MIN_RANGES kept ranges
     (kept (n, K)), and whose whitened residuals e (the noise scale undone: the test is against
     the assumed σ(d)) about their mean ē are too large or too smooth for white noise:
@@ -264,7 +264,7 @@ def _clock_trigger(prob: Problem, res: _Result, kept: np.ndarray, active: np.nda
     return active & (cnt >= CLOCK_MIN_RANGES) & ((rms >= rms_min) | (z >= CLOCK_TRIGGER_Z) | nlos)
 
 
-def _clock_residuals(prob: Problem, res: _Result) -> tuple[np.ndarray, np.ndarray]:
+def _clock_residuals(prob: Problem, res: SolveResult) -> tuple[np.ndarray, np.ndarray]:
     """What a clock fit sees at a solution: r̂ − d (n, K) (the sawtooth or bias, and the noise)
     and the range's gradient in the user's position ∂d/∂u = (u − x)/d (n, K, user_dim), the
     nuisance columns of the fit (a solve without the sawtooth moved the user to absorb part of
@@ -276,7 +276,7 @@ def _clock_residuals(prob: Problem, res: _Result) -> tuple[np.ndarray, np.ndarra
     return prob.range_m[:n] - d, -diff[:, :, : prob.user_dim] / d[:, :, None]
 
 
-def _fit_clocks(prob: Problem, res: _Result, users: np.ndarray, gain: np.ndarray, fit_one) -> list:
+def _fit_clocks(prob: Problem, res: SolveResult, users: np.ndarray, gain: np.ndarray, fit_one) -> list:
     """Fit each of `users` (indices) with fit_one(k, t, r, grad) -> SawtoothFit | None on the
     ranges the loss keeps (weight ≥ ½: an NLoS excess is no sawtooth), given CLOCK_MIN_RANGES of
     them (_clock_residuals: r and grad); a fit's gain written into gain (n, K) at all of the
@@ -301,7 +301,7 @@ def _fit_clocks(prob: Problem, res: _Result, users: np.ndarray, gain: np.ndarray
     return out
 
 
-def _refine_clocks(prob: Problem, res: _Result, active: np.ndarray, clocks: list) -> tuple[_Result, list]:
+def _refine_clocks(prob: Problem, res: SolveResult, active: np.ndarray, clocks: list) -> tuple[SolveResult, list]:
     """A warm solve's tracked sawtooths re-fitted near their (P, φ) on its residuals
     (estimator.clock.refine_sawtooth: more periods seen since the cold solve that found them
     pin them down better), and the problem solved again when any moved."""
@@ -323,7 +323,7 @@ def _refine_clocks(prob: Problem, res: _Result, active: np.ndarray, clocks: list
     return solve_robust(prob, res.x, res.theta, active), out
 
 
-def _track_clocks(prob: Problem, res: _Result, active: np.ndarray) -> tuple[_Result, list, np.ndarray | None]:
+def _track_clocks(prob: Problem, res: SolveResult, active: np.ndarray) -> tuple[SolveResult, list, np.ndarray | None]:
     """Fit a clock sawtooth (estimator.clock) to each user whose range residuals are noisier or
     smoother than white noise of its σ(d) (_clock_trigger); an accepted fit turns the user's bias
     into the sawtooth's amplitude, r̂ = d + A_k · frac(t/P_k − φ_k) (prob.bias_gain, the bias kept free), so that A_k is

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.linearize import _range_terms
+from estimator.linearize import range_terms
 from estimator.problem import Problem
 
 #: a user is jackknifed only with at least this many ranges per block and parameter
@@ -42,7 +42,7 @@ def jackknife_cov(prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.nd
     if blocks < 2 or not np.any(active):
         return out
     mask_kn = prob.mask[:n].T & active[:, None]
-    _e, w, _rho, jac, psi, _ = _range_terms(prob, x, theta, mask_kn)
+    _e, w, _rho, jac, psi, _ = range_terms(prob, x, theta, mask_kn)
     jt = jac[3:]  # (p, K, n) J_θ of each range
     prior = np.zeros(k_all)
     if prob.params.estimate_bias:

@@ -1,6 +1,6 @@
 """Linearization of the SLAM cost (docs/design.md §5): the IRLS-weighted normal equations at a point.
 
-Every factor's vectorised error and Jacobian enters here once: the range factor (_range_terms on
+Every factor's vectorised error and Jacobian enters here once: the range factor (range_terms on
 estimator.factors.range_residuals / range_alpha / range_jacobian, the one source of the range
 model that initialization and the planner's prediction also call; RangeFactor one at a time),
 the GPS factors (estimator.gps), the bias priors, the relative-motion factors and the
@@ -64,10 +64,10 @@ class Linearization:
     rho_k: np.ndarray | None = None  # (K,) Σ_n ρ(e) of each user's ranges
 
 
-def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray) -> tuple:
+def problem_residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray) -> tuple:
     """Range residuals, user-major: (diff (3, K, n) = x_i − u_k, d (K, n), σ (K, n) or scalar,
     r = r̂ − d − b (K, n), e = r/σ (K, n), full), r and e zero where mask_kn (K, n) is False;
-    full: mask_kn is all True. Shapes as in `_range_terms`."""
+    full: mask_kn is all True. Shapes as in `range_terms`."""
     n = x.shape[0]
     users = users_from_theta(theta, prob.user_up_m, prob.user_dim)
     # diff_i = x_i − u_i, (3, K, n)
@@ -85,13 +85,13 @@ def _residuals(prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndar
     return diff, d, sig, r, e, full
 
 
-def _nlos_args(prob: Problem, sig: np.ndarray | float) -> tuple:
+def problem_nlos_args(prob: Problem, sig: np.ndarray | float) -> tuple:
     """(π (K, 1) or scalar, whitened NLoS mean m) of the "nlos" loss for ranges of σ `sig`."""
     pi = prob.params.nlos_prob if prob.nlos_prob_k is None else prob.nlos_prob_k[:, None]
     return pi, prob.params.nlos_mean_m / sig
 
 
-def _range_terms(
+def range_terms(
     prob: Problem, x: np.ndarray, theta: np.ndarray, mask_kn: np.ndarray, observed: float | None = None,
 ) -> tuple[np.ndarray, ...]:
     """Whitened range residuals and Jacobians (see estimator.factors.RangeFactor), user-major.
@@ -103,8 +103,8 @@ def _range_terms(
     where mask_kn is False.
     """
     params = prob.params
-    diff, d, sig, _r, e, full = _residuals(prob, x, theta, mask_kn)
-    nl = _nlos_args(prob, sig) if params.loss == "nlos" else None
+    diff, d, sig, _r, e, full = problem_residuals(prob, x, theta, mask_kn)
+    nl = problem_nlos_args(prob, sig) if params.loss == "nlos" else None
     if observed is not None and nl is not None:
         # the observed information ψ'(e) instead of the EM weight γ (robust.nlos_curvature),
         # floored at observed (a float) when the unfloored one is not positive definite
@@ -119,13 +119,13 @@ def _range_terms(
         w_em = w if w_em is w else w_em * mask_kn
         psi = psi * mask_kn
         rho = rho * mask_kn
-    jac = _range_jac(prob, diff, d, sig, None if full else mask_kn)
+    jac = range_jac(prob, diff, d, sig, None if full else mask_kn)
     return e, w, rho, jac, psi, w_em
 
 
-def _range_jac(prob: Problem, diff: np.ndarray, d: np.ndarray, sig: np.ndarray | float,
+def range_jac(prob: Problem, diff: np.ndarray, d: np.ndarray, sig: np.ndarray | float,
                mask_kn: np.ndarray | None) -> np.ndarray:
-    """(3 + p, K, n) range Jacobians [∂e/∂x; ∂e/∂θ_k] at _residuals' diff, d, σ (mask_kn None: every
+    """(3 + p, K, n) range Jacobians [∂e/∂x; ∂e/∂θ_k] at problem_residuals' diff, d, σ (mask_kn None: every
     range), zero where mask_kn is False:  α = 1/σ;  ∂e/∂x = −α û, ∂e/∂u = α û, ∂e/∂b = −g/σ
     (estimator.factors)."""
     n = d.shape[1]
@@ -151,7 +151,7 @@ def linearize(
     n, k_all = prob.range_m.shape
     p = prob.p
     mask_kn = prob.mask[:n].T & active[:, None]
-    e, w, rho, jac, psi, w_em = _range_terms(prob, x, theta, mask_kn, observed)
+    e, w, rho, jac, psi, w_em = range_terms(prob, x, theta, mask_kn, observed)
     linked = prob.gps_linked
     if linked:
         # Gauss–Markov GPS factors (estimator.gps): diagonal, off-diagonal and gradient terms

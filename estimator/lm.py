@@ -35,7 +35,11 @@ def _blocks_pd(hxx: np.ndarray) -> bool:
 
 
 @dataclass
-class _Result:
+class SolveResult:
+    """Where a solve ended: keyframes x (N, 3) [m, ENU], users θ (K, p), the linearization `lin`
+    there, the users' information S (K·p, K·p) or None when singular, the iterations taken and
+    whether they converged."""
+
     x: np.ndarray
     theta: np.ndarray
     lin: Linearization
@@ -54,7 +58,7 @@ def levenberg_marquardt(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     max_iterations: int | None = None, step_tol_m: float | None = None, newton: bool = False,
     rescale=None,
-) -> _Result:
+) -> SolveResult:
     """Minimise L from (x, Θ); stop when the largest user step component, or the distance still
     to go estimated from the contraction of the last two steps, is below params.step_tol_m (or
     step_tol_m) — or the users' step still to go is below params.step_tol_sigma of their
@@ -71,7 +75,7 @@ def levenberg_marquardt(
     problems, the LoS/NLoS mixture's tail ranges at π on its floor), Newton's quadratically;
     the optimum is the same (the gradient is ψ J either way). The returned linearization's
     weights w are the EM ones; its normal equations and S are the observed information's where
-    newton steps were taken (_Result.observed; em_information gives the EM-weighted ones).
+    newton steps were taken (SolveResult.observed; em_information gives the EM-weighted ones).
 
     rescale: None, or rescale(lin) -> bool, called once, at the first undamped step that does not
     end the solve and is below RESCALE_STEP_SIGMA of the users' standard deviations, with that
@@ -154,10 +158,10 @@ def levenberg_marquardt(
             _, _, s_final = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
         except (np.linalg.LinAlgError, EstimatorError):
             s_final = None
-    return _Result(x, theta, lin, s_final, it, converged, gn_step, observed=newton)
+    return SolveResult(x, theta, lin, s_final, it, converged, gn_step, observed=newton)
 
 
-def em_information(prob: Problem, res: _Result, active: np.ndarray, prior: Prior | None = None) -> _Result:
+def em_information(prob: Problem, res: SolveResult, active: np.ndarray, prior: Prior | None = None) -> SolveResult:
     """res with the EM-weighted linearization and S (at its estimate) where its normal equations
     are the observed information's (levenberg_marquardt's newton steps); res itself otherwise."""
     if not res.observed:
@@ -167,4 +171,4 @@ def em_information(prob: Problem, res: _Result, active: np.ndarray, prior: Prior
         _, _, s = schur_solve(lin.hxx, lin.off, lin.hxu, lin.huu, lin.gx, lin.gu, 0.0)
     except (np.linalg.LinAlgError, EstimatorError):
         s = None
-    return _Result(res.x, res.theta, lin, s, res.iterations, res.converged)
+    return SolveResult(res.x, res.theta, lin, s, res.iterations, res.converged)

@@ -8,7 +8,7 @@ from scipy.linalg.lapack import dpotri as _dpotri
 
 from estimator.jackknife import jackknife_cov, jackknife_inflate
 from estimator.lm import (
-    _Result,
+    SolveResult,
 )
 from estimator.problem import (
     Problem,
@@ -17,7 +17,7 @@ from estimator.problem import (
 from estimator.types import Estimate, ModelState
 
 
-def _covariances(
+def user_covariances(
     s: np.ndarray | None, active: np.ndarray, k_all: int, p: int, d: int, cov_s: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """From S (K·p, K·p): per-user position covariance (K, d, d), position information (K·d, K·d)
@@ -69,8 +69,8 @@ def _covariances(
     return cov, info, cov_a
 
 
-def _estimate(
-    prob: Problem, res: _Result, active: np.ndarray, mirrors: list, n_ranges: np.ndarray,
+def estimate_of(
+    prob: Problem, res: SolveResult, active: np.ndarray, mirrors: list, n_ranges: np.ndarray,
     clock: list | None = None, clock_triggered: np.ndarray | None = None, warm_started: bool = False,
     jackknife: bool = False,
 ) -> Estimate:
@@ -84,7 +84,7 @@ def _estimate(
     k_all, p, d = prob.n_users, prob.p, prob.user_dim
     users = users_from_theta(res.theta, prob.user_up_m, d)
     users[~active] = np.nan
-    cov, info, cov_joint = _covariances(res.s, active, k_all, p, d)
+    cov, info, cov_joint = user_covariances(res.s, active, k_all, p, d)
     if jackknife and prob.params.jackknife_blocks and cov_joint is not None:
         v_j = jackknife_cov(prob, res.x, res.theta, active, int(prob.params.jackknife_blocks))
         for j, k in enumerate(np.flatnonzero(active)):

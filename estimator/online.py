@@ -10,19 +10,19 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.batch import (
-    _grid_init,
-    _mirror_all,
+    grid_init,
+    mirror_all,
 )
 from estimator.init import users_cost
 from estimator.linearize import (
     Prior,
 )
 from estimator.lm import (
-    _Result,
+    SolveResult,
     levenberg_marquardt,
 )
 from estimator.marginals import (
-    _estimate,
+    estimate_of,
 )
 from estimator.noise import NoiseModel
 from estimator.online_chain import last_keyframe_information
@@ -175,7 +175,7 @@ def full_update(
         fixes = st.x[: st.n][prob.mask[:, k], :2]
         if float(np.max(np.ptp(fixes, axis=0))) >= ONLINE_MIN_EXTENT_M:
             start.append(k)
-    for k, th in _grid_init(prob, st.x[: st.n], start).items():
+    for k, th in grid_init(prob, st.x[: st.n], start).items():
         st.theta[k] = th
         st.active[k] = newly[k] = True
     check = check_due(st, newly)
@@ -202,7 +202,7 @@ def full_update(
         res = check_mirrors(st, prob, res)
         st.last_check = st.seen
         after_check(st, newly, st.flipped)
-    est = _estimate(prob, res, st.active, st.mirrors, st.n_ranges)
+    est = estimate_of(prob, res, st.active, st.mirrors, st.n_ranges)
     st.users_enu_m = users_from_theta(st.theta, st.user_up_m, st.params.user_dim)
     st.all_active = bool(st.active.all())
     st.nlos_pi_list = st.nlos_pi.tolist()
@@ -258,7 +258,7 @@ def after_check(st: OnlineState, newly: np.ndarray, flipped: bool) -> None:
     st.check_state = (st.noise_scale.copy(), st.nlos_pi.copy(), bias_on)
 
 
-def check_mirrors(st: OnlineState, prob: Problem, res: _Result) -> _Result:
+def check_mirrors(st: OnlineState, prob: Problem, res: SolveResult) -> SolveResult:
     """Re-initialization and mirror tests on the window.
 
     A user whose grid initialization on the window's ranges fits clearly better than its
@@ -280,7 +280,7 @@ def check_mirrors(st: OnlineState, prob: Problem, res: _Result) -> _Result:
     # users ranged from the same keyframes are initialized and costed together (the same
     # numbers as one at a time: estimator.init.init_users, users_cost)
     active = np.flatnonzero(st.active).tolist()
-    fresh = _grid_init(prob, x_win, active)
+    fresh = grid_init(prob, x_win, active)
     groups: dict[bytes, list[int]] = {}
     for k in active:
         groups.setdefault(prob.mask[:, k].tobytes(), []).append(k)
@@ -317,7 +317,7 @@ def check_mirrors(st: OnlineState, prob: Problem, res: _Result) -> _Result:
                    for k in restart)
         if not back:
             res, st.prior, flipped = trial, prior, True
-    mirrors = _mirror_all(prob, res.theta, st.active)
+    mirrors = mirror_all(prob, res.theta, st.active)
     # a prior that also holds the first keyframe (Gauss–Markov GPS or motion links) ties the
     # users to the whole marginalized track: reflecting one user's part of it is no longer a
     # consistent mirror hypothesis, so the window's mirror test only flags, it does not flip
@@ -338,7 +338,7 @@ def check_mirrors(st: OnlineState, prob: Problem, res: _Result) -> _Result:
         res = observed_s(prob, res, st.active, st.prior)
         st.x[: st.n] = res.x
         st.theta = res.theta
-        mirrors = _mirror_all(prob, res.theta, st.active)
+        mirrors = mirror_all(prob, res.theta, st.active)
     st.mirrors = mirrors
     return res
 

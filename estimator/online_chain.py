@@ -20,7 +20,7 @@ import numpy as np
 from scipy.linalg import solveh_banded
 
 from estimator.linearize import Linearization
-from estimator.schur import _banded
+from estimator.schur import banded_blocks
 
 
 def last_keyframe_information(lin: Linearization, s: np.ndarray) -> np.ndarray:
@@ -45,7 +45,7 @@ def last_keyframe_information(lin: Linearization, s: np.ndarray) -> np.ndarray:
         # H_rr X = H_rl: the link sits in the rows of keyframe r − 1 only
         rhs = np.zeros((3 * r, 3))
         rhs[-3:] = np.eye(3) * off[-1]
-        x = solveh_banded(_banded(hxx[:r], off[: r - 1]), rhs, lower=False)
+        x = solveh_banded(banded_blocks(hxx[:r], off[: r - 1]), rhs, lower=False)
         # L = H_ll − H_lr X,  C = H_lθ − Xᵀ H_rθ (H_lr = H_rlᵀ)
         h_ll -= off[-1] * x[-3:]
         h_lt -= x.T @ hxu[:r].reshape(3 * r, p_all)
@@ -140,7 +140,7 @@ def chain_marginal_prior(lin: Linearization, m: int) -> tuple[np.ndarray, np.nda
     rhs[:, :p_all] = hxu[:m].reshape(3 * m, p_all)
     rhs[-3:, p_all : p_all + 3] = np.eye(3) * link
     rhs[:, -1] = gx[:m].ravel()
-    sol = solveh_banded(_banded(hxx[:m], np.zeros(m - 1) if off is None else off[: m - 1]), rhs, lower=False)
+    sol = solveh_banded(banded_blocks(hxx[:m], np.zeros(m - 1) if off is None else off[: m - 1]), rhs, lower=False)
     info = np.empty((3 + p_all, 3 + p_all))
     h_rt = rhs[:, :p_all]
     # Λ_xx = H_mm − off² (H_rr⁻¹)_(m−1,m−1) ...: H_zr sol, with H_(x_m, r) nonzero at keyframe m−1 only

@@ -13,7 +13,7 @@ from scipy.special import erfcx
 
 from estimator.gps import gps_phi
 from estimator.marginals import (
-    _covariances,
+    user_covariances,
 )
 from estimator.noise import SIGMA_EXPONENT_MAX
 from estimator.online_chain import chain_step
@@ -292,7 +292,7 @@ def filter_estimate(st: OnlineState, s: np.ndarray, cov_all: np.ndarray | None) 
         info, cov_joint = s, cov_all
     else:
         users[~st.active] = np.nan
-        cov, info, cov_joint = _covariances(s, st.active, k_all, p, d, cov_all)
+        cov, info, cov_joint = user_covariances(s, st.active, k_all, p, d, cov_all)
     bias = np.where(st.active, st.theta[:, -1], np.nan) if st.params.estimate_bias else None
     return Estimate(
         users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias,

@@ -11,8 +11,8 @@ import numpy as np
 from estimator.gps import gps_chain_terms
 from estimator.linearize import (
     Prior,
-    _range_terms,
     linearize,
+    range_terms,
 )
 from estimator.online_chain import chain_marginal_prior
 from estimator.online_state import OnlineState, window_problem
@@ -50,7 +50,7 @@ def marginalize_block(st: OnlineState, m: int) -> bool:
     x = st.x[:m]
     theta = st.theta
     mask = prob.mask[:m].T & st.active[:, None]
-    _e, w, _rho, jac, psi, _ = _range_terms(prob, x, theta, mask)
+    _e, w, _rho, jac, psi, _ = range_terms(prob, x, theta, mask)
     jx, jt = jac[:3], jac[3:]  # (3, K, m), (p, K, m)
     inv_g2 = 1.0 / st.noise.sigma_gps_m**2
     # H_ii (m, 3, 3), H_iθ (m, 3, K, p), ∇_i (m, 3)
@@ -128,7 +128,7 @@ def marginalize_oldest(st: OnlineState) -> None:
     h = np.zeros((dim, dim))
     grad = np.zeros(dim)
     mask0 = prob.mask[:1].T & st.active[:, None]
-    _e, w, _rho, jac, psi, _ = _range_terms(prob, x[:1], theta, mask0)
+    _e, w, _rho, jac, psi, _ = range_terms(prob, x[:1], theta, mask0)
     # H += Σ w JᵀJ,  ∇ += Σ ψ J
     jfull = np.zeros((k_all, dim))
     jfull[:, :3] = jac[:3, :, 0].T  # (K, 3)

@@ -70,7 +70,7 @@ def check_loss(loss: str, scale: float) -> None:
         raise EstimatorError(f"loss_scale must be a positive finite number, got {scale!r}")
 
 
-def _mills(t: np.ndarray) -> np.ndarray:
+def mills_ratio(t: np.ndarray) -> np.ndarray:
     """M(t) = Φ(t)/φ(t) = √(π/2) erfcx(x), x = −t/√2, for t ≤ _MILLS_T_MAX (finite there), any shape.
 
     erfcx(x) = erfc(x) exp(x²) is evaluated so where x ≤ _MILLS_X_FAST (t ≥ −7.07, every range
@@ -108,7 +108,7 @@ def _nlos_all(
     e = np.asarray(e, dtype=float)
     inv_m = 1.0 / mean_w
     t = e - inv_m
-    mills = _mills(t)
+    mills = mills_ratio(t)
     one_m_pi = 1.0 - prob
     q = (prob * inv_m) * mills
     g = one_m_pi + q
@@ -127,7 +127,7 @@ def _nlos_all(
         over = t > _MILLS_T_MAX
         if over.any():
             log_g = log_g + np.where(over, 0.5 * (t * t - _MILLS_T_MAX**2), 0.0)
-        g0 = one_m_pi + (prob * inv_m) * _mills(-inv_m)
+        g0 = one_m_pi + (prob * inv_m) * mills_ratio(-inv_m)
         rho = 0.5 * e * e - log_g + np.log(g0)
     return rho, psi, gamma, curv
 

@@ -62,7 +62,7 @@ def inv3_sym_batched(a: np.ndarray) -> np.ndarray:
     return out
 
 
-def _banded(hxx: np.ndarray, off: np.ndarray) -> np.ndarray:
+def banded_blocks(hxx: np.ndarray, off: np.ndarray) -> np.ndarray:
     """Upper banded form (4, 3N) of the block-tridiagonal H_xx (scipy's ab[u + i − j, j] = a[i, j])."""
     n = hxx.shape[0]
     ab = np.zeros((4, 3 * n))
@@ -182,7 +182,7 @@ def schur_solve(
     else:
         # banded solve in keyframe-major order (row 3n + i)
         b2 = hxu.reshape(3 * n, p)
-        ay = solveh_banded(_banded(hxx, off), np.column_stack([b2, gx.reshape(-1)]), lower=False)
+        ay = solveh_banded(banded_blocks(hxx, off), np.column_stack([b2, gx.reshape(-1)]), lower=False)
     a2, y2 = ay[:, :p], ay[:, p]
     # H_ux H_xx⁻¹ [H_xu | g_x] in one product
     bay = b2.T @ ay

@@ -12,21 +12,21 @@ from estimator.clock import undetected_sawtooth_bias
 from estimator.linearize import (
     Linearization,
     Prior,
-    _nlos_args,
-    _range_jac,
-    _range_terms,
-    _residuals,
     linearize,
+    problem_nlos_args,
+    problem_residuals,
+    range_jac,
+    range_terms,
 )
 from estimator.lm import (
-    _Result,
+    SolveResult,
     em_information,
     levenberg_marquardt,
 )
 from estimator.problem import (
     Problem,
 )
-from estimator.robust import REDESCENDING, _mills, nlos_terms
+from estimator.robust import REDESCENDING, mills_ratio, nlos_terms
 from estimator.schur import schur_solve
 from uavloc.errors import EstimatorError
 
@@ -171,7 +171,7 @@ def noise_scale_update(prob: Problem, lin: Linearization, active: np.ndarray) ->
 def solve_robust(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     step_tol_m: float | None = None, max_iterations: int | None = None, rounds: int | None = None,
-) -> _Result:
+) -> SolveResult:
     """:func:`_solve_robust` (the schedule: loss, noise scale, bias selection), with S from the
     observed information when the "nlos" loss found NLoS (observed_s). max_iterations: of each
     Levenberg–Marquardt run (None: params.max_iterations). rounds: the most solves of the
@@ -181,7 +181,7 @@ def solve_robust(
     return observed_s(prob, res, active, prior)
 
 
-def observed_s(prob: Problem, res: _Result, active: np.ndarray, prior: Prior | None = None) -> _Result:
+def observed_s(prob: Problem, res: SolveResult, active: np.ndarray, prior: Prior | None = None) -> SolveResult:
     """res with S from the observed information of the "nlos" loss (ψ'(e) per range,
     robust.nlos_curvature) instead of its EM weight γ, when some active user's π_k is above
     NLOS_PROB_MIN (at LoS γ ≈ ψ' ≈ 1 and S is kept).
@@ -218,7 +218,7 @@ def observed_s(prob: Problem, res: _Result, active: np.ndarray, prior: Prior | N
             np.linalg.cholesky(s)
         except (np.linalg.LinAlgError, EstimatorError):
             continue
-        return _Result(res.x, res.theta, res.lin, s, res.iterations, res.converged)
+        return SolveResult(res.x, res.theta, res.lin, s, res.iterations, res.converged)
     return res
 
 
@@ -238,12 +238,12 @@ def _nlos_prob_blocks(
     # only the free users' ranges enter: their residuals and Jacobians alone
     sub = user_subproblem(prob, ks)
     mask_kn = sub.mask[:n].T & active[ks][:, None]
-    diff, d, sig, _, e, full = _residuals(sub, x, theta[ks], mask_kn)
-    jac = _range_jac(sub, diff, d, sig, None if full else mask_kn)
-    pi, m = _nlos_args(sub, sig)
+    diff, d, sig, _, e, full = problem_residuals(sub, x, theta[ks], mask_kn)
+    jac = range_jac(sub, diff, d, sig, None if full else mask_kn)
+    pi, m = problem_nlos_args(sub, sig)
     inv_m = 1.0 / m
     t = e - inv_m
-    mills = _mills(t)
+    mills = mills_ratio(t)
     g = (1.0 - pi) + pi * inv_m * mills
     mm = inv_m * mills
     dpsi = np.where(mask_kn, -(t + 1.0 / mills) * (mm / g) / g, 0.0)
@@ -259,7 +259,7 @@ def _nlos_prob_blocks(
 def _solve_robust(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     step_tol_m: float | None = None, max_iterations: int | None = None, rounds: int | None = None,
-) -> _Result:
+) -> SolveResult:
     """:func:`solve_loss` and, with params.estimate_noise_scale, the per-user range-noise scale
     re-estimated from the solution's residuals (noise_scale_update, stored in prob.noise_scale_k):
     the problem is re-solved while a scale moves by more than NOISE_SCALE_RESOLVE (relative), and
@@ -310,7 +310,7 @@ def _solve_robust(
             g[ib] = (b_h - mu_h) * inv_off2 / np.square(rescaled) - b_h * inv_free2
         else:
             n = res.x.shape[0]
-            _, _, _, jac, psi, _ = _range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
+            _, _, _, jac, psi, _ = range_terms(prob, res.x, res.theta, prob.mask[:n].T & active[:, None])
             g[ib] = -(psi * jac[-1]).sum(axis=1) - res.theta[:, -1] * inv_free2
         try:
             cov = np.linalg.inv(s_free)
@@ -360,7 +360,7 @@ def _rescale_midway(prob: Problem, active: np.ndarray, rounds: int | None):
 def _solve_scaled(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None,
     step_tol_m: float | None, max_iterations: int | None = None, rounds: int | None = None,
-) -> tuple[_Result, np.ndarray]:
+) -> tuple[SolveResult, np.ndarray]:
     """solve_loss, then rounds of noise_scale_update (see solve_robust). Returns (result, (K,)
     ratio of the noise scales to those of the last solve: ≠ 1 where a last change only rescaled
     S: a small one, or any in the last of `rounds` rounds)."""
@@ -392,7 +392,7 @@ def _solve_scaled(
                     sb = prob.params.bias_prior_sigma_m if prob.bias_sigma_k is None else prob.bias_sigma_k
                     prior_b[prob.user_dim :: prob.p] = 1.0 / np.square(sb)
                 s_new = (res.s - np.diag(prior_b)) * dvec[:, None] * dvec[None, :] + np.diag(prior_b)
-                res = _Result(res.x, res.theta, res.lin, s_new, res.iterations, res.converged, res.gn_step)
+                res = SolveResult(res.x, res.theta, res.lin, s_new, res.iterations, res.converged, res.gn_step)
             return res, ratio
         res = solve_loss(prob, res.x, res.theta, active, prior, step_tol_m, max_iterations, rounds,
                          rescale=_rescale_midway(prob, active, rounds))
@@ -446,7 +446,7 @@ def _nlos_user_rounds(prob: Problem, x: np.ndarray, theta: np.ndarray, users: np
 
     def terms(th: np.ndarray) -> tuple:
         # (cost (k,), e, w, H (k, p, p), g (k, p)) of each user at θ, x held
-        e, w, rho, jac, psi, _ = _range_terms(sub, x, th, mask_kn)
+        e, w, rho, jac, psi, _ = range_terms(sub, x, th, mask_kn)
         jt = jac[3:]  # (p, k, n)
         # J_θ = [α û (user coordinates), −g/σ (bias)]: ∂e/∂u = −∂e/∂x
         h = np.einsum("akn,bkn->kab", jt * w, jt)
@@ -502,7 +502,7 @@ def solve_loss(
     prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray, prior: Prior | None = None,
     step_tol_m: float | None = None, max_iterations: int | None = None, rounds: int | None = None,
     conditional: bool = True, rescale=None,
-) -> _Result:
+) -> SolveResult:
     """Levenberg–Marquardt with the loss's schedule: a redescending loss starts from a Huber
     solution; "nlos" with params.nlos_adapt alternates solves with the maximum-likelihood π_k at
     the solution's residuals (nlos_prob_update, stored in prob.nlos_prob_k) until no π_k moves
@@ -521,8 +521,8 @@ def solve_loss(
         # the floor at once, and the solve runs near-quadratic from the first iteration)
         prob.nlos_prob_k = np.full(prob.n_users, float(params.nlos_prob))
         mask_kn = prob.mask[: x.shape[0]].T & active[:, None]
-        _, _, sig, _, e, _ = _residuals(prob, x, theta, mask_kn)
-        gamma = nlos_terms(e, *_nlos_args(prob, sig), need_rho=False)[2] * mask_kn
+        _, _, sig, _, e, _ = problem_residuals(prob, x, theta, mask_kn)
+        gamma = nlos_terms(e, *problem_nlos_args(prob, sig), need_rho=False)[2] * mask_kn
         prob.nlos_prob_k = nlos_prob_update(prob, gamma, active)
     tol = params.step_tol_m if step_tol_m is None else step_tol_m
     # while π_k still moves, solve only to NLOS_ROUND_STEP_M; then to tol (all π_k on the

@@ -776,7 +776,7 @@ def test_online_block_marginalization_equals_one_keyframe_at_a_time():
 def _nlos_problem(seed: int, p_nlos: float, params: SolverParams = SolverParams()):  # noqa: B008
     """A 6-user N = 200 circle with NLoS on users 0–2 (3–5 LoS): the scenario and fresh() -> (the
     packed problem, the grid starts)."""
-    from estimator.batch import _grid_init
+    from estimator.batch import grid_init
 
     rng = np.random.default_rng(seed)
     sc = simulate(rng, n_users=6, n_keyframes=200, noise=NOISE, p_nlos=p_nlos)
@@ -792,7 +792,7 @@ def _nlos_problem(seed: int, p_nlos: float, params: SolverParams = SolverParams(
     def fresh():
         prob = pack_keyframes(kfs, 6, sc.user_up_m, NOISE, params)
         theta = np.zeros((6, prob.p))
-        for k, th in _grid_init(prob, prob.gps_enu_m, range(6)).items():
+        for k, th in grid_init(prob, prob.gps_enu_m, range(6)).items():
             theta[k] = th
         return prob, theta
 
@@ -853,13 +853,13 @@ def test_noise_scale_taken_midway_matches_the_re_solve(monkeypatch, k, scale, sa
         calls["n"] = 0
         out[name] = (solve_batch(sc.keyframes, k, sc.user_up_m, noise, SolverParams()), calls["n"])
     (ref, n_ref), (got, n_got) = out["reference"], out["midway"]
-    assert np.max(ref.extra["noise_scale"]) > 1.0 + 0.1  # the re-solve's case
+    assert np.max(ref.state.noise_scale) > 1.0 + 0.1  # the re-solve's case
     assert n_got < n_ref if saves else n_got <= n_ref
     for k_ in range(k):
         d = got.users_enu_m[k_, :2] - ref.users_enu_m[k_, :2]
         assert float(np.sqrt(d @ np.linalg.solve(ref.cov_users_m2[k_], d))) < 0.05
     np.testing.assert_allclose(got.cov_users_m2, ref.cov_users_m2, rtol=0.01)
-    np.testing.assert_allclose(got.extra["noise_scale"], ref.extra["noise_scale"], rtol=0.01)
+    np.testing.assert_allclose(got.state.noise_scale, ref.state.noise_scale, rtol=0.01)
 
 
 def test_nlos_rounds_by_user_reach_the_joint_em_fixed_point():
@@ -915,7 +915,7 @@ def test_covariances_from_cholesky_equal_the_inverse_of_s(k_all, p, d):
     Schur complement of S over the biases) against the slow reference: np.linalg.inv of S and
     of the covariance's position block; with every user active and one inactive, and with S⁻¹
     handed in. An indefinite S gives no covariance."""
-    from estimator.marginals import _covariances
+    from estimator.marginals import user_covariances
 
     rng = np.random.default_rng(70)
     a = rng.normal(size=(k_all * p, k_all * p))
@@ -931,14 +931,14 @@ def test_covariances_from_cholesky_equal_the_inverse_of_s(k_all, p, d):
         ka = np.flatnonzero(active)
         ip = (ka[:, None] * d + np.arange(d)).ravel()
         for given in (None, ref if active.all() else None):
-            cov, info, joint = _covariances(s, active, k_all, p, d, given)
+            cov, info, joint = user_covariances(s, active, k_all, p, d, given)
             np.testing.assert_allclose(joint, ref, rtol=1e-10, atol=1e-14)
             np.testing.assert_allclose(cov[ka], r4[np.arange(na), :d, np.arange(na), :d], rtol=1e-10, atol=1e-14)
             np.testing.assert_allclose(info[np.ix_(ip, ip)], ref_info, rtol=1e-9, atol=1e-9)
             assert np.all(np.isinf(cov[~active]))
     bad = s.copy()
     bad[0, 0] = -1.0
-    cov, _, joint = _covariances(bad, np.ones(k_all, dtype=bool), k_all, p, d)
+    cov, _, joint = user_covariances(bad, np.ones(k_all, dtype=bool), k_all, p, d)
     assert joint is None and np.all(np.isinf(cov))
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from estimator.factors import BiasPriorFactor, GpsPriorFactor, MotionFactor, RangeFactor
-from estimator.linearize import _range_terms
+from estimator.linearize import range_terms
 from estimator.noise import NoiseModel
 from estimator.numdiff import numerical_jacobian
 from estimator.problem import pack_keyframes
@@ -88,18 +88,18 @@ def test_vectorised_range_jacobian_matches_central_differences(estimate_bias, us
     if estimate_bias:
         theta[:, -1] = rng.normal(size=3)
     mask = prob.mask.T.copy()
-    e, _w, _rho, jac, _psi, _w_em = _range_terms(prob, x, theta, mask)
+    e, _w, _rho, jac, _psi, _w_em = range_terms(prob, x, theta, mask)
     for k in range(3):
         for n in np.flatnonzero(mask[k])[:4]:
             def e_of_x(v, n=n, k=k):
                 xx = x.copy()
                 xx[n] = v
-                return _range_terms(prob, xx, theta, mask)[0][k, n]
+                return range_terms(prob, xx, theta, mask)[0][k, n]
 
             def e_of_t(v, k=k, n=n):
                 tt = theta.copy()
                 tt[k] = v
-                return _range_terms(prob, x, tt, mask)[0][k, n]
+                return range_terms(prob, x, tt, mask)[0][k, n]
 
             np.testing.assert_allclose(jac[:3, k, n], numerical_jacobian(e_of_x, x[n])[0], rtol=1e-6, atol=1e-9)
             np.testing.assert_allclose(jac[3:, k, n], numerical_jacobian(e_of_t, theta[k])[0], rtol=1e-6, atol=1e-9)
