@@ -16,14 +16,14 @@ import pytest
 
 from estimator.types import SOURCE_BATCH, SolverParams
 from mission.controller import controller_from_mission
-from mission.estimation import MissionEstimator
+from mission.estimation import MissionEstimator, mission_solver_params
 from sitl_scenarios.campaign.fast import fly_fast
 from sitl_scenarios.scenario import load_scenario, resolve_scenario_path
 
 
 def _params(sc) -> SolverParams:
-    # what a campaign spec's default estimator variant gives (campaign.spec: the scenario's Δ and bias model)
-    return SolverParams(delta_m=sc.mission.flight.delta_m, estimate_bias=sc.mission.noise.estimate_bias)
+    # what a campaign spec's default estimator variant gives (campaign.spec: the scenario's mission's)
+    return mission_solver_params(sc.mission)
 
 
 @pytest.mark.parametrize(("name", "planner", "seed"), [("paper", "lawnmower", 0), ("three_users_nlos", "greedy", 0)])
