@@ -29,7 +29,7 @@ from planner.stop import targets_reached
 
 #: a mission's batch answers report each user's covariance widened to its delete-a-block
 #: jackknife over this many time blocks (SolverParams.jackknife_blocks, estimator.jackknife)
-MISSION_JACKKNIFE_BLOCKS = 4
+MISSION_JACKKNIFE_BLOCKS = 8
 
 
 def mission_solver_params(mission) -> SolverParams:
