@@ -27,6 +27,7 @@ from estimator.problem import (
 from estimator.solve import (
     held_bias_prior,
     observed_s,
+    select_biases,
     solve_robust,
 )
 from estimator.types import Estimate, Keyframe, SolverParams
@@ -205,10 +206,7 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
         prob.noise_scale_k = np.asarray(st.noise_scale, dtype=float).copy()
     if prob.params.estimate_bias:
         # the warm answer's bias selection: free biases, the others held (held_bias_prior)
-        on = np.asarray(st.bias_on, dtype=bool)
-        mu_h, sd_h = held_bias_prior(prob)
-        prob.bias_sigma_k = np.where(on, prob.params.bias_prior_sigma_m, sd_h)
-        prob.bias_mean_k = np.where(on, 0.0, mu_h)
+        select_biases(prob, np.asarray(st.bias_on, dtype=bool), held_bias_prior(prob))
     res = solve_robust(prob, x, theta, active)
     if prob.params.estimate_bias and any(c is not None for c in clocks):
         res, clocks = _refine_clocks(prob, res, active, clocks)

@@ -14,6 +14,7 @@ from estimator.problem import (
     Problem,
     users_from_theta,
 )
+from estimator.solve import free_biases
 from estimator.types import Estimate, ModelState
 
 
@@ -98,9 +99,9 @@ def estimate_of(
     bias_on = bias_held = None
     if prob.params.estimate_bias:
         bias = np.where(active, res.theta[:, -1], np.nan)
-        sb = prob.bias_sigma_k
-        # (free biases have the free prior's σ exactly; held ones the held prior's)
-        bias_on = np.ones(k_all, dtype=bool) if sb is None else sb >= prob.params.bias_prior_sigma_m
+        bias_on = free_biases(prob.params, prob.bias_sigma_k)
+        if bias_on is None:
+            bias_on = np.ones(k_all, dtype=bool)
         bias_held = np.zeros(k_all) if prob.bias_mean_k is None else np.where(bias_on, 0.0, prob.bias_mean_k)
     ambiguous = np.zeros(k_all, dtype=bool)
     mirror = np.full((k_all, 3), np.nan)

@@ -37,6 +37,7 @@ from estimator.problem import (
     users_from_theta,
 )
 from estimator.solve import (
+    free_biases,
     observed_s,
     solve_robust,
 )
@@ -248,7 +249,7 @@ def after_check(st: OnlineState, newly: np.ndarray, flipped: bool) -> None:
         for mt in st.mirrors
     )
     # which biases are free (a held one's σ moves with its noise scale under bias_held "sawtooth")
-    bias_on = None if st.bias_sigma_m is None else st.bias_sigma_m >= st.params.bias_prior_sigma_m
+    bias_on = free_biases(st.params, st.bias_sigma_m)
     prev = st.check_state
     bias_changed = prev is not None and not (
         (prev[2] is None and bias_on is None)

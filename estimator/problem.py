@@ -42,8 +42,8 @@ def check_params(params: SolverParams) -> None:
         raise EstimatorError(f"user_dim must be 2 or 3, got {params.user_dim!r}")
     if not (np.isfinite(params.bias_prior_sigma_m) and params.bias_prior_sigma_m > 0):
         raise EstimatorError(f"bias_prior_sigma_m must be positive, got {params.bias_prior_sigma_m!r}")
-    if int(params.jackknife_blocks) != params.jackknife_blocks or not (params.jackknife_blocks == 0
-                                                                        or 2 <= params.jackknife_blocks <= 100):
+    jb = params.jackknife_blocks
+    if isinstance(jb, bool) or not isinstance(jb, int | np.integer) or not (jb == 0 or 2 <= jb <= 100):
         raise EstimatorError(f"jackknife_blocks must be 0 or an integer in 2..100, got {params.jackknife_blocks!r}")
     if params.bias_held not in ("zero", "sawtooth"):
         raise EstimatorError(f"bias_held must be 'zero' or 'sawtooth', got {params.bias_held!r}")

@@ -83,6 +83,21 @@ def held_bias_prior(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
     return np.zeros(k_all), np.full(k_all, BIAS_OFF_SIGMA_M)
 
 
+def select_biases(prob: Problem, free: np.ndarray, held: tuple[np.ndarray, np.ndarray]) -> None:
+    """Write a bias selection into prob: the biases of `free` (K,) under the weak free prior
+    N(0, params.bias_prior_sigma_m²), the others under `held` = (mean, σ) (K,) each
+    (held_bias_prior)."""
+    mean_h, sd_h = held
+    prob.bias_sigma_k = np.where(free, prob.params.bias_prior_sigma_m, sd_h)
+    prob.bias_mean_k = np.where(free, 0.0, mean_h)
+
+
+def free_biases(params, bias_sigma_k: np.ndarray | None) -> np.ndarray | None:
+    """(K,) True where a selection's prior σ (Problem.bias_sigma_k) leaves the bias free: a
+    free bias has the free prior's σ exactly, a held one the held prior's. None: no selection."""
+    return None if bias_sigma_k is None else np.asarray(bias_sigma_k) >= params.bias_prior_sigma_m
+
+
 def nlos_prob_update(prob: Problem, gamma: np.ndarray, active: np.ndarray) -> np.ndarray:
     """(K,) maximum-likelihood NLoS probability of each user at the residuals where the posterior
     LoS probabilities gamma (K, n) (0 where no range; Linearization.w) were evaluated.
@@ -269,12 +284,12 @@ def _solve_robust(
     whose ranges are noisier than the assumed σ(d) then gets a covariance that says so.
 
     With params.estimate_bias and params.bias_select (and prob.bias_sigma_k not yet chosen) the
-    biases are selected: the problem is solved with every bias fixed at 0 (prior σ
-    BIAS_OFF_SIGMA_M, in prob.bias_sigma_k), then one Gauss–Newton step of the model with free
-    biases from that solution gives each bias b̂_k and its standard deviation sd_k (S⁻¹ there:
-    the score test of b_k = 0; from that solve's S and the ranges' gradient, no new
-    linearization). A user keeps its bias when |b̂_k| ≥ BIAS_SELECT_Z · sd_k and
-    sd_k ≤ BIAS_SELECT_MAX_SD_M, and the problem is solved again with those biases free. A UE
+    biases are selected: the problem is solved with every bias held under its prior N(μ_h, σ_h²)
+    (held_bias_prior: at 0 by BIAS_OFF_SIGMA_M with params.bias_held "zero"), then one
+    Gauss–Newton step of the model with free biases from that solution gives each bias b̂_k and its
+    standard deviation sd_k (S⁻¹ there: the score test of b_k = μ_h; from that solve's S and the
+    ranges' gradient, no new linearization). A user keeps its bias when |b̂_k − μ_h| ≥
+    BIAS_SELECT_Z · sd_k and sd_k ≤ BIAS_SELECT_MAX_SD_M, and the problem is solved again with those biases free. A UE
     without a clock offset pays nothing for the unknown; one with a sawtooth keeps it. (A full
     solve of the free model instead of the step wanders, where the geometry barely separates a
     bias from the position, into basins 5–13 m away that fit a little better.)"""
@@ -283,10 +298,11 @@ def _solve_robust(
         return _solve_scaled(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)[0]
     k_all, d_u = prob.n_users, prob.user_dim
     # every bias held by its prior N(μ_h, σ_h²) (held_bias_prior: 0 and a tiny σ_h for "zero")
-    mu_h, sd_h = held_bias_prior(prob)
+    held = held_bias_prior(prob)
+    mu_h, sd_h = held
     inv_off2 = 1.0 / np.square(sd_h)
     inv_free2 = 1.0 / params.bias_prior_sigma_m**2
-    prob.bias_sigma_k, prob.bias_mean_k = sd_h, mu_h
+    select_biases(prob, np.zeros(k_all, dtype=bool), held)
     theta = theta.copy()
     theta[:, -1] = mu_h
     res, rescaled = _solve_scaled(prob, x, theta, active, prior, step_tol_m, max_iterations, rounds)
@@ -324,8 +340,7 @@ def _solve_robust(
         keep |= active & prob.bias_force_k
     if not keep.any():
         return res
-    prob.bias_sigma_k = np.where(keep, params.bias_prior_sigma_m, sd_h)
-    prob.bias_mean_k = np.where(keep, 0.0, mu_h)
+    select_biases(prob, keep, held)
     theta = res.theta.copy()
     theta[keep, -1] = b_step[keep]
     return _solve_scaled(prob, res.x, theta, active, prior, step_tol_m, max_iterations, rounds)[0]

@@ -284,8 +284,7 @@ _OLD_MISSION_TABLE = ("a scenario file is a mission file plus world sections: th
 def _commercial_ues(world: World) -> bool:
     """Whether any user of the world is a commercial UE (a clock sawtooth of positive amplitude,
     its own or the radio's default)."""
-    amp = world.radio.ue_sawtooth_amplitude_m
-    return any((amp if t.sawtooth_amplitude_m is None else t.sawtooth_amplitude_m) > 0 for t in world.truth.values())
+    return any(_with_radio_sawtooth(t, world.radio).sawtooth_amplitude_m > 0 for t in world.truth.values())
 
 
 def _mission_table(data: dict, world: World) -> dict:
@@ -367,12 +366,15 @@ def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
 
 def _resolve_commercial_ues(sc: Scenario) -> Scenario:
     """`sc` with every user's absent clock sawtooth set to the radio's commercial-UE one."""
-    r = sc.radio
-    truth = {uid: dataclasses.replace(
+    truth = {uid: _with_radio_sawtooth(t, sc.radio) for uid, t in sc.world.truth.items()}
+    return dataclasses.replace(sc, world=dataclasses.replace(sc.world, truth=truth))
+
+
+def _with_radio_sawtooth(t: TrueUserConfig, r: RadioConfig) -> TrueUserConfig:
+    """A user's truth with an absent clock sawtooth set to the radio's commercial-UE one."""
+    return dataclasses.replace(
         t, sawtooth_amplitude_m=r.ue_sawtooth_amplitude_m if t.sawtooth_amplitude_m is None else t.sawtooth_amplitude_m,
         sawtooth_period_s=r.ue_sawtooth_period_s if t.sawtooth_period_s is None else t.sawtooth_period_s)
-        for uid, t in sc.world.truth.items()}
-    return dataclasses.replace(sc, world=dataclasses.replace(sc.world, truth=truth))
 
 
 def user_tables(users: list[dict]) -> dict:

@@ -11,9 +11,10 @@ from estimator.batch import solve_batch
 from estimator.jackknife import jackknife_cov, jackknife_inflate
 from estimator.linearize import linearize
 from estimator.noise import NoiseModel
-from estimator.problem import pack_keyframes
+from estimator.problem import check_params, pack_keyframes
 from estimator.simulate import simulate
 from estimator.types import SolverParams
+from uavloc.errors import EstimatorError
 
 
 def _solved_problem(seed: int, params: SolverParams):
@@ -111,3 +112,9 @@ def test_a_one_sided_nlos_block_widens_the_users_covariance_and_the_others_littl
     # average (a 4-block jackknife has 3 degrees of freedom: its chance highs widen some)
     assert np.mean(jack[~block, 1] <= 5.99) >= 0.9
     assert np.mean(np.sqrt(np.array(width[4])[~block] / np.array(width[0])[~block])) <= 4 / 3
+
+
+@pytest.mark.parametrize("value", [1, 101, -2, 4.0, True, float("nan")])
+def test_a_bad_number_of_blocks_is_an_estimator_error_naming_it(value):
+    with pytest.raises(EstimatorError, match="jackknife_blocks"):
+        check_params(SolverParams(jackknife_blocks=value))
