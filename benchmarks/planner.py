@@ -125,7 +125,8 @@ def summarise(records: list[dict], planners: tuple[str, ...], targets_m: tuple[f
             lines.append(row)
     failed = [r for r in records if r["status"] != "ok"]
     lines.append("")
-    lines.append(f"m@T: mean metres flown until the mean 95 % error bound ≤ T m (the 3000 m budget when never); "
+    lines.append(f"m@T: mean metres flown until the mean 95 % error bound ≤ T m as the stop rule reads it (without "
+                 f"the NLoS shift no survey shrinks; the 3000 m budget when never); "
                  f"/lawn, /ref, /orac: ratio of mean metres to lawnmower / casadi_reference / oracle; "
                  f"err@{t1:g}: mean true error [m] at the {t1:g} m crossing; in95: share of users whose final "
                  f"error is inside their own final 95 % bound. Runs that raised: {len(failed)}")

@@ -154,7 +154,7 @@ def solve_batch(
     res, mirrors = _resolve_mirrors(prob, res, active)
     if triggered is None or res is not solved:
         triggered = _clock_trigger(prob, res, res.lin.w.T >= 0.5, active)
-    return estimate_of(prob, res, active, mirrors, n_ranges, clock=clocks, clock_triggered=triggered, jackknife=True)
+    return estimate_of(prob, res, active, mirrors, n_ranges, clock=clocks, clock_triggered=triggered, widen=True)
 
 
 def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.ndarray) -> Estimate | None:
@@ -222,7 +222,7 @@ def _warm_solve(prob: Problem, warm: Estimate, active: np.ndarray, n_ranges: np.
     was = triggered if st.clock_triggered is None else st.clock_triggered
     return estimate_of(prob, res, active, mirrors, n_ranges,
                      clock=list(clocks) if prob.params.estimate_bias else [None] * k_all,
-                     clock_triggered=triggered | was, warm_started=True, jackknife=True)
+                     clock_triggered=triggered | was, warm_started=True, widen=True)
 
 
 def _clock_trigger(prob: Problem, res: SolveResult, kept: np.ndarray, active: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ from estimator.jackknife import jackknife_cov, jackknife_inflate
 from estimator.lm import (
     SolveResult,
 )
+from estimator.nlos_shift import nlos_shift_cov, nlos_shift_m
 from estimator.problem import (
     Problem,
     users_from_theta,
@@ -70,31 +71,51 @@ def user_covariances(
     return cov, info, cov_a
 
 
+def _widen(
+    prob: Problem, res: SolveResult, active: np.ndarray, cov: np.ndarray, cov_joint: np.ndarray,
+) -> np.ndarray | None:
+    """Widen, in place, each active user's block of cov_joint (K_a·p, K_a·p) and its position
+    covariance cov (K, d, d): the jackknife first (the larger of the two in every direction),
+    then the NLoS shift added (estimate_of). Returns the (K,) shifts [m], None when not asked for."""
+    params = prob.params
+    p, d = prob.p, prob.user_dim
+    v_j = None
+    if params.jackknife_blocks:
+        v_j = jackknife_cov(prob, res.x, res.theta, active, int(params.jackknife_blocks))
+    shift = nlos_shift_m(prob, res.x, res.theta, active) if params.nlos_shift else None
+    for j, k in enumerate(np.flatnonzero(active)):
+        sl = slice(j * p, (j + 1) * p)
+        model = cov_joint[sl, sl]
+        block = model if v_j is None else jackknife_inflate(model, v_j[k])
+        if shift is not None and shift[k] > 0.0:
+            block = block + nlos_shift_cov(float(shift[k]), p)
+        if block is not model:
+            cov_joint[sl, sl] = block
+            cov[k] = block[:d, :d]
+    return shift
+
+
 def estimate_of(
     prob: Problem, res: SolveResult, active: np.ndarray, mirrors: list, n_ranges: np.ndarray,
     clock: list | None = None, clock_triggered: np.ndarray | None = None, warm_started: bool = False,
-    jackknife: bool = False,
+    widen: bool = False,
 ) -> Estimate:
     """The Estimate of solution `res` (its users, covariances and model state).
 
     mirrors: (K,) mirror test per user (None: not tested); n_ranges: (K,) ranges per user;
     clock, clock_triggered, warm_started: the batch solve's clock tracking and warm start
-    (ModelState); jackknife: a batch solve's answer, whose users' covariances (cov_users_m2 and
-    the diagonal blocks of cov_theta_joint) are widened to their delete-a-block jackknife where
-    params.jackknife_blocks asks (estimator.jackknife; info_users stays the model's S)."""
+    (ModelState); widen: a batch solve's answer, whose users' covariances (cov_users_m2 and the
+    diagonal blocks of cov_theta_joint) are widened by what the model cannot see: to their
+    delete-a-block jackknife where params.jackknife_blocks asks (estimator.jackknife), then by
+    the shift of a one-sided NLoS excess where params.nlos_shift asks (estimator.nlos_shift);
+    info_users stays the model's S."""
     k_all, p, d = prob.n_users, prob.p, prob.user_dim
     users = users_from_theta(res.theta, prob.user_up_m, d)
     users[~active] = np.nan
     cov, info, cov_joint = user_covariances(res.s, active, k_all, p, d)
-    if jackknife and prob.params.jackknife_blocks and cov_joint is not None:
-        v_j = jackknife_cov(prob, res.x, res.theta, active, int(prob.params.jackknife_blocks))
-        for j, k in enumerate(np.flatnonzero(active)):
-            sl = slice(j * p, (j + 1) * p)
-            block = cov_joint[sl, sl]
-            wide = jackknife_inflate(block, v_j[k])
-            if wide is not block:
-                cov_joint[sl, sl] = wide
-                cov[k] = wide[:d, :d]
+    shift = None
+    if widen and cov_joint is not None:
+        shift = _widen(prob, res, active, cov, cov_joint)
     bias = None
     bias_on = bias_held = None
     if prob.params.estimate_bias:
@@ -115,7 +136,7 @@ def estimate_of(
         nlos_prob_k=None if prob.nlos_prob_k is None else prob.nlos_prob_k.copy(),
         bias_on=bias_on, bias_held_m=bias_held, clock=None if clock is None else tuple(clock),
         clock_triggered=None if clock_triggered is None else np.asarray(clock_triggered, dtype=bool).copy(),
-        warm_started=warm_started,
+        nlos_shift_m=shift, warm_started=warm_started,
     )
     return Estimate(
         users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias, uav_enu_m=res.x.copy(),

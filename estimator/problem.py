@@ -45,6 +45,8 @@ def check_params(params: SolverParams) -> None:
     jb = params.jackknife_blocks
     if isinstance(jb, bool) or not isinstance(jb, int | np.integer) or not (jb == 0 or 2 <= jb <= 100):
         raise EstimatorError(f"jackknife_blocks must be 0 or an integer in 2..100, got {params.jackknife_blocks!r}")
+    if not isinstance(params.nlos_shift, bool | np.bool_):
+        raise EstimatorError(f"nlos_shift must be true or false, got {params.nlos_shift!r}")
     if params.bias_held not in ("zero", "sawtooth"):
         raise EstimatorError(f"bias_held must be 'zero' or 'sawtooth', got {params.bias_held!r}")
     if params.motion_sigma_m is not None and not (

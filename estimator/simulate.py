@@ -7,7 +7,9 @@ Geometry: a UAV at `altitude_m` flies a circle, a lawnmower or a straight line w
     x̂_n = x_n + β_n,  β white N(0, σ_gps² I), or Gauss–Markov with correlation time gps_tau_s:
           β_n = φ β_(n−1) + N(0, σ_gps² (1 − φ²) I), φ = exp(−dt_s/τ), β_0 ~ N(0, σ_gps² I)
     r̂_nk = ||x_n − u_k|| + b_k + s_k·N(0, σ(d)²) + NLoS,  s_k = noise_scale (per user or scalar),
-           NLoS ~ Exp(mean) with probability p_nlos;  keyframe n at t_n = n·dt_s
+           NLoS ~ Exp(mean) with probability p_nlos (only where the UAV's bearing from the user,
+           counter-clockwise from east, lies in nlos_sector_deg = (start, width) when given: a
+           building on that side of every user);  keyframe n at t_n = n·dt_s
     ô_n = x_n − x_(n−1) + N(0, σ_odom² I)    (when odom_sigma_m is given)
 """
 
@@ -88,6 +90,7 @@ def simulate(
     p_nlos: float = 0.0, nlos_mean_m: float = 20.0, bias_m: np.ndarray | float = 0.0,
     p_visible: float = 1.0, odom_sigma_m: float | None = None, users_enu_m: np.ndarray | None = None,
     gps_tau_s: float = 0.0, dt_s: float = 1.0, noise_scale: np.ndarray | float = 1.0,
+    nlos_sector_deg: tuple[float, float] | None = None,
 ) -> Scenario:
     """Draw one problem. All randomness comes from `rng`; see the module docstring."""
     noise = NoiseModel() if noise is None else noise
@@ -106,6 +109,11 @@ def simulate(
     d = np.linalg.norm(uav[:, None, :] - users[None, :, :], axis=2)
     visible = rng.uniform(size=d.shape) < p_visible
     nlos = rng.uniform(size=d.shape) < p_nlos
+    if nlos_sector_deg is not None:
+        start_deg, width_deg = nlos_sector_deg
+        rel = uav[:, None, :2] - users[None, :, :2]
+        bearing_deg = np.degrees(np.arctan2(rel[..., 1], rel[..., 0]))
+        nlos &= np.mod(bearing_deg - start_deg, 360.0) < width_deg
     scale = np.broadcast_to(np.asarray(noise_scale, float), (n_users,))
     ranges = d + bias[None, :] + rng.normal(size=d.shape) * noise.range_sigma_m(d) * scale[None, :]
     ranges = ranges + nlos * rng.exponential(nlos_mean_m, size=d.shape)

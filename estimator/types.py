@@ -60,6 +60,10 @@ class SolverParams:
         direction, of the model's S⁻¹ and the delete-a-block jackknife over G contiguous time
         blocks of its ranges (estimator.jackknife: what the model's independence misses, such as a
         block of NLoS excess from one side of the user); 0: the model's alone.
+    nlos_shift: a batch solve adds to the covariance of each user whose ranges show NLoS (π_k
+        above its floor) the position shift an NLoS excess from one side of it can make unseen,
+        |δ| ≤ 2 π_k μ / c (estimator.nlos_shift: the excess's first harmonic in bearing is a
+        position shift, which no residual shows).
     user_dim: 2 (east, north; up fixed at the known ground height) or 3.
     motion_sigma_m: per-axis σ of the relative-motion factor of a keyframe that carries a
         displacement (Keyframe.odom_enu_m) without its own σ (None: such keyframes get no motion
@@ -109,6 +113,7 @@ class SolverParams:
     bias_select: bool = True
     bias_held: Literal["zero", "sawtooth"] = "zero"
     jackknife_blocks: int = 0
+    nlos_shift: bool = False
     track_clock: bool = True
     user_dim: int = 2
     motion_sigma_m: float | None = None
@@ -150,6 +155,20 @@ SOURCE_BATCH = "batch"
 SOURCE_ONLINE = "online"
 
 
+def error_bound_95_m(cov_en_m2: np.ndarray, nlos_shift_m: np.ndarray | None = None) -> np.ndarray:
+    """(K,) r95 = sqrt(χ²₂(0.95) · λ_max(Σ_k)) [m] of (K, 2, 2) east-north covariances, inf where
+    Σ_k is not finite; with nlos_shift_m (K,) of Σ_k − ½ |δ_k|² I₂, the part of the bound that
+    more ranges can shrink (Estimate.survey_bound_95_m)."""
+    cov = np.asarray(cov_en_m2, dtype=float).reshape(-1, 2, 2)
+    ok = np.all(np.isfinite(cov), axis=(1, 2))
+    cov = np.where(ok[:, None, None], 0.5 * (cov + np.swapaxes(cov, 1, 2)), np.eye(2))
+    if nlos_shift_m is not None:
+        shift = np.nan_to_num(np.asarray(nlos_shift_m, dtype=float))
+        cov = cov - (0.5 * shift * shift)[:, None, None] * np.eye(2)
+    lam = np.linalg.eigvalsh(cov)[:, -1]
+    return np.where(ok, np.sqrt(CHI2_2DOF_95 * np.maximum(lam, 0.0)), np.inf)
+
+
 @dataclass(frozen=True)
 class ModelState:
     """The model choices and the joint uncertainty a solve ended with: a warm-started batch refresh
@@ -168,6 +187,9 @@ class ModelState:
     clock: (K,) the tracked UE clock sawtooth of each user (None: none); None when the solve does
         not track clocks (the online estimator).
     clock_triggered: (K,) users whose residuals called for a clock test; None when not tested.
+    nlos_shift_m: (K,) |δ_k| [m], the shift a one-sided NLoS excess can make unseen, added to the
+        user's covariance (estimator.nlos_shift; 0: no NLoS seen); None when not asked for
+        (SolverParams.nlos_shift) or not a batch answer.
     warm_started: a batch solve started from an earlier one's choices (estimator.batch._warm_solve).
     filter_step: the online estimator's information-filter step between its solves.
     """
@@ -180,6 +202,7 @@ class ModelState:
     bias_held_m: np.ndarray | None = None
     clock: tuple[SawtoothFit | None, ...] | None = None
     clock_triggered: np.ndarray | None = None
+    nlos_shift_m: np.ndarray | None = None
     warm_started: bool = False
     filter_step: bool = False
 
@@ -229,9 +252,14 @@ class Estimate:
     def error_bound_95_m(self) -> np.ndarray:
         """(K,) semi-major axis of each user's 95 % east-north error ellipse [m]:
         r95 = sqrt(χ²₂(0.95) · λ_max(Σ_en)); inf for users without a covariance."""
-        out = np.full(self.n_users, np.inf)
-        for k in range(self.n_users):
-            cov = self.cov_en_m2(k)
-            if np.all(np.isfinite(cov)):
-                out[k] = np.sqrt(CHI2_2DOF_95 * max(np.linalg.eigvalsh(cov)[-1], 0.0))
-        return out
+        return error_bound_95_m(self.cov_users_m2[:, :2, :2])
+
+    def survey_bound_95_m(self) -> np.ndarray:
+        """(K,) the part of each user's 95 % bound [m] that more ranges can shrink: r95 of Σ_en
+        without the NLoS shift ½ |δ_k|² I₂ (ModelState.nlos_shift_m, estimator.nlos_shift; the
+        shift is the same however long the survey), error_bound_95_m where there is none. What
+        the stop rule asks of a user (planner.stop.targets_reached)."""
+        shift = None if self.state is None else self.state.nlos_shift_m
+        if shift is None:
+            return self.error_bound_95_m()
+        return error_bound_95_m(self.cov_users_m2[:, :2, :2], shift)

@@ -34,11 +34,11 @@ MISSION_JACKKNIFE_BLOCKS = 8
 
 def mission_solver_params(mission) -> SolverParams:
     """The estimator settings of a :class:`mission.config.MissionConfig`: its keyframe spacing Δ and
-    range-bias model, the jackknifed covariance (MISSION_JACKKNIFE_BLOCKS), the solver's defaults
-    otherwise."""
+    range-bias model, the covariance widened by the jackknife (MISSION_JACKKNIFE_BLOCKS) and by a
+    one-sided NLoS excess's shift (SolverParams.nlos_shift), the solver's defaults otherwise."""
     return SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
                         bias_prior_sigma_m=mission.noise.bias_prior_sigma_m, bias_held=mission.noise.bias_held,
-                        jackknife_blocks=MISSION_JACKKNIFE_BLOCKS)
+                        jackknife_blocks=MISSION_JACKKNIFE_BLOCKS, nlos_shift=True)
 
 
 @dataclass(frozen=True)

@@ -597,3 +597,6 @@ def _check_estimate(obj: dict, user_ix: dict[str, int]) -> None:
                       for r in cov for x in r))
         if not ok:
             raise _LineError(f"estimate users[{i}].cov_en_m2 must be a 2x2 list of finite numbers, got {cov!r}")
+        shift = u.get("nlos_shift_m", 0.0)
+        if isinstance(shift, bool) or not isinstance(shift, int | float) or not (math.isfinite(shift) and shift >= 0):
+            raise _LineError(f"estimate users[{i}].nlos_shift_m must be a finite number >= 0, got {shift!r}")

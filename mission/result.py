@@ -16,6 +16,8 @@ way (docs/design.md §11): :func:`user_entries` builds that list from plain arra
                                                    was tracked (then bias_m is its mean, A/2)
     noise_scale                                    when estimated: how much noisier than the assumed
                                                    σ(d) this user's ranges were
+    nlos_shift_m                                   when estimated: the shift [m] an NLoS excess from
+                                                   one side can make unseen, in cov_en_m2 (0: no NLoS)
     error_m, truth                                 when the truth is known (simulation)
 
 Floats are finite or None (JSON has no NaN). Pure: numpy and the origin's pymap3d conversion.
@@ -30,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from estimator.geodesy import Origin
-from estimator.types import CHI2_2DOF_95
+from estimator.types import error_bound_95_m
 
 
 def horizontal_error_m(users_enu_m: np.ndarray, truth_enu_m: np.ndarray) -> np.ndarray:
@@ -40,18 +42,6 @@ def horizontal_error_m(users_enu_m: np.ndarray, truth_enu_m: np.ndarray) -> np.n
     t = np.asarray(truth_enu_m, dtype=float)
     # e_k = sqrt((ê_k − e_k)² + (n̂_k − n_k)²)
     return np.linalg.norm(u[..., :2] - t[..., :2], axis=-1)
-
-
-def error_bound_95_m(cov_en_m2: np.ndarray) -> np.ndarray:
-    """(K,) semi-major axis of each user's 95 % east-north ellipse [m] from (K, 2, 2) covariances:
-    r95 = sqrt(χ²₂(0.95) · λ_max(Σ_en)); inf where Σ is not finite (as `Estimate.error_bound_95_m`)."""
-    cov = np.asarray(cov_en_m2, dtype=float).reshape(-1, 2, 2)
-    out = np.full(len(cov), np.inf)
-    ok = np.all(np.isfinite(cov), axis=(1, 2))
-    if np.any(ok):
-        lam_max = np.linalg.eigvalsh(0.5 * (cov[ok] + np.swapaxes(cov[ok], 1, 2)))[:, -1]
-        out[ok] = np.sqrt(CHI2_2DOF_95 * np.maximum(lam_max, 0.0))
-    return out
 
 
 def result_status(estimate: Any) -> str:
@@ -84,6 +74,7 @@ def user_entries(
     bias_m: np.ndarray | None = None,
     clock_sawtooth: Sequence[dict | None] | None = None,
     noise_scale: np.ndarray | None = None,
+    nlos_shift_m: np.ndarray | None = None,
     truth_enu_m: np.ndarray | None = None,
 ) -> list[dict]:
     """The per-user entries (module docstring) of K users.
@@ -91,8 +82,8 @@ def user_entries(
     users_enu_m: (K, 3) ENU about `origin` [m] (NaN rows: not located), or None when nothing is
     estimated (then `origin` may be None too); cov_en_m2: (K, 2, 2) [m²] or None; measurements (K,),
     ambiguous (K,), bias_m (K,), clock_sawtooth (K,) of dicts or None, noise_scale (K,),
-    truth_enu_m (K, 3): optional, their keys appear when given (bias and noise scale None where the
-    user is not located).
+    nlos_shift_m (K,), truth_enu_m (K, 3): optional, their keys appear when given (bias, noise
+    scale and shift None where the user is not located).
     """
     k_users = len(user_ids)
     users = (np.full((k_users, 3), np.nan) if users_enu_m is None or origin is None
@@ -127,6 +118,8 @@ def user_entries(
             entry["ambiguous"] = bool(ambiguous[k])
         if noise_scale is not None:
             entry["noise_scale"] = finite_or_none(noise_scale[k]) if located[k] else None
+        if nlos_shift_m is not None:
+            entry["nlos_shift_m"] = finite_or_none(nlos_shift_m[k]) if located[k] else None
         if bias_m is not None:
             entry["bias_m"] = finite_or_none(bias_m[k]) if located[k] else None
         if clock_sawtooth is not None and clock_sawtooth[k] is not None and located[k]:
@@ -165,10 +158,11 @@ def user_entries_of_estimate(estimate: Any, origin: Origin | None, user_ids: Seq
                 # selected off: the value it is held at
                 bias[j] = 0.0 if st.bias_held_m is None else float(st.bias_held_m[j])
     scale = None if estimate.state is None else estimate.state.noise_scale
+    shift = None if estimate.state is None else estimate.state.nlos_shift_m
     return user_entries(
         user_ids, origin, estimate.users_enu_m,
         np.array([estimate.cov_en_m2(j) for j in range(k)]).reshape(k, 2, 2),
         measurements=estimate.n_ranges, ambiguous=estimate.ambiguous, bias_m=bias,
         clock_sawtooth=clock_doc, noise_scale=None if scale is None else np.asarray(scale, dtype=float),
-        truth_enu_m=truth_enu_m,
+        nlos_shift_m=None if shift is None else np.asarray(shift, dtype=float), truth_enu_m=truth_enu_m,
     )

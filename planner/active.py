@@ -274,7 +274,7 @@ class ActivePlanner(BasePlanner):
         if not ok.any():
             return None
         if not ok.all():
-            bound = est.error_bound_95_m()
+            bound = est.survey_bound_95_m()
             if np.all(bound[ok] <= self.constraints.target_radius_m):
                 return None
         return hypotheses_from_estimate(est, self.weights(est), sigma_points=self.sigma_points, users=ok,

@@ -106,12 +106,28 @@ def _info_from_cov(cov: np.ndarray) -> np.ndarray:
     return 0.5 * (info + info.T) + PRIOR_EPS_PER_M2 * np.eye(d)
 
 
+def survey_cov(estimate: Estimate, k: int, cov: np.ndarray) -> np.ndarray:
+    """User k's covariance `cov` (position first, any size ≥ 2) without its NLoS shift
+    ½ |δ_k|² on the horizontal axes (ModelState.nlos_shift_m, estimator.nlos_shift): the part a
+    survey can shrink, which the planner's prior holds (the stop rule asks for that part,
+    Estimate.survey_bound_95_m)."""
+    st = estimate.state
+    shift = 0.0 if st is None or st.nlos_shift_m is None else float(st.nlos_shift_m[k])
+    if not shift > 0.0:
+        return cov
+    out = np.array(cov, dtype=float)
+    out[0, 0] -= 0.5 * shift * shift
+    out[1, 1] -= 0.5 * shift * shift
+    return out
+
+
 def joint_prior_info(estimate: Estimate, k: int) -> np.ndarray:
     """(d+1, d+1) prior information of user k's (position, bias), bias last [1/m², 1/m²].
 
     The inverse of user k's block of `estimate.state.cov_theta_joint` (rows: the active users of
-    `state.active` in order, d + 1 each), plus ε·I. Without a usable joint covariance: the
-    position marginal's information and ε for the bias (an unknown bias, uncorrelated).
+    `state.active` in order, d + 1 each) without its NLoS shift (survey_cov), plus ε·I. Without a
+    usable joint covariance: the position marginal's information and ε for the bias (an unknown
+    bias, uncorrelated).
     """
     d = int(estimate.cov_users_m2.shape[1])
     p = d + 1
@@ -124,9 +140,9 @@ def joint_prior_info(estimate: Estimate, k: int) -> np.ndarray:
             j = int(np.count_nonzero(active[:k]))
             block = joint[j * p:(j + 1) * p, j * p:(j + 1) * p]
             if np.all(np.isfinite(block)):
-                return _info_from_cov(block)
+                return _info_from_cov(survey_cov(estimate, k, block))
     out = PRIOR_EPS_PER_M2 * np.eye(p)
-    out[:d, :d] = _info_from_cov(np.asarray(estimate.cov_users_m2[k], dtype=float))
+    out[:d, :d] = _info_from_cov(survey_cov(estimate, k, np.asarray(estimate.cov_users_m2[k], dtype=float)))
     return out
 
 
@@ -151,7 +167,9 @@ def hypotheses_from_estimate(
     from `home_enu_m` is implausible (a diverged solve) and left out. With range biases
     (`estimate.bias_m` not None) the prior information is the joint (position, bias) one of
     :func:`joint_prior_info` (the mirror's reflected by diag(R, 1)); sigma points stay on the
-    position marginal.
+    position marginal. The prior information leaves out the NLoS shift that no survey shrinks
+    (survey_cov); the sigma points span the whole covariance, shift included (where the user may
+    be).
     """
     if sigma_points not in ("major", "all", "none"):
         raise ValueError(f"sigma_points must be 'major', 'all' or 'none', got {sigma_points!r}")
@@ -191,7 +209,7 @@ def hypotheses_from_estimate(
                 R_ext[:d, :d] = R
                 P[row, s0:s0 + n_set] = R_ext @ prior_joint @ R_ext.T
             else:
-                P[row, s0:s0 + n_set] = _info_from_cov(cov_h)
+                P[row, s0:s0 + n_set] = _info_from_cov(R @ survey_cov(estimate, k, cov) @ R.T)
             W[row, s0] = share * (kappa / (r + kappa) if r else 1.0)
             lam, vec = np.linalg.eigh(0.5 * (cov_h + cov_h.T))
             for i in range(r):

@@ -17,14 +17,18 @@ def budget_left_m(constraints: PlanningConstraints, state: PlanningState) -> flo
 
 
 def targets_reached(estimate: Estimate | None, target_radius_m: float) -> bool:
-    """True when every user's 95 % error-ellipse semi-major axis r95 ≤ target_radius_m.
+    """True when every user's 95 % error-ellipse semi-major axis r95 ≤ target_radius_m, apart
+    from the NLoS shift no survey shrinks.
 
-    r95_k = sqrt(χ²₂(0.95) · λ_max(Σ_k,en)) from `Estimate.error_bound_95_m()`; an uninitialised
-    user (inf) or an unresolved mirror ambiguity keeps the survey going.
+    r95_k = sqrt(χ²₂(0.95) · λ_max(Σ_k,en − ½ |δ_k|² I)) from `Estimate.survey_bound_95_m()`
+    (δ_k the shift of a one-sided NLoS excess, estimator.nlos_shift: a user behind a building
+    keeps it however long the UAV flies, so waiting for it would spend the budget for nothing; the
+    reported bound includes it); an uninitialised user (inf) or an unresolved mirror ambiguity
+    keeps the survey going.
     """
     if estimate is None or estimate.n_users == 0:
         return False
-    bound = estimate.error_bound_95_m()
+    bound = estimate.survey_bound_95_m()
     ambiguous = np.asarray(estimate.ambiguous, dtype=bool)
     return bool(np.all(bound <= target_radius_m) and not np.any(ambiguous))
 

@@ -69,13 +69,18 @@ class MissionJournal:
         if not self.is_open:
             return
         lat, lon, alt = origin.enu_to_lla(est.users_enu_m)
+        shift = None if est.state is None else est.state.nlos_shift_m
         users = []
         for k, u in enumerate(self.users):
             cov = est.cov_en_m2(k)
             if not (np.all(np.isfinite(est.users_enu_m[k])) and np.all(np.isfinite(cov))):
                 continue
-            users.append({"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]),
-                          "alt_m": float(alt[k]), "cov_en_m2": cov.tolist(), "ambiguous": bool(est.ambiguous[k])})
+            entry = {"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]),
+                     "alt_m": float(alt[k]), "cov_en_m2": cov.tolist(), "ambiguous": bool(est.ambiguous[k])}
+            if shift is not None and shift[k] > 0.0:
+                # the part of cov_en_m2 that no survey shrinks (estimator.nlos_shift)
+                entry["nlos_shift_m"] = round(float(shift[k]), 4)
+            users.append(entry)
         extra: dict[str, Any] = {"final": True} if final else {}
         uav = np.asarray(est.uav_enu_m, float).reshape(-1, 3)
         uav = uav[np.all(np.isfinite(uav), axis=1)]

@@ -124,7 +124,8 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
             if on_keyframe is not None:
                 on_keyframe(kf, estimate)
             out.keyframes += 1
-            track.update(estimate.users_enu_m[:, :2], estimate.cov_users_m2[:, :2, :2], flown + s)
+            track.update(estimate.users_enu_m[:, :2], estimate.cov_users_m2[:, :2, :2], flown + s,
+                         estimate.state.nlos_shift_m if estimate.state is not None else None)
             if setup.stops(estimate):
                 stopped = True
                 break
@@ -142,7 +143,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
         out.estimator_errors.append(est.online_failure)
     if keyframes:  # the mission's final answer
         final = setup.final(keyframes)
-        track.update(final.users_enu_m[:, :2], final.cov_users_m2[:, :2, :2], flown)
+        track.update(final.users_enu_m[:, :2], final.cov_users_m2[:, :2, :2], flown, final.state.nlos_shift_m)
     out.flown_m = flown
     out.nlos_share = n_nlos / n_ranges if n_ranges else float("nan")
     return track.fill(out)

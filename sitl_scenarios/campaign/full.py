@@ -74,10 +74,12 @@ def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: fl
     for rec in mlog.estimates:
         users_en = np.full((k_users, 2), np.nan)
         cov = np.full((k_users, 2, 2), np.nan)
+        shift = np.zeros(k_users)
         for u in rec.get("users", []):
             k = ids[u["id"]]
             users_en[k] = np.asarray(origin.lla_to_enu(u["lat_deg"], u["lon_deg"], u["alt_m"]), float)[:2]
             cov[k] = np.asarray(u["cov_en_m2"], float)
+            shift[k] = u.get("nlos_shift_m") or 0.0
         at_m = float(np.interp(rec["t"], tel_t, metres)) if len(tel_t) else 0.0
-        track.update(users_en, cov, at_m)
+        track.update(users_en, cov, at_m, shift)
     return track.fill(out)

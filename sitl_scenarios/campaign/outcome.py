@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.types import CHI2_2DOF_95
+from estimator.types import CHI2_2DOF_95, error_bound_95_m
 
 
 @dataclass
@@ -15,7 +15,8 @@ class Outcome:
     """One run's measurements.
 
     metres_to: target [m] → metres flown when the mean over users of the 95 % error bound first
-        reached it (absent: never); error_at: target → mean true horizontal error [m] at that moment;
+        reached it, the NLoS shift no survey shrinks left out as the stop rule leaves it
+        (planner.stop.targets_reached; absent: never); error_at: target → mean true horizontal error [m] at that moment;
     plan_times_s: compute time of every plan() call [s]; violations: constraint breaks found by an
         independent check of each leg (fast mode); flown_m: metres flown; end: why the run ended;
     keyframes: keyframes fed to the estimator; final_error_m / final_bound95_m: (K,) per user at the
@@ -60,17 +61,20 @@ class AccuracyTrack:
         self.bound95_m = np.full(len(self.truth_en), np.nan)
         self.nees = np.full(len(self.truth_en), np.nan)
 
-    def update(self, users_en_m: np.ndarray, cov_en_m2: np.ndarray, at_m: float) -> None:
+    def update(self, users_en_m: np.ndarray, cov_en_m2: np.ndarray, at_m: float,
+               nlos_shift_m: np.ndarray | None = None) -> None:
         """One estimate: users_en_m (K, 2) [m] (NaN rows: not located), cov_en_m2 (K, 2, 2) [m²],
-        metres flown when it was made."""
+        metres flown when it was made; nlos_shift_m (K,) [m]: the NLoS shift in cov_en_m2
+        (ModelState.nlos_shift_m), None when there is none."""
         users_en_m = np.asarray(users_en_m, float)
         cov = np.asarray(cov_en_m2, float)
         ok = np.all(np.isfinite(users_en_m), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
         e = users_en_m - self.truth_en
         self.error_m = np.where(ok, np.linalg.norm(e, axis=1), np.nan)
-        # r95 = sqrt(χ²₂(0.95) · λ_max(Σ_en)) (Estimate.error_bound_95_m)
-        lam = np.linalg.eigvalsh(np.where(ok[:, None, None], cov, np.eye(2)))[:, -1]
-        self.bound95_m = np.where(ok, np.sqrt(CHI2_2DOF_95 * np.maximum(lam, 0.0)), np.inf)
+        self.bound95_m = np.where(ok, error_bound_95_m(cov), np.inf)
+        # the metres to T go by the bound the stop rule asks for: without the NLoS shift that no
+        # survey shrinks (Estimate.survey_bound_95_m)
+        survey_m = np.where(ok, error_bound_95_m(cov, nlos_shift_m), np.inf)
         # the user's NEES eᵀ Σ⁻¹ e, NaN where not located (like error_m)
         self.nees = np.full(len(self.truth_en), np.nan)
         if np.any(ok):
@@ -79,7 +83,7 @@ class AccuracyTrack:
             # inside the ellipse: eᵀ Σ⁻¹ e ≤ χ²₂(0.95)
             self.inside += int(np.sum(nees <= CHI2_2DOF_95))
             self.seen += int(np.sum(ok))
-        bound = float(np.mean(self.bound95_m))
+        bound = float(np.mean(survey_m))
         while self.pending and bound <= self.pending[0]:
             tgt = self.pending.pop(0)
             self.metres_to[tgt] = float(at_m)

@@ -89,8 +89,9 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
                  f" {r['violations']:>4} {r['estimator_errors']:>4}")
         lines.append(line)
     lines.append("")
-    lines.append("m@T: metres flown until the mean 95 % error bound <= T m (a run that never gets there counts its "
-                 "budget); [95 %]: 2.5th-97.5th percentile over runs;")
+    lines.append("m@T: metres flown until the mean 95 % error bound <= T m, as the stop rule reads it (without the "
+                 "NLoS shift no survey shrinks; a run that never gets there counts its budget); [95 %]: "
+                 "2.5th-97.5th percentile over runs;")
     lines.append("error: final mean true error per run; in95: median share of estimates inside their own 95 % "
                  "ellipse; fail: runs that raised (see the results' error column);")
     lines.append("end95: share of users inside their own final 95 % ellipse; >99.9: users beyond their final 99.9 % "
