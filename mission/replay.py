@@ -265,6 +265,9 @@ def format_users_table(doc: dict) -> str:
              f"(E {e:+.1f} m, N {n:+.1f} m)  95% bound {u['error_bound_95_m'] or float('nan'):.2f} m")
         if u.get("error_m") is not None:
             s += f"  error {u['error_m']:.2f} m"
+        if u.get("nlos_shift_m"):
+            # the part of the bound no survey shrinks (estimator.nlos_shift)
+            s += f"  [NLoS from one side: {u['nlos_shift_m']:.1f} m shift in the bound]"
         if u["ambiguous"]:
             s += "  [mirror ambiguity unresolved]"
         lines.append(s)

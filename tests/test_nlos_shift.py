@@ -114,6 +114,10 @@ def test_the_result_document_gives_each_users_shift():
     assert shift is not None and np.all(shift > 0.0)
     entries = user_entries_of_estimate(est, origin, ["a", "b", "c"])
     assert [e["nlos_shift_m"] for e in entries] == pytest.approx(shift.tolist())
+    from mission.replay import format_users_table
+
+    table = format_users_table({"users": [dict(e, measurements=190) for e in entries]})
+    assert table.count("NLoS from one side") == 3
     # no NLoS asked for: no key
     est0, _ = _circle_users(0, SolverParams(bias_held="zero"), 1.0)
     assert est0.state.nlos_shift_m is None
