@@ -72,17 +72,18 @@ def user_covariances(
 
 
 def _widen(
-    prob: Problem, res: SolveResult, active: np.ndarray, cov: np.ndarray, cov_joint: np.ndarray,
+    prob: Problem, res: SolveResult, active: np.ndarray, users: np.ndarray, cov: np.ndarray, cov_joint: np.ndarray,
 ) -> np.ndarray | None:
     """Widen, in place, each active user's block of cov_joint (K_a·p, K_a·p) and its position
     covariance cov (K, d, d): the jackknife first (the larger of the two in every direction),
-    then the NLoS shift added (estimate_of). Returns the (K,) shifts [m], None when not asked for."""
+    then the NLoS shift added (estimate_of; users: (K, 3) the solution's users [m, ENU]).
+    Returns the (K,) shifts [m], None when not asked for."""
     params = prob.params
     p, d = prob.p, prob.user_dim
     v_j = None
     if params.jackknife_blocks:
         v_j = jackknife_cov(prob, res.x, res.theta, active, int(params.jackknife_blocks))
-    shift = nlos_shift_m(prob, res.x, res.theta, active) if params.nlos_shift else None
+    shift = nlos_shift_m(prob, res.x, users, active) if params.nlos_shift else None
     for j, k in enumerate(np.flatnonzero(active)):
         sl = slice(j * p, (j + 1) * p)
         model = cov_joint[sl, sl]
@@ -115,7 +116,7 @@ def estimate_of(
     cov, info, cov_joint = user_covariances(res.s, active, k_all, p, d)
     shift = None
     if widen and cov_joint is not None:
-        shift = _widen(prob, res, active, cov, cov_joint)
+        shift = _widen(prob, res, active, users, cov, cov_joint)
     bias = None
     bias_on = bias_held = None
     if prob.params.estimate_bias:

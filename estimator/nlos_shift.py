@@ -32,31 +32,32 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.problem import Problem, users_from_theta
+from estimator.problem import Problem
 from estimator.solve import NLOS_PROB_MIN
+from estimator.types import nlos_shift_var_m2
 
 #: c_k is floored here: a user seen from straight above has no horizontal lever, and the bound
 #: 2 π μ / c would grow without limit (c = 0.3: elevation 73°)
 NLOS_SHIFT_MIN_HORIZONTAL = 0.3
 
 
-def nlos_shift_m(prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.ndarray) -> np.ndarray:
+def nlos_shift_m(prob: Problem, x: np.ndarray, users_enu_m: np.ndarray, active: np.ndarray) -> np.ndarray:
     """(K,) |δ_k| = 2 π_k μ / c_k [m] of each user (module docstring); 0 where π_k is at its
     floor, the user is not active, the loss is not "nlos" or no π_k was estimated.
 
-    x: (n, 3) the solution's keyframes [m, ENU]; theta: (K, p) its users; active: (K,) bool."""
+    x: (n, 3) the solution's keyframes [m, ENU]; users_enu_m: (K, 3) its users [m, ENU];
+    active: (K,) bool."""
     k_all = prob.n_users
     out = np.zeros(k_all)
     if prob.params.loss != "nlos" or prob.nlos_prob_k is None:
         return out
     n = x.shape[0]
-    users = users_from_theta(theta, prob.user_up_m, prob.user_dim)
     pi = np.asarray(prob.nlos_prob_k, dtype=float)
     for k in np.flatnonzero(active & (pi > NLOS_PROB_MIN)):
         rows = prob.mask[:n, k]
         if not np.any(rows):
             continue
-        g = x[rows] - users[k]
+        g = x[rows] - users_enu_m[k]
         c = float(np.mean(np.linalg.norm(g[:, :2], axis=1) / np.maximum(np.linalg.norm(g, axis=1), 1e-9)))
         # |δ| = 2 π_k μ / c
         out[k] = 2.0 * pi[k] * prob.params.nlos_mean_m / max(c, NLOS_SHIFT_MIN_HORIZONTAL)
@@ -64,7 +65,8 @@ def nlos_shift_m(prob: Problem, x: np.ndarray, theta: np.ndarray, active: np.nda
 
 
 def nlos_shift_cov(shift_m: float, p: int) -> np.ndarray:
-    """(p, p) ½ |δ|² on the two horizontal position axes (the first two of θ_k), 0 elsewhere."""
+    """(p, p) ½ |δ|² (types.nlos_shift_var_m2) on the two horizontal position axes (the first two
+    of θ_k), 0 elsewhere."""
     out = np.zeros((p, p))
-    out[0, 0] = out[1, 1] = 0.5 * shift_m * shift_m
+    out[0, 0] = out[1, 1] = nlos_shift_var_m2(shift_m)
     return out

@@ -155,6 +155,13 @@ SOURCE_BATCH = "batch"
 SOURCE_ONLINE = "online"
 
 
+def nlos_shift_var_m2(shift_m):
+    """½ |δ|² [m²]: the variance per horizontal axis of a shift of length |δ| = `shift_m` [m]
+    (scalar or any shape) in a direction uniform on the circle, E[δδᵀ] = ½ |δ|² I₂: what the
+    covariance holds of a one-sided NLoS excess's shift (estimator.nlos_shift)."""
+    return 0.5 * np.square(shift_m)
+
+
 def error_bound_95_m(cov_en_m2: np.ndarray, nlos_shift_m: np.ndarray | None = None) -> np.ndarray:
     """(K,) r95 = sqrt(χ²₂(0.95) · λ_max(Σ_k)) [m] of (K, 2, 2) east-north covariances, inf where
     Σ_k is not finite; with nlos_shift_m (K,) of Σ_k − ½ |δ_k|² I₂, the part of the bound that
@@ -163,8 +170,8 @@ def error_bound_95_m(cov_en_m2: np.ndarray, nlos_shift_m: np.ndarray | None = No
     ok = np.all(np.isfinite(cov), axis=(1, 2))
     cov = np.where(ok[:, None, None], 0.5 * (cov + np.swapaxes(cov, 1, 2)), np.eye(2))
     if nlos_shift_m is not None:
-        shift = np.nan_to_num(np.asarray(nlos_shift_m, dtype=float))
-        cov = cov - (0.5 * shift * shift)[:, None, None] * np.eye(2)
+        var = nlos_shift_var_m2(np.nan_to_num(np.asarray(nlos_shift_m, dtype=float)))
+        cov = cov - var[:, None, None] * np.eye(2)
     lam = np.linalg.eigvalsh(cov)[:, -1]
     return np.where(ok, np.sqrt(CHI2_2DOF_95 * np.maximum(lam, 0.0)), np.inf)
 
@@ -259,7 +266,4 @@ class Estimate:
         without the NLoS shift ½ |δ_k|² I₂ (ModelState.nlos_shift_m, estimator.nlos_shift; the
         shift is the same however long the survey), error_bound_95_m where there is none. What
         the stop rule asks of a user (planner.stop.targets_reached)."""
-        shift = None if self.state is None else self.state.nlos_shift_m
-        if shift is None:
-            return self.error_bound_95_m()
-        return error_bound_95_m(self.cov_users_m2[:, :2, :2], shift)
+        return error_bound_95_m(self.cov_users_m2[:, :2, :2], None if self.state is None else self.state.nlos_shift_m)

@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator.factors import range_jacobian, range_residuals
+from estimator.nlos_shift import nlos_shift_cov
 from estimator.noise import NoiseModel
 from estimator.types import Estimate
 from planner.objective import SQRT_EPS_M2, Shape, prior_values, row_values
@@ -108,17 +109,14 @@ def _info_from_cov(cov: np.ndarray) -> np.ndarray:
 
 def survey_cov(estimate: Estimate, k: int, cov: np.ndarray) -> np.ndarray:
     """User k's covariance `cov` (position first, any size ≥ 2) without its NLoS shift
-    ½ |δ_k|² on the horizontal axes (ModelState.nlos_shift_m, estimator.nlos_shift): the part a
+    ½ |δ_k|² on the horizontal axes (ModelState.nlos_shift_m, estimator.nlos_shift.nlos_shift_cov): the part a
     survey can shrink, which the planner's prior holds (the stop rule asks for that part,
     Estimate.survey_bound_95_m)."""
     st = estimate.state
     shift = 0.0 if st is None or st.nlos_shift_m is None else float(st.nlos_shift_m[k])
     if not shift > 0.0:
         return cov
-    out = np.array(cov, dtype=float)
-    out[0, 0] -= 0.5 * shift * shift
-    out[1, 1] -= 0.5 * shift * shift
-    return out
+    return np.asarray(cov, dtype=float) - nlos_shift_cov(shift, cov.shape[0])
 
 
 def joint_prior_info(estimate: Estimate, k: int) -> np.ndarray:

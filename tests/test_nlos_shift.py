@@ -90,11 +90,10 @@ def test_shift_is_zero_without_the_mixture_loss_or_active_users():
     sc = simulate(np.random.default_rng(3), n_users=2, n_keyframes=60, p_nlos=0.3, nlos_mean_m=10.0)
     params = SolverParams(loss="huber")
     prob = pack_keyframes(sc.keyframes, 2, sc.user_up_m, NoiseModel(), params)
-    theta = np.column_stack([sc.users_enu_m[:, :2], np.zeros(2)])
-    assert np.all(nlos_shift_m(prob, sc.uav_enu_m, theta, np.ones(2, bool)) == 0.0)
+    assert np.all(nlos_shift_m(prob, sc.uav_enu_m, sc.users_enu_m, np.ones(2, bool)) == 0.0)
     prob = pack_keyframes(sc.keyframes, 2, sc.user_up_m, NoiseModel(), SolverParams())
     prob.nlos_prob_k = np.array([0.2, 0.2])
-    out = nlos_shift_m(prob, sc.uav_enu_m, theta, np.array([True, False]))
+    out = nlos_shift_m(prob, sc.uav_enu_m, sc.users_enu_m, np.array([True, False]))
     assert out[0] > 0.0 and out[1] == 0.0
 
 
