@@ -31,6 +31,12 @@ length).
 
 --distance-noise sets σ(d) = 3 + 0.3·e^(0.01 d) m in half of the scenarios.
 
+--worlds measures what each real effect costs the planners instead (no checks): lawnmower, casadi
+and oracle on the hardware scenarios with one effect taken out at a time (GPS drift, sawtooths,
+NLoS), with the GPS error held constant over the flight, and in the ideal world to 3.0, 2.0 and
+1.5 m. A drifting GPS leaves every user an offset of the track that no geometry removes; the
+metres it costs are added to every planner's, so casadi's ratio to lawnmower moves towards 1.
+
 Accuracy targets (mean 95 % bound): 3.0 m, 1.0 m, 0.6 m. The hardware world's bounds level off at
 1.5–2.5 m, so its missions stop at 3.0 m and its 1.0 / 0.6 m columns read the budget; the ideal
 world's stop at 0.6 m.
@@ -81,6 +87,70 @@ def benchmark_campaign(n_scenarios: int | None = None, planners: tuple[str, ...]
         if "planner_options" in data:
             data["planner_options"] = {k: v for k, v in data["planner_options"].items() if k in planners}
     return spec_from_dict(data, str(SPEC), base_dir=_HERE, path=SPEC)
+
+
+#: --worlds: the hardware family with one effect changed (name, the family keys replaced)
+WORLDS = (
+    ("hardware", {}),
+    ("no-gps-drift", {"gps_tau_s": 0.0}),
+    ("no-sawtooth", {"sawtooth_amplitude_m": 0.0}),
+    ("no-nlos", {"nlos_excess_mean_m": 0.0}),
+    ("gps-constant", {"gps_tau_s": 1e5}),
+)
+WORLDS_PLANNERS = ("lawnmower", "casadi", "oracle")
+#: --worlds: the targets [m]; the ideal world flies to the last, the others stop at the first
+WORLDS_TARGETS_M = (3.0, 2.0, 1.5)
+
+
+def worlds_campaign(n_scenarios: int | None = None) -> Campaign:
+    """The --worlds campaign: the spec's hardware family in each of WORLDS, and its ideal family
+    flown to WORLDS_TARGETS_M[-1], with WORLDS_PLANNERS (the same geometry draws in every world)."""
+    data = tomllib.loads(SPEC.read_text(encoding="utf-8"))
+    fams = {f["name"]: f for f in data["families"]}
+    out = []
+    for name, changes in WORLDS:
+        fam = {**fams["hardware"], **changes, "name": name}
+        out.append(fam)
+    ideal = dict(fams["ideal"])
+    ideal["mission"] = {**ideal["mission"], "target_radius_m": WORLDS_TARGETS_M[-1]}
+    out.append(ideal)
+    for fam in out:
+        if n_scenarios is not None:
+            fam["count"] = n_scenarios
+    data["families"] = out
+    data["campaign"]["planners"] = list(WORLDS_PLANNERS)
+    data["campaign"]["targets_m"] = list(WORLDS_TARGETS_M)
+    data["planner_options"] = {k: v for k, v in data.get("planner_options", {}).items() if k in WORLDS_PLANNERS}
+    return spec_from_dict(data, str(SPEC), base_dir=_HERE, path=SPEC)
+
+
+def summarise_worlds(records: list[dict]) -> str:
+    """The --worlds table: per world and target, each planner's mean metres (the budget when never
+    reached), casadi's and oracle's ratios to lawnmower, and the share of users inside their own
+    final 95 % bound."""
+    ok_recs = [r for r in records if r["status"] == "ok"]
+    head = (f"{'world':<14} {'to':>5}" + "".join(f" {p:>10}" for p in WORLDS_PLANNERS)
+            + f" {'casadi/lawn':>12} {'oracle/lawn':>12}" + "".join(f" {'in95 ' + p[:6]:>12}" for p in WORLDS_PLANNERS))
+    lines = [head, "-" * len(head)]
+    worlds = list(dict.fromkeys(r["condition"] for r in records))
+    for w in worlds:
+        by = {p: [r for r in ok_recs if r["condition"] == w and r["planner"] == p] for p in WORLDS_PLANNERS}
+        for i, t in enumerate(WORLDS_TARGETS_M):
+            if w != "ideal" and i > 0:
+                break  # the hardware worlds stop at the first target
+            m = {p: float(np.mean([metres_or_budget(r, i) for r in rs])) if rs else np.nan for p, rs in by.items()}
+            row = f"{w:<14} {format(t, 'g') + ' m':>5}" + "".join(f" {m[p]:>10.0f}" for p in WORLDS_PLANNERS)
+            row += f" {m['casadi'] / m['lawnmower']:>12.2f} {m['oracle'] / m['lawnmower']:>12.2f}"
+            row += "".join(f" {_inside_share(by[p]):>12.2f}" for p in WORLDS_PLANNERS)
+            lines.append(row)
+    failed = [r for r in records if r["status"] != "ok"]
+    lines.append("")
+    lines.append("to: the target (mean 95 % bound, as the stop rule reads it); planner columns: mean metres flown "
+                 "to it (the 3000 m budget when never); in95: share of users inside their own final 95 % bound. "
+                 f"Runs that raised: {len(failed)}")
+    for r in failed:
+        lines.append(f"  {r['key']}: {r['error']}")
+    return "\n".join(lines)
 
 
 def _inside_share(rs: list[dict]) -> float:
@@ -183,12 +253,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scheduler", default=None, help="an existing Dask scheduler, e.g. tcp://127.0.0.1:8786")
     ap.add_argument("--out", type=Path, default=None,
                     help="campaign output folder (default: a fresh temporary one; an existing one resumes)")
+    ap.add_argument("--worlds", action="store_true",
+                    help="what each real effect costs lawnmower, casadi and oracle (see the module docstring)")
     args = ap.parse_args(argv)
+    if args.worlds and (args.planners or args.distance_noise):
+        ap.error("--worlds runs its own planners and noise: not with --planners or --distance-noise")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     quiet_logs()
     n = args.scenarios or (8 if args.quick else None)
     planners = tuple(p.strip() for p in args.planners.split(",") if p.strip()) if args.planners else None
-    campaign = benchmark_campaign(n, planners, args.distance_noise)
+    campaign = worlds_campaign(n) if args.worlds else benchmark_campaign(n, planners, args.distance_noise)
     planners = tuple(campaign.section.planners)
     with tempfile.TemporaryDirectory(prefix="uavloc-planner-bench-") as tmp:
         out = args.out or Path(tmp)
@@ -199,6 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nplanner benchmark: {n_sc} scenarios, {len(planners)} planners, {len(campaign.runs)} runs on {done.where} "
           f"({done.workers} workers): {done.wall_s:.0f} s of runs, {total_s:.0f} s in all"
           + (f", {done.skipped} runs resumed from {args.out}" if done.skipped else "") + "\n")
+    if args.worlds:
+        print(summarise_worlds(done.records))
+        return 0
     table, ok = summarise(done.records, planners, campaign.targets_m)
     print(table)
     return 0 if ok else 1

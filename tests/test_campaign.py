@@ -255,13 +255,56 @@ def test_the_planner_benchmark_spec_loads():
 def test_the_benchmarks_campaign_takes_any_planners_of_it(planners):
     """benchmarks/planner.py --planners and benchmarks/campaign_scaling.py (lawnmower, greedy,
     casadi by default) pick planners of the spec; the options of the others go with them."""
+    campaign = _planner_bench().benchmark_campaign(2, planners)
+    assert {r.planner for r in campaign.runs} == set(planners) and len(campaign.runs) == 2 * 2 * len(planners)
+
+
+def _planner_bench():
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("planner_bench", REPO / "benchmarks" / "planner.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    campaign = bench.benchmark_campaign(2, planners)
-    assert {r.planner for r in campaign.runs} == set(planners) and len(campaign.runs) == 2 * 2 * len(planners)
+    return bench
+
+
+def test_the_worlds_benchmark_changes_one_effect_of_the_same_scenarios():
+    """benchmarks/planner.py --worlds: the hardware scenarios with one effect changed each, and the
+    ideal world flown to the last target; the same geometry in every world."""
+    bench = _planner_bench()
+    campaign = bench.worlds_campaign(2)
+    worlds = [w for w, _ in bench.WORLDS] + ["ideal"]
+    assert list(dict.fromkeys(r.condition for r in campaign.runs)) == worlds
+    assert len(campaign.runs) == len(worlds) * 2 * 3 and campaign.targets_m == (3.0, 2.0, 1.5)
+    sc = {(r.condition, r.scenario.name[-2:]): r.scenario for r in campaign.runs}
+    for i in ("00", "01"):
+        hw = sc[("hardware", i)]
+        assert hw.vehicle.gps_tau_s > 0 and hw.mission.flight.target_radius_m == 3.0
+        assert sc[("no-gps-drift", i)].vehicle.gps_tau_s == 0.0
+        assert sc[("gps-constant", i)].vehicle.gps_tau_s == 1e5
+        assert all(u.sawtooth_amplitude_m == 0.0 for u in sc[("no-sawtooth", i)].users)
+        assert sc[("ideal", i)].mission.flight.target_radius_m == 1.5
+        for w in worlds:
+            assert [(u.east_m, u.north_m) for u in sc[(w, i)].users] == [(u.east_m, u.north_m) for u in hw.users]
+
+
+def test_the_worlds_table_gives_each_planner_its_metres_and_ratios():
+    bench = _planner_bench()
+
+    def rec(world, planner, metres, err=1.0, bound=2.0):
+        return {"status": "ok", "condition": world, "planner": planner, "metres_to_m": metres,
+                "budget_m": 3000.0, "final_error_m": [err], "final_bound95_m": [bound]}
+
+    records = [rec("hardware", "lawnmower", [600.0, None, None]), rec("hardware", "casadi", [450.0, None, None]),
+               rec("hardware", "oracle", [300.0, None, None], err=3.0),
+               rec("ideal", "lawnmower", [300.0, 400.0, 500.0]), rec("ideal", "casadi", [150.0, 300.0, float("nan")]),
+               rec("ideal", "oracle", [150.0, 200.0, 250.0])]
+    rows = bench.summarise_worlds(records).splitlines()
+    hw = next(r for r in rows if r.startswith("hardware")).split()
+    assert hw[3:11] == ["600", "450", "300", "0.75", "0.50", "1.00", "1.00", "0.00"]
+    ideal = [r.split() for r in rows if r.startswith("ideal")]
+    # the hardware worlds stop at the first target; the ideal one reads all three (the budget when never)
+    assert [r[1] for r in ideal] == ["3", "2", "1.5"] and ideal[2][3:8] == ["500", "3000", "250", "6.00", "0.50"]
 
 
 def test_the_command_writes_results_summary_and_figures_and_exits_non_zero_on_failed_runs(tmp_path, capsys):
