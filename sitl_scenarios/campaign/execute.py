@@ -181,9 +181,15 @@ def _run_dask(todo: list[RunSpec], scheduler: str | None, workers: int | None,
         # one single-threaded process per worker: the estimator and IPOPT hold the GIL. Every port is
         # chosen by the OS on loopback: no dashboard, and the scheduler's and workers' HTTP endpoints
         # (health, metrics) on 127.0.0.1:0 rather than 8787 on all interfaces
+        # the worker processes log on their own stderr: unless Dask's logs were asked for
+        # (quiet_logs below WARNING), they keep even their ERROR lines to themselves, such as a
+        # heartbeat that meets the scheduler already closed as the cluster shuts down (a run that
+        # is lost is reported by run_campaign itself)
+        dask_level = logging.getLogger("distributed").getEffectiveLevel()
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, scheduler_port=0,
                                dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-                               worker_dashboard_address="127.0.0.1:0")
+                               worker_dashboard_address="127.0.0.1:0",
+                               silence_logs=logging.CRITICAL if dask_level >= logging.WARNING else dask_level)
         result.where = f"LocalCluster({n})"
     else:
         result.where = scheduler
