@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ from estimator.ranging import toa_s_from_raw
 from mission.log import MissionLogWriter
 from sitl_scenarios.radio import RadioModel
 from sitl_scenarios.scenario import Scenario, load_scenario
+from sitl_scenarios.vehicle.sensors import GpsError
 from uavloc.errors import ScenarioError
 
 log = logging.getLogger(__name__)
@@ -41,29 +41,6 @@ def survey_path_enu_m(scenario: Scenario, radius_m: float = 50.0, n_turns: float
     circle = np.c_[c[0] + radius_m * np.cos(angles), c[1] + radius_m * np.sin(angles), np.full(len(angles), alt)]
     home = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, alt]])
     return np.vstack([home, circle, [[0.0, 0.0, alt]]])
-
-
-class GpsError:
-    """GPS error at increasing times: white N(0, σ²) per fix (τ = 0) or first-order Gauss–Markov
-    like an autopilot's EKF output, β(t) = φ β(t_prev) + √(1 − φ²) σ w, φ = exp(−Δt/τ)."""
-
-    def __init__(self, sigma_m: float, tau_s: float, rng: np.random.Generator) -> None:
-        self.sigma_m, self.tau_s, self.rng = float(sigma_m), float(tau_s), rng
-        self._t: float | None = None
-        self._beta = np.zeros(3)
-
-    def at(self, t_s: float) -> np.ndarray:
-        """(3,) error [m, ENU] at time t_s (not before the previous call's)."""
-        if self.sigma_m <= 0:
-            return np.zeros(3)
-        w = self.rng.normal(0.0, self.sigma_m, 3)
-        if self.tau_s <= 0 or self._t is None:
-            self._beta = w
-        else:
-            phi = math.exp(-max(t_s - self._t, 0.0) / self.tau_s)
-            self._beta = phi * self._beta + math.sqrt(1.0 - phi * phi) * w
-        self._t = t_s
-        return self._beta.copy()
 
 
 def path_direction(path_enu_m: np.ndarray, s_m: float) -> np.ndarray:
@@ -124,7 +101,7 @@ def generate(scenario: Scenario, out: Path, seed: int | None = None, radius_m: f
                         key=lambda e: e[0])
         gps_err = GpsError(sigma_gps, tau_s, rng)
         for t, kind, p, s_m in events:
-            gps = p + gps_err.at(t)
+            gps = p + gps_err.sample(t)
             lat, lon, alt = (float(x) for x in origin.enu_to_lla(gps))
             if kind == "tel":
                 # the autopilot's velocity: speed along the path (north, east, down)
