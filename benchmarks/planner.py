@@ -70,16 +70,12 @@ from sitl_scenarios.campaign.summary import metres_or_budget  # noqa: E402
 SPEC = _HERE / "planner_campaign.toml"
 
 
-def benchmark_campaign(n_scenarios: int | None = None, planners: tuple[str, ...] | None = None,
-                       distance_noise: bool = False) -> Campaign:
-    """The spec of planner_campaign.toml, with the number of scenarios (per condition) and the
-    planners replaced."""
-    data = tomllib.loads(SPEC.read_text(encoding="utf-8"))
-    for fam in data["families"]:
-        if n_scenarios is not None:
+def _campaign(data: dict, n_scenarios: int | None, planners: tuple[str, ...] | None) -> Campaign:
+    """The campaign of the spec `data` (planner_campaign.toml's, families already chosen) with the
+    number of scenarios per family and the planners replaced (None: the spec's)."""
+    if n_scenarios is not None:
+        for fam in data["families"]:
             fam["count"] = n_scenarios
-        if distance_noise:
-            fam["distance_noise_share"] = 0.5
     if planners is not None:
         data["campaign"]["planners"] = list(planners)
         # the options of the planners left out go with them (a spec refuses options of a planner it
@@ -87,6 +83,17 @@ def benchmark_campaign(n_scenarios: int | None = None, planners: tuple[str, ...]
         if "planner_options" in data:
             data["planner_options"] = {k: v for k, v in data["planner_options"].items() if k in planners}
     return spec_from_dict(data, str(SPEC), base_dir=_HERE, path=SPEC)
+
+
+def benchmark_campaign(n_scenarios: int | None = None, planners: tuple[str, ...] | None = None,
+                       distance_noise: bool = False) -> Campaign:
+    """The spec of planner_campaign.toml, with the number of scenarios (per condition) and the
+    planners replaced."""
+    data = tomllib.loads(SPEC.read_text(encoding="utf-8"))
+    if distance_noise:
+        for fam in data["families"]:
+            fam["distance_noise_share"] = 0.5
+    return _campaign(data, n_scenarios, planners)
 
 
 #: --worlds: the hardware family with one effect changed (name, the family keys replaced)
@@ -107,21 +114,10 @@ def worlds_campaign(n_scenarios: int | None = None) -> Campaign:
     flown to WORLDS_TARGETS_M[-1], with WORLDS_PLANNERS (the same geometry draws in every world)."""
     data = tomllib.loads(SPEC.read_text(encoding="utf-8"))
     fams = {f["name"]: f for f in data["families"]}
-    out = []
-    for name, changes in WORLDS:
-        fam = {**fams["hardware"], **changes, "name": name}
-        out.append(fam)
-    ideal = dict(fams["ideal"])
-    ideal["mission"] = {**ideal["mission"], "target_radius_m": WORLDS_TARGETS_M[-1]}
-    out.append(ideal)
-    for fam in out:
-        if n_scenarios is not None:
-            fam["count"] = n_scenarios
-    data["families"] = out
-    data["campaign"]["planners"] = list(WORLDS_PLANNERS)
+    ideal = {**fams["ideal"], "mission": {**fams["ideal"]["mission"], "target_radius_m": WORLDS_TARGETS_M[-1]}}
+    data["families"] = [{**fams["hardware"], **changes, "name": name} for name, changes in WORLDS] + [ideal]
     data["campaign"]["targets_m"] = list(WORLDS_TARGETS_M)
-    data["planner_options"] = {k: v for k, v in data.get("planner_options", {}).items() if k in WORLDS_PLANNERS}
-    return spec_from_dict(data, str(SPEC), base_dir=_HERE, path=SPEC)
+    return _campaign(data, n_scenarios, WORLDS_PLANNERS)
 
 
 def summarise_worlds(records: list[dict]) -> str:

@@ -74,7 +74,7 @@ class AccuracyTrack:
         self.bound95_m = np.where(ok, error_bound_95_m(cov), np.inf)
         # the metres to T go by the bound the stop rule asks for: without the NLoS shift that no
         # survey shrinks (Estimate.survey_bound_95_m)
-        survey_m = np.where(ok, error_bound_95_m(cov, nlos_shift_m), np.inf)
+        survey_m = self.bound95_m if nlos_shift_m is None else np.where(ok, error_bound_95_m(cov, nlos_shift_m), np.inf)
         # the user's NEES eᵀ Σ⁻¹ e, NaN where not located (like error_m)
         self.nees = np.full(len(self.truth_en), np.nan)
         if np.any(ok):
