@@ -26,7 +26,7 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 from mission.gnb import GnbConfig, OaiGnbClient  # noqa: E402 (after the sys.path fix)
-from mission.gnb_transport import rest_request  # noqa: E402
+from mission.gnb.transport import rest_request  # noqa: E402
 from sitl_scenarios.gnb import SimulatedGnb, static_position  # noqa: E402
 from sitl_scenarios.scenario import scenario_from_dict, user_tables  # noqa: E402
 

@@ -183,7 +183,7 @@ class GnbSettings:
     long to wait for the UE's random access after the trigger [s] (real OAI: about 5 s of log time,
     and the rfsimulator may run at 0.4x real time, hence 15 s); retries: reconnect attempts after a
     lost connection. :meth:`measure_timeout_s` is what the controller allows one measurement;
-    the adapter's settings are these and its own (:meth:`mission.gnb_config.GnbConfig.of`).
+    the adapter's settings are these and its own (:meth:`mission.gnb.config.GnbConfig.of`).
     """
 
     transport: Literal["telnet", "rest"] = "telnet"
@@ -203,7 +203,7 @@ class GnbSettings:
     def problems(self) -> list[tuple[str, Any, str]]:
         """(field, value, why) of each setting that cannot work with the others or with OAI: the
         one check of a mission file's [gnb] (validate_mission) and of the adapter's settings
-        (mission.gnb_config.GnbConfig)."""
+        (mission.gnb.config.GnbConfig)."""
         out: list[tuple[str, Any, str]] = []
         if self.mode == "stock" and not self.log_path:
             out.append(("mode", self.mode, "stock mode reads the TA from the gNB log: set gnb.log_path"))

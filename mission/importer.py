@@ -25,7 +25,7 @@ i.e. UNIX seconds with a fraction, or ISO 8601 (a time without a zone is UTC). T
 `ts '%.s'` or `TZ=UTC ts '%Y-%m-%dT%H:%M:%.SZ'` (moreutils) print when the gNB's output is piped
 through them. (The simulated gNB's own Msg2 log runs on simulation time and carries no stamp.)
 `--gnb-time-offset` is added to every stamp (to correct a known clock offset). Recognised
-payloads, parsed by `mission.oai` (the same parsers as the live adapter):
+payloads, parsed by `mission.gnb.oai` (the same parsers as the live adapter):
 
 - `rtt` reply lines of docs/design.md §8 (`rnti <hex> ta <int> mu <int> srs_peak <float> fs <hz> ...`):
   a complete measurement; `error ...` lines are counted and skipped;
@@ -56,8 +56,7 @@ import numpy as np
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from estimator.ranging import toa_s_from_raw
-from mission.log import MissionLogWriter
-from mission.oai import (
+from mission.gnb.oai import (
     Msg2Record,
     RttErrorReply,
     SrsToaRecord,
@@ -66,6 +65,7 @@ from mission.oai import (
     parse_srs_toa_line,
     strip_ansi,
 )
+from mission.log import MissionLogWriter
 from uavloc.errors import GnbProtocolError, ImportDataError, UavlocError
 
 log = logging.getLogger(__name__)

@@ -35,7 +35,7 @@ from mission import schema
 from mission.config import MAX_DISTANCE_M
 from mission.schema import bounded, like, positive
 from planner.types import PlanningConstraints
-from sitl_scenarios.gnb_faults import GnbFaults
+from sitl_scenarios.gnb.faults import GnbFaults
 from sitl_scenarios.vehicle_faults import FaultEvent, check_fault_event
 from uavloc.errors import MissionConfigError, ScenarioError
 
@@ -156,7 +156,7 @@ class FaultsConfig:
 class World:
     """What is true in a simulation (the world sections of a scenario file): the noise seed, the
     built-in vehicle's home, where the users are, the buildings, the radio, the vehicle model and
-    the simulators' faults (`[faults.gnb]`, sitl_scenarios.gnb_faults; `[[faults.vehicle]]`,
+    the simulators' faults (`[faults.gnb]`, sitl_scenarios.gnb.faults; `[[faults.vehicle]]`,
     sitl_scenarios.vehicle_faults)."""
 
     truth: dict[str, TrueUserConfig]

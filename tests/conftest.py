@@ -19,11 +19,11 @@ def shared_data() -> Path:
 
 @pytest.fixture(autouse=True)
 def _fresh_o1_bookkeeping(request):
-    """mission.gnb keeps, per (host, port), this process's last `o1 stats` and any it left
+    """mission.gnb.client keeps, per (host, port), this process's last `o1 stats` and any it left
     unanswered: right for the one real gNB the `oai` tests share (a request one test abandons runs
     in the next), stale for a simulated gNB, whose ephemeral port a later test may get again."""
     if request.node.get_closest_marker("oai") is None:
-        from mission import gnb
+        from mission.gnb import client as gnb
 
         gnb._O1_LAST_SENT.clear()
         gnb._O1_UNANSWERED.clear()

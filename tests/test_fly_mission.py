@@ -11,7 +11,7 @@ from estimator.geodesy import Origin
 from mission.config import example_mission_path, load_mission, mission_from_dict
 from mission.control.config import ControllerConfig
 from mission.controller import controller_from_mission
-from mission.gnb_config import GnbConfig
+from mission.gnb.config import GnbConfig
 from mission.safety import SafetyLimits
 from sitl_scenarios.scenario import load_scenario
 from uavloc.errors import MissionConfigError

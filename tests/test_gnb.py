@@ -12,7 +12,7 @@ import pytest
 
 from estimator.ranging import C_MPS, one_way_m_per_ta_step
 from mission.gnb import GnbClient, GnbConfig, LogFollower, OaiGnbClient, parse_host_port
-from mission.oai import PROMPT_GNB, format_msg2_line, parse_force_reestab
+from mission.gnb.oai import PROMPT_GNB, format_msg2_line, parse_force_reestab
 from sitl_scenarios.gnb import GnbFaults, SimulatedGnb, static_position
 from sitl_scenarios.scenario import bundled_scenarios, load_scenario, scenario_from_dict, user_tables
 from uavloc.errors import (
@@ -145,7 +145,7 @@ def test_single_rnti_with_several_ues_is_a_clear_error():
 
 
 def _without_module(process, module):
-    from mission.oai import unknown_command_text
+    from mission.gnb.oai import unknown_command_text
 
     def patched(line):
         if line.split() and line.split()[0] == module:
@@ -768,11 +768,11 @@ def test_every_bundled_scenario_serves_its_users(path):
 
 
 # ---------------------------------------------------------------------------------------------
-# preflight probe (mission.probe), the library behind `uavloc gnb probe`
+# preflight probe (mission.gnb.probe), the library behind `uavloc gnb probe`
 
 
 def test_probe_measures_every_configured_user_and_names_what_is_missing():
-    from mission.probe import probe_gnb
+    from mission.gnb.probe import probe_gnb
 
     pos = {"uav": UAV}
 
@@ -799,7 +799,7 @@ def test_probe_measures_every_configured_user_and_names_what_is_missing():
 
 
 def test_probe_says_what_is_wrong_with_the_setup(tmp_path: Path):
-    from mission.probe import probe_address, probe_gnb
+    from mission.gnb.probe import probe_address, probe_gnb
 
     async def body():
         out = {}
@@ -847,7 +847,7 @@ def test_gnb_probe_command_json_and_exit_status(capsys):
 
 
 def test_probe_in_passive_mode_lists_each_ues_accesses(tmp_path: Path):
-    from mission.probe import probe_gnb
+    from mission.gnb.probe import probe_gnb
 
     log_path = tmp_path / "gnb.log"
 

@@ -16,9 +16,9 @@ from hypothesis import HealthCheck, given, seed, settings
 from hypothesis import strategies as st
 
 from mission.gnb import O1_MIN_INTERVAL_S, GnbAddress, GnbConfig, OaiGnbClient, parse_gnb_address
-from mission.gnb_transport import REST_MAX_BODY_BYTES, parse_rest_display, parse_rest_modules, rest_request
+from mission.gnb.transport import REST_MAX_BODY_BYTES, parse_rest_display, parse_rest_modules, rest_request
 from sitl_scenarios.gnb import GnbFaults, SimulatedGnb, static_position
-from sitl_scenarios.gnb_rest import display_lines, websrv_buffer
+from sitl_scenarios.gnb.rest import display_lines, websrv_buffer
 from sitl_scenarios.scenario import scenario_from_dict, user_tables
 from uavloc.errors import (
     GnbBusyError,

@@ -13,6 +13,7 @@ import pytest
 from estimator.geodesy import Origin
 from estimator.ranging import C_MPS, toa_s_from_raw
 from mission.cli import main
+from mission.gnb.oai import format_msg2_line, format_rtt_line
 from mission.importer import (
     ImportUser,
     import_flight,
@@ -23,7 +24,6 @@ from mission.importer import (
     split_stamp,
 )
 from mission.log import read_mission_log
-from mission.oai import format_msg2_line, format_rtt_line
 from uavloc.errors import ImportDataError
 
 #: the GPS part of ../shared/data/ardupilot_vtol_sitl.tlog (see tests/data/README.md): in the checkout,

@@ -310,8 +310,8 @@ def test_flight_pipeline_keyframes_carry_the_velocity_displacement_replay_rebuil
     from mission.control.config import MissionUser
     from mission.control.pipeline import MeasurementPipeline
     from mission.control.state import FlightState
+    from mission.gnb.oai import RttSample
     from mission.log import MissionLogWriter, read_mission_log
-    from mission.oai import RttSample
     from mission.replay import build_keyframes
     from mission.telemetry import TelemetryBuffer
 

@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from estimator.ranging import range_m_from_raw, toa_s_from_raw
-from mission.oai import (
+from mission.gnb.oai import (
     PROMPT_GNB,
     Msg2Record,
     RttErrorReply,

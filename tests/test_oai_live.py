@@ -34,8 +34,8 @@ import pytest
 
 from estimator.ranging import one_way_m_per_ta_step
 from mission.gnb import GnbConfig, OaiGnbClient
-from mission.oai import PROMPT_UE, parse_rfsim_distance
-from mission.oai_ra import RandomAccess, log_time_format
+from mission.gnb.oai import PROMPT_UE, parse_rfsim_distance
+from mission.gnb.oai_ra import RandomAccess, log_time_format
 from tests.conftest import SHARED_DATA
 from tests.procs import stop_process
 from uavloc.errors import (
@@ -316,7 +316,7 @@ def test_timeouts_and_a_silent_second_client(oai):
             async with OaiGnbClient(cfg(oai, request_timeout_s=1.5, retries=0)) as second:
                 # the gNB runs a waiting client's request when the client before it leaves,
                 # abandoned or not. A discovery on a new connection sends a bare line first
-                # (mission/gnb.py O1_SETTLE_REQUEST), so that is what waits here and runs when
+                # (mission/gnb/client.py O1_SETTLE_REQUEST), so that is what waits here and runs when
                 # `first` leaves; an `o1 stats` waiting here killed this gNB: with SIGFPE when the
                 # next client's followed it within milliseconds, with SIGABRT (once in ~20 runs)
                 # when answered into this client's closed socket

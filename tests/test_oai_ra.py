@@ -1,4 +1,4 @@
-"""Random-access attribution (mission.oai_ra) on constructed logs: interleaved UEs, ambiguous MAC CEs,
+"""Random-access attribution (mission.gnb.oai_ra) on constructed logs: interleaved UEs, ambiguous MAC CEs,
 reestablishments, expiry, malformed lines, and a fuzz (only GnbProtocolError ever escapes)."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mission.gnb_log import StockLog
-from mission.oai_ra import RandomAccess, RaTracker, RntiChange, parse_prach_line, parse_stamp
-from sitl_scenarios.gnb_ra import OaiRaLog
+from mission.gnb.log_follower import StockLog
+from mission.gnb.oai_ra import RandomAccess, RaTracker, RntiChange, parse_prach_line, parse_stamp
+from sitl_scenarios.gnb.ra import OaiRaLog
 from uavloc.errors import GnbProtocolError
 
 

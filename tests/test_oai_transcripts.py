@@ -19,7 +19,7 @@ import pytest
 
 from estimator.ranging import one_way_m_per_ta_step, range_m_from_raw
 from mission.gnb import GnbConfig, OaiGnbClient
-from mission.oai import (
+from mission.gnb.oai import (
     PROMPT_GNB,
     PROMPT_UE,
     check_known_command,
@@ -30,7 +30,7 @@ from mission.oai import (
     parse_single_rnti,
     split_async_lines,
 )
-from mission.oai_ra import RandomAccess, RaTracker, RntiChange, log_time_format, parse_stamp
+from mission.gnb.oai_ra import RandomAccess, RaTracker, RntiChange, log_time_format, parse_stamp
 from uavloc.errors import GnbUnknownCommandError
 
 FIXTURES = Path(__file__).parent / "fixtures" / "oai-2025.w36"

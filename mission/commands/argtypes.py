@@ -10,7 +10,7 @@ from mission.view.live import checked
 
 
 def _gnb_address(text: str) -> None:
-    from mission.gnb_transport import parse_gnb_address
+    from mission.gnb.transport import parse_gnb_address
 
     parse_gnb_address(text)
 

@@ -2,7 +2,7 @@
 
 The preflight check an operator runs before take-off: discover the gNB's UEs, take N
 measurements of each, print ranges, TA, SNR and timing, or say exactly what is wrong. Exit
-status 0 when every UE answered, 1 otherwise. The logic is `mission.probe.probe_address`.
+status 0 when every UE answered, 1 otherwise. The logic is `mission.gnb.probe.probe_address`.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from mission.gnb import GnbConfig, parse_gnb_address
-    from mission.probe import probe_address
+    from mission.gnb.probe import probe_address
     from uavloc.errors import GnbError
 
     address = parse_gnb_address(args.gnb)

@@ -301,7 +301,7 @@ class MissionController:
         """No take-off unless every configured user is among the gNB's UEs and answers one
         measurement (passive stock mode: is among them; its random accesses come when they come).
         The event and the error say which RNTIs the gNB has and what it answered."""
-        from mission.probe import probe_gnb
+        from mission.gnb.probe import probe_gnb
 
         rntis = [u.rnti for u in self.users]
         gcfg = getattr(self.gnb, "config", None)

@@ -31,7 +31,7 @@ import time
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
-from mission.oai import MAX_REPLY_CHARS, decode_reply, protocol_error, unknown_command_text
+from mission.gnb.oai import MAX_REPLY_CHARS, decode_reply, protocol_error, unknown_command_text
 from uavloc.errors import GnbError, GnbProtocolError, GnbTimeoutError
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,7 @@ def parse_gnb_address(text: str, default: Transport = "telnet") -> GnbAddress:
     """
     if default not in TRANSPORTS:
         raise GnbError(f"gNB transport must be one of {', '.join(TRANSPORTS)}, got {default!r}")
-    from mission.gnb_config import parse_host_port
+    from mission.gnb.config import parse_host_port
 
     s = text.strip()
     scheme, sep, rest = s.partition("://")

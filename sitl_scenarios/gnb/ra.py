@@ -13,7 +13,7 @@ import random
 from collections.abc import Callable, Container
 from pathlib import Path
 
-from mission.oai import format_msg2_line
+from mission.gnb.oai import format_msg2_line
 
 
 class OaiRaLog:

@@ -1,6 +1,6 @@
 """Pure parsers for what an OpenAirInterface gNB says (docs/design.md §8): telnet replies and log lines.
 
-No I/O and no clocks: the adapter (`mission/gnb.py`) reads bytes and lines and hands them here;
+No I/O and no clocks: the adapter (`mission/gnb/client.py`) reads bytes and lines and hands them here;
 time stamps are supplied by the caller. Every parser raises :class:`GnbProtocolError` (with the
 offending text in the message and in `exc.text`) on anything malformed, and nothing else.
 
@@ -430,7 +430,7 @@ class Msg2Record:
     absent), the preamble index (RAPID) and the RA-RNTI (None when the line lacks them).
 
     The RNTI is the TC-RNTI of this random access, never an existing C-RNTI: which UE made the
-    access is known only from later lines (see `mission.oai_ra`).
+    access is known only from later lines (see `mission.gnb.oai_ra`).
     """
 
     rnti: int | None

@@ -32,7 +32,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Literal
 
-from mission.oai import Msg2Record, parse_msg2_line, protocol_error, strip_ansi
+from mission.gnb.oai import Msg2Record, parse_msg2_line, protocol_error, strip_ansi
 
 StampKind = Literal["wall_clock", "utc_time", "monotonic", "none"]
 RaKind = Literal["initial", "reestablishment", "connected"]

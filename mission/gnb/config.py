@@ -9,7 +9,7 @@ from typing import Any
 
 from estimator.ranging import MU_VALUES
 from mission.config import GnbSettings
-from mission.oai import PROMPT_GNB
+from mission.gnb.oai import PROMPT_GNB
 from uavloc.errors import GnbError
 
 #: `ci` commands never sent: they release the UE, and crash stock OAI with an RNTI it no longer has

@@ -1,5 +1,5 @@
 """The gNB log as the stock modes read it: followed like `tail -f`, every line fed to
-:class:`mission.oai_ra.RaTracker`, and what the lines proved kept per UE (docs/design.md §8).
+:class:`mission.gnb.oai_ra.RaTracker`, and what the lines proved kept per UE (docs/design.md §8).
 
 :class:`StockLog` is what :class:`mission.gnb.OaiGnbClient` owns in stock mode: the RNTI changes
 a log line proved (and only those), the random accesses it proved, and the round-trip ones not yet
@@ -13,8 +13,8 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
-from mission.oai import Msg2Record, RttSample, sample_from_msg2
-from mission.oai_ra import RandomAccess, RaTracker, RntiChange
+from mission.gnb.oai import Msg2Record, RttSample, sample_from_msg2
+from mission.gnb.oai_ra import RandomAccess, RaTracker, RntiChange
 from uavloc.errors import GnbError, GnbNoMeasurementError, GnbProtocolError
 
 log = logging.getLogger(__name__)

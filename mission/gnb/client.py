@@ -2,8 +2,8 @@
 (docs/design.md §8; docs/rest-transport.md).
 
 The controller depends on the small :class:`GnbClient` protocol; :class:`OaiGnbClient` implements
-it for a real (modified or stock) OAI gNB and for the simulated one (`sitl_scenarios/gnb.py`),
-over the transport the address names (`mission.gnb_transport`: ``HOST:PORT`` or
+it for a real (modified or stock) OAI gNB and for the simulated one (`sitl_scenarios/gnb/server.py`),
+over the transport the address names (`mission.gnb.transport`: ``HOST:PORT`` or
 ``telnet://HOST:PORT`` telnet, ``http://HOST:PORT`` REST). Everything below is written once, above
 the transport. The client is an async context manager that owns its connection:
 
@@ -21,7 +21,7 @@ the transport. The client is an async context manager that owns its connection:
 - discovery through ``o1 stats`` (RNTI list) or ``ci get_single_rnti``;
 - measurement through the RTT command set (default ``rtt pdcch_order <rnti hex>``, names are
   configuration), or one of two stock modes that read Msg2 lines from the gNB log file (followed
-  like `tail -f`, every line fed to :class:`mission.oai_ra.RaTracker`, coarse TA only):
+  like `tail -f`, every line fed to :class:`mission.gnb.oai_ra.RaTracker`, coarse TA only):
   *active* sends ``ci force_reestab <rnti>`` and waits for a random access the log proves to be
   that UE's; *passive* sends nothing and returns the UE's random accesses that happened anyway.
 
@@ -31,7 +31,7 @@ names an RNTI is sent only by :meth:`OaiGnbClient.guarded_ci`, right after a fre
 same connection that lists the RNTI, and never retried on another connection;
 ``force_ue_release`` and ``force_ul_failure`` are never sent at all.
 
-All parsing is in the pure `mission.oai` and `mission.oai_ra`.
+All parsing is in the pure `mission.gnb.oai` and `mission.gnb.oai_ra`.
 """
 
 from __future__ import annotations
@@ -45,10 +45,9 @@ import time
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
-from mission.gnb_config import FORBIDDEN_CI, GnbConfig, check_ci_line, parse_host_port
-from mission.gnb_log import LogFollower, StockLog
-from mission.gnb_transport import GnbAddress, GnbTransport, TransportLost, make_transport, parse_gnb_address
-from mission.oai import (
+from mission.gnb.config import FORBIDDEN_CI, GnbConfig, check_ci_line, parse_host_port
+from mission.gnb.log_follower import LogFollower, StockLog
+from mission.gnb.oai import (
     RttErrorReply,
     RttSample,
     check_known_command,
@@ -60,7 +59,8 @@ from mission.oai import (
     sample_from_rtt,
     split_async_lines,
 )
-from mission.oai_ra import RandomAccess, RntiChange
+from mission.gnb.oai_ra import RandomAccess, RntiChange
+from mission.gnb.transport import GnbAddress, GnbTransport, TransportLost, make_transport, parse_gnb_address
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
@@ -117,7 +117,7 @@ class GnbClient(Protocol):
 class OaiGnbClient:
     """Client of an OAI gNB over telnet or REST (see the module docstring); implements :class:`GnbClient`.
 
-    config: GnbConfig (its `transport` picks the wire, `mission.gnb_transport`); rng: jitter source
+    config: GnbConfig (its `transport` picks the wire, `mission.gnb.transport`); rng: jitter source
     (default random.Random(config.seed)); clock: monotonic clock [s] used to time-stamp samples
     (the midpoint of request and answer for RTT samples; for stock samples the Msg2 line's
     wall_clock stamp mapped through `wall`, or the time it was read when the log has no such

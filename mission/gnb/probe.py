@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from mission.gnb import GnbClient, GnbConfig, OaiGnbClient
-from mission.oai import RttSample
-from mission.oai_ra import log_time_format
+from mission.gnb.client import GnbClient, GnbConfig, OaiGnbClient
+from mission.gnb.oai import RttSample
+from mission.gnb.oai_ra import log_time_format
 from uavloc.errors import (
     GnbError,
     GnbNoMeasurementError,

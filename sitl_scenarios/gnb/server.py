@@ -36,7 +36,7 @@ position comes from a callable (the built-in vehicle, in-process) or from a MAVL
 (:class:`MavlinkPositionSource`, GLOBAL_POSITION_INT). Faults (delay, malformed answer, dropped
 connection, refused connection, HTTP error) come from the scenario's ``[faults.gnb]`` table and
 from :meth:`SimulatedGnb.inject` for tests. With ``rest_port`` the same gNB also serves OAI's web
-server API (`sitl_scenarios/gnb_rest.py`) over the same commands, state and crash hazards.
+server API (`sitl_scenarios/gnb/rest.py`) over the same commands, state and crash hazards.
 
 Standalone::
 
@@ -63,10 +63,10 @@ from typing import Literal
 import numpy as np
 
 from estimator.ranging import C_MPS
-from mission.oai import PROMPT_GNB, format_rtt_line, unknown_command_text
-from sitl_scenarios.gnb_faults import GnbFaults
-from sitl_scenarios.gnb_ra import OaiRaLog
-from sitl_scenarios.gnb_rest import GnbRestServer
+from mission.gnb.oai import PROMPT_GNB, format_rtt_line, unknown_command_text
+from sitl_scenarios.gnb.faults import GnbFaults
+from sitl_scenarios.gnb.ra import OaiRaLog
+from sitl_scenarios.gnb.rest import GnbRestServer
 from sitl_scenarios.position import MavlinkPositionSource, PositionSource, static_position
 from sitl_scenarios.radio import RadioModel, RawRtt
 from sitl_scenarios.scenario import Scenario, load_scenario
@@ -151,7 +151,7 @@ class SimulatedGnb:
         self.rest_port = rest_port
         #: REST: the commands take the web server's blank buffer " " for an argument, as stock OAI
         #: 2025.w36 does (`o1 stats`, `ci get_single_rnti`: "no parameter allowed"); False: for none,
-        #: as the modified gNB of the RTT mode does (sitl_scenarios/gnb_rest.py)
+        #: as the modified gNB of the RTT mode does (sitl_scenarios/gnb/rest.py)
         self.stock_websrv = stock_websrv
         self.rest: GnbRestServer | None = None
         #: current C-RNTI of each user (a new one after a reestablishment or a re-attach)
@@ -706,6 +706,3 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
