@@ -1,0 +1,356 @@
+"""Each UE's round trip, rebuilt from a stock OAI gNB's T-tracer events (pure; no I/O, no clocks).
+
+The gNB never prints a UE's round trip, but its T tracer carries what rebuilds it to the sample
+(`../shared/data/oai-2025.w36-ttrace/README.md`, docs/oai.md):
+
+    RTT [samples] = S · (TA_RAR + Σ_applied (TA_cmd − 31)) + (SRS peak − N/2),   S = TA step · fs
+                                                                                 (N_FFT/128: 12 at μ=1)
+
+- the RAR's TA is the UE's absolute timing advance at its random access;
+- a Timing Advance Command MAC CE (every 100 frames; 31 = no change) moves it, **but only if the
+  UE applied it**: OAI's UE drops a command that arrives after it prepared the target slot and the
+  gNB re-sends it 100 frames later. An applied command shows in the trace itself: the SRS peak
+  steps by −S·(TA − 31) within a few SRS occasions. So a command stays *pending* until the peak
+  either makes that step (applied) or does not within `resolve_occasions` SRS (dropped); no RTT
+  comes out while one is pending;
+- the SRS peak carries what the TA loop leaves uncorrected (its dead band is ±S/2);
+- OAI traces the SRS estimate also when no SRS was received (a stale buffer): a peak less than
+  `min_peak_to_mean_db` above the mean tap power is not an SRS;
+- a round trip that moves faster than a vehicle can (`max_range_rate_mps`) is not a range: a level
+  reached by a jump (a re-synchronizing UE, an rfsim distance set on one side only) is reported
+  only once it has held long enough for that change to be physical. Time here is the gNB's air
+  time (its frame counter), not the wall clock (an rfsimulator runs faster or slower than real
+  time).
+
+:class:`TraceRttTracker` takes decoded events in order (:mod:`mission.gnb.ttrace`) and keeps, per
+RNTI, the latest accepted :class:`TraceRtt`; counters say what it refused and why.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass, field
+
+from estimator.ranging import C_MPS, ta_step_s
+from mission.gnb.ttrace import (
+    EV_DL_PDU,
+    EV_DL_RETX,
+    EV_PRACH,
+    EV_RAR,
+    EV_SRS_CHEST,
+    EV_SRS_TOA_NS,
+    TA_CMD_NO_CHANGE,
+    TEvent,
+    rar_grants,
+    srs_peak,
+    ta_commands,
+)
+from uavloc.errors import GnbProtocolError
+
+#: RNTIs that are not a UE's (SI-RNTI, P-RNTI: SIB1 and paging PDUs)
+_NOT_UE_RNTIS = frozenset({0xFFFF, 0xFFFE})
+#: SFN period [frames]; frames are 10 ms
+SFN_PERIOD = 1024
+FRAME_S = 0.01
+
+
+@dataclass(frozen=True)
+class TraceSettings:
+    """How the tracker reads the trace.
+
+    mu, fs_hz: the gNB's numerology and sampling rate (`-E`: 46.08 Msps at 106 PRB, μ = 1);
+    min_peak_to_mean_db: an SRS estimate whose peak stands less above the mean tap power is stale
+    (real ~31 dB, stale ~9 dB in OAI 2025.w36's rfsim); resolve_occasions: SRS occasions after a
+    TA command within which its step must show, else it was dropped; max_range_rate_mps: the
+    fastest a range may change (vehicle plus user speed) [m/s]; rate_tolerance_samples: what
+    quantization and peak jitter may add to that [RTT samples]; confirm_occasions: SRS occasions
+    that must agree before a UE's first RTT (after its random access) is reported; max_rntis: UEs
+    kept (the oldest forgotten first).
+    """
+
+    mu: int = 1
+    fs_hz: float = 46.08e6
+    min_peak_to_mean_db: float = 18.0
+    resolve_occasions: int = 3
+    max_range_rate_mps: float = 12.0
+    rate_tolerance_samples: float = 1.5
+    confirm_occasions: int = 3
+    max_rntis: int = 256
+
+    @property
+    def step_samples(self) -> float:
+        """RTT samples of one TA step: S = 16·64·Tc/2^μ · fs (12 at μ = 1, 46.08 Msps)."""
+        return ta_step_s(self.mu) * self.fs_hz
+
+    @property
+    def n_fft(self) -> int:
+        """FFT size: fs / (15 kHz · 2^μ) (1536 at 46.08 Msps, μ = 1)."""
+        return round(self.fs_hz / (15e3 * 2**self.mu))
+
+    @property
+    def rate_samples_per_s(self) -> float:
+        """How fast an RTT may move [samples/s]: 2 · v_max · fs / c."""
+        return 2.0 * self.max_range_rate_mps * self.fs_hz / C_MPS
+
+
+@dataclass(frozen=True)
+class TraceRtt:
+    """One UE's round trip from the trace.
+
+    rnti; ta: the UE's cumulative timing advance [TA steps] (RAR plus applied commands); peak: the
+    SRS peak's delay from zero [samples at fs] (fractional); rtt_samples: S·ta + peak; frame, slot:
+    the SRS occasion; t_wall_s: when the gNB traced it (its CLOCK_REALTIME) [s]; t_air_s: the gNB's
+    air time (unwrapped frame counter) [s]; peak_to_mean_db: the SRS peak's prominence [dB]."""
+
+    rnti: int
+    ta: int
+    peak: float
+    rtt_samples: float
+    frame: int
+    slot: int
+    t_wall_s: float
+    t_air_s: float
+    peak_to_mean_db: float
+
+
+@dataclass
+class _Pending:
+    cmd: int
+    t_air_s: float
+    seen: int = 0  # valid SRS occasions since it was sent
+
+
+@dataclass
+class _Ue:
+    ta: int
+    t_rar_air_s: float
+    pending: list[_Pending] = field(default_factory=list)
+    ref_peak: float | None = None  # the latest valid peak
+    streak: list[float] = field(default_factory=list)  # RTTs of the first occasions, to confirm
+    accepted: TraceRtt | None = None
+    held: str = ""  # why the latest valid occasion gave no RTT
+
+
+@dataclass
+class TraceCounts:
+    """What the tracker has seen since it started (the probe prints them)."""
+
+    events: int = 0
+    rars: int = 0
+    prach: int = 0
+    ta_commands: int = 0
+    ta_applied: int = 0
+    ta_dropped: int = 0
+    srs: int = 0
+    srs_stale: int = 0
+    srs_unknown_ue: int = 0
+    rtts: int = 0
+    held_pending: int = 0
+    held_rate: int = 0
+    malformed: int = 0
+    last_malformed: str = ""
+
+
+class TraceRttTracker:
+    """Follows every RNTI's timing advance and SRS residual in a stream of T events.
+
+    feed(event) -> the TraceRtt the event produced (or None); latest(rnti) -> the newest accepted
+    TraceRtt of that UE; ues() -> the RNTIs it knows (random access seen); counts: TraceCounts.
+    A malformed event is counted and skipped (the tracker never raises on data).
+    """
+
+    def __init__(self, settings: TraceSettings | None = None) -> None:
+        self.settings = settings if settings is not None else TraceSettings()
+        self._ues: collections.OrderedDict[int, _Ue] = collections.OrderedDict()
+        self._last_frame: int | None = None
+        self._last_wall_s: float | None = None
+        self._air_frames = 0
+        self.counts = TraceCounts()
+        #: RNTIs whose SRS or TA came without a random access seen (attached before the trace began)
+        self.unknown_rntis: set[int] = set()
+
+    # -- time ---------------------------------------------------------------------------------
+    def _air_s(self, frame: int, slot: int, t_wall_s: float) -> float:
+        """The gNB's air time [s] from its frame counter, unwrapped.
+
+        Events of one gNB arrive in frame order give or take a few frames (MAC and PHY trace from
+        different threads): the nearest unwrapping, d ∈ (−512, 512] frames. A wall-clock gap
+        longer than half an SFN period makes the unwrapping ambiguous: every UE's rate reference
+        restarts."""
+        f = int(frame) % SFN_PERIOD
+        d = 0
+        if self._last_frame is not None and self._last_wall_s is not None:
+            if abs(t_wall_s - self._last_wall_s) > 5.0:
+                # a gap: keep air time monotonic, and trust no earlier level or streak
+                d = 2 * SFN_PERIOD
+                for ue in self._ues.values():
+                    ue.streak.clear()
+                    ue.accepted = None
+            else:
+                d = (f - self._last_frame) % SFN_PERIOD
+                if d > SFN_PERIOD // 2:
+                    d -= SFN_PERIOD
+        self._air_frames += d
+        self._last_frame = f
+        self._last_wall_s = t_wall_s
+        slot_s = 1e-3 / 2**self.settings.mu
+        return self._air_frames * FRAME_S + int(slot) * slot_s
+
+    # -- events ---------------------------------------------------------------------------------
+    def feed(self, ev: TEvent) -> TraceRtt | None:
+        """Take one event (in the order the gNB sent them); the RTT it produced, if any."""
+        self.counts.events += 1
+        try:
+            if ev.name == EV_SRS_CHEST:
+                return self._srs(ev, *self._chest_peak(ev))
+            if ev.name == EV_SRS_TOA_NS:
+                return self._srs(ev, *self._toa_ns_peak(ev))
+            if ev.name in (EV_DL_PDU, EV_DL_RETX):
+                self._dl_pdu(ev)
+            elif ev.name == EV_RAR:
+                self._rar(ev)
+            elif ev.name == EV_PRACH:
+                self.counts.prach += 1
+        except (GnbProtocolError, KeyError, TypeError, ValueError) as exc:
+            self.counts.malformed += 1
+            self.counts.last_malformed = f"{ev.name}: {exc}"
+        return None
+
+    def _rar(self, ev: TEvent) -> None:
+        v = ev.values
+        t_air = self._air_s(int(v["frame"]), int(v["slot"]), ev.t_wall_s)
+        for g in rar_grants(bytes(v["data"])):
+            self.counts.rars += 1
+            # a fresh access: its RAR TA is absolute; whatever this RNTI had before is history
+            self._ues.pop(g.tc_rnti, None)
+            self._ues[g.tc_rnti] = _Ue(ta=g.ta, t_rar_air_s=t_air)
+            self.unknown_rntis.discard(g.tc_rnti)
+            while len(self._ues) > self.settings.max_rntis:
+                self._ues.popitem(last=False)
+
+    def _dl_pdu(self, ev: TEvent) -> None:
+        v = ev.values
+        rnti = int(v["rnti"])
+        if rnti in _NOT_UE_RNTIS:
+            return
+        cmds = ta_commands(bytes(v["data"]))
+        if not cmds:
+            return
+        t_air = self._air_s(int(v["frame"]), int(v["slot"]), ev.t_wall_s)
+        ue = self._ues.get(rnti)
+        for cmd in cmds:
+            self.counts.ta_commands += 1
+            if ue is None:
+                self.unknown_rntis.add(rnti)
+                continue
+            if cmd == TA_CMD_NO_CHANGE:
+                continue
+            # a re-sent command means the gNB still saw the offset: the older one was dropped
+            self.counts.ta_dropped += len(ue.pending)
+            ue.pending = [_Pending(cmd, t_air)]
+
+    def _chest_peak(self, ev: TEvent) -> tuple[float, float]:
+        """(peak [samples at fs], peak-to-mean [dB]) of an SRS impulse response; taps beyond N_FFT
+        are the oversampling of newer OAI branches."""
+        p = srs_peak(bytes(ev.values["chest_t"]))
+        osf = max(1, round(p.n / self.settings.n_fft))
+        return p.peak / osf, p.peak_to_mean_db
+
+    def _toa_ns_peak(self, ev: TEvent) -> tuple[float, float]:
+        """GNB_PHY_UL_SRS_TOA_NS (newer OAI): int16 ns per receive antenna, antenna 0 taken;
+        −32768 marks an invalid estimate (as OAI's SRS indication does)."""
+        raw = bytes(ev.values[next(k for k in ev.values if k not in ("gNB_ID", "rnti", "frame", "slot"))])
+        ns = int.from_bytes(raw[:2], "little", signed=True)
+        if ns == -32768:
+            return 0.0, -math.inf
+        return ns * 1e-9 * self.settings.fs_hz, math.inf
+
+    def _srs(self, ev: TEvent, peak: float, ratio_db: float) -> TraceRtt | None:
+        s = self.settings
+        v = ev.values
+        rnti = int(v["rnti"])
+        frame = int(v["frame"])
+        slot = int(v.get("slot", v.get("subframe", 0)))
+        t_air = self._air_s(frame, slot, ev.t_wall_s)
+        self.counts.srs += 1
+        ue = self._ues.get(rnti)
+        if ue is None:
+            self.counts.srs_unknown_ue += 1
+            self.unknown_rntis.add(rnti)
+            return None
+        if not ratio_db >= s.min_peak_to_mean_db:
+            self.counts.srs_stale += 1
+            ue.held = f"stale SRS estimate (peak {ratio_db:.1f} dB over the mean)"
+            return None
+        self._resolve(ue, peak)
+        ue.ref_peak = peak
+        if ue.pending:
+            self.counts.held_pending += 1
+            ue.held = f"TA command {ue.pending[0].cmd} not yet seen applied or dropped"
+            ue.streak.clear()
+            return None
+        rtt = s.step_samples * ue.ta + peak
+        cand = TraceRtt(rnti, ue.ta, peak, rtt, frame, slot, ev.t_wall_s, t_air, ratio_db)
+        if ue.accepted is None:
+            # the first RTT after an access (or a gap): confirm_occasions that agree
+            ue.streak.append(rtt)
+            if len(ue.streak) < s.confirm_occasions:
+                ue.held = f"confirming the first RTT ({len(ue.streak)} of {s.confirm_occasions} occasions)"
+                return None
+            recent = ue.streak[-s.confirm_occasions:]
+            if max(recent) - min(recent) > s.rate_tolerance_samples:
+                ue.held = "the first RTTs disagree"
+                return None
+            ue.streak.clear()
+        else:
+            # a level reached faster than anything can fly is held until that change is physical
+            ref = ue.accepted
+            allowed = s.rate_tolerance_samples + s.rate_samples_per_s * max(0.0, t_air - ref.t_air_s)
+            if abs(rtt - ref.rtt_samples) > allowed:
+                self.counts.held_rate += 1
+                ue.held = (f"RTT moved {rtt - ref.rtt_samples:+.1f} samples in {t_air - ref.t_air_s:.2f} s of air "
+                           f"time, faster than {s.max_range_rate_mps:g} m/s")
+                return None
+        ue.accepted = cand
+        ue.held = ""
+        self.counts.rtts += 1
+        return cand
+
+    def _resolve(self, ue: _Ue, peak: float) -> None:
+        """Decide the pending TA command against this valid SRS peak.
+
+        Applied when the peak is nearer ref − S·(TA − 31) than ref (ref: the peak before), dropped
+        after resolve_occasions occasions without that step."""
+        if not ue.pending or ue.ref_peak is None:
+            return
+        p = ue.pending[0]
+        step = self.settings.step_samples * (p.cmd - TA_CMD_NO_CHANGE)
+        applied_at = ue.ref_peak - step
+        if abs(peak - applied_at) < abs(peak - ue.ref_peak):
+            ue.ta += p.cmd - TA_CMD_NO_CHANGE
+            self.counts.ta_applied += 1
+            ue.pending.pop(0)
+            return
+        p.seen += 1
+        if p.seen >= self.settings.resolve_occasions:
+            self.counts.ta_dropped += 1
+            ue.pending.pop(0)
+
+    # -- queries -------------------------------------------------------------------------------
+    def latest(self, rnti: int) -> TraceRtt | None:
+        ue = self._ues.get(rnti)
+        return None if ue is None else ue.accepted
+
+    def why_none(self, rnti: int) -> str:
+        """Why this UE has no RTT now: what the latest of its occasions was held for."""
+        ue = self._ues.get(rnti)
+        if ue is None:
+            if rnti in self.unknown_rntis:
+                return (f"UE {rnti:04x} attached before the T trace began: its random access (the RAR's absolute "
+                        f"TA) was not seen, so its round trip is unknown; re-attach it with uavloc connected")
+            return f"UE {rnti:04x} has made no random access and sent no SRS in the trace"
+        return ue.held or f"UE {rnti:04x} has sent no SRS since its random access"
+
+    def ues(self) -> list[int]:
+        return list(self._ues)

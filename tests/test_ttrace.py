@@ -1,0 +1,221 @@
+"""The T-tracer path held to the real gNB: OAI 2025.w36's recordings (../shared/data/oai-2025.w36-ttrace)
+replayed through the parser and the RTT tracker give every steady state's round trip to the sample."""
+
+from __future__ import annotations
+
+import gzip
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mission.gnb.trace_rtt import TraceRttTracker, TraceSettings
+from mission.gnb.ttrace import (
+    EV_DL_PDU,
+    EV_RAR,
+    EV_SRS_CHEST,
+    RANGING_EVENTS,
+    TMessagesAssembler,
+    decode_event,
+    iter_recording,
+    parse_t_messages,
+    rar_grants,
+    split_frames,
+    srs_peak,
+    ta_commands,
+)
+from uavloc.errors import GnbProtocolError
+
+TTRACE = "oai-2025.w36-ttrace"
+
+
+def _recording(shared_data: Path, run: str) -> bytes:
+    return gzip.decompress((shared_data / TTRACE / run / "rec.raw.gz").read_bytes())
+
+
+def _phases(shared_data: Path, run: str) -> list[tuple[float, str, int]]:
+    out = []
+    for line in (shared_data / TTRACE / run / "phases.txt").read_text().splitlines():
+        t, label, rtt = line.split()
+        out.append((float(t), label, int(rtt)))
+    return out
+
+
+def _track(data: bytes, **settings) -> tuple[TraceRttTracker, list]:
+    tr = TraceRttTracker(TraceSettings(**settings))
+    out = [r for ev in iter_recording(data) if (r := tr.feed(ev)) is not None]
+    return tr, out
+
+
+def _in_phase(out, phases, i, tail_s: float | None = None):
+    t0 = phases[i][0]
+    t1 = phases[i + 1][0] if i + 1 < len(phases) else out[-1].t_wall_s + 1e-6
+    if tail_s is not None:
+        t0 = max(t0, t1 - tail_s)
+    return [r for r in out if t0 <= r.t_wall_s < t1]
+
+
+# -- the wire ----------------------------------------------------------------------------------
+
+
+def test_the_servers_own_t_messages_gives_the_ids(shared_data):
+    data = _recording(shared_data, "dora_attach_300")
+    frames, _ = split_frames(data)
+    asm = TMessagesAssembler()
+    for body in frames[:2]:
+        assert asm.feed(body)
+    assert asm.db is not None
+    own = parse_t_messages((shared_data / TTRACE / "T_messages.txt").read_text())
+    assert asm.db == own
+    # the README's table: ids are positions of the ID lines
+    assert (own.id_of(EV_SRS_CHEST), own.id_of(EV_DL_PDU), own.id_of(EV_RAR)) == (34, 48, 50)
+    assert own.id_of("GNB_PHY_UL_SRS_TOA_NS") is None  # 2025.w36 has no such event
+
+
+def test_the_client_mask_turns_on_only_the_ranging_events(shared_data):
+    db = parse_t_messages((shared_data / TTRACE / "T_messages.txt").read_text())
+    mask = db.mask(RANGING_EVENTS)
+    assert mask[0] == 1
+    (n,) = struct.unpack_from("<i", mask, 1)
+    flags = struct.unpack_from(f"<{n}i", mask, 5)
+    assert n == len(db.events) and len(mask) == 5 + 4 * n
+    assert {i for i, f in enumerate(flags) if f} == {db.id_of(e) for e in RANGING_EVENTS} - {None}
+
+
+def test_a_stream_cut_anywhere_gives_the_same_events(shared_data):
+    data = _recording(shared_data, "dora_attach_300")[:200_000]
+    whole, used = split_frames(data)
+    got, buf = [], b""
+    rng = np.random.default_rng(1)
+    pos = 0
+    while pos < len(data):
+        step = int(rng.integers(1, 9000))
+        buf += data[pos:pos + step]
+        pos += step
+        frames, n = split_frames(buf)
+        got += frames
+        buf = buf[n:]
+    assert got == whole and len(buf) == len(data) - used
+
+
+def test_malformed_frames_are_named_errors(shared_data):
+    db = parse_t_messages((shared_data / TTRACE / "T_messages.txt").read_text())
+    with pytest.raises(GnbProtocolError, match="frame length"):
+        split_frames(struct.pack("<i", -5) + b"x" * 20)
+    body = struct.pack("<qqi", 1, 2, db.id_of(EV_SRS_CHEST)) + struct.pack("<ii", 0, 1)
+    with pytest.raises(GnbProtocolError, match="ends before its field"):
+        decode_event(body, db)
+    with pytest.raises(GnbProtocolError, match="not in this T_messages"):
+        decode_event(struct.pack("<qqi", 1, 2, 9999), db)
+    with pytest.raises(GnbProtocolError, match="no event"):
+        parse_t_messages("# nothing here\n")
+    with pytest.raises(GnbProtocolError, match="type,name"):
+        parse_t_messages("ID = X\n    FORMAT = int,a : complex,b\n")
+    with pytest.raises(GnbProtocolError, match="wants"):
+        ta_commands(bytes([0x01, 0x30, 0x00]))
+
+
+def test_mac_pdus_of_the_real_gnb(shared_data):
+    """The RAR's TA and TC-RNTI, and TA commands only in the UE's PDUs (SIB1 rides on 0xffff)."""
+    events = list(iter_recording(_recording(shared_data, "dora_attach_300")))
+    rars = [g for ev in events if ev.name == EV_RAR for g in rar_grants(ev.values["data"])]
+    assert [(g.ta, g.rapid) for g in rars] == [(8, rars[0].rapid)]
+    ue = rars[0].tc_rnti
+    cmds = [c for ev in events if ev.name == EV_DL_PDU and ev.values["rnti"] == ue
+            for c in ta_commands(ev.values["data"])]
+    assert len(cmds) == 36 and set(cmds) == {31}
+
+
+def test_srs_peaks_and_their_prominence(shared_data):
+    peaks = [srs_peak(ev.values["chest_t"]) for ev in iter_recording(_recording(shared_data, "dora_attach_300"))
+             if ev.name == EV_SRS_CHEST]
+    assert len(peaks) == 451 and all(p.n == 1536 for p in peaks)
+    assert {round(p.peak) for p in peaks} == {-4}
+    assert min(p.peak_to_mean_db for p in peaks) > 28
+
+
+# -- the round trip, to the sample --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("run", ["dora_0_150_300", "dora_0_150_300_ue_debug", "dora_jump_0_300_reattach",
+                                 "dora_attach_300"])
+def test_every_steady_state_gives_its_rtt_to_the_sample(shared_data, run):
+    phases = _phases(shared_data, run)
+    tr, out = _track(_recording(shared_data, run))
+    expected = {rtt for _, _, rtt in phases}
+    for i, (_, label, rtt) in enumerate(phases):
+        steady = _in_phase(out, phases, i, tail_s=1.0)
+        assert steady, f"{run} {label}: no RTT in the phase's last second"
+        assert {round(r.rtt_samples) for r in steady} == {rtt}, label
+        assert all(abs(r.rtt_samples - rtt) < 0.01 for r in steady)
+    # half-changed distances (the gNB's side set, the UE's not yet: 23, 69 samples) and stale SRS
+    # never come out: every RTT is one of the phases' own
+    assert {round(r.rtt_samples) for r in out} <= expected
+    assert tr.counts.malformed == 0
+
+
+def test_only_applied_ta_commands_count(shared_data):
+    """Summing every command doubles the range (0 / 94 / 188); the applied ones alone give 0 / 46 / 92."""
+    tr, out = _track(_recording(shared_data, "dora_0_150_300"))
+    assert tr.counts.ta_applied == 4 and tr.counts.ta_dropped == 4
+    assert out[-1].ta == 8 and round(out[-1].peak) == -4
+
+
+def test_the_ramp_gives_each_of_its_26_steps(shared_data):
+    run = "dora_ramp_0_300"
+    phases = _phases(shared_data, run)
+    tr, out = _track(_recording(shared_data, run))
+    assert len(phases) == 27
+    for i, (_, label, rtt) in enumerate(phases):
+        steady = _in_phase(out, phases, i, tail_s=0.4)
+        assert steady and {round(r.rtt_samples) for r in steady} == {rtt}, label
+        # in between, only what a UAV flying away could show: the last step's value or this one's
+        before = phases[i - 1][2] if i else rtt
+        assert all(min(rtt, before) - 1 <= round(r.rtt_samples) <= max(rtt, before) for r in _in_phase(out, phases, i))
+    assert tr.counts.ta_applied == 8
+
+
+def test_stale_srs_after_the_ue_left_is_no_range(shared_data):
+    tr, out = _track(_recording(shared_data, "dora_jump_0_300_reattach"))
+    assert tr.counts.srs_stale == 4
+    assert {round(r.rtt_samples) for r in out} == {0, 92}
+    ue = out[-1].rnti
+    assert "stale" in tr.why_none(ue) or tr.latest(ue) is not None
+
+
+def test_the_reattach_and_the_attach_at_300_m_agree(shared_data):
+    _, attach = _track(_recording(shared_data, "dora_attach_300"))
+    _, jump = _track(_recording(shared_data, "dora_jump_0_300_reattach"))
+    assert attach[0].ta == 8 and jump[-1].ta == 8  # RAR 8 against RAR 0 plus two applied 35s
+    assert round(attach[-1].rtt_samples) == round(jump[-1].rtt_samples) == 92
+
+
+def test_without_srs_there_is_no_range_and_the_tracker_says_why(shared_data):
+    """SA without a core: periodic SRS is never configured; TA commands alone are not a range."""
+    tr, out = _track(_recording(shared_data, "sa_no_core"))
+    assert out == [] and tr.counts.srs == 0 and tr.counts.rars == 2
+    assert all("no SRS" in tr.why_none(r) for r in tr.ues())
+
+
+def test_a_ue_attached_before_the_trace_began_is_named(shared_data):
+    data = _recording(shared_data, "dora_attach_300")
+    frames, _ = split_frames(data)
+    db = parse_t_messages((shared_data / TTRACE / "T_messages.txt").read_text())
+    tr = TraceRttTracker()
+    for body in frames[2:]:
+        ev = decode_event(body, db)
+        if ev.name != EV_RAR:
+            assert tr.feed(ev) is None
+    (ue,) = tr.unknown_rntis
+    assert "attached before the T trace began" in tr.why_none(ue)
+
+
+def test_a_malformed_event_is_counted_not_raised(shared_data):
+    from mission.gnb.ttrace import TEvent
+
+    tr = TraceRttTracker()
+    assert tr.feed(TEvent(48, EV_DL_PDU, 1.0, {"rnti": 0x4601, "frame": 1, "slot": 0, "data": b"\x01\x30"})) is None
+    assert tr.counts.malformed == 1 and "wants" in tr.counts.last_malformed
+    assert tr.feed(TEvent(34, EV_SRS_CHEST, 1.0, {"rnti": 0x4601, "frame": 1, "chest_t": b"\x00"})) is None
+    assert tr.counts.malformed == 2 and "not int16 I/Q" in tr.counts.last_malformed
