@@ -77,20 +77,24 @@ def apply_mac_ce(ta_abs: int, ta_ce: int) -> int:
 
 
 def refine_rtt_s(srs_peak: float, fs_hz: float) -> float:
-    """SRS refinement τr = argmax|ĝ| / fs [s]; `srs_peak` in samples (may be fractional)."""
+    """SRS refinement τr = argmax|ĝ| / fs [s]; `srs_peak` in samples (may be fractional, and
+    negative: the residual after the TA, which a UE's timing advance can overshoot by up to half a
+    TA step inside the TA loop's dead band)."""
     peak = _check_finite("SRS peak", srs_peak)
     fs = _check_finite("sampling rate fs_hz", fs_hz)
     if fs <= 0:
         raise RangingError(f"sampling rate fs_hz must be positive, got {fs_hz!r}")
-    if peak < 0:
-        raise RangingError(f"SRS peak must be non-negative (samples), got {srs_peak!r}")
     # τr = peak / fs
     return peak / fs
 
 
 def rtt_s(ta: int, mu: int, srs_peak: float = 0.0, fs_hz: float = 1.0) -> float:
-    """Round-trip time RTT = τc + τr [s] from a TA and an SRS peak (samples at fs_hz)."""
-    return coarse_rtt_s(ta, mu) + refine_rtt_s(srs_peak, fs_hz)
+    """Round-trip time RTT = τc + τr [s] from a TA and an SRS peak (samples at fs_hz); the sum must
+    not be negative."""
+    rtt = coarse_rtt_s(ta, mu) + refine_rtt_s(srs_peak, fs_hz)
+    if rtt < 0:
+        raise RangingError(f"TA {ta} and SRS peak {srs_peak!r} give a negative round trip ({rtt:.3e} s)")
+    return rtt
 
 
 def toa_s_from_raw(ta: int, mu: int, srs_peak: float = 0.0, fs_hz: float = 1.0) -> float:

@@ -173,8 +173,17 @@ class GnbSettings:
     """How to measure with the gNB (docs/design.md §8; the address is given on the command line).
 
     transport: "telnet" or "rest" (OAI's web server), for a `--gnb` address without a scheme
-    (`telnet://` and `http://` say it themselves); mode: "rtt" (the RTT telnet module) or "stock"
-    (the Msg2 lines of log_path); stock_mode:
+    (`telnet://` and `http://` say it themselves); mode: "rtt" (the RTT telnet module), "trace"
+    (a stock gNB's T tracer: RAR TA, TA commands and the SRS peak, docs/oai.md), "stock" (the Msg2
+    lines of log_path) or "auto" (the best the gNB serves, found before take-off); t_port: the
+    gNB's T tracer port (`--T_port`, default 2021); trace_max_age_s: trace mode, the oldest RTT a
+    keyframe takes [s]; trace_max_range_rate_mps: trace mode, the fastest a range may change
+    (cruise speed plus the users' speed) [m/s]: a faster jump is held until it is physical;
+    trace_jump_tolerance_m: what range noise may add to that jump (about 3 σ of one SRS) [m];
+    trace_clock_step_m: the largest drop of a range taken at once, a commercial UE's clock
+    correction (its sawtooth's amplitude) [m];
+    srs_min_peak_to_mean_db: trace mode, an SRS estimate whose peak stands less above its mean
+    tap power is stale [dB]; stock_mode:
     "active" (trigger a random access with `ci force_reestab`, then wait for its Msg2) or "passive"
     (only the random accesses that happen anyway); rtt_module, rtt_command: the RTT command's
     names; discovery: "auto", "o1" or "single"; mu, fs_hz: numerology and sampling rate of the gNB
@@ -187,7 +196,13 @@ class GnbSettings:
     """
 
     transport: Literal["telnet", "rest"] = "telnet"
-    mode: Literal["rtt", "stock"] = "rtt"
+    mode: Literal["rtt", "trace", "stock", "auto"] = "rtt"
+    t_port: int = bounded(2021, 1, 65535)
+    trace_max_age_s: float = positive(0.5, 60.0)
+    trace_max_range_rate_mps: float = positive(12.0, 200.0)
+    trace_jump_tolerance_m: float = positive(5.0, 1000.0)
+    trace_clock_step_m: float = bounded(15.0, 0.0, 1000.0)
+    srs_min_peak_to_mean_db: float = bounded(18.0, 0.0, 60.0)
     stock_mode: Literal["active", "passive"] = "passive"
     rtt_module: str = "rtt"
     rtt_command: str = "pdcch_order"

@@ -61,7 +61,8 @@ class SimulatedMission:
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
                  speedup: float = 20.0, planner: str | None = None, connect: str | None = None,
                  max_stream_wall_hz: float = 100.0, gnb_request_timeout_s: float = 1.0,
-                 controller_overrides: dict | None = None, gnb_transport: str = "telnet"):
+                 controller_overrides: dict | None = None, gnb_transport: str = "telnet",
+                 gnb_mode: str | None = None):
         if not (math.isfinite(speedup) and speedup > 0):
             raise MissionError(f"speedup must be a positive number, got {speedup!r}")
         self.scenario = scenario
@@ -76,6 +77,11 @@ class SimulatedMission:
         if gnb_transport not in ("telnet", "rest"):
             raise MissionError(f"gnb_transport must be 'telnet' or 'rest', got {gnb_transport!r}")
         self.gnb_transport = gnb_transport
+        #: how the adapter measures (None: the scenario's [gnb] mode); "trace" reads the simulated
+        #: gNB's T tracer, "auto" lets the adapter choose
+        self.gnb_mode = gnb_mode if gnb_mode is not None else scenario.mission.gnb.mode
+        if self.gnb_mode not in ("rtt", "trace", "auto"):
+            raise MissionError(f"the simulated gNB measures in mode rtt, trace or auto, not {self.gnb_mode!r}")
         self.vehicle_sim: VehicleSimulator | None = None
         self.gnb_sim: SimulatedGnb | None = None
         self.gnb_client: OaiGnbClient | None = None
@@ -147,11 +153,18 @@ class SimulatedMission:
             stack.push_async_callback(self._close_gnb)
             self.gnb_sim = await self._gnb_stack.enter_async_context(SimulatedGnb(
                 self.scenario, position, host="127.0.0.1", port=0, clock=self._sim_clock, seed=self.seed,
-                rest_port=0 if self.gnb_transport == "rest" else None))
+                rest_port=0 if self.gnb_transport == "rest" else None,
+                t_port=0 if self.gnb_mode in ("trace", "auto") else None))
             rest = self.gnb_transport == "rest"
-            self.gnb_client = await self._gnb_stack.enter_async_context(OaiGnbClient(GnbConfig(
-                host="127.0.0.1", port=self.gnb_sim.rest_port if rest else self.gnb_sim.port,
+            self.gnb_client = await self._gnb_stack.enter_async_context(OaiGnbClient(GnbConfig.of(
+                self.scenario.mission.gnb, "127.0.0.1", self.gnb_sim.rest_port if rest else self.gnb_sim.port,
                 transport="rest" if rest else "telnet", seed=self.seed, mu=self.scenario.radio.mu,
+                fs_hz=self.scenario.radio.fs_hz, mode=self.gnb_mode, t_port=self.gnb_sim.t_port or 2021,
+                # an RTT keyframes take is at most this old in simulated seconds
+                trace_max_age_s=self.scenario.mission.gnb.trace_max_age_s / self.speedup,
+                # a jump the mission's own range noise can make (3 σ0) is no jump
+                trace_jump_tolerance_m=max(self.scenario.mission.gnb.trace_jump_tolerance_m,
+                                           3.0 * self.scenario.mission.noise.range_s0_m),
                 request_timeout_s=self.gnb_request_timeout_s, connect_timeout_s=self.gnb_request_timeout_s,
                 retries=1, backoff_max_s=0.2)))
             overrides = dict(self.controller_overrides)
@@ -162,7 +175,7 @@ class SimulatedMission:
                 seed=self.seed, time_scale=self.speedup, truth=self._truth, buildings=self._buildings,
                 external_vehicle=self.connect is not None,
                 header_config={"command": "sim", "speedup": self.speedup, "connect": self.connect,
-                               "gnb_transport": self.gnb_transport},
+                               "gnb_transport": self.gnb_transport, "gnb_mode": self.gnb_client.mode},
                 **overrides)
         except BaseException:
             await stack.aclose()

@@ -64,7 +64,7 @@ def test_mac_ce_is_relative_with_31_meaning_no_change():
         ((10, 4), "numerology"),
         ((10, -1), "numerology"),
         ((10, 1, float("nan"), 46.08e6), "finite"),
-        ((10, 1, -0.5, 46.08e6), "non-negative"),
+        ((0, 1, -0.5, 46.08e6), "negative round trip"),
         ((10, 1, 1.0, 0.0), "positive"),
         ((10, 1, 1.0, float("inf")), "finite"),
         ((10, 1, "x", 46.08e6), "number"),

@@ -1,8 +1,9 @@
-"""`uavloc gnb probe --gnb ADDRESS [--mode rtt|stock] [--gnb-log FILE] [--count N] [--json]`.
+"""`uavloc gnb probe --gnb ADDRESS [--mode rtt|trace|stock|auto] [--t-port P] [--gnb-log FILE] [--count N] [--json]`.
 
 The preflight check an operator runs before take-off: discover the gNB's UEs, take N
-measurements of each, print ranges, TA, SNR and timing, or say exactly what is wrong. Exit
-status 0 when every UE answered, 1 otherwise. The logic is `mission.gnb.probe.probe_address`.
+measurements of each, print ranges, TA, SRS peak and timing, or say exactly what is wrong; and
+which ways to measure the gNB serves (its RTT command, a T tracer with SRS events, a log file)
+and which is best. Exit status 0 when every UE answered, 1 otherwise. The logic is `mission.gnb.probe.probe_address`.
 """
 
 from __future__ import annotations
@@ -42,8 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     q.add_argument("--gnb", required=True, metavar="ADDRESS", type=gnb_address,
                    help="the gNB: HOST:PORT or telnet://HOST:PORT (telnet server, default port 9090), "
                         "http://HOST:PORT (OAI's web server, default port 8090)")
-    q.add_argument("--mode", choices=("rtt", "stock"), default="rtt",
-                   help="rtt: the RTT command set of a modified gNB; stock: Msg2 lines of --gnb-log")
+    q.add_argument("--mode", choices=("rtt", "trace", "stock", "auto"), default="rtt",
+                   help="rtt: the RTT command set of a modified gNB; trace: a stock gNB's T tracer (RAR TA, TA "
+                        "commands, SRS peak; nr-softmodem --T_stdout 2 --T_nowait); stock: Msg2 lines of "
+                        "--gnb-log; auto: the best the gNB serves")
+    q.add_argument("--t-port", type=in_range(int, 1, 65535, closed=True, what="a port"), default=2021,
+                   metavar="PORT", help="trace mode: the gNB's T tracer port (--T_port; default 2021)")
     q.add_argument("--stock", choices=("active", "passive"), default="passive",
                    help="stock mode: passive only reads the random accesses that happen anyway (default); "
                         "active triggers `ci force_reestab` and waits for the UE's random access (it killed "
@@ -74,8 +79,8 @@ def run(args: argparse.Namespace) -> int:
     if args.gnb_log is not None and not args.gnb_log.is_file():
         raise GnbError(f"--gnb-log {args.gnb_log}: no such file")
     cfg = GnbConfig(host=address.host, port=address.port, transport=address.transport, mode=args.mode,
-                    stock_mode=args.stock,
-                    log_path=args.gnb_log if args.mode == "stock" else None, rtt_module=args.rtt_module,
+                    stock_mode=args.stock, t_port=args.t_port,
+                    log_path=args.gnb_log if args.mode in ("stock", "auto") else None, rtt_module=args.rtt_module,
                     rtt_command=args.rtt_command, request_timeout_s=args.timeout, connect_timeout_s=args.timeout,
                     retries=1, msg2_timeout_s=args.wait, mu=args.mu,
                     log_history=args.mode == "stock" and args.stock == "passive")

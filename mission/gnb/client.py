@@ -45,6 +45,7 @@ import time
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
+from estimator.ranging import toa_s_from_raw
 from mission.gnb.config import FORBIDDEN_CI, GnbConfig, check_ci_line, parse_host_port
 from mission.gnb.log_follower import LogFollower, StockLog
 from mission.gnb.oai import (
@@ -60,6 +61,8 @@ from mission.gnb.oai import (
     split_async_lines,
 )
 from mission.gnb.oai_ra import RandomAccess, RntiChange
+from mission.gnb.trace_rtt import TraceRtt
+from mission.gnb.tracer import TTracerClient
 from mission.gnb.transport import GnbAddress, GnbTransport, TransportLost, make_transport, parse_gnb_address
 from uavloc.errors import (
     GnbBusyError,
@@ -69,6 +72,7 @@ from uavloc.errors import (
     GnbProtocolError,
     GnbTimeoutError,
     GnbUnknownCommandError,
+    RangingError,
 )
 
 __all__ = ["FORBIDDEN_CI", "GnbAddress", "GnbClient", "GnbConfig", "LogFollower", "OaiGnbClient", "RttSample",
@@ -146,6 +150,12 @@ class OaiGnbClient:
         self.known_rntis: list[int] = []
         self.reconnects = 0
         self.ci_sent: list[str] = []
+        #: the mode measuring now: the configured one, or ("auto") the one chosen on entering
+        self.mode: str = cfg.mode
+        self.mode_reason = "configured" if cfg.mode != "auto" else ""
+        #: trace mode: the T-tracer client (mission.gnb.tracer), entered with this client
+        self.tracer: TTracerClient | None = None
+        self._trace_last: dict[int, TraceRtt] = {}
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def __aenter__(self) -> OaiGnbClient:
@@ -153,13 +163,72 @@ class OaiGnbClient:
             self.stock_log.start()
         async with self._lock:
             await self._connect_with_retry()
+        try:
+            if self.mode == "auto":
+                await self._choose_mode()
+            elif self.mode == "trace":
+                await self._start_tracer()
+        except BaseException:
+            await self.aclose()
+            raise
         return self
+
+    def _new_tracer(self) -> TTracerClient:
+        cfg = self.config
+        return TTracerClient(cfg.host, cfg.t_port, cfg.trace_settings(), connect_timeout_s=cfg.connect_timeout_s,
+                             backoff_initial_s=cfg.backoff_initial_s, backoff_max_s=cfg.backoff_max_s,
+                             rng=random.Random(cfg.seed + 1), wall=self.wall)
+
+    async def _start_tracer(self) -> None:
+        tracer = self._new_tracer()
+        await tracer.__aenter__()
+        self.tracer = tracer
+
+    async def _choose_mode(self) -> None:
+        """mode "auto": the best way this gNB measures, tried in order: the RTT command (a modified
+        gNB: one measurement of a discovered UE), the T tracer with SRS events (a stock gNB run with
+        --T_stdout 2), the log file (stock, coarse). Sets `mode` and `mode_reason` (logged)."""
+        tried: list[str] = []
+        rntis = await self.discover()
+        if rntis:
+            try:
+                await self._measure_rtt(rntis[0])
+                self.mode, self.mode_reason = "rtt", f"`{self.config.rtt_module} {self.config.rtt_command}` answered"
+            except GnbUnknownCommandError:
+                tried.append(f"no `{self.config.rtt_module} {self.config.rtt_command}` command (a stock gNB)")
+            except GnbNoMeasurementError as exc:
+                self.mode, self.mode_reason = "rtt", f"the RTT command exists ({exc})"
+        else:
+            tried.append("no UE to try the RTT command on")
+        if self.mode == "auto":
+            try:
+                await self._start_tracer()
+            except GnbError as exc:
+                tried.append(str(exc))
+            else:
+                assert self.tracer is not None
+                if self.tracer.status().has_srs:
+                    self.mode = "trace"
+                    self.mode_reason = f"T tracer at {self.tracer.address} with SRS events"
+                else:
+                    tried.append(f"the T tracer at {self.tracer.address} has no SRS event")
+                    await self.tracer.__aexit__(None, None, None)
+                    self.tracer = None
+        if self.mode == "auto" and self.stock_log is not None:
+            self.mode, self.mode_reason = "stock", f"the gNB log {self.config.log_path} (coarse: one TA step)"
+        if self.mode == "auto":
+            raise GnbError(f"gNB at {self.address}: no way to measure ranges: {'; '.join(tried)}; and no gNB log "
+                           f"(gnb.log_path) for the stock mode")
+        log.info("gNB mode %s: %s%s", self.mode, self.mode_reason, f" (not: {'; '.join(tried)})" if tried else "")
 
     async def __aexit__(self, *exc_info) -> None:
         await self.aclose()
 
     async def aclose(self) -> None:
-        """Say goodbye (telnet: `exit`) and close the connection."""
+        """Say goodbye (telnet: `exit`) and close the connection (and the T tracer's)."""
+        if self.tracer is not None:
+            tracer, self.tracer = self.tracer, None
+            await tracer.__aexit__(None, None, None)
         if self.transport.connected:
             await self._space_before_leaving()
             await self.transport.goodbye()
@@ -439,11 +508,45 @@ class OaiGnbClient:
         """One range measurement of the UE `rnti` (see GnbClient)."""
         if isinstance(rnti, bool) or not isinstance(rnti, int) or not 0 < rnti <= 0xFFFF:
             raise GnbError(f"RNTI must be an integer 1..0xffff, got {rnti!r}")
-        if self.config.mode == "stock":
+        if self.mode == "stock":
             if self.config.stock_mode == "passive":
                 return self._measure_passive(rnti)
             return await self._measure_active(rnti)
+        if self.mode == "trace":
+            return self._measure_trace(rnti)
         return await self._measure_rtt(rnti)
+
+    def _measure_trace(self, rnti: int) -> RttSample:
+        """The UE's newest round trip from the T trace (nothing is sent to the gNB): RAR TA plus the
+        applied TA commands plus the SRS peak (mission.gnb.trace_rtt), timed by the gNB's trace
+        stamp. GnbNoMeasurementError when there is none, it is older than trace_max_age_s, or it is
+        the one the last call returned."""
+        tracer = self.tracer
+        if tracer is None:
+            raise GnbError("trace mode without a T tracer connection")
+        r = tracer.tracker.latest(rnti)
+        if r is None:
+            st = tracer.status()
+            why = tracer.tracker.why_none(rnti)
+            if not st.connected:
+                why += f"; {st.problem or 'the T tracer is disconnected'}"
+            raise GnbNoMeasurementError(f"no RTT of UE {rnti:04x} in the T trace: {why}")
+        age_s = self.wall() - r.t_wall_s
+        if age_s > self.config.trace_max_age_s:
+            raise GnbNoMeasurementError(
+                f"the newest RTT of UE {rnti:04x} in the T trace is {age_s:.2f} s old (frame {r.frame}.{r.slot}, "
+                f"limit trace_max_age_s {self.config.trace_max_age_s:g} s): {tracer.tracker.why_none(rnti)}")
+        if self._trace_last.get(rnti) is r:
+            raise GnbNoMeasurementError(f"no new SRS of UE {rnti:04x} since frame {r.frame}.{r.slot}")
+        self._trace_last[rnti] = r
+        cfg = self.config
+        try:
+            toa = toa_s_from_raw(r.ta, cfg.mu, r.peak, cfg.fs_hz)
+        except RangingError as exc:
+            raise GnbNoMeasurementError(f"UE {rnti:04x}: the trace's TA {r.ta} and peak {r.peak:g} give no ToA "
+                                        f"({exc})") from None
+        return RttSample(rnti, r.ta, cfg.mu, r.peak, cfg.fs_hz, None, toa, self.clock() - max(0.0, age_s), "trace",
+                         t_wall_s=r.t_wall_s)
 
     async def measure_many(self, rntis: list[int]) -> dict[int, RttSample]:
         """Measure several UEs one after the other; UEs without a measurement are left out (logged)."""

@@ -7,15 +7,18 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from estimator.ranging import MU_VALUES
+from estimator.ranging import C_MPS, MU_VALUES
 from mission.config import GnbSettings
 from mission.gnb.oai import PROMPT_GNB
+from mission.gnb.trace_rtt import TraceSettings
 from uavloc.errors import GnbError
 
 #: `ci` commands never sent: they release the UE, and crash stock OAI with an RNTI it no longer has
 FORBIDDEN_CI = ("force_ue_release", "force_ul_failure")
 #: `ci` commands that act on one UE: sent only with an RNTI a fresh discovery listed
 UE_CI = ("force_reestab", "get_current_bwp")
+#: the ways to measure: the modified gNB's RTT command, a stock gNB's T tracer, its log, the best found
+GNB_MODES = ("rtt", "trace", "stock", "auto")
 
 
 @dataclass(frozen=True)
@@ -50,11 +53,18 @@ class GnbConfig(GnbSettings):
         mine = {f.name: getattr(settings, f.name) for f in dataclasses.fields(GnbSettings)}
         return cls(**{**mine, "host": host, "port": port, **overrides})
 
+    def trace_settings(self) -> TraceSettings:
+        """How the trace mode reads the T stream (mission.gnb.trace_rtt)."""
+        return TraceSettings(mu=self.mu, fs_hz=self.fs_hz, min_peak_to_mean_db=self.srs_min_peak_to_mean_db,
+                             max_range_rate_mps=self.trace_max_range_rate_mps,
+                             rate_tolerance_samples=2.0 * self.trace_jump_tolerance_m * self.fs_hz / C_MPS,
+                             clock_step_samples=2.0 * self.trace_clock_step_m * self.fs_hz / C_MPS)
+
     def __post_init__(self) -> None:
         if self.transport not in ("telnet", "rest"):
             raise GnbError(f"gNB transport must be 'telnet' or 'rest', got {self.transport!r}")
-        if self.mode not in ("rtt", "stock"):
-            raise GnbError(f"gNB mode must be 'rtt' or 'stock', got {self.mode!r}")
+        if self.mode not in GNB_MODES:
+            raise GnbError(f"gNB mode must be one of {', '.join(GNB_MODES)}, got {self.mode!r}")
         if self.stock_mode not in ("active", "passive"):
             raise GnbError(f"stock mode must be 'active' or 'passive', got {self.stock_mode!r}")
         if self.discovery not in ("auto", "o1", "single"):

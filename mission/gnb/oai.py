@@ -227,8 +227,10 @@ class RttSample:
     rnti: the UE (as asked for); ta, mu, srs_peak, fs_hz, snr_db: raw gNB fields (fs_hz None and
     srs_peak 0 for a coarse, Msg2-only sample); toa_s: one-way time of arrival [s] computed with
     estimator.ranging; t_mono_s: monotonic time of the measurement [s] (supplied by the caller);
-    source: "rtt" (RTT command set) or "msg2" (stock modes, coarse TA only); t_wall_s: UNIX time of
-    the random access from the gNB log's `wall_clock` stamp (stock modes; None otherwise).
+    source: "rtt" (RTT command set), "trace" (a stock gNB's T tracer: RAR TA plus applied TA
+    commands plus SRS peak) or "msg2" (stock modes, coarse TA only); t_wall_s: UNIX time of the
+    random access from the gNB log's `wall_clock` stamp (stock modes) or of the SRS occasion from
+    the T trace (trace mode); None otherwise.
     """
 
     rnti: int
@@ -239,7 +241,7 @@ class RttSample:
     snr_db: float | None
     toa_s: float
     t_mono_s: float
-    source: Literal["rtt", "msg2"] = "rtt"
+    source: Literal["rtt", "msg2", "trace"] = "rtt"
     t_wall_s: float | None = None
 
     @property

@@ -19,13 +19,14 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
 from mission.gnb.client import GnbClient, GnbConfig, OaiGnbClient
 from mission.gnb.oai import RttSample
 from mission.gnb.oai_ra import log_time_format
+from mission.gnb.tracer import TraceStatus
 from uavloc.errors import (
     GnbError,
     GnbNoMeasurementError,
@@ -96,6 +97,15 @@ class ProbeResult:
     problems: list[str] = field(default_factory=list)
     log_stamps: str | None = None
     duration_s: float = 0.0
+    #: trace mode: what the T tracer client saw (mission.gnb.tracer.TraceStatus)
+    trace: TraceStatus | None = None
+    #: each way to measure -> whether this gNB serves it, and why ("rtt", "trace", "stock")
+    modes: dict[str, tuple[bool, str]] = field(default_factory=dict)
+
+    @property
+    def recommended(self) -> str | None:
+        """The best mode this gNB serves: rtt (a modified gNB), then trace, then stock (coarse)."""
+        return next((m for m in ("rtt", "trace", "stock") if self.modes.get(m, (False, ""))[0]), None)
 
     @property
     def ok(self) -> bool:
@@ -128,11 +138,24 @@ class ProbeResult:
                 "gnb_rntis": None if self.gnb_rntis is None else [f"{r:04x}" for r in self.gnb_rntis],
                 "log_stamps": self.log_stamps, "problems": list(self.problems),
                 "ues": [u.to_dict() for u in self.ues], "duration_s": round(self.duration_s, 3),
-                "message": self.message()}
+                "trace": None if self.trace is None else asdict(self.trace),
+                "modes": {m: {"served": ok, "why": why} for m, (ok, why) in self.modes.items()},
+                "recommended": self.recommended, "message": self.message()}
 
     def lines(self) -> list[str]:
         """Human-readable report, one string per line."""
         out = [self.message()]
+        if self.trace is not None:
+            t = self.trace
+            age = "never" if t.last_event_age_s is None else f"{t.last_event_age_s:.2f} s ago"
+            out.append(f"  T tracer {t.address}: {'connected' if t.connected else 'disconnected'}, {t.events} events "
+                       f"({t.srs} SRS, {t.rtts} RTTs), last {age}"
+                       + (f", missing events: {', '.join(t.missing_events)}" if t.missing_events else "")
+                       + (f"; {t.problem}" if t.problem else ""))
+        for m, (ok, why) in self.modes.items():
+            out.append(f"  mode {m}: {'served' if ok else 'not served'} ({why})")
+        if self.modes:
+            out.append(f"  recommended mode: {self.recommended or 'none'}")
         for u in self.ues:
             tag = "configured" if u.expected else "found"
             what = (f"{len(u.samples)} random access(es) in the log" if self.mode.endswith("passive")
@@ -140,8 +163,9 @@ class ProbeResult:
             out.append(f"  UE {u.rnti:04x} ({tag}{'' if u.present else ', absent'}): {what}")
             for k, (s, took) in enumerate(zip(u.samples, u.took_s, strict=True), 1):
                 snr = "-" if s.snr_db is None else f"{s.snr_db:.1f} dB"
-                peak = "" if s.fs_hz is None else f"  SRS peak {s.srs_peak:.3f} @ {s.fs_hz / 1e6:g} Msps"
-                when = "" if s.t_wall_s is None else f"  at {_utc(s.t_wall_s)} (gNB log)"
+                peak = "" if s.fs_hz is None else f"  SRS peak {s.srs_peak:+.2f} @ {s.fs_hz / 1e6:g} Msps"
+                src = "gNB trace" if s.source == "trace" else "gNB log"
+                when = "" if s.t_wall_s is None else f"  at {_utc(s.t_wall_s)} ({src})"
                 out.append(f"    #{k}: range {s.range_m:8.2f} m  TA {s.ta} (mu {s.mu}){peak}  SNR {snr}  "
                            f"took {took:.3f} s{when}")
             for e in u.errors:
@@ -178,7 +202,7 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
     cfg: GnbConfig | None = client.config if isinstance(client, OaiGnbClient) else None
     if cfg is not None:
         address = address or _address(cfg)
-        mode = mode or (cfg.mode if cfg.mode == "rtt" else f"stock/{cfg.stock_mode}")
+        mode = mode or mode_name(client.mode, cfg.stock_mode)
         log_path = log_path if log_path is not None else cfg.log_path
     res = ProbeResult(address=address or "gNB", mode=mode or "?", count=count)
     t0 = clock()
@@ -202,7 +226,7 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
         if res.gnb_rntis is not None and not u.present:
             u.errors.append("not among the gNB's UEs")
     fatal: str | None = "discovery failed" if res.gnb_rntis is None else None
-    passive = isinstance(client, OaiGnbClient) and cfg is not None and cfg.mode == "stock" and (
+    passive = isinstance(client, OaiGnbClient) and cfg is not None and client.mode == "stock" and (
         cfg.stock_mode == "passive")
     for u in res.ues:
         if not u.present:
@@ -226,7 +250,7 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
         for _ in range(count):
             t1 = clock()
             try:
-                s = await client.measure(u.rnti)
+                s = await _measure_waiting(client, u.rnti)
             except GnbUnknownCommandError as exc:
                 u.errors.append(str(exc))
                 res.problems.append(f"wrong telnet module: {exc}")
@@ -251,8 +275,71 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
     present = [u for u in res.ues if u.present]
     if present and not any(u.ok for u in present) and mode.startswith("stock") and not fatal:
         res.problems.append("no random access seen for any UE")
+    tracer = getattr(client, "tracer", None)
+    if tracer is not None:
+        res.trace = tracer.status()
     res.duration_s = clock() - t0
     return res
+
+
+#: trace mode: how long the probe waits for a UE's next RTT in the T trace [s] (SRS every 80 ms, a
+#: first RTT after three agreeing occasions; an rfsimulator may run at 0.4x real time)
+TRACE_WAIT_S = 3.0
+
+
+async def _measure_waiting(client: GnbClient, rnti: int):
+    """client.measure(rnti); in trace mode, waiting up to TRACE_WAIT_S for the trace to give one."""
+    tracer = getattr(client, "tracer", None) if getattr(client, "mode", None) == "trace" else None
+    if tracer is None:
+        return await client.measure(rnti)
+    deadline = time.monotonic() + TRACE_WAIT_S
+    while True:
+        try:
+            return await client.measure(rnti)
+        except GnbNoMeasurementError:
+            if time.monotonic() >= deadline:
+                raise
+            await tracer.wait_for_events(min(0.2, max(0.0, deadline - time.monotonic())))
+
+
+async def served_modes(client: OaiGnbClient, rntis: list[int]) -> dict[str, tuple[bool, str]]:
+    """Which ways to measure the gNB behind `client` serves: its RTT command (tried on one UE), a
+    T tracer with SRS events (at config.t_port), a gNB log with wall-clock stamps (config.log_path)."""
+    cfg = client.config
+    out: dict[str, tuple[bool, str]] = {}
+    if rntis:
+        try:
+            await client._measure_rtt(rntis[0])
+            out["rtt"] = (True, f"`{cfg.rtt_module} {cfg.rtt_command}` answered")
+        except GnbUnknownCommandError:
+            out["rtt"] = (False, f"no `{cfg.rtt_module} {cfg.rtt_command}` command: a stock gNB")
+        except GnbError as exc:
+            out["rtt"] = (True, f"the command exists ({exc})")
+    else:
+        out["rtt"] = (False, "no UE to try the RTT command on")
+    tracer = client.tracer
+    try:
+        if tracer is None:
+            async with client._new_tracer() as t:
+                await t.wait_for_events(1.0)
+                st = t.status()
+        else:
+            st = tracer.status()
+        if not st.has_srs:
+            out["trace"] = (False, f"T tracer at {st.address}: its T_messages.txt has no SRS event")
+        elif st.srs == 0:
+            out["trace"] = (False, f"T tracer at {st.address}: no SRS event yet (the gNB needs do_SRS = 1, and "
+                                   f"without a core --do-ra on gNB and UE)")
+        else:
+            out["trace"] = (True, f"T tracer at {st.address}: {st.srs} SRS events")
+    except GnbError as exc:
+        out["trace"] = (False, str(exc))
+    if cfg.log_path is None:
+        out["stock"] = (False, "no gNB log given (gnb.log_path / --gnb-log)")
+    else:
+        kind, problem = check_log_stamps(Path(cfg.log_path))
+        out["stock"] = (problem is None, problem or f"the gNB log {cfg.log_path} ({kind} stamps)")
+    return out
 
 
 async def probe_address(config: GnbConfig, *, rntis: list[int] | None = None, count: int = 1) -> ProbeResult:
@@ -260,15 +347,22 @@ async def probe_address(config: GnbConfig, *, rntis: list[int] | None = None, co
     if count < 1:
         raise GnbError(f"a probe takes at least one measurement per UE, got count={count}")
     address = _address(config)
-    mode = config.mode if config.mode == "rtt" else f"stock/{config.stock_mode}"
+    mode = mode_name(config.mode, config.stock_mode)
     try:
         async with OaiGnbClient(config) as client:
-            return await probe_gnb(client, rntis=rntis, count=count)
+            res = await probe_gnb(client, rntis=rntis, count=count)
+            res.modes = await served_modes(client, res.gnb_rntis or [])
+            return res
     except GnbError as exc:
         res = ProbeResult(address=address, mode=mode, count=count)
         what = "no web server" if config.transport == "rest" else "no telnet server"
         res.problems.append(f"{what}: {exc}")
         return res
+
+
+def mode_name(mode: str, stock_mode: str) -> str:
+    """"rtt", "trace", "auto" or "stock/<active|passive>"."""
+    return f"stock/{stock_mode}" if mode == "stock" else mode
 
 
 def _address(cfg: GnbConfig) -> str:

@@ -16,9 +16,12 @@ The gNB never prints a UE's round trip, but its T tracer carries what rebuilds i
 - the SRS peak carries what the TA loop leaves uncorrected (its dead band is ±S/2);
 - OAI traces the SRS estimate also when no SRS was received (a stale buffer): a peak less than
   `min_peak_to_mean_db` above the mean tap power is not an SRS;
-- a round trip that moves faster than a vehicle can (`max_range_rate_mps`) is not a range: a level
-  reached by a jump (a re-synchronizing UE, an rfsim distance set on one side only) is reported
-  only once it has held long enough for that change to be physical. Time here is the gNB's air
+- a round trip that grows faster than a vehicle can fly (`max_range_rate_mps`) is not a range: a
+  level reached by a jump up (an rfsim distance set on one side only, a UE re-synchronizing) is
+  reported only once it has held long enough for that change to be physical. A drop up to
+  `clock_step_samples` is taken at once: a commercial UE corrects its clock in steps, so its round
+  trip rises slowly and then drops (docs/design.md §4); holding the drops would keep only the
+  sawtooth's upper part. Time here is the gNB's air
   time (its frame counter), not the wall clock (an rfsimulator runs faster or slower than real
   time).
 
@@ -64,7 +67,8 @@ class TraceSettings:
     (real ~31 dB, stale ~9 dB in OAI 2025.w36's rfsim); resolve_occasions: SRS occasions after a
     TA command within which its step must show, else it was dropped; max_range_rate_mps: the
     fastest a range may change (vehicle plus user speed) [m/s]; rate_tolerance_samples: what
-    quantization and peak jitter may add to that [RTT samples]; confirm_occasions: SRS occasions
+    quantization and peak jitter may add to that [RTT samples]; clock_step_samples: the largest
+    drop taken at once (a UE clock correction) [RTT samples]; confirm_occasions: SRS occasions
     that must agree before a UE's first RTT (after its random access) is reported; max_rntis: UEs
     kept (the oldest forgotten first).
     """
@@ -75,6 +79,7 @@ class TraceSettings:
     resolve_occasions: int = 3
     max_range_rate_mps: float = 12.0
     rate_tolerance_samples: float = 1.5
+    clock_step_samples: float = 9.2
     confirm_occasions: int = 3
     max_rntis: int = 256
 
@@ -306,8 +311,12 @@ class TraceRttTracker:
         else:
             # a level reached faster than anything can fly is held until that change is physical
             ref = ue.accepted
+            # |Δ| ≤ tol + rate·Δt, plus clock_step for a drop
+            jump = rtt - ref.rtt_samples
             allowed = s.rate_tolerance_samples + s.rate_samples_per_s * max(0.0, t_air - ref.t_air_s)
-            if abs(rtt - ref.rtt_samples) > allowed:
+            if jump < 0:
+                allowed += s.clock_step_samples
+            if abs(jump) > allowed:
                 self.counts.held_rate += 1
                 ue.held = (f"RTT moved {rtt - ref.rtt_samples:+.1f} samples in {t_air - ref.t_air_s:.2f} s of air "
                            f"time, faster than {s.max_range_rate_mps:g} m/s")

@@ -45,6 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gnb-transport", choices=("telnet", "rest"), default="telnet",
                    help="how the adapter talks to the simulated gNB: its telnet server (default) or OAI's web "
                         "server API (REST)")
+    p.add_argument("--gnb-mode", choices=("rtt", "trace", "auto"),
+                   help="how the adapter measures: the RTT command (a modified gNB), the T tracer (a stock gNB's "
+                        "TA and SRS), or the best the gNB serves (default: the scenario's [gnb] mode, rtt)")
     p.add_argument("--connect", metavar="URL",
                    help="fly a running PX4 or ArduPilot SITL instead (e.g. udpin://0.0.0.0:14540); the simulated "
                         "gNB follows it and scenario positions are offsets from its home")
@@ -86,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     async def main():
         async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
                                     planner=args.planner, connect=args.connect,
-                                    gnb_transport=args.gnb_transport) as sim:
+                                    gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode) as sim:
             held["sim"] = sim
             async with live_view(args, sim.controller.log_writer, title=f"uavloc sim {scenario.name}"):
                 return await sim.run()

@@ -67,6 +67,7 @@ from mission.gnb.oai import PROMPT_GNB, format_rtt_line, unknown_command_text
 from sitl_scenarios.gnb.faults import GnbFaults
 from sitl_scenarios.gnb.ra import OaiRaLog
 from sitl_scenarios.gnb.rest import GnbRestServer
+from sitl_scenarios.gnb.ttrace import SimulatedTServer
 from sitl_scenarios.position import MavlinkPositionSource, PositionSource, static_position
 from sitl_scenarios.radio import RadioModel, RawRtt
 from sitl_scenarios.scenario import Scenario, load_scenario
@@ -125,6 +126,7 @@ class SimulatedGnb:
         wall: Callable[[], float] = time.time,
         rest_port: int | None = None,
         stock_websrv: bool = False,
+        t_port: int | None = None,
     ) -> None:
         if stock_reaction not in _STOCK_REACTIONS:
             raise SimulatorError(f"stock_reaction must be one of {_STOCK_REACTIONS}, got {stock_reaction!r}")
@@ -154,6 +156,9 @@ class SimulatedGnb:
         #: as the modified gNB of the RTT mode does (sitl_scenarios/gnb/rest.py)
         self.stock_websrv = stock_websrv
         self.rest: GnbRestServer | None = None
+        #: the T tracer's port (None: none; 0: an ephemeral port, read it after entering)
+        self.t_port = t_port
+        self.t_server: SimulatedTServer | None = None
         #: current C-RNTI of each user (a new one after a reestablishment or a re-attach)
         self.current_rnti: list[int] = [u.rnti for u in scenario.users]
         #: old contexts of UEs that went idle: RNTI -> monotonic time the gNB drops it
@@ -163,6 +168,7 @@ class SimulatedGnb:
         self._last_o1_s: float | None = None  # monotonic time of the last `o1 stats`
         #: writes OAI's random-access lines to log_path
         self.ra_log = OaiRaLog(self.log_path, wall, random.Random(int(seq.spawn(1)[0].generate_state(1)[0])))
+        self._t_seed = int(seq.spawn(1)[0].generate_state(1)[0])
         #: recent RTT results with their truth, newest last (for tests and diagnostics)
         self.truth: collections.deque[RawRtt] = collections.deque(maxlen=100_000)
         self.requests = 0
@@ -217,6 +223,14 @@ class SimulatedGnb:
                 await self._tg.__aexit__(None, None, None)
                 raise
             self.rest_port = self.rest.port
+        if self.t_port is not None:
+            try:
+                self.t_server = await SimulatedTServer(self, self.host, self.t_port, self._t_seed).__aenter__()
+            except BaseException:
+                self._server.close()
+                await self._tg.__aexit__(None, None, None)
+                raise
+            self.t_port = self.t_server.port
         log.info("simulated gNB listening on %s:%d (%d users)", self.host, self.port, len(self.scenario.users))
         return self
 
@@ -229,6 +243,9 @@ class SimulatedGnb:
         rest, self.rest = self.rest, None
         if rest is not None:
             await rest.__aexit__(None, None, None)
+        t_server, self.t_server = self.t_server, None
+        if t_server is not None:
+            await t_server.__aexit__(None, None, None)
         for w in list(self._writers):
             w.close()  # handlers see EOF and return; waiting (silent busy) ones too once served
         if self._handlers:
