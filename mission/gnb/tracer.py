@@ -135,6 +135,9 @@ class TTracerClient:
         self._early = []
         try:
             db = await self._read_preamble()
+        except OSError as exc:
+            self._close()
+            raise GnbError(f"the T tracer at {self.address} dropped the connection: {exc}") from None
         except BaseException:
             self._close()
             raise
