@@ -672,10 +672,11 @@ async def _run(args: argparse.Namespace) -> None:
         gnb = await stack.enter_async_context(SimulatedGnb(
             scenario, position, host=args.host, port=args.port, log_path=args.log, seed=args.seed,
             rtt_module=args.rtt_module, rtt_command=args.rtt_command, stock_reaction=args.stock_reaction,
-            rest_port=args.rest_port, stock_websrv=args.stock_websrv,
+            rest_port=args.rest_port, stock_websrv=args.stock_websrv, t_port=args.t_port,
             faults=None if args.rtt_module_lost_after is None else dataclasses.replace(
                 GnbFaults.from_scenario(scenario), rtt_module_lost_at_s=args.rtt_module_lost_after)))
         rest = "" if gnb.rest_port is None else f", REST on http://{args.host}:{gnb.rest_port}"
+        rest += "" if gnb.t_port is None else f", T tracer on {args.host}:{gnb.t_port}"
         print(f"simulated gNB for scenario {scenario.name!r} on {args.host}:{gnb.port}{rest}", file=sys.stderr)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -693,6 +694,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--port", type=int, default=9090, help="telnet port (default 9090)")
     p.add_argument("--rest-port", type=int, metavar="PORT",
                    help="also serve OAI's web server (REST) API on this port (OAI's default is 8090)")
+    p.add_argument("--t-port", type=int, metavar="PORT",
+                   help="also serve OAI's T tracer on this port (OAI's default is 2021; 0: a free port): the RAR, "
+                        "TA commands and SRS impulse responses of the trace mode")
     p.add_argument("--stock-websrv", action="store_true",
                    help="REST: commands take the web server's blank parameter for an argument, as stock OAI "
                         "2025.w36 does (o1 stats and ci get_single_rnti then refuse it)")
