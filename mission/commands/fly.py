@@ -34,7 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", type=Path, metavar="FILE", help="mission log path (default: DIR/mission.jsonl or "
                    "./uavloc-mission-<UTC>.jsonl)")
     p.add_argument("--planner", metavar="NAME", help="planner (default: the mission's, casadi when available)")
-    p.add_argument("--gnb-mode", choices=("rtt", "stock"), help="override the mission's gnb.mode")
+    p.add_argument("--gnb-mode", choices=("rtt", "trace", "stock", "auto"), help="override the mission's gnb.mode")
+    p.add_argument("--t-port", type=int, metavar="PORT",
+                   help="override the mission's gnb.t_port (trace mode: the gNB's T tracer, --T_port)")
     p.add_argument("--gnb-log", type=Path, metavar="FILE", help="override the mission's gnb.log_path (stock mode)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     add_view_arguments(p)
@@ -63,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
         gnb_over["mode"] = args.gnb_mode
     if args.gnb_log is not None:
         gnb_over["log_path"] = str(args.gnb_log)
+    if args.t_port is not None:
+        gnb_over["t_port"] = args.t_port
     if gnb_over:
         mission = with_settings(mission, gnb_over, "command line")
     # a flight knows no true positions: the oracle planner is refused before anything connects

@@ -30,15 +30,12 @@ import math
 import random
 import struct
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
 from estimator.ranging import TA_RAR_MAX
 from uavloc.errors import SimulatorError
-
-if TYPE_CHECKING:
-    from sitl_scenarios.gnb.server import SimulatedGnb
 
 log = logging.getLogger(__name__)
 
@@ -119,11 +116,12 @@ class _Ue:
 class SimulatedTServer:
     """The T server of a :class:`SimulatedGnb` (see the module docstring).
 
-    gnb: the simulated gNB whose users, radio model, UAV position and clocks it uses; host, port
+    gnb: the simulated gNB (sitl_scenarios.gnb.server.SimulatedGnb, which owns this server) whose
+    users, radio model, UAV position and clocks it uses; host, port
     (0: ephemeral); seed; stale_prob: a stale SRS estimate per occasion; apply_prob: a TA command
     applied by the UE."""
 
-    def __init__(self, gnb: SimulatedGnb, host: str, port: int, seed: int, *, stale_prob: float = 0.01,
+    def __init__(self, gnb: Any, host: str, port: int, seed: int, *, stale_prob: float = 0.01,
                  apply_prob: float = 0.5, tick_s: float = 0.005) -> None:
         self.gnb = gnb
         self.host, self.port = host, port
