@@ -24,7 +24,6 @@ import re
 import shutil
 import socket
 import subprocess
-import sys
 import threading
 import time
 import warnings
@@ -439,77 +438,3 @@ def test_probe_command_against_the_real_gnb(oai, capsys):
     out = capsys.readouterr().out
     assert rc_rtt == 1 and "wrong telnet module" in out and "rtt pdcch_order" in out
 
-
-# -- trace mode: a gNB with SRS and its T tracer ---------------------------------------------------
-
-#: OAI's no-core test mode, where periodic SRS is configured from the start (the UE reads the
-#: gNB's reconfig.raw / rbconfig.raw), and the T tracer on a port of this run
-TRACE_GNB_ARGS = (*GNB_ARGS, "--do-ra", "--T_stdout", "2", "--T_nowait")
-TRACE_UE_ARGS = ("-E", "--rfsim", "--do-ra", "--reconfig-file", "reconfig.raw", "--rbconfig-file", "rbconfig.raw",
-                 "--rfsimulator.serveraddr", "127.0.0.1", "--telnetsrv", "--telnetsrv.shrmod", "ciUE")
-#: the gNB's line when a --do-ra UE is attached ("(rnti 0x6940) CFRA procedure succeeded!")
-_CFRA_DONE = re.compile(r"\(rnti 0x([0-9a-f]{4})\) CFRA procedure succeeded")
-
-
-def test_trace_mode_probes_the_live_gnb_at_a_distance_the_recordings_lack(tmp_path):
-    """A gNB with do_SRS = 1, --do-ra and its T tracer, the nrUE at 225 m from the start (rfsim
-    offset 35 samples: an RTT of 70, which no shared recording holds): the trace client, connected
-    before the UE attaches, gives its round trip to the sample, and `uavloc gnb probe --mode trace`
-    exits 0 naming the T stream."""
-    why = oai_build_missing()
-    if why is not None:
-        pytest.skip(why)
-    build = Path(os.environ[BUILD_ENV]).expanduser()
-    bundle = OaiRun(build=build, workdir=tmp_path)
-    run_dir = tmp_path / "trace"
-    run_dir.mkdir()
-    gnb_port, ue_port, rfsim_port, t_port = (_free_tcp_port() for _ in range(4))
-    gnb_conf = _conf_with_ports((CONF / "gnb.conf").read_text(), gnb_port, rfsim_port)
-    gnb_conf = re.sub(r"(gNBs\s*=\s*\(\s*\{)", r"\1\n    do_SRS = 1;", gnb_conf, count=1) if "do_SRS" not in gnb_conf \
-        else gnb_conf
-    (run_dir / "gnb.conf").write_text(gnb_conf)
-    (run_dir / "ue.conf").write_text(_conf_with_ports((CONF / "ue.conf").read_text(), ue_port, rfsim_port))
-    offset = "35"  # samples at 46.08 Msps: 227.9 m one way
-    bundle.info.update(GNB_LOG=str(run_dir / "gnb.log"), UE_LOG=str(run_dir / "ue.log"))
-    try:
-        bundle._start("gnb", "nr-softmodem", run_dir / "gnb.conf",
-                      (*TRACE_GNB_ARGS, "--T_port", str(t_port), "--rfsimulator.offset", offset), run_dir / "gnb.log")
-        deadline = time.monotonic() + 90.0
-        while not (_port_open(gnb_port) and _port_open(t_port) and (run_dir / "rbconfig.raw").is_file()):
-            assert time.monotonic() < deadline and not bundle.exited, f"the gNB did not start: {bundle.exited}"
-            time.sleep(0.2)
-
-        async def body():
-            cfg_trace = GnbConfig(port=gnb_port, t_port=t_port, mode="trace", request_timeout_s=5.0,
-                                  connect_timeout_s=5.0, trace_max_age_s=5.0)
-            async with OaiGnbClient(cfg_trace) as g:
-                bundle._start("ue", "nr-uesoftmodem", run_dir / "ue.conf",
-                              (*TRACE_UE_ARGS, "--rfsimulator.offset", offset), run_dir / "ue.log")
-                rnti = None
-                async with asyncio.timeout(240):
-                    while rnti is None:
-                        assert not bundle.exited, f"OAI exited: {bundle.exited}"
-                        m = _CFRA_DONE.search((run_dir / "gnb.log").read_text(errors="replace"))
-                        rnti = int(m.group(1), 16) if m else None
-                        await asyncio.sleep(0.5)
-                    sample = None
-                    while sample is None:
-                        await g.tracer.wait_for_events(1.0)
-                        with contextlib.suppress(GnbNoMeasurementError):
-                            sample = await g.measure(rnti)
-                return rnti, sample, g.tracer.status()
-
-        rnti, sample, status = run(body(), timeout_s=300)
-        rtt = sample.ta * 12 + sample.srs_peak
-        assert round(rtt) == 70 and abs(rtt - 70) < 0.5, (sample, status)
-        assert status.srs > 0 and not status.missing_events
-        proc = subprocess.run([sys.executable, "-m", "mission", "gnb", "probe", "--gnb", f"127.0.0.1:{gnb_port}",
-                               "--mode", "trace", "--t-port", str(t_port), "--count", "2", "--json"],
-                              capture_output=True, text=True, timeout=120)
-        doc = json.loads(proc.stdout)
-        assert proc.returncode == 0, proc.stdout + proc.stderr
-        assert doc["trace"]["srs"] > 0 and doc["modes"]["trace"]["served"] and doc["recommended"] == "trace"
-        print(f"trace mode at 227.9 m: UE {rnti:04x} TA {sample.ta} peak {sample.srs_peak:+.2f} -> "
-              f"RTT {rtt:.2f} samples, range {sample.range_m:.1f} m")
-    finally:
-        bundle.stop()
