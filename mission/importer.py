@@ -34,6 +34,14 @@ payloads, parsed by `mission.gnb.oai` (the same parsers as the live adapter):
   no RNTI: each refines the Msg2 line of the same UE just before it (within `srs_pair_window_s`)
   as the SRS part of the RTT (τr = peak / fs, or N ns), as in the paper's RACH + SRS scheme.
 
+**T-tracer recording** (`--t-trace REC.raw`, instead of or beside the gNB log): what OAI's own
+`record` tool wrote from the gNB's T tracer (`record -d T_messages.txt -o REC.raw -on
+GNB_PHY_UL_TIME_CHANNEL_ESTIMATE -on GNB_MAC_DL_PDU_WITH_DATA -on GNB_MAC_DL_RAR_PDU_WITH_DATA`),
+read by the trace mode's own tracker (`mission.gnb.trace_rtt`): each UE's round trip from its RAR
+TA, the TA commands it applied and the SRS peak, stamped with the gNB's CLOCK_REALTIME; the newest
+of each UE every `interval_s` becomes a measurement. The recording must start before the UEs
+attach (their RAR holds the absolute TA).
+
 Lines without a measurement are ignored; a measurement line without a timestamp, or a malformed
 one, is an error naming the line. Measurements outside the track's time span (or in a gap of the
 track longer than `max_gap_s`) are dropped with a warning; if none overlap, the clocks do not
@@ -65,8 +73,10 @@ from mission.gnb.oai import (
     parse_srs_toa_line,
     strip_ansi,
 )
+from mission.gnb.trace_rtt import TraceCounts, TraceRttTracker, TraceSettings
+from mission.gnb.ttrace import iter_recording, parse_t_messages
 from mission.log import MissionLogWriter
-from uavloc.errors import GnbProtocolError, ImportDataError, UavlocError
+from uavloc.errors import GnbProtocolError, ImportDataError, RangingError, UavlocError
 
 log = logging.getLogger(__name__)
 
@@ -387,6 +397,43 @@ def read_gnb_log(path: str | Path, **kwargs) -> tuple[list[GnbMeasurement], GnbL
 
 # ---------------------------------------------------------------------------------------------
 # alignment and writing
+
+
+def read_t_trace(path: str | Path, mu: int = 1, fs_hz: float = 46.08e6, interval_s: float = 0.25,
+                 time_offset_s: float = 0.0, t_messages: str | Path | None = None,
+                 settings: TraceSettings | None = None) -> tuple[list[GnbMeasurement], TraceCounts]:
+    """Measurements from a T-tracer recording: per UE, the newest RTT the trace tracker accepted in
+    each `interval_s` window of the gNB's clock (plus time_offset_s). t_messages: the gNB's
+    T_messages.txt for a recording without the server's own (OAI's `record` keeps it)."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ImportDataError(f"{path}: cannot read the T-tracer recording ({exc.strerror or exc})") from None
+    db = None
+    if t_messages is not None:
+        try:
+            db = parse_t_messages(Path(t_messages).read_text(errors="replace"))
+        except OSError as exc:
+            raise ImportDataError(f"{t_messages}: cannot read ({exc.strerror or exc})") from None
+    s = settings if settings is not None else TraceSettings(mu=mu, fs_hz=fs_hz)
+    tracker = TraceRttTracker(s)
+    out: list[GnbMeasurement] = []
+    last: dict[int, float] = {}
+    try:
+        for ev in iter_recording(data, db):
+            r = tracker.feed(ev)
+            if r is None or r.t_wall_s - last.get(r.rnti, -math.inf) < interval_s:
+                continue
+            last[r.rnti] = r.t_wall_s
+            try:
+                toa = toa_s_from_raw(r.ta, s.mu, r.peak, s.fs_hz)
+            except RangingError:
+                continue
+            out.append(GnbMeasurement(r.t_wall_s + time_offset_s, r.rnti, r.ta, s.mu, r.peak, s.fs_hz, None, toa,
+                                      "trace", 0))
+    except GnbProtocolError as exc:
+        raise ImportDataError(f"{path}: {exc}") from None
+    return out, tracker.counts
 
 
 @dataclass(frozen=True)

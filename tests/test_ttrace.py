@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from estimator.ranging import C_MPS
 from mission.gnb.trace_rtt import TraceRttTracker, TraceSettings
 from mission.gnb.ttrace import (
     EV_DL_PDU,
@@ -219,3 +220,45 @@ def test_a_malformed_event_is_counted_not_raised(shared_data):
     assert tr.counts.malformed == 1 and "wants" in tr.counts.last_malformed
     assert tr.feed(TEvent(34, EV_SRS_CHEST, 1.0, {"rnti": 0x4601, "frame": 1, "chest_t": b"\x00"})) is None
     assert tr.counts.malformed == 2 and "not int16 I/Q" in tr.counts.last_malformed
+
+
+def test_uavloc_import_t_trace_puts_the_real_gnbs_ranges_on_a_track(shared_data, tmp_path):
+    """`uavloc import --t-trace`: the ramp's recording, moved onto the recorded PX4 flight's clock,
+    becomes rtt records whose ranges are the ramp's RTTs (every one of them a steady or a stepping
+    value of the ramp), one per UE every --t-interval."""
+    import json
+
+    from mission.cli import main
+    from mission.importer import read_tlog_gps
+    from mission.log import read_mission_log
+
+    tlog = tmp_path / "legs.tlog"
+    tlog.write_bytes(gzip.decompress((shared_data / "px4-v1.18-sih" / "legs.tlog.gz").read_bytes()))
+    rec = tmp_path / "rec.raw"
+    rec.write_bytes(_recording(shared_data, "dora_ramp_0_300"))
+    track = read_tlog_gps(tlog, time_base="tlog")
+    phases = _phases(shared_data, "dora_ramp_0_300")
+    offset = track.t_unix_s[0] + 20.0 - phases[0][0]
+    _, out = _track(rec.read_bytes())
+    ue = out[0].rnti
+    dest = tmp_path / "mission.jsonl"
+    rc = main(["import", "--tlog", str(tlog), "--time-base", "tlog", "--t-trace", str(rec), "--users", f"ue1:{ue:04x}",
+               "--gnb-time-offset", f"{offset:.6f}", "--t-interval", "0.5", "-o", str(dest)])
+    assert rc == 0
+    rtts = [json.loads(line) for line in dest.read_text().splitlines() if '"rtt"' in line]
+    span_s = out[-1].t_wall_s - out[0].t_wall_s
+    assert span_s / 0.5 * 0.7 < len(rtts) <= span_s / 0.5 + 1
+    one_sample_m = C_MPS / (2 * 46.08e6)
+    allowed = {rtt for _, _, rtt in phases} | {rtt - 1 for _, _, rtt in phases}
+    for r in rtts:
+        samples = 2 * r["toa_s"] * 46.08e6
+        assert abs(samples - round(samples)) < 0.01 and round(samples) in allowed, r
+        assert r["fs_hz"] == 46.08e6 and abs(r["toa_s"] * C_MPS - samples * one_sample_m) < 1e-6
+    assert read_mission_log(dest).header.fs_hz == 46.08e6
+
+
+def test_uavloc_import_needs_one_source_of_ranges(tmp_path, capsys):
+    from mission.cli import main
+
+    rc = main(["import", "--tlog", "x.tlog", "--users", "ue1:4601", "-o", str(tmp_path / "m.jsonl")])
+    assert rc == 1 and "either --gnb-log FILE or --t-trace REC.raw" in capsys.readouterr().err

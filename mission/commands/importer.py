@@ -1,6 +1,6 @@
-"""`uavloc import --tlog FLIGHT.tlog --gnb-log GNB.log --users ID:RNTI ... -o mission.jsonl`:
-build a mission log from a MAVLink telemetry log and a gNB log (see mission/importer.py for the
-time-stamp convention of the gNB log)."""
+"""`uavloc import --tlog FLIGHT.tlog (--gnb-log GNB.log | --t-trace REC.raw) --users ID:RNTI ... -o
+mission.jsonl`: build a mission log from a MAVLink telemetry log and a gNB log or a recording of the
+gNB's T tracer (see mission/importer.py for the time-stamp convention of the gNB log)."""
 
 from __future__ import annotations
 
@@ -17,9 +17,16 @@ HELP = "build a mission log from a MAVLink tlog (GPS track) and a gNB log (range
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tlog", type=Path, required=True, help="MAVLink telemetry log with GLOBAL_POSITION_INT")
-    p.add_argument("--gnb-log", type=Path, required=True,
+    p.add_argument("--gnb-log", type=Path,
                    help="gNB log: lines starting with a UTC time stamp (UNIX seconds or ISO 8601), then an rtt "
                         "reply, an OAI Msg2 timing_offset line or an SRS ToA line")
+    p.add_argument("--t-trace", type=Path, metavar="REC.raw",
+                   help="a recording of the gNB's T tracer made with OAI's `record` (trace mode: RAR TA, TA commands "
+                        "and SRS peak, started before the UEs attached)")
+    p.add_argument("--t-messages", type=Path, metavar="FILE",
+                   help="the gNB's T_messages.txt, for a recording that lacks the server's own")
+    p.add_argument("--t-interval", type=float, default=0.25, metavar="S",
+                   help="--t-trace: one range per UE every S seconds of the gNB's clock (default 0.25)")
     p.add_argument("--users", nargs="+", required=True, metavar="ID:RNTI[:GROUND_ALT_M]",
                    help="users to keep: id, RNTI in hex as OAI prints it, optional ground altitude AMSL [m] "
                         "(default: the origin's)")
@@ -106,7 +113,7 @@ def parse_positions(specs: list[str] | None, what: str) -> dict[str, tuple[float
 def run(args: argparse.Namespace) -> int:
     from estimator.geodesy import Origin
     from estimator.noise import NoiseModel
-    from mission.importer import import_flight, read_gnb_log, read_tlog_gps
+    from mission.importer import import_flight, read_gnb_log, read_t_trace, read_tlog_gps
     from uavloc.errors import ImportDataError, UavlocError
 
     for name in ("max_speed", "max_gap"):
@@ -115,6 +122,10 @@ def run(args: argparse.Namespace) -> int:
             raise ImportDataError(f"--{name.replace('_', '-')} must be a positive number, got {v}")
     if args.fs is not None and not (args.fs > 0 and math.isfinite(args.fs)):
         raise ImportDataError(f"--fs must be a positive number, got {args.fs}")
+    if (args.gnb_log is None) == (args.t_trace is None):
+        raise ImportDataError("give the ranges as either --gnb-log FILE or --t-trace REC.raw (one of them)")
+    if not (args.t_interval > 0 and math.isfinite(args.t_interval)):
+        raise ImportDataError(f"--t-interval must be a positive number, got {args.t_interval}")
     if not math.isfinite(args.gnb_time_offset):
         raise ImportDataError("--gnb-time-offset must be finite")
     users = parse_users(args.users)
@@ -131,10 +142,24 @@ def run(args: argparse.Namespace) -> int:
             raise ImportDataError(f"--noise {args.noise}: {exc}") from exc
 
     track = read_tlog_gps(args.tlog, time_base=args.time_base, max_speed_mps=args.max_speed)
-    meas, gsum = read_gnb_log(args.gnb_log, mu=args.mu, fs_hz=args.fs, time_offset_s=args.gnb_time_offset)
-    log.info("%s: %s measurements, %d error replies, %d SRS lines without a Msg2 before them",
-             args.gnb_log, dict(gsum.counts) or 0, gsum.errors, gsum.unpaired_srs)
-    config = {"importer": "uavloc import", "tlog": args.tlog.name, "gnb_log": args.gnb_log.name,
+    if args.t_trace is not None:
+        meas, counts = read_t_trace(args.t_trace, mu=1 if args.mu is None else args.mu,
+                                    fs_hz=46.08e6 if args.fs is None else args.fs, interval_s=args.t_interval,
+                                    time_offset_s=args.gnb_time_offset, t_messages=args.t_messages)
+        log.info("%s: %d events, %d SRS (%d stale), %d TA commands (%d applied), %d RTTs; %d ranges kept",
+                 args.t_trace, counts.events, counts.srs, counts.srs_stale, counts.ta_commands, counts.ta_applied,
+                 counts.rtts, len(meas))
+        if not meas:
+            raise ImportDataError(f"{args.t_trace}: no round trip in the recording ({counts.srs} SRS events, "
+                                  f"{counts.rars} random accesses): the recording must start before the UEs attach, "
+                                  "and the gNB run with do_SRS = 1 (and a core, or --do-ra)")
+    else:
+        meas, gsum = read_gnb_log(args.gnb_log, mu=args.mu, fs_hz=args.fs, time_offset_s=args.gnb_time_offset)
+        log.info("%s: %s measurements, %d error replies, %d SRS lines without a Msg2 before them",
+                 args.gnb_log, dict(gsum.counts) or 0, gsum.errors, gsum.unpaired_srs)
+    source = args.t_trace if args.t_trace is not None else args.gnb_log
+    config = {"importer": "uavloc import", "tlog": args.tlog.name,
+              ("t_trace" if args.t_trace is not None else "gnb_log"): source.name,
               "time_base": track.time_base, "clock_offset_s": track.clock_offset_s,
               "gnb_time_offset_s": args.gnb_time_offset}
     summary = import_flight(track, meas, users, args.out, origin=origin, fs_hz=args.fs, noise=noise,

@@ -296,6 +296,11 @@ class TraceRttTracker:
             ue.streak.clear()
             return None
         rtt = s.step_samples * ue.ta + peak
+        if rtt < 0.0:
+            if rtt <= -0.5:  # more than the peak's own rounding: not a round trip
+                ue.held = f"a negative round trip ({rtt:.2f} samples: TA {ue.ta}, peak {peak:+.2f})"
+                return None
+            peak, rtt = -s.step_samples * ue.ta, 0.0  # a zero distance, within the peak's rounding
         cand = TraceRtt(rnti, ue.ta, peak, rtt, frame, slot, ev.t_wall_s, t_air, ratio_db)
         if ue.accepted is None:
             # the first RTT after an access (or a gap): confirm_occasions that agree
