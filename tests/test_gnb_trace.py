@@ -152,3 +152,20 @@ def test_a_mission_flown_in_trace_mode_reaches_its_target(tmp_path):
         assert u["error_m"] <= u["error_bound_95_m"], u
     header = json.loads((tmp_path / "out" / "mission.jsonl").read_text().splitlines()[0])
     assert header["config"]["gnb_mode"] == "trace"
+
+
+def test_a_campaign_spec_names_the_gnb_mode_of_its_full_runs():
+    from sitl_scenarios.campaign.spec import spec_from_dict
+    from uavloc.errors import CampaignError
+
+    def spec(**campaign):
+        return spec_from_dict({"campaign": {"name": "t", "planners": ["lawnmower"], **campaign},
+                               "scenarios": [{"file": "paper"}]})
+
+    rtt, trace = spec(mode="full"), spec(mode="full", gnb_mode="trace")
+    assert [r.gnb_mode for r in rtt.runs + trace.runs] == ["rtt", "trace"]
+    assert rtt.runs[0].key != trace.runs[0].key
+    with pytest.raises(CampaignError, match="only full mode"):
+        spec(mode="fast", gnb_mode="trace")
+    with pytest.raises(CampaignError, match="'rtt' or 'trace'"):
+        spec(mode="full", gnb_mode="stock")

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from mission.gnb import GnbConfig, OaiGnbClient
+from mission.gnb.probe import probe_gnb
 from tests.test_oai_live import (
     BUILD_ENV,
     CONF,
@@ -45,8 +46,9 @@ _CFRA_DONE = re.compile(r"\(rnti 0x([0-9a-f]{4})\) CFRA procedure succeeded")
 def test_trace_mode_probes_the_live_gnb_at_a_distance_the_recordings_lack(tmp_path):
     """A gNB with do_SRS = 1, --do-ra and its T tracer, the nrUE at 225 m from the start (rfsim
     offset 35 samples: an RTT of 70, which no shared recording holds): the trace client, connected
-    before the UE attaches, gives its round trip to the sample, and `uavloc gnb probe --mode trace`
-    exits 0 naming the T stream."""
+    before the UE attaches, gives its round trip to the sample and its probe passes; `uavloc gnb
+    probe --mode trace` started after the attach exits 1 and says why (the RAR, the only absolute
+    TA, came before it connected), and OAI's T server serves that second client after the first."""
     why = oai_build_missing()
     if why is not None:
         pytest.skip(why)
@@ -65,9 +67,15 @@ def test_trace_mode_probes_the_live_gnb_at_a_distance_the_recordings_lack(tmp_pa
     try:
         bundle._start("gnb", "nr-softmodem", run_dir / "gnb.conf",
                       (*TRACE_GNB_ARGS, "--T_port", str(t_port), "--rfsimulator.offset", offset), run_dir / "gnb.log")
-        deadline = time.monotonic() + 90.0
-        while not (_port_open(gnb_port) and _port_open(t_port) and (run_dir / "rbconfig.raw").is_file()):
-            assert time.monotonic() < deadline and not bundle.exited, f"the gNB did not start: {bundle.exited}"
+        # never probe the T port with a bare connect: OAI's T server takes a client that leaves
+        # without its event mask as fatal ("T tracer: fatal: T tracer disabled")
+        deadline = time.monotonic() + 180.0
+        while True:
+            ready = {"telnet": _port_open(gnb_port), "rbconfig.raw": (run_dir / "rbconfig.raw").is_file()}
+            if all(ready.values()):
+                break
+            assert time.monotonic() < deadline and not bundle.exited, (
+                f"the gNB did not start (exited: {bundle.exited}; ready: {ready}); log {run_dir / 'gnb.log'}")
             time.sleep(0.2)
 
         async def body():
@@ -88,9 +96,12 @@ def test_trace_mode_probes_the_live_gnb_at_a_distance_the_recordings_lack(tmp_pa
                         await g.tracer.wait_for_events(1.0)
                         with contextlib.suppress(GnbNoMeasurementError):
                             sample = await g.measure(rnti)
-                return rnti, sample, g.tracer.status()
+                probe = await probe_gnb(g, rntis=[rnti], count=3)
+                return rnti, sample, g.tracer.status(), probe
 
-        rnti, sample, status = run(body(), timeout_s=300)
+        rnti, sample, status, probe = run(body(), timeout_s=300)
+        assert probe.ok, probe.lines()
+        assert all(abs(s.ta * 12 + s.srs_peak - 70) < 0.5 for s in probe.ues[0].samples), probe.lines()
         rtt = sample.ta * 12 + sample.srs_peak
         assert round(rtt) == 70 and abs(rtt - 70) < 0.5, (sample, status)
         assert status.srs > 0 and not status.missing_events
@@ -98,8 +109,10 @@ def test_trace_mode_probes_the_live_gnb_at_a_distance_the_recordings_lack(tmp_pa
                                "--mode", "trace", "--t-port", str(t_port), "--count", "2", "--json"],
                               capture_output=True, text=True, timeout=120)
         doc = json.loads(proc.stdout)
-        assert proc.returncode == 0, proc.stdout + proc.stderr
-        assert doc["trace"]["srs"] > 0 and doc["modes"]["trace"]["served"] and doc["recommended"] == "trace"
+        assert proc.returncode == 1, proc.stdout + proc.stderr
+        assert doc["trace"]["connected"] and doc["trace"]["srs"] > 0 and doc["trace"]["rtts"] == 0
+        assert "attached before the T trace began" in doc["message"]
+        assert doc["modes"]["trace"]["served"] and doc["recommended"] == "trace"
         print(f"trace mode at 227.9 m: UE {rnti:04x} TA {sample.ta} peak {sample.srs_peak:+.2f} -> "
               f"RTT {rtt:.2f} samples, range {sample.range_m:.1f} m")
     finally:

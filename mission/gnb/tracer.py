@@ -144,7 +144,7 @@ class TTracerClient:
         self.db = db
         missing = [e for e in RANGING_EVENTS if db.id_of(e) is None]
         if missing:
-            log.info("the gNB's T_messages.txt has no %s", ", ".join(missing))
+            log.debug("the gNB's T_messages.txt has no %s", ", ".join(missing))
         assert self._writer is not None
         self._writer.write(db.mask(RANGING_EVENTS))
         await self._writer.drain()

@@ -27,9 +27,9 @@ from sitl_scenarios.scenario import Scenario
 
 
 def fly_full(sc: Scenario, planner_name: str, params: SolverParams, seed: int, targets_m: tuple[float, ...],
-             speedup: float, gnb_transport: str = "telnet") -> Outcome:
+             speedup: float, gnb_transport: str = "telnet", gnb_mode: str = "rtt") -> Outcome:
     """Fly one scenario with the built-in vehicle and simulated gNB (its telnet server or its REST
-    API: gnb_transport); the Outcome of its mission log."""
+    API: gnb_transport; its RTT command or its T tracer: gnb_mode); the Outcome of its mission log."""
     from mission.log import read_mission_log
     from sitl_scenarios.sim_runner import SimulatedMission
 
@@ -38,7 +38,7 @@ def fly_full(sc: Scenario, planner_name: str, params: SolverParams, seed: int, t
 
         async def main():
             async with SimulatedMission(sc, log_path=log_path, seed=seed, speedup=speedup, planner=planner_name,
-                                        gnb_transport=gnb_transport,
+                                        gnb_transport=gnb_transport, gnb_mode=gnb_mode,
                                         controller_overrides={"params": params,
                                                                       "estimator_mode": "thread"}) as sim:
                 return await sim.run()

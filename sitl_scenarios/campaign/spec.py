@@ -10,6 +10,7 @@ A spec (every table and key below; anything else is a :class:`CampaignError` nam
     targets_m = [1.0, 0.6]            # accuracy targets: metres flown until the mean 95 % bound ≤ T
     speedup = 20.0                    # full mode: simulated seconds per wall second
     gnb_transport = "telnet"          # full mode: the gNB adapter over "telnet" or "rest" (OAI's web server)
+    gnb_mode = "rtt"                  # full mode: measure with the RTT command ("rtt") or the T tracer ("trace")
 
     [estimators.default]              # named estimator variants: SolverParams fields (default: one, "default")
     window = 40
@@ -65,6 +66,7 @@ class CampaignSection:
     targets_m: list[float] = field(default_factory=lambda: [1.0])
     speedup: float = 20.0
     gnb_transport: str = "telnet"
+    gnb_mode: str = "rtt"
     description: str = ""
 
 
@@ -111,6 +113,7 @@ class RunSpec:
     targets_m: tuple[float, ...]
     speedup: float = 20.0
     gnb_transport: str = "telnet"
+    gnb_mode: str = "rtt"
 
 
 @dataclass(frozen=True)
@@ -184,6 +187,10 @@ def _check_section(c: CampaignSection, where: str) -> None:
         raise _err(where, f"campaign.gnb_transport must be 'telnet' or 'rest', got {c.gnb_transport!r}")
     if c.gnb_transport != "telnet" and c.mode != "full":
         raise _err(where, "campaign.gnb_transport: only full mode talks to a gNB (fast mode has no adapter)")
+    if c.gnb_mode not in ("rtt", "trace"):
+        raise _err(where, f"campaign.gnb_mode must be 'rtt' or 'trace', got {c.gnb_mode!r}")
+    if c.gnb_mode != "rtt" and c.mode != "full":
+        raise _err(where, "campaign.gnb_mode: only full mode talks to a gNB (fast mode has no adapter)")
 
 
 def _scenario_params(sc: Scenario, kind: str) -> dict:
@@ -204,7 +211,8 @@ def _scenario_params(sc: Scenario, kind: str) -> dict:
 
 
 def _run_key(condition: str, sc: Scenario, planner: str, opts: dict, estimator: str, params: SolverParams,
-             seed: int, mode: str, targets: tuple[float, ...], speedup: float, gnb_transport: str = "telnet") -> str:
+             seed: int, mode: str, targets: tuple[float, ...], speedup: float, gnb_transport: str = "telnet",
+             gnb_mode: str = "rtt") -> str:
     definition = {
         "scenario": dataclasses.asdict(sc), "planner": planner, "planner_opts": opts,
         "params": dataclasses.asdict(params), "seed": seed, "mode": mode, "targets_m": list(targets),
@@ -212,6 +220,8 @@ def _run_key(condition: str, sc: Scenario, planner: str, opts: dict, estimator: 
     }
     if gnb_transport != "telnet":  # absent over telnet: the keys of existing campaigns stay as they were
         definition["gnb_transport"] = gnb_transport
+    if gnb_mode != "rtt":
+        definition["gnb_mode"] = gnb_mode
     digest = hashlib.sha1(json.dumps(definition, sort_keys=True, default=repr).encode()).hexdigest()[:12]
     return f"{condition}/{sc.name}/{planner}/{estimator}/s{seed}#{digest}"
 
@@ -272,11 +282,12 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
                 params = _solver_params(est_opts, base, f"estimators.{est_name}", where)
                 for seed in section.seeds:
                     key = _run_key(condition, sc, planner, opts, est_name, params, seed, section.mode, targets,
-                                   section.speedup, section.gnb_transport)
+                                   section.speedup, section.gnb_transport, section.gnb_mode)
                     runs.append(RunSpec(key=key, condition=condition, scenario=sc, scenario_params=sp,
                                         planner=planner, planner_opts=opts, estimator=est_name, params=params,
                                         seed=seed, mode=section.mode, targets_m=targets,
-                                        speedup=section.speedup, gnb_transport=section.gnb_transport))
+                                        speedup=section.speedup, gnb_transport=section.gnb_transport,
+                                        gnb_mode=section.gnb_mode))
     _check_planner_options(section, planner_opts, scenarios[0][1], where)
     return Campaign(section.name, path, section, runs)
 

@@ -81,7 +81,7 @@ def run_one(run: RunSpec) -> dict:
             from sitl_scenarios.campaign.full import fly_full
 
             out = fly_full(run.scenario, run.planner, run.params, run.seed, run.targets_m, run.speedup,
-                           gnb_transport=run.gnb_transport)
+                           gnb_transport=run.gnb_transport, gnb_mode=run.gnb_mode)
     except Exception as exc:  # recorded, not raised: the campaign goes on (the error text says what)
         log.warning("run %s failed: %s: %s", run.key, type(exc).__name__, exc)
         return error_record(run, exc, time.perf_counter() - t0, worker)
