@@ -415,6 +415,11 @@ def _parse_area(obj: dict) -> dict:
 #: shows there. (rtt records are not checked: a trigger's records carry each measurement's own
 #: time, which in stock mode is the user's random access and may precede the one logged before it.)
 TIME_ORDERED_TYPES = ("telemetry",)
+#: how far an rtt record may go back in time from the latest one before it [s]: a trigger's records
+#: carry each measurement's own time (a stock random access, a trace mode SRS occasion: up to its
+#: max age, trace_max_age_s), so a little disorder is real; more is a shuffled or spliced log, whose
+#: ranges would sit on a track never flown (refused, not sorted)
+RTT_DISORDER_MAX_S = 2.0
 
 #: largest speed a telemetry velocity may claim [m/s]
 MAX_SPEED_MPS = 200.0
@@ -520,6 +525,14 @@ def read_mission_log(path: str | Path) -> MissionLog:
                                              "(refused, not sorted: its track would be one never flown)")
                         last_t[rtype] = (t, lineno)
                     if rtype == "rtt":
+                        prev = last_t.get("rtt")
+                        if prev is not None and t < prev[0] - RTT_DISORDER_MAX_S:
+                            raise _LineError(
+                                f"rtt record at t = {t:g} s is {prev[0] - t:.1f} s earlier than the one on line "
+                                f"{prev[1]} (t = {prev[0]:g} s): range records out of time order by more than "
+                                f"{RTT_DISORDER_MAX_S:g} s (refused, not sorted: a shuffled or spliced log)")
+                        if prev is None or t > prev[0]:
+                            last_t["rtt"] = (t, lineno)
                         uid = obj.get("user")
                         if uid not in user_ix:
                             raise _LineError(f"rtt for unknown user {uid!r}; header users: {sorted(user_ix)}")

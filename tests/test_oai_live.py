@@ -22,6 +22,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import threading
@@ -184,11 +185,15 @@ class OaiRun:
                     f"logs in {run}")
 
     def stop(self) -> None:
-        """SIGTERM to the UE, then the gNB (SIGKILL after a grace period)."""
+        """SIGTERM to the UE, then the gNB (SIGKILL after a grace period); then SIGKILL to what is
+        left of their process groups: with `--T_stdout 2` nr-softmodem forks its local T tracer,
+        which outlives it."""
         for name in ("ue", "gnb"):
             proc = self.procs.get(name)
             if proc is not None:
                 stop_process(proc, grace_s=30, kill_wait_s=10)
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(proc.pid, signal.SIGKILL)  # each was started in a session of its own
 
     def commands_received(self) -> list[str]:
         """The telnet commands the gNB logged (`[TELNETSRV] Command received: ... "<line>"`)."""
