@@ -252,6 +252,10 @@ class ActivePlanner(BasePlanner):
         if precompile and self.compiled:
             self.precompile()
 
+    def prepare(self) -> None:
+        """Before take-off: the kernels the first plans need (precompile)."""
+        self.precompile()
+
     def precompile(self) -> None:
         """Build (compile) now the kernels plans with 2-D users will need, with and without range
         biases, so the first plan with an estimate does not pay the compiler (once per process)."""

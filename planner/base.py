@@ -75,6 +75,9 @@ class BasePlanner:
         raise NotImplementedError
 
     # -- shared ----------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        """One-time work before take-off (planner.types.Planner.prepare): none for most planners."""
+
     def leg_cap_m(self, state: PlanningState) -> float:
         """Longest leg allowed now: min(leg_max_m, survey budget left) [m]."""
         return float(min(self.constraints.leg_max_m, self.constraints.budget_m - state.flown_m))

@@ -155,3 +155,8 @@ class Planner(Protocol):
     def plan(self, state: PlanningState) -> PlanResult:
         """The next waypoint from `state`, or `done`; raises PlannerError on bad input."""
         ...
+
+    def prepare(self) -> None:
+        """Do now, before take-off, the one-time work the first plans would pay for (building and
+        compiling solver kernels), so that the vehicle never hovers for it."""
+        ...

@@ -200,6 +200,9 @@ class OutsideFirstPlanner:
         self.bad = np.asarray(bad_enu_m, float)
         self.calls = 0
 
+    def prepare(self):
+        self.inner.prepare()
+
     def plan(self, state):
         self.calls += 1
         if self.calls == 1:

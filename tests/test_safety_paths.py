@@ -105,6 +105,9 @@ class AlwaysOutsidePlanner:
         self.bad = np.asarray(bad_enu_m, float)
         self.calls = 0
 
+    def prepare(self):
+        pass
+
     def plan(self, state):
         self.calls += 1
         return PlanResult(waypoint_enu_m=self.bad, horizon_enu_m=self.bad[None], done=False, status="bad")
@@ -138,6 +141,9 @@ class RecordingPlanner:
     def __init__(self, inner):
         self.inner, self.name, self.constraints = inner, inner.name, inner.constraints
         self.states = []
+
+    def prepare(self):
+        self.inner.prepare()
 
     def plan(self, state):
         self.states.append(state)

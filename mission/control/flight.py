@@ -245,6 +245,7 @@ class MissionController:
         self._preflight_home()
         await self._preflight_gnb()
         self._preflight_battery()
+        await self._prepare_planner()
         safety = SafetyMonitor(f, cfg, self.gate, self.vehicle.state, self._buffer.latest, self.now)
         for coro, name in ((self._estimator_task(), "estimator"), (self.pipeline.run_trigger(), "trigger"),
                            (self.pipeline.run_placer(), "placer"), (safety.run(), "safety"),
@@ -319,6 +320,16 @@ class MissionController:
                            probe=probe.to_dict())
         if not ok:
             raise GnbPreflightError(f"not taking off: {probe.message()}")
+
+    async def _prepare_planner(self) -> None:
+        """The planner's one-time work (CasADi kernels) before take-off, in a thread, so that the
+        first plan with an estimate does not hold the vehicle in a hover (planner.types.Planner.prepare)."""
+        t0 = time.perf_counter()
+        await asyncio.to_thread(self.planner.prepare)
+        took_s = time.perf_counter() - t0
+        if took_s > 0.05:
+            self.journal.event(f"planner {self.planner.name} prepared in {took_s:.2f} s (before take-off)",
+                               kind="planner_prepared", took_s=round(took_s, 3))
 
     def _preflight_home(self) -> None:
         """No take-off from a home outside the fence or inside a no-fly zone (geodetic polygons

@@ -42,6 +42,10 @@ log = logging.getLogger(__name__)
 #: measurements so far: a hover costs battery in mission time, so the bound is in mission time (at
 #: a simulator's speedup, wall seconds would cost the battery speedup times as much)
 PLAN_DRAIN_MAX_S = 10.0
+#: the next leg is planned while this one is flown, from its end, once the vehicle is this many
+#: mission seconds of flight from it (the plan, and the estimator's drain before it, then cost no
+#: hover); at least the acceptance radius away
+PLAN_AHEAD_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,11 @@ class SurveyLegs:
         self.leg_speed_mps = PX4_DEFAULT_CRUISE_MPS  # what the vehicle flies legs at (commanded or default)
         self.speed_refusals = 0
         self.battery_start_pct: float | None = None
+        #: the next leg, being planned from this leg's end while it is flown: (end [m, ENU], task)
+        self._ahead: tuple[np.ndarray, asyncio.Task[PlanResult]] | None = None
+        #: legs whose plan was ready (or being made) when the vehicle arrived
+        self.planned_ahead = 0
+        self._plan_wall_s = 1.0  # how long the last plan took, drain included [wall s]
 
     async def takeoff(self) -> None:
         dep, cfg, f = self.deps, self.deps.config, self.deps.flight
@@ -105,18 +114,59 @@ class SurveyLegs:
         return energy_remaining_m(self.deps.flight.flown_m, self.battery_start_pct, self.deps.battery_pct(),
                                   self.deps.battery_rtl_pct)
 
-    async def plan(self, pos: np.ndarray) -> PlanResult:
-        """The planner's next leg from `pos`, with the estimate of every keyframe measured so far."""
+    async def plan(self, pos: np.ndarray, drain_max_s: float = PLAN_DRAIN_MAX_S) -> PlanResult:
+        """The planner's next leg from `pos`, with the estimate of every keyframe measured so far
+        (waiting at most drain_max_s mission seconds for the estimator to solve them)."""
         dep = self.deps
-        await dep.drain(dep.wall(PLAN_DRAIN_MAX_S))
+        w0 = time.perf_counter()
+        await dep.drain(dep.wall(drain_max_s))
         state = PlanningState(uav_enu_m=pos, estimate=dep.flight.estimate, flown_m=dep.flight.flown_m,
                               energy_remaining_m=self.energy_remaining_m())
         t0 = time.perf_counter()
         plan = await asyncio.to_thread(dep.planner.plan, state)
+        t1 = time.perf_counter()
+        # how long a plan takes on this machine, in wall seconds (the plan-ahead's lead follows it)
+        self._plan_wall_s = max(t1 - w0, 0.5 * self._plan_wall_s)
         # the planner's compute time, for the log (the planner itself has no clock)
-        return dataclasses.replace(plan, solve_time_s=time.perf_counter() - t0)
+        return dataclasses.replace(plan, solve_time_s=t1 - t0)
 
     async def survey(self) -> None:
+        try:
+            await self._survey()
+        finally:
+            self._drop_ahead()
+
+    def _drop_ahead(self) -> None:
+        if self._ahead is not None:
+            self._ahead[1].cancel()
+            self._ahead = None
+
+    async def _next_plan(self, pos: np.ndarray) -> PlanResult:
+        """The leg from `pos`: the one planned ahead from this leg's end when the vehicle is there
+        (within twice the acceptance radius), else a plan now."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:
+            end, task = ahead
+            if float(np.linalg.norm(pos - end)) <= 2.0 * self.deps.config.flight.acceptance_m:
+                self.planned_ahead += 1
+                return await task
+            task.cancel()
+        return await self.plan(pos)
+
+    def _plan_ahead(self, pos: np.ndarray, wp: np.ndarray) -> None:
+        """Start planning the leg after `wp` once the vehicle is PLAN_AHEAD_S of flight from it."""
+        dep = self.deps
+        if self._ahead is not None or dep.flight.ending:
+            return
+        # lead [mission s] = PLAN_AHEAD_S + twice the last plan's wall time at this clock's speed
+        lead_s = PLAN_AHEAD_S + 2.0 * self._plan_wall_s / dep.wall(1.0)
+        near_m = max(dep.config.flight.acceptance_m, self.leg_speed_mps * lead_s)
+        if float(np.linalg.norm(pos - wp)) <= near_m:
+            end = np.asarray(wp, float).copy()
+            # no long drain: ranges keep coming while the leg is flown; the estimate of now is the one
+            self._ahead = (end, asyncio.create_task(self.plan(end, drain_max_s=1.0), name="plan-ahead"))
+
+    async def _survey(self) -> None:
         dep, cfg, f = self.deps, self.deps.config, self.deps.flight
         self.battery_start_pct = dep.battery_pct()
         refusals = 0
@@ -129,7 +179,7 @@ class SurveyLegs:
                 break
             pos = dep.pos_enu()
             try:
-                plan = await self.plan(pos)
+                plan = await self._next_plan(pos)
             except PlannerError as exc:
                 f.request_return(f"planner failed: {exc}")
                 break
@@ -221,6 +271,7 @@ class SurveyLegs:
             if np.linalg.norm(pos - wp) <= cfg.flight.acceptance_m:
                 f.flown_m = self.odometer.finish(pos)
                 return
+            self._plan_ahead(pos, wp)
             if f.ending:
                 return
             if self.budget_spent():
