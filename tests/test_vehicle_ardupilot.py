@@ -60,13 +60,13 @@ def test_arducopter_flies_guided_and_lands_in_rtl_as_the_recording():
     assert ap.pos[2] == 0.0  # the motors spool up first
     _until(ap, lambda: ap.pos[2] > 19.0)
     assert ap.guided_target([30.0, 0.0, 20.0])
-    _until(ap, lambda: math.hypot(ap.pos[0] - 30.0, ap.pos[1]) < 1.0 and math.hypot(*ap.vel[:2]) < 0.3)
+    _until(ap, lambda: math.hypot(ap.nav_pos[0] - 30.0, ap.nav_pos[1]) < 1.0 and math.hypot(*ap.vel[:2]) < 0.3)
     assert ap.set_custom_mode(LOITER)[0] == ACCEPTED
     assert not ap.guided_target([0.0, 30.0, 20.0])  # ArduCopter ignores targets outside GUIDED
     assert ap.set_custom_mode(RTL)[0] == ACCEPTED
     assert ap.rtl_return_up_m() == pytest.approx(20.0, abs=0.5)  # above RTL_ALT (15 m): stays at 20 m
     _until(ap, lambda: not ap.armed)
-    assert ap.custom_mode == RTL and math.hypot(*ap.pos[:2]) < 1.0  # disarmed in RTL, at home
+    assert ap.custom_mode == RTL and math.dist(ap.nav_pos[:2], ap.home[:2]) < 1.0  # disarmed in RTL, at home
 
 
 def test_gps_loss_in_the_air_is_an_ekf_failsafe_that_lands_at_once():

@@ -137,7 +137,8 @@ async def fly_goto_rtl(link: Link) -> dict:
     timings["goto_s"] = time.monotonic() - t0
     if link.sim is not None:
         truth = link.sim.state()
-        assert horizontal_m(truth.pos_enu_m[:2], (0.0, 100.0)) < 0.5
+        # the vehicle holds its estimate there (as PX4 does); the true track carries the GPS error
+        assert horizontal_m(truth.pos_enu_m[:2], (0.0, 100.0)) < 0.5 + 4.0 * link.sim._ap.config.gps_sigma_m
         assert truth.pos_enu_m[2] == pytest.approx(20.0, abs=0.5)
 
     await act.return_to_launch()
@@ -150,7 +151,8 @@ async def fly_goto_rtl(link: Link) -> dict:
     assert horizontal_m(end_enu, (0, 0)) < 5.0
     if link.sim is not None:
         truth = link.sim.state()
-        assert horizontal_m(truth.pos_enu_m[:2], (0.0, 0.0)) < 0.5
+        # landed at home as its estimate has it: the true spot is off by the GPS error
+        assert horizontal_m(truth.pos_enu_m[:2], (0.0, 0.0)) < 0.5 + 4.0 * link.sim._ap.config.gps_sigma_m
         assert truth.pos_enu_m[2] == 0.0 and not truth.armed and not truth.in_air
     return timings
 

@@ -325,7 +325,7 @@ class ArduCopter(Autopilot):
         if not math.isfinite(height_m) or height_m <= 0:
             height_m = self.params["MIS_TAKEOFF_ALT"]
         self._takeoff_up_m = self.home[2] + height_m
-        self._hold = [self.pos[0], self.pos[1], self._takeoff_up_m]
+        self._hold = [self.nav_pos[0], self.nav_pos[1], self._takeoff_up_m]
         self._takeoff_cmd_s = self.t_s
         self._set_mode(FlightMode.TAKEOFF)
         return ACCEPTED, f"takeoff to {height_m:.1f} m"
@@ -398,8 +398,10 @@ class ArduCopter(Autopilot):
         p = self.params
         v_up = self._takeoff_climb_mps() if self.mode is FlightMode.TAKEOFF else p["MPC_Z_V_AUTO_UP"]
         if target is not None:
-            v_h = min(v_h, approach_speed_mps(math.hypot(target[0] - self.pos[0], target[1] - self.pos[1]),
+            nav = self.nav_pos
+            v_h = min(v_h, approach_speed_mps(math.hypot(target[0] - nav[0], target[1] - nav[1]),
                                               BRAKE_FRACTION * p["MPC_ACC_HOR"]))
+        target = self._to_true(target)
         trk = kinematics.Tracking(TRAJECTORY_JERK_MPS3, 2.0, p["PSC_POSXY_P"], p["PSC_VELXY_P"],
                                   vel_int=p["PSC_VELXY_I"], drag_per_s=0.0)
         self.acc, self.yaw_rad, self._setpoint = kinematics.move(
@@ -416,7 +418,8 @@ class ArduCopter(Autopilot):
         p, home = self.params, self.home
         current = self.pos[2] - home[2]
         h = max(p["RTL_ALT"] / 100.0, current)
-        d = math.hypot(self.pos[0] - home[0], self.pos[1] - home[1])
+        nav = self.nav_pos
+        d = math.hypot(nav[0] - home[0], nav[1] - home[1])
         if p["RTL_CONE_SLOPE"] > 0:
             h = min(h, max(p["RTL_CONE_SLOPE"] * d, 2.5))
         return home[2] + max(h, current, 2.5)

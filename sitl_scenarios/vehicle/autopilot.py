@@ -178,6 +178,26 @@ class Autopilot(Navigator):
             return np.asarray(self.pos) + self.gps_error_at_loss + self.dead_reckoning.offset_m(self.t_s)
         return np.asarray(self.pos) + self.gps_error.sample(self.t_s)
 
+    @property
+    def nav_pos(self) -> list[float]:
+        """Where the vehicle navigates from, (3,) ENU [m]: its estimate horizontally (PX4 and
+        ArduPilot fly setpoints, hold and judge arrival on their EKF output, so the true track
+        carries the GPS error), the true height (the flight model's ground contact and climb rates
+        are held to the recorded flights). Without GPS the failsafe flies on what it has: the truth
+        here (the blind landing of the gpsloss recording)."""
+        if self.gps_error_at_loss is not None:
+            return list(self.pos)
+        e = self.gps_error.sample(self.t_s)
+        return [self.pos[0] + float(e[0]), self.pos[1] + float(e[1]), self.pos[2]]
+
+    def _to_true(self, target: list[float] | None) -> list[float] | None:
+        """A navigation-frame target in the flight model's (true) frame: less the estimate's
+        horizontal error."""
+        if target is None:
+            return None
+        nav = self.nav_pos
+        return [target[0] - (nav[0] - self.pos[0]), target[1] - (nav[1] - self.pos[1]), target[2]]
+
     def estimated_velocity(self) -> np.ndarray:
         """What the vehicle's estimator reports as velocity: true velocity + a small EKF error, (3,) ENU
         [m/s] (zero on the ground, where PX4 reports the vehicle at rest)."""
@@ -204,7 +224,10 @@ class Autopilot(Navigator):
         t, sp = self._position_target, self._setpoint
         if t is None or sp is None or not self.armed:
             return None
-        return [sp.pos[0], sp.pos[1], t[2]], [sp.vel[0], sp.vel[1], self.vel[2]], [sp.acc[0], sp.acc[1], self.acc[2]]
+        nav = self.nav_pos  # the smoothed trajectory runs in the flight model's frame: report it in the estimate's
+        ex, ey = nav[0] - self.pos[0], nav[1] - self.pos[1]
+        return ([sp.pos[0] + ex, sp.pos[1] + ey, t[2]], [sp.vel[0], sp.vel[1], self.vel[2]],
+                [sp.acc[0], sp.acc[1], self.acc[2]])
 
     def tilt_rad(self) -> tuple[float, float]:
         """(roll, pitch) [rad] a multicopter needs for its horizontal acceleration (no wind)."""
@@ -220,7 +243,7 @@ class Autopilot(Navigator):
 
     def _stopping_point(self) -> list[float]:
         """Where the vehicle comes to rest braking at MPC_ACC_HOR: p + v·|v| / (2a)."""
-        return kinematics.stopping_point(self.pos, self.vel, self.params["MPC_ACC_HOR"])
+        return kinematics.stopping_point(self.nav_pos, self.vel, self.params["MPC_ACC_HOR"])
 
 
     def _need_position(self, what: str) -> tuple[int, str] | None:
@@ -249,7 +272,7 @@ class Autopilot(Navigator):
         self._has_flown = self.in_air
         self._landed_since_s = self.t_s if not self.in_air else None
         if not self.in_air:
-            self.home = [self.pos[0], self.pos[1], 0.0]  # PX4 sets home where it arms
+            self.home = [self.nav_pos[0], self.nav_pos[1], 0.0]  # PX4 sets home where it arms (its estimate)
             self.home_set = True
         self._hold = self._stopping_point()
         if self.mode is FlightMode.MISSION:
@@ -295,7 +318,7 @@ class Autopilot(Navigator):
         if up < self.pos[2] + 1.0 and self.in_air:
             up = self.pos[2]
         self._takeoff_up_m = max(up, 1.0)
-        self._hold = [self.pos[0], self.pos[1], self._takeoff_up_m]
+        self._hold = [self.nav_pos[0], self.nav_pos[1], self._takeoff_up_m]
         self._set_mode(FlightMode.TAKEOFF)
         if not self.armed:
             return ACCEPTED, f"takeoff mode selected, to {self._takeoff_up_m:.1f} m once armed"
@@ -352,7 +375,7 @@ class Autopilot(Navigator):
         if use_current:
             if not self.gps_ok:
                 return self._deny("Set home denied: no global position")
-            self.home = [self.pos[0], self.pos[1], self.pos[2]]
+            self.home = list(self.nav_pos)
         else:
             if not all(math.isfinite(v) for v in (lat_deg, lon_deg, alt_amsl_m)):
                 return DENIED, "home coordinates must be finite"
@@ -376,7 +399,7 @@ class Autopilot(Navigator):
             if self.armed:
                 return self.takeoff()
             self._takeoff_up_m = self.home[2] + self.params["MIS_TAKEOFF_ALT"]
-            self._hold = [self.pos[0], self.pos[1], self._takeoff_up_m]
+            self._hold = [self.nav_pos[0], self.nav_pos[1], self._takeoff_up_m]
             self._set_mode(FlightMode.TAKEOFF)
             return ACCEPTED, "takeoff mode selected"
         if mode is FlightMode.OFFBOARD and not self._offboard_fresh():
@@ -472,7 +495,7 @@ class Autopilot(Navigator):
     def _substep(self, dt: float) -> None:
         self.t_s += dt
         if not self.home_set and self._home_ready():
-            self.home = [self.pos[0], self.pos[1], 0.0]
+            self.home = [self.nav_pos[0], self.nav_pos[1], 0.0]
             self.home_set = True
             self._say(SEV_INFO, "Home position set")
         self._battery(dt)
@@ -533,7 +556,7 @@ class Autopilot(Navigator):
                 self._hold = target
             return target, self._cruise_mps(), None, v_dn
         if mode is FlightMode.LAND:
-            xy = self._land_xy or (self.pos[0], self.pos[1])
+            xy = self._land_xy or (self.nav_pos[0], self.nav_pos[1])
             v_land = self.params["MPC_LAND_SPEED"] if self.position_failsafe else self._land_speed()
             return [xy[0], xy[1], -1.0], self._cruise_mps(), None, v_land
         if mode is FlightMode.RTL:
@@ -565,6 +588,7 @@ class Autopilot(Navigator):
         p = self.params
         v_up = self._takeoff_climb_mps() if self.mode is FlightMode.TAKEOFF else p["MPC_Z_V_AUTO_UP"]
         self._position_target = None if target is None else list(target)
+        target = self._to_true(target)
         trk = kinematics.Tracking(p["MPC_JERK_AUTO"], p["MPC_XY_ERR_MAX"], p["MPC_XY_P"], p["MPC_XY_VEL_P_ACC"],
                                   vel_int=p["MPC_XY_VEL_I_ACC"], vel_d=p["MPC_XY_VEL_D_ACC"],
                                   tilt_max_rad=math.radians(p["MPC_TILTMAX_AIR"]))

@@ -162,7 +162,7 @@ class Navigator:
 
     def _item_target(self, it: MissionItem) -> list[float]:
         if it.x == 0 and it.y == 0:
-            e, n = self.pos[0], self.pos[1]
+            e, n = self.nav_pos[0], self.nav_pos[1]
         else:
             e, n, _ = self.lla_to_enu(it.x * 1e-7, it.y * 1e-7, self.origin.alt_m)
         up = self._item_up(it) if math.isfinite(it.z) else self.pos[2]
@@ -173,7 +173,7 @@ class Navigator:
         m = self.mission
         cruise = self._cruise_mps()
         if m.takeoff_first:
-            target = [self.pos[0], self.pos[1], self._takeoff_up_m]
+            target = [self.nav_pos[0], self.nav_pos[1], self._takeoff_up_m]
             if abs(self.pos[2] - self._takeoff_up_m) < self.params["NAV_MC_ALT_RAD"]:
                 m.takeoff_first = False
             return target, cruise
@@ -209,8 +209,9 @@ class Navigator:
                 return target, cruise
             target = self._item_target(it)
             if it.command == CMD_NAV_TAKEOFF:
-                target = [self.pos[0], self.pos[1], max(target[2], self.pos[2])] if not self.in_air else target
-            dh = math.hypot(target[0] - self.pos[0], target[1] - self.pos[1])
+                target = [self.nav_pos[0], self.nav_pos[1], max(target[2], self.pos[2])] if not self.in_air else target
+            nav = self.nav_pos
+            dh = math.hypot(target[0] - nav[0], target[1] - nav[1])
             acc = it.param2 if it.command == CMD_NAV_WAYPOINT and it.param2 > 0 else self.params["NAV_ACC_RAD"]
             arrived = dh <= acc and abs(target[2] - self.pos[2]) <= self.params["NAV_MC_ALT_RAD"]
             if it.command == CMD_NAV_TAKEOFF:
@@ -253,7 +254,8 @@ class Navigator:
 
         d: horizontal distance to home [m]; heights above home [m]."""
         p, home = self.params, self.home
-        d = math.hypot(self.pos[0] - home[0], self.pos[1] - home[1])
+        nav = self.nav_pos
+        d = math.hypot(nav[0] - home[0], nav[1] - home[1])
         acc = p["NAV_ACC_RAD"]
         if d <= acc:
             h = 2.0 * d
@@ -273,10 +275,11 @@ class Navigator:
             if self.pos[2] >= r.return_up_m - 0.5:
                 r.phase = "return"
             else:
-                return [self.pos[0], self.pos[1], r.return_up_m], self._cruise_mps(), None, v_dn
+                return [self.nav_pos[0], self.nav_pos[1], r.return_up_m], self._cruise_mps(), None, v_dn
         if r.phase == "return":
             target = [home[0], home[1], r.return_up_m]
-            if math.hypot(home[0] - self.pos[0], home[1] - self.pos[1]) < 1.0:
+            nav = self.nav_pos
+            if math.hypot(home[0] - nav[0], home[1] - nav[1]) < 1.0:
                 r.phase = "descend"
             else:
                 return target, self._cruise_mps(), None, v_dn
