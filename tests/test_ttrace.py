@@ -262,3 +262,63 @@ def test_uavloc_import_needs_one_source_of_ranges(tmp_path, capsys):
 
     rc = main(["import", "--tlog", "x.tlog", "--users", "ue1:4601", "-o", str(tmp_path / "m.jsonl")])
     assert rc == 1 and "either --gnb-log FILE or --t-trace REC.raw" in capsys.readouterr().err
+
+
+# -- what the shared recordings lack: a longer distance, two UEs, a noisy channel (tests/data) ------
+
+MORE = Path(__file__).parent / "data" / "oai-2025.w36-ttrace-more"
+
+
+def _more(run: str) -> tuple[bytes, list[tuple[float, str, list[int]]]]:
+    data = gzip.decompress((MORE / run / "rec.raw.gz").read_bytes())
+    phases = []
+    for line in (MORE / run / "phases.txt").read_text().splitlines():
+        parts = line.split()
+        rtts = [int(p.split("=")[1]) for p in parts if p.startswith("rtt_rfsim=")]
+        phases.append((float(parts[0]), parts[1], rtts))
+    return data, phases
+
+
+def _between(out, t0: float, t1: float):
+    return [r for r in out if t0 <= r.t_wall_s < t1]
+
+
+def test_600_m_to_the_sample_and_no_jump_a_vehicle_cannot_fly():
+    """0 → 450 → 600 m: the 450 m level comes by a jump no vehicle flies (138 samples at once) and is
+    held for the whole of its 15 s; 600 m reads 184 (TA 15, peak +4) to the sample."""
+    data, phases = _more("long_600")
+    tr, out = _track(data)
+    (t0, _, (r0,)), (t450, _, _), (t600, _, (r600,)), (t_end, _, _) = phases
+    assert {round(r.rtt_samples) for r in _between(out, t0, t450)} == {r0}
+    tail = _between(out, t_end - 5.0, t_end)
+    assert tail and all(abs(r.rtt_samples - r600) < 0.01 for r in tail) and tail[-1].ta == 15
+    assert {round(r.rtt_samples) for r in _between(out, t600, t_end + 1.0)} == {r600}
+    assert {round(r.rtt_samples) for r in out} == {0, 184}
+    assert tr.counts.held_rate > 0 and tr.counts.ta_applied == 3
+
+
+def test_two_ues_each_rar_floors_its_round_trip_and_without_srs_nothing_more():
+    data, phases = _more("two_ues")
+    events = list(iter_recording(data))
+    rars = [g for ev in events if ev.name == EV_RAR for g in rar_grants(ev.values["data"])]
+    assert [g.ta for g in rars] == [0, 0, 2, 6]
+    # the re-attach's absolute TA floors each UE's round trip: 12·TA ≤ RTT < 12·(TA + 1)
+    _, _, (rtt1, rtt2) = phases[2]
+    assert 12 * rars[2].ta <= rtt1 < 12 * (rars[2].ta + 1) and 12 * rars[3].ta <= rtt2 < 12 * (rars[3].ta + 1)
+    tr, out = _track(data)
+    assert out == [] and tr.counts.rars == 4 and tr.counts.srs == 0
+    assert len(tr.ues()) == 4 and all("no SRS" in tr.why_none(r) for r in tr.ues())
+
+
+def test_a_noisy_channel_gives_its_round_trip_within_a_sample():
+    """OAI's CI AWGN channel: the SRS response is a plateau whose highest tap wanders ±3; its centre
+    gives 0 and 46 samples within one, at ~24 dB over the mean (not stale)."""
+    data, phases = _more("noisy_150")
+    tr, out = _track(data)
+    (t0, _, (r0,)), (t150, _, (r150,)), (t_end, _, _) = phases
+    assert tr.counts.srs_stale == 0 and tr.counts.rars == 1 and tr.counts.prach == 6
+    for (a, b, rtt) in ((t0, t150, r0), (t150 + 0.5 * (t_end - t150), t_end, r150)):
+        got = np.array([r.rtt_samples for r in _between(out, a, b)])
+        assert len(got) >= 10 and np.all(np.abs(got - rtt) <= 1.05) and abs(np.median(got) - rtt) <= 1.0
+    peaks = [srs_peak(ev.values["chest_t"]) for ev in iter_recording(data) if ev.name == EV_SRS_CHEST]
+    assert 20 < np.median([p.peak_to_mean_db for p in peaks]) < 28

@@ -365,8 +365,13 @@ class SrsPeak:
 def srs_peak(chest_t: bytes) -> SrsPeak:
     """Decode OAI's ``chest_t`` (int16 I, int16 Q per tap, zero delay at N/2) and find its peak.
 
-    p[i] = I² + Q²;  i* = argmax p;  δ = ½ (p[i*−1] − p[i*+1]) / (p[i*−1] − 2 p[i*] + p[i*+1])
-    (parabolic refinement, |δ| ≤ ½);  peak = i* + δ − N/2;  ratio = 10·log10(p[i*] / mean p).
+    p[i] = I² + Q²;  i* = argmax p;  the run [l, r] of taps around i* with p ≥ p[i*]/2 (−3 dB):
+    a band-limited channel (an rfsim channel model) spreads one delay over a plateau several taps
+    wide whose highest tap wanders, so its centre is taken:
+        peak = Σ_{l..r} k·p[k] / Σ_{l..r} p[k] − N/2                                   (r > l)
+    and a single tap is refined by a parabola through the power of its neighbours:
+        peak = i* + ½ (p[i*−1] − p[i*+1]) / (p[i*−1] − 2 p[i*] + p[i*+1]) − N/2,  |δ| ≤ ½  (r = l)
+    ratio = 10·log10(p[i*] / mean p).
     """
     if len(chest_t) < 16 or len(chest_t) % 4:
         raise _error(f"SRS impulse response of {len(chest_t)} bytes is not int16 I/Q taps", chest_t)
@@ -377,6 +382,17 @@ def srs_peak(chest_t: bytes) -> SrsPeak:
     mean = float(p.mean())
     if p[i] <= 0.0:
         return SrsPeak(0.0, -math.inf, n)
+    half = 0.5 * p[i]
+    lo = i
+    while lo > 0 and p[lo - 1] >= half:
+        lo -= 1
+    hi = i
+    while hi < n - 1 and p[hi + 1] >= half:
+        hi += 1
+    if hi > lo:
+        k = np.arange(lo, hi + 1)
+        centre = float(np.dot(k, p[lo:hi + 1]) / p[lo:hi + 1].sum())
+        return SrsPeak(centre - n / 2, 10.0 * math.log10(p[i] / mean), n)
     delta = 0.0
     if 0 < i < n - 1:
         den = p[i - 1] - 2.0 * p[i] + p[i + 1]
