@@ -17,6 +17,21 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _runs_folder(tmp_path_factory):
+    """Missions flown without --out keep their log under $UAVLOC_RUNS (mission.commands.outdir):
+    the tests' go to a temporary folder, not the user's ~/uavloc-runs (subprocesses inherit it)."""
+    import os
+
+    old = os.environ.get("UAVLOC_RUNS")
+    os.environ["UAVLOC_RUNS"] = str(tmp_path_factory.mktemp("uavloc-runs"))
+    yield
+    if old is None:
+        os.environ.pop("UAVLOC_RUNS", None)
+    else:
+        os.environ["UAVLOC_RUNS"] = old
+
+
 @pytest.fixture(autouse=True)
 def _fresh_o1_bookkeeping(request):
     """mission.gnb.client keeps, per (host, port), this process's last `o1 stats` and any it left

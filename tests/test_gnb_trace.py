@@ -169,3 +169,4 @@ def test_a_campaign_spec_names_the_gnb_mode_of_its_full_runs():
         spec(mode="fast", gnb_mode="trace")
     with pytest.raises(CampaignError, match="'rtt' or 'trace'"):
         spec(mode="full", gnb_mode="stock")
+

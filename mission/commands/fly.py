@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="deprecated: fly the mission part of a simulation scenario (use --mission)")
     p.add_argument("--out", type=Path, metavar="DIR", help="write the mission log and a report here")
     p.add_argument("--log", type=Path, metavar="FILE", help="mission log path (default: DIR/mission.jsonl or "
-                   "./uavloc-mission-<UTC>.jsonl)")
+                   "$UAVLOC_RUNS/<UTC>-fly-<mission>/mission.jsonl, $UAVLOC_RUNS default ~/uavloc-runs)")
     p.add_argument("--planner", metavar="NAME", help="planner (default: the mission's, casadi when available)")
     p.add_argument("--gnb-mode", choices=("rtt", "trace", "stock", "auto"), help="override the mission's gnb.mode")
     p.add_argument("--t-port", type=int, metavar="PORT",
@@ -44,9 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    from datetime import UTC, datetime
 
-    from mission.commands.outdir import mission_log_path
+    from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
     from mission.config import load_mission, with_settings
     from mission.controller import controller_from_mission, resolve_planner_name
     from mission.gnb import GnbConfig, OaiGnbClient, parse_gnb_address
@@ -72,8 +71,9 @@ def run(args: argparse.Namespace) -> int:
     # a flight knows no true positions: the oracle planner is refused before anything connects
     resolve_planner_name(args.planner or mission.flight.planner, truth_known=False)
     address = parse_gnb_address(args.gnb, default=mission.gnb.transport)
-    log_path = mission_log_path(args.out, args.log,
-                                Path(f"uavloc-mission-{datetime.now(UTC).strftime('%Y%m%dT%H%M%SZ')}.jsonl"))
+    if args.out is None and args.log is None:
+        args.out = default_out_dir("fly", Path(args.mission).stem if args.mission is not None else "mission")
+    log_path = mission_log_path(args.out, args.log, args.out / LOG_NAME if args.out is not None else args.log)
 
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 

@@ -2,12 +2,40 @@
 
 from __future__ import annotations
 
+import logging
+import os
+from datetime import UTC, datetime
 from pathlib import Path
 
 from uavloc.errors import MissionError
 
 #: the mission log's name in an --out folder
 LOG_NAME = "mission.jsonl"
+#: where a mission without --out (or --log) keeps its log and report: $UAVLOC_RUNS, else this
+RUNS_ENV = "UAVLOC_RUNS"
+DEFAULT_RUNS = "~/uavloc-runs"
+
+log = logging.getLogger(__name__)
+
+
+def default_out_dir(command: str, name: str) -> Path:
+    """A fresh folder for a mission flown without --out: $UAVLOC_RUNS (default ~/uavloc-runs) /
+    <UTC>-<command>-<name>; a mission is never lost for want of an --out. Said on stderr."""
+    root = Path(os.environ.get(RUNS_ENV) or DEFAULT_RUNS).expanduser()
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "mission"
+    out = root / f"{stamp}-{command}-{safe}"
+    n = 1
+    while out.exists():
+        n += 1
+        out = root / f"{stamp}-{command}-{safe}-{n}"
+    try:
+        out.mkdir(parents=True)
+    except OSError as exc:
+        raise MissionError(f"cannot make {out} for the mission log ({exc.strerror or exc}): give --out DIR, "
+                           f"or set {RUNS_ENV} (not taking off)") from None
+    log.warning("no --out: the mission log and report go to %s", out)
+    return out
 
 
 def mission_log_path(out_dir: Path | None, log_path: Path | None, default: Path) -> Path:

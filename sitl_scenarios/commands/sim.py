@@ -40,7 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--planner", metavar="NAME",
                    help="casadi, greedy, lawnmower, circle, random, oracle (default: the scenario's, casadi "
                         "when available)")
-    p.add_argument("--out", type=Path, metavar="DIR", help="write the mission log and a report here")
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="write the mission log and a report here (default: a new folder under $UAVLOC_RUNS, "
+                        "~/uavloc-runs unless set)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     p.add_argument("--gnb-transport", choices=("telnet", "rest"), default="telnet",
                    help="how the adapter talks to the simulated gNB: its telnet server (default) or OAI's web "
@@ -58,9 +60,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    import tempfile
 
-    from mission.commands.outdir import LOG_NAME, mission_log_path
+    from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
     from mission.status import print_result, write_report
     from mission.view.live import live_view
     from sitl_scenarios.scenario import load_scenario, with_autopilot
@@ -74,12 +75,9 @@ def run(args: argparse.Namespace) -> int:
             scenario = with_autopilot(scenario, args.autopilot)
     if args.connect is not None and args.speedup != 10.0:
         log.warning("--speedup is ignored with --connect (PX4 SITL sets its own speed)")
-    tmp = None
-    if args.out is not None:
-        log_path = mission_log_path(args.out, None, args.out / LOG_NAME)
-    else:
-        tmp = tempfile.TemporaryDirectory(prefix="uavloc-sim-")
-        log_path = Path(tmp.name) / LOG_NAME
+    if args.out is None:
+        args.out = default_out_dir("sim", scenario.name)
+    log_path = mission_log_path(args.out, None, args.out / LOG_NAME)
 
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 
@@ -96,27 +94,21 @@ def run(args: argparse.Namespace) -> int:
 
     interrupted = False
     try:
-        try:
-            result = runner.run(main())
-        except (asyncio.CancelledError, KeyboardInterrupt):
-            interrupted = True
-            sim = held.get("sim")
-            result = sim.controller.result if sim is not None and sim.controller is not None else None
-            if result is None:
-                log.error("interrupted before the mission started")
-                runner.exit_if_stuck(EXIT_INTERRUPTED)
-                return EXIT_INTERRUPTED
-        if tmp is not None:
-            result.log_path = None  # the temporary log goes away with the command
-        print_result(result, args.json)
-        log_failed = held["sim"].controller.log_writer.failed
-        if log_failed is not None:
-            log.error("no report: %s", log_failed)
-        elif args.out is not None and result.measurements:
-            write_report(log_path, args.out)
-    finally:
-        if tmp is not None:
-            tmp.cleanup()
+        result = runner.run(main())
+    except (asyncio.CancelledError, KeyboardInterrupt):
+        interrupted = True
+        sim = held.get("sim")
+        result = sim.controller.result if sim is not None and sim.controller is not None else None
+        if result is None:
+            log.error("interrupted before the mission started")
+            runner.exit_if_stuck(EXIT_INTERRUPTED)
+            return EXIT_INTERRUPTED
+    print_result(result, args.json)
+    log_failed = held["sim"].controller.log_writer.failed
+    if log_failed is not None:
+        log.error("no report: %s", log_failed)
+    elif result.measurements:
+        write_report(log_path, args.out)
     code = EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
     runner.exit_if_stuck(code)
     return code
