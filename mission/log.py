@@ -416,10 +416,11 @@ def _parse_area(obj: dict) -> dict:
 #: time, which in stock mode is the user's random access and may precede the one logged before it.)
 TIME_ORDERED_TYPES = ("telemetry",)
 #: how far an rtt record may go back in time from the latest one before it [s]: a trigger's records
-#: carry each measurement's own time (a stock random access, a trace mode SRS occasion: up to its
-#: max age, trace_max_age_s), so a little disorder is real; more is a shuffled or spliced log, whose
-#: ranges would sit on a track never flown (refused, not sorted)
-RTT_DISORDER_MAX_S = 2.0
+#: carry each measurement's own time (a stock random access read seconds late from a block-buffered
+#: gNB log, a trace mode SRS occasion, records of a slow trigger on a loaded machine), so some
+#: disorder is real; half a minute is a shuffled or spliced log, whose ranges would sit on a track
+#: never flown (refused, not sorted)
+RTT_DISORDER_MAX_S = 30.0
 
 #: largest speed a telemetry velocity may claim [m/s]
 MAX_SPEED_MPS = 200.0

@@ -99,6 +99,8 @@ class ProbeResult:
     duration_s: float = 0.0
     #: trace mode: what the T tracer client saw (mission.gnb.tracer.TraceStatus)
     trace: TraceStatus | None = None
+    #: why the client measures in `mode` ("configured", or what mode "auto" found)
+    mode_reason: str = ""
     #: each way to measure -> whether this gNB serves it, and why ("rtt", "trace", "stock")
     modes: dict[str, tuple[bool, str]] = field(default_factory=dict)
 
@@ -138,6 +140,7 @@ class ProbeResult:
                 "gnb_rntis": None if self.gnb_rntis is None else [f"{r:04x}" for r in self.gnb_rntis],
                 "log_stamps": self.log_stamps, "problems": list(self.problems),
                 "ues": [u.to_dict() for u in self.ues], "duration_s": round(self.duration_s, 3),
+                "mode_reason": self.mode_reason,
                 "trace": None if self.trace is None else asdict(self.trace),
                 "modes": {m: {"served": ok, "why": why} for m, (ok, why) in self.modes.items()},
                 "recommended": self.recommended, "message": self.message()}
@@ -145,6 +148,8 @@ class ProbeResult:
     def lines(self) -> list[str]:
         """Human-readable report, one string per line."""
         out = [self.message()]
+        if self.mode_reason and self.mode_reason != "configured":
+            out.append(f"  mode {self.mode}: {self.mode_reason}")
         if self.trace is not None:
             t = self.trace
             age = "never" if t.last_event_age_s is None else f"{t.last_event_age_s:.2f} s ago"
@@ -275,9 +280,10 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
     present = [u for u in res.ues if u.present]
     if present and not any(u.ok for u in present) and mode.startswith("stock") and not fatal:
         res.problems.append("no random access seen for any UE")
-    tracer = getattr(client, "tracer", None)
-    if tracer is not None:
-        res.trace = tracer.status()
+    if isinstance(client, OaiGnbClient):
+        res.mode_reason = client.mode_reason
+        if client.tracer is not None:
+            res.trace = client.tracer.status()
     res.duration_s = clock() - t0
     return res
 
@@ -289,7 +295,7 @@ TRACE_WAIT_S = 3.0
 
 async def _measure_waiting(client: GnbClient, rnti: int):
     """client.measure(rnti); in trace mode, waiting up to TRACE_WAIT_S for the trace to give one."""
-    tracer = getattr(client, "tracer", None) if getattr(client, "mode", None) == "trace" else None
+    tracer = client.tracer if isinstance(client, OaiGnbClient) and client.mode == "trace" else None
     if tracer is None:
         return await client.measure(rnti)
     deadline = time.monotonic() + TRACE_WAIT_S
