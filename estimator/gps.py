@@ -158,3 +158,51 @@ def estimate_gps_tau_s(
         return 0.0
     # τ = −Δt / ln(1 − m)
     return -step / math.log1p(-max(m, 1e-12))
+
+
+# -- the floor no flight removes ---------------------------------------------------------------------
+
+
+def gps_mean_var_factor(tau_s: float, survey_s: float) -> float:
+    """The share of σ_gps² a Gauss–Markov GPS error keeps when averaged over a survey of survey_s:
+
+        Var[(1/T) ∫₀ᵀ β dt] / σ² = (2τ/T) · (1 − (τ/T)(1 − e^{−T/τ}))       (τ > 0, T > 0)
+
+    1 when T ≪ τ (one offset for the whole track), 2τ/T when T ≫ τ, 0 for white errors (τ = 0:
+    many independent fixes average out)."""
+    if tau_s <= 0.0:
+        return 0.0
+    if survey_s <= 0.0:
+        return 1.0
+    x = survey_s / tau_s
+    if x < 1e-6:  # 1 − x/3 + …: the series, where the closed form cancels
+        return 1.0 - x / 3.0
+    # (2/x) · (1 − (1 − e^{−x})/x), with expm1 for the small-x end
+    return float(min(1.0, max(0.0, 2.0 / x * (1.0 + math.expm1(-x) / x))))
+
+
+def gps_floor_bound_95_m(sigma_gps_m: float, tau_s: float, survey_s: float) -> float:
+    """The 95 % horizontal bound [m] that the GPS error leaves common to every user however the
+    survey flies: ranges place users relative to the track, and the part of the track's error that
+    the survey's duration does not average away moves track and users together, which no range sees.
+
+        r95_floor = sqrt(χ²₂(0.95) · σ_gps² · gps_mean_var_factor(τ, T))
+    """
+    from estimator.types import CHI2_2DOF_95
+
+    return math.sqrt(CHI2_2DOF_95 * sigma_gps_m**2 * gps_mean_var_factor(tau_s, survey_s))
+
+
+def gps_tau_for_floor_s(sigma_gps_m: float, survey_s: float, floor_m: float) -> float:
+    """The longest correlation time τ [s] whose floor over survey_s is at most floor_m (bisection on
+    the monotone gps_floor_bound_95_m); inf when even a constant offset stays below it."""
+    if gps_floor_bound_95_m(sigma_gps_m, 1e12, survey_s) <= floor_m:
+        return math.inf
+    lo, hi = 0.0, 1e7
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if gps_floor_bound_95_m(sigma_gps_m, mid, survey_s) <= floor_m:
+            lo = mid
+        else:
+            hi = mid
+    return lo

@@ -38,7 +38,8 @@ from typing import Any, Literal
 import numpy as np
 
 from estimator.geodesy import Origin
-from estimator.noise import NoiseModel
+from estimator.gps import gps_floor_bound_95_m, gps_tau_for_floor_s
+from estimator.noise import DEFAULT_GPS_TAU_S, NoiseModel
 from mission import schema
 from mission.schema import bounded, positive
 from uavloc.errors import MissionConfigError, UavlocError
@@ -390,10 +391,46 @@ def validate_mission(mc: MissionConfig, where: str) -> None:
                   f"need 0 <= alt_min_m ({f.alt_min_m:g}) <= altitude_m <= alt_max_m ({f.alt_max_m:g})")
     for key, value, why in mc.gnb.problems():
         raise bad(f"gnb.{key}", value, why)
+    if mc.noise.gps_tau_s is not None:  # unknown τ (an external autopilot's): judged when known
+        floor = gps_floor_problem(mc)
+        if floor is not None:
+            raise bad("flight.target_radius_m", f.target_radius_m, floor)
     s = mc.safety
     if s.battery_takeoff_min_pct < s.battery_rtl_pct:
         raise bad("safety.battery_takeoff_min_pct", s.battery_takeoff_min_pct,
                   f"must be >= battery_rtl_pct ({s.battery_rtl_pct:g})")
+
+
+def survey_s(flight: FlightConfig) -> float:
+    """The longest a survey can last [s]: its budget at the cruise speed, within the time limit."""
+    return min(flight.budget_m / flight.cruise_speed_mps, flight.time_limit_s)
+
+
+def gps_floor_m(mc: MissionConfig, gps_tau_s: float | None = None) -> float:
+    """The 95 % bound [m] the GPS error leaves common to every user of this mission however it flies
+    (estimator.gps.gps_floor_bound_95_m over its longest survey); gps_tau_s overrides the noise's."""
+    tau = mc.noise.gps_tau_s if gps_tau_s is None else gps_tau_s
+    tau = DEFAULT_GPS_TAU_S if tau is None else tau
+    return gps_floor_bound_95_m(mc.noise.sigma_gps_m, tau, survey_s(mc.flight))
+
+
+def gps_floor_problem(mc: MissionConfig, gps_tau_s: float | None = None) -> str | None:
+    """Why the target cannot be reached for the GPS (both numbers, and what would allow it), or None."""
+    f, n = mc.flight, mc.noise
+    tau = n.gps_tau_s if gps_tau_s is None else gps_tau_s
+    tau = DEFAULT_GPS_TAU_S if tau is None else tau
+    floor = gps_floor_m(mc, tau)
+    if f.target_radius_m >= floor:
+        return None
+    t = survey_s(f)
+    # r95 ∝ σ_gps: the σ that brings the floor to the target
+    sigma_ok = n.sigma_gps_m * f.target_radius_m / floor
+    tau_ok = gps_tau_for_floor_s(n.sigma_gps_m, t, f.target_radius_m)
+    return (f"below the GPS floor of {floor:.2f} m: a GPS error of σ {n.sigma_gps_m:g} m drifting with τ {tau:g} s "
+            f"leaves that 95 % bound common to track and users over the longest survey ({t:.0f} s: budget_m at "
+            f"cruise_speed_mps, within time_limit_s), which no flight removes; a target of {f.target_radius_m:g} m "
+            f"needs noise.sigma_gps_m <= {sigma_ok:.2f} m (RTK) or noise.gps_tau_s <= {tau_ok:.0f} s, or a target "
+            f">= {floor:.2f} m")
 
 
 #: the tables of a mission file whose keys are plain settings (not users or polygons)

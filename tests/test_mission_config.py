@@ -188,3 +188,44 @@ def test_planning_constraints_of_the_mission_part_equal_the_scenarios_without_bu
             np.testing.assert_array_equal(a, b, err_msg=f.name)
         else:
             assert a == b, f.name
+
+
+def test_the_gps_floor_is_the_drifting_errors_mean_over_the_survey():
+    """Var[(1/T)∫β] / σ² of a Gauss–Markov error against a seeded simulation of one; the floor's
+    limits: a constant offset (τ ≫ T) keeps all of σ, a white error none."""
+    from estimator.gps import gps_floor_bound_95_m, gps_mean_var_factor, gps_tau_for_floor_s
+    from estimator.types import CHI2_2DOF_95
+
+    rng = np.random.default_rng(7)
+    tau_s, survey_s, dt = 30.0, 150.0, 0.1
+    phi = np.exp(-dt / tau_s)
+    e = rng.normal(size=4000)
+    total = np.zeros(4000)
+    n = round(survey_s / dt)
+    for _ in range(n):
+        total += e
+        e = phi * e + np.sqrt(1 - phi**2) * rng.normal(size=4000)
+    assert np.var(total / n) == pytest.approx(gps_mean_var_factor(tau_s, survey_s), rel=0.08)
+    assert gps_floor_bound_95_m(1.0, 1e12, 150.0) == pytest.approx(np.sqrt(CHI2_2DOF_95), rel=1e-6)
+    assert gps_floor_bound_95_m(1.0, 0.0, 150.0) == 0.0
+    tau = gps_tau_for_floor_s(1.0, 150.0, 1.5)
+    assert gps_floor_bound_95_m(1.0, tau, 150.0) == pytest.approx(1.5, abs=1e-6)
+
+
+def test_a_target_below_the_gps_floor_is_refused_with_both_numbers(tmp_path, capsys):
+    """Issue 39: σ_gps 1 m drifting with τ of minutes leaves ~2.4 m no flight removes; a 1.5 m
+    target is refused at load, naming the floor, the target and what would allow it."""
+    from mission.cli import main
+    from mission.config import gps_floor_m
+
+    text = EXAMPLE.read_text().replace("target_radius_m = 3.0", "target_radius_m = 1.5").replace(
+        "gps_tau_s = 5.0", "gps_tau_s = 600.0")
+    path = tmp_path / "tight.toml"
+    path.write_text(text)
+    with pytest.raises(MissionConfigError, match=r"target_radius_m.*1\.5.*below the GPS floor of 2\.\d\d m"):
+        load_mission(path)
+    rc = main(["fly", "--mission", str(path), "--connect", "udpin://127.0.0.1:1", "--gnb", "127.0.0.1:1"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "below the GPS floor" in err and "sigma_gps_m <=" in err and "gps_tau_s <=" in err
+    # the example's own target stands above its floor
+    assert gps_floor_m(load_mission(EXAMPLE)) < 3.0

@@ -142,7 +142,8 @@ class OaiRun:
         env = dict(os.environ, LD_LIBRARY_PATH=os.pathsep.join(
             p for p in (str(self.build), os.environ.get("LD_LIBRARY_PATH", "")) if p))
         fh = open(log, "w")  # noqa: SIM115 -- the process writes it until stop()
-        proc = subprocess.Popen([str(self.build / exe), "-O", str(conf), *args], stdout=fh, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen([*_unprivileged(), str(self.build / exe), "-O", str(conf), *args], stdout=fh,
+                                stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, cwd=conf.parent, env=env, start_new_session=True)
         fh.close()
         self.procs[name] = proc
@@ -202,6 +203,16 @@ class OaiRun:
             if "[TELNETSRV] Command received" in ln and '"' in ln:
                 out.append(ln.split('"', 1)[1].rsplit('"', 1)[0])
         return out
+
+
+def _unprivileged() -> list[str]:
+    """What OAI is started under: run as root it makes SCHED_FIFO threads, whose PHY and rfsim then
+    starve its own RRC on a 2-core machine (Msg4 comes after the contention-resolution timer, the UE
+    retries and aborts: "no data for Msg3"); without CAP_SYS_NICE and at nice 19 it cannot
+    (../shared/peer-builds.md). Each command execs the next: the pid is OAI's."""
+    if os.geteuid() != 0 or shutil.which("setpriv") is None:
+        return []
+    return ["setpriv", "--bounding-set", "-sys_nice", "--inh-caps", "-sys_nice", "nice", "-n", "19"]
 
 
 def _port_open(port: int) -> bool:

@@ -116,5 +116,5 @@ def test_an_external_autopilot_does_not_get_the_builtin_vehicles_gps_drift():
     assert sc.noise_model(external_vehicle=True).gps_tau_s is None
     assert sc.mission_config(external_vehicle=True).noise.gps_tau_s is None
     assert "gps_tau_s" not in sc.mission_config(external_vehicle=True).noise.header_noise()
-    given = scenario_from_dict(with_(["noise", "gps_tau_s"], 150.0))
-    assert given.noise_model(external_vehicle=True).gps_tau_s == given.noise_model().gps_tau_s == 150.0
+    given = scenario_from_dict(with_(["noise", "gps_tau_s"], 60.0))
+    assert given.noise_model(external_vehicle=True).gps_tau_s == given.noise_model().gps_tau_s == 60.0
