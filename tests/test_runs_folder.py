@@ -23,3 +23,6 @@ def test_a_sim_without_out_keeps_its_log_and_says_where(tmp_path):
     assert run.name.endswith("-sim-paper") and str(run) in proc.stderr
     doc = json.loads(proc.stdout)
     assert doc["log"] == str(run / "mission.jsonl") and (run / "report.json").is_file()
+    events = [json.loads(line) for line in (run / "mission.jsonl").read_text().splitlines() if '"survey_time"' in line]
+    (ev,) = events
+    assert ev["survey_s"] > 0 and 0 <= ev["hover_s"] <= ev["survey_s"] and ev["largest_gap_s"] > 0

@@ -218,6 +218,8 @@ class MissionController:
         t = self.mission_t(fix.t_mono_s)
         pos = self.origin.lla_to_enu(fix.lat_deg, fix.lon_deg, fix.alt_amsl_m)
         self._buffer.append(t, pos)
+        if fix.vel_ned_mps is not None:
+            self.flight.clock.fix(t, float(np.hypot(fix.vel_ned_mps[0], fix.vel_ned_mps[1])))
         if t - self._last_tel_log_t >= 1.0 / self.config.telemetry_log_hz and self.journal.is_open:
             self._last_tel_log_t = t
             extra = {"vel_ned_mps": list(fix.vel_ned_mps)} if fix.vel_ned_mps is not None else {}
@@ -256,7 +258,11 @@ class MissionController:
             self._takeoff_over.set()
             if f.return_reason is None:
                 f.set_phase(SURVEY)
-                await self.legs.survey()
+                f.clock.t0_s = self.now()
+                try:
+                    await self.legs.survey()
+                finally:
+                    self._survey_ended()
             f.set_phase(RETURN)
             if not await self._send_rtl(f.return_reason or (f.stop or ("", "survey done"))[1]):
                 raise VehicleError("the vehicle did not accept RTL")
@@ -320,6 +326,17 @@ class MissionController:
                            probe=probe.to_dict())
         if not ok:
             raise GnbPreflightError(f"not taking off: {probe.message()}")
+
+    def _survey_ended(self) -> None:
+        """Log how the survey spent its time: hover (slower than HOVER_SPEED_MPS) and the longest
+        time without a range."""
+        c = self.flight.clock
+        c.end(self.now())
+        share = 100.0 * c.hover_s / c.survey_s if c.survey_s > 0 else 0.0
+        self.journal.event(f"survey {c.survey_s:.0f} s: hovering {c.hover_s:.1f} s ({share:.1f} %), longest without "
+                           f"a range {c.largest_gap_s:.1f} s; {self.legs.planned_ahead} legs planned ahead",
+                           kind="survey_time", survey_s=round(c.survey_s, 2), hover_s=round(c.hover_s, 2),
+                           largest_gap_s=round(c.largest_gap_s, 2), planned_ahead=self.legs.planned_ahead)
 
     async def _prepare_planner(self) -> None:
         """The planner's one-time work (CasADi kernels) before take-off, in a thread, so that the

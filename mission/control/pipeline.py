@@ -246,6 +246,7 @@ class MeasurementPipeline:
         records = [self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
                    for k, s, tm in samples]
         self.flight.measurements += len(samples)
+        self.flight.clock.range_at(t_meas)
         # the keyframe of the records as logged, by replay's builder (mission.keyframes)
         trigger = TriggerRecords.from_records(records, self._user_index)
         t_pos = trigger.position_t_s

@@ -20,6 +20,51 @@ from mission.control.loop import Pulse
 
 log = logging.getLogger(__name__)
 
+#: slower than this [m/s], a surveying vehicle hovers (issue 39: a survey that waits for the planner)
+HOVER_SPEED_MPS = 0.5
+
+
+@dataclass
+class SurveyClock:
+    """How the survey spent its time, in mission seconds: t0_s, t1_s its start and end; hover_s the
+    time slower than HOVER_SPEED_MPS; largest_gap_s the longest time without a range (from the
+    start, between rounds, to the end)."""
+
+    t0_s: float | None = None
+    t1_s: float | None = None
+    hover_s: float = 0.0
+    largest_gap_s: float = 0.0
+    _last_fix_s: float | None = None
+    _last_range_s: float | None = None
+
+    def fix(self, t_s: float, speed_mps: float | None) -> None:
+        """A fix during the survey: Δt since the last one counts as hover when slower than the threshold."""
+        if self.t0_s is None or self.t1_s is not None:
+            return
+        if self._last_fix_s is not None and speed_mps is not None and speed_mps < HOVER_SPEED_MPS:
+            self.hover_s += max(0.0, t_s - self._last_fix_s)
+        self._last_fix_s = t_s
+
+    def range_at(self, t_s: float) -> None:
+        """A round of ranges measured at t_s."""
+        if self.t0_s is None or self.t1_s is not None:
+            return
+        prev = self._last_range_s if self._last_range_s is not None else self.t0_s
+        self.largest_gap_s = max(self.largest_gap_s, t_s - prev)
+        self._last_range_s = max(t_s, prev)
+
+    def end(self, t_s: float) -> None:
+        if self.t0_s is None or self.t1_s is not None:
+            return
+        self.range_at(t_s)
+        self.t1_s = t_s
+
+    @property
+    def survey_s(self) -> float:
+        if self.t0_s is None:
+            return 0.0
+        return (self.t1_s if self.t1_s is not None else self._last_fix_s or self.t0_s) - self.t0_s
+
 
 @dataclass
 class FlightState:
@@ -30,7 +75,8 @@ class FlightState:
     Δ-trigger is armed); link_lost_since / gnb_down_since: when the vehicle link / the gNB was
     lost (None: fine); gnb_problem: what the gNB said or did, in its own words; flown_m: survey
     metres; measurements: rtt records logged; estimate: the latest estimate; event: the mission
-    log's event writer (message, **fields); wake: pulsed on every fix and every end request.
+    log's event writer (message, **fields); wake: pulsed on every fix and every end request;
+    clock: the survey's hover time and largest gap between ranges.
     """
 
     event: Callable[..., None]
@@ -45,6 +91,8 @@ class FlightState:
     measurements: int = 0
     estimate: Estimate | None = None
     wake: Pulse = field(default_factory=Pulse)
+    #: hover time and the longest time without a range, over the survey
+    clock: SurveyClock = field(default_factory=SurveyClock)
 
     @property
     def ending(self) -> bool:

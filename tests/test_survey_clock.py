@@ -1,0 +1,33 @@
+"""The survey's own account of its time: hover and the longest stretch without a range."""
+
+from __future__ import annotations
+
+import pytest
+
+from mission.control.state import HOVER_SPEED_MPS, SurveyClock
+
+
+def test_hover_is_the_time_slower_than_the_threshold_during_the_survey_only():
+    c = SurveyClock()
+    c.fix(0.0, 0.0)  # before the survey: not counted
+    c.t0_s = 10.0
+    speeds = [5.0] * 10 + [0.1] * 5 + [5.0] * 5  # 1 s apart: 5 s of hover (the Δt after each slow fix)
+    for i, v in enumerate(speeds):
+        c.fix(10.0 + i, v)
+    c.end(30.0)
+    c.fix(31.0, 0.0)  # after it: not counted
+    assert c.hover_s == pytest.approx(5.0) and c.survey_s == pytest.approx(20.0)
+    assert HOVER_SPEED_MPS == 0.5
+
+
+def test_the_largest_gap_counts_from_the_start_and_to_the_end():
+    c = SurveyClock()
+    c.t0_s = 100.0
+    for t in (101.0, 102.0, 107.5, 108.0):
+        c.range_at(t)
+    c.range_at(107.9)  # a round timed before the last one does not shrink the gaps
+    assert c.largest_gap_s == pytest.approx(5.5)
+    c.end(120.0)
+    assert c.largest_gap_s == pytest.approx(12.0)
+    c.range_at(200.0)  # after the end: ignored
+    assert c.largest_gap_s == pytest.approx(12.0)
