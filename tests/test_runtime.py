@@ -81,7 +81,9 @@ def test_sigterm_or_sighup_during_the_survey_sends_the_vehicle_home(tmp_path, si
     # machine) already landed there; a vehicle left alone would hover in Hold where it was
     landed_home = not state.in_air and d0_m < 5.0
     assert state.mode == "return_to_launch" or landed_home, (state.mode, state.in_air, d0_m)
-    assert d1_m < d0_m or not state.in_air, (d0_m, d1_m)
+    # closing in on home, or over it already (descending: the true position then wanders by the GPS
+    # error around the home the vehicle's estimate holds)
+    assert d1_m < d0_m or not state.in_air or d0_m < 5.0, (d0_m, d1_m)
     kinds = [e.get("kind", "") for e in read_mission_log(log_path).events]
     assert kinds[-3:] == ["interrupted", "rtl", "end"], kinds[-5:]
     last = log_path.read_bytes().rstrip(b"\n").rsplit(b"\n", 1)[-1]
