@@ -126,30 +126,32 @@ def t_stream(air_s: float, ues: int = T_UES) -> tuple[bytes, int]:
     """(the bytes a real gNB's T server sends in air_s seconds with `ues` UEs, event count): the
     preamble, then per 10 ms frame SIB1 every 16 frames, an SRS estimate per UE every 8 and a DL PDU
     with a TA command per UE every 100 (sitl_scenarios.gnb.ttrace's encoders and ids)."""
-    from sitl_scenarios.gnb.ttrace import ID, SIM_T_MESSAGES, _buffer, _ints, chest_bytes, frame_bytes
+    from sitl_scenarios.gnb.ttrace import ID, SIM_T_MESSAGES, buffer_bytes, chest_bytes, fields_bytes, frame_bytes
 
     rng = np.random.default_rng(0)
-    out = [frame_bytes(0.0, -1, _buffer(SIM_T_MESSAGES.encode())), frame_bytes(0.0, -2, b"")]
+    out = [frame_bytes(0.0, -1, buffer_bytes(SIM_T_MESSAGES.encode())), frame_bytes(0.0, -2, b"")]
     n = 0
     for k in range(ues):
         rar = bytes([0x40 | k, 0, (2 & 0x1F) << 3, 0, 0, 0, 0x46, k + 1])
-        out.append(frame_bytes(0.0, ID["GNB_MAC_DL_RAR_PDU_WITH_DATA"], _ints(0, 0, 0x10F, 0, 10, 0) + _buffer(rar)))
+        out.append(frame_bytes(0.0, ID["GNB_MAC_DL_RAR_PDU_WITH_DATA"],
+                               fields_bytes(0, 0, 0x10F, 0, 10, 0) + buffer_bytes(rar)))
         n += 1
     for f in range(1, round(air_s / 0.01) + 1):
         t = f * 0.01
         if f % 16 == 0:
-            out.append(frame_bytes(t, ID["GNB_MAC_DL_PDU_WITH_DATA"], _ints(0, 0, 0xFFFF, f % 1024, 1, 0)
-                                   + _buffer(rng.bytes(100))))
+            out.append(frame_bytes(t, ID["GNB_MAC_DL_PDU_WITH_DATA"], fields_bytes(0, 0, 0xFFFF, f % 1024, 1, 0)
+                                   + buffer_bytes(rng.bytes(100))))
             n += 1
         for k in range(ues):
             if f % 8 == 0:
                 chest = chest_bytes(float(rng.normal(0, 2)), 8000.0, rng)
                 out.append(frame_bytes(t, ID["GNB_PHY_UL_TIME_CHANNEL_ESTIMATE"],
-                                       _ints(0, 0x4600 + k + 1, f % 1024, 0, 0) + _buffer(chest)))
+                                       fields_bytes(0, 0x4600 + k + 1, f % 1024, 0, 0) + buffer_bytes(chest)))
                 n += 1
             if f % 100 == 0:
-                out.append(frame_bytes(t, ID["GNB_MAC_DL_PDU_WITH_DATA"], _ints(0, 0, 0x4600 + k + 1, f % 1024, 0, 0)
-                                       + _buffer(bytes([61, 31, 63]) + bytes(16))))
+                out.append(frame_bytes(t, ID["GNB_MAC_DL_PDU_WITH_DATA"],
+                                       fields_bytes(0, 0, 0x4600 + k + 1, f % 1024, 0, 0)
+                                       + buffer_bytes(bytes([61, 31, 63]) + bytes(16))))
                 n += 1
     return b"".join(out), n
 

@@ -406,27 +406,28 @@ def survey_s(flight: FlightConfig) -> float:
     return min(flight.budget_m / flight.cruise_speed_mps, flight.time_limit_s)
 
 
-def gps_floor_m(mc: MissionConfig, gps_tau_s: float | None = None) -> float:
+def gps_floor_m(mc: MissionConfig) -> float:
     """The 95 % bound [m] the GPS error leaves common to every user of this mission however it flies
-    (estimator.gps.gps_floor_bound_95_m over its longest survey); gps_tau_s overrides the noise's."""
-    tau = mc.noise.gps_tau_s if gps_tau_s is None else gps_tau_s
-    tau = DEFAULT_GPS_TAU_S if tau is None else tau
-    return gps_floor_bound_95_m(mc.noise.sigma_gps_m, tau, survey_s(mc.flight))
+    (estimator.gps.gps_floor_bound_95_m over its longest survey, τ unknown taken as DEFAULT_GPS_TAU_S)."""
+    return gps_floor_bound_95_m(mc.noise.sigma_gps_m, _floor_tau_s(mc), survey_s(mc.flight))
 
 
-def gps_floor_problem(mc: MissionConfig, gps_tau_s: float | None = None) -> str | None:
+def _floor_tau_s(mc: MissionConfig) -> float:
+    return DEFAULT_GPS_TAU_S if mc.noise.gps_tau_s is None else mc.noise.gps_tau_s
+
+
+def gps_floor_problem(mc: MissionConfig) -> str | None:
     """Why the target cannot be reached for the GPS (both numbers, and what would allow it), or None."""
     f, n = mc.flight, mc.noise
-    tau = n.gps_tau_s if gps_tau_s is None else gps_tau_s
-    tau = DEFAULT_GPS_TAU_S if tau is None else tau
-    floor = gps_floor_m(mc, tau)
+    floor = gps_floor_m(mc)
     if f.target_radius_m >= floor:
         return None
     t = survey_s(f)
     # r95 ∝ σ_gps: the σ that brings the floor to the target
     sigma_ok = n.sigma_gps_m * f.target_radius_m / floor
     tau_ok = gps_tau_for_floor_s(n.sigma_gps_m, t, f.target_radius_m)
-    return (f"below the GPS floor of {floor:.2f} m: a GPS error of σ {n.sigma_gps_m:g} m drifting with τ {tau:g} s "
+    return (f"below the GPS floor of {floor:.2f} m: a GPS error of σ {n.sigma_gps_m:g} m drifting with τ "
+            f"{_floor_tau_s(mc):g} s "
             f"leaves that 95 % bound common to track and users over the longest survey ({t:.0f} s: budget_m at "
             f"cruise_speed_mps, within time_limit_s), which no flight removes; a target of {f.target_radius_m:g} m "
             f"needs noise.sigma_gps_m <= {sigma_ok:.2f} m (RTK) or noise.gps_tau_s <= {tau_ok:.0f} s, or a target "

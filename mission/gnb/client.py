@@ -46,7 +46,7 @@ from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 from estimator.ranging import toa_s_from_raw
-from mission.gnb.config import FORBIDDEN_CI, GnbConfig, check_ci_line, parse_host_port
+from mission.gnb.config import FORBIDDEN_CI, GnbConfig, backoff_delay_s, check_ci_line, parse_host_port
 from mission.gnb.log_follower import LogFollower, StockLog
 from mission.gnb.oai import (
     RttErrorReply,
@@ -184,22 +184,31 @@ class OaiGnbClient:
         await tracer.__aenter__()
         self.tracer = tracer
 
+    async def rtt_command_served(self, rntis: list[int]) -> tuple[bool, str]:
+        """Does this gNB have the RTT command? Tried with one measurement of the first of `rntis`:
+        (False, why) with no UE to try it on or for an unknown command (a stock gNB), (True, what
+        answered) otherwise; other GnbErrors (a lost or silent gNB) propagate."""
+        name = f"`{self.config.rtt_module} {self.config.rtt_command}`"
+        if not rntis:
+            return False, "no UE to try the RTT command on"
+        try:
+            await self._measure_rtt(rntis[0])
+        except GnbUnknownCommandError:
+            return False, f"no {name} command (a stock gNB)"
+        except GnbNoMeasurementError as exc:
+            return True, f"{name} exists ({exc})"
+        return True, f"{name} answered"
+
     async def _choose_mode(self) -> None:
         """mode "auto": the best way this gNB measures, tried in order: the RTT command (a modified
         gNB: one measurement of a discovered UE), the T tracer with SRS events (a stock gNB run with
         --T_stdout 2), the log file (stock, coarse). Sets `mode` and `mode_reason` (logged)."""
         tried: list[str] = []
-        rntis = await self.discover()
-        if rntis:
-            try:
-                await self._measure_rtt(rntis[0])
-                self.mode, self.mode_reason = "rtt", f"`{self.config.rtt_module} {self.config.rtt_command}` answered"
-            except GnbUnknownCommandError:
-                tried.append(f"no `{self.config.rtt_module} {self.config.rtt_command}` command (a stock gNB)")
-            except GnbNoMeasurementError as exc:
-                self.mode, self.mode_reason = "rtt", f"the RTT command exists ({exc})"
+        served, why = await self.rtt_command_served(await self.discover())
+        if served:
+            self.mode, self.mode_reason = "rtt", why
         else:
-            tried.append("no UE to try the RTT command on")
+            tried.append(why)
         if self.mode == "auto":
             try:
                 await self._start_tracer()
@@ -260,9 +269,7 @@ class OaiGnbClient:
 
     async def _backoff(self, attempt: int) -> None:
         cfg = self.config
-        # delay = min(max, initial · 2^attempt) · U(0.5, 1)   (equal jitter)
-        delay = min(cfg.backoff_max_s, cfg.backoff_initial_s * 2**attempt) * (0.5 + 0.5 * self.rng.random())
-        await asyncio.sleep(delay)
+        await asyncio.sleep(backoff_delay_s(attempt, cfg.backoff_initial_s, cfg.backoff_max_s, self.rng))
 
     async def _connect_with_retry(self) -> None:
         last: GnbError | None = None

@@ -4,10 +4,11 @@
 from __future__ import annotations
 
 import dataclasses
+import random
 from dataclasses import dataclass
 from typing import Any
 
-from estimator.ranging import C_MPS, MU_VALUES
+from estimator.ranging import MU_VALUES, one_way_m_per_sample
 from mission.config import GnbSettings
 from mission.gnb.oai import PROMPT_GNB
 from mission.gnb.trace_rtt import TraceSettings
@@ -57,8 +58,8 @@ class GnbConfig(GnbSettings):
         """How the trace mode reads the T stream (mission.gnb.trace_rtt)."""
         return TraceSettings(mu=self.mu, fs_hz=self.fs_hz, min_peak_to_mean_db=self.srs_min_peak_to_mean_db,
                              max_range_rate_mps=self.trace_max_range_rate_mps,
-                             rate_tolerance_samples=2.0 * self.trace_jump_tolerance_m * self.fs_hz / C_MPS,
-                             clock_step_samples=2.0 * self.trace_clock_step_m * self.fs_hz / C_MPS)
+                             rate_tolerance_samples=self.trace_jump_tolerance_m / one_way_m_per_sample(self.fs_hz),
+                             clock_step_samples=self.trace_clock_step_m / one_way_m_per_sample(self.fs_hz))
 
     def __post_init__(self) -> None:
         if self.transport not in ("telnet", "rest"):
@@ -78,6 +79,14 @@ class GnbConfig(GnbSettings):
             raise GnbError("retries and backoff times must be non-negative")
         for key, value, why in self.problems():
             raise GnbError(f"{key} {value!r}: {why}")
+
+
+def backoff_delay_s(attempt: int, initial_s: float, max_s: float, rng: random.Random) -> float:
+    """The wait before reconnect `attempt` (0-based) [s], jittered exponential ("equal jitter"):
+
+        delay = min(max, initial · 2^attempt) · U(0.5, 1)
+    """
+    return min(max_s, initial_s * 2**attempt) * (0.5 + 0.5 * rng.random())
 
 
 def parse_host_port(text: str, default_port: int = 9090) -> tuple[str, int]:

@@ -313,16 +313,10 @@ async def served_modes(client: OaiGnbClient, rntis: list[int]) -> dict[str, tupl
     T tracer with SRS events (at config.t_port), a gNB log with wall-clock stamps (config.log_path)."""
     cfg = client.config
     out: dict[str, tuple[bool, str]] = {}
-    if rntis:
-        try:
-            await client._measure_rtt(rntis[0])
-            out["rtt"] = (True, f"`{cfg.rtt_module} {cfg.rtt_command}` answered")
-        except GnbUnknownCommandError:
-            out["rtt"] = (False, f"no `{cfg.rtt_module} {cfg.rtt_command}` command: a stock gNB")
-        except GnbError as exc:
-            out["rtt"] = (True, f"the command exists ({exc})")
-    else:
-        out["rtt"] = (False, "no UE to try the RTT command on")
+    try:
+        out["rtt"] = await client.rtt_command_served(rntis)
+    except GnbError as exc:  # a timeout, a lost connection: the command exists, the gNB did not answer it
+        out["rtt"] = (True, f"`{cfg.rtt_module} {cfg.rtt_command}` exists ({exc})")
     tracer = client.tracer
     try:
         if tracer is None:

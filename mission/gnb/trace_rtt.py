@@ -35,7 +35,7 @@ import collections
 import math
 from dataclasses import dataclass, field
 
-from estimator.ranging import C_MPS, ta_step_s
+from estimator.ranging import one_way_m_per_sample, ta_step_s
 from mission.gnb.ttrace import (
     EV_DL_PDU,
     EV_DL_RETX,
@@ -95,8 +95,8 @@ class TraceSettings:
 
     @property
     def rate_samples_per_s(self) -> float:
-        """How fast an RTT may move [samples/s]: 2 · v_max · fs / c."""
-        return 2.0 * self.max_range_rate_mps * self.fs_hz / C_MPS
+        """How fast an RTT may move [samples/s]: v_max over the one-way metres of a sample, 2 · v_max · fs / c."""
+        return self.max_range_rate_mps / one_way_m_per_sample(self.fs_hz)
 
 
 @dataclass(frozen=True)
@@ -122,15 +122,13 @@ class TraceRtt:
 @dataclass
 class _Pending:
     cmd: int
-    t_air_s: float
     seen: int = 0  # valid SRS occasions since it was sent
 
 
 @dataclass
 class _Ue:
     ta: int
-    t_rar_air_s: float
-    pending: list[_Pending] = field(default_factory=list)
+    pending: _Pending | None = None  # the TA command not yet seen applied or dropped (the gNB sends one at a time)
     ref_peak: float | None = None  # the latest valid peak
     streak: list[float] = field(default_factory=list)  # RTTs of the first occasions, to confirm
     accepted: TraceRtt | None = None
@@ -224,12 +222,12 @@ class TraceRttTracker:
 
     def _rar(self, ev: TEvent) -> None:
         v = ev.values
-        t_air = self._air_s(int(v["frame"]), int(v["slot"]), ev.t_wall_s)
+        self._air_s(int(v["frame"]), int(v["slot"]), ev.t_wall_s)  # every event keeps the frame count unwrapped
         for g in rar_grants(bytes(v["data"])):
             self.counts.rars += 1
             # a fresh access: its RAR TA is absolute; whatever this RNTI had before is history
             self._ues.pop(g.tc_rnti, None)
-            self._ues[g.tc_rnti] = _Ue(ta=g.ta, t_rar_air_s=t_air)
+            self._ues[g.tc_rnti] = _Ue(ta=g.ta)
             self.unknown_rntis.discard(g.tc_rnti)
             while len(self._ues) > self.settings.max_rntis:
                 self._ues.popitem(last=False)
@@ -242,7 +240,7 @@ class TraceRttTracker:
         cmds = ta_commands(bytes(v["data"]))
         if not cmds:
             return
-        t_air = self._air_s(int(v["frame"]), int(v["slot"]), ev.t_wall_s)
+        self._air_s(int(v["frame"]), int(v["slot"]), ev.t_wall_s)  # every event keeps the frame count unwrapped
         ue = self._ues.get(rnti)
         for cmd in cmds:
             self.counts.ta_commands += 1
@@ -252,8 +250,9 @@ class TraceRttTracker:
             if cmd == TA_CMD_NO_CHANGE:
                 continue
             # a re-sent command means the gNB still saw the offset: the older one was dropped
-            self.counts.ta_dropped += len(ue.pending)
-            ue.pending = [_Pending(cmd, t_air)]
+            if ue.pending is not None:
+                self.counts.ta_dropped += 1
+            ue.pending = _Pending(cmd)
 
     def _chest_peak(self, ev: TEvent) -> tuple[float, float]:
         """(peak [samples at fs], peak-to-mean [dB]) of an SRS impulse response; taps beyond N_FFT
@@ -290,9 +289,9 @@ class TraceRttTracker:
             return None
         self._resolve(ue, peak)
         ue.ref_peak = peak
-        if ue.pending:
+        if ue.pending is not None:
             self.counts.held_pending += 1
-            ue.held = f"TA command {ue.pending[0].cmd} not yet seen applied or dropped"
+            ue.held = f"TA command {ue.pending.cmd} not yet seen applied or dropped"
             ue.streak.clear()
             return None
         rtt = s.step_samples * ue.ta + peak
@@ -323,7 +322,7 @@ class TraceRttTracker:
                 allowed += s.clock_step_samples
             if abs(jump) > allowed:
                 self.counts.held_rate += 1
-                ue.held = (f"RTT moved {rtt - ref.rtt_samples:+.1f} samples in {t_air - ref.t_air_s:.2f} s of air "
+                ue.held = (f"RTT moved {jump:+.1f} samples in {t_air - ref.t_air_s:.2f} s of air "
                            f"time, faster than {s.max_range_rate_mps:g} m/s")
                 return None
         ue.accepted = cand
@@ -336,20 +335,20 @@ class TraceRttTracker:
 
         Applied when the peak is nearer ref − S·(TA − 31) than ref (ref: the peak before), dropped
         after resolve_occasions occasions without that step."""
-        if not ue.pending or ue.ref_peak is None:
+        p = ue.pending
+        if p is None or ue.ref_peak is None:
             return
-        p = ue.pending[0]
         step = self.settings.step_samples * (p.cmd - TA_CMD_NO_CHANGE)
         applied_at = ue.ref_peak - step
         if abs(peak - applied_at) < abs(peak - ue.ref_peak):
             ue.ta += p.cmd - TA_CMD_NO_CHANGE
             self.counts.ta_applied += 1
-            ue.pending.pop(0)
+            ue.pending = None
             return
         p.seen += 1
         if p.seen >= self.settings.resolve_occasions:
             self.counts.ta_dropped += 1
-            ue.pending.pop(0)
+            ue.pending = None
 
     # -- queries -------------------------------------------------------------------------------
     def latest(self, rnti: int) -> TraceRtt | None:

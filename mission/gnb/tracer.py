@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from mission.gnb.config import backoff_delay_s
 from mission.gnb.trace_rtt import TraceRttTracker, TraceSettings
 from mission.gnb.ttrace import (
     EV_RAR,
@@ -149,6 +150,7 @@ class TTracerClient:
         self._writer.write(db.mask(RANGING_EVENTS))
         await self._writer.drain()
         self.problem = ""
+        self._drain_buffer()  # what came with the preamble
 
     async def _read_preamble(self) -> TMessages:
         asm = TMessagesAssembler()
@@ -183,9 +185,7 @@ class TTracerClient:
         return self._own_db
 
     async def _backoff(self, attempt: int) -> None:
-        # delay = min(max, initial · 2^attempt) · U(0.5, 1)   (equal jitter)
-        delay = min(self.backoff_max_s, self.backoff_initial_s * 2**attempt) * (0.5 + 0.5 * self.rng.random())
-        await asyncio.sleep(delay)
+        await asyncio.sleep(backoff_delay_s(attempt, self.backoff_initial_s, self.backoff_max_s, self.rng))
 
     async def _run(self) -> None:
         attempt = 0
@@ -202,7 +202,6 @@ class TTracerClient:
                     attempt += 1
                     continue
             try:
-                self._drain_buffer()
                 assert self._reader is not None
                 data = await self._reader.read(1 << 16)
                 if not data:

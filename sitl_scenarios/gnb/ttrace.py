@@ -84,11 +84,11 @@ def frame_bytes(t_wall_s: float, event_id: int, payload: bytes) -> bytes:
     return struct.pack("<i", len(body)) + body
 
 
-def _ints(*values: int) -> bytes:
+def fields_bytes(*values: int) -> bytes:
     return struct.pack(f"<{len(values)}i", *values)
 
 
-def _buffer(data: bytes) -> bytes:
+def buffer_bytes(data: bytes) -> bytes:
     return struct.pack("<i", len(data)) + data
 
 
@@ -178,7 +178,7 @@ class SimulatedTServer:
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         wall = self.gnb.wall
-        writer.write(frame_bytes(wall(), -1, _buffer(SIM_T_MESSAGES.encode())))
+        writer.write(frame_bytes(wall(), -1, buffer_bytes(SIM_T_MESSAGES.encode())))
         writer.write(frame_bytes(wall(), -2, b""))
         await writer.drain()
         if (await reader.readexactly(1))[0] != 1:
@@ -211,7 +211,7 @@ class SimulatedTServer:
             if f % SIB1_PERIOD_FRAMES == 0 and ID["GNB_MAC_DL_PDU_WITH_DATA"] in on:
                 sib1 = self.rng.bytes(100)
                 out.append(frame_bytes(t_wall_s, ID["GNB_MAC_DL_PDU_WITH_DATA"],
-                                       _ints(0, 0, 0xFFFF, f % 1024, 1, 0) + _buffer(sib1)))
+                                       fields_bytes(0, 0, 0xFFFF, f % 1024, 1, 0) + buffer_bytes(sib1)))
             if f % SRS_PERIOD_FRAMES == 0:
                 out += self._srs_occasion(f, t_air, t_wall_s, on)
             if f % TA_PERIOD_FRAMES == 0:
@@ -251,7 +251,7 @@ class SimulatedTServer:
             else:
                 chest = chest_bytes(ue.residual, PEAK_AMPLITUDE, self.rng)
             out.append(frame_bytes(t_wall_s, ID["GNB_PHY_UL_TIME_CHANNEL_ESTIMATE"],
-                                   _ints(0, ue.rnti, f % 1024, 0, 0) + _buffer(chest)))
+                                   fields_bytes(0, ue.rnti, f % 1024, 0, 0) + buffer_bytes(chest)))
         return out
 
     def _random_access(self, k: int, f: int, rtt: float, t_wall_s: float, on: set[int]) -> list[bytes]:
@@ -262,12 +262,12 @@ class SimulatedTServer:
         out = []
         if ID["ENB_PHY_INITIATE_RA_PROCEDURE"] in on:
             out.append(frame_bytes(t_wall_s, ID["ENB_PHY_INITIATE_RA_PROCEDURE"],
-                                   _ints(0, f % 1024, 19, preamble, 440, ta)))
+                                   fields_bytes(0, f % 1024, 19, preamble, 440, ta)))
         if ID["GNB_MAC_DL_RAR_PDU_WITH_DATA"] in on:
             # subheader E=0 T=1 RAPID; MAC RAR: R | TA(12) | UL grant(27) | TC-RNTI(16)
             rar = bytes([0x40 | preamble, (ta >> 5) & 0x7F, (ta & 0x1F) << 3, 0, 0, 0, rnti >> 8, rnti & 0xFF])
             out.append(frame_bytes(t_wall_s, ID["GNB_MAC_DL_RAR_PDU_WITH_DATA"],
-                                   _ints(0, 0, 0x010F, (f + 1) % 1024, 10, 0) + _buffer(rar + bytes(20))))
+                                   fields_bytes(0, 0, 0x010F, (f + 1) % 1024, 10, 0) + buffer_bytes(rar + bytes(20))))
         return out
 
     def _ta_loop(self, f: int, t_air: float, t_wall_s: float, on: set[int]) -> list[bytes]:
@@ -281,9 +281,9 @@ class SimulatedTServer:
                 # TA command MAC CE (LCID 61, TAG 0 | TA), then padding (LCID 63)
                 pdu = bytes([61, cmd & 0x3F, 63]) + bytes(16)
                 out.append(frame_bytes(t_wall_s, ID["GNB_MAC_DL_PDU_WITH_DATA"],
-                                       _ints(0, 0, ue.rnti, f % 1024, 0, 0) + _buffer(pdu)))
+                                       fields_bytes(0, 0, ue.rnti, f % 1024, 0, 0) + buffer_bytes(pdu)))
         return out
 
 
-__all__ = ["SIM_T_MESSAGES", "SimulatedTServer", "chest_bytes", "frame_bytes"]
+__all__ = ["SIM_T_MESSAGES", "SimulatedTServer", "buffer_bytes", "chest_bytes", "fields_bytes", "frame_bytes"]
 
