@@ -41,6 +41,7 @@ from planner.factory import make_planner, planner_names
 from planner.stop import budget_left_m, stop_reason, targets_reached
 from planner.types import (
     REASON_BUDGET,
+    REASON_FLOOR,
     REASON_NO_LEG,
     REASON_TARGET,
     Planner,
@@ -51,6 +52,7 @@ from planner.types import (
 
 __all__ = [
     "REASON_BUDGET",
+    "REASON_FLOOR",
     "REASON_NO_LEG",
     "REASON_TARGET",
     "PlanResult",

@@ -23,6 +23,8 @@ from uavloc.errors import PlannerError
 #: `PlanResult.reason` values when `done` is True.
 REASON_TARGET = "target reached"
 REASON_BUDGET = "budget spent"
+#: the users' bounds stopped shrinking above the target: what is left is what no flight removes
+REASON_FLOOR = "floor reached"
 REASON_NO_LEG = "no feasible leg"
 
 
@@ -130,7 +132,8 @@ class PlanResult:
 
     waypoint_enu_m: (3,) next waypoint [m, ENU] (the current position when `done`).
     horizon_enu_m: (H, 3) the planned waypoints, the first being `waypoint_enu_m` (H = 0 when done).
-    done: stop the survey and return home; reason: REASON_TARGET, REASON_BUDGET or REASON_NO_LEG.
+    done: stop the survey and return home; reason: REASON_TARGET, REASON_FLOOR,
+        REASON_BUDGET or REASON_NO_LEG.
     objective: the planner's predicted objective for the chosen leg (nan for fixed patterns).
     status: how the waypoint was found ("ipopt", "ring", "explore", "lawnmower", ...).
     solve_time_s: compute time of the call [s], measured by the caller (the planner is pure: no

@@ -22,6 +22,7 @@ CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
 STATUS_TARGET = "target_reached"
 STATUS_BUDGET = "budget_spent"
 STATUS_NO_LEG = "no_feasible_leg"
+STATUS_FLOOR = "floor_reached"  # the bounds stopped shrinking above the target (GPS floor)
 STATUS_RETURNED = "returned"  # a safety condition ended the survey early
 STATUS_ABORTED = "aborted"  # an error ended the mission (RTL sent when airborne)
 STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne)
@@ -120,7 +121,8 @@ class MissionResult:
     @property
     def ok(self) -> bool:
         """The mission ended normally and located every user (else the command exits non-zero)."""
-        return self.status in (STATUS_TARGET, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED) and not self.not_located()
+        ended = (STATUS_TARGET, STATUS_FLOOR, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED)
+        return self.status in ended and not self.not_located()
 
     def not_located(self) -> list[str]:
         """Ids of the users without a position estimate, or with one a mirror position explains as

@@ -22,6 +22,7 @@ from estimator.geodesy import Origin
 from mission.control.config import (
     PX4_DEFAULT_CRUISE_MPS,
     STATUS_BUDGET,
+    STATUS_FLOOR,
     STATUS_NO_LEG,
     STATUS_TARGET,
     TAKEOFF,
@@ -184,8 +185,8 @@ class SurveyLegs:
                 f.request_return(f"planner failed: {exc}")
                 break
             if plan.done:
-                status = {"target reached": STATUS_TARGET, "budget spent": STATUS_BUDGET}.get(
-                    plan.reason, STATUS_NO_LEG)
+                status = {"target reached": STATUS_TARGET, "floor reached": STATUS_FLOOR,
+                          "budget spent": STATUS_BUDGET}.get(plan.reason, STATUS_NO_LEG)
                 f.finish_survey(status, plan.reason or "planner done")
                 break
             if f.ending:
