@@ -162,16 +162,12 @@ def nlos_shift_var_m2(shift_m):
     return 0.5 * np.square(shift_m)
 
 
-def error_bound_95_m(cov_en_m2: np.ndarray, nlos_shift_m: np.ndarray | None = None) -> np.ndarray:
+def error_bound_95_m(cov_en_m2: np.ndarray) -> np.ndarray:
     """(K,) r95 = sqrt(χ²₂(0.95) · λ_max(Σ_k)) [m] of (K, 2, 2) east-north covariances, inf where
-    Σ_k is not finite; with nlos_shift_m (K,) of Σ_k − ½ |δ_k|² I₂, the part of the bound that
-    more ranges can shrink (Estimate.survey_bound_95_m)."""
+    Σ_k is not finite: the bound every tool prints and the stop rule judges."""
     cov = np.asarray(cov_en_m2, dtype=float).reshape(-1, 2, 2)
     ok = np.all(np.isfinite(cov), axis=(1, 2))
     cov = np.where(ok[:, None, None], 0.5 * (cov + np.swapaxes(cov, 1, 2)), np.eye(2))
-    if nlos_shift_m is not None:
-        var = nlos_shift_var_m2(np.nan_to_num(np.asarray(nlos_shift_m, dtype=float)))
-        cov = cov - var[:, None, None] * np.eye(2)
     lam = np.linalg.eigvalsh(cov)[:, -1]
     return np.where(ok, np.sqrt(CHI2_2DOF_95 * np.maximum(lam, 0.0)), np.inf)
 
@@ -260,10 +256,3 @@ class Estimate:
         """(K,) semi-major axis of each user's 95 % east-north error ellipse [m]:
         r95 = sqrt(χ²₂(0.95) · λ_max(Σ_en)); inf for users without a covariance."""
         return error_bound_95_m(self.cov_users_m2[:, :2, :2])
-
-    def survey_bound_95_m(self) -> np.ndarray:
-        """(K,) the part of each user's 95 % bound [m] that more ranges can shrink: r95 of Σ_en
-        without the NLoS shift ½ |δ_k|² I₂ (ModelState.nlos_shift_m, estimator.nlos_shift; the
-        shift is the same however long the survey), error_bound_95_m where there is none. What
-        the stop rule asks of a user (planner.stop.targets_reached)."""
-        return error_bound_95_m(self.cov_users_m2[:, :2, :2], None if self.state is None else self.state.nlos_shift_m)

@@ -314,6 +314,7 @@ class MissionConfig:
             budget_m=f.budget_m,
             delta_m=f.delta_m,
             target_radius_m=f.target_radius_m,
+            floor_m=gps_floor_m(self),
             min_leg_m=min(10.0, f.leg_max_m),
         )
         kwargs.update(overrides)

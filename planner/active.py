@@ -58,6 +58,7 @@ from planner.information import (
     users_initialised,
 )
 from planner.objective import SQRT_EPS_M2, Shape, kernel, mapped
+from planner.stop import reported_bound_95_m
 from planner.types import PlanningConstraints, PlanningState
 from uavloc.errors import PlannerError
 
@@ -278,7 +279,7 @@ class ActivePlanner(BasePlanner):
         if not ok.any():
             return None
         if not ok.all():
-            bound = est.survey_bound_95_m()
+            bound = reported_bound_95_m(est)
             if np.all(bound[ok] <= self.constraints.target_radius_m):
                 return None
         return hypotheses_from_estimate(est, self.weights(est), sigma_points=self.sigma_points, users=ok,

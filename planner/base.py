@@ -14,7 +14,7 @@ import numpy as np
 
 from estimator.noise import NoiseModel
 from planner.geometry import in_free_space, leg_violations, legs_feasible
-from planner.stop import stop_reason
+from planner.stop import FloorWatch, stop_reason
 from planner.types import REASON_NO_LEG, PlanningConstraints, PlanningState, PlanResult
 from uavloc.errors import PlannerError
 
@@ -69,6 +69,8 @@ class BasePlanner:
         self.constraints = constraints
         self.noise = noise
         self.rng = np.random.default_rng(rng_seed)
+        #: the stop rule's floor watch over this mission's bounds (None: never at the floor)
+        self.floor_watch: FloorWatch | None = FloorWatch.of(constraints)
 
     # -- to implement ----------------------------------------------------------------------------
     def _propose(self, state: PlanningState, leg_cap_m: float) -> tuple[np.ndarray, str, float]:
@@ -111,14 +113,14 @@ class BasePlanner:
         )
 
     def plan(self, state: PlanningState) -> PlanResult:
-        """Next waypoint, or done (target reached / budget spent / no feasible leg)."""
+        """Next waypoint, or done (target reached / floor reached / budget spent / no feasible leg)."""
         c = self.constraints
         if not bool(in_free_space(state.uav_enu_m[:2], c)):
             raise PlannerError(
                 f"UAV at {state.uav_enu_m.tolist()} is outside the fence or inside a no-fly zone; "
                 "the planner cannot route from there (return home)"
             )
-        reason = stop_reason(c, state)
+        reason = stop_reason(c, state, self.floor_watch)
         if reason is not None:
             return self._done(state, reason)
         cap = self.leg_cap_m(state)

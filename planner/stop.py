@@ -1,11 +1,25 @@
-"""The stopping rule (docs/design.md §6): every user located well enough, or the budget spent."""
+"""The stopping rule (docs/design.md §6): every user located well enough, the bounds at their
+floor, or the budget spent."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from estimator.types import Estimate
-from planner.types import REASON_BUDGET, REASON_TARGET, PlanningConstraints, PlanningState
+from planner.types import REASON_BUDGET, REASON_FLOOR, REASON_TARGET, PlanningConstraints, PlanningState
+
+#: the floor watch's window: the bounds must have shrunk over the last max(FLOOR_WINDOW_MIN_M,
+#: FLOOR_WINDOW_SHARE · budget) metres flown [m]
+FLOOR_WINDOW_MIN_M = 200.0
+FLOOR_WINDOW_SHARE = 0.1
+#: ... by at least this share of their value at the window's start, or the survey is at its floor
+FLOOR_MIN_SHRINK = 0.05
+#: a user whose bound is within this factor of the GPS floor (PlanningConstraints.floor_m) has
+#: nothing left that a flight removes: r95² ≤ 1.15² r_floor² leaves at most 0.57 r_floor of the
+#: bound to the ranges
+FLOOR_MARGIN = 1.15
 
 
 def budget_left_m(constraints: PlanningConstraints, state: PlanningState) -> float:
@@ -16,30 +30,85 @@ def budget_left_m(constraints: PlanningConstraints, state: PlanningState) -> flo
     return float(min(survey, state.energy_remaining_m - home))
 
 
-def targets_reached(estimate: Estimate | None, target_radius_m: float) -> bool:
-    """True when every user's 95 % error-ellipse semi-major axis r95 ≤ target_radius_m, apart
-    from the NLoS shift no survey shrinks.
+def reported_bound_95_m(estimate: Estimate) -> np.ndarray:
+    """(K,) the bound the mission prints for each user [m] (Estimate.error_bound_95_m: r95 of its
+    whole east-north covariance, the one-sided NLoS shift included); inf where not located."""
+    return estimate.error_bound_95_m()
 
-    r95_k = sqrt(χ²₂(0.95) · λ_max(Σ_k,en − ½ |δ_k|² I)) from `Estimate.survey_bound_95_m()`
-    (δ_k the shift of a one-sided NLoS excess, estimator.nlos_shift: a user behind a building
-    keeps it however long the UAV flies, so waiting for it would spend the budget for nothing; the
-    reported bound includes it); an uninitialised user (inf) or an unresolved mirror ambiguity
-    keeps the survey going.
+
+def targets_reached(estimate: Estimate | None, target_radius_m: float) -> bool:
+    """True when every user's printed 95 % bound r95 ≤ target_radius_m and no user is ambiguous.
+
+    r95_k = sqrt(χ²₂(0.95) · λ_max(Σ_k,en)), Σ_k the covariance the mission reports, widened by
+    the shift ½ |δ_k|² I of a one-sided NLoS excess (estimator.nlos_shift): that shift shrinks as
+    the user is seen from its line-of-sight side, which the planner's objective asks for; an
+    uninitialised user (inf) or an unresolved mirror ambiguity keeps the survey going.
     """
     if estimate is None or estimate.n_users == 0:
         return False
-    bound = estimate.survey_bound_95_m()
+    bound = reported_bound_95_m(estimate)
     ambiguous = np.asarray(estimate.ambiguous, dtype=bool)
     return bool(np.all(bound <= target_radius_m) and not np.any(ambiguous))
 
 
-def stop_reason(constraints: PlanningConstraints, state: PlanningState) -> str | None:
-    """REASON_TARGET, REASON_BUDGET, or None to keep surveying.
+@dataclass
+class FloorWatch:
+    """Whether a survey's bounds stopped shrinking above the target (REASON_FLOOR). Fed at each leg
+    end with the metres flown and the printed bounds (K,) [m]; the users still above the target
+    are at their floor when either
+
+    - each one's bound is within FLOOR_MARGIN of the GPS floor r_floor (what no flight removes,
+      PlanningConstraints.floor_m): r95_k ≤ FLOOR_MARGIN · r_floor; or
+    - none of them shrank by FLOOR_MIN_SHRINK over the last `window_m` metres flown:
+      r95_k(now) > (1 − FLOOR_MIN_SHRINK) · r95_k(now − window).
+
+    An ambiguous or unlocated user (inf) is never at its floor.
+    """
+
+    target_radius_m: float
+    floor_m: float
+    window_m: float
+    history: list[tuple[float, np.ndarray]] = field(default_factory=list)
+
+    @classmethod
+    def of(cls, constraints: PlanningConstraints) -> FloorWatch:
+        window = max(FLOOR_WINDOW_MIN_M, FLOOR_WINDOW_SHARE * constraints.budget_m)
+        return cls(constraints.target_radius_m, constraints.floor_m, window)
+
+    def update(self, flown_m: float, bound_95_m: np.ndarray, ambiguous: np.ndarray | None = None) -> bool:
+        """Record one leg end; True when the survey is at its floor (class docstring)."""
+        bound = np.asarray(bound_95_m, dtype=float).copy()
+        if ambiguous is not None:
+            bound[np.asarray(ambiguous, dtype=bool)] = np.inf
+        if self.history and len(self.history[-1][1]) != len(bound):
+            self.history.clear()
+        self.history.append((float(flown_m), bound))
+        above = bound > self.target_radius_m
+        if not np.any(above) or not np.all(np.isfinite(bound[above])):
+            return False
+        if self.floor_m > 0.0 and np.all(bound[above] <= FLOOR_MARGIN * self.floor_m):
+            return True
+        # the newest record at least `window_m` back
+        past = [b for m, b in self.history if m <= flown_m - self.window_m]
+        if not past:
+            return False
+        before = past[-1]
+        return bool(np.all(bound[above] > (1.0 - FLOOR_MIN_SHRINK) * before[above]))
+
+
+def stop_reason(constraints: PlanningConstraints, state: PlanningState,
+                floor: FloorWatch | None = None) -> str | None:
+    """REASON_TARGET, REASON_FLOOR (with a `floor` watch, fed here), REASON_BUDGET, or None to
+    keep surveying.
 
     Budget spent: less than `min_leg_m` of survey metres left (see :func:`budget_left_m`).
     """
-    if targets_reached(state.estimate, constraints.target_radius_m):
+    est = state.estimate
+    if targets_reached(est, constraints.target_radius_m):
         return REASON_TARGET
+    if (floor is not None and est is not None and est.n_users
+            and floor.update(state.flown_m, reported_bound_95_m(est), est.ambiguous)):
+        return REASON_FLOOR
     if budget_left_m(constraints, state) < constraints.min_leg_m:
         return REASON_BUDGET
     return None

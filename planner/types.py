@@ -50,6 +50,9 @@ class PlanningConstraints:
     budget_m: metres the survey may fly in total (the state's `flown_m` counts against it).
     delta_m: measurement spacing Δ along a leg [m].
     target_radius_m: stop when every user's 95 % error ellipse is inside this radius [m].
+    floor_m: the 95 % bound the GPS error leaves common to every user however the survey flies [m]
+        (mission.config.gps_floor_m; 0: none); the stop rule ends a survey whose bounds are there
+        (planner.stop.FloorWatch).
     margin_m: clearance kept from fence and no-fly edges [m].
     return_factor: the energy check asks leg + return_factor·(straight distance home) ≤ energy.
     """
@@ -65,6 +68,7 @@ class PlanningConstraints:
     budget_m: float
     delta_m: float = 2.0
     target_radius_m: float = 2.0
+    floor_m: float = 0.0
     margin_m: float = 2.0
     min_leg_m: float = 10.0
     return_factor: float = 1.2
@@ -90,6 +94,8 @@ class PlanningConstraints:
                 raise PlannerError(f"{name} must be positive, got {getattr(self, name)!r}")
         if self.min_leg_m > self.leg_max_m:
             raise PlannerError(f"min_leg_m {self.min_leg_m} exceeds leg_max_m {self.leg_max_m}")
+        if not self.floor_m >= 0:
+            raise PlannerError(f"floor_m must be >= 0, got {self.floor_m!r}")
         if self.margin_m < 0 or self.return_factor < 1:
             raise PlannerError(f"need margin_m >= 0 and return_factor >= 1, got {self.margin_m}, {self.return_factor}")
 

@@ -135,38 +135,36 @@ def _estimate_with_shift(cov_en_m2: np.ndarray, shift_m: np.ndarray):
                                      nlos_shift_m=np.asarray(shift_m, float)))
 
 
-def test_the_stop_rule_leaves_out_the_shift_no_survey_shrinks():
-    """A user whose bound is above the target only by its NLoS shift stops the survey; the bound it
-    reports keeps the shift; one whose reducible part is above the target does not stop it."""
-    from planner.stop import targets_reached
+def test_the_stop_rule_judges_the_printed_bound_shift_included():
+    """A user whose bound is above the target only by its NLoS shift keeps the survey going: the
+    bound the stop rule judges is the one printed, shift included."""
+    from planner.stop import reported_bound_95_m, targets_reached
 
     shift = np.array([3.0, 0.0])
-    # ue0: 0.5² m² the survey can still shrink + ½·3² of shift; ue1: 1 m² and no shift
+    # ue0: 0.5² m² of range uncertainty + ½·3² of shift; ue1: 1 m² and no shift
     cov = np.array([np.eye(2) * (0.25 + 4.5), np.eye(2)])
     est = _estimate_with_shift(cov, shift)
     r95 = np.sqrt(CHI2_2DOF_95)
     np.testing.assert_allclose(est.error_bound_95_m(), [r95 * np.sqrt(4.75), r95])
-    np.testing.assert_allclose(est.survey_bound_95_m(), [r95 * 0.5, r95])
-    assert targets_reached(est, 2.5) and not targets_reached(est, 2.4)
-    assert est.error_bound_95_m()[0] > 5.0
-    # without a shift on record the two bounds are one
-    plain = _estimate_with_shift(cov, shift)
-    plain = replace(plain, state=replace(plain.state, nlos_shift_m=None))
-    np.testing.assert_array_equal(plain.survey_bound_95_m(), plain.error_bound_95_m())
+    np.testing.assert_array_equal(reported_bound_95_m(est), est.error_bound_95_m())
+    assert not targets_reached(est, 2.5) and not targets_reached(est, 5.3)
+    assert targets_reached(est, 5.4)
 
 
 def test_the_campaign_counts_metres_to_the_target_as_the_stop_rule_does():
-    """AccuracyTrack: the metres to T by the bound without the shift, the final bound with it."""
+    """AccuracyTrack: the metres and seconds to T by every user's printed bound (shift included)."""
     from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
 
-    track = AccuracyTrack(np.zeros((1, 3)), (3.0,))
-    cov = np.array([np.eye(2) * (0.25 + 4.5)])
-    track.update(np.zeros((1, 2)), cov, 10.0)
+    track = AccuracyTrack(np.zeros((2, 3)), (3.0,))
+    # ue0 inside 3 m, ue1 at 5.3 m with its shift: not yet
+    cov = np.array([np.eye(2) * 0.25, np.eye(2) * 4.75])
+    track.update(np.zeros((2, 2)), cov, 10.0, 2.0)
     assert 3.0 not in track.metres_to
-    track.update(np.zeros((1, 2)), cov, 20.0, np.array([3.0]))
+    track.update(np.zeros((2, 2)), np.array([np.eye(2) * 0.25, np.eye(2) * 1.0]), 20.0, 4.0)
     out = track.fill(Outcome())
-    assert out.metres_to == {3.0: 20.0}
-    assert out.final_bound95_m == pytest.approx([np.sqrt(CHI2_2DOF_95 * 4.75)])
+    assert out.metres_to == {3.0: 20.0} and out.seconds_to == {3.0: 4.0}
+    assert out.final_bound95_m == pytest.approx([np.sqrt(CHI2_2DOF_95 * 0.25), np.sqrt(CHI2_2DOF_95)])
+
 
 
 @pytest.mark.parametrize("bad", [-1.0, "2", True, float("nan")])

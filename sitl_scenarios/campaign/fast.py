@@ -31,6 +31,7 @@ import numpy as np
 from estimator.ranging import range_m_from_raw
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission import geometry
+from mission.control.legs import PLAN_AHEAD_S
 from mission.controller import compile_planner_in_tmp
 from mission.estimation import MissionEstimator
 from planner import PlanningConstraints, PlanningState, make_planner
@@ -96,6 +97,10 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
         t0 = time.perf_counter()  # the planner has no clock: its compute time is timed here
         res = planner.plan(PlanningState(x, estimate, flown))
         out.plan_times_s.append(time.perf_counter() - t0)
+        # the mission plans the next leg PLAN_AHEAD_S before this one ends: only a plan longer than
+        # that keeps the vehicle waiting (the first one is made before take-off)
+        if len(out.plan_times_s) > 1:
+            out.hover_s += max(0.0, out.plan_times_s[-1] - PLAN_AHEAD_S)
         if res.done:
             out.end = res.reason
             break
@@ -125,7 +130,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
                 on_keyframe(kf, estimate)
             out.keyframes += 1
             track.update(estimate.users_enu_m[:, :2], estimate.cov_users_m2[:, :2, :2], flown + s,
-                         estimate.state.nlos_shift_m if estimate.state is not None else None)
+                         t_s + out.hover_s)
             if setup.stops(estimate):
                 stopped = True
                 break
@@ -143,7 +148,8 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
         out.estimator_errors.append(est.online_failure)
     if keyframes:  # the mission's final answer
         final = setup.final(keyframes)
-        track.update(final.users_enu_m[:, :2], final.cov_users_m2[:, :2, :2], flown, final.state.nlos_shift_m)
+        track.update(final.users_enu_m[:, :2], final.cov_users_m2[:, :2, :2], flown, flown / speed_mps + out.hover_s)
     out.flown_m = flown
+    out.survey_s = flown / speed_mps + out.hover_s
     out.nlos_share = n_nlos / n_ranges if n_ranges else float("nan")
     return track.fill(out)

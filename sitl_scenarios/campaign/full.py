@@ -56,6 +56,9 @@ def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: fl
                   keyframes=int(result.keyframes))
     out.plan_times_s = [float(w.get("solve_time_s") or 0.0) for w in mlog.waypoints]
     out.estimator_errors = [str(e.get("message", "")) for e in mlog.events if e.get("kind") == "estimator_error"]
+    times = [e for e in mlog.events if e.get("kind") == "survey_time"]
+    out.hover_s = sum(float(e.get("hover_s") or 0.0) for e in times)
+    out.survey_s = sum(float(e.get("survey_s") or 0.0) for e in times)
     origin = mlog.header.origin
     if result.truth_enu_m is None or not mlog.estimates:
         return out
@@ -74,12 +77,10 @@ def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: fl
     for rec in mlog.estimates:
         users_en = np.full((k_users, 2), np.nan)
         cov = np.full((k_users, 2, 2), np.nan)
-        shift = np.zeros(k_users)
         for u in rec.get("users", []):
             k = ids[u["id"]]
             users_en[k] = np.asarray(origin.lla_to_enu(u["lat_deg"], u["lon_deg"], u["alt_m"]), float)[:2]
             cov[k] = np.asarray(u["cov_en_m2"], float)
-            shift[k] = u.get("nlos_shift_m") or 0.0
         at_m = float(np.interp(rec["t"], tel_t, metres)) if len(tel_t) else 0.0
-        track.update(users_en, cov, at_m, shift)
+        track.update(users_en, cov, at_m, float(rec["t"]) - t0)
     return track.fill(out)

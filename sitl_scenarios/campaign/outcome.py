@@ -14,9 +14,10 @@ from estimator.types import CHI2_2DOF_95, error_bound_95_m
 class Outcome:
     """One run's measurements.
 
-    metres_to: target [m] → metres flown when the mean over users of the 95 % error bound first
-        reached it, the NLoS shift no survey shrinks left out as the stop rule leaves it
-        (planner.stop.targets_reached; absent: never); error_at: target → mean true horizontal error [m] at that moment;
+    metres_to: target [m] → metres flown when every user's printed 95 % error bound (NLoS shift
+        included) first was within it, as the stop rule judges (planner.stop.targets_reached;
+        absent: never); seconds_to: target → survey seconds then [s], hover included;
+        error_at: target → mean true horizontal error [m] at that moment;
     plan_times_s: compute time of every plan() call [s]; violations: constraint breaks found by an
         independent check of each leg (fast mode); flown_m: metres flown; end: why the run ended;
     keyframes: keyframes fed to the estimator; final_error_m / final_bound95_m: (K,) per user at the
@@ -26,10 +27,16 @@ class Outcome:
         after a user's first estimate whose true error lies inside its own 95 % ellipse;
         nlos_share: share of ranges whose line of sight a building blocked; estimator_errors: what
         the estimator reported failing during the run (the mission went on: estimator.refresh drops a
-        failed online part, the flight logs an `estimator_error` event), in order.
+        failed online part, the flight logs an `estimator_error` event), in order; hover_s: survey
+        seconds the vehicle stood waiting (full mode: the mission's `survey_time` event; fast mode:
+        each plan's compute time beyond the lead the mission plans ahead with, PLAN_AHEAD_S); survey_s:
+        the survey's mission seconds, hover included.
     """
 
     metres_to: dict = field(default_factory=dict)
+    seconds_to: dict = field(default_factory=dict)
+    hover_s: float = 0.0
+    survey_s: float = 0.0
     error_at: dict = field(default_factory=dict)
     plan_times_s: list = field(default_factory=list)
     violations: list = field(default_factory=list)
@@ -54,6 +61,7 @@ class AccuracyTrack:
         self.truth_en = np.asarray(truth_enu_m, float)[:, :2]
         self.pending = sorted(targets_m, reverse=True)
         self.metres_to: dict = {}
+        self.seconds_to: dict = {}
         self.error_at: dict = {}
         self.inside = 0
         self.seen = 0
@@ -61,20 +69,15 @@ class AccuracyTrack:
         self.bound95_m = np.full(len(self.truth_en), np.nan)
         self.nees = np.full(len(self.truth_en), np.nan)
 
-    def update(self, users_en_m: np.ndarray, cov_en_m2: np.ndarray, at_m: float,
-               nlos_shift_m: np.ndarray | None = None) -> None:
-        """One estimate: users_en_m (K, 2) [m] (NaN rows: not located), cov_en_m2 (K, 2, 2) [m²],
-        metres flown when it was made; nlos_shift_m (K,) [m]: the NLoS shift in cov_en_m2
-        (ModelState.nlos_shift_m), None when there is none."""
+    def update(self, users_en_m: np.ndarray, cov_en_m2: np.ndarray, at_m: float, at_s: float = math.nan) -> None:
+        """One estimate: users_en_m (K, 2) [m] (NaN rows: not located), cov_en_m2 (K, 2, 2) [m²]
+        (the covariance the mission prints), metres flown and survey seconds when it was made."""
         users_en_m = np.asarray(users_en_m, float)
         cov = np.asarray(cov_en_m2, float)
         ok = np.all(np.isfinite(users_en_m), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
         e = users_en_m - self.truth_en
         self.error_m = np.where(ok, np.linalg.norm(e, axis=1), np.nan)
         self.bound95_m = np.where(ok, error_bound_95_m(cov), np.inf)
-        # the metres to T go by the bound the stop rule asks for: without the NLoS shift that no
-        # survey shrinks (Estimate.survey_bound_95_m)
-        survey_m = self.bound95_m if nlos_shift_m is None else np.where(ok, error_bound_95_m(cov, nlos_shift_m), np.inf)
         # the user's NEES eᵀ Σ⁻¹ e, NaN where not located (like error_m)
         self.nees = np.full(len(self.truth_en), np.nan)
         if np.any(ok):
@@ -83,15 +86,18 @@ class AccuracyTrack:
             # inside the ellipse: eᵀ Σ⁻¹ e ≤ χ²₂(0.95)
             self.inside += int(np.sum(nees <= CHI2_2DOF_95))
             self.seen += int(np.sum(ok))
-        bound = float(np.mean(survey_m))
+        # the stop rule's test: every user's printed bound within T
+        bound = float(np.max(self.bound95_m)) if len(self.bound95_m) else math.inf
         while self.pending and bound <= self.pending[0]:
             tgt = self.pending.pop(0)
             self.metres_to[tgt] = float(at_m)
+            self.seconds_to[tgt] = float(at_s)
             self.error_at[tgt] = float(np.mean(self.error_m))
         self.bound95_m = np.where(ok, self.bound95_m, np.nan)
 
     def fill(self, out: Outcome) -> Outcome:
         out.metres_to, out.error_at = dict(self.metres_to), dict(self.error_at)
+        out.seconds_to = dict(self.seconds_to)
         out.final_error_m = [float(v) for v in self.error_m]
         out.final_bound95_m = [float(v) for v in self.bound95_m]
         out.final_nees = [float(v) for v in self.nees]

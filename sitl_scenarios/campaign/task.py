@@ -17,6 +17,7 @@ import traceback
 
 import numpy as np
 
+from mission.config import gps_floor_m
 from sitl_scenarios.campaign.outcome import Outcome
 from sitl_scenarios.campaign.spec import RunSpec
 
@@ -31,6 +32,8 @@ def _base_record(run: RunSpec) -> dict:
         "key": run.key, "condition": run.condition, "scenario": run.scenario.name, "planner": run.planner,
         "estimator": run.estimator, "seed": int(run.seed), "mode": run.mode,
         "targets_m": [float(t) for t in run.targets_m], "budget_m": float(run.scenario.mission.flight.budget_m),
+        # the 95 % bound the GPS error leaves however the run flies (the mission as flown: τ known)
+        "floor_m": float(gps_floor_m(run.scenario.mission_config())),
     }
     rec.update(run.scenario_params)
     return rec
@@ -42,6 +45,8 @@ def _outcome_fields(out: Outcome, targets_m: tuple[float, ...]) -> dict:
     return {
         "status": "ok", "error": "", "traceback": "", "end": out.end,
         "metres_to_m": [float(out.metres_to.get(t, math.nan)) for t in targets_m],
+        "seconds_to_s": [float(out.seconds_to.get(t, math.nan)) for t in targets_m],
+        "hover_s": float(out.hover_s), "survey_s": float(out.survey_s),
         "error_at_m": [float(out.error_at.get(t, math.nan)) for t in targets_m],
         "flown_m": float(out.flown_m), "keyframes": int(out.keyframes), "replans": len(times),
         "plan_times_s": [float(v) for v in times],
