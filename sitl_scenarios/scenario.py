@@ -218,16 +218,17 @@ class Scenario:
         return self.mission_config(external_vehicle).noise_model()
 
     def planning_constraints(self, home_enu_m=(0.0, 0.0, 0.0), building_clearance_m: float = 5.0,
-                             **overrides: Any) -> PlanningConstraints:
+                             external_vehicle: bool = False, **overrides: Any) -> PlanningConstraints:
         """The planner's constraints of the mission (MissionConfig.planning_constraints) that also
         keep clear of the buildings, with home at home_enu_m.
 
         Altitudes in the mission are above home; here they become ENU `up` (home up + value).
         Buildings: the UAV overflies every building whose height + `building_clearance_m` fits in the
         altitude band (the band's floor is raised to clear the tallest of them); a building too tall
-        for the band becomes a no-fly zone. `overrides` replace any field (e.g. margin_m=3.0).
+        for the band becomes a no-fly zone. The mission is :meth:`mission_config`'s (its GPS floor is
+        the flown GPS error's). `overrides` replace any field (e.g. margin_m=3.0).
         """
-        base = self.mission.planning_constraints(self.origin_geo)
+        base = self.mission_config(external_vehicle).planning_constraints(self.origin_geo)
         home = np.asarray(home_enu_m, dtype=float).reshape(3)
         f = self.mission.flight
         alt_min, no_fly = f.alt_min_m, list(base.no_fly_enu_m)
@@ -441,7 +442,7 @@ def controller_from_scenario(scenario: Scenario, vehicle: Any, gnb: Any, log_pat
     return controller_from_mission(
         scenario.mission_config(external_vehicle), vehicle, gnb, log_path,
         seed=scenario.seed if seed is None else seed, header_config=header,
-        constraints=lambda home: scenario.planning_constraints(), **kwargs)
+        constraints=lambda home: scenario.planning_constraints(external_vehicle=external_vehicle), **kwargs)
 
 
 def flight_mission(name_or_path: str | Path) -> mc.MissionConfig:
