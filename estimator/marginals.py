@@ -10,7 +10,7 @@ from estimator.jackknife import jackknife_cov, jackknife_inflate
 from estimator.lm import (
     SolveResult,
 )
-from estimator.nlos_shift import nlos_shift_cov, nlos_shift_m
+from estimator.nlos_shift import nlos_bearing_logit, nlos_shift_cov, nlos_shift_m
 from estimator.problem import (
     Problem,
     users_from_theta,
@@ -77,13 +77,15 @@ def _widen(
     """Widen, in place, each active user's block of cov_joint (K_a·p, K_a·p) and its position
     covariance cov (K, d, d): the jackknife first (the larger of the two in every direction),
     then the NLoS shift added (estimate_of; users: (K, 3) the solution's users [m, ENU]).
-    Returns the (K,) shifts [m], None when not asked for."""
+    Returns the (K,) shifts [m] and the (K, 3) NLoS-by-bearing profiles of the users with one
+    (estimator.nlos_shift.nlos_bearing_logit), (None, None) when not asked for."""
     params = prob.params
     p, d = prob.p, prob.user_dim
     v_j = None
     if params.jackknife_blocks:
         v_j = jackknife_cov(prob, res.x, res.theta, active, int(params.jackknife_blocks))
     shift = nlos_shift_m(prob, res.x, users, active) if params.nlos_shift else None
+    logit = None if shift is None else nlos_bearing_logit(prob, res.x, users, res.lin.w, shift)
     for j, k in enumerate(np.flatnonzero(active)):
         sl = slice(j * p, (j + 1) * p)
         model = cov_joint[sl, sl]
@@ -93,7 +95,7 @@ def _widen(
         if block is not model:
             cov_joint[sl, sl] = block
             cov[k] = block[:d, :d]
-    return shift
+    return shift, logit
 
 
 def estimate_of(
@@ -114,9 +116,9 @@ def estimate_of(
     users = users_from_theta(res.theta, prob.user_up_m, d)
     users[~active] = np.nan
     cov, info, cov_joint = user_covariances(res.s, active, k_all, p, d)
-    shift = None
+    shift = logit = None
     if widen and cov_joint is not None:
-        shift = _widen(prob, res, active, users, cov, cov_joint)
+        shift, logit = _widen(prob, res, active, users, cov, cov_joint)
     bias = None
     bias_on = bias_held = None
     if prob.params.estimate_bias:
@@ -137,7 +139,7 @@ def estimate_of(
         nlos_prob_k=None if prob.nlos_prob_k is None else prob.nlos_prob_k.copy(),
         bias_on=bias_on, bias_held_m=bias_held, clock=None if clock is None else tuple(clock),
         clock_triggered=None if clock_triggered is None else np.asarray(clock_triggered, dtype=bool).copy(),
-        nlos_shift_m=shift, warm_started=warm_started,
+        nlos_shift_m=shift, nlos_bearing_logit=logit, warm_started=warm_started,
     )
     return Estimate(
         users_enu_m=users, cov_users_m2=cov, info_users=info, bias_m=bias, uav_enu_m=res.x.copy(),

@@ -57,7 +57,7 @@ from planner.information import (
     prior_value,
     users_initialised,
 )
-from planner.objective import SQRT_EPS_M2, Shape, kernel, mapped
+from planner.objective import N_NLOS, SQRT_EPS_M2, Shape, kernel, mapped
 from planner.stop import reported_bound_95_m
 from planner.types import PlanningConstraints, PlanningState
 from uavloc.errors import PlannerError
@@ -105,8 +105,9 @@ _SOLVERS: dict[_Layout, ca.Function] = {}
 def _solver(lay: _Layout) -> ca.Function:
     """IPOPT on the objective of planner.objective, built once per layout and process.
 
-    Parameters p = [x_c (3); U (3R); P (p²R); s (R); wts (R); noise (4); Δ; λ; A (2 n_pl); c (n_pl);
-    home (3); return factor], matrices column-major with one column per row (pack_params).
+    Parameters p = [x_c (3); U (3R); P (p²R); s (R); wts (R); NLoS (N_NLOS R); noise (4); Δ; λ;
+    A (2 n_pl); c (n_pl); home (3); return factor], matrices column-major with one column per row
+    (pack_params).
     Variables z = [w_1; …; w_H] (3H); constraints, in order: |w_1 − x_c|² (leg), |w_h − w_(h−1)|²
     for h ≥ 2, |w_h,en − home_en|² for every h, the energy of the first leg, A w_h,en − c ≤ 0 for
     every h (rows of h consecutive). IPOPT gets the value, gradient and Hessian of the rows from
@@ -117,14 +118,15 @@ def _solver(lay: _Layout) -> ca.Function:
     sh, R, n_pl = lay.shape, lay.n_rows, lay.n_planes
     n_h, pp = sh.horizon, sh.n_par**2
     vgh, value = kernel("vgh", sh, lay.compiled), kernel("value", sh, lay.compiled)
-    sizes = [3, 3 * R, pp * R, R, R, 4, 1, 1, 2 * n_pl, n_pl, 3, 1]
+    sizes = [3, 3 * R, pp * R, R, R, N_NLOS * R, 4, 1, 1, 2 * n_pl, n_pl, 3, 1]
     par = ca.MX.sym("p", sum(sizes))
-    x_c, U, P, s, wts, noise_par, delta, lam, A, c, home, ret = ca.vertsplit(par, list(np.cumsum([0, *sizes])))
+    x_c, U, P, s, wts, nl, noise_par, delta, lam, A, c, home, ret = ca.vertsplit(par, list(np.cumsum([0, *sizes])))
     U, P, s, wts = ca.reshape(U, 3, R), ca.reshape(P, pp, R), ca.reshape(s, 1, R), ca.reshape(wts, R, 1)
+    nl = ca.reshape(nl, N_NLOS, R)
     A = ca.reshape(A, n_pl, 2)
     z = ca.MX.sym("z", 3 * n_h)
-    f_rows, g_rows, h_rows = mapped(vgh, R)(z, x_c, U, P, s, noise_par, delta)
-    unc = mapped(value, R)(z, x_c, U, P, s, noise_par, delta) @ wts
+    f_rows, g_rows, h_rows = mapped(vgh, R)(z, x_c, U, P, s, noise_par, delta, nl)
+    unc = mapped(value, R)(z, x_c, U, P, s, noise_par, delta, nl) @ wts
     wps = [z[3 * h:3 * h + 3] for h in range(n_h)]
     prev, lengths = x_c, []
     for wp in wps:
@@ -174,13 +176,14 @@ def pack_params(
     """The parameter vector of :func:`_solver`'s problem (weights divided by `norm`)."""
     if hyp.n_par != lay.shape.n_par or hyp.sample_w.size != lay.n_rows:
         raise ValueError(f"layout {lay} does not fit hypotheses of {hyp.n_par} parameters, {hyp.sample_w.size} rows")
-    users, prior, scale, wts = hypothesis_rows(hyp)
+    rows = hypothesis_rows(hyp)
     A_pad = np.zeros((lay.n_planes, 2))
     c_pad = np.ones(lay.n_planes)  # 0·p ≤ 1: inactive rows
     A_pad[: len(A)], c_pad[: len(c)] = A, c
     return np.concatenate([
-        x_c, users.ravel(), prior.reshape(lay.n_rows, -1).ravel(), scale, wts / norm,
-        noise_parameters(noise), [delta_m, lam], A_pad.ravel(order="F"), c_pad, home, [return_factor],
+        x_c, rows.users_enu_m.ravel(), rows.prior_info.reshape(lay.n_rows, -1).ravel(), rows.scale,
+        rows.weights / norm, rows.nlos.ravel(), noise_parameters(noise), [delta_m, lam],
+        A_pad.ravel(order="F"), c_pad, home, [return_factor],
     ])
 
 

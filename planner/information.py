@@ -55,7 +55,7 @@ from estimator.factors import range_jacobian, range_residuals
 from estimator.nlos_shift import nlos_shift_cov
 from estimator.noise import NoiseModel
 from estimator.types import Estimate
-from planner.objective import SQRT_EPS_M2, Shape, prior_values, row_values
+from planner.objective import N_NLOS, SQRT_EPS_M2, Shape, prior_values, row_values
 
 #: ε of the prior information regulariser [1/m²] (a 1 km standard deviation).
 PRIOR_EPS_PER_M2 = 1e-6
@@ -72,6 +72,9 @@ class Hypotheses:
     bias: True when each user has a range bias (joint position + bias information);
     noise_scale: (K,) factor by which each user's ranges are noisier than σ(d), as the estimator
         found (Estimate.state.noise_scale); None: 1.
+    nlos: (K, M, N_NLOS) each sample's NLoS state [π₀ n, n, α₀, α₁, α₂, κ] (:func:`nlos_rows`,
+        planner.objective): the shift a one-sided NLoS excess leaves in the bound and where the
+        user is seen in line of sight; None: no shift.
     """
 
     users_enu_m: np.ndarray
@@ -81,6 +84,7 @@ class Hypotheses:
     index: np.ndarray
     bias: bool = False
     noise_scale: np.ndarray | None = None
+    nlos: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -109,14 +113,56 @@ def _info_from_cov(cov: np.ndarray) -> np.ndarray:
 
 def survey_cov(estimate: Estimate, k: int, cov: np.ndarray) -> np.ndarray:
     """User k's covariance `cov` (position first, any size ≥ 2) without its NLoS shift
-    ½ |δ_k|² on the horizontal axes (ModelState.nlos_shift_m, estimator.nlos_shift.nlos_shift_cov): the part a
-    survey can shrink, which the planner's prior holds (the stop rule asks for that part,
-    Estimate.survey_bound_95_m)."""
+    ½ |δ_k|² on the horizontal axes (ModelState.nlos_shift_m, estimator.nlos_shift.nlos_shift_cov): the
+    part more ranges shrink, which the planner's prior holds; the objective adds the shift back as
+    it predicts it after the horizon (planner.objective, :func:`nlos_row`)."""
     st = estimate.state
     shift = 0.0 if st is None or st.nlos_shift_m is None else float(st.nlos_shift_m[k])
     if not shift > 0.0:
         return cov
     return np.asarray(cov, dtype=float) - nlos_shift_cov(shift, cov.shape[0])
+
+
+def nlos_row(estimate: Estimate, k: int, reflect: np.ndarray | None = None) -> np.ndarray:
+    """(N_NLOS,) user k's NLoS state for the objective, [π₀ n, n, α₀, α₁, α₂, κ]
+    (planner.objective): n its ranges so far, π₀ its NLoS share (ModelState.nlos_prob_k), α its
+    NLoS-by-bearing profile (ModelState.nlos_bearing_logit) and κ = |δ_k| / π₀ the shift per unit
+    share (estimator.nlos_shift: |δ| = κ π). Zeros (no shift, κ = 0) where the estimate has none.
+    reflect: (2, 2) the mirror's reflection of the horizontal plane, applied to (α₁, α₂)."""
+    out = np.zeros(N_NLOS)
+    st = estimate.state
+    if st is None or st.nlos_shift_m is None or st.nlos_prob_k is None:
+        return out
+    shift, pi0 = float(st.nlos_shift_m[k]), float(st.nlos_prob_k[k])
+    if not (shift > 0.0 and pi0 > 0.0):
+        return out
+    n = float(estimate.n_ranges[k])
+    alpha = np.zeros(3) if st.nlos_bearing_logit is None else np.asarray(st.nlos_bearing_logit[k], dtype=float)
+    if reflect is not None:
+        alpha = np.array([alpha[0], *(reflect @ alpha[1:3])])
+    out[:] = [pi0 * n, n, *alpha, shift / pi0]
+    return out
+
+
+def predicted_nlos_var_m2(start_enu_m: np.ndarray, waypoints_enu_m: np.ndarray, hyp: Hypotheses,
+                          model: PredictionModel) -> np.ndarray:
+    """(C, K, M) v = ½ (κ π̂)² [m²], the NLoS shift's variance per horizontal axis after flying
+    each candidate horizon (C, H, 3): the slow reference of planner.objective's
+
+        π̂ = (π₀ n + Σ_legs (ℓ/(ΔQ)) Σ_q p(β_q)) / (n + Σ_legs ℓ/Δ),  p(β) = σ(α₀ + α₁ cos β + α₂ sin β)
+
+    with β the bearing of the quadrature point from the user sample."""
+    pts, lengths = quadrature_points(start_enu_m, waypoints_enu_m, model.n_quad)
+    K, M = hyp.sample_w.shape
+    nl = np.zeros((K, M, N_NLOS)) if hyp.nlos is None else np.asarray(hyp.nlos, dtype=float)
+    n_meas = np.repeat(lengths / (model.delta_m * model.n_quad), model.n_quad, axis=1)  # (C, HQ)
+    rel = pts[:, None, None, :, :2] - hyp.users_enu_m[None, :, :, None, :2]  # (C, K, M, HQ, 2)
+    rho = np.sqrt(np.sum(rel**2, axis=-1) + SQRT_EPS_M2)
+    a = nl[None, :, :, None, :]
+    p_nlos = 1.0 / (1.0 + np.exp(-(a[..., 2] + a[..., 3] * rel[..., 0] / rho + a[..., 4] * rel[..., 1] / rho)))
+    count = nl[None, ..., 0] + np.einsum("cq,ckmq->ckm", n_meas, p_nlos)
+    total = nl[None, ..., 1] + n_meas.sum(axis=1)[:, None, None]
+    return 0.5 * (nl[None, ..., 5] * count / (total + 1e-9)) ** 2
 
 
 def joint_prior_info(estimate: Estimate, k: int) -> np.ndarray:
@@ -188,6 +234,7 @@ def hypotheses_from_estimate(
     U = np.zeros((K, M, 3))
     W = np.zeros((K, M))
     P = np.tile(np.eye(p) * PRIOR_EPS_PER_M2, (K, M, 1, 1))
+    NL = np.zeros((K, M, N_NLOS))
     for row, k in enumerate(idx):
         cov = np.asarray(estimate.cov_users_m2[k], dtype=float)
         prior_joint = joint_prior_info(estimate, k) if bias else None
@@ -202,6 +249,7 @@ def hypotheses_from_estimate(
             cov_h = R @ cov @ R.T
             s0 = h * n_set
             U[row, s0:s0 + n_set] = centre
+            NL[row, s0:s0 + n_set] = nlos_row(estimate, k, R[:2, :2] if h else None)
             if bias:
                 R_ext = np.eye(p)
                 R_ext[:d, :d] = R
@@ -219,7 +267,8 @@ def hypotheses_from_estimate(
                     W[row, s0 + j] = share / (2 * (r + kappa))
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)[idx]
     scale = None if estimate.state is None else np.asarray(estimate.state.noise_scale, dtype=float)[idx]
-    return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx, bias=bias, noise_scale=scale)
+    return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx, bias=bias, noise_scale=scale,
+                      nlos=NL if np.any(NL[..., 5] > 0.0) else None)
 
 
 def hypotheses_from_truth(
@@ -233,16 +282,18 @@ def hypotheses_from_truth(
     bias = estimate is not None and estimate.bias_m is not None
     p = dim + int(bias)
     P = np.tile(np.eye(p) * PRIOR_EPS_PER_M2, (K, 1, 1, 1))
+    NL = np.zeros((K, 1, N_NLOS))
     if estimate is not None:
         ok = users_initialised(estimate)
         for k in np.flatnonzero(ok):
+            NL[k, 0] = nlos_row(estimate, int(k))
             if bias:
                 P[k, 0] = joint_prior_info(estimate, int(k))
             else:
                 P[k, 0] = _info_from_cov(np.asarray(estimate.cov_users_m2[k], dtype=float))
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)
     return Hypotheses(users_enu_m=U[:, None, :], sample_w=np.ones((K, 1)), prior_info=P, user_w=w,
-                      index=np.arange(K), bias=bias)
+                      index=np.arange(K), bias=bias, nlos=NL if np.any(NL[..., 5] > 0.0) else None)
 
 
 def quadrature_points(start_enu_m: np.ndarray, waypoints_enu_m: np.ndarray, n_quad: int):
@@ -313,13 +364,25 @@ def position_information(info: np.ndarray, bias: bool) -> np.ndarray:
     return a - c[..., :, None] * c[..., None, :] / s[..., None, None]
 
 
-def hypothesis_rows(hyp: Hypotheses) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The hypotheses as rows of the objective: users (K·M, 3), prior information (K·M, p, p),
-    noise scale (K·M,) and weights w_k c_ks (K·M,)."""
+@dataclass(frozen=True)
+class Rows:
+    """The hypotheses as the R = K·M rows of the objective: users (R, 3) [m], prior information
+    (R, p, p), noise scale (R,), NLoS state (R, N_NLOS) and weights w_k c_ks (R,)."""
+
+    users_enu_m: np.ndarray
+    prior_info: np.ndarray
+    scale: np.ndarray
+    nlos: np.ndarray
+    weights: np.ndarray
+
+
+def hypothesis_rows(hyp: Hypotheses) -> Rows:
+    """:class:`Rows` of the hypotheses."""
     K, M = hyp.sample_w.shape
     scale = np.ones(K) if hyp.noise_scale is None else np.asarray(hyp.noise_scale, dtype=float)
-    return (hyp.users_enu_m.reshape(K * M, 3), hyp.prior_info.reshape(K * M, hyp.n_par, hyp.n_par),
-            np.repeat(scale, M), (hyp.user_w[:, None] * hyp.sample_w).reshape(K * M))
+    nlos = np.zeros((K, M, N_NLOS)) if hyp.nlos is None else np.asarray(hyp.nlos, dtype=float)
+    return Rows(hyp.users_enu_m.reshape(K * M, 3), hyp.prior_info.reshape(K * M, hyp.n_par, hyp.n_par),
+                np.repeat(scale, M), nlos.reshape(K * M, N_NLOS), (hyp.user_w[:, None] * hyp.sample_w).reshape(K * M))
 
 
 def noise_parameters(noise: NoiseModel) -> np.ndarray:
@@ -342,18 +405,18 @@ def objective_values(
     if W.ndim == 2:
         W = W[:, None, :]
     shape = Shape(hyp.dim, hyp.bias, criterion, W.shape[1], model.n_quad)
-    users, prior, scale, wts = hypothesis_rows(hyp)
-    f = row_values(shape, start_enu_m, W, users, prior, scale, noise_parameters(model.noise), model.delta_m,
-                   compiled)
+    rows = hypothesis_rows(hyp)
+    f = row_values(shape, start_enu_m, W, rows.users_enu_m, rows.prior_info, rows.scale,
+                   noise_parameters(model.noise), model.delta_m, rows.nlos, compiled)
     a = np.concatenate([np.broadcast_to(start_enu_m, (len(W), 1, 3)), W[:, :-1]], axis=1)
     lengths = np.sqrt(np.sum((W - a) ** 2, axis=2) + SQRT_EPS_M2)  # as the kernel's ℓ
-    return f @ wts + cost_per_m * lengths.sum(axis=1)
+    return f @ rows.weights + cost_per_m * lengths.sum(axis=1)
 
 
 def prior_value(hyp: Hypotheses, criterion: str = "A") -> float:
-    """Σ_k w_k Σ_s c_ks f(P_ks): the objective before flying (no cost)."""
-    _, prior, _, wts = hypothesis_rows(hyp)
-    return float(prior_values(Shape(hyp.dim, hyp.bias, criterion, 1, 2), prior) @ wts)
+    """Σ_k w_k Σ_s c_ks f(P_ks): the objective before flying (no cost; the NLoS shift as it is)."""
+    rows = hypothesis_rows(hyp)
+    return float(prior_values(Shape(hyp.dim, hyp.bias, criterion, 1, 2), rows.prior_info, rows.nlos) @ rows.weights)
 
 
 def explore_waypoint(planner, state, visited_enu_m: np.ndarray) -> np.ndarray:

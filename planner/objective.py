@@ -18,10 +18,24 @@ With a bias the position information is the Schur complement I = A − c cᵀ/s 
 gain leaves the Schur complement unchanged, so it is modelled as this bias. A GPS error along the
 line of sight shifts the range one-for-one: σ_gps² is folded into the range variance.
 
-The row's value is the criterion of I (what the stop rule and the benchmark measure for "E"):
+NLoS shift (estimator.nlos_shift). A user whose NLoS excess comes from one side carries the shift
+½ |δ|² I₂ (horizontal) in the covariance the stop rule judges, |δ| = κ π, π the share of its ranges
+that are NLoS and κ = 2μ/c. The horizon's ranges change π: from the n ranges so far, of which π₀ n
+NLoS, and the profile p(β) = σ(α₀ + α₁ cos β + α₂ sin β) of the NLoS probability by the UAV's
+bearing β from the user (estimator.nlos_shift.nlos_bearing_logit),
 
-    f = tr(I⁻¹) ("A"),  −log det I ("D"),  1/sqrt(λ_min(I)) ("E", d = 2,
-        λ_min = (tr − sqrt((I₀₀ − I₁₁)² + 4 I₀₁² + ε_E tr²)) / 2, smooth at isotropy)
+    π̂ = (π₀ n + Σ_legs (ℓ/(ΔQ)) Σ_q p(β_q)) / (n + Σ_legs ℓ/Δ),    v = ½ (κ π̂)²
+
+so legs that see the user from its line-of-sight side shrink v. A row without a shift has κ = 0.
+
+The row's value is the criterion of Σ = I⁻¹ + v P_h (P_h the horizontal projector; what the stop
+rule and the benchmark measure for "E"):
+
+    f = tr(I⁻¹) + 2v ("A"),  −log det I + log(1 + v tr I_h + v² det I_h) ("D"),
+        sqrt(1/λ_min(I) + v) ("E", d = 2, λ_min = (tr − sqrt((I₀₀ − I₁₁)² + 4 I₀₁² + ε_E tr²)) / 2,
+        smooth at isotropy)
+
+(I_h the horizontal block of I; det(I⁻¹ + v P_h) = det(I⁻¹) · det(I + v I P_h).)
 
 The objective sums the rows with their weights (planner.active adds the leg-length cost and the
 normalisation). Kernels (:func:`kernel`, one per :class:`Shape`, whatever the number of users and samples): the
@@ -67,23 +81,37 @@ class Shape:
         return self.dim + int(self.bias)
 
 
-def criterion_expr(info: dict, d: int, criterion: str):
-    """f of the position information given as {(i, j): I_ij, i ≤ j} (SX expressions), d = 2 or 3."""
+def criterion_expr(info: dict, d: int, criterion: str, v=0.0):
+    """f of the position information given as {(i, j): I_ij, i ≤ j} (SX expressions), d = 2 or 3,
+    with the NLoS shift's variance v [m²] on each horizontal axis (module docstring)."""
+    # log det(I + v I P_h) = log(1 + v tr I_h + v² det I_h)
+    det_h = info[0, 0] * info[1, 1] - info[0, 1] ** 2
+    shift_logdet = ca.log(1.0 + v * (info[0, 0] + info[1, 1]) + v * v * det_h)
     if criterion == "E":
         if d != 2:
             raise ValueError("criterion 'E' is implemented for 2-D users only")
         tr = info[0, 0] + info[1, 1]
         gap = ca.sqrt((info[0, 0] - info[1, 1]) ** 2 + 4 * info[0, 1] ** 2 + E_GAP_EPS * tr**2)
-        return 1.0 / ca.sqrt(0.5 * (tr - gap))
+        # sqrt(λ_max(I⁻¹ + v I₂)) = sqrt(1/λ_min(I) + v)
+        return ca.sqrt(1.0 / (0.5 * (tr - gap)) + v)
     if d == 2:
-        det = info[0, 0] * info[1, 1] - info[0, 1] ** 2
         # tr(I⁻¹) = (I₀₀ + I₁₁) / det I
-        return (info[0, 0] + info[1, 1]) / det if criterion == "A" else -ca.log(det)
+        return (info[0, 0] + info[1, 1]) / det_h + 2.0 * v if criterion == "A" else -ca.log(det_h) + shift_logdet
     i00, i01, i02, i11, i12, i22 = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
     c00, c11, c22 = i11 * i22 - i12**2, i00 * i22 - i02**2, i00 * i11 - i01**2
     det = i00 * c00 - i01 * (i01 * i22 - i12 * i02) + i02 * (i01 * i12 - i11 * i02)
     # tr(I⁻¹) = tr(adj I) / det I
-    return (c00 + c11 + c22) / det if criterion == "A" else -ca.log(det)
+    return (c00 + c11 + c22) / det + 2.0 * v if criterion == "A" else -ca.log(det) + shift_logdet
+
+
+#: length of a row's NLoS vector: [π₀ n, n, α₀, α₁, α₂, κ] (module docstring)
+N_NLOS = 6
+
+
+def shift_var_expr(nl_count, n_count, kappa):
+    """v = ½ (κ π̂)², π̂ = nl_count / n_count (module docstring)."""
+    pi_hat = nl_count / (n_count + 1e-9)
+    return 0.5 * (kappa * pi_hat) ** 2
 
 
 def _position_part(J: dict, d: int, bias: bool) -> dict:
@@ -94,13 +122,15 @@ def _position_part(J: dict, d: int, bias: bool) -> dict:
     return {(i, j): J[i, j] - J[i, d] * J[j, d] / s for i in range(d) for j in range(i, d)}
 
 
-def row_expr(z, x_c, u, P, scale, noise_par, delta, shape: Shape):
+def row_expr(z, x_c, u, P, scale, noise_par, delta, nlos, shape: Shape):
     """SX f of one row (module docstring). z: 3H waypoints stacked; x_c, u: 3; P: p·p row-major;
-    scale: s; noise_par: [s0, a, b, σ_gps²]; delta: Δ. Returns (f, [ℓ_1 … ℓ_H])."""
+    scale: s; noise_par: [s0, a, b, σ_gps²]; delta: Δ; nlos: [π₀ n, n, α₀, α₁, α₂, κ].
+    Returns (f, [ℓ_1 … ℓ_H])."""
     d, p, n_q = shape.dim, shape.n_par, shape.n_quad
     t = (np.arange(n_q) + 0.5) / n_q
     acc = {(i, j): P[i * p + j] for i in range(p) for j in range(i, p)}
     s0, a, b, sgps2 = noise_par[0], noise_par[1], noise_par[2], noise_par[3]
+    nl_count, n_count = nlos[0], nlos[1]
     prev, lengths = x_c, []
     for h in range(shape.horizon):
         wp = z[3 * h:3 * h + 3]
@@ -114,11 +144,17 @@ def row_expr(z, x_c, u, P, scale, noise_par, delta, shape: Shape):
             # n / σ_eff², σ_eff² = (s σ(d))² + σ_gps²
             w = per_point / ((scale * (s0 + a * ca.exp(b * dist))) ** 2 + sgps2)
             hv = [rel[i] / dist for i in range(d)] + ([-1.0] if shape.bias else [])
+            # the NLoS probability at this point's bearing from the user, p(β) = σ(α·(1, cos β, sin β))
+            rho = ca.sqrt(rel[0] ** 2 + rel[1] ** 2 + SQRT_EPS_M2)
+            p_nlos = 1.0 / (1.0 + ca.exp(-(nlos[2] + nlos[3] * rel[0] / rho + nlos[4] * rel[1] / rho)))
+            nl_count = nl_count + per_point * p_nlos
+            n_count = n_count + per_point
             for i in range(p):
                 for j in range(i, p):
                     acc[i, j] = acc[i, j] + w * hv[i] * hv[j]
         prev = wp
-    return criterion_expr(_position_part(acc, d, shape.bias), d, shape.criterion), lengths
+    v = shift_var_expr(nl_count, n_count, nlos[5])
+    return criterion_expr(_position_part(acc, d, shape.bias), d, shape.criterion, v), lengths
 
 
 def jit_function(name: str, inputs: list, outputs: list, directory: str | None = None) -> ca.Function:
@@ -154,25 +190,28 @@ def _build(name: str, inputs: list, outputs: list, compiled: bool) -> ca.Functio
 def kernel(kind: str, shape: Shape, compiled: bool = True) -> ca.Function:
     """A row kernel, built (and compiled) once per process:
 
-    "value": (z, x_c, u, P, s, noise, Δ) → f;  "vgh": the same → (f, ∇_z f, triu ∇²_z f);
-    "prior": (P) → f(P), the criterion of the prior information alone (never compiled).
+    "value": (z, x_c, u, P, s, noise, Δ, nlos) → f;  "vgh": the same → (f, ∇_z f, triu ∇²_z f);
+    "prior": (P, nlos) → f(P), the criterion of the prior information and the present NLoS shift
+    alone (never compiled).
     """
     key = (kind, shape, bool(compiled and kind != "prior"))
     if key in _KERNELS:
         return _KERNELS[key]
     p = shape.n_par
     P = ca.SX.sym("P", p * p)
+    nlos = ca.SX.sym("nlos", N_NLOS)
     tag = f"{shape.criterion}{shape.dim}{'b' if shape.bias else ''}h{shape.horizon}q{shape.n_quad}"
     if kind == "prior":
         prior = {(i, j): P[i * p + j] for i in range(p) for j in range(i, p)}
-        f = criterion_expr(_position_part(prior, shape.dim, shape.bias), shape.dim, shape.criterion)
-        fun = ca.Function(f"prior_{tag}", [P], [f])
+        v = shift_var_expr(nlos[0], nlos[1], nlos[5])
+        f = criterion_expr(_position_part(prior, shape.dim, shape.bias), shape.dim, shape.criterion, v)
+        fun = ca.Function(f"prior_{tag}", [P, nlos], [f])
     elif kind in ("value", "vgh"):
         z = ca.SX.sym("z", 3 * shape.horizon)
         x_c, u, scale = ca.SX.sym("x_c", 3), ca.SX.sym("u", 3), ca.SX.sym("s")
         noise_par, delta = ca.SX.sym("noise", 4), ca.SX.sym("delta")
-        f, _ = row_expr(z, x_c, u, P, scale, noise_par, delta, shape)
-        ins = [z, x_c, u, P, scale, noise_par, delta]
+        f, _ = row_expr(z, x_c, u, P, scale, noise_par, delta, nlos, shape)
+        ins = [z, x_c, u, P, scale, noise_par, delta, nlos]
         if kind == "value":
             fun = _build(f"row_{tag}", ins, [f], compiled)
         else:
@@ -200,22 +239,25 @@ def mapped(fun: ca.Function, n: int) -> ca.Function:
 
 def row_values(shape: Shape, start_enu_m: np.ndarray, paths: np.ndarray, users_enu_m: np.ndarray,
                prior_info: np.ndarray, scale: np.ndarray, noise_par: np.ndarray, delta_m: float,
-               compiled: bool = True) -> np.ndarray:
+               nlos: np.ndarray, compiled: bool = True) -> np.ndarray:
     """f of every (candidate, row): paths (C, H, 3); users_enu_m (R, 3); prior_info (R, p, p);
-    scale (R,) → (C, R), the value kernel evaluated (what IPOPT minimises, term by term)."""
+    scale (R,); nlos (R, N_NLOS) → (C, R), the value kernel evaluated (what IPOPT minimises, term
+    by term)."""
     C, R = len(paths), len(users_enu_m)
     n = C * R
     z = np.repeat(np.asarray(paths, dtype=float).reshape(C, -1), R, axis=0).T  # (3H, C·R)
     u = np.tile(np.asarray(users_enu_m, dtype=float), (C, 1)).T
     P = np.tile(np.asarray(prior_info, dtype=float).reshape(R, -1), (C, 1)).T
     s = np.tile(np.asarray(scale, dtype=float), C)[None]
+    nl = np.tile(np.asarray(nlos, dtype=float).reshape(R, N_NLOS), (C, 1)).T
     x_c = np.asarray(start_enu_m, dtype=float)
-    f = mapped(kernel("value", shape, compiled), n)(z, x_c, u, P, s, noise_par, delta_m)
+    f = mapped(kernel("value", shape, compiled), n)(z, x_c, u, P, s, noise_par, delta_m, nl)
     return np.asarray(f, dtype=float).reshape(C, R)
 
 
-def prior_values(shape: Shape, prior_info: np.ndarray) -> np.ndarray:
-    """f(P) of every row: prior_info (R, p, p) → (R,) (the prior kernel evaluated)."""
+def prior_values(shape: Shape, prior_info: np.ndarray, nlos: np.ndarray) -> np.ndarray:
+    """f(P) of every row: prior_info (R, p, p), nlos (R, N_NLOS) → (R,) (the prior kernel evaluated)."""
     R = len(prior_info)
-    out = mapped(kernel("prior", shape), R)(np.asarray(prior_info, dtype=float).reshape(R, -1).T)
+    out = mapped(kernel("prior", shape), R)(np.asarray(prior_info, dtype=float).reshape(R, -1).T,
+                                            np.asarray(nlos, dtype=float).reshape(R, N_NLOS).T)
     return np.asarray(out, dtype=float).reshape(R)
