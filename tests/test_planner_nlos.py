@@ -24,7 +24,7 @@ from planner.information import (
     predicted_nlos_var_m2,
     prior_value,
 )
-from planner.objective import Shape
+from planner.objective import E_GAP_EPS, Shape
 from tests.test_planner import fake_estimate, u_constraints
 from tests.test_planner_active import NOISE
 
@@ -85,12 +85,18 @@ def _dense(start, path, hyp, model, criterion):
         for m in range(M):
             cov = np.linalg.inv(pos[k, m]) + v[k, m] * np.eye(2)
             lam = np.linalg.eigvalsh(cov)
-            f = {"A": np.trace(cov), "D": np.sum(np.log(lam)), "E": np.sqrt(lam[-1])}[criterion]
+            if criterion == "E":
+                # the planner's E: sqrt(1/λ_min(I) + v), λ_min with the gap smoothed by E_GAP_EPS·tr²
+                li = np.linalg.eigvalsh(pos[k, m])
+                tr, gap = li.sum(), li[1] - li[0]
+                f = np.sqrt(1.0 / (0.5 * (tr - np.sqrt(gap**2 + E_GAP_EPS * tr**2))) + v[k, m])
+            else:
+                f = {"A": np.trace(cov), "D": np.sum(np.log(lam))}[criterion]
             total += hyp.user_w[k] * hyp.sample_w[k, m] * f
     return total
 
 
-@pytest.mark.parametrize("criterion", ["A", "D"])
+@pytest.mark.parametrize("criterion", ["A", "D", "E"])
 def test_objective_with_an_nlos_shift_equals_a_dense_computation(criterion):
     est = _with_nlos(fake_estimate([[-70, 60, 0], [70, 40, 0]], np.array([np.diag([21.5, 16.5]), np.diag([3.0, 6.0])])),
                      [5.0, 0.0], [0.25, 0.0], [WEST_LOGIT, np.zeros(3)])
