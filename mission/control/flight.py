@@ -244,10 +244,13 @@ class MissionController:
                                          name="telemetry"))
         f.set_phase(PREFLIGHT)
         self._at_home(await self.vehicle.wait_ready(cfg.ready_timeout_s))
+        # the planner's kernels compile (seconds of CPU) while the gNB is probed, not after it
+        prepared = tg.create_task(self._prepare_planner(), name="prepare-planner")
+        background.append(prepared)
         self._preflight_home()
         await self._preflight_gnb()
         self._preflight_battery()
-        await self._prepare_planner()
+        await prepared
         safety = SafetyMonitor(f, cfg, self.gate, self.vehicle.state, self._buffer.latest, self.now)
         for coro, name in ((self._estimator_task(), "estimator"), (self.pipeline.run_trigger(), "trigger"),
                            (self.pipeline.run_placer(), "placer"), (safety.run(), "safety"),
