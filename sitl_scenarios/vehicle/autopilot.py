@@ -171,12 +171,19 @@ class Autopilot(Navigator):
     def lla_to_enu(self, lat_deg: float, lon_deg: float, alt_m: float) -> list[float]:
         return [float(v) for v in self.origin.lla_to_enu(lat_deg, lon_deg, alt_m)]
 
+    def gps_position(self) -> np.ndarray:
+        """What the GPS receiver reports, (3,) ENU [m]: true position + the GPS error (GPS_RAW_INT)."""
+        return np.asarray(self.pos) + self.gps_error.sample(self.t_s)
+
     def estimated_position(self) -> np.ndarray:
-        """What the vehicle's estimator believes, (3,) ENU [m]: true position + GPS error; without
-        GPS, + the GPS error it had then + the dead-reckoning drift since (sensors.DeadReckoning)."""
+        """What the vehicle's estimator believes, (3,) ENU [m] (GLOBAL_POSITION_INT): true position +
+        the GPS error horizontally; the navigation height vertically, as PX4's EKF2 and ArduPilot's
+        EKF3 take their height from the barometer by default (EKF2_HGT_REF, EK3_SRC1_POSZ), hold it
+        and report it, so a reported height arrives at its setpoint. Without GPS, the GPS error it had
+        then + the dead-reckoning drift since (sensors.DeadReckoning)."""
         if self.gps_error_at_loss is not None:
             return np.asarray(self.pos) + self.gps_error_at_loss + self.dead_reckoning.offset_m(self.t_s)
-        return np.asarray(self.pos) + self.gps_error.sample(self.t_s)
+        return np.asarray(self.nav_pos, dtype=float)
 
     @property
     def nav_pos(self) -> list[float]:

@@ -159,7 +159,7 @@ class StreamEncoder:
             if not ap.gps_ok:  # a receiver without a fix: no position, unknown accuracy
                 return M.MAVLink_gps_raw_int_message(
                     t_us, M.GPS_FIX_TYPE_NO_FIX, 0, 0, 0, 65535, 65535, 65535, 65535, 0, 0, 0, 0, 0, 0, 0)
-            est = ap.estimated_position()
+            est = ap.gps_position()
             lat, lon, alt = ap.enu_to_lla(est)
             vh = math.hypot(ap.vel[0], ap.vel[1])
             cog = int((math.degrees(math.atan2(ap.vel[0], ap.vel[1])) % 360) * 100) if vh > 0.3 else 65535
