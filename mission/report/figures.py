@@ -220,9 +220,9 @@ def _fig_error_vs_flown(plt, inp: ReportInputs):
         err = inp.error_m()
         for k, uid in enumerate(inp.user_ids):
             if np.isfinite(bound[k]):
-                ax.plot([inp.flown_m], [bound[k]], "o", color=colors[k], label=f"{uid} 95 % bound (final)")
+                ax.plot([inp.result.flown_m], [bound[k]], "o", color=colors[k], label=f"{uid} 95 % bound (final)")
             if err is not None and np.isfinite(err[k]):
-                ax.plot([inp.flown_m], [err[k]], "x", color=colors[k], label=f"{uid} true error (final)")
+                ax.plot([inp.result.flown_m], [err[k]], "x", color=colors[k], label=f"{uid} true error (final)")
         ax.text(0.5, 0.9, "no history (replay with history to see the curve)", transform=ax.transAxes,
                 ha="center", fontsize=9)
     ax.set_xlabel("metres flown [m]")
