@@ -21,7 +21,7 @@ ORIGIN = Origin(47.397742, 8.545594, 488.0)
 def make_inputs(n_kf: int = 300, truth: bool = True, history: bool = True, seed: int = 3) -> ReportInputs:
     """Two users, a circle flown at 30 m, ranges = distance + bias + sawtooth + N(0, σ(d)²)."""
     rng = np.random.default_rng(seed)
-    noise = NoiseModel(sigma_gps_m=1.0, s0_m=2.0, a_m=0.2, b_per_m=0.01)
+    noise = NoiseModel(sigma_gps_m=1.0, range_s0_m=2.0, range_a_m=0.2, range_b_per_m=0.01)
     truth_enu = np.array([[40.0, 10.0, 0.0], [-25.0, 45.0, 1.0]])
     ang = np.linspace(0, 2 * np.pi, n_kf)
     gps = np.c_[80 * np.cos(ang), 80 * np.sin(ang), np.full(n_kf, 30.0)]
@@ -79,7 +79,7 @@ def test_report_json_has_users_noise_and_figures(tmp_path):
     assert doc["status"] == "target_reached" and doc["reason"] == "target reached"
     assert doc["measurements"] == len(inp.meas_range_m)
     assert doc["keyframes"] == len(inp.kf_t_s)
-    assert doc["noise"]["range_sigma_m"] == {"s0": 2.0, "a": 0.2, "b": 0.01}
+    assert doc["noise"]["range_sigma_m"] == {"range_s0_m": 2.0, "range_a_m": 0.2, "range_b_per_m": 0.01}
     assert set(doc["figures"]) == set(FIGURES)
     u1 = doc["users"][0]
     assert u1["id"] == "ue1"

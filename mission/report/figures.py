@@ -172,7 +172,8 @@ def _fig_range_error(plt, inp: ReportInputs):
     ax.set_xlabel(f"distance to the {which} user [m]")
     ax.set_ylabel("range error r̂ − d [m]")
     ax.grid(True, alpha=0.3)
-    ax.set_title(f"range error vs distance ({which} users); σ(d) = {n.s0_m:.2f} + {n.a_m:.3g}·exp({n.b_per_m:.3g}·d)")
+    ax.set_title(f"range error vs distance ({which} users); "
+                 f"σ(d) = {n.range_s0_m:.2f} + {n.range_a_m:.3g}·exp({n.range_b_per_m:.3g}·d)")
     ax.legend(fontsize=7, loc="best", markerscale=4)
     return fig
 

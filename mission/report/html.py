@@ -42,7 +42,7 @@ figure {{ margin: 1em 0; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
 <p>Status: <b>{esc(str(doc["status"]))}</b> ({esc(str(doc["reason"]))}); {doc["measurements"]} ranges at
 {doc["keyframes"]} keyframes; {"–" if flown is None else f"{flown:.0f}"} m flown{duration}.
 Origin {o["lat_deg"]:.7f}, {o["lon_deg"]:.7f}, {o["alt_m"]:.1f} m.
-Noise model σ(d) = {n["s0"]:.3g} + {n["a"]:.3g}·exp({n["b"]:.3g}·d) m,
+Noise model σ(d) = {n["range_s0_m"]:.3g} + {n["range_a_m"]:.3g}·exp({n["range_b_per_m"]:.3g}·d) m,
 σ<sub>GPS</sub> = {doc["noise"]["sigma_gps_m"]:.3g} m.</p>
 <table><tr><th>user</th><th>lat [deg]</th><th>lon [deg]</th><th>alt [m]</th><th>95 % bound [m]</th>
 <th>error [m]</th><th>bias [m]</th><th>ranges</th><th>ambiguous</th></tr>
