@@ -50,7 +50,7 @@ except ImportError as exc:  # pragma: no cover
     gtsam = None
     GTSAM_MISSING = str(exc)
 
-NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
+NOISE = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0)
 #: keyframes per accuracy problem (800 m of flight at Δ = 2 m)
 ACC_N = 400
 PARAMS = SolverParams()
@@ -101,7 +101,7 @@ def scipy_solve(sc, init_users: np.ndarray) -> np.ndarray:
     nn, kk = np.nonzero(prob.mask)
     r_meas = prob.range_m[nn, kk]
     m = nn.size
-    sg, s0 = NOISE.sigma_gps_m, NOISE.s0_m
+    sg, s0 = NOISE.sigma_gps_m, NOISE.range_s0_m
 
     def unpack(z):
         return z[: 3 * n].reshape(n, 3), z[3 * n :].reshape(k, 2)
@@ -143,7 +143,8 @@ def scipy_solve(sc, init_users: np.ndarray) -> np.ndarray:
 def _gtsam_models():
     gps = gtsam.noiseModel.Isotropic.Sigma(3, NOISE.sigma_gps_m)
     rng = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(HUBER.loss_scale), gtsam.noiseModel.Isotropic.Sigma(1, NOISE.s0_m)
+        gtsam.noiseModel.mEstimator.Huber.Create(HUBER.loss_scale),
+        gtsam.noiseModel.Isotropic.Sigma(1, NOISE.range_s0_m),
     )
     # 2-D users: up pinned to the known ground height
     up = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e4, 1e4, 1e-4]))

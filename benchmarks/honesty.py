@@ -169,7 +169,7 @@ def write_log(path: Path, row: Row, seed: int) -> dict:
     rad = rng.uniform(40.0, 110.0, row.k)
     users = np.column_stack([rad * np.cos(ang), rad * np.sin(ang), np.zeros(row.k)])
     phase = rng.random(row.k)
-    noise = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, gps_tau_s=row.tau_s if row.tau_in_log else None)
+    noise = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0, gps_tau_s=row.tau_s if row.tau_in_log else None)
     kf_dt = DELTA_M / SPEED_MPS
     per = round(kf_dt / TEL_DT_S)
     t = np.arange(row.n * per) * TEL_DT_S
@@ -217,7 +217,7 @@ def gtsam_solve(keyframes, n_users: int, noise: NoiseModel, tau_s: float, init: 
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     huber = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.5),
-                                           gtsam.noiseModel.Isotropic.Sigma(1, noise.s0_m))
+                                           gtsam.noiseModel.Isotropic.Sigma(1, noise.range_s0_m))
     up = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e4, 1e4, 1e-4]))
     for k in range(n_users):
         graph.add(gtsam.PriorFactorPoint3(L(k), gtsam.Point3(init[k, 0], init[k, 1], 0.0), up))
@@ -280,7 +280,7 @@ def run_log(row: Row, seed: int, tmp: str, with_gtsam: bool) -> dict:
     users = truth["users"]
     visible = np.ones((row.n, row.k), dtype=bool)
     # CRLB of the sawtooth-free model at the truth (true σ, no clock offset, GM when drifting)
-    true_noise = NoiseModel(sigma_gps_m=1.0, s0_m=3.0 * row.understate, gps_tau_s=row.tau_s)
+    true_noise = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0 * row.understate, gps_tau_s=row.tau_s)
     crlb = crlb_users(truth["uav"], users, visible, true_noise, SolverParams(estimate_bias=False), truth["t"])
     out = {"tr": np.array([np.trace(crlb[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]) for k in range(row.k)])}
     if row.saw_m > 0:

@@ -79,7 +79,7 @@ async def fly(scenario, seed: int, log_path: Path, connect: str | None, speedup:
             "cruise_mps": fig["cruise_mps"], "mean_mps": fig["mean_mps"], "rtl_height_m": fig["rtl_height_m"],
             "error_m": None if err is None else [float(x) for x in err],
             "bound95_m": None if bound is None else [float(x) for x in bound],
-            "mission_s": result.mission_s, "wall_s": wall_s, "users": result.user_ids}
+            "mission_s": result.result.duration_s, "wall_s": wall_s, "users": result.result.user_ids}
 
 
 def run_px4(scenario, seed: int, speed: float, instance: int, work: Path) -> dict:

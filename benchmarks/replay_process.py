@@ -58,7 +58,8 @@ def gtsam_script(log_path: str, white: bool = False) -> None:
     org = header["origin"]
     ids = [u["id"] for u in header["users"]]
     sigma_gps, tau = header["noise"]["sigma_gps_m"], header["noise"].get("gps_tau_s") or 0.0
-    s0 = header["noise"]["range_sigma_m"]["s0"]
+    spread = header["noise"]["range_sigma_m"]
+    s0 = spread["range_s0_m"] if "range_s0_m" in spread else spread["s0"]  # logs written before: "s0"
     # keyframes: consecutive rtt records at the same UAV position
     kfs: list[tuple[float, tuple, list]] = []
     for rec in rtt:

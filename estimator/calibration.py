@@ -107,8 +107,8 @@ class CalibrationResult:
         """The fitted model as the estimator's :class:`NoiseModel` (σ_gps from the argument, else
         the one the fit assumed, else 1 m)."""
         sg = sigma_gps_m if sigma_gps_m is not None else (self.sigma_gps_m or 1.0)
-        return NoiseModel(sigma_gps_m=float(sg), s0_m=float(self.s0_m), a_m=float(self.a_m),
-                          b_per_m=float(self.b_per_m))
+        return NoiseModel(sigma_gps_m=float(sg), range_s0_m=float(self.s0_m), range_a_m=float(self.a_m),
+                          range_b_per_m=float(self.b_per_m))
 
 
 def range_residuals(

@@ -128,8 +128,8 @@ def range_residuals(
     d = np.sqrt(diff_enu_m[0] * diff_enu_m[0] + diff_enu_m[1] * diff_enu_m[1] + diff_enu_m[2] * diff_enu_m[2])
     np.maximum(d, 1e-9, out=d)
     # σ(r̂) = s0 + a·exp(b·r̂): a scalar when a = 0 (a cheaper loss evaluation); σ(d) predicted
-    if noise.a_m == 0.0:
-        sig = noise.s0_m
+    if noise.range_a_m == 0.0:
+        sig = noise.range_s0_m
     elif range_m is None:
         sig = noise.range_sigma_m(d)
     else:
@@ -259,7 +259,7 @@ def dense_normal_equations(
             if not prob.mask[i, k]:
                 continue
             # σ_k(d) = s_k σ(d): the same model with s0 and a scaled by s_k
-            nk = replace(noise, s0_m=noise.s0_m * scale[k], a_m=noise.a_m * scale[k])
+            nk = replace(noise, range_s0_m=noise.range_s0_m * scale[k], range_a_m=noise.range_a_m * scale[k])
             gain = 1.0 if prob.bias_gain is None else float(prob.bias_gain[i, k])
             f = RangeFactor(prob.range_m[i, k], nk, prob.user_dim, prob.user_up_m[k], params.estimate_bias, gain)
             e = f.error(uav_enu_m[i], theta[k])

@@ -82,8 +82,8 @@ class UserFit:
 
 def _sigma_eff(noise: NoiseModel, d: np.ndarray) -> np.ndarray | float:
     # σ_eff = √(σ(d)² + σ_gps²)
-    if noise.a_m == 0.0:
-        return float(np.sqrt(noise.s0_m**2 + noise.sigma_gps_m**2))
+    if noise.range_a_m == 0.0:
+        return float(np.sqrt(noise.range_s0_m**2 + noise.sigma_gps_m**2))
     return np.sqrt(noise.range_sigma_m(d) ** 2 + noise.sigma_gps_m**2)
 
 
@@ -314,7 +314,7 @@ def _grid_cost(uav: np.ndarray, rng: np.ndarray, dz: np.ndarray, cand: np.ndarra
     np.sqrt(d, out=d)
     c2 = GRID_CAUCHY_SCALE**2
     ones = np.ones(m_n, dtype=f4)
-    if noise.a_m == 0.0:
+    if noise.range_a_m == 0.0:
         # constant σ_eff: min(((r − d)/σ)², c²) = min((r − d)², (cσ)²)/σ²
         sig = float(_sigma_eff(noise, d))
         d -= rng.astype(f4)[:, None, :]

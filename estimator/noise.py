@@ -31,7 +31,8 @@ class NoiseModel:
     """Measurement noise of GPS and ranges.
 
     sigma_gps_m: per-axis standard deviation of a GPS fix [m] (paper: 1 m).
-    s0_m, a_m, b_per_m: range spread σ(d) = s0 + a·exp(b·d) [m]; defaults s0 = 3 m, a = 0.
+    range_s0_m, range_a_m, range_b_per_m: range spread σ(d) = s0 + a·exp(b·d) [m] (the mission
+        file's [noise] names; these defaults are the mission file's too): s0 = 3 m, a = 0, b = 0 /m.
     gps_tau_s: correlation time τ of the GPS error [s]: 0 independent per fix (white); > 0
         first-order Gauss–Markov, β(t + Δt) = e^(−Δt/τ) β(t) + w, stationary σ_gps per axis (an
         autopilot's EKF output drifts like this); None unknown (a log without it): the estimator
@@ -43,15 +44,15 @@ class NoiseModel:
     """
 
     sigma_gps_m: float = 1.0
-    s0_m: float = 3.0
-    a_m: float = 0.0
-    b_per_m: float = 0.0
+    range_s0_m: float = 3.0
+    range_a_m: float = 0.0
+    range_b_per_m: float = 0.0
     gps_tau_s: float | None = 0.0
     vel_sigma_mps: float | None = None
     vel_tau_s: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("sigma_gps_m", "s0_m", "a_m", "b_per_m"):
+        for name in ("sigma_gps_m", "range_s0_m", "range_a_m", "range_b_per_m"):
             value = getattr(self, name)
             if not isinstance(value, int | float) or not math.isfinite(value):
                 raise EstimatorError(f"noise model {name} must be a finite number, got {value!r}")
@@ -66,10 +67,10 @@ class NoiseModel:
                 raise EstimatorError(f"{name} must be a positive number or None, got {value!r}")
         if self.sigma_gps_m <= 0:
             raise EstimatorError(f"sigma_gps_m must be positive, got {self.sigma_gps_m}")
-        if self.s0_m <= 0:
-            raise EstimatorError(f"s0_m must be positive, got {self.s0_m}")
-        if self.a_m < 0:
-            raise EstimatorError(f"a_m must be non-negative, got {self.a_m}")
+        if self.range_s0_m <= 0:
+            raise EstimatorError(f"range_s0_m must be positive, got {self.range_s0_m}")
+        if self.range_a_m < 0:
+            raise EstimatorError(f"range_a_m must be non-negative, got {self.range_a_m}")
 
     @property
     def gps_tau_used_s(self) -> float:
@@ -93,34 +94,42 @@ class NoiseModel:
         of an overflow."""
         d = np.asarray(d_m, dtype=float)
         # σ(d) = s0 + a·exp(b·d)
-        return self.s0_m + self.a_m * np.exp(np.minimum(self.b_per_m * d, SIGMA_EXPONENT_MAX))
+        return self.range_s0_m + self.range_a_m * np.exp(np.minimum(self.range_b_per_m * d, SIGMA_EXPONENT_MAX))
 
     def range_sigma_dd(self, d_m: np.ndarray | float) -> np.ndarray:
         """dσ/dd = a·b·exp(b·d) [m/m] (0 where the exponent is capped), same shape as `d_m`."""
         d = np.asarray(d_m, dtype=float)
         # dσ/dd = a·b·exp(b·d)
-        bd = self.b_per_m * d
-        return np.where(bd < SIGMA_EXPONENT_MAX, self.a_m * self.b_per_m * np.exp(np.minimum(bd, SIGMA_EXPONENT_MAX)),
-                        0.0)
+        bd = self.range_b_per_m * d
+        return np.where(bd < SIGMA_EXPONENT_MAX,
+                        self.range_a_m * self.range_b_per_m * np.exp(np.minimum(bd, SIGMA_EXPONENT_MAX)), 0.0)
 
     @classmethod
     def from_log_dict(cls, noise: dict | None) -> NoiseModel:
-        """Build from a mission-log header `noise` section (docs/design.md §10); defaults when absent."""
+        """Build from a mission-log header `noise` section (docs/design.md §10); defaults when absent.
+        `range_sigma_m` holds range_s0_m, range_a_m, range_b_per_m; logs written before these names
+        hold s0, a, b (read as the same)."""
         if not noise:
             return cls()
         rs = noise.get("range_sigma_m", {}) or {}
-        tau = noise.get("gps_tau_s")
+        if not isinstance(rs, dict):
+            raise EstimatorError(f"noise range_sigma_m must be an object, got {rs!r}")
         for key in ("gps_tau_s", "vel_sigma_mps", "vel_tau_s"):
             v = noise.get(key)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int | float)):
                 raise EstimatorError(f"noise {key} must be a number, got {v!r}")
-        vs, vt = noise.get("vel_sigma_mps"), noise.get("vel_tau_s")
+        tau, vs, vt = noise.get("gps_tau_s"), noise.get("vel_sigma_mps"), noise.get("vel_tau_s")
+        spread = {}
+        for name in RANGE_SIGMA_FIELDS:
+            old = LEGACY_RANGE_SIGMA_KEYS[name]
+            if name in rs and old in rs:
+                raise EstimatorError(f"noise range_sigma_m has both {name!r} and its old name {old!r}: {rs!r}")
+            if name in rs or old in rs:
+                spread[name] = rs[name] if name in rs else rs[old]
         try:
             return cls(
-                sigma_gps_m=float(noise.get("sigma_gps_m", 1.0)),
-                s0_m=float(rs.get("s0", 3.0)),
-                a_m=float(rs.get("a", 0.0)),
-                b_per_m=float(rs.get("b", 0.0)),
+                sigma_gps_m=float(noise.get("sigma_gps_m", cls.sigma_gps_m)),
+                **{name: float(v) for name, v in spread.items()},
                 gps_tau_s=None if tau is None else float(tau),
                 vel_sigma_mps=None if vs is None else float(vs),
                 vel_tau_s=None if vt is None else float(vt),
@@ -129,7 +138,7 @@ class NoiseModel:
             raise EstimatorError(f"noise section is malformed: {noise!r}") from exc
 
     def to_log_dict(self) -> dict:
-        """The mission-log header `noise` section."""
+        """The mission-log header `noise` section (range_sigma_m under the NoiseModel's names)."""
         out: dict = {"sigma_gps_m": self.sigma_gps_m}
         if self.gps_tau_s is not None:
             out["gps_tau_s"] = self.gps_tau_s
@@ -137,5 +146,11 @@ class NoiseModel:
             out["vel_sigma_mps"] = self.vel_sigma_mps
         if self.vel_tau_s is not None:
             out["vel_tau_s"] = self.vel_tau_s
-        out["range_sigma_m"] = {"s0": self.s0_m, "a": self.a_m, "b": self.b_per_m}
+        out["range_sigma_m"] = {name: getattr(self, name) for name in RANGE_SIGMA_FIELDS}
         return out
+
+
+#: σ(d)'s parameters, by their one name (NoiseModel's, the mission file's, the log header's)
+RANGE_SIGMA_FIELDS = ("range_s0_m", "range_a_m", "range_b_per_m")
+#: their names in the `range_sigma_m` of logs written before (still read)
+LEGACY_RANGE_SIGMA_KEYS = {"range_s0_m": "s0", "range_a_m": "a", "range_b_per_m": "b"}

@@ -172,7 +172,7 @@ def range_rows(
     users = st.users_enu_m[ka_list].tolist()
     with_bias = params.estimate_bias
     biases = st.theta[ka_list, -1].tolist() if with_bias else None
-    s0, a_m, b_m = noise.s0_m, noise.a_m, noise.b_per_m
+    s0, a_m, b_m = noise.range_s0_m, noise.range_a_m, noise.range_b_per_m
     us, sigs, es = [], [], []
     for j, (r_j, (ux, uy, uz)) in enumerate(zip(r_list, users, strict=True)):
         dx, dy, dz = gx - ux, gy - uy, gz - uz

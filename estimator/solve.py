@@ -74,11 +74,11 @@ def held_bias_prior(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
     """(K,) mean and (K,) σ [m] of the prior that holds a bias the selection turned off
     (params.bias_held): 0 and BIAS_OFF_SIGMA_M ("zero"), or the mean offset of a clock sawtooth
     too small to track at the user's range noise s_k·σ0 ("sawtooth",
-    estimator.clock.undetected_sawtooth_bias; σ0 = noise.s0_m, the noise at short range)."""
+    estimator.clock.undetected_sawtooth_bias; σ0 = noise.range_s0_m, the noise at short range)."""
     k_all = prob.n_users
     if prob.params.bias_held == "sawtooth":
         scale = np.ones(k_all) if prob.noise_scale_k is None else np.asarray(prob.noise_scale_k, dtype=float)
-        mean, sd = undetected_sawtooth_bias(prob.noise.s0_m * scale)
+        mean, sd = undetected_sawtooth_bias(prob.noise.range_s0_m * scale)
         return np.asarray(mean, dtype=float), np.asarray(sd, dtype=float)
     return np.zeros(k_all), np.full(k_all, BIAS_OFF_SIGMA_M)
 

@@ -150,19 +150,20 @@ class NoiseConfig:
     "sawtooth" (commercial UEs: the mean of a clock sawtooth too small to track, and its spread).
     """
 
-    sigma_gps_m: float = positive(1.0, 100.0)
+    # the defaults are NoiseModel's (estimator.noise), not typed again here
+    sigma_gps_m: float = positive(NoiseModel.sigma_gps_m, 100.0)
     gps_tau_s: float | None = bounded(None, 0.0, 1e5)
-    range_s0_m: float = positive(3.0, 1000.0)
-    range_a_m: float = bounded(0.0, 0.0, 1000.0)
-    range_b_per_m: float = bounded(0.0, -1.0, 1.0)
+    range_s0_m: float = positive(NoiseModel.range_s0_m, 1000.0)
+    range_a_m: float = bounded(NoiseModel.range_a_m, 0.0, 1000.0)
+    range_b_per_m: float = bounded(NoiseModel.range_b_per_m, -1.0, 1.0)
     estimate_bias: bool = False
     bias_prior_sigma_m: float = positive(10.0, 1000.0)
     bias_held: Literal["zero", "sawtooth"] = "zero"
 
     def noise_model(self) -> NoiseModel:
         """The estimator's :class:`NoiseModel`."""
-        return NoiseModel(sigma_gps_m=self.sigma_gps_m, s0_m=self.range_s0_m, a_m=self.range_a_m,
-                          b_per_m=self.range_b_per_m, gps_tau_s=self.gps_tau_s)
+        return NoiseModel(sigma_gps_m=self.sigma_gps_m, range_s0_m=self.range_s0_m, range_a_m=self.range_a_m,
+                          range_b_per_m=self.range_b_per_m, gps_tau_s=self.gps_tau_s)
 
     def header_noise(self) -> dict:
         """The mission log header's `noise` section (docs/design.md §10), with `gps_tau_s` when known."""

@@ -253,7 +253,7 @@ class MissionLog:
     rtt_uav_lla (M, 3) lat_deg/lon_deg/alt_m, rtt_toa_s (M,), rtt_raw: list of the raw-field dicts.
     tel_t_s (T,), tel_lla (T, 3): telemetry; tel_vel_ned_mps (T, 3): the autopilot's velocity
     (north, east, down) [m/s], NaN rows where a record has none. truth_lla: (K, 3) or None (NaN rows
-    for users absent).
+    for users absent). t_start_s: the header's time; t_last_s: the last record's time [s].
     """
 
     path: Path
@@ -271,6 +271,12 @@ class MissionLog:
     waypoints: list[dict] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
     skipped_torn_line: int | None = None
+    t_start_s: float = 0.0
+    t_last_s: float = 0.0
+
+    def last_event(self, kind: str) -> dict | None:
+        """The last `event` record of this kind, or None."""
+        return next((e for e in reversed(self.events) if e.get("kind") == kind), None)
 
     @property
     def n_users(self) -> int:
@@ -497,6 +503,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
     truth: np.ndarray | None = None
     estimates, waypoints, events = [], [], []
     torn: int | None = None
+    t_start = t_last = 0.0
     last_t: dict[str, tuple[float, int]] = {}  # record type -> (time, line) of the latest one
     with fh:
         try:
@@ -515,6 +522,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
                             raise _LineError(f"the first record must be the header, got type {rtype!r}")
                         header = _parse_header(obj)
                         user_ix = header.user_index()
+                        t_start = t_last = t
                         continue
                     if rtype == "header":
                         raise _LineError("a second header")
@@ -559,6 +567,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
                         if not isinstance(obj.get("message", ""), str):
                             raise _LineError(f"event message must be a string, got {obj.get('message')!r}")
                         events.append(obj)
+                    t_last = t
                 except _LineError as exc:
                     raise MissionLogError(f"{path}:{lineno}: {exc}") from None
         except UnicodeDecodeError as exc:
@@ -581,6 +590,8 @@ def read_mission_log(path: str | Path) -> MissionLog:
         waypoints=waypoints,
         events=events,
         skipped_torn_line=torn,
+        t_start_s=t_start,
+        t_last_s=t_last,
     )
 
 

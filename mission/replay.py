@@ -13,6 +13,7 @@ have evolved during the flight: the batch refreshed on estimator.refresh's sched
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 
@@ -25,7 +26,7 @@ from estimator.types import Estimate, Keyframe, SolverParams
 from mission.estimation import MissionEstimator
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframes_of, triggers_gps_enu_m
 from mission.log import MissionLog
-from mission.result import horizontal_error_m, result_status, user_entries_of_estimate
+from mission.result import Result, build_result, horizontal_error_m, result_status
 from mission.telemetry import odometer_dead_band_m, odometer_m
 from uavloc.errors import MissionLogError
 
@@ -241,34 +242,56 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
     )
 
 
-def result_document(result: ReplayResult) -> dict:
-    """The JSON document of docs/design.md §11 for a replay."""
-    return {
-        "status": result_status(result.estimate),
-        "users": user_entries_of_estimate(result.estimate, result.log.header.origin,
-                                          [u.id for u in result.log.header.users], result.truth_enu_m),
-        "flown_m": result.flown_m,
-        "measurements": result.n_measurements,
-        "keyframes": len(result.keyframes),
-    }
+#: "mission end: STATUS (REASON)": the end record's message, where logs written before the end
+#: record carried `reason` find it
+_END_MESSAGE = re.compile(r"^mission end: (?P<status>\S+) \((?P<reason>.*)\)$")
 
 
-def format_users_table(doc: dict) -> str:
-    """Human-readable lines: where each user is."""
-    lines = []
-    for u in doc["users"]:
-        if u["lat_deg"] is None:
-            lines.append(f"  {u['id']}: not located ({u['measurements']} ranges)")
-            continue
-        e, n, _ = u["enu_m"]
-        s = (f"  {u['id']}: lat {u['lat_deg']:.7f}  lon {u['lon_deg']:.7f}  alt {u['alt_m']:.1f} m  "
-             f"(E {e:+.1f} m, N {n:+.1f} m)  95% bound {u['error_bound_95_m'] or float('nan'):.2f} m")
-        if u.get("error_m") is not None:
-            s += f"  error {u['error_m']:.2f} m"
-        if u.get("nlos_shift_m"):
-            # the part of the bound no survey shrinks (estimator.nlos_shift)
-            s += f"  [NLoS from one side: {u['nlos_shift_m']:.1f} m shift in the bound]"
-        if u["ambiguous"]:
-            s += "  [mirror ambiguity unresolved]"
-        lines.append(s)
-    return "\n".join(lines)
+def end_of_log(mlog: MissionLog) -> tuple[str, str, float] | None:
+    """(status, reason, t [s]) of the log's `end` event, or None when it has none. A log written
+    before the record carried `reason` gives the one its message names."""
+    end = mlog.last_event("end")
+    if end is None or not isinstance(end.get("status"), str):
+        return None
+    reason = end.get("reason")
+    if not isinstance(reason, str):
+        m = _END_MESSAGE.match(str(end.get("message", "")))
+        reason = m.group("reason") if m and m.group("status") == end["status"] else ""
+    return end["status"], reason, float(end["t"])
+
+
+def result_of_log(mlog: MissionLog, replayed: ReplayResult | None) -> Result:
+    """The mission's :class:`mission.result.Result` from its log and the replay of it (None: the log
+    has no ranges: nothing located): status and reason from the log's `end` record (without one:
+    :func:`mission.result.result_status` of the estimate), duration from the header to that record
+    (or the last record), the `survey_time` event's seconds. The mission builds its result so from
+    its own closed log, and `uavloc replay` the same way."""
+    end = end_of_log(mlog)
+    est = None if replayed is None else replayed.estimate
+    if end is not None:
+        status, reason, t_end = end
+    else:
+        status = result_status(est) if est is not None else "incomplete"
+        reason, t_end = "the log has no end record", mlog.t_last_s
+    survey = mlog.last_event("survey_time") or {}
+
+    def seconds(key: str) -> float | None:
+        v = survey.get(key)
+        return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else None
+
+    truth = None
+    if mlog.truth_lla is not None:
+        truth = mlog.header.origin.lla_to_enu(mlog.truth_lla[:, 0], mlog.truth_lla[:, 1], mlog.truth_lla[:, 2])
+    return build_result(
+        status=status, reason=reason, user_ids=[u.id for u in mlog.header.users], estimate=est,
+        origin=mlog.header.origin, truth_enu_m=truth,
+        flown_m=0.0 if replayed is None else replayed.flown_m,
+        measurements=0 if replayed is None else replayed.n_measurements,
+        keyframes=0 if replayed is None else len(replayed.keyframes),
+        duration_s=t_end - mlog.t_start_s, survey_s=seconds("survey_s"), hover_s=seconds("hover_s"),
+        largest_gap_s=seconds("largest_gap_s"), log_path=mlog.path)
+
+
+def result_of_replay(result: ReplayResult) -> Result:
+    """:func:`result_of_log` of a replay's own log."""
+    return result_of_log(result.log, result)

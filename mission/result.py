@@ -1,17 +1,31 @@
-"""The one per-user result document, the one horizontal error and the one status of every tool.
+"""The one result of a mission, the one per-user entry, the one horizontal error and status.
 
-`uavloc sim`, `uavloc fly`, `uavloc replay` and the report all describe a located user the same
-way (docs/design.md §11): :func:`user_entries` builds that list from plain arrays, and
-:func:`user_entries_of_estimate` from an :class:`estimator.types.Estimate`. Each entry::
+:class:`Result` is what a mission found: made by :func:`build_result` only, from an
+:class:`estimator.types.Estimate` and the run's counts, by the mission (from the replay of its own
+closed log, mission.replay.result_of_log), by `uavloc replay` (the same function, the same log)
+and by a campaign's fast mode (no log: from its estimate). The CLI summary, `--json`,
+report.json, report.html and a campaign's rows are renderings of it; :meth:`Result.to_document`
+is its JSON (docs/design.md §11)::
+
+    status, reason                 how the mission ended (a log without an `end` record: "ok",
+                                   "ambiguous" or "incomplete" of the estimate, :func:`result_status`)
+    users                          one entry per user, below
+    flown_m, measurements, keyframes
+    duration_s                     mission seconds, the log's header to its `end` record
+    survey_s, hover_s, largest_gap_s   the `survey_time` event's, None when absent
+    origin                         {lat_deg, lon_deg, alt_m} of the ENU frame, or None
+    log                            the mission log's path, or None
+
+Each user (:class:`UserResult`, :meth:`UserResult.to_dict`)::
 
     id, lat_deg, lon_deg, alt_m, enu_m            where (None when the user is not located)
     cov_en_m2, sigma_east_m, sigma_north_m         east-north covariance [m²] and its √diagonal [m]
     error_bound_95_m                               semi-major axis of the 95 % ellipse [m]
     measurements, ambiguous                        when known
-    bias_m                                         when range biases were estimated (mean range
-                                                   bias [m]; where a user's bias was selected off, the
-                                                   value it is held at: 0, or with bias_held
-                                                   "sawtooth" an untracked sawtooth's mean)
+    bias_m                                         when range biases were estimated and the user is
+                                                   located (mean range bias [m]; where a user's bias
+                                                   was selected off, the value it is held at: 0, or
+                                                   with bias_held "sawtooth" an untracked sawtooth's mean)
     clock_sawtooth                                 {period_s, amplitude_m} where a UE clock sawtooth
                                                    was tracked (then bias_m is its mean, A/2)
     noise_scale                                    when estimated: how much noisier than the assumed
@@ -27,12 +41,31 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.types import error_bound_95_m
+
+#: how a mission ended (Result.status), named once
+STATUS_TARGET = "target_reached"
+STATUS_BUDGET = "budget_spent"
+STATUS_NO_LEG = "no_feasible_leg"
+STATUS_FLOOR = "floor_reached"  # the bounds stopped shrinking above the target (GPS floor)
+STATUS_RETURNED = "returned"  # a safety condition ended the survey early
+STATUS_ABORTED = "aborted"  # an error ended the mission (RTL sent when airborne)
+STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne)
+#: the statuses of a mission that ended normally (the command exits 0 when every user is located)
+NORMAL_END = (STATUS_TARGET, STATUS_FLOOR, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED)
+
+
+def status_of_planner_reason(reason: str) -> str:
+    """The status of a survey the planner ended (planner.types.PlanResult.reason)."""
+    return {"target reached": STATUS_TARGET, "floor reached": STATUS_FLOOR,
+            "budget spent": STATUS_BUDGET}.get(reason, STATUS_NO_LEG)
 
 
 def horizontal_error_m(users_enu_m: np.ndarray, truth_enu_m: np.ndarray) -> np.ndarray:
@@ -63,7 +96,88 @@ def finite_or_none(x: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def user_entries(
+@dataclass(frozen=True)
+class ClockSawtooth:
+    """A tracked UE clock sawtooth: period [s] and amplitude [m] (its mean, A/2, is the bias)."""
+
+    period_s: float
+    amplitude_m: float
+
+
+@dataclass(frozen=True)
+class TruthPosition:
+    """A user's true position (simulation): ENU [m] about the result's origin, and geodetic."""
+
+    enu_m: tuple[float, float, float]
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+
+
+@dataclass(frozen=True)
+class UserResult:
+    """One user's result (the module docstring's entry). Position fields are None when the user is
+    not located; measurements/ambiguous None when unknown; bias_m, noise_scale, nlos_shift_m None
+    when not estimated (or the user not located); truth None when unknown; error_m [m] None when the
+    truth or the position is unknown. cov_en_m2: ((σ_ee², σ_en), (σ_ne, σ_nn²)) [m²]."""
+
+    id: str
+    lat_deg: float | None = None
+    lon_deg: float | None = None
+    alt_m: float | None = None
+    enu_m: tuple[float, float, float] | None = None
+    cov_en_m2: tuple[tuple[float, float], tuple[float, float]] | None = None
+    error_bound_95_m: float | None = None
+    measurements: int | None = None
+    ambiguous: bool | None = None
+    bias_m: float | None = None
+    clock_sawtooth: ClockSawtooth | None = None
+    noise_scale: float | None = None
+    nlos_shift_m: float | None = None
+    truth: TruthPosition | None = None
+    error_m: float | None = None
+
+    @property
+    def located(self) -> bool:
+        return self.enu_m is not None
+
+    @property
+    def sigma_east_m(self) -> float | None:
+        c = self.cov_en_m2
+        return math.sqrt(c[0][0]) if c is not None and c[0][0] >= 0 else None
+
+    @property
+    def sigma_north_m(self) -> float | None:
+        c = self.cov_en_m2
+        return math.sqrt(c[1][1]) if c is not None and c[1][1] >= 0 else None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON entry (module docstring): optional keys appear when known."""
+        entry: dict[str, Any] = {
+            "id": self.id, "lat_deg": self.lat_deg, "lon_deg": self.lon_deg, "alt_m": self.alt_m,
+            "enu_m": None if self.enu_m is None else list(self.enu_m),
+            "cov_en_m2": None if self.cov_en_m2 is None else [list(r) for r in self.cov_en_m2],
+            "sigma_east_m": self.sigma_east_m, "sigma_north_m": self.sigma_north_m,
+            "error_bound_95_m": self.error_bound_95_m,
+        }
+        if self.measurements is not None:
+            entry["measurements"] = self.measurements
+        if self.ambiguous is not None:
+            entry["ambiguous"] = self.ambiguous
+        for key in ("noise_scale", "nlos_shift_m", "bias_m"):
+            if getattr(self, key) is not None:
+                entry[key] = getattr(self, key)
+        if self.clock_sawtooth is not None:
+            entry["clock_sawtooth"] = {"period_s": self.clock_sawtooth.period_s,
+                                       "amplitude_m": self.clock_sawtooth.amplitude_m}
+        if self.truth is not None:
+            entry["error_m"] = self.error_m
+            t = self.truth
+            entry["truth"] = {"lat_deg": t.lat_deg, "lon_deg": t.lon_deg, "alt_m": t.alt_m, "enu_m": list(t.enu_m)}
+        return entry
+
+
+def users_of(
     user_ids: Sequence[str],
     origin: Origin | None,
     users_enu_m: np.ndarray | None,
@@ -72,18 +186,17 @@ def user_entries(
     measurements: Sequence[int] | np.ndarray | None = None,
     ambiguous: Sequence[bool] | np.ndarray | None = None,
     bias_m: np.ndarray | None = None,
-    clock_sawtooth: Sequence[dict | None] | None = None,
+    clock_sawtooth: Sequence[ClockSawtooth | None] | None = None,
     noise_scale: np.ndarray | None = None,
     nlos_shift_m: np.ndarray | None = None,
     truth_enu_m: np.ndarray | None = None,
-) -> list[dict]:
-    """The per-user entries (module docstring) of K users.
+) -> tuple[UserResult, ...]:
+    """The :class:`UserResult` of K users from plain arrays.
 
     users_enu_m: (K, 3) ENU about `origin` [m] (NaN rows: not located), or None when nothing is
     estimated (then `origin` may be None too); cov_en_m2: (K, 2, 2) [m²] or None; measurements (K,),
-    ambiguous (K,), bias_m (K,), clock_sawtooth (K,) of dicts or None, noise_scale (K,),
-    nlos_shift_m (K,), truth_enu_m (K, 3): optional, their keys appear when given (bias, noise
-    scale and shift None where the user is not located).
+    ambiguous (K,), bias_m (K,), clock_sawtooth (K,), noise_scale (K,), nlos_shift_m (K,),
+    truth_enu_m (K, 3): optional (bias, noise scale, shift and sawtooth kept where the user is located).
     """
     k_users = len(user_ids)
     users = (np.full((k_users, 3), np.nan) if users_enu_m is None or origin is None
@@ -97,72 +210,199 @@ def user_entries(
         lat = lon = alt = np.full(k_users, np.nan)
     bound = error_bound_95_m(cov)
     err = None if truth_enu_m is None else horizontal_error_m(users, truth_enu_m)
+    truth = None if truth_enu_m is None else np.asarray(truth_enu_m, dtype=float).reshape(k_users, 3)
+
+    def located_value(values, k: int) -> float | None:
+        return None if values is None or not located[k] else finite_or_none(values[k])
+
     out = []
     for k, uid in enumerate(user_ids):
         c = cov[k]
-        c_ok = bool(np.all(np.isfinite(c)))
-        entry: dict[str, Any] = {
-            "id": uid,
-            "lat_deg": float(lat[k]) if located[k] else None,
-            "lon_deg": float(lon[k]) if located[k] else None,
-            "alt_m": float(alt[k]) if located[k] else None,
-            "enu_m": [float(x) for x in users[k]] if located[k] else None,
-            "cov_en_m2": c.tolist() if c_ok else None,
-            "sigma_east_m": math.sqrt(c[0, 0]) if c_ok and c[0, 0] >= 0 else None,
-            "sigma_north_m": math.sqrt(c[1, 1]) if c_ok and c[1, 1] >= 0 else None,
-            "error_bound_95_m": finite_or_none(bound[k]),
-        }
-        if measurements is not None:
-            entry["measurements"] = int(measurements[k])
-        if ambiguous is not None:
-            entry["ambiguous"] = bool(ambiguous[k])
-        if noise_scale is not None:
-            entry["noise_scale"] = finite_or_none(noise_scale[k]) if located[k] else None
-        if nlos_shift_m is not None:
-            entry["nlos_shift_m"] = finite_or_none(nlos_shift_m[k]) if located[k] else None
-        if bias_m is not None:
-            entry["bias_m"] = finite_or_none(bias_m[k]) if located[k] else None
-        if clock_sawtooth is not None and clock_sawtooth[k] is not None and located[k]:
-            entry["clock_sawtooth"] = dict(clock_sawtooth[k])
-        if err is not None and truth_enu_m is not None:
-            entry["error_m"] = finite_or_none(err[k])
-            t = np.asarray(truth_enu_m, dtype=float)[k]
-            if origin is not None and np.all(np.isfinite(t)):
-                tl = origin.enu_to_lla(t)
-                entry["truth"] = {"lat_deg": float(tl[0]), "lon_deg": float(tl[1]), "alt_m": float(tl[2]),
-                                  "enu_m": [float(x) for x in t]}
-        out.append(entry)
-    return out
+        truth_k = None
+        if truth is not None and origin is not None and np.all(np.isfinite(truth[k])):
+            tl = origin.enu_to_lla(truth[k])
+            truth_k = TruthPosition(tuple(float(x) for x in truth[k]), float(tl[0]), float(tl[1]), float(tl[2]))
+        out.append(UserResult(
+            id=uid,
+            lat_deg=float(lat[k]) if located[k] else None,
+            lon_deg=float(lon[k]) if located[k] else None,
+            alt_m=float(alt[k]) if located[k] else None,
+            enu_m=tuple(float(x) for x in users[k]) if located[k] else None,
+            cov_en_m2=tuple(tuple(float(x) for x in row) for row in c) if np.all(np.isfinite(c)) else None,
+            error_bound_95_m=finite_or_none(bound[k]),
+            measurements=None if measurements is None else int(measurements[k]),
+            ambiguous=None if ambiguous is None else bool(ambiguous[k]),
+            bias_m=located_value(bias_m, k),
+            clock_sawtooth=None if clock_sawtooth is None or not located[k] else clock_sawtooth[k],
+            noise_scale=located_value(noise_scale, k),
+            nlos_shift_m=located_value(nlos_shift_m, k),
+            truth=truth_k,
+            error_m=None if err is None else finite_or_none(err[k]),
+        ))
+    return tuple(out)
 
 
-def user_entries_of_estimate(estimate: Any, origin: Origin | None, user_ids: Sequence[str],
-                             truth_enu_m: np.ndarray | None = None) -> list[dict]:
-    """:func:`user_entries` of an `estimator.types.Estimate` (None: no user located)."""
+def users_of_estimate(estimate: Any, origin: Origin | None, user_ids: Sequence[str],
+                      truth_enu_m: np.ndarray | None = None) -> tuple[UserResult, ...]:
+    """:func:`users_of` an `estimator.types.Estimate` (None: no user located): a tracked clock
+    sawtooth's amplitude is its estimated b and its mean A/2 the bias; a bias selected off is the
+    value it is held at."""
     if estimate is None:
-        return user_entries(user_ids, origin, None, None, truth_enu_m=truth_enu_m)
+        return users_of(user_ids, origin, None, None, truth_enu_m=truth_enu_m)
     k = len(user_ids)
     bias = None
-    clock_doc: list[dict | None] | None = None
+    saw: list[ClockSawtooth | None] | None = None
     if estimate.bias_m is not None:
         bias = np.array(estimate.bias_m, dtype=float)
         st = estimate.state
         on = None if st is None else st.bias_on
         clocks = (None if st is None else st.clock) or [None] * k
-        clock_doc = [None] * k
+        saw = [None] * k
         for j in range(k):
             if clocks[j] is not None and np.isfinite(bias[j]):
                 # a tracked clock sawtooth: its amplitude is the estimated b; its mean A/2 the bias
-                clock_doc[j] = {"period_s": float(clocks[j].period_s), "amplitude_m": float(bias[j])}
+                saw[j] = ClockSawtooth(float(clocks[j].period_s), float(bias[j]))
                 bias[j] *= 0.5
             elif on is not None and not on[j]:
                 # selected off: the value it is held at
                 bias[j] = 0.0 if st.bias_held_m is None else float(st.bias_held_m[j])
     scale = None if estimate.state is None else estimate.state.noise_scale
     shift = None if estimate.state is None else estimate.state.nlos_shift_m
-    return user_entries(
+    return users_of(
         user_ids, origin, estimate.users_enu_m,
         np.array([estimate.cov_en_m2(j) for j in range(k)]).reshape(k, 2, 2),
         measurements=estimate.n_ranges, ambiguous=estimate.ambiguous, bias_m=bias,
-        clock_sawtooth=clock_doc, noise_scale=None if scale is None else np.asarray(scale, dtype=float),
+        clock_sawtooth=saw, noise_scale=None if scale is None else np.asarray(scale, dtype=float),
         nlos_shift_m=None if shift is None else np.asarray(shift, dtype=float), truth_enu_m=truth_enu_m,
     )
+
+
+def user_entries(user_ids: Sequence[str], origin: Origin | None, users_enu_m: np.ndarray | None,
+                 cov_en_m2: np.ndarray | None, **optional: Any) -> list[dict]:
+    """The JSON entries of :func:`users_of` (same arguments)."""
+    return [u.to_dict() for u in users_of(user_ids, origin, users_enu_m, cov_en_m2, **optional)]
+
+
+def user_entries_of_estimate(estimate: Any, origin: Origin | None, user_ids: Sequence[str],
+                             truth_enu_m: np.ndarray | None = None) -> list[dict]:
+    """The JSON entries of :func:`users_of_estimate`."""
+    return [u.to_dict() for u in users_of_estimate(estimate, origin, user_ids, truth_enu_m)]
+
+
+@dataclass(frozen=True)
+class Result:
+    """What one mission found (the module docstring): made by :func:`build_result` only.
+
+    status, reason: how it ended; users: one :class:`UserResult` per user, in the mission's order;
+    flown_m: survey metres flown [m]; measurements: ranges used; keyframes: keyframes used;
+    duration_s: mission seconds from the log's header to its end (None when unknown);
+    survey_s, hover_s, largest_gap_s: the survey's seconds, those spent hovering, the longest
+    without a range [s] (None when unknown); origin: the ENU frame's origin (None: never known);
+    log_path: the mission log (None: none).
+    """
+
+    status: str
+    reason: str
+    users: tuple[UserResult, ...]
+    flown_m: float
+    measurements: int
+    keyframes: int
+    duration_s: float | None = None
+    survey_s: float | None = None
+    hover_s: float | None = None
+    largest_gap_s: float | None = None
+    origin: Origin | None = None
+    log_path: Path | None = None
+
+    @property
+    def user_ids(self) -> list[str]:
+        return [u.id for u in self.users]
+
+    def not_located(self) -> list[str]:
+        """Ids of the users without a position, or with one a mirror position explains as well."""
+        return [u.id for u in self.users if not u.located or bool(u.ambiguous)]
+
+    @property
+    def ok(self) -> bool:
+        """The mission ended normally and located every user (else the command exits non-zero)."""
+        return self.status in NORMAL_END and not self.not_located()
+
+    def users_enu_m(self) -> np.ndarray:
+        """(K, 3) estimated users [m] (NaN rows: not located)."""
+        return np.array([u.enu_m if u.located else (np.nan,) * 3 for u in self.users], float).reshape(-1, 3)
+
+    def cov_en_m2(self) -> np.ndarray:
+        """(K, 2, 2) east-north covariances [m²] (NaN where unknown)."""
+        return np.array([np.full((2, 2), np.nan) if u.cov_en_m2 is None else u.cov_en_m2 for u in self.users],
+                        float).reshape(-1, 2, 2)
+
+    def truth_enu_m(self) -> np.ndarray | None:
+        """(K, 3) true users [m] (NaN rows where unknown), or None when no user's truth is known."""
+        if all(u.truth is None for u in self.users):
+            return None
+        return np.array([(np.nan,) * 3 if u.truth is None else u.truth.enu_m for u in self.users],
+                        float).reshape(-1, 3)
+
+    def error_m(self) -> np.ndarray | None:
+        """(K,) horizontal error of each user [m] (NaN: not located) when the truth is known."""
+        truth = self.truth_enu_m()
+        return None if truth is None else horizontal_error_m(self.users_enu_m(), truth)
+
+    def to_document(self) -> dict[str, Any]:
+        """The result's JSON document (module docstring; docs/design.md §11)."""
+        return {
+            "status": self.status, "reason": self.reason, "users": [u.to_dict() for u in self.users],
+            "flown_m": finite_or_none(self.flown_m), "measurements": self.measurements,
+            "keyframes": self.keyframes, "duration_s": finite_or_none(self.duration_s),
+            "survey_s": finite_or_none(self.survey_s), "hover_s": finite_or_none(self.hover_s),
+            "largest_gap_s": finite_or_none(self.largest_gap_s),
+            "origin": None if self.origin is None else self.origin.to_dict(),
+            "log": None if self.log_path is None else str(self.log_path),
+        }
+
+
+def build_result(*, status: str, reason: str, user_ids: Sequence[str], estimate: Any, origin: Origin | None,
+                 flown_m: float, measurements: int, keyframes: int, truth_enu_m: np.ndarray | None = None,
+                 duration_s: float | None = None, survey_s: float | None = None, hover_s: float | None = None,
+                 largest_gap_s: float | None = None, log_path: Path | None = None) -> Result:
+    """The one constructor of a :class:`Result`: the users of `estimate` (an
+    `estimator.types.Estimate`, None: nothing located) about `origin`, against truth_enu_m (K, 3)
+    when known, and the run's facts as given."""
+    users = users_of_estimate(estimate if origin is not None else None, origin, list(user_ids), truth_enu_m)
+    return Result(status=status, reason=reason, users=users, flown_m=float(flown_m), measurements=int(measurements),
+                  keyframes=int(keyframes), duration_s=None if duration_s is None else float(duration_s),
+                  survey_s=survey_s, hover_s=hover_s, largest_gap_s=largest_gap_s, origin=origin,
+                  log_path=None if log_path is None else Path(log_path))
+
+
+def format_users_table(users: Sequence[UserResult]) -> str:
+    """Human-readable lines: where each user is."""
+    lines = []
+    for u in users:
+        if not u.located:
+            lines.append(f"  {u.id}: not located ({u.measurements or 0} ranges)")
+            continue
+        e, n, _ = u.enu_m
+        bound = u.error_bound_95_m
+        s = (f"  {u.id}: lat {u.lat_deg:.7f}  lon {u.lon_deg:.7f}  alt {u.alt_m:.1f} m  "
+             f"(E {e:+.1f} m, N {n:+.1f} m)  95% bound {float('nan') if bound is None else bound:.2f} m")
+        if u.error_m is not None:
+            s += f"  error {u.error_m:.2f} m"
+        if u.nlos_shift_m:
+            # the part of the bound no survey shrinks (estimator.nlos_shift)
+            s += f"  [NLoS from one side: {u.nlos_shift_m:.1f} m shift in the bound]"
+        if u.ambiguous:
+            s += "  [mirror ambiguity unresolved]"
+        lines.append(s)
+    return "\n".join(lines)
+
+
+def format_result(result: Result) -> str:
+    """The human-readable summary of a result: one line, the users' table, the log."""
+    lines = [f"mission {result.status} ({result.reason}): {result.measurements} ranges, {result.keyframes} "
+             f"keyframes, {result.flown_m:.0f} m flown"
+             + ("" if result.duration_s is None else f" in {result.duration_s:.0f} s"),
+             format_users_table(result.users)]
+    if result.log_path is not None:
+        lines.append(f"mission log: {result.log_path}")
+    return "\n".join(lines)

@@ -1,8 +1,9 @@
 """What `uavloc fly` and `uavloc sim` print at the end of a mission, and the report they write.
 
-The JSON document is docs/design.md §11 (plus `reason`, `keyframes`, `log`); the human-readable lines
-use the same per-user table as `uavloc replay`. `--out DIR` writes the report of the mission's own
-log (replayed, so the report shows exactly what replay would).
+Both are renderings of the mission's one :class:`mission.result.Result`: the JSON document is
+:meth:`Result.to_document` (docs/design.md §11), the human-readable lines
+:func:`mission.result.format_result`, as `uavloc replay` prints them. `--out DIR` writes the report
+of the mission's own log (replayed, so the report shows exactly what replay would).
 """
 
 from __future__ import annotations
@@ -13,43 +14,24 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from mission.control.config import MissionResult
+from mission.control.config import STATUS_INTERRUPTED, MissionResult
+from mission.result import Result, format_result
 
 log = logging.getLogger(__name__)
 
 
-def mission_document(result: MissionResult) -> dict:
-    """The docs/design.md §11 document of a mission result."""
-    doc = result.to_document()
-    doc["keyframes"] = result.keyframes
-    doc["log"] = str(result.log_path) if result.log_path is not None else None
-    return doc
-
-
-def print_result(result: MissionResult, as_json: bool, stream: TextIO | None = None) -> dict:
-    """Print the result on stdout: one JSON document with `as_json`, else a short table."""
-    from mission.replay import format_users_table
-
+def print_result(result: MissionResult | Result, as_json: bool, stream: TextIO | None = None) -> dict:
+    """Print the result on stdout: its JSON document with `as_json`, else the short summary."""
+    res = result.result if isinstance(result, MissionResult) else result
     out = stream or sys.stdout
-    doc = mission_document(result)
+    doc = res.to_document()
     if as_json:
-        json.dump(doc, out, indent=2)
+        json.dump(doc, out, indent=2, allow_nan=False)
         out.write("\n")
     else:
-        out.write(f"mission {result.status} ({result.reason}): {result.measurements} ranges, "
-                  f"{result.keyframes} keyframes, {result.flown_m:.0f} m flown\n")
-        users = []
-        for u in doc["users"]:
-            u = dict(u)
-            u.setdefault("measurements", 0)
-            u.setdefault("ambiguous", False)
-            u.setdefault("error_bound_95_m", None)
-            users.append(u)
-        out.write(format_users_table({"users": users}) + "\n")
-        if result.log_path is not None:
-            out.write(f"mission log: {result.log_path}\n")
-    missing = result.not_located()
-    if missing and result.status != "interrupted":
+        out.write(format_result(res) + "\n")
+    missing = res.not_located()
+    if missing and res.status != STATUS_INTERRUPTED and isinstance(result, MissionResult):
         log.error("not located: %s (the mission exits non-zero)", ", ".join(missing))
     out.flush()
     return doc

@@ -387,7 +387,7 @@ def hypothesis_rows(hyp: Hypotheses) -> Rows:
 
 def noise_parameters(noise: NoiseModel) -> np.ndarray:
     """[s0, a, b, σ_gps²] of the objective's range noise (planner.objective)."""
-    return np.array([noise.s0_m, noise.a_m, noise.b_per_m, noise.sigma_gps_m**2])
+    return np.array([noise.range_s0_m, noise.range_a_m, noise.range_b_per_m, noise.sigma_gps_m**2])
 
 
 def objective_values(

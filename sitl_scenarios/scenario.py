@@ -201,7 +201,8 @@ class Scenario:
         """The range noise the simulated radio draws from (the truth of a simulation)."""
         r = self.radio
         # σ_gps does not enter the radio; a GPS-noise-free vehicle (gps_sigma_m = 0) still needs a valid model
-        return NoiseModel(sigma_gps_m=self.vehicle.gps_sigma_m or 1.0, s0_m=r.s0_m, a_m=r.a_m, b_per_m=r.b_per_m)
+        return NoiseModel(sigma_gps_m=self.vehicle.gps_sigma_m or 1.0, range_s0_m=r.s0_m, range_a_m=r.a_m,
+                          range_b_per_m=r.b_per_m)
 
     def mission_config(self, external_vehicle: bool = False) -> mc.MissionConfig:
         """The mission as flown: the file's, with the GPS error's correlation time, when the file

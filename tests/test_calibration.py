@@ -68,14 +68,14 @@ def test_calibrate_recovers_s0_a_b_and_bias_within_10_percent(three_logs, tmp_pa
     rs = doc["noise"]["range_sigma_m"]
     assert doc["fit"]["model"] == "exponential"
     for key in ("s0", "a", "b"):
-        assert rs[key] == pytest.approx(TRUE[key], rel=0.10), (key, rs)
+        assert rs[f"range_{key}_m" if key != "b" else "range_b_per_m"] == pytest.approx(TRUE[key], rel=0.10), (key, rs)
     assert doc["range_bias_m"]["ue1"] == pytest.approx(BIAS[0], rel=0.10)
     assert doc["range_bias_m"]["ue2"] == pytest.approx(BIAS[1], rel=0.10)
     assert doc["noise"]["sigma_gps_m"] == SIGMA_GPS
     assert doc["fit"]["points"] == {"ue1": pytest.approx(30_000, rel=0.05), "ue2": pytest.approx(30_000, rel=0.05)}
     # the noise section is what a log header takes
     nm = NoiseModel.from_log_dict(doc["noise"])
-    assert nm.s0_m == rs["s0"] and nm.b_per_m == rs["b"]
+    assert nm.range_s0_m == rs["range_s0_m"] and nm.range_b_per_m == rs["range_b_per_m"]
 
 
 def test_toml_output_is_a_scenario_radio_section(three_logs, capsys):

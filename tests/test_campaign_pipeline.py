@@ -17,6 +17,7 @@ import pytest
 from estimator.types import SOURCE_BATCH, SolverParams
 from mission.controller import controller_from_mission
 from mission.estimation import MissionEstimator, mission_solver_params
+from mission.result import STATUS_BUDGET, STATUS_FLOOR, STATUS_TARGET
 from sitl_scenarios.campaign.fast import fly_fast
 from sitl_scenarios.scenario import load_scenario, resolve_scenario_path
 
@@ -47,10 +48,13 @@ def test_the_fast_mode_acts_on_the_mission_s_estimator_and_ends_with_its_final_a
 
     # the run ends where the mission would: the stop rule on a batch estimate, the bounds at their
     # floor, or the budget
-    if out.end == "target reached":
+    # (the row's `end` renders the run's Result, built by the mission's one constructor)
+    assert out.end == f"{out.result.status}: {out.result.reason}"
+    if out.result.status == STATUS_TARGET:
         assert setup.stops(seen[-1][1])
     else:
-        assert out.end in ("budget spent", "floor reached") and not any(setup.stops(est) for _, est in seen)
+        assert out.result.status in (STATUS_BUDGET, STATUS_FLOOR) and not any(setup.stops(est) for _, est in seen)
+    assert (out.result.keyframes, out.result.measurements) == (len(seen), sum(len(kf.range_m) for kf, _ in seen))
 
     # the final figures are the mission's final answer: the batch solution over every keyframe
     final = setup.final([kf for kf, _ in seen])

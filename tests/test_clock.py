@@ -18,7 +18,7 @@ from estimator.simulate import simulate
 from estimator.types import SolverParams
 from uavloc.errors import EstimatorError
 
-NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
+NOISE = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0)
 BIAS = SolverParams(loss="none", estimate_bias=True, bias_select=False)
 
 
@@ -31,7 +31,7 @@ def _scene(seed: int = 3, n: int = 60):
     return sc, t, gain
 
 
-@pytest.mark.parametrize("noise", [NOISE, NoiseModel(sigma_gps_m=1.0, s0_m=3.0, gps_tau_s=60.0)])
+@pytest.mark.parametrize("noise", [NOISE, NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0, gps_tau_s=60.0)])
 def test_crlb_with_a_clock_gain_is_the_inverse_dense_fisher_information(noise):
     sc, t, gain = _scene()
     crlb = crlb_users(sc.uav_enu_m, sc.users_enu_m, sc.visible, noise, BIAS, t, bias_gain=gain)
@@ -175,12 +175,12 @@ def test_batch_finds_a_weak_sawtooth_in_a_short_log():
 
     for seed in range(6):
         sc = simulate(np.random.default_rng(200 + seed), n_users=3, n_keyframes=120, dt_s=0.4,
-                      noise=NoiseModel(sigma_gps_m=1.0, s0_m=3.0))
+                      noise=NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0))
         t = np.array([kf.t_s for kf in sc.keyframes])
         saw = 8.0 * np.mod(t[:, None] / 15.0 + np.array([0.2, 0.5, 0.9])[None, :], 1.0)
         kfs = [kf.__class__(kf.gps_enu_m, kf.user_idx, kf.range_m + saw[i, kf.user_idx], kf.odom_enu_m, kf.t_s)
                for i, kf in enumerate(sc.keyframes)]
-        est = solve_batch(kfs, 3, sc.user_up_m, NoiseModel(sigma_gps_m=1.0, s0_m=3.0))
+        est = solve_batch(kfs, 3, sc.user_up_m, NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0))
         for k in range(3):
             fit = est.state.clock[k]
             assert fit is not None, (seed, k)

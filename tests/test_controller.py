@@ -18,6 +18,7 @@ from mission.control.estimator_worker import EstimatorWorker
 from mission.control.flight import _first_error
 from mission.control.loop import LoopLagMonitor
 from mission.estimation import MissionEstimator
+from mission.result import build_result
 from sitl_scenarios.scenario import load_scenario
 from uavloc.errors import EstimatorError, GnbError, VehicleError
 
@@ -187,11 +188,11 @@ def test_result_document_follows_design_section_11(survey):
     online = OnlineEstimator(N_USERS, np.zeros(N_USERS), NoiseModel(), SolverParams())
     for kf in survey.keyframes[:120]:
         est = online.add_keyframe(kf)
-    res = MissionResult(status=STATUS_TARGET, reason="target reached", user_ids=["a", "b", "c"], estimate=est,
-                        origin=Origin(43.6, 7.07, 150.0), truth_enu_m=survey.users_enu_m, flown_m=240.0,
-                        measurements=360)
-    doc = res.to_document()
-    assert set(doc) >= {"status", "users", "flown_m", "measurements"}
+    res = build_result(status=STATUS_TARGET, reason="target reached", user_ids=["a", "b", "c"], estimate=est,
+                       origin=Origin(43.6, 7.07, 150.0), truth_enu_m=survey.users_enu_m, flown_m=240.0,
+                       measurements=360, keyframes=120, duration_s=80.0)
+    doc = MissionResult(result=res, estimate=est).result.to_document()
+    assert set(doc) >= {"status", "reason", "users", "flown_m", "measurements", "keyframes", "duration_s"}
     for u, truth in zip(doc["users"], survey.users_enu_m, strict=True):
         assert set(u) >= {"id", "lat_deg", "lon_deg", "alt_m", "enu_m", "cov_en_m2", "error_m"}
         assert u["error_m"] == pytest.approx(np.hypot(*(np.asarray(u["enu_m"][:2]) - truth[:2])))

@@ -39,8 +39,8 @@ from estimator.simulate import simulate
 from estimator.types import Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
-NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
-NOISE_DD = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.5, b_per_m=0.01)
+NOISE = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0)
+NOISE_DD = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0, range_a_m=0.5, range_b_per_m=0.01)
 
 
 def _user_errors(est, sc):
@@ -502,7 +502,8 @@ def test_linear_start_is_exact_on_noise_free_ranges_and_refuses_a_line():
     gives nothing for fixes along a line (the mirror ambiguity needs the grid)."""
     rng = np.random.default_rng(38)
     for pattern in ("circle", "lawnmower"):
-        sc = simulate(rng, n_users=4, n_keyframes=150, pattern=pattern, noise=NoiseModel(sigma_gps_m=1e-9, s0_m=1e-9))
+        sc = simulate(rng, n_users=4, n_keyframes=150, pattern=pattern,
+                      noise=NoiseModel(sigma_gps_m=1e-9, range_s0_m=1e-9))
         uav = sc.uav_enu_m
         users = sc.users_enu_m + np.array([[0, 0, 0.0], [0, 0, 2.0], [0, 0, -1.0], [0, 0, 5.0]])
         exact = np.linalg.norm(uav[None, :, :] - users[:, None, :], axis=2)
@@ -542,7 +543,7 @@ def test_a_far_off_start_gets_no_credit_from_distance_dependent_noise():
     estimator once started an edge-of-coverage user 10⁷ m away and never recovered). σ comes from
     the measured ranges, so such a start saturates the truncated cost, and a linear start outside
     the search box is not kept."""
-    noise = NoiseModel(sigma_gps_m=1.0, s0_m=2.5, a_m=0.1, b_per_m=0.01)
+    noise = NoiseModel(sigma_gps_m=1.0, range_s0_m=2.5, range_a_m=0.1, range_b_per_m=0.01)
     sc = simulate(np.random.default_rng(42), n_users=1, n_keyframes=120, noise=noise,
                   users_enu_m=np.array([[280.0, 170.0, 0.0]]))
     uav = np.array([kf.gps_enu_m for kf in sc.keyframes])
@@ -559,7 +560,7 @@ def test_a_far_off_start_gets_no_credit_from_distance_dependent_noise():
     assert np.linalg.norm(fit.theta[:2] - sc.users_enu_m[0, :2]) < 20.0
 
 
-WIDE_NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.3, b_per_m=0.01)
+WIDE_NOISE = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0, range_a_m=0.3, range_b_per_m=0.01)
 
 
 def test_the_solver_cost_rises_as_a_user_moves_away_under_distance_dependent_noise():
@@ -593,11 +594,12 @@ def test_online_in_a_wide_world_with_distance_dependent_noise_stays_near_the_use
 
 
 def test_start_refinement_lowers_the_truncated_cost_and_reaches_the_truth_on_exact_ranges():
-    sc = simulate(np.random.default_rng(41), n_users=4, n_keyframes=120, noise=NoiseModel(sigma_gps_m=1e-6, s0_m=1e-3))
+    sc = simulate(np.random.default_rng(41), n_users=4, n_keyframes=120,
+                  noise=NoiseModel(sigma_gps_m=1e-6, range_s0_m=1e-3))
     uav = sc.uav_enu_m
     exact = np.linalg.norm(uav[None, :, :] - sc.users_enu_m[:, None, :], axis=2)
     start = sc.users_enu_m[:, :2] + np.array([[3.0, -2.0], [-2.5, 1.0], [0.5, 3.0], [-1.0, -1.0]])
-    out = _refine_starts(uav, exact, sc.user_up_m, start, NoiseModel(sigma_gps_m=1.0, s0_m=3.0), iterations=8)
+    out = _refine_starts(uav, exact, sc.user_up_m, start, NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0), iterations=8)
     np.testing.assert_allclose(out, sc.users_enu_m[:, :2], atol=1e-6)
 
 
@@ -786,7 +788,7 @@ def _nlos_problem(seed: int, p_nlos: float, params: SolverParams = SolverParams(
         r = kf.range_m.copy()
         los = kf.user_idx >= 3
         d = np.linalg.norm(sc.uav_enu_m[n] - sc.users_enu_m[kf.user_idx[los]], axis=1)
-        r[los] = d + rng.normal(scale=NOISE.s0_m, size=d.size)
+        r[los] = d + rng.normal(scale=NOISE.range_s0_m, size=d.size)
         kfs.append(replace(kf, range_m=r))
 
     def fresh():
@@ -836,7 +838,7 @@ def test_noise_scale_taken_midway_matches_the_re_solve(monkeypatch, k, scale, sa
     rounds (solve_loss) re-estimate its scale with its π: no iteration saved there."""
     import estimator.lm as lm_mod
 
-    noise = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
+    noise = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0)
     kw = {} if scale is None else {"noise_scale": np.r_[scale, np.ones(k - 1)]}
     sc = simulate(np.random.default_rng(7), n_users=k, n_keyframes=200, noise=noise, **kw)
     calls = {"n": 0}

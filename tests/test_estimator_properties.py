@@ -62,8 +62,8 @@ def worlds(draw, max_keyframes: int = 120, max_users: int = 20) -> World:
     distance_noise = draw(st.booleans())
     noise = NoiseModel(
         sigma_gps_m=draw(st.sampled_from([0.3, 1.0, 3.0])),
-        s0_m=draw(st.sampled_from([0.05, 3.0, 10.0])),
-        a_m=0.3 if distance_noise else 0.0, b_per_m=0.01 if distance_noise else 0.0,
+        range_s0_m=draw(st.sampled_from([0.05, 3.0, 10.0])),
+        range_a_m=0.3 if distance_noise else 0.0, range_b_per_m=0.01 if distance_noise else 0.0,
         gps_tau_s=draw(st.sampled_from([0.0, 60.0, 600.0])),
     )
     ang = rng.uniform(0, 2 * np.pi, n_users)

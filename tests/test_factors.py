@@ -15,7 +15,7 @@ from estimator.simulate import simulate
 from estimator.types import SolverParams
 
 # a distance-dependent spread so that ∂σ/∂d enters the range Jacobian
-NOISE_DD = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.5, b_per_m=0.01)
+NOISE_DD = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0, range_a_m=0.5, range_b_per_m=0.01)
 
 
 def test_gps_prior_zero_error_at_consistent_values():

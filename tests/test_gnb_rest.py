@@ -509,7 +509,7 @@ def test_a_whole_sim_mission_over_rest_locates_every_user(tmp_path):
     result, transport, rest_requests = run(body(), timeout_s=240.0)
     assert transport == "rest" and rest_requests > 10
     assert result.ok, result.reason  # every user located, none ambiguous
-    assert result.not_located() == [] and len(result.user_ids) == len(sc.users)
+    assert result.not_located() == [] and len(result.result.user_ids) == len(sc.users)
     err = result.error_m()
     # the target is a 95 % bound: the error lies beyond it in about one run in twenty, so "located"
     # is within half as much again (the transport carries the ranges; the estimator's honesty is

@@ -29,8 +29,8 @@ from estimator.simulate import gps_error_m, simulate
 from estimator.types import SolverParams
 from uavloc.errors import EstimatorError
 
-GM = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, gps_tau_s=60.0)
-GM_DD = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.5, b_per_m=0.01, gps_tau_s=30.0)
+GM = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0, gps_tau_s=60.0)
+GM_DD = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0, range_a_m=0.5, range_b_per_m=0.01, gps_tau_s=30.0)
 #: fixed model (no bias selection, no noise-scale rounds): the solve is one smooth problem
 FIXED = SolverParams(estimate_bias=True, bias_select=False, estimate_noise_scale=False, track_clock=False)
 
@@ -304,7 +304,7 @@ def test_nlos_covariance_is_the_observed_information_with_pi_estimated_dense_ref
     from estimator.factors import RangeFactor
     from estimator.solve import NLOS_PROB_MAX, NLOS_PROB_MIN
 
-    noise = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
+    noise = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0)
     n, k_all = 60, 2
     sc = simulate(np.random.default_rng(8), n_users=k_all, n_keyframes=n, noise=noise, p_nlos=0.3)
     params = SolverParams(estimate_bias=False, estimate_noise_scale=False, track_clock=False,
@@ -315,7 +315,7 @@ def test_nlos_covariance_is_the_observed_information_with_pi_estimated_dense_ref
     dim = 3 * n + 2 * k_all + k_all
     h = np.zeros((dim, dim))
     h[: 3 * n, : 3 * n] = np.eye(3 * n) / noise.sigma_gps_m**2
-    m = params.nlos_mean_m / noise.s0_m
+    m = params.nlos_mean_m / noise.range_s0_m
     de, dp = 1e-4, 1e-5
     for i, kf in enumerate(sc.keyframes):
         x = est.uav_enu_m[i]

@@ -169,7 +169,7 @@ def test_imported_vtol_flight_localizes_the_users(tmp_path):
     simulated_gnb_log(tmp_path / "gnb.log", track, origin)
     meas, _ = parse_gnb_log((tmp_path / "gnb.log").read_text().splitlines())
     import_flight(track, meas, [ImportUser(f"ue{k + 1}", RNTIS[k]) for k in range(3)], tmp_path / "m.jsonl",
-                  noise=NoiseModel(sigma_gps_m=1.0, s0_m=1.5))
+                  noise=NoiseModel(sigma_gps_m=1.0, range_s0_m=1.5))
     mlog = read_mission_log(tmp_path / "m.jsonl")
     uav = origin.lla_to_enu(mlog.rtt_uav_lla[:, 0], mlog.rtt_uav_lla[:, 1], mlog.rtt_uav_lla[:, 2])
     kfs = [Keyframe(gps_enu_m=uav[i], user_idx=np.array([mlog.rtt_user[i]]),

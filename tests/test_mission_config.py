@@ -34,7 +34,8 @@ def test_example_mission_file_loads_with_its_values():
     assert mc.noise.noise_model().range_sigma_m(100.0) == pytest.approx(3.0)
     assert mc.gnb.mode == "rtt" and mc.safety.gnb_lost_wait_s == 20.0
     assert mc.noise.header_noise() == {"sigma_gps_m": 1.0, "gps_tau_s": 5.0,
-                                       "range_sigma_m": {"s0": 3.0, "a": 0.0, "b": 0.0}}
+                                       "range_sigma_m": {"range_s0_m": 3.0, "range_a_m": 0.0,
+                                                                         "range_b_per_m": 0.0}}
     with pytest.raises(dataclasses.FrozenInstanceError):
         mc.flight.budget_m = 1.0  # type: ignore[misc]
 

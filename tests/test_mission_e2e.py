@@ -69,7 +69,7 @@ def assert_log_replays_to_the_result(log_path: Path, result) -> None:
     with contextlib.redirect_stdout(out):
         assert main(["-q", "replay", str(log_path), "--json", "--no-history"]) == 0
     doc = json.loads(out.getvalue())
-    mine = result.to_document()
+    mine = result.result.to_document()
     assert [u["id"] for u in doc["users"]] == [u["id"] for u in mine["users"]]
     for a, b in zip(doc["users"], mine["users"], strict=True):
         assert a["enu_m"] == pytest.approx(b["enu_m"], abs=1e-6)

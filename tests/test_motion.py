@@ -30,7 +30,7 @@ from estimator.simulate import simulate
 from estimator.types import Keyframe, SolverParams
 from uavloc.errors import EstimatorError
 
-NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0)
+NOISE = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0)
 
 
 # --- integration of the velocity -------------------------------------------------------------------

@@ -113,9 +113,9 @@ def test_the_result_document_gives_each_users_shift():
     assert shift is not None and np.all(shift > 0.0)
     entries = user_entries_of_estimate(est, origin, ["a", "b", "c"])
     assert [e["nlos_shift_m"] for e in entries] == pytest.approx(shift.tolist())
-    from mission.replay import format_users_table
+    from mission.result import format_users_table, users_of_estimate
 
-    table = format_users_table({"users": [dict(e, measurements=190) for e in entries]})
+    table = format_users_table(users_of_estimate(est, origin, ["a", "b", "c"]))
     assert table.count("NLoS from one side") == 3
     # no NLoS asked for: no key
     est0, _ = _circle_users(0, SolverParams(bias_held="zero"), 1.0)

@@ -26,7 +26,7 @@ from planner.objective import E_GAP_EPS, Shape
 from tests.test_planner import fake_estimate, u_constraints
 from uavloc.errors import PlannerError
 
-NOISE = NoiseModel(sigma_gps_m=1.0, s0_m=3.0, a_m=0.4, b_per_m=0.008)
+NOISE = NoiseModel(sigma_gps_m=1.0, range_s0_m=3.0, range_a_m=0.4, range_b_per_m=0.008)
 
 
 def _estimate_two_users(ambiguous: bool = True):
@@ -451,7 +451,7 @@ def test_solver_cache_is_reused():
 
 def test_a_diverged_user_estimate_is_ignored_and_the_leg_stays_feasible():
     c = u_constraints()
-    noise = NoiseModel(s0_m=3.0, a_m=0.3, b_per_m=0.01)  # exp(b·d) overflows at the diverged user
+    noise = NoiseModel(range_s0_m=3.0, range_a_m=0.3, range_b_per_m=0.01)  # exp(b·d) overflows at the diverged user
     est = fake_estimate([[-70, 60, 0], [33772.8, 98530.2, 0]], np.eye(2) * 50.0, ambiguous=[True, False],
                         mirror=[[28915.1, -3836.9, 0], [np.nan] * 3])
     planner = make_planner("casadi", c, noise)

@@ -17,7 +17,7 @@ from estimator.robust import loss_rho
 from estimator.types import SolverParams
 from planner.information import Hypotheses, PredictionModel, predicted_information, quadrature_points
 
-NOISE_DD = NoiseModel(sigma_gps_m=1.5, s0_m=3.0, a_m=0.5, b_per_m=0.01)
+NOISE_DD = NoiseModel(sigma_gps_m=1.5, range_s0_m=3.0, range_a_m=0.5, range_b_per_m=0.01)
 
 
 def _vectorised(x, theta, r_meas, noise, user_dim, with_bias, gain, scale, gps_var):
@@ -44,8 +44,8 @@ def test_vectorised_range_model_matches_the_factor_and_central_differences(noise
         e, jac = _vectorised(x, theta, r_meas, noise, user_dim, with_bias, gain, np.array([scale]), gps_var)
         if gps_var == 0.0:
             # the same factor one at a time (σ_k = s σ: s0 and a scaled)
-            f = RangeFactor(r_meas, replace(noise, s0_m=noise.s0_m * scale, a_m=noise.a_m * scale), user_dim, 1.0,
-                            with_bias, gain)
+            scaled = replace(noise, range_s0_m=noise.range_s0_m * scale, range_a_m=noise.range_a_m * scale)
+            f = RangeFactor(r_meas, scaled, user_dim, 1.0, with_bias, gain)
             assert e == pytest.approx(f.error(x, theta), rel=1e-13)
             jx, jt = f.jacobian(x, theta)
             np.testing.assert_allclose(jac, np.r_[jx, jt], rtol=1e-12, atol=1e-15)
@@ -76,15 +76,15 @@ def test_masked_ranges_have_zero_error_and_jacobian():
                          ids=["nlos", "huber-bias"])
 def test_user_cost_is_the_range_factor_with_the_gps_folded_in(params):
     rng = np.random.default_rng(4)
-    noise = NoiseModel(sigma_gps_m=1.5, s0_m=3.0)
+    noise = NoiseModel(sigma_gps_m=1.5, range_s0_m=3.0)
     uav = rng.normal(size=(30, 3)) * 50 + np.array([0, 0, 35])
     theta = np.r_[20.0, -10.0, [1.5] if params.estimate_bias else []]
     rng_m = np.linalg.norm(uav - np.array([20.0, -10.0, 0.0]), axis=1) + rng.normal(size=30) * 3
     # σ_eff = √(s0² + σ_gps²): RangeFactor with that s0, one range at a time
-    eff = NoiseModel(sigma_gps_m=1.5, s0_m=float(np.hypot(3.0, 1.5)))
+    eff = NoiseModel(sigma_gps_m=1.5, range_s0_m=float(np.hypot(3.0, 1.5)))
     f_e = [RangeFactor(float(r), eff, 2, 0.0, params.estimate_bias).error(x, theta)
            for x, r in zip(uav, rng_m, strict=True)]
-    sig = eff.s0_m
+    sig = eff.range_s0_m
     ref = float(np.sum(loss_rho(np.array(f_e), params.loss, params.loss_scale,
                                 (params.nlos_prob, params.nlos_mean_m / sig))))
     if params.estimate_bias:
@@ -118,7 +118,7 @@ def test_planner_information_is_the_sum_of_range_factor_jacobians(bias, noise):
                     d = float(np.linalg.norm(x - users[k, m]))
                     sig = scale[k] * float(noise.range_sigma_m(d))
                     eff = float(np.sqrt(sig**2 + noise.sigma_gps_m**2))
-                    f = RangeFactor(d, NoiseModel(s0_m=eff), 2, 0.0, bias)
+                    f = RangeFactor(d, NoiseModel(range_s0_m=eff), 2, 0.0, bias)
                     _, jt = f.jacobian(x, np.r_[users[k, m, :2], [0.0] if bias else []])
                     ref += lengths[c, q // 4] / (2.0 * 4) * np.outer(jt, jt)
                 np.testing.assert_allclose(info[c, k, m], ref, rtol=1e-11)

@@ -11,7 +11,7 @@ import pytest
 
 from mission.cli import main
 from mission.log import read_mission_log
-from mission.replay import ReplayOptions, build_keyframes, replay, result_document
+from mission.replay import ReplayOptions, build_keyframes, replay, result_of_replay
 from sitl_scenarios.example_log import generate
 from sitl_scenarios.scenario import load_scenario, scenario_from_dict, user_tables
 
@@ -109,7 +109,7 @@ def test_replay_localizes_every_user_near_truth(tmp_path):
     result = replay(read_mission_log(out))
     assert result.error_m is not None
     assert np.all(result.error_m < 3.0), result.error_m
-    doc = result_document(result)
+    doc = result_of_replay(result).to_document()
     assert doc["status"] == "ok"
     assert [u["id"] for u in doc["users"]] == ["a", "b", "c"]
     for u, k in zip(doc["users"], range(3), strict=True):

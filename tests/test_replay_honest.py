@@ -18,7 +18,7 @@ from estimator.ranging import C_MPS
 from estimator.simulate import gps_error_m
 from mission.cli import main
 from mission.log import MissionLogWriter, read_mission_log
-from mission.replay import ReplayOptions, replay, resolve_gps_tau, result_document
+from mission.replay import ReplayOptions, replay, resolve_gps_tau, result_of_replay
 from uavloc.errors import MissionLogError
 
 ORIGIN = Origin(43.6143, 7.0716, 150.0)
@@ -131,7 +131,7 @@ def test_noisier_ue_reported_with_its_noise_scale_and_an_honest_bound(tmp_path):
     p = tmp_path / "g.jsonl"
     truth = _write(p, NoiseModel(gps_tau_s=0.0), 0.0, scale=(1.0, 2.5), n=400)
     res = replay(read_mission_log(p), ReplayOptions(history=False))
-    doc = result_document(res)
+    doc = result_of_replay(res).to_document()
     scales = [u["noise_scale"] for u in doc["users"]]
     assert scales[0] < 1.3 and 2.0 < scales[1] < 3.0, scales
     assert all(u["bias_m"] == 0.0 for u in doc["users"])  # no clock offset: selected off

@@ -11,8 +11,9 @@ import pytest
 
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
-from estimator.types import CHI2_2DOF_95
+from estimator.types import CHI2_2DOF_95, Estimate
 from mission.report import FIG_DPI, FIG_SIZE_IN, FIGURES, ReportInputs, ellipse_en_m, range_errors, write_report
+from mission.result import build_result
 
 ORIGIN = Origin(47.397742, 8.545594, 488.0)
 
@@ -20,7 +21,7 @@ ORIGIN = Origin(47.397742, 8.545594, 488.0)
 def make_inputs(n_kf: int = 300, truth: bool = True, history: bool = True, seed: int = 3) -> ReportInputs:
     """Two users, a circle flown at 30 m, ranges = distance + bias + sawtooth + N(0, σ(d)²)."""
     rng = np.random.default_rng(seed)
-    noise = NoiseModel(sigma_gps_m=1.0, s0_m=2.0, a_m=0.2, b_per_m=0.01)
+    noise = NoiseModel(sigma_gps_m=1.0, range_s0_m=2.0, range_a_m=0.2, range_b_per_m=0.01)
     truth_enu = np.array([[40.0, 10.0, 0.0], [-25.0, 45.0, 1.0]])
     ang = np.linspace(0, 2 * np.pi, n_kf)
     gps = np.c_[80 * np.cos(ang), 80 * np.sin(ang), np.full(n_kf, 30.0)]
@@ -34,16 +35,24 @@ def make_inputs(n_kf: int = 300, truth: bool = True, history: bool = True, seed:
     cov = np.array([[[1.0, 0.3], [0.3, 0.5]], [[2.0, -0.4], [-0.4, 1.2]]])
     est = truth_enu + np.array([[0.8, -0.5, 0.0], [-1.0, 0.7, 0.0]])
     h_flown = np.linspace(0, 500, n_kf)
+    cov3 = np.zeros((2, 3, 3))
+    cov3[:, :2, :2] = cov
+    cov3[:, 2, 2] = 1.0
+    estimate = Estimate(users_enu_m=est, cov_users_m2=cov3, info_users=np.eye(6), bias_m=np.array([2.0, 2.1]),
+                        uav_enu_m=gps + 0.3, ambiguous=np.array([False, False]), mirror_enu_m=np.full((2, 3), np.nan),
+                        n_ranges=np.array([n_kf, n_kf]))
+    result = build_result(status="target_reached", reason="target reached", user_ids=["ue1", "ue2"],
+                          estimate=estimate, origin=ORIGIN, truth_enu_m=truth_enu if truth else None, flown_m=500.0,
+                          measurements=len(r), keyframes=n_kf, duration_s=float(t[-1]) + 30.0)
     return ReportInputs(
-        origin=ORIGIN, user_ids=["ue1", "ue2"], users_enu_m=est, cov_en_m2=cov, noise=noise,
+        result=result, noise=noise,
         kf_t_s=t, kf_gps_enu_m=gps, meas_t_s=meas_t, meas_user=meas_user, meas_range_m=r,
-        meas_uav_enu_m=meas_uav, bias_m=np.array([2.0, 2.1]),
-        truth_enu_m=truth_enu if truth else None, ambiguous=np.array([False, False]),
+        meas_uav_enu_m=meas_uav,
         uav_enu_m=gps + 0.3,
         hist_flown_m=h_flown if history else None,
         hist_bound_95_m=np.c_[50 / (1 + h_flown / 20), 60 / (1 + h_flown / 20)] if history else None,
         hist_error_m=np.c_[20 / (1 + h_flown / 30), 25 / (1 + h_flown / 30)] if (history and truth) else None,
-        flown_m=500.0, status="ok", title="test mission",
+        title="test mission",
     )
 
 
@@ -65,10 +74,12 @@ def test_report_json_has_users_noise_and_figures(tmp_path):
     inp = make_inputs()
     paths = write_report(inp, tmp_path)
     doc = json.loads(paths["report.json"].read_text())
-    assert doc["status"] == "ok"
+    # the result document as it is, and the report's own sections beside it
+    assert {k: v for k, v in doc.items() if k in inp.result.to_document()} == inp.result.to_document()
+    assert doc["status"] == "target_reached" and doc["reason"] == "target reached"
     assert doc["measurements"] == len(inp.meas_range_m)
     assert doc["keyframes"] == len(inp.kf_t_s)
-    assert doc["noise"]["range_sigma_m"] == {"s0": 2.0, "a": 0.2, "b": 0.01}
+    assert doc["noise"]["range_sigma_m"] == {"range_s0_m": 2.0, "range_a_m": 0.2, "range_b_per_m": 0.01}
     assert set(doc["figures"]) == set(FIGURES)
     u1 = doc["users"][0]
     assert u1["id"] == "ue1"
@@ -80,8 +91,9 @@ def test_report_json_has_users_noise_and_figures(tmp_path):
     assert u1["sigma_east_m"] == pytest.approx(1.0)
     assert u1["error_bound_95_m"] == pytest.approx(np.sqrt(CHI2_2DOF_95 * np.linalg.eigvalsh(inp.cov_en_m2[0])[-1]))
     assert u1["bias_m"] == 2.0
-    assert doc["range_error_reference"] == "true"
-    assert u1["range_error_mean_m"] == pytest.approx(2.0, abs=0.5)  # the 4 m sawtooth's mean
+    stats = doc["range_statistics"]["ue1"]
+    assert stats["reference"] == "true" and stats["ranges"] == 300
+    assert stats["mean_m"] == pytest.approx(2.0, abs=0.5)  # the 4 m sawtooth's mean
 
 
 def test_html_is_self_contained_and_embeds_the_pngs(tmp_path):
@@ -100,7 +112,7 @@ def test_report_without_truth_or_history_uses_estimates(tmp_path):
     paths = write_report(inp, tmp_path, exports=False)
     doc = json.loads(paths["report.json"].read_text())
     assert "error_m" not in doc["users"][0]
-    assert doc["range_error_reference"] == "estimated"
+    assert doc["range_statistics"]["ue1"]["reference"] == "estimated"
     _d, _e, which = range_errors(inp)
     assert which == "estimated"
     assert "geojson" not in paths

@@ -21,15 +21,11 @@ def test_replay_out_writes_a_report_that_matches_the_replay(tmp_path, capsys):
     assert main(["replay", str(EXAMPLE), "--json", "--out", str(out)]) == 0
     doc = json.loads(capsys.readouterr().out)
     rep = json.loads((out / "report.json").read_text())
-    assert rep["status"] == doc["status"]
-    assert rep["measurements"] == doc["measurements"] and rep["keyframes"] == doc["keyframes"]
-    assert rep["flown_m"] == pytest.approx(doc["flown_m"])
-    for u_rep, u_doc in zip(rep["users"], doc["users"], strict=True):
-        assert u_rep["id"] == u_doc["id"]
-        assert u_rep["lat_deg"] == pytest.approx(u_doc["lat_deg"], abs=1e-10)
-        assert u_rep["lon_deg"] == pytest.approx(u_doc["lon_deg"], abs=1e-10)
-        assert u_rep["error_bound_95_m"] == pytest.approx(u_doc["error_bound_95_m"], rel=1e-9)
-        assert u_rep["error_m"] == pytest.approx(u_doc["error_m"], rel=1e-9)
+    # report.json is the replay's document and the report's own sections beside it
+    assert {k: rep[k] for k in doc} == doc
+    assert set(rep) - set(doc) >= {"title", "noise", "range_statistics", "figures"}
+    # the log ends without an `end` record: the status is the estimate's
+    assert doc["status"] == "ok" and doc["reason"] == "the log has no end record"
     for name in FIGURES:
         with Image.open(out / f"{name}.png") as im:
             im.load()
@@ -41,4 +37,4 @@ def test_replay_out_writes_a_report_that_matches_the_replay(tmp_path, capsys):
     assert (lat, lon) == pytest.approx((doc["users"][0]["lat_deg"], doc["users"][0]["lon_deg"]), abs=1e-8)
     items = _mavsdk_import((out / "mission.plan").read_text()).mission_items
     assert len(items) >= 4
-    assert "report.html" in doc["report"] or any("report.html" in str(v) for v in doc["report"].values())
+    assert (out / "report.html").is_file()

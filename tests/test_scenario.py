@@ -42,7 +42,7 @@ def test_hex_rnti_and_defaults():
     sc = scenario_from_dict(BASE)
     assert sc.users[0].rnti == 0x4601
     assert sc.mission.flight.delta_m == 2.0
-    assert sc.noise_model().s0_m == sc.radio.s0_m
+    assert sc.noise_model().range_s0_m == sc.radio.s0_m
 
 
 @pytest.mark.parametrize(
@@ -99,9 +99,9 @@ def test_file_round_trip(tmp_path):
 
 def test_estimator_noise_can_differ_from_the_radio_truth():
     sc = scenario_from_dict(with_(["noise", "range_s0_m"], 4.6))
-    assert sc.noise_model().s0_m == 4.6
-    assert sc.radio_noise_model().s0_m == sc.radio.s0_m == 3.0
-    assert scenario_from_dict(BASE).noise_model().s0_m == 3.0
+    assert sc.noise_model().range_s0_m == 4.6
+    assert sc.radio_noise_model().range_s0_m == sc.radio.s0_m == 3.0
+    assert scenario_from_dict(BASE).noise_model().range_s0_m == 3.0
     with pytest.raises(ScenarioError, match="range_s0_m' = 0.0: must be positive"):
         scenario_from_dict(with_(["noise", "range_s0_m"], 0.0))
 

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import sys
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -39,13 +37,8 @@ def run(args: argparse.Namespace) -> int:
     from estimator.robust import check_loss
     from mission.log import read_mission_log
     from mission.progress import Progress
-    from mission.replay import (
-        ReplayOptions,
-        format_users_table,
-        replay,
-        result_document,
-        solver_params_from_header,
-    )
+    from mission.replay import ReplayOptions, replay, result_of_replay, solver_params_from_header
+    from mission.status import print_result
     from uavloc.errors import MissionLogError
 
     for name in ("loss_scale", "delta", "sigma_gps"):
@@ -69,18 +62,11 @@ def run(args: argparse.Namespace) -> int:
         result = replay(mlog, options, progress=lambda done, total: (setattr(bar, "total", total), bar.update(done)))
     finally:
         bar.close()
-    doc = result_document(result)
     if args.out is not None:
         from mission.report import write_report
 
         paths = write_report(result, args.out)
-        doc["report"] = {k: str(v) for k, v in paths.items()} if isinstance(paths, dict) else str(args.out)
-        log.info("report written to %s", args.out)
-    if args.json:
-        json.dump(doc, sys.stdout, indent=2)
-        sys.stdout.write("\n")
-    else:
-        print(f"{args.log}: {doc['status']}, {doc['measurements']} ranges at {doc['keyframes']} keyframes, "
-              f"{doc['flown_m']:.0f} m flown")
-        print(format_users_table(doc))
+        log.info("report written to %s: %s", args.out, ", ".join(sorted(p.name for p in paths.values())))
+    # the same document and lines as the mission printed (mission.result.Result)
+    print_result(result_of_replay(result), args.json)
     return 0

@@ -9,23 +9,22 @@ from typing import Literal
 
 import numpy as np
 
-from estimator.geodesy import Origin
 from estimator.types import Estimate
 from mission.config import FlightConfig, SafetyConfig
-from mission.result import horizontal_error_m, user_entries_of_estimate
+
+# how a mission ends (Result.status), named once in mission.result and re-exported here
+from mission.result import STATUS_ABORTED as STATUS_ABORTED
+from mission.result import STATUS_BUDGET as STATUS_BUDGET
+from mission.result import STATUS_FLOOR as STATUS_FLOOR
+from mission.result import STATUS_INTERRUPTED as STATUS_INTERRUPTED
+from mission.result import STATUS_NO_LEG as STATUS_NO_LEG
+from mission.result import STATUS_RETURNED as STATUS_RETURNED
+from mission.result import STATUS_TARGET as STATUS_TARGET
+from mission.result import Result
 from mission.schema import bounded, check_bounds, positive
 
 CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
     "CONNECT", "PREFLIGHT", "TAKEOFF", "SURVEY", "RETURN", "LANDED", "ABORT")
-
-#: MissionResult.status values
-STATUS_TARGET = "target_reached"
-STATUS_BUDGET = "budget_spent"
-STATUS_NO_LEG = "no_feasible_leg"
-STATUS_FLOOR = "floor_reached"  # the bounds stopped shrinking above the target (GPS floor)
-STATUS_RETURNED = "returned"  # a safety condition ended the survey early
-STATUS_ABORTED = "aborted"  # an error ended the mission (RTL sent when airborne)
-STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne)
 
 #: PX4's default horizontal cruise speed (MPC_XY_CRUISE): what the vehicle flies when a speed
 #: command was refused, so the leg timeouts follow it then
@@ -93,24 +92,16 @@ class ControllerConfig:
 
 @dataclass
 class MissionResult:
-    """How a mission ended, and what it found.
+    """How a mission ended: its :class:`mission.result.Result` (what the log holds, the one object
+    every rendering prints) and the run-time facts a log cannot hold.
 
-    status: one of the STATUS_* values; reason: why; estimate: final (batch) estimate or None;
-    origin: home (the log's ENU origin) or None if never known; truth_enu_m (K, 3) when known;
-    flown_m: survey metres flown; measurements: rtt records logged; keyframes: keyframes used.
+    result: the mission's result; estimate: its final (batch) estimate, or None; wall_s: wall
+    seconds the run took; rtl_sent, landed: the safe end; refusals: commands the safety gate
+    refused; events: the event messages; loop_lag: the event loop's lag summary.
     """
 
-    status: str
-    reason: str
-    user_ids: list[str]
+    result: Result
     estimate: Estimate | None = None
-    origin: Origin | None = None
-    truth_enu_m: np.ndarray | None = None
-    flown_m: float = 0.0
-    measurements: int = 0
-    keyframes: int = 0
-    log_path: Path | None = None
-    mission_s: float = 0.0
     wall_s: float = 0.0
     rtl_sent: bool = False
     landed: bool = False
@@ -118,30 +109,39 @@ class MissionResult:
     events: list[str] = field(default_factory=list)
     loop_lag: dict = field(default_factory=dict)
 
+    # the result's facts, read through (one object holds them)
+    @property
+    def status(self) -> str:
+        return self.result.status
+
+    @property
+    def reason(self) -> str:
+        return self.result.reason
+
+    @property
+    def flown_m(self) -> float:
+        return self.result.flown_m
+
+    @property
+    def measurements(self) -> int:
+        return self.result.measurements
+
+    @property
+    def keyframes(self) -> int:
+        return self.result.keyframes
+
+    @property
+    def log_path(self) -> Path | None:
+        return self.result.log_path
+
     @property
     def ok(self) -> bool:
         """The mission ended normally and located every user (else the command exits non-zero)."""
-        ended = (STATUS_TARGET, STATUS_FLOOR, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED)
-        return self.status in ended and not self.not_located()
+        return self.result.ok
 
     def not_located(self) -> list[str]:
-        """Ids of the users without a position estimate, or with one a mirror position explains as
-        well (ambiguous)."""
-        est = self.estimate
-        if est is None:
-            return list(self.user_ids)
-        return [u for k, u in enumerate(self.user_ids)
-                if not np.all(np.isfinite(est.users_enu_m[k])) or bool(est.ambiguous[k])]
+        return self.result.not_located()
 
     def error_m(self) -> np.ndarray | None:
         """(K,) horizontal error of each user [m] when truth is known."""
-        if self.estimate is None or self.truth_enu_m is None:
-            return None
-        return horizontal_error_m(self.estimate.users_enu_m, self.truth_enu_m)
-
-    def to_document(self) -> dict:
-        """The docs/design.md §11 JSON document (plus `reason`)."""
-        users = user_entries_of_estimate(self.estimate if self.origin is not None else None, self.origin,
-                                         self.user_ids, self.truth_enu_m)
-        return {"status": self.status, "reason": self.reason, "users": users,
-                "flown_m": round(self.flown_m, 3), "measurements": self.measurements}
+        return self.result.error_m()

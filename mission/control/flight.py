@@ -70,7 +70,8 @@ from mission.control.state import FlightState
 from mission.estimation import MissionEstimator
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields, read_mission_log
-from mission.replay import ReplayOptions, replay
+from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log
+from mission.result import Result, build_result
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.telemetry import TelemetryBuffer, VehicleClock
 from mission.vehicle import PositionFix, Vehicle
@@ -519,17 +520,18 @@ class MissionController:
             log.error("RTL could not be sent: the vehicle is left to its own failsafe")
             self.journal.event("RTL could not be sent: the vehicle is left to its own failsafe", kind="rtl_failed")
 
-    def _final_estimate_from_log(self) -> Estimate:
-        """The batch estimate `uavloc replay LOG` computes, from the log as written so far (the
-        header holds the mission's noise model and solver settings)."""
+    def _replay_log(self) -> ReplayResult:
+        """What `uavloc replay LOG` computes, from the log as written so far (the header holds the
+        mission's noise model and solver settings)."""
         mlog = read_mission_log(self.journal.writer.path)  # flushed line by line
         if mlog.skipped_torn_line is not None:
             raise MissionLogError(f"{self.journal.writer.path}: a torn line ({mlog.skipped_torn_line})")
-        return replay(mlog, ReplayOptions(history=False)).estimate
+        return replay(mlog, ReplayOptions(history=False))
 
     def _close(self, status: str, reason: str, t_wall: float) -> MissionResult:
         est = self.flight.estimate
         keyframes = self.pipeline.keyframes
+        replayed: ReplayResult | None = None
         if keyframes:
             # the final answer is the batch solution over every keyframe, as `uavloc replay`
             # computes it from the log: the same keyframes (one builder, mission.keyframes) under
@@ -537,7 +539,8 @@ class MissionController:
             # log's telemetry when the mission leaves it unknown; the pipeline's keyframes under
             # the mission's noise model if the log cannot be read back
             try:
-                est = self._final_estimate_from_log()
+                replayed = self._replay_log()
+                est = replayed.estimate
             except Exception as exc:  # also a bug in replay: fall back, never lose the result
                 log.warning("final estimate from the pipeline's keyframes: the log could not be replayed: %s", exc)
                 try:
@@ -549,17 +552,38 @@ class MissionController:
         if est is not None and self.journal.is_open:
             self.flight.estimate = est
             self.journal.estimate(self.origin, est, len(keyframes), self.flight.flown_m, final=True)
-        self.journal.event(f"mission end: {status} ({reason})", kind="end", status=status)
+        self.journal.event(f"mission end: {status} ({reason})", kind="end", status=status, reason=reason)
         self.journal.close()
         self.result = MissionResult(
-            status=status, reason=reason, user_ids=[u.id for u in self.users], estimate=est,
-            origin=self.origin, truth_enu_m=self.truth_enu_m, flown_m=self.flight.flown_m,
-            measurements=self.flight.measurements, keyframes=len(keyframes),
-            log_path=self.log_path if self.origin is not None else None, mission_s=self.now(),
-            wall_s=time.monotonic() - t_wall, rtl_sent=self._rtl_sent, landed=self._landed,
-            refusals=self._gated.refusals if self._gated else 0, events=list(self.journal.messages),
-            loop_lag=self.loop_lag.summary())
+            result=self._result(status, reason, est, replayed), estimate=est, wall_s=time.monotonic() - t_wall,
+            rtl_sent=self._rtl_sent, landed=self._landed, refusals=self._gated.refusals if self._gated else 0,
+            events=list(self.journal.messages), loop_lag=self.loop_lag.summary())
         return self.result
+
+    def _result(self, status: str, reason: str, est: Estimate | None, replayed: ReplayResult | None) -> Result:
+        """The mission's Result: from its closed log and the replay of it (mission.replay.result_of_log,
+        as `uavloc replay` builds it; the final estimate and end records change no replayed number);
+        when there is no replay (no range measured, or the log could not be replayed) or the closed
+        log cannot be read back whole, from the flight's own counts and estimate."""
+        writer = self.journal.writer
+        if replayed is not None and writer.failed is None:
+            try:
+                closed = read_mission_log(writer.path)
+                result = result_of_log(closed, replace(replayed, log=closed))
+                if (result.status, result.reason) == (status, reason):
+                    return result
+                log.warning("the mission log does not end as the mission did: the result from the flight's counts")
+            except UavlocError as exc:
+                log.warning("the mission log could not be read back: the result from the flight's counts: %s", exc)
+        c = self.flight.clock
+        surveyed = c.survey_s > 0
+        return build_result(
+            status=status, reason=reason, user_ids=[u.id for u in self.users], estimate=est, origin=self.origin,
+            truth_enu_m=self.truth_enu_m, flown_m=self.flight.flown_m, measurements=self.flight.measurements,
+            keyframes=len(self.pipeline.keyframes), duration_s=self.now(),
+            survey_s=c.survey_s if surveyed else None, hover_s=c.hover_s if surveyed else None,
+            largest_gap_s=c.largest_gap_s if surveyed else None,
+            log_path=self.log_path if self.origin is not None else None)
 
 
 def _first_error(eg: BaseExceptionGroup) -> BaseException:

@@ -22,15 +22,13 @@ from estimator.geodesy import Origin
 from mission.control.config import (
     PX4_DEFAULT_CRUISE_MPS,
     STATUS_BUDGET,
-    STATUS_FLOOR,
-    STATUS_NO_LEG,
-    STATUS_TARGET,
     TAKEOFF,
     ControllerConfig,
 )
 from mission.control.journal import MissionJournal
 from mission.control.safety_monitor import energy_remaining_m
 from mission.control.state import FlightState
+from mission.result import status_of_planner_reason
 from mission.safety import GatedVehicle
 from mission.telemetry import Odometer, odometer_dead_band_m
 from planner.types import Planner, PlanningState, PlanResult
@@ -185,9 +183,7 @@ class SurveyLegs:
                 f.request_return(f"planner failed: {exc}")
                 break
             if plan.done:
-                status = {"target reached": STATUS_TARGET, "floor reached": STATUS_FLOOR,
-                          "budget spent": STATUS_BUDGET}.get(plan.reason, STATUS_NO_LEG)
-                f.finish_survey(status, plan.reason or "planner done")
+                f.finish_survey(status_of_planner_reason(plan.reason), plan.reason or "planner done")
                 break
             if f.ending:
                 break

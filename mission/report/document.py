@@ -1,5 +1,6 @@
-"""The content of report.json: summary, the per-user result document (mission.result) with the
-report's range statistics, the noise model and the figure files."""
+"""The content of report.json: the mission's result document (mission.result.Result.to_document,
+the same as `--json` prints) and the report's own sections, which never redefine one of its keys:
+title, the noise model, the range statistics per user, the figure files."""
 
 from __future__ import annotations
 
@@ -7,30 +8,26 @@ import numpy as np
 
 from mission.report.inputs import ReportInputs
 from mission.report.statistics import range_errors
-from mission.result import finite_or_none, user_entries
+from mission.result import finite_or_none
+from uavloc.errors import MissionError
 
 
 def report_document(inp: ReportInputs, figures: dict[str, str] | None = None) -> dict:
-    """The content of report.json: summary, users, noise model, range statistics, figure files."""
+    """report.json: the result document, and `title`, `noise` (the estimator's model, as the log
+    header writes it), `range_statistics` ({user id: {reference, mean_m, std_m}}: the range error
+    r̂ − d against the true users when known, else the estimated ones), `figures` ({name: file})
+    and `extra` when the inputs carry any."""
+    doc = inp.result.to_document()
     _d, e, which = range_errors(inp)
-    users = user_entries(inp.user_ids, inp.origin, inp.users_enu_m, inp.cov_en_m2,
-                         measurements=[int(np.sum(inp.meas_user == k)) for k in range(inp.n_users)],
-                         ambiguous=inp.ambiguous, bias_m=inp.bias_m, truth_enu_m=inp.truth_enu_m)
-    for k, entry in enumerate(users):
+    stats = {}
+    for k, uid in enumerate(inp.user_ids):
         sel = inp.meas_user == k
-        entry["range_error_mean_m"] = finite_or_none(np.mean(e[sel])) if sel.any() else None
-        entry["range_error_std_m"] = finite_or_none(np.std(e[sel])) if sel.sum() > 1 else None
-    return {
-        "title": inp.title,
-        "status": inp.status,
-        "origin": inp.origin.to_dict(),
-        "flown_m": finite_or_none(inp.flown_m),
-        "keyframes": len(inp.kf_t_s),
-        "measurements": len(inp.meas_range_m),
-        "duration_s": finite_or_none(inp.kf_t_s[-1] - inp.kf_t_s[0]) if len(inp.kf_t_s) else None,
-        "noise": inp.noise.to_log_dict(),
-        "range_error_reference": which,
-        "users": users,
-        "figures": figures or {},
-        **({"extra": inp.extra} if inp.extra else {}),
-    }
+        stats[uid] = {"reference": which, "ranges": int(np.sum(sel)),
+                      "mean_m": finite_or_none(np.mean(e[sel])) if sel.any() else None,
+                      "std_m": finite_or_none(np.std(e[sel])) if sel.sum() > 1 else None}
+    report = {"title": inp.title, "noise": inp.noise.to_log_dict(), "range_statistics": stats,
+              "figures": figures or {}, **({"extra": inp.extra} if inp.extra else {})}
+    clash = sorted(set(report) & set(doc))
+    if clash:
+        raise MissionError(f"report sections would redefine the result's {clash}")
+    return {**doc, **report}

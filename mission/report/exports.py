@@ -35,7 +35,6 @@ from pymavlink.dialects.v20 import common as mavlink
 from estimator.geodesy import Origin
 from mission.report.inputs import MissionShapes, ReportInputs
 from mission.report.statistics import ellipse_en_m
-from mission.result import user_entries
 from uavloc.errors import MissionError
 
 log = logging.getLogger(__name__)
@@ -75,23 +74,22 @@ def _ellipse_ring_enu(center: np.ndarray, cov: np.ndarray, n: int = 72) -> np.nd
 
 
 def _user_stats(inp: ReportInputs, k: int) -> dict:
-    """The export properties of user k: the result document's entry (mission.result), rounded."""
-    (entry,) = user_entries(
-        [inp.user_ids[k]], inp.origin, inp.users_enu_m[k:k + 1], inp.cov_en_m2[k:k + 1],
-        ambiguous=None if inp.ambiguous is None else inp.ambiguous[k:k + 1],
-        bias_m=None if inp.bias_m is None else inp.bias_m[k:k + 1],
-        truth_enu_m=None if inp.truth_enu_m is None else inp.truth_enu_m[k:k + 1])
-    cov = entry["cov_en_m2"]
+    """The export properties of user k: the result's entry (mission.result.UserResult), rounded."""
+    u = inp.result.users[k]
+    cov = u.cov_en_m2
     props = {
-        "id": entry["id"],
-        "sigma_east_m": _num_or_none(entry["sigma_east_m"]),
-        "sigma_north_m": _num_or_none(entry["sigma_north_m"]),
+        "id": u.id,
+        "sigma_east_m": _num_or_none(u.sigma_east_m),
+        "sigma_north_m": _num_or_none(u.sigma_north_m),
         "cov_en_m2": None if cov is None else [[_num(cov[i][j], 6) for j in range(2)] for i in range(2)],
-        "error_bound_95_m": _num_or_none(entry["error_bound_95_m"]),
+        "error_bound_95_m": _num_or_none(u.error_bound_95_m),
     }
-    for key in ("bias_m", "ambiguous", "error_m"):
-        if key in entry:
-            props[key] = entry[key] if key == "ambiguous" else _num_or_none(entry[key])
+    if u.bias_m is not None:
+        props["bias_m"] = _num_or_none(u.bias_m)
+    if u.ambiguous is not None:
+        props["ambiguous"] = u.ambiguous
+    if u.truth is not None:
+        props["error_m"] = _num_or_none(u.error_m)
     return props
 
 
@@ -163,7 +161,7 @@ def geojson_document(inp: ReportInputs) -> dict:
             geom = {"type": "LineString", "coordinates": _lonlatalt(inp.origin, pts)}
             feats.append({"type": "Feature", "geometry": geom, "properties": {"kind": kind, "points": len(pts)}})
     feats += _shape_features(inp.shapes)
-    props = {"title": inp.title, "status": inp.status, "flown_m": _num(inp.flown_m, 1)}
+    props = {"title": inp.title, "status": inp.result.status, "flown_m": _num(inp.result.flown_m, 1)}
     if inp.shapes.altitude_band_m is not None:
         props["altitude_band_m"] = {"min_m": inp.shapes.altitude_band_m[0], "max_m": inp.shapes.altitude_band_m[1]}
     return {"type": "FeatureCollection", "features": feats, "properties": props}

@@ -172,7 +172,8 @@ def _fig_range_error(plt, inp: ReportInputs):
     ax.set_xlabel(f"distance to the {which} user [m]")
     ax.set_ylabel("range error r̂ − d [m]")
     ax.grid(True, alpha=0.3)
-    ax.set_title(f"range error vs distance ({which} users); σ(d) = {n.s0_m:.2f} + {n.a_m:.3g}·exp({n.b_per_m:.3g}·d)")
+    ax.set_title(f"range error vs distance ({which} users); "
+                 f"σ(d) = {n.range_s0_m:.2f} + {n.range_a_m:.3g}·exp({n.range_b_per_m:.3g}·d)")
     ax.legend(fontsize=7, loc="best", markerscale=4)
     return fig
 
@@ -220,9 +221,9 @@ def _fig_error_vs_flown(plt, inp: ReportInputs):
         err = inp.error_m()
         for k, uid in enumerate(inp.user_ids):
             if np.isfinite(bound[k]):
-                ax.plot([inp.flown_m], [bound[k]], "o", color=colors[k], label=f"{uid} 95 % bound (final)")
+                ax.plot([inp.result.flown_m], [bound[k]], "o", color=colors[k], label=f"{uid} 95 % bound (final)")
             if err is not None and np.isfinite(err[k]):
-                ax.plot([inp.flown_m], [err[k]], "x", color=colors[k], label=f"{uid} true error (final)")
+                ax.plot([inp.result.flown_m], [err[k]], "x", color=colors[k], label=f"{uid} true error (final)")
         ax.text(0.5, 0.9, "no history (replay with history to see the curve)", transform=ax.transAxes,
                 ha="center", fontsize=9)
     ax.set_xlabel("metres flown [m]")

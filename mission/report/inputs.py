@@ -24,7 +24,8 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
-from mission.result import error_bound_95_m, horizontal_error_m, result_status
+from mission.result import Result, error_bound_95_m
+from uavloc.errors import MissionError
 
 log = logging.getLogger(__name__)
 
@@ -112,28 +113,24 @@ def shapes_from_log(mlog: Any) -> MissionShapes:
 @dataclass(frozen=True)
 class ReportInputs:
     """Everything a report or an export draws. Shapes: K users, N keyframes, M range measurements,
-    T telemetry fixes, H history steps, W waypoints. Positions are ENU [m] about `origin`.
+    T telemetry fixes, H history steps, W waypoints. Positions are ENU [m] about the result's origin.
 
-    user_ids: K names. users_enu_m (K, 3) estimated users (NaN rows: not located);
-    cov_en_m2 (K, 2, 2) their east-north covariance [m²]; bias_m (K,) estimated range bias or None.
-    truth_enu_m (K, 3) true users or None. ambiguous (K,) bool or None.
+    result: the mission's :class:`mission.result.Result` (status, users, flown metres, counts,
+    origin: what the report summarizes; never re-derived here); its origin must be known.
+    noise: the noise model the estimator used.
     kf_t_s (N,), kf_gps_enu_m (N, 3): keyframe times and GPS positions; uav_enu_m (N, 3) the
     estimator's corrected track (or None).
     tel_t_s (T,), tel_enu_m (T, 3): telemetry track (or None: the keyframes are the track).
     meas_t_s (M,), meas_user (M,), meas_range_m (M,), meas_uav_enu_m (M, 3): every range used, with
     the GPS position it was taken at.
-    noise: the noise model the estimator used.
     hist_flown_m (H,), hist_bound_95_m (H, K), hist_error_m (H, K) or None: how the estimate evolved.
     waypoints_enu_m (W, 3) or None: the planner's waypoints, if the mission logged them.
-    flown_m, status, title: summary.
+    title: the report's title; extra: report-only facts for report.json's `extra`.
     shapes: the geofence, no-fly zones, altitude band and buildings of the log header (empty when
     the header has none).
     """
 
-    origin: Origin
-    user_ids: list[str]
-    users_enu_m: np.ndarray
-    cov_en_m2: np.ndarray
+    result: Result
     noise: NoiseModel
     kf_t_s: np.ndarray
     kf_gps_enu_m: np.ndarray
@@ -141,9 +138,6 @@ class ReportInputs:
     meas_user: np.ndarray
     meas_range_m: np.ndarray
     meas_uav_enu_m: np.ndarray
-    bias_m: np.ndarray | None = None
-    truth_enu_m: np.ndarray | None = None
-    ambiguous: np.ndarray | None = None
     uav_enu_m: np.ndarray | None = None
     tel_t_s: np.ndarray | None = None
     tel_enu_m: np.ndarray | None = None
@@ -151,15 +145,41 @@ class ReportInputs:
     hist_bound_95_m: np.ndarray | None = None
     hist_error_m: np.ndarray | None = None
     waypoints_enu_m: np.ndarray | None = None
-    flown_m: float = float("nan")
-    status: str = ""
     title: str = "uavloc mission"
     extra: dict = field(default_factory=dict)
     shapes: MissionShapes = field(default_factory=lambda: MissionShapes())
 
+    def __post_init__(self) -> None:
+        if self.result.origin is None:
+            raise MissionError("a report needs the result's origin (the log header's)")
+
+    # the result's facts, as the figures draw them
+    @property
+    def origin(self) -> Origin:
+        return self.result.origin
+
+    @property
+    def user_ids(self) -> list[str]:
+        return self.result.user_ids
+
     @property
     def n_users(self) -> int:
-        return len(self.user_ids)
+        return len(self.result.users)
+
+    @property
+    def users_enu_m(self) -> np.ndarray:
+        """(K, 3) estimated users [m] (NaN rows: not located)."""
+        return self.result.users_enu_m()
+
+    @property
+    def cov_en_m2(self) -> np.ndarray:
+        """(K, 2, 2) their east-north covariance [m²]."""
+        return self.result.cov_en_m2()
+
+    @property
+    def truth_enu_m(self) -> np.ndarray | None:
+        """(K, 3) true users [m], or None."""
+        return self.result.truth_enu_m()
 
     def track_enu_m(self) -> np.ndarray:
         """(T, 3) the flown GPS track: telemetry when present, else the keyframe GPS positions."""
@@ -173,25 +193,23 @@ class ReportInputs:
 
     def error_m(self) -> np.ndarray | None:
         """(K,) horizontal error of each estimated user [m] when the truth is known."""
-        if self.truth_enu_m is None:
-            return None
-        return horizontal_error_m(self.users_enu_m, self.truth_enu_m)
+        return self.result.error_m()
 
 
 def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
-    """Build :class:`ReportInputs` from a `mission.replay.ReplayResult` (duck-typed: keyframes,
-    estimate, log, noise, truth_enu_m, flown_m, history)."""
+    """Build :class:`ReportInputs` from a `mission.replay.ReplayResult` (keyframes, estimate, log,
+    noise, flown_m, history) and its :class:`mission.result.Result` (mission.replay.result_of_replay)."""
+    from mission.replay import result_of_replay
+
     mlog = result.log
     origin = mlog.header.origin
     est = result.estimate
     kfs = list(result.keyframes)
-    k = mlog.n_users
     meas_t = np.concatenate([np.full(len(kf.range_m), kf.t_s) for kf in kfs]) if kfs else np.zeros(0)
     meas_user = np.concatenate([np.asarray(kf.user_idx, int) for kf in kfs]) if kfs else np.zeros(0, int)
     meas_r = np.concatenate([np.asarray(kf.range_m, float) for kf in kfs]) if kfs else np.zeros(0)
     meas_uav = (np.concatenate([np.repeat(np.asarray(kf.gps_enu_m, float)[None], len(kf.range_m), 0) for kf in kfs])
                 if kfs else np.zeros((0, 3)))
-    cov = np.array([est.cov_en_m2(j) for j in range(k)]).reshape(k, 2, 2)
     tel_t = tel_enu = None
     if len(mlog.tel_t_s) >= 2:
         tel_t = mlog.tel_t_s
@@ -200,32 +218,21 @@ def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
     if uav.shape != result.kf_gps_enu_m.shape:
         uav = None  # a fixed-lag estimator keeps only the last keyframes: nothing to draw against
     hist = getattr(result, "history", None)
-    wps = waypoints_from_log(mlog)
     return ReportInputs(
-        origin=origin,
-        user_ids=[u.id for u in mlog.header.users],
-        users_enu_m=np.asarray(est.users_enu_m, float),
-        cov_en_m2=cov,
+        result=result_of_replay(result),
         noise=result.noise,
         kf_t_s=np.asarray(result.kf_t_s, float),
         kf_gps_enu_m=np.asarray(result.kf_gps_enu_m, float),
         meas_t_s=meas_t, meas_user=meas_user, meas_range_m=meas_r, meas_uav_enu_m=meas_uav,
-        bias_m=None if est.bias_m is None else np.asarray(est.bias_m, float),
-        truth_enu_m=None if result.truth_enu_m is None else np.asarray(result.truth_enu_m, float),
-        ambiguous=np.asarray(est.ambiguous, bool),
         uav_enu_m=uav,
         tel_t_s=tel_t, tel_enu_m=tel_enu,
         hist_flown_m=None if hist is None else np.asarray(hist.flown_m, float),
         hist_bound_95_m=None if hist is None else np.asarray(hist.bound_95_m, float),
         hist_error_m=None if hist is None or hist.error_m is None else np.asarray(hist.error_m, float),
-        waypoints_enu_m=wps,
+        waypoints_enu_m=waypoints_from_log(mlog),
         shapes=shapes_from_log(mlog),
-        flown_m=float(result.flown_m),
-        status=result_status(est),
         title=title or f"uavloc replay of {Path(str(mlog.path)).name}",
     )
-
-
 
 
 def waypoints_from_log(mlog: Any) -> np.ndarray | None:

@@ -34,6 +34,7 @@ from mission import geometry
 from mission.control.legs import PLAN_AHEAD_S
 from mission.controller import compile_planner_in_tmp
 from mission.estimation import MissionEstimator
+from mission.result import STATUS_BUDGET, STATUS_TARGET, build_result, status_of_planner_reason
 from planner import PlanningConstraints, PlanningState, make_planner
 from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
 from sitl_scenarios.radio import RadioModel
@@ -102,7 +103,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
         if len(out.plan_times_s) > 1:
             out.hover_s += max(0.0, out.plan_times_s[-1] - PLAN_AHEAD_S)
         if res.done:
-            out.end = res.reason
+            status, reason = status_of_planner_reason(res.reason), res.reason or "planner done"
             break
         wp = np.asarray(res.waypoint_enu_m, float)
         bad = leg_violation(c, x, wp, flown)
@@ -128,7 +129,6 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
             estimate = est.add_keyframe(kf, confirm)
             if on_keyframe is not None:
                 on_keyframe(kf, estimate)
-            out.keyframes += 1
             track.update(estimate.users_enu_m[:, :2], estimate.cov_users_m2[:, :2, :2], flown + s,
                          t_s + out.hover_s)
             if setup.stops(estimate):
@@ -137,19 +137,24 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
             s += delta_m
         if stopped:  # mid-leg, as the mission stops at once
             flown += s
-            out.end = "target reached"
+            status, reason = STATUS_TARGET, "target reached"
             break
         since_kf = leg - (s - delta_m)
         flown += leg
         x = wp
-    if not out.end:
-        out.end = "budget spent"
+    else:
+        status, reason = STATUS_BUDGET, "budget spent"
     if est.online_failure is not None:
         out.estimator_errors.append(est.online_failure)
+    final = None
     if keyframes:  # the mission's final answer
         final = setup.final(keyframes)
         track.update(final.users_enu_m[:, :2], final.cov_users_m2[:, :2, :2], flown, flown / speed_mps + out.hover_s)
-    out.flown_m = flown
     out.survey_s = flown / speed_mps + out.hover_s
     out.nlos_share = n_nlos / n_ranges if n_ranges else float("nan")
-    return track.fill(out)
+    # no log: the Result from the final estimate, through the mission's one constructor
+    result = build_result(status=status, reason=reason, user_ids=[u.id for u in sc.users], estimate=final,
+                          origin=sc.origin_geo, truth_enu_m=users, flown_m=flown, measurements=n_ranges,
+                          keyframes=len(keyframes), duration_s=out.survey_s, survey_s=out.survey_s,
+                          hover_s=out.hover_s)
+    return track.fill(out).take_result(result)

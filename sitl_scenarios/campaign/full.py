@@ -49,20 +49,20 @@ def fly_full(sc: Scenario, planner_name: str, params: SolverParams, seed: int, t
 
 
 def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: float) -> Outcome:
-    """Outcome of a finished simulated mission from its parsed log and MissionResult."""
+    """Outcome of a finished simulated mission from its parsed log and MissionResult: the accuracy
+    track over its logged estimates, and the row's final figures from its Result."""
     from mission.telemetry import odometer_m
 
-    out = Outcome(end=f"{result.status}: {result.reason}", flown_m=float(result.flown_m),
-                  keyframes=int(result.keyframes))
+    out = Outcome()
     out.plan_times_s = [float(w.get("solve_time_s") or 0.0) for w in mlog.waypoints]
     out.estimator_errors = [str(e.get("message", "")) for e in mlog.events if e.get("kind") == "estimator_error"]
     times = [e for e in mlog.events if e.get("kind") == "survey_time"]
     out.hover_s = sum(float(e.get("hover_s") or 0.0) for e in times)
     out.survey_s = sum(float(e.get("survey_s") or 0.0) for e in times)
     origin = mlog.header.origin
-    if result.truth_enu_m is None or not mlog.estimates:
-        return out
-    truth = np.asarray(result.truth_enu_m, float)
+    truth = result.result.truth_enu_m()
+    if truth is None or not mlog.estimates:
+        return out.take_result(result.result)
     track = AccuracyTrack(truth, targets_m)
     # metres flown at time t: the odometer over the telemetry from the first waypoint on
     t0 = mlog.waypoints[0]["t"] if mlog.waypoints else 0.0
@@ -83,4 +83,4 @@ def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: fl
             cov[k] = np.asarray(u["cov_en_m2"], float)
         at_m = float(np.interp(rec["t"], tel_t, metres)) if len(tel_t) else 0.0
         track.update(users_en, cov, at_m, float(rec["t"]) - t0)
-    return track.fill(out)
+    return track.fill(out).take_result(result.result)

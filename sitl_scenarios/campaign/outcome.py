@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.types import CHI2_2DOF_95, error_bound_95_m
+from mission.result import Result
 
 
 @dataclass
@@ -19,11 +20,14 @@ class Outcome:
         absent: never); seconds_to: target → survey seconds then [s], hover included;
         error_at: target → mean true horizontal error [m] at that moment;
     plan_times_s: compute time of every plan() call [s]; violations: constraint breaks found by an
-        independent check of each leg (fast mode); flown_m: metres flown; end: why the run ended;
-    keyframes: keyframes fed to the estimator; final_error_m / final_bound95_m: (K,) per user at the
-        end [m] (NaN where the user was never located); final_nees: (K,) eᵀ Σ⁻¹ e of each user's final
-        east-north error e and covariance Σ (NaN where never located: inside the 95 % ellipse at
-        ≤ χ²₂(0.95) = 5.99, the 99.9 % one at ≤ 13.8); inside95: share of (estimate, user) pairs
+        independent check of each leg (fast mode);
+    result: the run's :class:`mission.result.Result` (full mode: the mission's; fast mode: built by
+        the same constructor from its final estimate), of which end ("status: reason"), flown_m,
+        keyframes, final_error_m and final_bound95_m ((K,) per user at the end [m], NaN where the
+        user was not located) are the row's rendering (:meth:`Outcome.take_result`);
+    final_nees: (K,) eᵀ Σ⁻¹ e of each user's final east-north error e and covariance Σ (NaN where
+        never located: inside the 95 % ellipse at ≤ χ²₂(0.95) = 5.99, the 99.9 % one at ≤ 13.8);
+        inside95: share of (estimate, user) pairs
         after a user's first estimate whose true error lies inside its own 95 % ellipse;
         nlos_share: share of ranges whose line of sight a building blocked; estimator_errors: what
         the estimator reported failing during the run (the mission went on: estimator.refresh drops a
@@ -49,6 +53,19 @@ class Outcome:
     inside95: float = math.nan
     nlos_share: float = math.nan
     estimator_errors: list = field(default_factory=list)
+    result: Result | None = None
+
+    def take_result(self, result: Result) -> Outcome:
+        """Hold the run's result, and render the row's columns that are its facts."""
+        self.result = result
+        self.end = f"{result.status}: {result.reason}"
+        self.flown_m = float(result.flown_m)
+        self.keyframes = int(result.keyframes)
+        err = result.error_m()
+        self.final_error_m = [math.nan] * len(result.users) if err is None else [float(v) for v in err]
+        self.final_bound95_m = [math.nan if u.error_bound_95_m is None else float(u.error_bound_95_m)
+                                for u in result.users]
+        return self
 
 
 class AccuracyTrack:
