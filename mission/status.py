@@ -1,6 +1,7 @@
 """What `uavloc fly` and `uavloc sim` print at the end of a mission, and the report they write.
 
-The JSON document is docs/design.md §11 (plus `reason`, `keyframes`, `log`); the human-readable lines
+The JSON document is docs/design.md §11 (plus `reason`, `keyframes`, `log`, and `speedup`: the
+survey's requested and achieved speed-up, mission.control.state.SurveyPace); the human-readable lines
 use the same per-user table as `uavloc replay`. `--out DIR` writes the report of the mission's own
 log (replayed, so the report shows exactly what replay would).
 """
@@ -23,6 +24,7 @@ def mission_document(result: MissionResult) -> dict:
     doc = result.to_document()
     doc["keyframes"] = result.keyframes
     doc["log"] = str(result.log_path) if result.log_path is not None else None
+    doc["speedup"] = result.pace.to_dict() if result.pace is not None else None
     return doc
 
 

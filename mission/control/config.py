@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -14,6 +14,9 @@ from estimator.types import Estimate
 from mission.config import FlightConfig, SafetyConfig
 from mission.result import horizontal_error_m, user_entries_of_estimate
 from mission.schema import bounded, check_bounds, positive
+
+if TYPE_CHECKING:
+    from mission.control.state import SurveyPace
 
 CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
     "CONNECT", "PREFLIGHT", "TAKEOFF", "SURVEY", "RETURN", "LANDED", "ABORT")
@@ -97,7 +100,8 @@ class MissionResult:
 
     status: one of the STATUS_* values; reason: why; estimate: final (batch) estimate or None;
     origin: home (the log's ENU origin) or None if never known; truth_enu_m (K, 3) when known;
-    flown_m: survey metres flown; measurements: rtt records logged; keyframes: keyframes used.
+    flown_m: survey metres flown; measurements: rtt records logged; keyframes: keyframes used;
+    pace: how fast the survey really ran against its speed-up (None: no survey).
     """
 
     status: str
@@ -117,6 +121,7 @@ class MissionResult:
     refusals: int = 0
     events: list[str] = field(default_factory=list)
     loop_lag: dict = field(default_factory=dict)
+    pace: SurveyPace | None = None
 
     @property
     def ok(self) -> bool:
