@@ -4,6 +4,8 @@ Both are renderings of the mission's one :class:`mission.result.Result`: the JSO
 :meth:`Result.to_document` (docs/design.md §11), the human-readable lines
 :func:`mission.result.format_result`, as `uavloc replay` prints them. `--out DIR` writes the report
 of the mission's own log (replayed, so the report shows exactly what replay would).
+The JSON document of a mission adds `speedup`: the survey's requested and achieved speed-up
+(mission.control.state.SurveyPace), a fact of the run, not of its log.
 """
 
 from __future__ import annotations
@@ -20,11 +22,19 @@ from mission.result import Result, format_result
 log = logging.getLogger(__name__)
 
 
+def mission_document(result: MissionResult) -> dict:
+    """The JSON document of a mission: its Result's, with the survey's `speedup` when it had one."""
+    doc = result.result.to_document()
+    if result.pace is not None:
+        doc["speedup"] = result.pace.to_dict()
+    return doc
+
+
 def print_result(result: MissionResult | Result, as_json: bool, stream: TextIO | None = None) -> dict:
     """Print the result on stdout: its JSON document with `as_json`, else the short summary."""
     res = result.result if isinstance(result, MissionResult) else result
     out = stream or sys.stdout
-    doc = res.to_document()
+    doc = mission_document(result) if isinstance(result, MissionResult) else res.to_document()
     if as_json:
         json.dump(doc, out, indent=2, allow_nan=False)
         out.write("\n")

@@ -31,3 +31,23 @@ def test_the_largest_gap_counts_from_the_start_and_to_the_end():
     assert c.largest_gap_s == pytest.approx(12.0)
     c.range_at(200.0)  # after the end: ignored
     assert c.largest_gap_s == pytest.approx(12.0)
+
+
+def test_rounds_ranges_and_pace_are_counted_over_the_survey_only():
+    from mission.control.state import FELL_BEHIND_SHARE, spacing_m
+
+    c = SurveyClock()
+    c.range_at(1.0, 3)  # before the survey: not counted
+    c.start(10.0, wall_s=100.0)
+    for t in (11.0, 12.0, 13.0):
+        c.range_at(t, 2)
+    assert c.pace(20.0) is None  # not ended yet
+    c.end(70.0, wall_s=106.0)  # 60 mission seconds in 6 wall seconds: ×10
+    c.range_at(71.0, 5)  # after the end: ignored
+    assert (c.rounds, c.ranges) == (3, 6)
+    assert c.rounds_per_min() == pytest.approx(3.0)
+    assert spacing_m(30.0, c.rounds) == pytest.approx(10.0) and spacing_m(30.0, 0) is None
+    pace = c.pace(20.0)
+    assert pace.achieved_speedup == pytest.approx(10.0) and pace.fell_behind
+    assert pace.message().startswith("asked ×20, ran ×10.0: ")
+    assert not c.pace(10.0 / FELL_BEHIND_SHARE).fell_behind  # exactly at the share: kept up

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -22,6 +22,9 @@ from mission.result import STATUS_RETURNED as STATUS_RETURNED
 from mission.result import STATUS_TARGET as STATUS_TARGET
 from mission.result import Result
 from mission.schema import bounded, check_bounds, positive
+
+if TYPE_CHECKING:
+    from mission.control.state import SurveyPace
 
 CONNECT, PREFLIGHT, TAKEOFF, SURVEY, RETURN, LANDED, ABORT = (
     "CONNECT", "PREFLIGHT", "TAKEOFF", "SURVEY", "RETURN", "LANDED", "ABORT")
@@ -97,7 +100,8 @@ class MissionResult:
 
     result: the mission's result; estimate: its final (batch) estimate, or None; wall_s: wall
     seconds the run took; rtl_sent, landed: the safe end; refusals: commands the safety gate
-    refused; events: the event messages; loop_lag: the event loop's lag summary.
+    refused; events: the event messages; loop_lag: the event loop's lag summary;
+    pace: how fast the survey really ran against its speed-up (None: no survey).
     """
 
     result: Result
@@ -108,6 +112,7 @@ class MissionResult:
     refusals: int = 0
     events: list[str] = field(default_factory=list)
     loop_lag: dict = field(default_factory=dict)
+    pace: SurveyPace | None = None
 
     # the result's facts, read through (one object holds them)
     @property

@@ -66,7 +66,7 @@ from mission.control.legs import LegsDeps, SurveyLegs
 from mission.control.loop import LoopLagMonitor
 from mission.control.pipeline import MeasurementPipeline
 from mission.control.safety_monitor import SafetyMonitor
-from mission.control.state import FlightState
+from mission.control.state import FlightState, SurveyPace, spacing_m
 from mission.estimation import MissionEstimator
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields, read_mission_log
@@ -147,6 +147,8 @@ class MissionController:
         self._connected = False
         self.loop_lag = LoopLagMonitor()
         self.result: MissionResult | None = None  # set when the mission ends (also when cancelled)
+        #: how fast the survey really ran against the wall clock (once it ended)
+        self.pace: SurveyPace | None = None
         self._rtl_sent = self._landed = self._rtl_gave_up = False
         self._autopilot_landing = False  # RTL not sent: the autopilot was already landing on its own
 
@@ -262,7 +264,7 @@ class MissionController:
             self._takeoff_over.set()
             if f.return_reason is None:
                 f.set_phase(SURVEY)
-                f.clock.t0_s = self.now()
+                f.clock.start(self.now(), time.monotonic())
                 try:
                     await self.legs.survey()
                 finally:
@@ -332,15 +334,34 @@ class MissionController:
             raise GnbPreflightError(f"not taking off: {probe.message()}")
 
     def _survey_ended(self) -> None:
-        """Log how the survey spent its time: hover (slower than HOVER_SPEED_MPS) and the longest
-        time without a range."""
+        """Log how the survey spent its time and what it measured, as it happened: hover (slower than
+        HOVER_SPEED_MPS), the longest time without a range, the gNB rounds placed (metres flown per
+        round and per range of each user, rounds per minute); and, when it ran materially slower
+        than its speed-up (SurveyPace), a `fell_behind` event and a warning."""
         c = self.flight.clock
-        c.end(self.now())
+        c.end(self.now(), time.monotonic())
         share = 100.0 * c.hover_s / c.survey_s if c.survey_s > 0 else 0.0
+        flown_m, n_users = self.flight.flown_m, len(self.users)
+        round_m = spacing_m(flown_m, c.rounds)
+        # each user's ranges: the survey's ranges shared among the users
+        user_m = spacing_m(flown_m * n_users, c.ranges)
+        per_min = c.rounds_per_min()
+        measured = (f"{c.rounds} gNB rounds ({c.ranges} ranges), one every {round_m:.1f} m (Δ = "
+                    f"{self.config.flight.delta_m:g} m), {per_min:.1f} per minute, each user ranged every "
+                    f"{user_m:.1f} m" if round_m is not None and per_min is not None and user_m is not None
+                    else "no gNB round")
         self.journal.event(f"survey {c.survey_s:.0f} s: hovering {c.hover_s:.1f} s ({share:.1f} %), longest without "
-                           f"a range {c.largest_gap_s:.1f} s; {self.legs.planned_ahead} legs planned ahead",
-                           kind="survey_time", survey_s=round(c.survey_s, 2), hover_s=round(c.hover_s, 2),
-                           largest_gap_s=round(c.largest_gap_s, 2), planned_ahead=self.legs.planned_ahead)
+                           f"a range {c.largest_gap_s:.1f} s; {measured}; {self.legs.planned_ahead} legs planned "
+                           f"ahead", kind="survey_time", survey_s=round(c.survey_s, 2), hover_s=round(c.hover_s, 2),
+                           largest_gap_s=round(c.largest_gap_s, 2), planned_ahead=self.legs.planned_ahead,
+                           flown_m=round(flown_m, 2), rounds=c.rounds, ranges=c.ranges,
+                           spacing_m=None if round_m is None else round(round_m, 2),
+                           user_spacing_m=None if user_m is None else round(user_m, 2),
+                           rounds_per_min=None if per_min is None else round(per_min, 2))
+        self.pace = c.pace(self.config.time_scale)
+        if self.pace is not None and self.pace.fell_behind:
+            log.warning("%s", self.pace.message())
+            self.journal.event(self.pace.message(), kind="fell_behind", **self.pace.to_dict())
 
     async def _prepare_planner(self) -> None:
         """The planner's one-time work (CasADi kernels) before take-off, in a thread, so that the
@@ -557,7 +578,7 @@ class MissionController:
         self.result = MissionResult(
             result=self._result(status, reason, est, replayed), estimate=est, wall_s=time.monotonic() - t_wall,
             rtl_sent=self._rtl_sent, landed=self._landed, refusals=self._gated.refusals if self._gated else 0,
-            events=list(self.journal.messages), loop_lag=self.loop_lag.summary())
+            events=list(self.journal.messages), loop_lag=self.loop_lag.summary(), pace=self.pace)
         return self.result
 
     def _result(self, status: str, reason: str, est: Estimate | None, replayed: ReplayResult | None) -> Result:

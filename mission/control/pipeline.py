@@ -7,7 +7,8 @@
   Δ since it began, whichever comes first; the next round goes on with the next user (in turn),
   so many users share the gNB's answers without stretching the keyframe spacing (one position
   per round, within Δ of every measurement in it). The first round cut short logs how many users
-  the gNB serves per Δ (event `gnb_rounds`); a round that fails for the gNB as a whole (no answer, an unknown
+  the gNB served in that Δ (event `gnb_rounds`; the spacing achieved is measured over the survey,
+  `survey_time`); a round that fails for the gNB as a whole (no answer, an unknown
   command, or PROTOCOL_ERROR_STREAK rounds of nothing but unreadable answers) marks the gNB lost
   in the :class:`FlightState`, in the gNB's own words;
 - the **placer** (:meth:`MeasurementPipeline.run_placer`): places each round at the telemetry
@@ -204,17 +205,17 @@ class MeasurementPipeline:
             self.place_queue.put_nowait(samples)
 
     def _report_rounds(self, served: int, start: tuple[float, np.ndarray] | None) -> None:
-        """Once per mission: the first round cut short says what the gNB serves per Δ."""
+        """Once per mission: the first round cut short says how many users the gNB served while the
+        UAV flew Δ, and no more (the spacing achieved is the survey's `survey_time` event's, measured)."""
         if self._rounds_reported:
             return
         self._rounds_reported = True
         n_users = len(self.users)
         latest = self.buffer.latest()
         took = f" in {latest[0] - start[0]:.2f} s" if start is not None and latest is not None else ""
-        every_m = self.delta_m * math.ceil(n_users / served)
         self.flight.event(f"the gNB served {served} of {n_users} users{took} while the UAV flew Δ = "
-                          f"{self.delta_m:g} m: rounds take the users in turn, each measured about every "
-                          f"{every_m:g} m", kind="gnb_rounds", served=served, users=n_users)
+                          f"{self.delta_m:g} m: rounds take the users in turn", kind="gnb_rounds", served=served,
+                          users=n_users)
 
     # -- placer ---------------------------------------------------------------------------------
 
@@ -246,7 +247,7 @@ class MeasurementPipeline:
         records = [self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
                    for k, s, tm in samples]
         self.flight.measurements += len(samples)
-        self.flight.clock.range_at(t_meas)
+        self.flight.clock.range_at(t_meas, len(samples))
         # the keyframe of the records as logged, by replay's builder (mission.keyframes)
         trigger = TriggerRecords.from_records(records, self._user_index)
         t_pos = trigger.position_t_s

@@ -24,18 +24,73 @@ log = logging.getLogger(__name__)
 HOVER_SPEED_MPS = 0.5
 
 
+#: below this share of the requested speed-up a simulation fell behind it (issue 39)
+FELL_BEHIND_SHARE = 0.8
+
+
+@dataclass(frozen=True)
+class SurveyPace:
+    """How fast the survey really ran against the wall clock (issue 39: a simulation that cannot keep
+    its speed-up must say so, and by how much).
+
+    requested_speedup: the controller's time_scale (mission seconds per wall second asked for);
+    survey_s / survey_wall_s: the survey's mission seconds (the vehicle's clock, as the controller
+    reads it) and wall seconds. achieved_speedup = survey_s / survey_wall_s: it falls below the
+    requested one when the simulation runs slow (a starved built-in vehicle drops the time it cannot
+    work off, its `behind_s`; a PX4 SITL runs below its speed factor).
+    """
+
+    requested_speedup: float
+    survey_s: float
+    survey_wall_s: float
+
+    @property
+    def achieved_speedup(self) -> float:
+        """Mission seconds per wall second over the survey."""
+        return self.survey_s / self.survey_wall_s
+
+    @property
+    def fell_behind(self) -> bool:
+        """The survey ran materially slower than asked (below FELL_BEHIND_SHARE of it)."""
+        return self.achieved_speedup < FELL_BEHIND_SHARE * self.requested_speedup
+
+    def message(self) -> str:
+        """One line: "asked ×20, ran ×6.3: ..." (by how much, and what it means)."""
+        return (f"asked ×{self.requested_speedup:g}, ran ×{self.achieved_speedup:.1f}: the simulation fell "
+                f"behind its speed-up ({self.survey_s:.0f} mission seconds of survey took {self.survey_wall_s:.1f} "
+                f"wall seconds, {100.0 * self.achieved_speedup / self.requested_speedup:.0f} % of the pace asked); "
+                f"the machine is too busy for it, try a smaller --speedup")
+
+    def to_dict(self) -> dict:
+        """The mission log's `fell_behind` event fields and the `--json` document's `speedup` entry."""
+        return {"requested_speedup": self.requested_speedup, "achieved_speedup": round(self.achieved_speedup, 2),
+                "survey_wall_s": round(self.survey_wall_s, 2), "fell_behind": self.fell_behind}
+
+
 @dataclass
 class SurveyClock:
     """How the survey spent its time, in mission seconds: t0_s, t1_s its start and end; hover_s the
     time slower than HOVER_SPEED_MPS; largest_gap_s the longest time without a range (from the
-    start, between rounds, to the end)."""
+    start, between rounds, to the end); rounds / ranges: gNB rounds placed (one keyframe each) and
+    the ranges in them during the survey; wall0_s, wall1_s: the wall instants (monotonic) of its
+    start and end (:meth:`pace`).
+    Pure: the caller passes the instants.
+    """
 
     t0_s: float | None = None
     t1_s: float | None = None
     hover_s: float = 0.0
     largest_gap_s: float = 0.0
+    rounds: int = 0
+    ranges: int = 0
+    wall0_s: float | None = None
+    wall1_s: float | None = None
     _last_fix_s: float | None = None
     _last_range_s: float | None = None
+
+    def start(self, t_s: float, wall_s: float | None = None) -> None:
+        """The survey starts at mission time t_s (wall instant wall_s)."""
+        self.t0_s, self.wall0_s = t_s, wall_s
 
     def fix(self, t_s: float, speed_mps: float | None) -> None:
         """A fix during the survey: Δt since the last one counts as hover when slower than the threshold."""
@@ -45,25 +100,46 @@ class SurveyClock:
             self.hover_s += max(0.0, t_s - self._last_fix_s)
         self._last_fix_s = t_s
 
-    def range_at(self, t_s: float) -> None:
-        """A round of ranges measured at t_s."""
+    def range_at(self, t_s: float, ranges: int = 1) -> None:
+        """A round of `ranges` ranges measured at t_s."""
         if self.t0_s is None or self.t1_s is not None:
             return
+        self.rounds += 1
+        self.ranges += ranges
+        self._gap_to(t_s)
+
+    def _gap_to(self, t_s: float) -> None:
         prev = self._last_range_s if self._last_range_s is not None else self.t0_s
         self.largest_gap_s = max(self.largest_gap_s, t_s - prev)
         self._last_range_s = max(t_s, prev)
 
-    def end(self, t_s: float) -> None:
+    def end(self, t_s: float, wall_s: float | None = None) -> None:
         if self.t0_s is None or self.t1_s is not None:
             return
-        self.range_at(t_s)
-        self.t1_s = t_s
+        self._gap_to(t_s)
+        self.t1_s, self.wall1_s = t_s, wall_s
 
     @property
     def survey_s(self) -> float:
         if self.t0_s is None:
             return 0.0
         return (self.t1_s if self.t1_s is not None else self._last_fix_s or self.t0_s) - self.t0_s
+
+    def rounds_per_min(self) -> float | None:
+        """gNB rounds placed per mission minute of the survey (None: no survey time)."""
+        return 60.0 * self.rounds / self.survey_s if self.survey_s > 0 else None
+
+    def pace(self, requested_speedup: float) -> SurveyPace | None:
+        """The survey's :class:`SurveyPace` once it ended with wall instants (None before, or
+        when it lasted no wall time)."""
+        if self.t1_s is None or self.wall0_s is None or self.wall1_s is None or self.wall1_s <= self.wall0_s:
+            return None
+        return SurveyPace(requested_speedup, self.survey_s, self.wall1_s - self.wall0_s)
+
+
+def spacing_m(flown_m: float, count: int) -> float | None:
+    """Metres flown per event (gNB round, or range of one user) over the survey; None when none."""
+    return flown_m / count if count > 0 else None
 
 
 @dataclass

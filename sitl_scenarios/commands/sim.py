@@ -104,6 +104,9 @@ def run(args: argparse.Namespace) -> int:
             runner.exit_if_stuck(EXIT_INTERRUPTED)
             return EXIT_INTERRUPTED
     print_result(result, args.json)
+    if result.pace is not None and result.pace.fell_behind:
+        # said again at the very end, where it is read: the figures are a slower flight's
+        log.warning("%s", result.pace.message())
     log_failed = held["sim"].controller.log_writer.failed
     if log_failed is not None:
         log.error("no report: %s", log_failed)
