@@ -26,6 +26,7 @@ import numpy as np
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from estimator.ranging import toa_s_from_raw
+from mission.telemetry import VehicleStatus
 from uavloc.errors import MissionLogError, UavlocError
 
 log = logging.getLogger(__name__)
@@ -252,8 +253,10 @@ class MissionLog:
     rtt_*: one entry per `rtt` record, in file order: rtt_t_s (M,), rtt_user (M,) user indices,
     rtt_uav_lla (M, 3) lat_deg/lon_deg/alt_m, rtt_toa_s (M,), rtt_raw: list of the raw-field dicts.
     tel_t_s (T,), tel_lla (T, 3): telemetry; tel_vel_ned_mps (T, 3): the autopilot's velocity
-    (north, east, down) [m/s], NaN rows where a record has none. truth_lla: (K, 3) or None (NaN rows
-    for users absent). t_start_s: the header's time; t_last_s: the last record's time [s].
+    (north, east, down) [m/s], NaN rows where a record has none; tel_status: the vehicle's health
+    each telemetry record carries (all fields None in a log written before them). truth_lla: (K, 3)
+    or None (NaN rows for users absent). t_start_s: the header's time; t_last_s: the last record's
+    time [s].
     """
 
     path: Path
@@ -267,6 +270,7 @@ class MissionLog:
     tel_lla: np.ndarray
     truth_lla: np.ndarray | None
     tel_vel_ned_mps: np.ndarray | None = None
+    tel_status: list[VehicleStatus] = field(default_factory=list)
     estimates: list[dict] = field(default_factory=list)
     waypoints: list[dict] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
@@ -499,7 +503,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
     header: LogHeader | None = None
     user_ix: dict[str, int] = {}
     rtt_t, rtt_user, rtt_lla, rtt_toa, rtt_raw = [], [], [], [], []
-    tel_t, tel_lla, tel_vel = [], [], []
+    tel_t, tel_lla, tel_vel, tel_status = [], [], [], []
     truth: np.ndarray | None = None
     estimates, waypoints, events = [], [], []
     torn: int | None = None
@@ -556,6 +560,10 @@ def read_mission_log(path: str | Path) -> MissionLog:
                         tel_t.append(t)
                         tel_lla.append(_lla(obj, "telemetry"))
                         tel_vel.append(_velocity(obj))
+                        try:
+                            tel_status.append(VehicleStatus.from_record(obj))
+                        except UavlocError as exc:
+                            raise _LineError(str(exc)) from None
                     elif rtype == "truth":
                         truth = _parse_truth(obj, user_ix) if truth is None else truth
                     elif rtype == "estimate":
@@ -586,6 +594,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
         tel_lla=np.asarray(tel_lla, float).reshape(-1, 3),
         truth_lla=truth,
         tel_vel_ned_mps=np.asarray(tel_vel, float).reshape(-1, 3),
+        tel_status=tel_status,
         estimates=estimates,
         waypoints=waypoints,
         events=events,

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -240,3 +242,78 @@ def odometer_m(track_enu_m: np.ndarray, dead_band_m: float) -> np.ndarray:
     for i, p in enumerate(track):
         out[i] = odo.finish(p) if i == len(track) - 1 else odo.update(p)
     return out
+
+
+#: MAVLink GPS_FIX_TYPE (= MAVSDK's telemetry.FixType values 0..6) → what a ground station shows
+GPS_FIX_NAMES = {0: "no GPS", 1: "no fix", 2: "2D fix", 3: "3D fix", 4: "DGPS", 5: "RTK float", 6: "RTK fixed",
+                 7: "static", 8: "PPP"}
+
+
+@dataclass(frozen=True)
+class VehicleStatus:
+    """The vehicle's health as a `telemetry` record carries it beside the position (docs/design.md
+    §10), every field optional (None: the autopilot sent nothing yet, or a log written before
+    these fields). The live view's instrument strip shows them.
+
+    rel_alt_m: altitude above home [m] (the autopilot's relative altitude); heading_deg: [0, 360)
+    from north; battery_pct: 0..100; battery_voltage_v: [V]; flight_mode: as the autopilot names
+    it (MAVSDK's names, ArduCopter's custom mode names); armed; gps_fix_type: MAVLink GPS_FIX_TYPE
+    (0..8, GPS_FIX_NAMES); gps_satellites: satellites visible.
+    """
+
+    rel_alt_m: float | None = None
+    heading_deg: float | None = None
+    battery_pct: float | None = None
+    battery_voltage_v: float | None = None
+    flight_mode: str | None = None
+    armed: bool | None = None
+    gps_fix_type: int | None = None
+    gps_satellites: int | None = None
+
+    #: record field → (lowest, highest) for the numbers
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "rel_alt_m": (-1000.0, 100_000.0), "heading_deg": (0.0, 360.0), "battery_pct": (0.0, 100.0),
+        "battery_voltage_v": (0.0, 1000.0), "gps_fix_type": (0, 8), "gps_satellites": (0, 255)}
+    INTEGERS: ClassVar[tuple[str, ...]] = ("gps_fix_type", "gps_satellites")
+
+    def record_fields(self) -> dict:
+        """The fields a `telemetry` record gets (those known), rounded for the log."""
+        out: dict = {}
+        for name in ("rel_alt_m", "heading_deg", "battery_pct", "battery_voltage_v"):
+            v = getattr(self, name)
+            if v is not None and math.isfinite(v):
+                out[name] = round(float(v), 3)
+        if self.flight_mode:
+            out["flight_mode"] = str(self.flight_mode)
+        if self.armed is not None:
+            out["armed"] = bool(self.armed)
+        for name in self.INTEGERS:
+            v = getattr(self, name)
+            if v is not None:
+                out[name] = int(v)
+        return out
+
+    @classmethod
+    def from_record(cls, rec: dict) -> VehicleStatus:
+        """The status a `telemetry` record holds (absent fields None); a field of the wrong type or
+        out of range is a :class:`MissionError` naming it."""
+        vals: dict = {}
+        for name, (lo, hi) in cls.RANGES.items():
+            if name not in rec:
+                continue
+            v = rec[name]
+            integer = name in cls.INTEGERS
+            ok_type = isinstance(v, int) if integer else isinstance(v, int | float)
+            if isinstance(v, bool) or not ok_type or not (math.isfinite(v) and lo <= v <= hi):
+                kind = "an integer" if integer else "a finite number"
+                raise MissionError(f"telemetry field {name!r} must be {kind} in [{lo:g}, {hi:g}], got {v!r}")
+            vals[name] = int(v) if integer else float(v)
+        if "flight_mode" in rec:
+            if not isinstance(rec["flight_mode"], str) or len(rec["flight_mode"]) > 64:
+                raise MissionError(f"telemetry field 'flight_mode' must be a string, got {rec['flight_mode']!r}")
+            vals["flight_mode"] = rec["flight_mode"]
+        if "armed" in rec:
+            if not isinstance(rec["armed"], bool):
+                raise MissionError(f"telemetry field 'armed' must be true or false, got {rec['armed']!r}")
+            vals["armed"] = rec["armed"]
+        return cls(**vals)

@@ -25,6 +25,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from mission.telemetry import VehicleStatus
 from mission.vehicle_types import GeoFix, VehicleCommandError, VehicleTimeoutError
 from uavloc.errors import VehicleError
 
@@ -50,6 +51,12 @@ class VehicleState:
     position: PositionFix | None = None
     home: GeoFix | None = None
     battery_pct: float | None = None
+    battery_voltage_v: float | None = None
+    #: [0, 360) from north (GLOBAL_POSITION_INT's hdg)
+    heading_deg: float | None = None
+    #: MAVLink GPS_FIX_TYPE of GPS_RAW_INT (0..8) and its satellites visible
+    gps_fix_type: int | None = None
+    gps_satellites: int | None = None
     armed: bool | None = None
     flight_mode: str = "UNKNOWN"
     landed_state: str = "UNKNOWN"
@@ -62,6 +69,14 @@ class VehicleState:
     texts: list[tuple[float, str, str]] = field(default_factory=list)
     #: which autopilot the HEARTBEAT names: "px4", "ardupilot" or "other"
     autopilot: str = "unknown"
+
+    def status(self) -> VehicleStatus:
+        """What a `telemetry` record carries beside the position (mission.telemetry.VehicleStatus)."""
+        pos = self.position
+        return VehicleStatus(rel_alt_m=None if pos is None or not math.isfinite(pos.rel_alt_m) else pos.rel_alt_m,
+                             heading_deg=self.heading_deg, battery_pct=self.battery_pct,
+                             battery_voltage_v=self.battery_voltage_v, flight_mode=self.flight_mode,
+                             armed=self.armed, gps_fix_type=self.gps_fix_type, gps_satellites=self.gps_satellites)
 
     def age_s(self, now_mono_s: float | None = None) -> float:
         """Wall seconds since anything was last received (inf before the first message)."""
@@ -328,6 +343,17 @@ class MavsdkVehicle:
         def on_battery(b) -> None:
             if math.isfinite(b.remaining_percent):
                 st.battery_pct = float(b.remaining_percent)
+            # MAVSDK reports NaN (or 0) when the autopilot sent no voltage
+            if math.isfinite(b.voltage_v) and b.voltage_v > 0:
+                st.battery_voltage_v = float(b.voltage_v)
+
+        def on_heading(h) -> None:
+            if math.isfinite(h.heading_deg):
+                st.heading_deg = float(h.heading_deg) % 360.0
+
+        def on_gps(g) -> None:
+            st.gps_fix_type = int(getattr(g.fix_type, "value", g.fix_type))
+            st.gps_satellites = int(g.num_satellites)
 
         def on_health(h) -> None:
             st.global_position_ok = bool(h.is_global_position_ok)
@@ -377,6 +403,9 @@ class MavsdkVehicle:
                 tg.create_task(follow(direct.subscribe_message("SYSTEM_TIME"), on_system_time))
             tg.create_task(follow(tel.subscribe_battery(), on_battery))
             tg.create_task(follow(tel.subscribe_velocity_ned(), on_vel))
+            tg.create_task(follow(tel.subscribe_heading(), on_heading))
+            if ardupilot is None:  # ArduPilot: GPS_RAW_INT comes from ArduPilotLink.watch
+                tg.create_task(follow(tel.subscribe_gps_info(), on_gps))
             if ardupilot is None:
                 tg.create_task(follow(tel.subscribe_home(), on_home))
                 tg.create_task(follow(tel.subscribe_health(), on_health))

@@ -195,6 +195,9 @@ class ArduPilotLink:
             self.ekf_flags = int(f["flags"])
         elif kind == "GPS_RAW_INT":
             self.fix_type = int(f["fix_type"])
+            st.gps_fix_type = self.fix_type
+            sats = int(f["satellites_visible"])
+            st.gps_satellites = None if sats == 255 else sats  # 255: unknown
         elif kind == "EXTENDED_SYS_STATE":
             self.has_landed_state = True
             st.landed_state = LANDED_NAME.get(int(f["landed_state"]), "UNKNOWN")

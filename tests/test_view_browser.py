@@ -33,8 +33,9 @@ from tests.procs import stop_process
 pytestmark = pytest.mark.browser
 
 REPO = Path(__file__).resolve().parents[1]
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+# WebGL (the 3-D pane) on SwiftShader, Chromium's software renderer, headless without a GPU
+CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-quic",
+                 "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 #: guards against a hung subprocess or page, not timing assertions
 HANG_GUARD_S = 300.0
 
@@ -120,6 +121,9 @@ JS_SNAPSHOT = """() => ({
   r95_text: Object.fromEntries([...document.querySelectorAll('#users tbody tr')].map(
      tr => [tr.dataset.user, tr.querySelector('.r95').textContent])),
   vehicle: (document.getElementById('vehicle') || {getAttribute: () => null}).getAttribute('transform'),
+  health: Object.fromEntries([...document.querySelectorAll('#health .v')].map(
+     v => [v.id, {text: v.textContent, value: v.dataset.value, warn: v.parentElement.classList.contains('warn')}])),
+  target: document.getElementById('m-target').textContent,
 })"""
 
 
@@ -158,7 +162,12 @@ def live_mission(browser, tmp_path_factory):
         proc.stop()
     return {"snapshots": snapshots, "final": final, "errors": errors, "doc": json.loads(stdout),
             "log": out / "mission.jsonl", "stderr": "".join(proc.lines), "rc": proc.p.returncode,
-            "mid_shot": mid_shot, "end_shot": end_shot}
+            "mid_shot": mid_shot, "end_shot": end_shot, "target_m": _target_radius(out / "mission.jsonl")}
+
+
+def _target_radius(log_path: Path) -> float:
+    header = json.loads(log_path.read_text().splitlines()[0])
+    return float(header["config"]["controller"]["flight"]["target_radius_m"])
 
 
 def test_live_page_loads_and_runs_without_console_errors(live_mission):
@@ -194,6 +203,41 @@ def test_ellipse_radius_shown_at_the_end_is_the_json_results_bound(live_mission)
         assert final["r95_text"][u["id"]] == f"{u['error_bound_95_m']:.2f}"
         # and the centre is the JSON result's position
         assert [shown[0]["cx"], shown[0]["cy"]] == pytest.approx(u["enu_m"][:2], abs=0.006)
+
+
+def test_the_strip_shows_the_last_telemetry_records_health(live_mission):
+    """Each field of the instrument strip at the end is the last telemetry record's value, as
+    written to the mission log (ages and the rate: from the records, at the state's time)."""
+    records = [json.loads(line) for line in live_mission["log"].read_text().splitlines()]
+    last = [r for r in records if r["type"] == "telemetry"][-1]
+    h = live_mission["final"]["health"]
+    num = {k: float(v["value"]) for k, v in h.items() if v["value"] not in ("", "true", "false") and k not in
+           ("h-mode", "h-gps")}
+    vn, ve, vd = last["vel_ned_mps"]
+    assert num["h-rel-alt"] == pytest.approx(last["rel_alt_m"], abs=1e-3)
+    assert num["h-amsl"] == pytest.approx(last["alt_m"], abs=1e-3)
+    assert num["h-gs"] == pytest.approx(float(np.hypot(vn, ve)), abs=1e-3)
+    assert num["h-climb"] == pytest.approx(-vd, abs=1e-3)
+    assert num["h-hdg"] == pytest.approx(last["heading_deg"], abs=1e-3)
+    assert num["h-bat"] == pytest.approx(last["battery_pct"], abs=1e-3)
+    assert h["h-bat"]["text"] == f"{last['battery_pct']:.0f} % · {last['battery_voltage_v']:.2f} V"
+    assert h["h-mode"]["text"] == last["flight_mode"] and last["flight_mode"]
+    assert h["h-armed"]["text"] == ("armed" if last["armed"] else "disarmed")
+    assert h["h-gps"]["text"] == f"3D fix · {last['gps_satellites']} sats" and last["gps_fix_type"] == 3
+    assert h["h-rel-alt"]["text"] == f"{last['rel_alt_m']:.1f} m"
+    t_end = max(r["t"] for r in records)
+    rtt = [r["t"] for r in records if r["type"] == "rtt"]
+    assert num["h-veh-age"] == pytest.approx(t_end - last["t"], abs=0.01)
+    assert num["h-gnb-age"] == pytest.approx(t_end - max(rtt), abs=0.01)
+    assert num["h-rate"] == sum(1 for t in rtt if t > t_end - 60.0)
+    # mid-mission the vehicle was live: a strip seen in SURVEY had a fresh vehicle record
+    survey = [s for s in live_mission["snapshots"]
+              if s["state"].startswith("SURVEY") and s["health"]["h-veh-age"]["value"]]
+    assert survey and all(not s["health"]["h-veh-age"]["warn"] for s in survey)
+    target = live_mission["target_m"]
+    users = live_mission["doc"]["users"]
+    within = sum(1 for u in users if u["error_bound_95_m"] <= target and not u.get("ambiguous"))
+    assert live_mission["final"]["target"].startswith(f"{target:g} m: {within}/{len(users)} users within")
 
 
 def test_the_missions_log_header_carries_the_scenarios_area(live_mission):
@@ -310,10 +354,22 @@ def test_a_page_opened_before_the_mission_starts_draws_it_when_records_come(brow
     assert sorted(e["id"] for e in snap["ellipses"]) == ["ue1", "ue2"]
 
 
-# a 1x1 PNG (a map tile)
-_PNG = bytes.fromhex("89504e470d0a1a0a0000000d4948445200000001000000010806000000"
-                     "1f15c4890000000d49444154789c6360f8cfc0f01f0005000201e2f2"
-                     "0d2d0000000049454e44ae426082")
+def _solid_png(rgb: tuple[int, int, int], size: int = 8) -> bytes:
+    """A size x size PNG of one colour (a map tile)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    rows = b"".join(b"\x00" + bytes(rgb) * size for _ in range(size))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", size, size, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+
+
+#: the tiles' colour: magenta, found nowhere else on the page
+TILE_RGB = (255, 0, 255)
+_PNG = _solid_png(TILE_RGB)
 
 
 @contextlib.contextmanager
@@ -367,12 +423,21 @@ def test_the_page_loads_nothing_but_its_own_files_and_the_tiles_it_was_given(bro
                 page.wait_for_function("() => document.querySelectorAll('#tiles image').length > 0")
                 page.wait_for_timeout(300)
             n_images = page.evaluate("() => document.querySelectorAll('#tiles image').length")
+            shot = page.locator("#map").screenshot()
         finally:
             page.close()
     assert errors == []
     own = f"http://127.0.0.1:{server.port}/"
     foreign = [u for u in requests if not u.startswith(own)]
+    # the map's pixels: with tiles, mostly the tiles' colour (under the grid and the drawing)
+    from io import BytesIO
+
+    from PIL import Image
+
+    px = np.asarray(Image.open(BytesIO(shot)).convert("RGB"), float)
+    tile_share = float(np.mean(np.linalg.norm(px - np.array(TILE_RGB), axis=2) < 60))
     if with_tiles:
+        assert tile_share > 0.5, tile_share
         assert n_images > 0 and asked
         assert foreign and all(u.startswith(tiles_url.split("/tiles/")[0] + "/tiles/") for u in foreign)
         # the tiles asked for cover the mission area: zoom level and indices around the origin
@@ -381,6 +446,7 @@ def test_the_page_loads_nothing_but_its_own_files_and_the_tiles_it_was_given(bro
         assert abs(x - (lon + 180) / 360 * 2**z) < 4
         assert abs(y - (1 - np.log(np.tan(lat) + 1 / np.cos(lat)) / np.pi) / 2 * 2**z) < 4
     else:
+        assert tile_share == 0.0
         assert n_images == 0 and foreign == [] and asked == []
 
 
@@ -416,3 +482,58 @@ def test_an_ellipse_is_drawn_along_its_major_axis_north_up(browser, corr, inside
         finally:
             page.close()
     assert hits == [True, False, True]
+
+
+def _color_distance(rgba, hex_color: str) -> float:
+    want = [int(hex_color[i:i + 2], 16) for i in (1, 3, 5)]
+    return float(np.linalg.norm(np.subtract(rgba[:3], want)))
+
+
+@pytest.mark.parametrize("view", ["top", "orbit", "side"])
+def test_the_3d_pane_draws_the_vehicle_and_the_users_where_they_project(browser, view):
+    """WebGL (SwiftShader): the pixels where the vehicle and each user's marker project are theirs
+    (the vehicle dark, a user its colour), not the background; the buildings are extruded."""
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import ORIGIN, USERS, lla
+
+    feed = LiveFeed()
+    feed.state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS,
+                      "altitude_band_m": {"min_m": 10.0, "max_m": 60.0}})
+    for i in range(20):
+        feed.state.apply({"type": "telemetry", "t": 1.0 + i, **lla(2.0 * i, 1.0 * i, 30.0),
+                          "vel_ned_mps": [1.0, 2.0, 0.0], "heading_deg": 63.0})
+    users = {"ue1": (-30.0, 40.0), "ue2": (50.0, -20.0)}
+    feed.state.apply({"type": "estimate", "t": 21, "users": [
+        {"id": uid, **lla(e, n), "cov_en_m2": [[9.0, 0.0], [0.0, 4.0]]} for uid, (e, n) in users.items()]})
+    with _server_in_thread(feed) as server:
+        page = browser.new_page()
+        errors = _watch(page)
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => window.uavloc3d && (window.uavloc3d.ready || window.uavloc3d.error)")
+            assert page.evaluate("() => window.uavloc3d.error || null") is None
+            page.wait_for_function("() => document.querySelectorAll('#ellipses ellipse').length === 2")
+            page.evaluate("(v) => window.uavloc3d.setView(v)", view)
+            probe = page.evaluate("""(users) => {
+                const api = window.uavloc3d, f = window.uavlocState.frame;
+                const s = Math.max(1.5, 100 / 120);
+                const v = f.vehicle.enu_m;
+                const pts = {vehicle: api.project(v[0], v[1], v[2])};
+                for (const u of f.users) pts[u.id] = api.project(u.enu_m[0], u.enu_m[1], u.enu_m[2] + 0.9 * s);
+                const names = Object.keys(pts);
+                const px = api.pixels(names.map((k) => pts[k]));
+                const box = document.getElementById('view3d').getBoundingClientRect();
+                return {pts, px: Object.fromEntries(names.map((k, i) => [k, px[i]])), bg: api.background,
+                        w: box.width, h: box.height, corner: api.pixels([[2, box.height - 2]])[0]};
+            }""", list(users))
+        finally:
+            page.close()
+    assert errors == []
+    for name, (x, y, _z) in probe["pts"].items():
+        assert 0 < x < probe["w"] and 0 < y < probe["h"], (name, x, y)
+    bg = probe["bg"]
+    for name, rgba in probe["px"].items():
+        assert float(np.abs(np.subtract(rgba[:3], bg[:3])).max()) > 40, (name, rgba)
+    assert max(probe["px"]["vehicle"][:3]) < 110, probe["px"]["vehicle"]  # the dark vehicle
+    assert _color_distance(probe["px"]["ue1"], "#d35400") < 110, probe["px"]["ue1"]
+    assert _color_distance(probe["px"]["ue2"], "#16a085") < 110, probe["px"]["ue2"]

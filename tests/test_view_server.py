@@ -97,6 +97,36 @@ def test_loopback_needs_no_token_but_refuses_other_host_names():
     asyncio.run(main())
 
 
+def test_three_js_is_served_from_the_package_and_the_import_map_is_allowed_by_its_hash():
+    import base64
+    import hashlib
+    import re
+    from importlib import resources
+
+    async def main():
+        async with ViewServer(LiveFeed(), "127.0.0.1", 0) as server:
+            base = f"http://127.0.0.1:{server.port}"
+            async with aiohttp.ClientSession() as s:
+                async with s.get(base + "/") as r:
+                    html, csp = await r.text(), r.headers["Content-Security-Policy"]
+                for name in ("three.module.min.js", "OrbitControls.js"):
+                    async with s.get(base + "/static/vendor/" + name) as r:
+                        assert r.status == 200 and r.content_type == "text/javascript"
+                        body = await r.read()
+                    assert body == resources.files("mission.view").joinpath(f"static/vendor/{name}").read_bytes()
+                assert await _status(s, base + "/static/vendor/LICENSE") == 404
+                assert await _status(s, base + "/static/vendor/..%2Fview.js") == 404
+                assert await _status(s, base + "/static/view3d.js") == 200
+        return html, csp
+
+    html, csp = asyncio.run(main())
+    (imap,) = re.findall(r'<script type="importmap">(.*?)</script>', html, re.S)
+    digest = base64.b64encode(hashlib.sha256(imap.encode()).digest()).decode()
+    script_src = re.search(r"script-src ([^;]*)", csp).group(1).split()
+    assert script_src == ["'self'", f"'sha256-{digest}'"]  # no 'unsafe-inline', no other origin
+    assert "three.module.min.js" in imap and "OrbitControls.js" in imap
+
+
 def test_live_frames_follow_the_log_writer_and_slow_clients_skip_frames(tmp_path):
     """Two clients read and acknowledge every frame and rebuild the track incrementally (they
     share the frames built for a cursor); one reads but never acknowledges (a stalled page); one

@@ -15,7 +15,8 @@ from estimator.types import CHI2_2DOF_95, Estimate
 from mission.config import FlightConfig
 from mission.control.config import ControllerConfig
 from mission.log import MissionLogWriter, area_fields, read_mission_log
-from mission.view.state import Cursor, Timeline, ViewState, ellipse_95
+from mission.telemetry import VehicleStatus
+from mission.view.state import GNB_STALE_S, Cursor, Timeline, ViewState, ellipse_95
 from uavloc.errors import MissionLogError
 
 ORIGIN = Origin(43.6143, 7.0716, 150.0)
@@ -46,7 +47,11 @@ def write_mission(path, listener=None, n_tel: int = 50, controller: dict | None 
         w.write("truth", 0.1, users=[{"id": "ue1", **lla(40, 30)}, {"id": "ue2", **lla(-20, 60)}])
         w.write("event", 0.2, message="armed", kind="arm", state="TAKEOFF")
         for i in range(n_tel):
-            w.write("telemetry", 1.0 + 0.2 * i, **lla(0.5 * i, 0.1 * i, 30.0), vel_ned_mps=[0.5, 2.5, 0.0])
+            w.write("telemetry", 1.0 + 0.2 * i, **lla(0.5 * i, 0.1 * i, 30.0), vel_ned_mps=[0.5, 2.5, -0.4],
+                    **VehicleStatus(rel_alt_m=30.0 - 0.01 * i, heading_deg=(350.0 + 2 * i) % 360,
+                                    battery_pct=95.0 - 0.5 * i, battery_voltage_v=16.4 - 0.01 * i,
+                                    flight_mode="HOLD" if i < 5 else "OFFBOARD", armed=True, gps_fix_type=3,
+                                    gps_satellites=10 + i % 3).record_fields())
             if i == 5:
                 w.write("waypoint", 2.05, leg=1, **lla(60, 10, 30), enu_m=[60, 10, 30], planner="casadi",
                         status="ok")
@@ -314,3 +319,103 @@ def test_simulated_buildings_reach_the_header_in_the_home_frame(tmp_path):
         back = world.lla_to_enu(ring[:, 0], ring[:, 1], world.alt_m)[:, :2]
         np.testing.assert_allclose(back, cfg.footprint_enu_m, atol=0.01)
         assert b["height_m"] == cfg.height_m
+
+
+# -- the instrument strip ---------------------------------------------------------------------------
+
+
+def test_health_strip_is_the_newest_telemetry_records_numbers_and_the_log_reads_them(tmp_path):
+    recs = write_mission(tmp_path / "m.jsonl")
+    tel = [r for r in recs if r["type"] == "telemetry"]
+    st = ViewState()
+    for rec in recs:
+        st.apply(rec)
+    h = st.frame()[0]["health"]
+    last = tel[-1]
+    assert h["t_s"] == last["t"] and h["rel_alt_m"] == last["rel_alt_m"]
+    assert h["alt_amsl_m"] == pytest.approx(last["alt_m"], abs=1e-3)  # the frame's numbers: 3 decimals
+    assert h["groundspeed_mps"] == pytest.approx(math.hypot(0.5, 2.5), abs=1e-3)
+    assert h["climb_mps"] == pytest.approx(0.4)
+    for k in ("heading_deg", "battery_pct", "battery_voltage_v", "flight_mode", "armed", "gps_fix_type",
+              "gps_satellites"):
+        assert h[k] == last[k], k
+    assert h["flight_mode"] == "OFFBOARD" and h["gps_fix"] == "3D fix"
+    # ages at the state's time (the end event at 13 s): the vehicle's 2.2 s, stale after the
+    # controller's link timeout (3 s); rtt records up to 10.75 s
+    assert h["vehicle_age_s"] == pytest.approx(13.0 - last["t"], abs=0.01) and not h["vehicle_stale"]
+    rtt = [r for r in recs if r["type"] == "rtt"]
+    assert h["gnb_age_s"] == pytest.approx(13.0 - max(r["t"] for r in rtt), abs=0.01)
+    assert h["gnb_stale"] is (h["gnb_age_s"] > GNB_STALE_S)
+    assert h["measurements_per_min"] == sum(1 for r in rtt if r["t"] > 13.0 - 60.0) == len(rtt)
+    # the reader keeps the same numbers, typed
+    log = read_mission_log(tmp_path / "m.jsonl")
+    assert len(log.tel_status) == len(tel)
+    assert log.tel_status[-1] == VehicleStatus.from_record(last)
+    assert log.tel_status[-1].flight_mode == "OFFBOARD" and log.tel_status[-1].gps_satellites == last["gps_satellites"]
+
+
+def test_health_strip_ages_turn_stale_and_the_rate_counts_the_last_minute():
+    st = ViewState()
+    st.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS[:1]})
+    st.apply({"type": "telemetry", "t": 1.0, **lla(0, 0, 10)})
+    for k in range(90):  # one range a second from 2 s to 91 s
+        st.apply({"type": "rtt", "t": 2.0 + k, "user": "ue1", "uav": lla(0, 0, 10), "toa_s": 2e-7})
+    h = st.frame()[0]["health"]
+    assert h["measurements_per_min"] == 60  # 32..91 s
+    assert h["vehicle_stale"] and h["vehicle_age_s"] == pytest.approx(90.0)
+    assert not h["gnb_stale"] and h["gnb_age_s"] == 0.0
+    st.apply({"type": "event", "t": 91.0 + GNB_STALE_S + 0.5, "message": "x"})
+    h = st.frame()[0]["health"]
+    assert h["gnb_stale"] and h["measurements_per_min"] == 55  # 37..91 s: the last minute of the state's time
+    # an old log's telemetry (no status fields): altitude above home from the fix, the rest unknown
+    assert h["rel_alt_m"] == pytest.approx(10.0, abs=0.01) and h["groundspeed_mps"] is None
+    assert h["battery_pct"] is None and h["flight_mode"] is None and h["gps_fix"] is None
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("battery_pct", 120.0, "battery_pct"), ("gps_satellites", 3.5, "gps_satellites.*integer"),
+    ("armed", 1, "armed.*true or false"), ("heading_deg", "N", "heading_deg"), ("flight_mode", 3, "flight_mode")])
+def test_a_bad_status_field_names_the_line_and_the_field_and_the_view_skips_it(tmp_path, field, value, match):
+    path = tmp_path / "m.jsonl"
+    with MissionLogWriter(path) as w:
+        w.write_header(ORIGIN, USERS, {"mu": 1})
+        w.write("telemetry", 1.0, **lla(0, 0, 10), **{field: value})
+    with pytest.raises(MissionLogError, match=f"m.jsonl:2: .*{match}"):
+        read_mission_log(path)
+    st = ViewState()
+    for line in path.read_text().splitlines():
+        st.apply(json.loads(line))
+    assert st.vehicle is not None and st.health is None
+
+
+def test_the_recorded_logs_still_read_and_show_a_strip():
+    from pathlib import Path
+
+    for path in [Path(__file__).resolve().parents[2] / "shared/data/px4-v1.18-sih/mission.jsonl"]:
+        if not path.exists():
+            pytest.skip(f"{path} is not here")
+        log = read_mission_log(path)
+        assert len(log.tel_status) == len(log.tel_t_s) > 0
+        st = ViewState()
+        for line in path.read_text().splitlines():
+            st.apply(json.loads(line))
+        h = st.frame()[0]["health"]
+        assert h["alt_amsl_m"] == pytest.approx(log.tel_lla[-1, 2])
+
+
+def test_the_target_line_judges_the_printed_bound_and_keeps_what_the_stop_judged(tmp_path):
+    recs = write_mission(tmp_path / "m.jsonl")
+    st = ViewState()
+    for rec in recs:
+        st.apply(rec)
+        if rec["type"] == "event" and rec.get("kind") == "rtl":
+            st.apply({"type": "event", "t": rec["t"], "message": "survey done: target reached", "kind": "stop"})
+    f = st.frame()[0]
+    target = f["target"]
+    assert target["radius_m"] == 2.5 and target["users"] == 2
+    # the same r95 the users table prints, judged r95 <= radius
+    assert target["within"] == [u["id"] for u in f["users"] if u["located"] and u["r95_m"] <= 2.5]
+    # the stop judged the estimate the survey ended on, not the final one shown after landing
+    assert target["stop"]["r95_m"] == {"ue1": pytest.approx(ellipse_95([[2.0, 0.5], [0.5, 1.0]])["a_m"]),
+                                       "ue2": pytest.approx(3.0 * math.sqrt(CHI2_2DOF_95))}
+    assert f["users"][0]["r95_m"] == pytest.approx(ellipse_95([[0.5, 0.1], [0.1, 0.4]])["a_m"])

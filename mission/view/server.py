@@ -29,10 +29,13 @@ carries `?token=...`; the page sets it as a cookie; any request without a valid 
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
+import hashlib
 import hmac
 import json
 import logging
+import re
 import secrets
 import threading
 import time
@@ -50,7 +53,12 @@ from uavloc.errors import MissionError
 log = logging.getLogger(__name__)
 
 TOKEN_COOKIE = "uavloc_view_token"
-STATIC_FILES = {"view.js": "text/javascript", "view.css": "text/css", "index.html": "text/html"}
+STATIC_FILES = {"view.js": "text/javascript", "view3d.js": "text/javascript", "view.css": "text/css",
+                "index.html": "text/html"}
+#: three.js, vendored from npm (static/vendor/README.md)
+VENDOR_FILES = {"three.module.min.js": "text/javascript", "OrbitControls.js": "text/javascript"}
+#: the page's import map (an inline script: allowed by its hash in the Content-Security-Policy)
+_IMPORT_MAP = re.compile(r'<script type="importmap">(.*?)</script>', re.S)
 LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1", "[::1]"}
 
 
@@ -225,6 +233,7 @@ class ViewServer:
         app = web.Application(middlewares=[self._guard])
         app.router.add_get("/", self._index)
         app.router.add_get("/static/{name}", self._static)
+        app.router.add_get("/static/vendor/{name}", self._vendor)
         app.router.add_get("/api/info", self._info)
         app.router.add_get("/api/frame", self._frame)
         app.router.add_get("/ws", self._ws)
@@ -310,18 +319,22 @@ class ViewServer:
 
     # -- handlers -------------------------------------------------------------------------------
 
-    def _csp(self) -> str:
+    def _csp(self, html: str) -> str:
         img = "'self' data:"
         if self.tiles_url:
             parts = urlsplit(self.tiles_url)
             img += f" {parts.scheme}://{parts.netloc.replace('{s}', '*')}"
-        return (f"default-src 'self'; script-src 'self'; style-src 'self'; img-src {img}; "
+        script = "'self'"
+        for m in _IMPORT_MAP.finditer(html):
+            digest = base64.b64encode(hashlib.sha256(m.group(1).encode("utf-8")).digest()).decode()
+            script += f" 'sha256-{digest}'"
+        return (f"default-src 'self'; script-src {script}; style-src 'self'; img-src {img}; "
                 "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 
     async def _index(self, request: web.Request) -> web.Response:
         html = resources.files("mission.view").joinpath("static/index.html").read_text(encoding="utf-8")
         resp = web.Response(text=html, content_type="text/html", charset="utf-8")
-        resp.headers["Content-Security-Policy"] = self._csp()
+        resp.headers["Content-Security-Policy"] = self._csp(html)
         if self.token is not None:
             resp.set_cookie(TOKEN_COOKIE, self.token, httponly=True, samesite="Strict")
         return resp
@@ -332,6 +345,15 @@ class ViewServer:
             raise web.HTTPNotFound()
         body = resources.files("mission.view").joinpath(f"static/{name}").read_bytes()
         return web.Response(body=body, content_type=STATIC_FILES[name], charset="utf-8")
+
+    async def _vendor(self, request: web.Request) -> web.Response:
+        name = request.match_info["name"]
+        if name not in VENDOR_FILES:
+            raise web.HTTPNotFound()
+        body = resources.files("mission.view").joinpath(f"static/vendor/{name}").read_bytes()
+        resp = web.Response(body=body, content_type=VENDOR_FILES[name], charset="utf-8")
+        resp.headers["Cache-Control"] = "max-age=3600"  # unchanged within a version of the package
+        return resp
 
     async def _info(self, request: web.Request) -> web.Response:
         return web.json_response({"mode": self.feed.mode, "t_end_s": self.feed.t_end_s,

@@ -8,6 +8,9 @@ the ENU frame of the header's origin (east, north, up; metres):
   users (simulation only);
 - the GPS track (telemetry) and the estimated track (the estimator's corrected keyframes);
 - the vehicle, the next waypoint and the leg to it;
+- the vehicle's health (:class:`VehicleHealth`, from the newest `telemetry` record: altitudes,
+  speeds, heading, battery, flight mode, armed, GPS), the age of the newest vehicle and gNB
+  records and the measurements of the last minute (all in mission seconds);
 - each user's estimate with its 95 % ellipse, σ, ambiguity flag and measurement count;
 - mission state, metres flown, measurements, keyframes, the events (RTL reasons, gNB lost, ...).
 
@@ -28,7 +31,8 @@ from __future__ import annotations
 import bisect
 import copy
 import math
-from dataclasses import dataclass, field
+from collections import deque
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -36,12 +40,59 @@ import pymap3d
 
 from estimator.geodesy import Origin
 from estimator.types import CHI2_2DOF_95
-from mission.telemetry import Odometer
+from mission.telemetry import GPS_FIX_NAMES, Odometer, VehicleStatus
+from uavloc.errors import MissionError
 
 _WGS84 = pymap3d.Ellipsoid.from_name("wgs84")
 
 #: metres flown without a `flown_m` field in the log: odometer dead band [m]
 FALLBACK_DEAD_BAND_M = 5.0
+#: the newest vehicle record is stale after the controller's link timeout (safety.link_timeout_s),
+#: this when the header has none [mission s]
+VEHICLE_STALE_S = 3.0
+#: the newest gNB measurement is stale after this [mission s] (the simulated and OAI gNBs range
+#: several times a second while the UE is attached)
+GNB_STALE_S = 5.0
+#: window of the measurement rate [mission s]
+RATE_WINDOW_S = 60.0
+
+
+@dataclass(frozen=True)
+class VehicleHealth:
+    """The instrument strip: the newest `telemetry` record's numbers (None where the record has
+    none: an autopilot that does not send it, or a log written before the field).
+
+    rel_alt_m: above home (the autopilot's relative altitude; the ENU up of the fix in a log
+    without it); alt_amsl_m: the fix's altitude; groundspeed_mps, climb_mps (up positive): from
+    vel_ned_mps; gps_fix: GPS_FIX_NAMES of gps_fix_type."""
+
+    t_s: float
+    alt_amsl_m: float
+    rel_alt_m: float | None
+    groundspeed_mps: float | None
+    climb_mps: float | None
+    heading_deg: float | None
+    battery_pct: float | None
+    battery_voltage_v: float | None
+    flight_mode: str | None
+    armed: bool | None
+    gps_fix_type: int | None
+    gps_fix: str | None
+    gps_satellites: int | None
+
+    @classmethod
+    def of(cls, rec: dict, up_m: float) -> VehicleHealth:
+        """From a telemetry record (VehicleStatus fields checked) and the fix's ENU up [m]."""
+        st = VehicleStatus.from_record(rec)
+        vel = rec.get("vel_ned_mps")
+        ok = isinstance(vel, list) and len(vel) == 3 and all(isinstance(v, int | float) for v in vel)
+        fix = st.gps_fix_type
+        return cls(t_s=float(rec["t"]), alt_amsl_m=float(rec["alt_m"]),
+                   rel_alt_m=st.rel_alt_m if st.rel_alt_m is not None else up_m,
+                   groundspeed_mps=math.hypot(vel[0], vel[1]) if ok else None, climb_mps=0.0 - vel[2] if ok else None,
+                   heading_deg=st.heading_deg, battery_pct=st.battery_pct, battery_voltage_v=st.battery_voltage_v,
+                   flight_mode=st.flight_mode, armed=st.armed, gps_fix_type=fix,
+                   gps_fix=None if fix is None else GPS_FIX_NAMES.get(fix, str(fix)), gps_satellites=st.gps_satellites)
 
 
 def ellipse_95(cov_en_m2) -> dict:
@@ -127,6 +178,11 @@ class ViewState:
         self.est_track = Series()  # [e, n, u] corrected keyframes
         self.events = Series(max_events)  # {"t", "message", "kind", "state"}
         self.vehicle: dict | None = None
+        self.health: VehicleHealth | None = None
+        self.last_rtt_t_s: float | None = None
+        self._rtt_times: deque[float] = deque()  # measurement times of the last RATE_WINDOW_S
+        self.vehicle_stale_s = VEHICLE_STALE_S
+        self.stop_bounds: dict | None = None  # {"t", "r95_m": {user: r95}} when the stop rule fired
         self.users: dict[str, dict] = {}
         self.user_ids: list[str] = []
         self.meas_per_user: dict[str, int] = {}
@@ -150,6 +206,7 @@ class ViewState:
         new.track, new.est_track, new.events = self.track.copy(), self.est_track.copy(), self.events.copy()
         new.users, new.meas_per_user = dict(self.users), dict(self.meas_per_user)
         new._odometer = copy.copy(self._odometer)
+        new._rtt_times = deque(self._rtt_times)
         return new
 
     # -- records --------------------------------------------------------------------------------
@@ -193,6 +250,10 @@ class ViewState:
         ctl = cfg.get("controller") if isinstance(cfg.get("controller"), dict) else {}
         # the controller's flight table (a log before it was nested held its keys at the top)
         ctl = ctl.get("flight") if isinstance(ctl.get("flight"), dict) else ctl
+        safety = cfg.get("controller", {}).get("safety") if isinstance(cfg.get("controller"), dict) else None
+        link_s = safety.get("link_timeout_s") if isinstance(safety, dict) else None
+        if isinstance(link_s, int | float) and not isinstance(link_s, bool) and 0 < link_s < 1e6:
+            self.vehicle_stale_s = float(link_s)
         self.user_ids = [str(u["id"]) for u in rec["users"]]
         self.meas_per_user = dict.fromkeys(self.user_ids, 0)
         self.static = {
@@ -223,6 +284,10 @@ class ViewState:
         vel = rec.get("vel_ned_mps")
         vel_en = [_r(vel[1]), _r(vel[0])] if isinstance(vel, list) and len(vel) >= 2 else None
         self.vehicle = {"t": _r(rec["t"], 3), "enu_m": p, "vel_en_mps": vel_en}
+        try:
+            self.health = VehicleHealth.of(rec, p[2])
+        except MissionError:
+            self.health = None  # a malformed status: the strip shows nothing rather than a wrong number
         if not self._flown_from_log and self.state == "SURVEY":
             self.flown_m = self._odometer.update(np.asarray(p))
 
@@ -231,6 +296,11 @@ class ViewState:
         if uid in self.meas_per_user:
             self.meas_per_user[uid] += 1
             self.measurements += 1
+            t = float(rec["t"])
+            self.last_rtt_t_s = t if self.last_rtt_t_s is None else max(self.last_rtt_t_s, t)
+            self._rtt_times.append(t)
+            while self._rtt_times and self._rtt_times[0] <= self.last_rtt_t_s - RATE_WINDOW_S:
+                self._rtt_times.popleft()
 
     def _on_estimate(self, rec: dict) -> None:
         for u in rec["users"]:
@@ -279,6 +349,9 @@ class ViewState:
             self.state = state
         if kind == "end":
             self.status = rec.get("status")
+        if kind == "stop" and self.stop_bounds is None:
+            # the bounds the stop rule judged: the estimate the survey ended on
+            self.stop_bounds = {"t": _r(rec["t"], 3), "r95_m": {u: v["r95_m"] for u, v in self.users.items()}}
         if kind in ("rtl", "landed"):
             self.state = "RETURN" if kind == "rtl" else "LANDED"
             self.waypoint = None
@@ -299,6 +372,40 @@ class ViewState:
             out.append(entry)
         return out
 
+    def health_frame(self) -> dict | None:
+        """The instrument strip at the state's time: VehicleHealth, the ages of the newest vehicle
+        and gNB records [mission s] (and whether they are stale), measurements in the last minute."""
+        if self.health is None and self.last_rtt_t_s is None:
+            return None
+        out: dict[str, Any] = asdict(self.health) if self.health is not None else {}
+        for k, v in list(out.items()):
+            if isinstance(v, float):
+                out[k] = _r(v, 3)
+        veh_age = None if self.health is None else max(0.0, self.t_s - self.health.t_s)
+        gnb_age = None if self.last_rtt_t_s is None else max(0.0, self.t_s - self.last_rtt_t_s)
+        t0 = self.t_s - RATE_WINDOW_S
+        out.update({
+            "vehicle_age_s": None if veh_age is None else _r(veh_age, 2),
+            "vehicle_stale": veh_age is None or veh_age > self.vehicle_stale_s,
+            "vehicle_stale_after_s": self.vehicle_stale_s,
+            "gnb_age_s": None if gnb_age is None else _r(gnb_age, 2),
+            "gnb_stale": gnb_age is None or gnb_age > GNB_STALE_S,
+            "gnb_stale_after_s": GNB_STALE_S,
+            "measurements_per_min": sum(1 for t in self._rtt_times if t > t0),
+        })
+        return out
+
+    def target_frame(self) -> dict | None:
+        """The target line: the stop rule's radius and each located user's printed r95 judged
+        against it (r95 ≤ target, planner.stop.targets_reached), and the bounds the stop judged."""
+        target = self.static.get("target_radius_m")
+        if not isinstance(target, int | float) or isinstance(target, bool):
+            return None
+        within = [uid for uid in self.user_ids if uid in self.users and self.users[uid]["r95_m"] <= target
+                  and not self.users[uid]["ambiguous"]]
+        return {"radius_m": float(target), "within": within, "users": len(self.user_ids),
+                "stop": self.stop_bounds}
+
     def frame(self, cursor: Cursor | None = None) -> tuple[dict, Cursor]:
         """A JSON-able frame with everything `cursor` has not seen (all of it for None), and the
         client's new cursor."""
@@ -308,7 +415,7 @@ class ViewState:
             "t": _r(self.t_s, 3), "version": self.version, "state": self.state, "status": self.status,
             "final": self.final, "flown_m": _r(self.flown_m, 1), "measurements": self.measurements,
             "keyframes": self.keyframes, "vehicle": self.vehicle, "waypoint": self.waypoint,
-            "users": self.users_frame(),
+            "users": self.users_frame(), "health": self.health_frame(), "target": self.target_frame(),
         }
         if cursor.static != self.static_version and self.static:
             doc["static"] = self.static

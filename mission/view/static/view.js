@@ -12,6 +12,7 @@
   const S = { info: null, static: null, frame: null, series: { track: null, est_track: null, events: null } };
   const view = { cx: 0, cy: 0, scale: 2, auto: true, whole: false, w: 800, h: 600 };
   let frames = 0;
+  window.uavlocState = S; // the 3-D view (view3d.js) draws the same state
 
   // ---- frames -------------------------------------------------------------------------------
   function mergeSeries(name, part) {
@@ -29,11 +30,13 @@
     if (f.static && f.static.origin) S.static = f.static;
     let ok = true;
     for (const name of ["track", "est_track", "events"]) if (f[name]) ok = mergeSeries(name, f[name]) && ok;
+    if (!S.frame || S.frame.version !== f.version) S.changedWall = performance.now();
     S.frame = f;
     frames += 1;
     document.body.dataset.frames = String(frames);
     document.body.dataset.version = String(f.version);
     render();
+    window.dispatchEvent(new CustomEvent("uavloc:frame"));
     return ok;
   }
 
@@ -85,10 +88,10 @@
   function fit() {
     const [x0, y0, x1, y1] = contentBox();
     const wm = Math.max(x1 - x0, 60), hm = Math.max(y1 - y0, 60);
-    // margins: 30 px at the sides and the bottom, 70 px at the top (the legend and the buttons)
-    view.scale = Math.min((view.w - 60) / wm, (view.h - 100) / hm);
+    // margins: 30 px at the sides and the bottom, 45 px at the top (the buttons; the legend is under the map)
+    view.scale = Math.min((view.w - 60) / wm, (view.h - 75) / hm);
     view.cx = (x0 + x1) / 2;
-    view.cy = (y0 + y1) / 2 + 20 / view.scale;
+    view.cy = (y0 + y1) / 2 + 7.5 / view.scale;
   }
 
   // ---- drawing ------------------------------------------------------------------------------
@@ -248,7 +251,8 @@
     const wp = f.waypoint;
     $("m-wp").textContent = wp ? `leg ${wp.leg}: (${fmt(wp.enu_m[0])}, ${fmt(wp.enu_m[1])}, ${fmt(wp.enu_m[2])}) m` +
       (wp.planner ? ` · ${wp.planner}` : "") : "-";
-    $("m-target").textContent = st.target_radius_m ? `${st.target_radius_m} m` : "-";
+    drawTarget(f.target);
+    drawHealth();
     const tb = $("users").tBodies[0];
     clear(tb);
     for (const u of f.users) {
@@ -289,6 +293,62 @@
       ol.dataset.gen = String(S.series.events && S.series.events.gen);
     }
   }
+
+  // the stop rule's line: the radius, the users whose printed r95 is within it, what the stop judged
+  function drawTarget(tg) {
+    const td = $("m-target");
+    if (!tg) { td.textContent = "-"; td.className = ""; return; }
+    let text = `${tg.radius_m} m: ${tg.within.length}/${tg.users} users within`;
+    if (tg.stop) {
+      const worst = Math.max(...Object.values(tg.stop.r95_m));
+      text += ` · stop at ${fmt(tg.stop.t, 1)} s judged r95 ${fmt(worst, 2)} m`;
+    }
+    td.textContent = text;
+    td.dataset.within = String(tg.within.length);
+    td.className = tg.within.length === tg.users ? "met" : "unmet";
+  }
+
+  const HEALTH = [
+    ["h-rel-alt", (h) => h.rel_alt_m, (v) => `${fmt(v, 1)} m`],
+    ["h-amsl", (h) => h.alt_amsl_m, (v) => `${fmt(v, 1)} m`],
+    ["h-gs", (h) => h.groundspeed_mps, (v) => `${fmt(v, 1)} m/s`],
+    ["h-climb", (h) => h.climb_mps, (v) => `${fmt(v, 1)} m/s`],
+    ["h-hdg", (h) => h.heading_deg, (v) => `${fmt(v, 0)}°`],
+    ["h-bat", (h) => h.battery_pct, (v, h) => `${fmt(v, 0)} %` + (h.battery_voltage_v != null ? ` · ${fmt(h.battery_voltage_v, 2)} V` : ""),
+      (h) => h.battery_pct != null && h.battery_pct < 30],
+    ["h-mode", (h) => h.flight_mode, (v) => String(v)],
+    ["h-armed", (h) => h.armed, (v) => (v ? "armed" : "disarmed")],
+    ["h-gps", (h) => h.gps_fix, (v, h) => `${v}` + (h.gps_satellites != null ? ` · ${h.gps_satellites} sats` : ""),
+      (h) => h.gps_fix_type != null && h.gps_fix_type < 3],
+    ["h-veh-age", (h) => h.vehicle_age_s, (v) => `${fmt(v, 1)} s`, (h) => h.vehicle_stale],
+    ["h-gnb-age", (h) => h.gnb_age_s, (v) => `${fmt(v, 1)} s`, (h) => h.gnb_stale],
+    ["h-rate", (h) => h.measurements_per_min, (v) => `${v} /min`],
+  ];
+
+  // live: seconds (wall) since the state last changed, when nothing came for longer than 3 s
+  function idleWall() {
+    const f = S.frame;
+    if (!f || !S.info || S.info.mode !== "live" || f.ended || !S.changedWall) return 0;
+    const s = (performance.now() - S.changedWall) / 1000;
+    return s > 3 ? s : 0;
+  }
+
+  function drawHealth() {
+    const h = (S.frame && S.frame.health) || {};
+    const idle = idleWall();
+    for (const [id, get, show, warn] of HEALTH) {
+      const v = get(h);
+      const node = $(id);
+      const known = v !== null && v !== undefined;
+      let text = known ? show(v, h) : "-";
+      let bad = known && warn ? Boolean(warn(h)) : false;
+      if (idle && (id === "h-veh-age" || id === "h-gnb-age")) { text += ` +${idle.toFixed(0)} s idle`; bad = true; }
+      node.textContent = text;
+      node.dataset.value = known ? String(v) : "";
+      node.parentElement.classList.toggle("warn", bad || ((id === "h-veh-age" || id === "h-gnb-age") && !known && !!S.frame && !!S.frame.health));
+    }
+  }
+  setInterval(() => { if (idleWall()) drawHealth(); }, 1000);
 
   function render() {
     const svg = $("map");
