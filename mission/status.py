@@ -5,7 +5,7 @@ Both are renderings of the mission's one :class:`mission.result.Result`: the JSO
 :func:`mission.result.format_result`, as `uavloc replay` prints them. `--out DIR` writes the report
 of the mission's own log (replayed, so the report shows exactly what replay would).
 The JSON document of a mission adds `speedup`: the survey's requested and achieved speed-up
-(mission.control.state.SurveyPace), a fact of the run, not of its log.
+(mission.control.config.SurveyPace), a fact of the run, not of its log.
 """
 
 from __future__ import annotations

@@ -34,7 +34,8 @@ def test_the_largest_gap_counts_from_the_start_and_to_the_end():
 
 
 def test_rounds_ranges_and_pace_are_counted_over_the_survey_only():
-    from mission.control.state import FELL_BEHIND_SHARE, spacing_m
+    from mission.control.config import FELL_BEHIND_SHARE
+    from mission.control.state import spacing_m
 
     c = SurveyClock()
     c.range_at(1.0, 3)  # before the survey: not counted

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from mission.control.state import FELL_BEHIND_SHARE
+from mission.control.config import FELL_BEHIND_SHARE
 from mission.log import read_mission_log
 from mission.status import mission_document
 from sitl_scenarios.scenario import scenario_from_dict, user_tables

@@ -15,56 +15,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from estimator.types import Estimate
-from mission.control.config import CONNECT
+from mission.control.config import CONNECT, SurveyPace
 from mission.control.loop import Pulse
 
 log = logging.getLogger(__name__)
 
 #: slower than this [m/s], a surveying vehicle hovers (issue 39: a survey that waits for the planner)
 HOVER_SPEED_MPS = 0.5
-
-
-#: below this share of the requested speed-up a simulation fell behind it (issue 39)
-FELL_BEHIND_SHARE = 0.8
-
-
-@dataclass(frozen=True)
-class SurveyPace:
-    """How fast the survey really ran against the wall clock (issue 39: a simulation that cannot keep
-    its speed-up must say so, and by how much).
-
-    requested_speedup: the controller's time_scale (mission seconds per wall second asked for);
-    survey_s / survey_wall_s: the survey's mission seconds (the vehicle's clock, as the controller
-    reads it) and wall seconds. achieved_speedup = survey_s / survey_wall_s: it falls below the
-    requested one when the simulation runs slow (a starved built-in vehicle drops the time it cannot
-    work off, its `behind_s`; a PX4 SITL runs below its speed factor).
-    """
-
-    requested_speedup: float
-    survey_s: float
-    survey_wall_s: float
-
-    @property
-    def achieved_speedup(self) -> float:
-        """Mission seconds per wall second over the survey."""
-        return self.survey_s / self.survey_wall_s
-
-    @property
-    def fell_behind(self) -> bool:
-        """The survey ran materially slower than asked (below FELL_BEHIND_SHARE of it)."""
-        return self.achieved_speedup < FELL_BEHIND_SHARE * self.requested_speedup
-
-    def message(self) -> str:
-        """One line: "asked ×20, ran ×6.3: ..." (by how much, and what it means)."""
-        return (f"asked ×{self.requested_speedup:g}, ran ×{self.achieved_speedup:.1f}: the simulation fell "
-                f"behind its speed-up ({self.survey_s:.0f} mission seconds of survey took {self.survey_wall_s:.1f} "
-                f"wall seconds, {100.0 * self.achieved_speedup / self.requested_speedup:.0f} % of the pace asked); "
-                f"the machine is too busy for it, try a smaller --speedup")
-
-    def to_dict(self) -> dict:
-        """The mission log's `fell_behind` event fields and the `--json` document's `speedup` entry."""
-        return {"requested_speedup": self.requested_speedup, "achieved_speedup": round(self.achieved_speedup, 2),
-                "survey_wall_s": round(self.survey_wall_s, 2), "fell_behind": self.fell_behind}
 
 
 @dataclass
