@@ -43,5 +43,5 @@ def test_a_target_below_the_gps_floor_ends_floor_reached_within_half_the_budget(
     (run,) = [r for r in load_spec(tmp_path / "spec.toml").runs if r.planner == planner]
     rec = run_one(run)
     assert rec["floor_m"] > 1.4 * 1.5, "the spec's GPS drift puts the floor well above the target"
-    assert rec["status"] == "ok" and rec["end"] == "floor reached", rec
+    assert rec["status"] == "ok" and rec["end"] == "floor_reached: floor reached", rec
     assert rec["flown_m"] <= 0.5 * rec["budget_m"]

@@ -128,7 +128,8 @@ def test_the_survey_reports_the_spacing_its_log_shows(tmp_path, gnb_delay_s):
     result, _ = _fly(_scenario(n_users, gnb_delay_s), log_path, 20.0)
     survey, rounds, ranges = _survey_figures_from_log(log_path)
     assert abs(survey["rounds"] - rounds) <= 1 and abs(survey["ranges"] - ranges) <= n_users
-    assert survey["flown_m"] == pytest.approx(result.flown_m, abs=0.01)
+    # the survey's odometer ran over every fix; the result's (replay's) over the logged telemetry
+    assert survey["flown_m"] == pytest.approx(result.flown_m, rel=0.03)
     assert survey["spacing_m"] == pytest.approx(survey["flown_m"] / survey["rounds"], abs=0.011)
     assert survey["user_spacing_m"] == pytest.approx(survey["flown_m"] * n_users / survey["ranges"], abs=0.011)
     assert survey["rounds_per_min"] == pytest.approx(60.0 * survey["rounds"] / survey["survey_s"], abs=0.011)

@@ -226,7 +226,9 @@ class MissionController:
         if t - self._last_tel_log_t >= 1.0 / self.config.telemetry_log_hz and self.journal.is_open:
             self._last_tel_log_t = t
             extra = {"vel_ned_mps": list(fix.vel_ned_mps)} if fix.vel_ned_mps is not None else {}
-            extra.update(self.vehicle.state.status().record_fields())
+            state = getattr(self.vehicle, "state", None)
+            if state is not None:
+                extra.update(state.status().record_fields())
             rec = self.journal.writer.write("telemetry", t, lat_deg=fix.lat_deg, lon_deg=fix.lon_deg,
                                             alt_m=fix.alt_amsl_m, **extra)
             if self._tau_records is not None and fix.vel_ned_mps is not None:

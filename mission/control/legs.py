@@ -113,14 +113,17 @@ class SurveyLegs:
         return energy_remaining_m(self.deps.flight.flown_m, self.battery_start_pct, self.deps.battery_pct(),
                                   self.deps.battery_rtl_pct)
 
-    async def plan(self, pos: np.ndarray, drain_max_s: float = PLAN_DRAIN_MAX_S) -> PlanResult:
+    async def plan(self, pos: np.ndarray, drain_max_s: float = PLAN_DRAIN_MAX_S, ahead_m: float = 0.0) -> PlanResult:
         """The planner's next leg from `pos`, with the estimate of every keyframe measured so far
-        (waiting at most drain_max_s mission seconds for the estimator to solve them)."""
+        (waiting at most drain_max_s mission seconds for the estimator to solve them). ahead_m: the
+        metres still to fly before `pos` is reached (a plan made ahead, from the current leg's end):
+        counted as flown and taken off the energy left, so that the budget and the way home are
+        judged at `pos`, as they will be there."""
         dep = self.deps
         w0 = time.perf_counter()
         await dep.drain(dep.wall(drain_max_s))
-        state = PlanningState(uav_enu_m=pos, estimate=dep.flight.estimate, flown_m=dep.flight.flown_m,
-                              energy_remaining_m=self.energy_remaining_m())
+        state = PlanningState(uav_enu_m=pos, estimate=dep.flight.estimate, flown_m=dep.flight.flown_m + ahead_m,
+                              energy_remaining_m=self.energy_remaining_m() - ahead_m)
         t0 = time.perf_counter()
         plan = await asyncio.to_thread(dep.planner.plan, state)
         t1 = time.perf_counter()
@@ -163,7 +166,9 @@ class SurveyLegs:
         if float(np.linalg.norm(pos - wp)) <= near_m:
             end = np.asarray(wp, float).copy()
             # no long drain: ranges keep coming while the leg is flown; the estimate of now is the one
-            self._ahead = (end, asyncio.create_task(self.plan(end, drain_max_s=1.0), name="plan-ahead"))
+            ahead_m = float(np.linalg.norm(end - pos))
+            self._ahead = (end, asyncio.create_task(self.plan(end, drain_max_s=1.0, ahead_m=ahead_m),
+                                                    name="plan-ahead"))
 
     async def _survey(self) -> None:
         dep, cfg, f = self.deps, self.deps.config, self.deps.flight
