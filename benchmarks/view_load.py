@@ -13,6 +13,7 @@ import asyncio
 import json
 import os
 import re
+import signal
 import statistics
 import subprocess
 import sys
@@ -55,9 +56,12 @@ def run(pollers: int) -> dict:
                                                daemon=True)
                 poll_thread.start()
             break
-    p.stderr.read()
-    p.wait(timeout=900)
+    for line in p.stderr:  # the page outlives the mission (until Ctrl-C): end it once the mission is over
+        if "the mission is over" in line:
+            break
     wall = time.monotonic() - t0
+    p.send_signal(signal.SIGINT)
+    p.communicate(timeout=60)
     stop.set()
     if poll_thread is not None:
         poll_thread.join(30)

@@ -14,6 +14,8 @@ and `uavloc fly`:
   the log), the command ends with exit code 130 as after Ctrl-C; a second exits the process at once
   (exit code 130). Left to their default action, SIGTERM and SIGHUP would end the process with
   the vehicle still flying its last setpoint;
+- :meth:`wait_for_ending_signal` (`--view` after the mission ended): the first such signal ends
+  that wait instead, and the command exits with the mission's own exit code;
 - :meth:`exit_if_stuck`: after the command printed its result, a process with stuck vehicle-library
   threads ends with `os._exit` (the interpreter's exit would wait for them for ever).
 
@@ -44,7 +46,7 @@ EXIT_INTERRUPTED = 130
 ENDING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
-def _signal_label(signum: int) -> str:
+def signal_label(signum: int) -> str:
     return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
 
 
@@ -57,6 +59,10 @@ class BoundedRun:
         self.max_workers = int(max_workers)
         self.interrupts = 0
         self.stuck = False
+        #: exit code of a second ending signal (exits at once): 130, or the mission's own once
+        #: the mission had ended (:meth:`wait_for_ending_signal`)
+        self.late_exit_code = EXIT_INTERRUPTED
+        self._waiting: asyncio.Future[int] | None = None
 
     def run(self, coro: Coroutine[Any, Any, Any]) -> Any:
         """Run `coro` to completion; re-raises its exception (CancelledError after a Ctrl-C).
@@ -97,23 +103,39 @@ class BoundedRun:
                 for signum, previous in handled.items():
                     signal.signal(signum, previous)  # a clean run leaves the signals as they were
 
+    async def wait_for_ending_signal(self, exit_code: int) -> int:
+        """After the mission has ended (the live view kept serving it): wait until SIGINT, SIGTERM
+        or SIGHUP and return its number. Such a signal ends this wait instead of cancelling the
+        mission; a second one exits at once with `exit_code` (the mission's). Outside the main
+        thread no signal handler is installed: only a cancellation ends the wait."""
+        self.late_exit_code = exit_code
+        self._waiting = asyncio.get_running_loop().create_future()
+        try:
+            return await self._waiting
+        finally:
+            self._waiting = None
+
     def _on_signal(self, task: asyncio.Task, signum: int) -> None:
         self.interrupts += 1
-        label = _signal_label(signum)
+        label = signal_label(signum)
+        if self._waiting is not None and not self._waiting.done():
+            print(f"\n{label}: closing the live view; the mission had already ended", file=sys.stderr, flush=True)
+            self._waiting.set_result(signum)
+            return
         if self.interrupts == 1:
             print(f"\n{label}: ending the mission (RTL, log closed); Ctrl-C again exits at once",
                   file=sys.stderr, flush=True)
             task.cancel()
             return
         print(f"\n{label} again: exiting now", file=sys.stderr, flush=True)
-        _hard_exit(EXIT_INTERRUPTED)
+        _hard_exit(self.late_exit_code)
 
     def _on_late_signal(self, signum: int, frame: Any) -> None:
         """An ending signal once the mission's loop has ended (shutdown, result printing)."""
         self.interrupts += 1
         if self.interrupts >= 2 or self.stuck:
-            print(f"\n{_signal_label(signum)} again: exiting now", file=sys.stderr, flush=True)
-            _hard_exit(EXIT_INTERRUPTED)
+            print(f"\n{signal_label(signum)} again: exiting now", file=sys.stderr, flush=True)
+            _hard_exit(self.late_exit_code)
         raise KeyboardInterrupt
 
     def _close_loop(self, loop: asyncio.AbstractEventLoop, executor: ThreadPoolExecutor) -> None:

@@ -17,6 +17,7 @@ import os
 import queue
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -98,6 +99,20 @@ class _Proc:
             self.stop()
             raise AssertionError("no view URL printed:\n" + "".join(self.lines[-30:])) from None
 
+    def close_after_mission(self) -> tuple[str, str]:
+        """Once the command says the mission is over (its page stays until Ctrl-C): SIGINT, and its
+        (stdout, stderr) once it exited."""
+        deadline = time.monotonic() + HANG_GUARD_S
+        while not any("the mission is over" in line for line in self.lines):
+            if self.p.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError("the command did not keep its page after the mission:\n"
+                                     + "".join(self.lines[-30:]))
+            time.sleep(0.1)
+        self.p.send_signal(signal.SIGINT)
+        out, _ = self.p.communicate(timeout=60)
+        self._t.join(10)
+        return out, "".join(self.lines)
+
     def stop(self) -> None:
         stop_process(self.p, grace_s=10)
 
@@ -156,7 +171,7 @@ def live_mission(browser, tmp_path_factory):
         final = page.evaluate(JS_SNAPSHOT)
         end_shot = screens / "view-live-end.png"
         page.screenshot(path=str(end_shot))
-        stdout, _ = proc.p.communicate(timeout=HANG_GUARD_S)
+        stdout, _ = proc.close_after_mission()
     finally:
         page.close()
         proc.stop()

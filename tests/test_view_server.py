@@ -247,7 +247,7 @@ def test_fly_view_follows_a_flight_to_the_end(tmp_path):
                       "lawnmower", "--log", str(tmp_path / "fly.jsonl"), "--json", "--view", "127.0.0.1:0"])
         try:
             asyncio.run(asyncio.wait_for(follow(proc.url()), 300))
-            out, _ = proc.p.communicate(timeout=120)
+            out, _ = proc.close_after_mission()
         finally:
             proc.stop()
     assert proc.p.returncode == 0, "".join(proc.lines)[-3000:]

@@ -72,7 +72,7 @@ def write_mission(path, listener=None, n_tel: int = 50, controller: dict | None 
                 keyframes=9, flown_m=55.0, final=True,
                 uav_lla=[list(lla(0.5 * i, 0.1 * i, 30).values()) for i in range(0, n_tel, 5)])
         w.write("event", 13.0, message="mission end: target_reached (target reached)", kind="end",
-                status="target_reached", state="LANDED")
+                status="target_reached", reason="target reached", state="LANDED")
     return seen
 
 

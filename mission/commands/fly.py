@@ -8,10 +8,15 @@ from __future__ import annotations
 
 import argparse
 import logging
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mission.commands.argtypes import gnb_address
 from mission.view.live import add_view_arguments
+
+if TYPE_CHECKING:
+    from mission.controller import MissionController
 
 log = logging.getLogger(__name__)
 
@@ -78,38 +83,58 @@ def run(args: argparse.Namespace) -> int:
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 
     runner = BoundedRun()
-    held: dict = {}
+    held = _Held()
 
-    async def main():
+    def finish(result, interrupted: bool) -> int:
+        """Print the result, write the report; the command's exit code."""
+        print_result(result, args.json)
+        log_failed = held.controller.log_writer.failed
+        if log_failed is not None:
+            log.error("no report: %s", log_failed)
+        elif args.out is not None and result.log_path is not None and result.measurements:
+            write_report(result.log_path, args.out)
+        return EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
+
+    async def main() -> int:
         gnb_cfg = GnbConfig.of(mission.gnb, address.host, address.port, transport=address.transport)
-        async with MavsdkVehicle(args.connect) as vehicle, OaiGnbClient(gnb_cfg) as gnb:
-            controller = controller_from_mission(
-                mission, vehicle, gnb, log_path, planner=args.planner,
-                header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb})
-            held["controller"] = controller
-            async with live_view(args, controller.log_writer, title="uavloc fly"):
-                return await controller.run()
+        async with live_view(args, title="uavloc fly") as view:
+            async with MavsdkVehicle(args.connect) as vehicle, OaiGnbClient(gnb_cfg) as gnb:
+                controller = controller_from_mission(
+                    mission, vehicle, gnb, log_path, planner=args.planner,
+                    header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb})
+                held.controller = controller
+                view.follow(controller.log_writer)
+                result = await controller.run()
+            # the vehicle link and the gNB are closed: the page shows the finished mission
+            view.mission_over()
+            held.exit_code = finish(result, interrupted=False)
+            await view.keep_serving(runner, held.exit_code)
+            return held.exit_code
 
-    interrupted = False
     try:
-        result = runner.run(main())
+        code = runner.run(main())
     except (asyncio.CancelledError, KeyboardInterrupt):
-        interrupted = True
-        controller = held.get("controller")
-        result = controller.result if controller is not None else None
-        if result is None:
-            log.error("interrupted before the mission started")
-            runner.exit_if_stuck(EXIT_INTERRUPTED)
-            return EXIT_INTERRUPTED
-    print_result(result, args.json)
-    log_failed = held["controller"].log_writer.failed
-    if log_failed is not None:
-        log.error("no report: %s", log_failed)
-    elif args.out is not None and result.log_path is not None and result.measurements:
-        write_report(result.log_path, args.out)
-    code = EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
+        if held.exit_code is not None:
+            code = held.exit_code  # the mission had ended and its result is printed
+        else:
+            controller = held.controller
+            result = controller.result if controller is not None else None
+            if result is None:
+                log.error("interrupted before the mission started")
+                runner.exit_if_stuck(EXIT_INTERRUPTED)
+                return EXIT_INTERRUPTED
+            code = finish(result, interrupted=True)
     runner.exit_if_stuck(code)
     return code
+
+
+@dataclass
+class _Held:
+    """What the command's coroutine leaves for the interrupted path: the controller once the
+    mission started, the exit code once the mission ended and its result was printed."""
+
+    controller: MissionController | None = None
+    exit_code: int | None = None
 
 
 def _scenario_mission(name: str):

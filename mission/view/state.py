@@ -191,6 +191,7 @@ class ViewState:
         self.waypoint: dict | None = None
         self.state = "CONNECT"
         self.status: str | None = None
+        self.reason: str | None = None  # why the mission ended (the `end` event's reason)
         self.final = False
         self.flown_m = 0.0
         self._flown_from_log = False
@@ -349,6 +350,8 @@ class ViewState:
             self.state = state
         if kind == "end":
             self.status = rec.get("status")
+            reason = rec.get("reason")
+            self.reason = reason if isinstance(reason, str) and reason else None
         if kind == "stop" and self.stop_bounds is None:
             # the bounds the stop rule judged: the estimate the survey ended on
             self.stop_bounds = {"t": _r(rec["t"], 3), "r95_m": {u: v["r95_m"] for u, v in self.users.items()}}
@@ -413,8 +416,9 @@ class ViewState:
         new = Cursor(static=self.static_version)
         doc: dict[str, Any] = {
             "t": _r(self.t_s, 3), "version": self.version, "state": self.state, "status": self.status,
-            "final": self.final, "flown_m": _r(self.flown_m, 1), "measurements": self.measurements,
-            "keyframes": self.keyframes, "vehicle": self.vehicle, "waypoint": self.waypoint,
+            "reason": self.reason, "final": self.final, "flown_m": _r(self.flown_m, 1),
+            "measurements": self.measurements, "keyframes": self.keyframes,
+            "vehicle": self.vehicle, "waypoint": self.waypoint,
             "users": self.users_frame(), "health": self.health_frame(), "target": self.target_frame(),
         }
         if cursor.static != self.static_version and self.static:

@@ -6,10 +6,15 @@ from __future__ import annotations
 
 import argparse
 import logging
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mission.commands.argtypes import in_range
 from mission.view.live import add_view_arguments
+
+if TYPE_CHECKING:
+    from sitl_scenarios.sim_runner import SimulatedMission
 
 log = logging.getLogger(__name__)
 
@@ -82,36 +87,56 @@ def run(args: argparse.Namespace) -> int:
     from mission.runtime import EXIT_INTERRUPTED, BoundedRun
 
     runner = BoundedRun()
-    held: dict = {}
+    held = _Held()
 
-    async def main():
-        async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
-                                    planner=args.planner, connect=args.connect,
-                                    gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode) as sim:
-            held["sim"] = sim
-            async with live_view(args, sim.controller.log_writer, title=f"uavloc sim {scenario.name}"):
-                return await sim.run()
+    def finish(result, interrupted: bool) -> int:
+        """Print the result, write the report; the command's exit code."""
+        print_result(result, args.json)
+        if result.pace is not None and result.pace.fell_behind:
+            # said again at the very end, where it is read: the figures are a slower flight's
+            log.warning("%s", result.pace.message())
+        log_failed = held.sim.controller.log_writer.failed
+        if log_failed is not None:
+            log.error("no report: %s", log_failed)
+        elif result.measurements:
+            write_report(log_path, args.out)
+        return EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
 
-    interrupted = False
+    async def main() -> int:
+        async with live_view(args, title=f"uavloc sim {scenario.name}") as view:
+            async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
+                                        planner=args.planner, connect=args.connect,
+                                        gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode) as sim:
+                held.sim = sim
+                view.follow(sim.controller.log_writer)
+                result = await sim.run()
+            # the vehicle and the simulators are closed: the page shows the finished mission
+            view.mission_over()
+            held.exit_code = finish(result, interrupted=False)
+            await view.keep_serving(runner, held.exit_code)
+            return held.exit_code
+
     try:
-        result = runner.run(main())
+        code = runner.run(main())
     except (asyncio.CancelledError, KeyboardInterrupt):
-        interrupted = True
-        sim = held.get("sim")
-        result = sim.controller.result if sim is not None and sim.controller is not None else None
-        if result is None:
-            log.error("interrupted before the mission started")
-            runner.exit_if_stuck(EXIT_INTERRUPTED)
-            return EXIT_INTERRUPTED
-    print_result(result, args.json)
-    if result.pace is not None and result.pace.fell_behind:
-        # said again at the very end, where it is read: the figures are a slower flight's
-        log.warning("%s", result.pace.message())
-    log_failed = held["sim"].controller.log_writer.failed
-    if log_failed is not None:
-        log.error("no report: %s", log_failed)
-    elif result.measurements:
-        write_report(log_path, args.out)
-    code = EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
+        if held.exit_code is not None:
+            code = held.exit_code  # the mission had ended and its result is printed
+        else:
+            sim = held.sim
+            result = sim.controller.result if sim is not None and sim.controller is not None else None
+            if result is None:
+                log.error("interrupted before the mission started")
+                runner.exit_if_stuck(EXIT_INTERRUPTED)
+                return EXIT_INTERRUPTED
+            code = finish(result, interrupted=True)
     runner.exit_if_stuck(code)
     return code
+
+
+@dataclass
+class _Held:
+    """What the command's coroutine leaves for the interrupted path: the simulated mission once
+    it started, the exit code once the mission ended and its result was printed."""
+
+    sim: SimulatedMission | None = None
+    exit_code: int | None = None

@@ -407,7 +407,10 @@
       const f = JSON.parse(msg.data);
       if (!applyFrame(f)) { ws.close(); return; }
       ws.send("ack"); // the server sends the next frame after this: a slow page skips frames
-      if (f.ended) { ended = true; setConn("ended", `mission ended${f.status ? ": " + f.status : ""}`); }
+      if (f.ended) {
+        ended = true;
+        setConn("ended", `mission ended${f.status ? ": " + f.status : ""}${f.reason ? " (" + f.reason + ")" : ""}`);
+      }
     };
     ws.onclose = () => {
       if (ended) return;
