@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     async def main():
         async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
                                     planner=args.planner, connect=args.connect,
-                                    gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode) as sim:
+                                    gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode,
+                                    header_config={"command_line": getattr(args, "command_line", None)}) as sim:
             held["sim"] = sim
             async with live_view(args, sim.controller.log_writer, title=f"uavloc sim {scenario.name}"):
                 return await sim.run()
