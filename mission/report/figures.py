@@ -89,12 +89,18 @@ def _new_figure(plt, name: str, inp: ReportInputs):
     return fig
 
 
-def _legend_below(fig, axes: list, ncol: int = 3) -> None:
-    """One legend of every labelled artist of `axes` (first label wins), below them in the figure."""
+#: a legend label longer than this [characters] makes the legend two columns wide, not three
+LONG_LABEL_CHARS = 34
+
+
+def _legend_below(fig, axes: list) -> None:
+    """One legend of every labelled artist of `axes` (first label wins), below them in the figure;
+    three columns, two when a label is long (the legend must fit the figure's width)."""
     seen: dict[str, object] = {}
     for ax in axes:
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             seen.setdefault(lab, h)
+    ncol = 2 if max((len(lab) for lab in seen), default=0) > LONG_LABEL_CHARS else 3
     if seen:
         fig.legend(list(seen.values()), list(seen), loc="outside lower center", ncol=min(ncol, len(seen)),
                    fontsize=7, markerscale=1.0, frameon=False)
@@ -266,7 +272,7 @@ def _side_view(plt, inp: ReportInputs, name: str):
             # the 95 % ellipse's extent along this axis: ± sqrt(χ²₂(95 %)·σ_aa²)
             half = math.sqrt(CHI2_2DOF_95 * max(var, 0.0)) if np.isfinite(var) else 0.0
             ax.errorbar([u[a]], [u[2]], xerr=[[half], [half]], fmt="o", color=colors[k], mec="k", capsize=4,
-                        label="estimated user, ± 95 % along the axis")
+                        label="estimated user, ± 95 %")
         if inp.truth_enu_m is not None and np.all(np.isfinite(inp.truth_enu_m[k])):
             ax.plot(inp.truth_enu_m[k, a], inp.truth_enu_m[k, 2], "*", color=colors[k], ms=13, mec="k",
                     label="true user")
