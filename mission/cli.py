@@ -15,6 +15,7 @@ import contextlib
 import importlib
 import logging
 import os
+import shlex
 import sys
 
 from uavloc import __version__
@@ -115,6 +116,8 @@ def configure_logging(verbose: int, quiet: bool) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # the command as typed, for the mission log's header (the report names it)
+    args.command_line = shlex.join(["uavloc", *(sys.argv[1:] if argv is None else argv)])
     configure_logging(args.verbose, args.quiet)
     try:
         return int(args._run(args) or 0)

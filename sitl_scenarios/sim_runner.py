@@ -55,14 +55,15 @@ class SimulatedMission:
     (default: the scenario's); speedup: built-in vehicle speed factor; planner: planner name;
     connect: MAVSDK URL of a running PX4 SITL (None: built-in vehicle); max_stream_wall_hz: cap of
     the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields or
-    mission settings by their key alone (mission.controller.controller_from_mission).
+    mission settings by their key alone (mission.controller.controller_from_mission); header_config:
+    more fields of the log header's `config` (the CLI's `command_line`).
     """
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
                  speedup: float = 20.0, planner: str | None = None, connect: str | None = None,
                  max_stream_wall_hz: float = 100.0, gnb_request_timeout_s: float = 1.0,
                  controller_overrides: dict | None = None, gnb_transport: str = "telnet",
-                 gnb_mode: str | None = None):
+                 gnb_mode: str | None = None, header_config: dict | None = None):
         if not (math.isfinite(speedup) and speedup > 0):
             raise MissionError(f"speedup must be a positive number, got {speedup!r}")
         self.scenario = scenario
@@ -70,6 +71,7 @@ class SimulatedMission:
         self.seed = scenario.seed if seed is None else int(seed)
         self.speedup = float(speedup) if connect is None else 1.0
         self.planner = planner
+        self.header_config = dict(header_config or {})
         self.connect = connect
         self.max_stream_wall_hz = max_stream_wall_hz
         self.gnb_request_timeout_s = gnb_request_timeout_s
@@ -175,7 +177,8 @@ class SimulatedMission:
                 seed=self.seed, time_scale=self.speedup, truth=self._truth, buildings=self._buildings,
                 external_vehicle=self.connect is not None,
                 header_config={"command": "sim", "speedup": self.speedup, "connect": self.connect,
-                               "gnb_transport": self.gnb_transport, "gnb_mode": self.gnb_client.mode},
+                               "gnb_transport": self.gnb_transport, "gnb_mode": self.gnb_client.mode,
+                               **self.header_config},
                 **overrides)
         except BaseException:
             await stack.aclose()

@@ -54,7 +54,7 @@ def test_json_report_and_replay_give_one_document(sim_run, capsys):
     assert rep["users"] == doc["users"]
     assert doc["status"] == STATUS_TARGET and doc["reason"] == "target reached"
     # report-only sections never redefine a key of the result document
-    assert set(rep) - set(doc) == {"title", "noise", "range_statistics", "figures"}
+    assert set(rep) - set(doc) == {"title", "mission", "noise", "range_statistics", "figures"}
     assert set(rep["range_statistics"]) == {u["id"] for u in doc["users"]}
     # the mission's seconds: header to the end record, not the keyframes' span
     mlog = read_mission_log(log_path)

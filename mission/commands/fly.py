@@ -101,7 +101,9 @@ def run(args: argparse.Namespace) -> int:
             async with MavsdkVehicle(args.connect) as vehicle, OaiGnbClient(gnb_cfg) as gnb:
                 controller = controller_from_mission(
                     mission, vehicle, gnb, log_path, planner=args.planner,
-                    header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb})
+                    header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb,
+                                   "command_line": getattr(args, "command_line", None),
+                                   "mission_file": None if args.mission is None else str(args.mission)})
                 held.controller = controller
                 view.follow(controller.log_writer)
                 result = await controller.run()

@@ -5,11 +5,22 @@ from __future__ import annotations
 import base64
 import html
 
+from estimator.noise import NoiseModel
+from mission.report.statistics import sigma_text
 
-def html_page(doc: dict, pngs: dict[str, bytes]) -> str:
+#: the rows of the page's mission table: (report.json `mission` key, label)
+MISSION_ROWS = (("command_line", "command"), ("scenario", "scenario"), ("mission_file", "mission file"),
+                ("mission", "mission"), ("seed", "seed"), ("planner", "planner"), ("start_utc", "date (UTC)"),
+                ("log_file", "mission log"), ("uavloc_version", "uavloc version"))
+
+
+def html_page(doc: dict, pngs: dict[str, bytes], captions: dict[str, str] | None = None) -> str:
     """The page of a report document (mission.report.document): its summary and users are the
-    result document's (mission.result.Result.to_document), as `--json` prints them."""
+    result document's (mission.result.Result.to_document), as `--json` prints them; the mission
+    table its `mission` section; each figure captioned (and its alt text) by `captions[name]`
+    (mission.report.figures.figure_title), else by its name."""
     esc = html.escape
+    captions = captions or {}
     rows = []
     for u in doc["users"]:
         def cell(v, fmt="{:.2f}"):
@@ -22,12 +33,19 @@ def html_page(doc: dict, pngs: dict[str, bytes]) -> str:
                 "yes" if u.get("ambiguous") else "no",
             )) + "</tr>"
         )
-    imgs = "\n".join(
-        f'<figure><img alt="{esc(name)}" src="data:image/png;base64,{base64.b64encode(data).decode("ascii")}">'
-        f"<figcaption>{esc(name.replace('_', ' '))}</figcaption></figure>"
-        for name, data in pngs.items()
-    )
-    n = doc["noise"]["range_sigma_m"]
+    mission = doc.get("mission") or {}
+    facts = "".join(f'<tr><th>{esc(label)}</th><td class="l">{esc(str(mission[key]))}</td></tr>'
+                    for key, label in MISSION_ROWS if mission.get(key) is not None)
+    facts_table = f'<table class="facts">{facts}</table>' if facts else ""
+
+    def figure(name: str, data: bytes) -> str:
+        text = esc(captions.get(name, name.replace("_", " ")))
+        return (f'<figure id="{esc(name)}"><img alt="{text}" '
+                f'src="data:image/png;base64,{base64.b64encode(data).decode("ascii")}">'
+                f"<figcaption>{esc(name)}.png: {text}</figcaption></figure>")
+
+    imgs = "\n".join(figure(name, data) for name, data in pngs.items())
+    noise = NoiseModel.from_log_dict(doc["noise"])
     flown = doc["flown_m"]
     o = doc["origin"]
     duration = "" if doc["duration_s"] is None else f" in {doc['duration_s']:.0f} s"
@@ -36,14 +54,15 @@ def html_page(doc: dict, pngs: dict[str, bytes]) -> str:
 <style>
 body {{ font-family: sans-serif; margin: 1.5em; max-width: 1000px; }}
 table {{ border-collapse: collapse; }} td, th {{ border: 1px solid #bbb; padding: 3px 8px; text-align: right; }}
+table.facts th {{ text-align: left; }} td.l {{ text-align: left; font-family: monospace; }}
 figure {{ margin: 1em 0; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
 </style></head><body>
 <h1>{esc(doc["title"])}</h1>
+{facts_table}
 <p>Status: <b>{esc(str(doc["status"]))}</b> ({esc(str(doc["reason"]))}); {doc["measurements"]} ranges at
 {doc["keyframes"]} keyframes; {"–" if flown is None else f"{flown:.0f}"} m flown{duration}.
 Origin {o["lat_deg"]:.7f}, {o["lon_deg"]:.7f}, {o["alt_m"]:.1f} m.
-Noise model σ(d) = {n["range_s0_m"]:.3g} + {n["range_a_m"]:.3g}·exp({n["range_b_per_m"]:.3g}·d) m,
-σ<sub>GPS</sub> = {doc["noise"]["sigma_gps_m"]:.3g} m.</p>
+Noise model {esc(sigma_text(noise))}, σ<sub>GPS</sub> = {noise.sigma_gps_m:.3g} m.</p>
 <table><tr><th>user</th><th>lat [deg]</th><th>lon [deg]</th><th>alt [m]</th><th>95 % bound [m]</th>
 <th>error [m]</th><th>bias [m]</th><th>ranges</th><th>ambiguous</th></tr>
 {"".join(rows)}

@@ -110,6 +110,72 @@ def shapes_from_log(mlog: Any) -> MissionShapes:
     return shapes_from_header(raw) if isinstance(raw, dict) else MissionShapes()
 
 
+def uavloc_version() -> str:
+    """The installed uavloc's version (package metadata), or "unknown" when it is not installed."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("uavloc")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+@dataclass(frozen=True)
+class MissionFacts:
+    """What mission the report is of, from the log header (None where an older log or another
+    tool's does not say): command ("sim", "fly", ...), command_line (as typed), scenario, mission
+    (the mission's name), mission_file, seed, planner, start_utc (the header's start time), the
+    log's file name and the uavloc version that wrote the report."""
+
+    log_file: str
+    uavloc_version: str
+    command: str | None = None
+    command_line: str | None = None
+    scenario: str | None = None
+    mission: str | None = None
+    mission_file: str | None = None
+    seed: int | None = None
+    planner: str | None = None
+    start_utc: str | None = None
+
+    def title(self) -> str:
+        """"uavloc sim three_users_nlos, seed 3, casadi"; a log without a command is named after its
+        scenario or mission ("paper, seed 1"), a log that says nothing after its file."""
+        subject = self.scenario or self.mission_file or self.mission
+        if self.command is not None:
+            head = " ".join(x for x in ("uavloc", self.command, subject) if x)
+        else:
+            head = subject or f"mission log {self.log_file}"
+        parts = [head]
+        if self.seed is not None:
+            parts.append(f"seed {self.seed}")
+        if self.planner is not None:
+            parts.append(self.planner)
+        return ", ".join(parts)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"command": self.command, "command_line": self.command_line, "scenario": self.scenario,
+                "mission": self.mission, "mission_file": self.mission_file, "seed": self.seed,
+                "planner": self.planner, "start_utc": self.start_utc, "log_file": self.log_file,
+                "uavloc_version": self.uavloc_version}
+
+
+def facts_from_header(config: dict, start_utc: str | None, log_file: str, version: str) -> MissionFacts:
+    """:class:`MissionFacts` of a log header's `config` section and start time; a field of the
+    wrong type is left out (None), as an older log's absent field."""
+
+    def text(key: str) -> str | None:
+        v = config.get(key)
+        return v if isinstance(v, str) and v else None
+
+    seed = config.get("seed")
+    return MissionFacts(
+        log_file=log_file, uavloc_version=version, command=text("command"), command_line=text("command_line"),
+        scenario=text("scenario"), mission=text("mission"), mission_file=text("mission_file"),
+        seed=seed if isinstance(seed, int) and not isinstance(seed, bool) else None,
+        planner=text("planner"), start_utc=start_utc or None)
+
+
 @dataclass(frozen=True)
 class ReportInputs:
     """Everything a report or an export draws. Shapes: K users, N keyframes, M range measurements,
@@ -126,6 +192,7 @@ class ReportInputs:
     hist_flown_m (H,), hist_bound_95_m (H, K), hist_error_m (H, K) or None: how the estimate evolved.
     waypoints_enu_m (W, 3) or None: the planner's waypoints, if the mission logged them.
     title: the report's title; extra: report-only facts for report.json's `extra`.
+    facts: what mission this is (:class:`MissionFacts`, the log header's), or None (not from a log).
     shapes: the geofence, no-fly zones, altitude band and buildings of the log header (empty when
     the header has none).
     """
@@ -148,6 +215,7 @@ class ReportInputs:
     title: str = "uavloc mission"
     extra: dict = field(default_factory=dict)
     shapes: MissionShapes = field(default_factory=lambda: MissionShapes())
+    facts: MissionFacts | None = None
 
     def __post_init__(self) -> None:
         if self.result.origin is None:
@@ -218,6 +286,8 @@ def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
     if uav.shape != result.kf_gps_enu_m.shape:
         uav = None  # a fixed-lag estimator keeps only the last keyframes: nothing to draw against
     hist = getattr(result, "history", None)
+    facts = facts_from_header(mlog.header.config, mlog.header.start_utc, Path(str(mlog.path)).name,
+                              uavloc_version())
     return ReportInputs(
         result=result_of_replay(result),
         noise=result.noise,
@@ -231,7 +301,8 @@ def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
         hist_error_m=None if hist is None or hist.error_m is None else np.asarray(hist.error_m, float),
         waypoints_enu_m=waypoints_from_log(mlog),
         shapes=shapes_from_log(mlog),
-        title=title or f"uavloc replay of {Path(str(mlog.path)).name}",
+        title=title or facts.title(),
+        facts=facts,
     )
 
 

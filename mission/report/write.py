@@ -10,7 +10,7 @@ from typing import Any
 
 from mission.report.document import report_document
 from mission.report.exports import write_exports
-from mission.report.figures import FIG_DPI, FIGURE_FUNCS, FIGURES
+from mission.report.figures import FIG_DPI, FIGURE_FUNCS, FIGURES, figure_title
 from mission.report.html import html_page
 from mission.report.inputs import ReportInputs, inputs_from_replay
 from uavloc.errors import MissionError
@@ -54,7 +54,8 @@ def write_report(result_or_inputs: Any, out_dir: str | Path, figures: tuple[str,
     doc = report_document(inp, {name: p.name for name, p in paths.items()})
     try:
         (out / "report.json").write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        (out / "report.html").write_text(html_page(doc, pngs), encoding="utf-8")
+        captions = {name: figure_title(name, inp) for name in pngs}
+        (out / "report.html").write_text(html_page(doc, pngs, captions), encoding="utf-8")
     except OSError as exc:
         raise MissionError(f"cannot write the report into {out}: {exc}") from exc
     paths["report.json"] = out / "report.json"

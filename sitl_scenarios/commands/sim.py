@@ -106,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
         async with live_view(args, title=f"uavloc sim {scenario.name}") as view:
             async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
                                         planner=args.planner, connect=args.connect,
-                                        gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode) as sim:
+                                        gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode,
+                                        header_config={"command_line": getattr(args, "command_line", None)}) as sim:
                 held.sim = sim
                 view.follow(sim.controller.log_writer)
                 result = await sim.run()
