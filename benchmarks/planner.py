@@ -24,7 +24,7 @@ in the same run) and oracle.
 
 Recorded per run: metres flown and mission seconds of the survey (hover included) when the mean
 over users of the 95 % error bound (Estimate.error_bound_95_m) first reaches each target (runs that
-never do count the 3000 m budget and the whole survey; the ambiguity flag is not required to be
+never do count the 3000 m budget and its seconds at their own pace; the ambiguity flag is not required to be
 clear — it flickers with a 40-keyframe window — so
 the table also gives the mean true error at the 1.0 m crossing), each plan() call's compute time,
 each user's final error and 95 % bound, and constraint violations found by an independent check
@@ -184,7 +184,7 @@ def summarise(records: list[dict], planners: tuple[str, ...], targets_m: tuple[f
           for p in planners}
     mean = {(c, p, t): float(np.mean([metres_or_budget(r, i) for r in by[(c, p)]])) if by[(c, p)] else np.nan
             for c in conditions for p in planners for i, t in enumerate(targets_m)}
-    # mission (survey) seconds to each target, hover included; the whole survey when never reached
+    # mission (survey) seconds to each target, hover included; never reached: the budget's seconds at the run's pace
     mean_s = {(c, p, t): _mean([seconds_or_survey(r, i) for r in by[(c, p)]])
               for c in conditions for p in planners for i, t in enumerate(targets_m)}
     t1 = targets_m[0]
@@ -220,8 +220,9 @@ def summarise(records: list[dict], planners: tuple[str, ...], targets_m: tuple[f
     lines.append(f"m@T: mean metres flown until the mean 95 % error bound ≤ T m as the stop rule reads it (without "
                  f"the NLoS shift no survey shrinks; the 3000 m budget when never); "
                  f"/lawn, /ref, /orac: ratio of mean metres to lawnmower / casadi_reference / oracle; "
-                 f"s@T: mean mission seconds of the survey until then, hover included (the whole survey when "
-                 f"never); s/lawn: its ratio to lawnmower's; flr>T: runs whose GPS floor (the 95 % bound the GPS "
+                 f"s@T: mean mission seconds of the survey until then, hover included (never: the budget's "
+                 f"seconds at the run's own pace); s/lawn: its ratio to lawnmower's; flr>T: runs whose GPS floor "
+                 f"(the 95 % bound the GPS "
                  f"error leaves however a run flies) is above T; hover s: mean survey seconds standing while a "
                  f"plan is computed; floor m: median GPS floor over the runs; "
                  f"err@{t1:g}: mean true error [m] at the {t1:g} m crossing; in95: share of users whose final "

@@ -16,6 +16,10 @@ FLOOR_WINDOW_MIN_M = 200.0
 FLOOR_WINDOW_SHARE = 0.1
 #: ... by at least this share of their value at the window's start, or the survey is at its floor
 FLOOR_MIN_SHRINK = 0.05
+#: ... and only when the estimate judged holds at least this share of the keyframes the window's
+#: metres make (window / Δ): a lagging estimator (a busy machine) shows no shrinking because it has
+#: not solved the new ranges yet, which is no floor
+FLOOR_MIN_NEW_KEYFRAME_SHARE = 0.5
 #: a user whose bound is within this factor of the GPS floor (PlanningConstraints.floor_m) has
 #: nothing left that a flight removes: r95² ≤ 1.15² r_floor² leaves at most 0.57 r_floor of the
 #: bound to the ranges
@@ -60,7 +64,9 @@ class FloorWatch:
     - each one's bound is within FLOOR_MARGIN of the GPS floor r_floor (what no flight removes,
       PlanningConstraints.floor_m): r95_k ≤ FLOOR_MARGIN · r_floor; or
     - none of them shrank by FLOOR_MIN_SHRINK over the last `window_m` metres flown:
-      r95_k(now) > (1 − FLOOR_MIN_SHRINK) · r95_k(now − window).
+      r95_k(now) > (1 − FLOOR_MIN_SHRINK) · r95_k(now − window), the estimate now holding at least
+      FLOOR_MIN_NEW_KEYFRAME_SHARE · window / Δ keyframes more than the one then (when both say how
+      many they hold, Estimate.keyframes_used: a lagging estimator is not a floor).
 
     An ambiguous or unlocated user (inf) is never at its floor.
     """
@@ -68,31 +74,37 @@ class FloorWatch:
     target_radius_m: float
     floor_m: float
     window_m: float
-    history: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    delta_m: float = 0.0
+    history: list[tuple[float, int, np.ndarray]] = field(default_factory=list)
 
     @classmethod
     def of(cls, constraints: PlanningConstraints) -> FloorWatch:
         window = max(FLOOR_WINDOW_MIN_M, FLOOR_WINDOW_SHARE * constraints.budget_m)
-        return cls(constraints.target_radius_m, constraints.floor_m, window)
+        return cls(constraints.target_radius_m, constraints.floor_m, window, constraints.delta_m)
 
-    def update(self, flown_m: float, bound_95_m: np.ndarray, ambiguous: np.ndarray | None = None) -> bool:
-        """Record one leg end; True when the survey is at its floor (class docstring)."""
+    def update(self, flown_m: float, bound_95_m: np.ndarray, ambiguous: np.ndarray | None = None,
+               keyframes_used: int = 0) -> bool:
+        """Record one leg end; True when the survey is at its floor (class docstring). keyframes_used:
+        the keyframes the estimate holds (0: not said)."""
         bound = np.asarray(bound_95_m, dtype=float).copy()
         if ambiguous is not None:
             bound[np.asarray(ambiguous, dtype=bool)] = np.inf
-        if self.history and len(self.history[-1][1]) != len(bound):
+        if self.history and len(self.history[-1][2]) != len(bound):
             self.history.clear()
-        self.history.append((float(flown_m), bound))
+        self.history.append((float(flown_m), int(keyframes_used), bound))
         above = bound > self.target_radius_m
         if not np.any(above) or not np.all(np.isfinite(bound[above])):
             return False
         if self.floor_m > 0.0 and np.all(bound[above] <= FLOOR_MARGIN * self.floor_m):
             return True
         # the newest record at least `window_m` back
-        past = [b for m, b in self.history if m <= flown_m - self.window_m]
+        past = [(kf, b) for m, kf, b in self.history if m <= flown_m - self.window_m]
         if not past:
             return False
-        before = past[-1]
+        kf_before, before = past[-1]
+        if (keyframes_used > 0 and kf_before > 0 and self.delta_m > 0.0
+                and keyframes_used - kf_before < FLOOR_MIN_NEW_KEYFRAME_SHARE * self.window_m / self.delta_m):
+            return False
         return bool(np.all(bound[above] > (1.0 - FLOOR_MIN_SHRINK) * before[above]))
 
 
@@ -107,7 +119,7 @@ def stop_reason(constraints: PlanningConstraints, state: PlanningState,
     if targets_reached(est, constraints.target_radius_m):
         return REASON_TARGET
     if (floor is not None and est is not None and est.n_users
-            and floor.update(state.flown_m, reported_bound_95_m(est), est.ambiguous)):
+            and floor.update(state.flown_m, reported_bound_95_m(est), est.ambiguous, est.keyframes_used)):
         return REASON_FLOOR
     if budget_left_m(constraints, state) < constraints.min_leg_m:
         return REASON_BUDGET

@@ -313,17 +313,18 @@ def test_the_planner_table_gives_mission_seconds_hover_and_the_floor_and_checks_
     it), and the check of casadi's mission seconds against 0.75 x lawnmower's in the hardware world."""
     bench = _planner_bench()
 
-    def rec(planner, metres, seconds, survey_s, hover_s, floor_m):
+    def rec(planner, metres, seconds, survey_s, hover_s, floor_m, flown_m):
         return {"status": "ok", "condition": "hardware", "planner": planner, "metres_to_m": metres,
                 "seconds_to_s": seconds, "survey_s": survey_s, "hover_s": hover_s, "floor_m": floor_m,
-                "budget_m": 3000.0, "error_at_m": [1.0, float("nan")], "final_error_m": [1.0],
+                "flown_m": flown_m, "budget_m": 3000.0, "error_at_m": [1.0, float("nan")], "final_error_m": [1.0],
                 "final_bound95_m": [2.0], "plan_times_s": [0.01], "violations": 0}
 
     nan = float("nan")
-    records = [rec("lawnmower", [600.0, nan], [100.0, nan], 300.0, 0.0, 1.2),
-               rec("lawnmower", [800.0, nan], [140.0, nan], 400.0, 0.0, 2.5),
-               rec("casadi", [300.0, nan], [80.0, nan], 200.0, 6.0, 1.2),
-               rec("casadi", [500.0, nan], [100.0, nan], 260.0, 2.0, 2.5)]
+    # the lawnmower flew its budget; casadi ended at its floor after 1500 and 1950 m
+    records = [rec("lawnmower", [600.0, nan], [100.0, nan], 300.0, 0.0, 1.2, 3000.0),
+               rec("lawnmower", [800.0, nan], [140.0, nan], 400.0, 0.0, 2.5, 3000.0),
+               rec("casadi", [300.0, nan], [80.0, nan], 200.0, 6.0, 1.2, 1500.0),
+               rec("casadi", [500.0, nan], [100.0, nan], 260.0, 2.0, 2.5, 1950.0)]
 
     def table(recs):
         text, ok = bench.summarise(recs, ("lawnmower", "casadi"), (3.0, 1.0))
@@ -331,11 +332,12 @@ def test_the_planner_table_gives_mission_seconds_hover_and_the_floor_and_checks_
         return text, ok, rows
 
     text, ok, rows = table(records)
-    # reach, m@3, /lawn /ref /orac, s@3, s/lawn, flr>3 | reach, m@1, ..., s@1 (the whole survey), s/lawn, flr>1 |
+    # reach, m@3, /lawn /ref /orac, s@3, s/lawn, flr>3 | reach, m@1, ..., s@1 (never: the budget's seconds at the
+    # run's pace, survey_s · budget / flown: 400 s each for casadi, 300 and 400 s for lawnmower), s/lawn, flr>1 |
     # hover s, floor m
     assert rows["lawnmower"][2:10] == ["2/2", "700", "1.00", "nan", "nan", "120", "1.00", "0/2"]
     assert rows["casadi"][2:10] == ["2/2", "400", "0.57", "nan", "nan", "90", "0.75", "0/2"]
-    assert rows["casadi"][10:18] == ["0/2", "3000", "1.00", "nan", "nan", "230", "0.66", "2/2"]
+    assert rows["casadi"][10:18] == ["0/2", "3000", "1.00", "nan", "nan", "400", "1.14", "2/2"]
     assert rows["casadi"][18:20] == ["4.0", "1.85"] and rows["lawnmower"][18:20] == ["0.0", "1.85"]
     assert "PASS  hardware: casadi's mission seconds <= 0.75 x lawnmower's at 3 m: ratio 0.75 (90 s / 120 s)" in text
     assert ok

@@ -40,12 +40,19 @@ def metres_or_budget(rec: dict, i: int) -> float:
 
 
 def seconds_or_survey(rec: dict, i: int) -> float:
-    """Survey seconds to target i, or the run's whole survey when it never got there (records
-    written before seconds_to_s: NaN)."""
+    """Survey seconds to target i; when the run never got there, as :func:`metres_or_budget` counts
+    its budget, the seconds its budget takes at the run's own pace (hover included):
+
+        s = survey_s · budget_m / flown_m
+
+    (a run that ended early, at its floor, is not cheaper than one that flew on; records written
+    before seconds_to_s: NaN)."""
     s = (rec.get("seconds_to_s") or [None] * (i + 1))[i]
     if s is None or not math.isfinite(s):
-        total = rec.get("survey_s")
-        return math.nan if total is None else float(total)
+        total, flown = rec.get("survey_s"), rec.get("flown_m")
+        if total is None or flown is None or not flown > 0.0:
+            return math.nan
+        return float(total) * float(rec["budget_m"]) / float(flown)
     return float(s)
 
 
@@ -109,7 +116,7 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
     lines.append("")
     lines.append("m@T: metres flown until every user's printed 95 % error bound <= T m, as the stop rule reads it "
                  "(a run that never gets there counts its budget); [95 %]: 2.5th-97.5th percentile over runs; "
-                 "s@T: median survey seconds to the same, hover included (never there: the whole survey);")
+                 "s@T: median survey seconds to the same, hover included (never there: its budget at its own pace);")
     lines.append("floor m: the 95 % bound the GPS error leaves however a run flies (median over runs); @floor: runs "
                  "that ended 'floor reached'; hover s: median survey seconds spent waiting;")
     lines.append("error: final mean true error per run; in95: median share of estimates inside their own 95 % "

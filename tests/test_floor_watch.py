@@ -1,0 +1,39 @@
+"""The floor watch (planner.stop.FloorWatch): bounds that stop shrinking above the target end the
+survey as "floor reached", unless the estimate judged has not solved the window's ranges yet."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from planner.stop import FLOOR_MARGIN, FloorWatch
+
+
+def _watch(floor_m=0.0):
+    return FloorWatch(target_radius_m=3.0, floor_m=floor_m, window_m=200.0, delta_m=2.0)
+
+
+def test_bounds_that_keep_shrinking_are_no_floor():
+    w = _watch()
+    assert not any(w.update(m, np.array([10.0 * 0.9 ** (m / 50.0)]), keyframes_used=int(m / 2) + 1)
+                   for m in np.arange(0.0, 1000.0, 50.0))
+
+
+def test_bounds_that_stall_over_the_window_are_a_floor():
+    w = _watch()
+    hits = [w.update(m, np.array([5.0]), keyframes_used=int(m / 2) + 1) for m in np.arange(0.0, 400.0, 50.0)]
+    assert hits.index(True) == 4  # the first leg end 200 m after the first record
+
+
+def test_a_lagging_estimate_is_no_floor():
+    """The same stalled bounds from an estimate that still holds the keyframes of 200 m ago."""
+    w = _watch()
+    assert not any(w.update(m, np.array([5.0]), keyframes_used=50) for m in np.arange(0.0, 400.0, 50.0))
+    # once it catches up (100 = 0.5 · 200 m / Δ keyframes more than then), the stall counts
+    assert w.update(400.0, np.array([5.0]), keyframes_used=160)
+
+
+def test_bounds_within_the_margin_of_the_gps_floor_end_at_once_and_below_target_never():
+    w = _watch(floor_m=2.8)
+    assert w.update(0.0, np.array([FLOOR_MARGIN * 2.8 - 0.01, 2.0]))
+    assert not _watch(floor_m=2.8).update(0.0, np.array([2.9, 2.0]) * 1.0 - 1.0)  # all within target
+    assert not _watch(floor_m=2.8).update(0.0, np.array([np.inf, 3.1]))  # an unlocated user
