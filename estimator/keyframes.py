@@ -58,11 +58,12 @@ class KeyframeSelector:
         """(3,) the last accepted position [m, ENU], None before the first."""
         return None if self._last is None else self._last.copy()
 
-    def accept(self, pos_enu_m: np.ndarray) -> bool:
-        """True (and remember it) when `pos_enu_m` (3,) is ≥ Δ from the last kept position."""
+    def accept(self, pos_enu_m: np.ndarray, force: bool = False) -> bool:
+        """True (and remember it) when `pos_enu_m` (3,) is ≥ Δ from the last kept position, or when
+        `force` (a keyframe the caller wants for another reason, e.g. time: the spacing counts from it)."""
         p = _check_pos(pos_enu_m)
         # keep ⇔ ||p − p_last|| ≥ Δ
-        if self._last is None or float(np.linalg.norm(p - self._last)) >= self.delta_m:
+        if force or self._last is None or float(np.linalg.norm(p - self._last)) >= self.delta_m:
             self._last = p
             return True
         return False

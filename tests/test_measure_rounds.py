@@ -68,3 +68,52 @@ def test_rounds_end_after_delta_and_take_the_users_in_turn(tmp_path):
     assert set(order) == set(range(N_USERS))
     told = [f for m, f in events if f.get("kind") == "gnb_rounds"]
     assert len(told) == 1 and told[0]["users"] == N_USERS and told[0]["served"] < N_USERS
+
+
+def test_the_trigger_measures_at_a_turn_where_the_uav_moves_less_than_delta(tmp_path):
+    """A UAV braking to a leg's end and turning back moves less than Δ for seconds (3.5 s without a
+    range in a `paper` survey): on a leg the trigger still measures every MAX_RANGE_GAP_S mission
+    seconds, longer than replay's grouping window so that replay keeps those rounds apart; off a leg
+    (hovering to replan) it does not, and a moving UAV is measured every Δ."""
+    from estimator.keyframes import KeyframeSelector
+    from mission.control.pipeline import MAX_RANGE_GAP_S
+    from mission.replay import GROUP_WINDOW_S
+
+    assert MAX_RANGE_GAP_S > GROUP_WINDOW_S
+    sel = KeyframeSelector(2.0)
+    assert sel.accept(np.zeros(3)) and not sel.accept(np.array([0.5, 0.0, 0.0]))
+    assert sel.accept(np.array([0.5, 0.0, 0.0]), force=True)
+    assert not sel.accept(np.array([2.0, 0.0, 0.0])) and sel.accept(np.array([2.6, 0.0, 0.0]))  # from the forced one
+
+    def rounds_at(speed_mps: float, on_leg: bool) -> list[float]:
+        buf = TelemetryBuffer(4096)
+        now = {"t": 0.0}
+        flight = FlightState(event=lambda message, **fields: None)
+        flight.on_leg = on_leg
+        pipe = MeasurementPipeline(None, [MissionUser("ue0", 0x4601)], DELTA_M, 5.0, flight, buf, lambda: None,
+                                   MissionLogWriter(tmp_path / "m.jsonl"), now=lambda: now["t"], mission_t=lambda t: t)
+        times: list[float] = []
+
+        async def measure_round() -> None:  # the gNB's part is not what is tested here
+            times.append(now["t"])
+
+        pipe.measure_round = measure_round
+
+        async def main():
+            trigger = asyncio.create_task(pipe.run_trigger())
+            while now["t"] < 10.0:  # 10 mission seconds of fixes, 20 per second
+                now["t"] += 0.05
+                buf.append(now["t"], np.array([speed_mps * now["t"], 0.0, 30.0]))
+                flight.wake.pulse()
+                await asyncio.sleep(0)
+            trigger.cancel()
+
+        asyncio.run(main())
+        return times
+
+    still = rounds_at(0.0, on_leg=True)
+    assert len(still) == 7 and np.all(np.diff(still) >= MAX_RANGE_GAP_S - 1e-9)
+    assert np.max(np.diff(still)) <= MAX_RANGE_GAP_S + 0.05 + 1e-9
+    assert rounds_at(0.0, on_leg=False) == []
+    moving = rounds_at(8.0, on_leg=True)  # 80 m at 8 m/s in 0.4 m steps: every Δ = 2 m (5 or 6 steps)
+    assert 33 <= len(moving) <= 41 and np.max(np.diff(moving)) < MAX_RANGE_GAP_S

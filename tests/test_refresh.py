@@ -75,9 +75,11 @@ def test_confirm_asks_for_a_batch_refresh_at_once_rate_limited(sawtooth_survey):
 
     ref = RefreshedEstimator(3, sc.user_up_m, NoiseModel())
     out = [ref.add_keyframe(kf, confirm) for kf in kfs[:200]]
-    # the predicate sees online estimates only, and each True it returns is answered by a batch
-    # solve of every keyframe so far, at most every CONFIRM_MIN_KEYFRAMES keyframes
-    assert asked and all(a in ("", SOURCE_ONLINE) for a in asked)
+    # the predicate sees online estimates (and the warm refreshes that answer them), and each True
+    # it returns is answered by a batch solve of every keyframe so far, at most every
+    # CONFIRM_MIN_KEYFRAMES keyframes
+    assert asked and all(a in ("", SOURCE_ONLINE, SOURCE_BATCH) for a in asked)
+    assert any(a in ("", SOURCE_ONLINE) for a in asked)
     used = [e.keyframes_used for e in out]
     assert all(e.source == SOURCE_BATCH for e in out)
     assert all(n - u < CONFIRM_MIN_KEYFRAMES for n, u in enumerate(used, start=1))
@@ -210,3 +212,21 @@ def test_a_failing_online_part_is_dropped_and_the_batch_refreshes_go_on(sawtooth
     cold = solve_batch(kfs[: est.keyframes_used], 3, sc.user_up_m, NoiseModel())
     assert np.all(np.linalg.norm(est.users_enu_m[:, :2] - cold.users_enu_m[:, :2], axis=1)
                   <= 0.15 * cold.error_bound_95_m())
+
+
+def test_what_confirm_holds_on_is_the_final_answer_s_cold_solve(sawtooth_survey):
+    """A warm refresh on which the stop rule holds is solved again cold before it is published: the
+    estimate a mission stops on is the final answer's computation over the same keyframes
+    (solve_batch), bit for bit, so "target reached" never rests on a bound the final answer widens."""
+    sc, kfs = sawtooth_survey
+    ref = RefreshedEstimator(3, sc.user_up_m, NoiseModel())
+    stopped = None
+    for kf in kfs[:300]:
+        est = ref.add_keyframe(kf, lambda e: bool(np.all(e.error_bound_95_m() <= 3.0)))
+        if est.source == SOURCE_BATCH and np.all(est.error_bound_95_m() <= 3.0):
+            stopped = est
+            break
+    assert stopped is not None, "the survey reaches a 3 m bound"
+    final = solve_batch(kfs[:stopped.keyframes_used], 3, sc.user_up_m, NoiseModel())
+    np.testing.assert_array_equal(stopped.users_enu_m, final.users_enu_m)
+    np.testing.assert_array_equal(stopped.cov_users_m2, final.cov_users_m2)

@@ -1,9 +1,11 @@
 """The measurement pipeline (docs/design.md §3, §7): Δ-trigger → placer → keyframe queue.
 
 - the **trigger** (:meth:`MeasurementPipeline.run_trigger`): while a survey leg is flown, when the
-  UAV has moved Δ since the last keyframe (`KeyframeSelector`), measure the users through the
-  gNB (not while hovering to replan, where GPS noise alone would move the fix by Δ) and put the
-  round on the place queue. A round ends when every user is measured or when the UAV has moved
+  UAV has moved Δ since the last keyframe (`KeyframeSelector`), or MAX_RANGE_GAP_S mission seconds
+  have passed since the last round (a turn: braking to a leg's end and accelerating into the next
+  one moves less than Δ for seconds), measure the users through the gNB (not while hovering to
+  replan, where GPS noise alone would move the fix by Δ) and put the round on the place queue.
+  A round ends when every user is measured or when the UAV has moved
   Δ since it began, whichever comes first; the next round goes on with the next user (in turn),
   so many users share the gNB's answers without stretching the keyframe spacing (one position
   per round, within Δ of every measurement in it). The first round cut short logs how many users
@@ -57,6 +59,10 @@ PROTOCOL_ERROR_STREAK = 3
 #: how long placing waits (wall) at most for the logged velocity record after a round [s] (the
 #: record is due within 1/telemetry_log_hz of mission time; the bound only matters when telemetry stops)
 VELOCITY_WAIT_S = 5.0
+#: on a leg, a round at least this often [mission s] however little the UAV moved: a reversal at a
+#: leg's end moved less than Δ for 3.5 s in a `paper` survey, a gap without ranges. Longer than
+#: replay's GROUP_WINDOW_S (1 s), so that replay never merges two such rounds into one keyframe
+MAX_RANGE_GAP_S = 1.5
 
 
 class MeasurementPipeline:
@@ -133,9 +139,12 @@ class MeasurementPipeline:
     async def run_trigger(self) -> None:
         f = self.flight
         selector = KeyframeSelector(self.delta_m)
+        last_round_t = -float("inf")
         while True:
             latest = self.buffer.latest()
-            if f.on_leg and not f.ending and latest is not None and selector.accept(latest[1]):
+            if f.on_leg and not f.ending and latest is not None and (
+                    selector.accept(latest[1], force=self.now() - last_round_t >= MAX_RANGE_GAP_S)):
+                last_round_t = self.now()
                 await self.measure_round()
                 continue  # check the newest fix at once: fixes arrived while measuring
             await f.wake.wait(1.0)
