@@ -64,7 +64,9 @@ class FloorWatch:
     - each one's bound is within FLOOR_MARGIN of the GPS floor r_floor (what no flight removes,
       PlanningConstraints.floor_m): r95_k ≤ FLOOR_MARGIN · r_floor; or
     - none of them shrank by FLOOR_MIN_SHRINK over the last `window_m` metres flown:
-      r95_k(now) > (1 − FLOOR_MIN_SHRINK) · r95_k(now − window), the estimate now holding at least
+      r95_k(now) > (1 − FLOOR_MIN_SHRINK) · r95_k(now − window), and none's NLoS shift |δ_k| grew by
+      FLOOR_MIN_SHRINK · r95_k(now − window) (an NLoS excess found mid-survey widens a bound, and
+      flying to the user's clear side may undo it), the estimate now holding at least
       FLOOR_MIN_NEW_KEYFRAME_SHARE · window / Δ keyframes more than the one then (when both say how
       many they hold, Estimate.keyframes_used: a lagging estimator is not a floor).
 
@@ -75,7 +77,7 @@ class FloorWatch:
     floor_m: float
     window_m: float
     delta_m: float = 0.0
-    history: list[tuple[float, int, np.ndarray]] = field(default_factory=list)
+    history: list[tuple[float, int, np.ndarray, np.ndarray | None]] = field(default_factory=list)
 
     @classmethod
     def of(cls, constraints: PlanningConstraints) -> FloorWatch:
@@ -83,28 +85,33 @@ class FloorWatch:
         return cls(constraints.target_radius_m, constraints.floor_m, window, constraints.delta_m)
 
     def update(self, flown_m: float, bound_95_m: np.ndarray, ambiguous: np.ndarray | None = None,
-               keyframes_used: int = 0) -> bool:
+               keyframes_used: int = 0, nlos_shift_m: np.ndarray | None = None) -> bool:
         """Record one leg end; True when the survey is at its floor (class docstring). keyframes_used:
-        the keyframes the estimate holds (0: not said)."""
+        the keyframes the estimate holds (0: not said); nlos_shift_m: (K,) each user's NLoS shift
+        |δ_k| [m] (ModelState.nlos_shift_m), None when not estimated."""
         bound = np.asarray(bound_95_m, dtype=float).copy()
         if ambiguous is not None:
             bound[np.asarray(ambiguous, dtype=bool)] = np.inf
+        shift_m = None if nlos_shift_m is None else np.nan_to_num(np.asarray(nlos_shift_m, dtype=float))
         if self.history and len(self.history[-1][2]) != len(bound):
             self.history.clear()
-        self.history.append((float(flown_m), int(keyframes_used), bound))
+        self.history.append((float(flown_m), int(keyframes_used), bound, shift_m))
         above = bound > self.target_radius_m
         if not np.any(above) or not np.all(np.isfinite(bound[above])):
             return False
         if self.floor_m > 0.0 and np.all(bound[above] <= FLOOR_MARGIN * self.floor_m):
             return True
         # the newest record at least `window_m` back
-        past = [(kf, b) for m, kf, b in self.history if m <= flown_m - self.window_m]
+        past = [(kf, b, sh) for m, kf, b, sh in self.history if m <= flown_m - self.window_m]
         if not past:
             return False
-        kf_before, before = past[-1]
+        kf_before, before, shift_before = past[-1]
         if (keyframes_used > 0 and kf_before > 0 and self.delta_m > 0.0
                 and keyframes_used - kf_before < FLOOR_MIN_NEW_KEYFRAME_SHARE * self.window_m / self.delta_m):
             return False
+        if shift_m is not None and shift_before is not None and np.any(
+                (shift_m - shift_before)[above] > FLOOR_MIN_SHRINK * before[above]):
+            return False  # an NLoS excess found in the window: the planner may yet fly to where it shrinks
         return bool(np.all(bound[above] > (1.0 - FLOOR_MIN_SHRINK) * before[above]))
 
 
@@ -119,7 +126,8 @@ def stop_reason(constraints: PlanningConstraints, state: PlanningState,
     if targets_reached(est, constraints.target_radius_m):
         return REASON_TARGET
     if (floor is not None and est is not None and est.n_users
-            and floor.update(state.flown_m, reported_bound_95_m(est), est.ambiguous, est.keyframes_used)):
+            and floor.update(state.flown_m, reported_bound_95_m(est), est.ambiguous, est.keyframes_used,
+                             None if est.state is None else est.state.nlos_shift_m)):
         return REASON_FLOOR
     if budget_left_m(constraints, state) < constraints.min_leg_m:
         return REASON_BUDGET

@@ -24,6 +24,23 @@ def test_bounds_that_stall_over_the_window_are_a_floor():
     assert hits.index(True) == 4  # the first leg end 200 m after the first record
 
 
+def test_an_nlos_shift_found_in_the_window_is_no_floor():
+    """An NLoS excess found mid-survey widens a bound by its shift (a three_users_nlos survey: 3.7 m
+    at 175 m flown, 14.2 m with an 8.1 m shift at 361 m, ended 'floor reached'): the survey goes on
+    while the shift grows, and ends at the floor once neither shrinks nor grows for a window."""
+    w = _watch()
+    track = [(0.0, 3.7, 0.0), (50.0, 4.4, 2.0), (100.0, 7.0, 3.5), (150.0, 14.2, 8.0), (200.0, 14.8, 8.3),
+             (250.0, 16.9, 9.6), (300.0, 15.9, 9.0), (350.0, 15.5, 8.6), (400.0, 15.0, 8.4), (450.0, 14.9, 8.2)]
+    hits = [m for m, b, sh in track
+            if w.update(m, np.array([b]), keyframes_used=int(m / 2) + 1, nlos_shift_m=np.array([sh]))]
+    # 350 m: 15.5 against 14.2 at 150 m, its shift 8.6 against 8.0 (grown by less than 5 % of the bound);
+    # 400 m: 15.0 against 14.8, 8.4 against 8.3; not 450 m: 14.9 against 16.9 at 250 m, shrinking
+    assert hits == [350.0, 400.0]
+    # without the shifts it would have ended at 200 m (14.8 against 3.7 did not shrink)
+    w = _watch()
+    assert next(m for m, b, _ in track if w.update(m, np.array([b]), keyframes_used=int(m / 2) + 1)) == 200.0
+
+
 def test_a_lagging_estimate_is_no_floor():
     """The same stalled bounds from an estimate that still holds the keyframes of 200 m ago."""
     w = _watch()
