@@ -89,6 +89,8 @@ class SurveyLegs:
         self._ahead: tuple[np.ndarray, asyncio.Task[PlanResult]] | None = None
         #: legs whose plan was ready (or being made) when the vehicle arrived
         self.planned_ahead = 0
+        #: legs started so far (numbered on in a resumed survey)
+        self.legs_flown = 0
         self._plan_wall_s = 1.0  # how long the last plan took, drain included [wall s]
 
     async def takeoff(self) -> None:
@@ -172,9 +174,9 @@ class SurveyLegs:
 
     async def _survey(self) -> None:
         dep, cfg, f = self.deps, self.deps.config, self.deps.flight
-        self.battery_start_pct = dep.battery_pct()
+        if self.battery_start_pct is None:  # a survey resumed keeps the charge it started with
+            self.battery_start_pct = dep.battery_pct()
         refusals = 0
-        leg = 0
         while not f.ending:
             # while the vehicle link is lost, wait (the safety monitor returns home after
             # link_lost_wait_s) rather than plan from a stale fix and command into the void
@@ -194,7 +196,8 @@ class SurveyLegs:
                 break
             wp = np.asarray(plan.waypoint_enu_m, float)
             lat, lon, alt = (float(x) for x in dep.origin.enu_to_lla(wp))
-            leg += 1
+            self.legs_flown += 1
+            leg = self.legs_flown
             dep.journal.writer.write(
                 "waypoint", dep.now(), leg=leg, lat_deg=lat, lon_deg=lon, alt_m=alt, enu_m=wp.tolist(),
                 planner=getattr(dep.planner, "name", "?"), status=plan.status,
