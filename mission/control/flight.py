@@ -41,7 +41,7 @@ import numpy as np
 from estimator.geodesy import Origin
 from estimator.gps import estimate_gps_tau_s
 from estimator.noise import NoiseModel
-from estimator.types import SOURCE_BATCH, Estimate, Keyframe, SolverParams
+from estimator.types import Estimate, Keyframe, SolverParams
 from mission.control.config import (
     ABORT,
     CONNECT,
@@ -75,6 +75,7 @@ from mission.result import Result, build_result
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.telemetry import TelemetryBuffer, VehicleClock
 from mission.vehicle import PositionFix, Vehicle
+from planner.stop import targets_reached
 from planner.types import Planner
 from uavloc.errors import (
     EstimatorError,
@@ -300,7 +301,7 @@ class MissionController:
             return True
         await self.pipeline.drain(self.wall(PLAN_DRAIN_MAX_S))
         final = await asyncio.to_thread(self._estimator.final, list(self.pipeline.keyframes))
-        if self._estimator.stops(replace(final, source=SOURCE_BATCH)):
+        if targets_reached(final, self.config.flight.target_radius_m):
             return True
         worst = float(np.max(final.error_bound_95_m()))
         f.stop = None

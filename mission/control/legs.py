@@ -197,9 +197,8 @@ class SurveyLegs:
             wp = np.asarray(plan.waypoint_enu_m, float)
             lat, lon, alt = (float(x) for x in dep.origin.enu_to_lla(wp))
             self.legs_flown += 1
-            leg = self.legs_flown
             dep.journal.writer.write(
-                "waypoint", dep.now(), leg=leg, lat_deg=lat, lon_deg=lon, alt_m=alt, enu_m=wp.tolist(),
+                "waypoint", dep.now(), leg=self.legs_flown, lat_deg=lat, lon_deg=lon, alt_m=alt, enu_m=wp.tolist(),
                 planner=getattr(dep.planner, "name", "?"), status=plan.status,
                 objective=plan.objective if math.isfinite(plan.objective) else None, solve_time_s=plan.solve_time_s)
             await self.command_speed()

@@ -142,9 +142,10 @@ class MeasurementPipeline:
         last_round_t = -float("inf")
         while True:
             latest = self.buffer.latest()
+            now = self.now()
             if f.on_leg and not f.ending and latest is not None and (
-                    selector.accept(latest[1], force=self.now() - last_round_t >= MAX_RANGE_GAP_S)):
-                last_round_t = self.now()
+                    selector.accept(latest[1], force=now - last_round_t >= MAX_RANGE_GAP_S)):
+                last_round_t = now
                 await self.measure_round()
                 continue  # check the newest fix at once: fixes arrived while measuring
             await f.wake.wait(1.0)
