@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import re
 import threading
 from pathlib import Path
 
@@ -135,7 +136,9 @@ def test_the_survey_reports_the_spacing_its_log_shows(tmp_path, gnb_delay_s):
     # the event holds survey_s rounded to 0.01 s: the rate recomputed from it carries that rounding
     rate = 60.0 * survey["rounds"] / survey["survey_s"]
     assert survey["rounds_per_min"] == pytest.approx(rate, abs=0.006 + rate * 0.005 / survey["survey_s"])
-    assert f"one every {survey['spacing_m']:.1f} m" in survey["message"]
+    # the message writes the spacing to 0.1 m from its unrounded value (the field holds it to 0.01 m)
+    said = float(re.search(r"one every ([0-9.]+) m", survey["message"]).group(1))
+    assert said == pytest.approx(survey["spacing_m"], abs=0.05 + 0.005 + 1e-9)
     for ev in _events(log_path, "gnb_rounds"):
         assert "every" not in ev["message"]
     if gnb_delay_s:
