@@ -121,10 +121,12 @@ class SurveyPace:
         return self.achieved_speedup < FELL_BEHIND_SHARE * self.requested_speedup
 
     def message(self) -> str:
-        """One line: "asked ×20, ran ×6.3: ..." (by how much, and what it means)."""
-        return (f"asked ×{self.requested_speedup:g}, ran ×{self.achieved_speedup:.1f}: the simulation fell "
+        """One line: "asked ×20, ran ×6.3: ..." (by how much, and what it means). It prints the
+        speed-up the log records (to_dict's two decimals), so the line and the field never disagree."""
+        achieved = round(self.achieved_speedup, 2)
+        return (f"asked ×{self.requested_speedup:g}, ran ×{achieved:.1f}: the simulation fell "
                 f"behind its speed-up ({self.survey_s:.0f} mission seconds of survey took {self.survey_wall_s:.1f} "
-                f"wall seconds, {100.0 * self.achieved_speedup / self.requested_speedup:.0f} % of the pace asked); "
+                f"wall seconds, {100.0 * achieved / self.requested_speedup:.0f} % of the pace asked); "
                 f"the machine is too busy for it, try a smaller --speedup")
 
     def to_dict(self) -> dict:
