@@ -26,7 +26,7 @@ import numpy as np
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from estimator.ranging import toa_s_from_raw
-from mission.telemetry import VehicleStatus
+from mission.vehicle.telemetry import VehicleStatus
 from uavloc.errors import MissionLogError, UavlocError
 
 log = logging.getLogger(__name__)

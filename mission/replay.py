@@ -27,7 +27,7 @@ from mission.estimation import MissionEstimator
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframes_of, triggers_gps_enu_m
 from mission.log import MissionLog
 from mission.result import Result, build_result, horizontal_error_m, result_status
-from mission.telemetry import odometer_dead_band_m, odometer_m
+from mission.vehicle.telemetry import odometer_dead_band_m, odometer_m
 from uavloc.errors import MissionLogError
 
 log = logging.getLogger(__name__)

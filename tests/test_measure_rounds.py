@@ -14,7 +14,7 @@ from mission.control.pipeline import MeasurementPipeline
 from mission.control.state import FlightState
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.log import MissionLogWriter
-from mission.telemetry import TelemetryBuffer
+from mission.vehicle.telemetry import TelemetryBuffer
 from sitl_scenarios.gnb import SimulatedGnb
 from sitl_scenarios.scenario import scenario_from_dict, user_tables
 

@@ -313,7 +313,7 @@ def test_flight_pipeline_keyframes_carry_the_velocity_displacement_replay_rebuil
     from mission.gnb.oai import RttSample
     from mission.log import MissionLogWriter, read_mission_log
     from mission.replay import build_keyframes
-    from mission.telemetry import TelemetryBuffer
+    from mission.vehicle.telemetry import TelemetryBuffer
 
     origin = Origin(43.6143, 7.0716, 150.0)
     users = [MissionUser("ue1", 0x4601), MissionUser("ue2", 0x4602)]

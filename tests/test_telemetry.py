@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mission.telemetry import TelemetryBuffer
+from mission.vehicle.telemetry import TelemetryBuffer
 from uavloc.errors import MissionError
 
 
@@ -74,7 +74,7 @@ def test_empty_and_bad_input():
 
 
 def test_odometer_ignores_gps_noise_while_hovering_and_counts_flight():
-    from mission.telemetry import odometer_dead_band_m, odometer_m
+    from mission.vehicle.telemetry import odometer_dead_band_m, odometer_m
 
     rng = np.random.default_rng(3)
     band = odometer_dead_band_m(1.0)
@@ -89,7 +89,7 @@ def test_odometer_ignores_gps_noise_while_hovering_and_counts_flight():
 
 
 def test_odometer_rejects_a_non_positive_band():
-    from mission.telemetry import Odometer
+    from mission.vehicle.telemetry import Odometer
 
     with pytest.raises(MissionError, match="dead band"):
         Odometer(0.0)
@@ -97,7 +97,7 @@ def test_odometer_rejects_a_non_positive_band():
 
 # --- vehicle clock ------------------------------------------------------------------------------
 def test_vehicle_clock_follows_boot_time_at_any_rate_and_is_continuous() -> None:
-    from mission.telemetry import VehicleClock
+    from mission.vehicle.telemetry import VehicleClock
 
     clock = VehicleClock(t0_mono_s=100.0, fallback_rate=1.0)
     assert clock.mission_t(102.0) == pytest.approx(2.0) and not clock.synced
@@ -114,7 +114,7 @@ def test_vehicle_clock_follows_boot_time_at_any_rate_and_is_continuous() -> None
 
 
 def test_vehicle_clock_rejects_a_bad_rate() -> None:
-    from mission.telemetry import VehicleClock
+    from mission.vehicle.telemetry import VehicleClock
 
     with pytest.raises(MissionError):
         VehicleClock(0.0, fallback_rate=0.0)

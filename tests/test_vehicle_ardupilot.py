@@ -1,5 +1,5 @@
 """The ArduPilot side: the built-in vehicle's ArduCopter personality on the wire and in flight, the
-vehicle adapter flying it (mission.vehicle_ardupilot), and whole missions on it.
+vehicle adapter flying it (mission.vehicle.ardupilot), and whole missions on it.
 
 The recorded real ArduCopter (../shared/data/ardupilot-4.7-sitl/) is what these behaviours come
 from; tests/test_ardupilot_conformance.py holds the flight itself to it.

@@ -15,7 +15,7 @@ from estimator.types import CHI2_2DOF_95, Estimate
 from mission.config import FlightConfig
 from mission.control.config import ControllerConfig
 from mission.log import MissionLogWriter, area_fields, read_mission_log
-from mission.telemetry import VehicleStatus
+from mission.vehicle.telemetry import VehicleStatus
 from mission.view.state import GNB_STALE_S, Cursor, Timeline, ViewState, ellipse_95
 from uavloc.errors import MissionLogError
 

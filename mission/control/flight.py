@@ -20,7 +20,7 @@ ellipse within the target radius, or the budget spent) leads to RETURN. An excep
 cancellation (Ctrl-C) or a safety condition ends in RTL and a flushed log.
 
 Time: the log's `t` is mission seconds since start on the vehicle's clock (MAVLink boot time,
-:class:`mission.telemetry.VehicleClock`); before the vehicle's time is known (and with a vehicle
+:class:`mission.vehicle.telemetry.VehicleClock`); before the vehicle's time is known (and with a vehicle
 that sends none) it is `(monotonic − start) · time_scale` (the simulator's speedup; 1 for real
 flights). Request timeouts stay in wall seconds.
 """
@@ -73,8 +73,8 @@ from mission.log import MissionLogWriter, area_fields, read_mission_log
 from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log
 from mission.result import Result, build_result
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
-from mission.telemetry import TelemetryBuffer, VehicleClock
 from mission.vehicle import PositionFix, Vehicle
+from mission.vehicle.telemetry import TelemetryBuffer, VehicleClock
 from planner.stop import targets_reached
 from planner.types import Planner
 from uavloc.errors import (

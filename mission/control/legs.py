@@ -30,7 +30,7 @@ from mission.control.safety_monitor import energy_remaining_m
 from mission.control.state import FlightState
 from mission.result import status_of_planner_reason
 from mission.safety import GatedVehicle
-from mission.telemetry import Odometer, odometer_dead_band_m
+from mission.vehicle.telemetry import Odometer, odometer_dead_band_m
 from planner.types import Planner, PlanningState, PlanResult
 from uavloc.errors import PlannerError, SafetyError, VehicleError
 

@@ -49,7 +49,7 @@ from mission.control.state import FlightState
 from mission.gnb import GnbClient
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframe, velocity_covers
 from mission.log import MissionLogWriter
-from mission.telemetry import TelemetryBuffer
+from mission.vehicle.telemetry import TelemetryBuffer
 from uavloc.errors import GnbError, GnbNoMeasurementError, GnbProtocolError, GnbUnknownCommandError, MissionError
 
 log = logging.getLogger(__name__)

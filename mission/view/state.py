@@ -40,7 +40,7 @@ import pymap3d
 
 from estimator.geodesy import Origin
 from estimator.types import CHI2_2DOF_95
-from mission.telemetry import GPS_FIX_NAMES, Odometer, VehicleStatus
+from mission.vehicle.telemetry import GPS_FIX_NAMES, Odometer, VehicleStatus
 from uavloc.errors import MissionError
 
 _WGS84 = pymap3d.Ellipsoid.from_name("wgs84")

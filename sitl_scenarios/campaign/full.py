@@ -7,7 +7,7 @@ thread of the run's own process (a campaign's unit of parallelism is the worker 
 worker processes are daemons and may not start children). Its mission log (in a
 temporary folder) is then read back for the record:
 
-- metres flown: the controller's own odometer (mission.telemetry.odometer_m, dead band
+- metres flown: the controller's own odometer (mission.vehicle.telemetry.odometer_m, dead band
   max(5 m, 8 σ_gps)) over the logged telemetry from the first waypoint on, read at each estimate;
 - the accuracy track: every logged estimate against the scenario's truth (AccuracyTrack);
 - replans: the waypoint records and their solve times.
@@ -51,7 +51,7 @@ def fly_full(sc: Scenario, planner_name: str, params: SolverParams, seed: int, t
 def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: float) -> Outcome:
     """Outcome of a finished simulated mission from its parsed log and MissionResult: the accuracy
     track over its logged estimates, and the row's final figures from its Result."""
-    from mission.telemetry import odometer_m
+    from mission.vehicle.telemetry import odometer_m
 
     out = Outcome()
     out.plan_times_s = [float(w.get("solve_time_s") or 0.0) for w in mlog.waypoints]

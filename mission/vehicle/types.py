@@ -1,6 +1,6 @@
-"""The vehicle adapter's small types that its ArduPilot part shares with it (mission.vehicle,
-mission.vehicle_ardupilot): the command errors and a geodetic point. Import them from
-mission.vehicle."""
+"""The vehicle adapter's small types that its ArduPilot part shares with it
+(mission.vehicle.mavsdk_vehicle, mission.vehicle.ardupilot): the command errors and a geodetic
+point. Import them from mission.vehicle."""
 
 from __future__ import annotations
 

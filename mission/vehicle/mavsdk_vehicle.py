@@ -3,7 +3,7 @@
 The controller depends only on :class:`Vehicle` (docs/architecture.md). :class:`MavsdkVehicle` implements it
 over the native `mavsdk.asyncio` binding, for PX4 and ArduPilot (real or SITL) and for the built-in
 simulator alike; which autopilot it is comes from the HEARTBEAT (`MAV_AUTOPILOT_*`). What MAVSDK
-does not do on ArduPilot is in :mod:`mission.vehicle_ardupilot` (docs/ardupilot.md). Every call has
+does not do on ArduPilot is in :mod:`mission.vehicle.ardupilot` (docs/ardupilot.md). Every call has
 a timeout; every plugin error is turned into a :class:`VehicleCommandError` carrying MAVSDK's result
 code, right where the call is made (the MAVSDK-Python examples' style).
 
@@ -25,8 +25,8 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from mission.telemetry import VehicleStatus
-from mission.vehicle_types import GeoFix, VehicleCommandError, VehicleTimeoutError
+from mission.vehicle.telemetry import VehicleStatus
+from mission.vehicle.types import GeoFix, VehicleCommandError, VehicleTimeoutError
 from uavloc.errors import VehicleError
 
 log = logging.getLogger(__name__)
@@ -71,7 +71,7 @@ class VehicleState:
     autopilot: str = "unknown"
 
     def status(self) -> VehicleStatus:
-        """What a `telemetry` record carries beside the position (mission.telemetry.VehicleStatus)."""
+        """What a `telemetry` record carries beside the position (mission.vehicle.telemetry.VehicleStatus)."""
         pos = self.position
         return VehicleStatus(rel_alt_m=None if pos is None or not math.isfinite(pos.rel_alt_m) else pos.rel_alt_m,
                              heading_deg=self.heading_deg, battery_pct=self.battery_pct,
@@ -175,7 +175,7 @@ class MavsdkVehicle:
         self._system = None
         self._action = None
         self._telemetry = None
-        self._ardupilot = None  # mission.vehicle_ardupilot.ArduPilotLink once the heartbeat says ArduPilot
+        self._ardupilot = None  # mission.vehicle.ardupilot.ArduPilotLink once the heartbeat says ArduPilot
         self._ardupilot_watch: asyncio.Task | None = None
 
     async def __aenter__(self) -> MavsdkVehicle:
@@ -215,11 +215,11 @@ class MavsdkVehicle:
 
     async def _detect_autopilot(self, system) -> None:
         """The HEARTBEAT's MAV_AUTOPILOT (MavlinkDirect); on ArduPilot, start following what
-        MAVSDK does not (mission.vehicle_ardupilot) and request the streams it would not send."""
+        MAVSDK does not (mission.vehicle.ardupilot) and request the streams it would not send."""
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from pymavlink.dialects.v20 import common as mavlink
 
-        from mission.vehicle_ardupilot import heartbeat_autopilot
+        from mission.vehicle.ardupilot import heartbeat_autopilot
 
         kind = None
         direct = MavlinkDirectAsync(system)
@@ -235,7 +235,7 @@ class MavsdkVehicle:
         log.info("autopilot: %s (MAV_AUTOPILOT %s)", self.state.autopilot, kind)
         if self.state.autopilot != "ardupilot":
             return
-        from mission.vehicle_ardupilot import ArduPilotLink
+        from mission.vehicle.ardupilot import ArduPilotLink
 
         self._ardupilot = ArduPilotLink(system, self.state, self.request_timeout_s, self.position_rate_hz,
                                         target_system=await system.get_system_id())
@@ -277,7 +277,7 @@ class MavsdkVehicle:
 
     async def wait_ready(self, timeout_s: float = 60.0) -> GeoFix:
         """Wait until the autopilot reports global position ok and home ok, then return home
-        (ArduPilot: its EKF, GPS fix and HOME_POSITION, mission.vehicle_ardupilot)."""
+        (ArduPilot: its EKF, GPS fix and HOME_POSITION, mission.vehicle.ardupilot)."""
         self._need()
         if self._ardupilot is not None:
             await self._ardupilot.wait_ready(timeout_s)

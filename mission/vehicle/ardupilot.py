@@ -33,7 +33,7 @@ from typing import Any
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as apm
 
-from mission.vehicle_types import GeoFix, VehicleCommandError, VehicleTimeoutError
+from mission.vehicle.types import GeoFix, VehicleCommandError, VehicleTimeoutError
 from uavloc.errors import VehicleError
 
 log = logging.getLogger(__name__)
