@@ -58,17 +58,21 @@ def targets_reached(estimate: Estimate | None, target_radius_m: float) -> bool:
 @dataclass
 class FloorWatch:
     """Whether a survey's bounds stopped shrinking above the target (REASON_FLOOR). Fed at each leg
-    end with the metres flown and the printed bounds (K,) [m]; the users still above the target
-    are at their floor when either
+    end with the metres flown and the printed bounds (K,) [m]; the survey is at its floor when
+    every user still above the target is at its own, that is when its bound is
 
-    - each one's bound is within FLOOR_MARGIN of the GPS floor r_floor (what no flight removes,
+    - within FLOOR_MARGIN of the GPS floor r_floor (what no flight removes,
       PlanningConstraints.floor_m): r95_k ≤ FLOOR_MARGIN · r_floor; or
-    - none of them shrank by FLOOR_MIN_SHRINK over the last `window_m` metres flown:
-      r95_k(now) > (1 − FLOOR_MIN_SHRINK) · r95_k(now − window), and none's NLoS shift |δ_k| grew by
-      FLOOR_MIN_SHRINK · r95_k(now − window) (an NLoS excess found mid-survey widens a bound, and
-      flying to the user's clear side may undo it), the estimate now holding at least
-      FLOOR_MIN_NEW_KEYFRAME_SHARE · window / Δ keyframes more than the one then (when both say how
-      many they hold, Estimate.keyframes_used: a lagging estimator is not a floor).
+    - stalled: it did not shrink by FLOOR_MIN_SHRINK over the last `window_m` metres flown,
+      r95_k(now) > (1 − FLOOR_MIN_SHRINK) · r95_k(now − window), and its NLoS shift |δ_k| did not
+      grow by FLOOR_MIN_SHRINK · r95_k(now − window) (an NLoS excess found mid-survey widens a
+      bound, and flying to the user's clear side may undo it).
+
+    A user is judged stalled only when the estimate now holds at least
+    FLOOR_MIN_NEW_KEYFRAME_SHARE · window / Δ keyframes more than the one then (when both say how
+    many they hold, Estimate.keyframes_used: a lagging estimator is not a floor). The two ways mix
+    across users: with a target below the GPS floor, users near the floor are done and a user whose
+    bound stalled higher (behind a building) ends the survey as well as it would alone.
 
     An ambiguous or unlocated user (inf) is never at its floor.
     """
@@ -99,7 +103,8 @@ class FloorWatch:
         above = bound > self.target_radius_m
         if not np.any(above) or not np.all(np.isfinite(bound[above])):
             return False
-        if self.floor_m > 0.0 and np.all(bound[above] <= FLOOR_MARGIN * self.floor_m):
+        near_floor = bound <= FLOOR_MARGIN * self.floor_m if self.floor_m > 0.0 else np.zeros_like(above)
+        if np.all(near_floor[above]):
             return True
         # the newest record at least `window_m` back
         past = [(kf, b, sh) for m, kf, b, sh in self.history if m <= flown_m - self.window_m]
@@ -109,10 +114,11 @@ class FloorWatch:
         if (keyframes_used > 0 and kf_before > 0 and self.delta_m > 0.0
                 and keyframes_used - kf_before < FLOOR_MIN_NEW_KEYFRAME_SHARE * self.window_m / self.delta_m):
             return False
-        if shift_m is not None and shift_before is not None and np.any(
-                (shift_m - shift_before)[above] > FLOOR_MIN_SHRINK * before[above]):
-            return False  # an NLoS excess found in the window: the planner may yet fly to where it shrinks
-        return bool(np.all(bound[above] > (1.0 - FLOOR_MIN_SHRINK) * before[above]))
+        stalled = bound > (1.0 - FLOOR_MIN_SHRINK) * before
+        if shift_m is not None and shift_before is not None:
+            # an NLoS excess found in the window: the planner may yet fly to where it shrinks
+            stalled &= ~(shift_m - shift_before > FLOOR_MIN_SHRINK * before)
+        return bool(np.all((near_floor | stalled)[above]))
 
 
 def stop_reason(constraints: PlanningConstraints, state: PlanningState,

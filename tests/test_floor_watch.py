@@ -54,3 +54,21 @@ def test_bounds_within_the_margin_of_the_gps_floor_end_at_once_and_below_target_
     assert w.update(0.0, np.array([FLOOR_MARGIN * 2.8 - 0.01, 2.0]))
     assert not _watch(floor_m=2.8).update(0.0, np.array([2.9, 2.0]) * 1.0 - 1.0)  # all within target
     assert not _watch(floor_m=2.8).update(0.0, np.array([np.inf, 3.1]))  # an unlocated user
+
+
+def test_users_near_the_gps_floor_and_a_user_stalled_higher_are_a_floor_together():
+    """A target below the GPS floor (a campaign at 1.5 m, floor 2.36 m): three users settle within
+    the margin of the floor while the fourth, behind a building, stalls at 5 m. Each is at its own
+    floor, so the survey is (a lawnmower run flew to 1306 m of a 2500 m budget when only all-near
+    or all-stalled counted)."""
+    floor_m = 2.36  # FLOOR_MARGIN · floor = 2.714 m
+    w = FloorWatch(target_radius_m=1.5, floor_m=floor_m, window_m=250.0, delta_m=2.0)
+    three = [3.2, 3.0, 2.9, 2.80, 2.70, 2.69, 2.68, 2.67]  # within the margin from 200 m on
+    hits = [m for m, b in zip(np.arange(0.0, 400.0, 50.0), three, strict=True)
+            if w.update(m, np.array([5.0, b, b - 0.01, b - 0.02]), keyframes_used=int(m / 2) + 1)]
+    # the stalled user counts once a window lies behind it (250 m), the three near the floor by then
+    assert hits == [250.0, 300.0, 350.0]
+    # a user still shrinking fast is no floor, whatever the others do
+    w = FloorWatch(target_radius_m=1.5, floor_m=floor_m, window_m=250.0, delta_m=2.0)
+    assert not any(w.update(m, np.array([8.0 * 0.9 ** (m / 50.0) + 3.0, 2.5]), keyframes_used=int(m / 2) + 1)
+                   for m in np.arange(0.0, 700.0, 50.0))
