@@ -42,13 +42,13 @@ def test_a_plan_made_ahead_counts_the_metres_to_the_leg_end(ahead_m):
     planner = _Planner()
     deps = LegsDeps(config=None, flight=_Flight(flown_m=100.0), gated=None, set_speed=_noop,
                     battery_pct=lambda: 60.0, battery_rtl_pct=25.0, planner=planner, origin=None,
-                    journal=None, pos_enu=lambda: np.zeros(3), now=lambda: 0.0, wall=lambda s: s * 0.0,
+                    journal=None, pos_enu=lambda: np.zeros(3), now=lambda: 30.0, wall=lambda s: s * 0.0,
                     drain=_noop, sigma_gps_m=1.0)
     legs = SurveyLegs(deps)
-    legs.battery_start_pct = 80.0
+    legs.battery_start_pct, legs.battery_start_s, legs.leg_speed_mps = 80.0, 10.0, 5.0
     end = np.array([30.0, 40.0, 30.0])
     asyncio.run(legs.plan(end, drain_max_s=0.0, ahead_m=ahead_m))
     (state,) = planner.states
-    # (60 − 25) · 100 / (80 − 60) = 175 m left at the drain so far
+    # (60 − 25) · 20 s / (80 − 60) = 35 s left at the drain so far, 175 m at 5 m/s
     assert state.flown_m == pytest.approx(100.0 + ahead_m)
     assert state.energy_remaining_m == pytest.approx(175.0 - ahead_m)

@@ -85,6 +85,7 @@ class SurveyLegs:
         self.leg_speed_mps = PX4_DEFAULT_CRUISE_MPS  # what the vehicle flies legs at (commanded or default)
         self.speed_refusals = 0
         self.battery_start_pct: float | None = None
+        self.battery_start_s = 0.0  # mission seconds at battery_start_pct's reading
         #: the next leg, being planned from this leg's end while it is flown: (end [m, ENU], task)
         self._ahead: tuple[np.ndarray, asyncio.Task[PlanResult]] | None = None
         #: legs whose plan was ready (or being made) when the vehicle arrived
@@ -112,8 +113,9 @@ class SurveyLegs:
 
     def energy_remaining_m(self) -> float:
         """Metres the battery still allows (down to the RTL threshold), from the drain so far."""
-        return energy_remaining_m(self.deps.flight.flown_m, self.battery_start_pct, self.deps.battery_pct(),
-                                  self.deps.battery_rtl_pct)
+        dep = self.deps
+        return energy_remaining_m(dep.now() - self.battery_start_s, self.leg_speed_mps, self.battery_start_pct,
+                                  dep.battery_pct(), dep.battery_rtl_pct)
 
     async def plan(self, pos: np.ndarray, drain_max_s: float = PLAN_DRAIN_MAX_S, ahead_m: float = 0.0) -> PlanResult:
         """The planner's next leg from `pos`, with the estimate of every keyframe measured so far
@@ -175,7 +177,7 @@ class SurveyLegs:
     async def _survey(self) -> None:
         dep, cfg, f = self.deps, self.deps.config, self.deps.flight
         if self.battery_start_pct is None:  # a survey resumed keeps the charge it started with
-            self.battery_start_pct = dep.battery_pct()
+            self.battery_start_pct, self.battery_start_s = dep.battery_pct(), dep.now()
         refusals = 0
         while not f.ending:
             # while the vehicle link is lost, wait (the safety monitor returns home after

@@ -28,8 +28,8 @@ AUTOPILOT_FAILSAFE_MODES = ("LAND", "RETURN_TO_LAUNCH")
 #: STATUSTEXT severities copied into the mission log as `vehicle_text` events
 LOGGED_TEXT_SEVERITIES = ("WARNING", "ERROR", "CRITICAL", "ALERT", "EMERGENCY")
 
-#: survey metres and battery percent used below which the drain is not yet known
-ENERGY_MIN_FLOWN_M = 50.0
+#: survey mission seconds and battery percent used below which the drain is not yet known
+ENERGY_MIN_SURVEY_S = 5.0
 ENERGY_MIN_USED_PCT = 1.0
 
 
@@ -76,19 +76,26 @@ def return_reason(view: SafetyView, cfg: ControllerConfig, gate: SafetyGate) -> 
     return None
 
 
-def energy_remaining_m(flown_m: float, battery_start_pct: float | None, battery_pct: float | None,
-                       battery_rtl_pct: float) -> float:
+def energy_remaining_m(survey_s: float, speed_mps: float, battery_start_pct: float | None,
+                       battery_pct: float | None, battery_rtl_pct: float) -> float:
     """Survey metres the battery still allows down to the RTL threshold, from the drain so far [m];
-    inf while the drain is unknown (no battery reading, < 50 m flown or < 1 % used).
+    inf while the drain is unknown (no battery reading, < 5 s of survey or < 1 % used).
 
-        m_left = (pct_now − pct_rtl) · flown_m / (pct_start − pct_now)    (≥ 0)
+    A multicopter's power is nearly the same hovering, turning and cruising, so its charge goes by
+    the second, not by the metre: the seconds the charge left allows at the drain rate so far, at
+    the leg speed,
+
+        m_left = (pct_now − pct_rtl) · survey_s / (pct_start − pct_now) · speed_mps    (≥ 0)
+
+    survey_s: mission seconds since the survey began (pct_start's reading), hover and waits
+    included; speed_mps: the speed legs are flown at.
     """
-    if battery_pct is None or battery_start_pct is None or flown_m < ENERGY_MIN_FLOWN_M:
+    if battery_pct is None or battery_start_pct is None or survey_s < ENERGY_MIN_SURVEY_S:
         return math.inf
     used = battery_start_pct - battery_pct
     if used < ENERGY_MIN_USED_PCT:
         return math.inf
-    return max(0.0, (battery_pct - battery_rtl_pct) * flown_m / used)
+    return max(0.0, (battery_pct - battery_rtl_pct) * survey_s / used * speed_mps)
 
 
 class SafetyMonitor:
