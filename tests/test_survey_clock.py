@@ -33,6 +33,23 @@ def test_the_largest_gap_counts_from_the_start_and_to_the_end():
     assert c.largest_gap_s == pytest.approx(12.0)
 
 
+def test_the_gap_to_the_end_stops_at_the_stop_rule():
+    """A three_users_nlos run: the last range 0.06 s before "target reached" at 247.98 s, then 3.2 s
+    to confirm the final answer and command RTL: no ranging was due then, so no gap."""
+    c = SurveyClock()
+    c.t0_s = 100.0
+    for t in (101.0, 102.0, 247.92):
+        c.range_at(t)
+    c.end(251.22, measured_until_s=247.98)
+    assert c.largest_gap_s == pytest.approx(145.92)
+    c = SurveyClock()
+    c.t0_s = 240.0
+    for t in (241.0, 242.5, 244.0, 245.5, 247.0, 247.92):
+        c.range_at(t)
+    c.end(251.22, measured_until_s=247.98)
+    assert c.largest_gap_s == pytest.approx(1.5) and c.survey_s == pytest.approx(11.22)
+
+
 def test_rounds_ranges_and_pace_are_counted_over_the_survey_only():
     from mission.control.config import FELL_BEHIND_SHARE
     from mission.control.state import spacing_m

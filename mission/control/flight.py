@@ -224,7 +224,7 @@ class MissionController:
         pos = self.origin.lla_to_enu(fix.lat_deg, fix.lon_deg, fix.alt_amsl_m)
         self._buffer.append(t, pos)
         if fix.vel_ned_mps is not None:
-            self.flight.clock.fix(t, float(np.hypot(fix.vel_ned_mps[0], fix.vel_ned_mps[1])))
+            self.flight.clock.fix(t, float(np.linalg.norm(fix.vel_ned_mps)))
         if t - self._last_tel_log_t >= 1.0 / self.config.telemetry_log_hz and self.journal.is_open:
             self._last_tel_log_t = t
             extra = {"vel_ned_mps": list(fix.vel_ned_mps)} if fix.vel_ned_mps is not None else {}
@@ -304,7 +304,7 @@ class MissionController:
         if targets_reached(final, self.config.flight.target_radius_m):
             return True
         worst = float(np.max(final.error_bound_95_m()))
-        f.stop = None
+        f.resume_survey()
         self.journal.event(f"the final answer over {len(self.pipeline.keyframes)} keyframes bounds a user at "
                            f"{worst:.2f} m, beyond the {self.config.flight.target_radius_m:g} m target the "
                            f"survey's estimate reached: surveying on", kind="target_unconfirmed", bound_95_m=worst)
@@ -366,7 +366,7 @@ class MissionController:
         round and per range of each user, rounds per minute); and, when it ran materially slower
         than its speed-up (SurveyPace), a `fell_behind` event and a warning."""
         c = self.flight.clock
-        c.end(self.now(), time.monotonic())
+        c.end(self.now(), time.monotonic(), self.flight.stop_s)
         share = 100.0 * c.hover_s / c.survey_s if c.survey_s > 0 else 0.0
         flown_m, n_users = self.flight.flown_m, len(self.users)
         round_m = spacing_m(flown_m, c.rounds)
@@ -456,7 +456,7 @@ class MissionController:
             f.estimate = est
             self.journal.estimate(self.origin, est, len(self.pipeline.keyframes), f.flown_m)
             if f.phase == SURVEY and setup.stops(est):
-                f.finish_survey(STATUS_TARGET, "target reached")
+                f.finish_survey(STATUS_TARGET, "target reached", self.now())
 
         def on_error(exc: EstimatorError) -> None:
             self.journal.event(f"estimator: {exc}", kind="estimator_error")

@@ -192,7 +192,7 @@ class SurveyLegs:
                 f.request_return(f"planner failed: {exc}")
                 break
             if plan.done:
-                f.finish_survey(status_of_planner_reason(plan.reason), plan.reason or "planner done")
+                f.finish_survey(status_of_planner_reason(plan.reason), plan.reason or "planner done", dep.now())
                 break
             if f.ending:
                 break
@@ -227,7 +227,7 @@ class SurveyLegs:
             refusals = 0
             await self.fly_leg(pos, wp)
         if self.budget_spent():
-            f.finish_survey(STATUS_BUDGET, "budget spent")
+            f.finish_survey(STATUS_BUDGET, "budget spent", dep.now())
 
     async def command_speed(self) -> None:
         """Command the mission's cruise speed before every leg (PX4 keeps it over repositions, but a
@@ -281,7 +281,7 @@ class SurveyLegs:
             if f.ending:
                 return
             if self.budget_spent():
-                f.finish_survey(STATUS_BUDGET, "budget spent")
+                f.finish_survey(STATUS_BUDGET, "budget spent", dep.now())
                 return
             if time.monotonic() > deadline:
                 dep.journal.event(f"leg to ({wp[0]:.1f}, {wp[1]:.1f}, {wp[2]:.1f}) m timed out", kind="leg_timeout")

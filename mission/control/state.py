@@ -20,7 +20,8 @@ from mission.control.loop import Pulse
 
 log = logging.getLogger(__name__)
 
-#: slower than this [m/s], a surveying vehicle hovers (issue 39: a survey that waits for the planner)
+#: slower than this [m/s, 3-D speed], a surveying vehicle hovers (issue 39: a survey that waits for
+#: the planner); a leg that mostly climbs or descends is flown, not hovered
 HOVER_SPEED_MPS = 0.5
 
 
@@ -70,10 +71,13 @@ class SurveyClock:
         self.largest_gap_s = max(self.largest_gap_s, t_s - prev)
         self._last_range_s = max(t_s, prev)
 
-    def end(self, t_s: float, wall_s: float | None = None) -> None:
+    def end(self, t_s: float, wall_s: float | None = None, measured_until_s: float | None = None) -> None:
+        """The survey ends at mission time t_s (wall instant wall_s). measured_until_s: when the
+        stop rule ended the ranging, if it did (the seconds the flight then takes to confirm the
+        final answer and command the return are no gap between ranges)."""
         if self.t0_s is None or self.t1_s is not None:
             return
-        self._gap_to(t_s)
+        self._gap_to(t_s if measured_until_s is None else min(t_s, measured_until_s))
         self.t1_s, self.wall1_s = t_s, wall_s
 
     @property
@@ -104,18 +108,19 @@ class FlightState:
     """See the module docstring. Times are mission seconds.
 
     phase: CONNECT … LANDED / ABORT; return_reason: why the survey is cut short (first reason wins);
-    stop: (status, reason) of a normal end of the survey; on_leg: a survey leg is being flown (the
-    Δ-trigger is armed); link_lost_since / gnb_down_since: when the vehicle link / the gNB was
-    lost (None: fine); gnb_problem: what the gNB said or did, in its own words; flown_m: survey
-    metres; measurements: rtt records logged; estimate: the latest estimate; event: the mission
-    log's event writer (message, **fields); wake: pulsed on every fix and every end request;
-    clock: the survey's hover time and largest gap between ranges.
+    stop: (status, reason) of a normal end of the survey, stop_s its mission time; on_leg: a survey
+    leg is being flown (the Δ-trigger is armed); link_lost_since / gnb_down_since: when the vehicle
+    link / the gNB was lost (None: fine); gnb_problem: what the gNB said or did, in its own words;
+    flown_m: survey metres; measurements: rtt records logged; estimate: the latest estimate; event:
+    the mission log's event writer (message, **fields); wake: pulsed on every fix and every end
+    request; clock: the survey's hover time and largest gap between ranges.
     """
 
     event: Callable[..., None]
     phase: str = CONNECT
     return_reason: str | None = None
     stop: tuple[str, str] | None = None
+    stop_s: float | None = None
     on_leg: bool = False
     link_lost_since: float | None = None
     gnb_down_since: float | None = None
@@ -145,12 +150,17 @@ class FlightState:
             self.event(f"return requested: {reason}", kind="return")
             self.wake.pulse()
 
-    def finish_survey(self, status: str, reason: str) -> None:
-        """A normal end of the survey (the stop rule); ignored once the survey is ending."""
+    def finish_survey(self, status: str, reason: str, now_s: float) -> None:
+        """A normal end of the survey (the stop rule) at mission time now_s; ignored once the
+        survey is ending."""
         if not self.ending:
-            self.stop = (status, reason)
+            self.stop, self.stop_s = (status, reason), now_s
             self.event(f"survey done: {reason}", kind="stop")
             self.wake.pulse()
+
+    def resume_survey(self) -> None:
+        """The stop rule's end is withdrawn (the final answer did not confirm the target)."""
+        self.stop = self.stop_s = None
 
     def gnb_failed(self, now_s: float, problem: str) -> None:
         """A measurement round failed for the gNB as a whole (lost, or answering what nobody can use)."""
