@@ -13,6 +13,7 @@ have evolved during the flight: the batch refreshed on estimator.refresh's sched
 from __future__ import annotations
 
 import logging
+import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
@@ -203,16 +204,24 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
         truth_enu = origin.lla_to_enu(mlog.truth_lla[:, 0], mlog.truth_lla[:, 1], mlog.truth_lla[:, 2])
 
     # metres flown, as the controller counts them: an odometer with a dead band of max(5 m, 8 σ_gps)
-    # over the telemetry while ranges were measured (the survey), else over the keyframes
+    # over the telemetry of the survey (from the first range to the `survey_time` event that closes
+    # it, or to the last range in a log without one; the survey flies on for the seconds the final
+    # answer takes to confirm), else over the keyframes
     band_m = odometer_dead_band_m(noise.sigma_gps_m)
-    in_survey = (mlog.tel_t_s >= kf_t[0]) & (mlog.tel_t_s <= kf_t[-1])
+    closed = mlog.last_event("survey_time")
+    survey_end_s = max(kf_t[-1], float(closed["t"])) if closed is not None and "t" in closed else kf_t[-1]
+    in_survey = (mlog.tel_t_s >= kf_t[0]) & (mlog.tel_t_s <= survey_end_s)
     if np.count_nonzero(in_survey) >= 2:
         tel = mlog.tel_lla[in_survey]
         cum = odometer_m(origin.lla_to_enu(tel[:, 0], tel[:, 1], tel[:, 2]), band_m)
         kf_flown = np.interp(kf_t, mlog.tel_t_s[in_survey], cum)
+        flown_m = float(cum[-1])
     else:
         kf_flown = odometer_m(kf_gps, band_m)
-    flown_m = float(kf_flown[-1])
+        flown_m = float(kf_flown[-1])
+    if closed is not None and isinstance(closed.get("flown_m"), int | float) and math.isfinite(closed["flown_m"]):
+        # the controller's own count, from every fix of its legs (the log's telemetry is a sample)
+        flown_m = float(closed["flown_m"])
 
     # the mission's estimator (mission.estimation), without a stop rule
     setup = MissionEstimator(n_users, user_up_m, noise, params)

@@ -214,3 +214,22 @@ def test_malformed_logged_solver_settings_are_errors(tmp_path, solver, match):
 def test_cli_unknown_loss_is_an_error(caplog):
     assert main(["replay", str(EXAMPLE), "--loss", "bogus"]) == 1
     assert "unknown robust loss 'bogus'" in caplog.text
+
+
+def test_metres_flown_are_the_survey_s_own_count_when_the_log_closes_it(tmp_path):
+    """The controller counts metres from every fix of its legs and logs the total in the
+    `survey_time` event; the log's telemetry is a sample of those fixes, and the survey flies on
+    for the seconds the final answer takes to confirm (a three_users_nlos run: 374.3 m live, 362 m
+    replayed from the telemetry up to the last range). A log that closes its survey replays to its
+    own count; one without (another tool's) to the odometer over its telemetry."""
+    sc = scenario_from_dict(THREE_USERS)
+    out = tmp_path / "three.jsonl"
+    generate(sc, out, radius_m=40.0)
+    odometer_m = replay(read_mission_log(out), ReplayOptions(history=False)).flown_m
+    assert odometer_m > 100.0
+    lines = out.read_text().splitlines()
+    t_last = max(json.loads(line)["t"] for line in lines)
+    closed = {"type": "event", "t": t_last, "message": "survey ...", "kind": "survey_time",
+              "survey_s": 60.0, "flown_m": round(odometer_m + 12.3, 2)}
+    out.write_text("\n".join([*lines, json.dumps(closed)]) + "\n")
+    assert replay(read_mission_log(out), ReplayOptions(history=False)).flown_m == round(odometer_m + 12.3, 2)
