@@ -29,13 +29,17 @@ covariance (`SolverParams.nlos_shift`).
 
 The shift shrinks with π_k, i.e. as the user is seen from bearings where its line of sight is
 clear. What the planner needs to find those bearings (planner.information) is where the NLoS
-ranges came from: each user's NLoS probability as a function of the UAV's bearing β from it,
+ranges came from: each user's NLoS probability as a function of the UAV's bearing β and
+elevation ε seen from it,
 
-    p_k(β) = 1 / (1 + exp(−(α₀ + α₁ cos β + α₂ sin β)))
+    p_k(β, ε) = 1 / (1 + exp(−(α₀ + α₁ cos β + α₂ sin β + α₃ sin ε)))
 
 fitted to the EM's posterior NLoS probabilities 1 − γ_i of the user's ranges (estimator.solve,
 Linearization.w) by weighted logistic regression with a ridge λ_α |α|² (:func:`nlos_bearing_logit`):
-its first harmonic is the sector the excess comes from.
+its first harmonic is the sector the excess comes from. The elevation term is the blocker's
+height: a building of height H at horizontal distance b from the user shadows the UAV only while
+tan ε < H / b, so within the sector the NLoS ranges are the low ones (far away, or flown low) and
+α₃ < 0; sin ε (= Δz / |g|, bounded) stands for the angle.
 """
 
 from __future__ import annotations
@@ -85,35 +89,39 @@ def nlos_shift_cov(shift_m: float, p: int) -> np.ndarray:
 #: ridge λ_α of the bearing profile's logistic fit (a weak prior towards p(β) = ½ everywhere, which
 #: keeps α finite when the user's ranges are all NLoS or all LoS)
 NLOS_BEARING_RIDGE = 1.0
+#: features of that fit: (1, cos β, sin β, sin ε)
+N_NLOS_FEATURES = 4
 #: Newton iterations of that fit (the objective is strictly convex; 8 reach 1e-8 on its gradient)
 NLOS_BEARING_ITER = 8
 
 
 def nlos_bearing_logit(prob: Problem, x: np.ndarray, users_enu_m: np.ndarray, los_weight: np.ndarray,
                        shift_m: np.ndarray) -> np.ndarray:
-    """(K, 3) α of each user's NLoS-by-bearing profile p_k(β) (module docstring); 0 where the user
-    has no shift (shift_m (K,) ≤ 0).
+    """(K, 4) α of each user's NLoS profile p_k(β, ε) by bearing and elevation (module docstring); 0
+    where the user has no shift (shift_m (K,) ≤ 0).
 
     x: (n, 3) keyframes [m, ENU]; users_enu_m: (K, 3) [m, ENU]; los_weight: (K, n) the EM's posterior
     LoS probability γ of each range (Linearization.w). Minimises
     −Σ_i [y_i log p_i + (1 − y_i) log(1 − p_i)] + λ_α |α|²,  y_i = 1 − γ_i,  p_i = σ(φ_iᵀ α),
-    φ_i = (1, cos β_i, sin β_i), by Newton's method."""
+    φ_i = (1, cos β_i, sin β_i, sin ε_i), by Newton's method."""
     k_all = prob.n_users
-    out = np.zeros((k_all, 3))
+    out = np.zeros((k_all, N_NLOS_FEATURES))
     n = x.shape[0]
     for k in np.flatnonzero(np.asarray(shift_m) > 0.0):
         rows = prob.mask[:n, k]
         if not np.any(rows):
             continue
-        g = x[rows, :2] - users_enu_m[k, :2]
-        rho = np.maximum(np.linalg.norm(g, axis=1), 1e-9)
-        phi = np.column_stack([np.ones(len(g)), g[:, 0] / rho, g[:, 1] / rho])  # (m, 3)
+        g = x[rows] - users_enu_m[k]
+        rho = np.maximum(np.linalg.norm(g[:, :2], axis=1), 1e-9)
+        dist = np.maximum(np.linalg.norm(g, axis=1), 1e-9)
+        # φ = (1, cos β, sin β, sin ε)
+        phi = np.column_stack([np.ones(len(g)), g[:, 0] / rho, g[:, 1] / rho, g[:, 2] / dist])  # (m, 4)
         y = np.clip(1.0 - np.asarray(los_weight[k, :n][rows], dtype=float), 0.0, 1.0)
-        alpha = np.zeros(3)
+        alpha = np.zeros(N_NLOS_FEATURES)
         for _ in range(NLOS_BEARING_ITER):
             p = 1.0 / (1.0 + np.exp(-(phi @ alpha)))
             grad = phi.T @ (p - y) + 2.0 * NLOS_BEARING_RIDGE * alpha
-            hess = (phi * (p * (1.0 - p))[:, None]).T @ phi + 2.0 * NLOS_BEARING_RIDGE * np.eye(3)
+            hess = (phi * (p * (1.0 - p))[:, None]).T @ phi + 2.0 * NLOS_BEARING_RIDGE * np.eye(N_NLOS_FEATURES)
             alpha = alpha - np.linalg.solve(hess, grad)
         out[k] = alpha
     return out

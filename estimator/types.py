@@ -193,10 +193,10 @@ class ModelState:
     nlos_shift_m: (K,) |δ_k| [m], the shift a one-sided NLoS excess can make unseen, added to the
         user's covariance (estimator.nlos_shift; 0: no NLoS seen); None when not asked for
         (SolverParams.nlos_shift) or not a batch answer.
-    nlos_bearing_logit: (K, 3) α of each user's NLoS probability by the UAV's bearing β from it,
-        p_k(β) = σ(α₀ + α₁ cos β + α₂ sin β) (estimator.nlos_shift.nlos_bearing_logit; 0 where
-        nlos_shift_m is 0): where the planner can see the user in line of sight; None with
-        nlos_shift_m.
+    nlos_bearing_logit: (K, 4) α of each user's NLoS probability by the UAV's bearing β and
+        elevation ε seen from it, p_k(β, ε) = σ(α₀ + α₁ cos β + α₂ sin β + α₃ sin ε)
+        (estimator.nlos_shift.nlos_bearing_logit; 0 where nlos_shift_m is 0): where the planner
+        can see the user in line of sight; None with nlos_shift_m.
     warm_started: a batch solve started from an earlier one's choices (estimator.batch._warm_solve).
     filter_step: the online estimator's information-filter step between its solves.
     """

@@ -6,7 +6,7 @@ the benchmark measure; "A" for 3-D users), horizon 2 (two waypoints planned, the
 Objective (planner.information; normalised by its value before the leg, J₀, so IPOPT sees O(1);
 shown for one leg, a horizon sums the information of its legs and their lengths):
 
-    min_p  Σ_k w_k Σ_s c_ks f(I_ks(p)) / J₀  +  λ · ℓ(p),     ℓ(p) = |p − x_c|,
+    min_p  Σ_k w_k Σ_s c_ks g(f(I_ks(p))) / J₀  +  λ · ℓ(p),     ℓ(p) = |p − x_c|,
            λ = cost_rel · (1 − min_ring J/J₀) / leg_max  (a full leg must buy back cost_rel of the
            best ring leg's gain, so the trade-off does not fade as the uncertainty shrinks)
 
@@ -15,6 +15,12 @@ shown for one leg, a horizon sums the information of its legs and their lengths)
            |p_en − home_en|² ≤ R_max²                                           (distance from home)
            ℓ(p) + return_factor · |p − home| ≤ energy                            (return home)
            A p_en ≤ c                                                            (convex free cell)
+
+g is the goal's hinge at the stop rule's target (planner.objective, "Goal"; `ActivePlanner.goal`):
+the survey ends when every user's bound is within the target, so only the part of a bound above
+it is left to remove; a user already inside it weighs (almost) nothing, and the legs go to the
+users that keep the survey going. g(f) = f with goal="none", for criteria "A" and "D", and while
+no bound is above the target.
 
 The fence may be non-convex and no-fly zones cut holes, so each IPOPT start gets its own convex
 cell around its seed leg (planner.geometry.convex_cell): any p in the cell has a straight leg from
@@ -43,6 +49,7 @@ import casadi as ca
 import numpy as np
 
 from estimator.noise import NoiseModel
+from estimator.types import CHI2_2DOF_95
 from planner.base import BasePlanner
 from planner.geometry import convex_cell, legs_feasible
 from planner.information import (
@@ -54,10 +61,11 @@ from planner.information import (
     hypothesis_rows,
     noise_parameters,
     objective_values,
+    prior_row_values,
     prior_value,
     users_initialised,
 )
-from planner.objective import N_NLOS, SQRT_EPS_M2, Shape, kernel, mapped
+from planner.objective import N_GOAL, N_NLOS, SQRT_EPS_M2, Shape, goal_function, kernel, mapped
 from planner.stop import reported_bound_95_m
 from planner.types import PlanningConstraints, PlanningState
 from uavloc.errors import PlannerError
@@ -85,18 +93,21 @@ MAX_USER_RANGE_M = 5000.0
 @dataclass(frozen=True)
 class _Layout:
     """What fixes one IPOPT problem (one cached solver each): the row kernel's shape, the number of
-    rows (users × samples), the convex cell's half-planes and whether the kernels are compiled."""
+    rows (users × samples), the convex cell's half-planes, whether the kernels are compiled and
+    whether the rows count through a goal's hinge (planner.objective, "Goal")."""
 
     shape: Shape
     n_rows: int
     n_planes: int
     compiled: bool = True
     max_iter: int = 60
+    goal: bool = False
 
 
 def _layout(planner: ActivePlanner, hyp: Hypotheses) -> _Layout:
     shape = Shape(hyp.dim, hyp.bias, planner.criterion, planner.horizon, planner.n_quad)
-    return _Layout(shape, int(hyp.sample_w.size), planner.max_planes, planner.compiled, planner.max_iter)
+    return _Layout(shape, int(hyp.sample_w.size), planner.max_planes, planner.compiled, planner.max_iter,
+                   planner.goal(hyp) is not None)
 
 
 _SOLVERS: dict[_Layout, ca.Function] = {}
@@ -106,27 +117,43 @@ def _solver(lay: _Layout) -> ca.Function:
     """IPOPT on the objective of planner.objective, built once per layout and process.
 
     Parameters p = [x_c (3); U (3R); P (p²R); s (R); wts (R); NLoS (N_NLOS R); noise (4); Δ; λ;
-    A (2 n_pl); c (n_pl); home (3); return factor], matrices column-major with one column per row
-    (pack_params).
+    A (2 n_pl); c (n_pl); home (3); return factor; goal [f_T, w] (only with lay.goal)], matrices
+    column-major with one column per row (pack_params).
     Variables z = [w_1; …; w_H] (3H); constraints, in order: |w_1 − x_c|² (leg), |w_h − w_(h−1)|²
     for h ≥ 2, |w_h,en − home_en|² for every h, the energy of the first leg, A w_h,en − c ≤ 0 for
     every h (rows of h consecutive). IPOPT gets the value, gradient and Hessian of the rows from
-    the row kernels (mapped over the R rows), so no derivative is taken through them here.
+    the row kernels (mapped over the R rows), so no derivative is taken through them here; with a
+    goal the rows count through its hinge g (planner.objective, "Goal"):
+
+        J = Σ_r w_r g(f_r),  ∇J = Σ_r w_r g'(f_r) ∇f_r,  ∇²J = Σ_r w_r (g'(f_r) ∇²f_r + g''(f_r) ∇f_r ∇f_rᵀ)
     """
     if lay in _SOLVERS:
         return _SOLVERS[lay]
     sh, R, n_pl = lay.shape, lay.n_rows, lay.n_planes
     n_h, pp = sh.horizon, sh.n_par**2
     vgh, value = kernel("vgh", sh, lay.compiled), kernel("value", sh, lay.compiled)
-    sizes = [3, 3 * R, pp * R, R, R, N_NLOS * R, 4, 1, 1, 2 * n_pl, n_pl, 3, 1]
+    sizes = [3, 3 * R, pp * R, R, R, N_NLOS * R, 4, 1, 1, 2 * n_pl, n_pl, 3, 1] + ([N_GOAL] if lay.goal else [])
     par = ca.MX.sym("p", sum(sizes))
-    x_c, U, P, s, wts, nl, noise_par, delta, lam, A, c, home, ret = ca.vertsplit(par, list(np.cumsum([0, *sizes])))
+    x_c, U, P, s, wts, nl, noise_par, delta, lam, A, c, home, ret, *goal = ca.vertsplit(
+        par, list(np.cumsum([0, *sizes])))
     U, P, s, wts = ca.reshape(U, 3, R), ca.reshape(P, pp, R), ca.reshape(s, 1, R), ca.reshape(wts, R, 1)
     nl = ca.reshape(nl, N_NLOS, R)
     A = ca.reshape(A, n_pl, 2)
     z = ca.MX.sym("z", 3 * n_h)
     f_rows, g_rows, h_rows = mapped(vgh, R)(z, x_c, U, P, s, noise_par, delta, nl)
-    unc = mapped(value, R)(z, x_c, U, P, s, noise_par, delta, nl) @ wts
+    f_value = mapped(value, R)(z, x_c, U, P, s, noise_par, delta, nl)
+    outer = None
+    if lay.goal:
+        # g(f_r), g'(f_r), g''(f_r) of every row (1 × R each)
+        g_value = mapped(goal_function(), R)(f_value, goal[0])[0]
+        f_rows, d1, d2 = mapped(goal_function(), R)(f_rows, goal[0])
+        f_value = g_value
+        # Σ_r w_r g''(f_r) ∇f_r ∇f_rᵀ
+        outer = (g_rows * ca.repmat(d2 * wts.T, 3 * n_h, 1)) @ g_rows.T
+        wts_grad = d1.T * wts
+    else:
+        wts_grad = wts
+    unc = f_value @ wts
     wps = [z[3 * h:3 * h + 3] for h in range(n_h)]
     prev, lengths = x_c, []
     for wp in wps:
@@ -141,8 +168,10 @@ def _solver(lay: _Layout) -> ca.Function:
         *[A @ wp[:2] - c for wp in wps],  # convex cell
     )
     lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", g.shape[0])
-    grad = g_rows @ wts + ca.gradient(cost, z)
-    hess_rows = h_rows @ ca.kron(wts, ca.DM.eye(3 * n_h))
+    grad = g_rows @ wts_grad + ca.gradient(cost, z)
+    hess_rows = h_rows @ ca.kron(wts_grad, ca.DM.eye(3 * n_h))
+    if outer is not None:
+        hess_rows = hess_rows + outer
     hess = lam_f * hess_rows + ca.hessian(lam_f * cost + ca.dot(lam_g, g), z)[0]
     opts = dict(_IPOPT_OPTS)
     opts["ipopt.max_iter"] = lay.max_iter
@@ -172,10 +201,14 @@ def pack_params(
     c: np.ndarray,
     home: np.ndarray,
     return_factor: float,
+    goal: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The parameter vector of :func:`_solver`'s problem (weights divided by `norm`)."""
+    """The parameter vector of :func:`_solver`'s problem (weights divided by `norm`; goal [f_T, w]
+    when the layout has one, planner.objective's "Goal")."""
     if hyp.n_par != lay.shape.n_par or hyp.sample_w.size != lay.n_rows:
         raise ValueError(f"layout {lay} does not fit hypotheses of {hyp.n_par} parameters, {hyp.sample_w.size} rows")
+    if lay.goal != (goal is not None):
+        raise ValueError(f"layout {lay} {'needs' if lay.goal else 'takes no'} goal, got {goal!r}")
     rows = hypothesis_rows(hyp)
     A_pad = np.zeros((lay.n_planes, 2))
     c_pad = np.ones(lay.n_planes)  # 0·p ≤ 1: inactive rows
@@ -184,6 +217,7 @@ def pack_params(
         x_c, rows.users_enu_m.ravel(), rows.prior_info.reshape(lay.n_rows, -1).ravel(), rows.scale,
         rows.weights / norm, rows.nlos.ravel(), noise_parameters(noise), [delta_m, lam],
         A_pad.ravel(order="F"), c_pad, home, [return_factor],
+        *([] if goal is None else [np.asarray(goal, dtype=float).reshape(N_GOAL)]),
     ])
 
 
@@ -201,7 +235,9 @@ class ActivePlanner(BasePlanner):
     compiled: the objective's kernels compiled to machine code (planner.objective); ipopt_seeds:
     IPOPT runs only from this many of the best seeds by the objective (0: from every seed);
     max_iter: IPOPT's iteration cap; precompile: compile the kernels when the planner is made
-    (see `precompile`) instead of at the first plan that needs them.
+    (see `precompile`) instead of at the first plan that needs them; goal: "target" counts each
+    row through the hinge at the stop rule's target (see `goal`), "none" counts f itself;
+    goal_width: the hinge's width w as a fraction of f_T.
     """
 
     name = "casadi"
@@ -224,6 +260,8 @@ class ActivePlanner(BasePlanner):
         ipopt_seeds: int = 1,
         max_iter: int = 30,
         precompile: bool = False,
+        goal: str = "target",
+        goal_width: float = 0.1,
     ) -> None:
         super().__init__(constraints, noise, rng_seed)
         self.compiled = bool(compiled)
@@ -239,6 +277,11 @@ class ActivePlanner(BasePlanner):
         if n_starts < 1 or n_quad < 2 or cost_rel < 0:
             raise PlannerError(f"need n_starts >= 1, n_quad >= 2, cost_rel >= 0; got {n_starts}, {n_quad}, {cost_rel}")
         self.criterion = criterion
+        if goal not in ("target", "none") or not goal_width > 0:
+            raise PlannerError(f"goal must be 'target' or 'none' and goal_width > 0; got {goal!r}, {goal_width!r}")
+        self.goal_mode = goal
+        self.goal_width = float(goal_width)
+        self._goal: tuple | None = None
         self.cost_rel = float(cost_rel)
         self.n_starts = int(n_starts)
         self.n_quad = int(n_quad)
@@ -286,7 +329,8 @@ class ActivePlanner(BasePlanner):
             if np.all(bound[ok] <= self.constraints.target_radius_m):
                 return None
         return hypotheses_from_estimate(est, self.weights(est), sigma_points=self.sigma_points, users=ok,
-                                        home_enu_m=home, max_range_m=MAX_USER_RANGE_M)
+                                        home_enu_m=home, max_range_m=MAX_USER_RANGE_M,
+                                        floor_m=self.constraints.floor_m)
 
     def weights(self, est) -> np.ndarray:
         """(K,) w_k: `user_weights` (default 1), times 1/sqrt(tr Σ_k) with weighting="sqrt".
@@ -301,12 +345,31 @@ class ActivePlanner(BasePlanner):
                 w = w / np.sqrt(np.where(np.isfinite(tr) & (tr > 0), tr, 1.0))
         return w
 
+    def goal(self, hyp: Hypotheses) -> np.ndarray | None:
+        """[f_T, w] of the hinge the rows count through (planner.objective, "Goal"), or None (g(f) = f).
+
+        The stop rule ends the survey when every user's bound r95 = sqrt(χ²₂(0.95)) · f ("E") is
+        within the target T, so f_T = T / sqrt(χ²₂(0.95)) and w = goal_width · f_T. None with
+        goal="none", for criteria other than "E" (whose f is no bound), and when no row with weight
+        is above f_T before flying (the survey goes on for another reason, an ambiguous mirror or
+        an unlocated user: then every bound counts)."""
+        if self._goal is not None and self._goal[0] is hyp and self._goal[1] == self.criterion:
+            return self._goal[2]
+        goal = None
+        if self.goal_mode == "target" and self.criterion == "E":
+            f_t = self.constraints.target_radius_m / np.sqrt(CHI2_2DOF_95)
+            rows = hypothesis_rows(hyp)
+            if np.any(prior_row_values(hyp, self.criterion)[rows.weights > 0] > f_t):
+                goal = np.array([f_t, self.goal_width * f_t])
+        self._goal = (hyp, self.criterion, goal)
+        return goal
+
     def uncertainty(self, state: PlanningState, paths_enu_m: np.ndarray, hyp: Hypotheses) -> np.ndarray:
-        """(C,) predicted Σ_k w_k Σ_s c_ks f(I_ks) / J₀ after flying candidate leg ends (C, 3) or
-        horizons (C, H, 3) from the UAV (no cost term)."""
+        """(C,) predicted Σ_k w_k Σ_s c_ks g(f(I_ks)) / J₀ after flying candidate leg ends (C, 3) or
+        horizons (C, H, 3) from the UAV (no cost term; g the goal's hinge, `goal`)."""
         norm = self._prior_value(hyp)
         return objective_values(state.uav_enu_m, paths_enu_m, hyp, self.prediction, self.criterion,
-                                compiled=self.compiled) / norm
+                                compiled=self.compiled, goal=self.goal(hyp)) / norm
 
     @property
     def prediction(self) -> PredictionModel:
@@ -314,9 +377,9 @@ class ActivePlanner(BasePlanner):
         return PredictionModel(self.noise, self.constraints.delta_m, self.n_quad)
 
     def _prior_value(self, hyp: Hypotheses) -> float:
-        """J₀ = prior_value(hyp) (computed once for the hypotheses of a plan)."""
+        """J₀ = prior_value(hyp) with the goal (computed once for the hypotheses of a plan)."""
         if self._norm is None or self._norm[0] is not hyp or self._norm[1] != self.criterion:
-            self._norm = (hyp, self.criterion, prior_value(hyp, self.criterion))
+            self._norm = (hyp, self.criterion, prior_value(hyp, self.criterion, self.goal(hyp)))
         return self._norm[2]
 
     def cost_per_m(self, ring_uncertainty: np.ndarray) -> float:
@@ -395,7 +458,7 @@ class ActivePlanner(BasePlanner):
         # the cell around the first seed leg holds every waypoint, so every leg (convex) stays free
         A, off = convex_cell(c, x[:2], seed[0, :2], self.max_planes)
         par = pack_params(lay, x, hyp, self.noise, c.delta_m, norm, lam, A, off, c.home_enu_m,
-                          c.return_factor)
+                          c.return_factor, self.goal(hyp))
         cap = self.leg_cap_m(state)
         energy = state.energy_remaining_m if np.isfinite(state.energy_remaining_m) else 1e12
         lbg, ubg = [min(c.min_leg_m, cap) ** 2], [cap**2]
@@ -527,7 +590,7 @@ class OraclePlanner(ActivePlanner):
     def hypotheses(self, state: PlanningState) -> Hypotheses | None:
         est = state.estimate
         dim = int(est.cov_users_m2.shape[1]) if est is not None else 2
-        return hypotheses_from_truth(self.true_users_enu_m, est, dim, self.user_weights)
+        return hypotheses_from_truth(self.true_users_enu_m, est, dim, self.user_weights, self.constraints.floor_m)
 
 
 class GreedyPlanner(ActivePlanner):

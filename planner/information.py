@@ -54,8 +54,8 @@ import numpy as np
 from estimator.factors import range_jacobian, range_residuals
 from estimator.nlos_shift import nlos_shift_cov
 from estimator.noise import NoiseModel
-from estimator.types import Estimate
-from planner.objective import N_NLOS, SQRT_EPS_M2, Shape, prior_values, row_values
+from estimator.types import CHI2_2DOF_95, Estimate
+from planner.objective import N_NLOS, SQRT_EPS_M2, Shape, goal_values, prior_values, row_values
 
 #: ε of the prior information regulariser [1/m²] (a 1 km standard deviation).
 PRIOR_EPS_PER_M2 = 1e-6
@@ -72,9 +72,10 @@ class Hypotheses:
     bias: True when each user has a range bias (joint position + bias information);
     noise_scale: (K,) factor by which each user's ranges are noisier than σ(d), as the estimator
         found (Estimate.state.noise_scale); None: 1.
-    nlos: (K, M, N_NLOS) each sample's NLoS state [π₀ n, n, α₀, α₁, α₂, κ] (:func:`nlos_rows`,
-        planner.objective): the shift a one-sided NLoS excess leaves in the bound and where the
-        user is seen in line of sight; None: no shift.
+    nlos: (K, M, N_NLOS) each sample's NLoS state and GPS floor [π₀ n, n, α₀, α₁, α₂, κ, α₃, v_f]
+        (:func:`nlos_row`, planner.objective): the shift a one-sided NLoS excess leaves in the
+        bound, where the user is seen in line of sight, and the variance the GPS floor leaves in
+        it; None: neither.
     """
 
     users_enu_m: np.ndarray
@@ -111,25 +112,55 @@ def _info_from_cov(cov: np.ndarray) -> np.ndarray:
     return 0.5 * (info + info.T) + PRIOR_EPS_PER_M2 * np.eye(d)
 
 
-def survey_cov(estimate: Estimate, k: int, cov: np.ndarray) -> np.ndarray:
+#: the GPS floor takes at most this share of a user's smallest horizontal variance (without its NLoS
+#: shift), so the part the survey shrinks stays positive definite
+FLOOR_SHARE_MAX = 0.9
+
+
+def survey_cov(estimate: Estimate, k: int, cov: np.ndarray, floor_var_m2: float = 0.0) -> np.ndarray:
     """User k's covariance `cov` (position first, any size ≥ 2) without its NLoS shift
-    ½ |δ_k|² on the horizontal axes (ModelState.nlos_shift_m, estimator.nlos_shift.nlos_shift_cov): the
-    part more ranges shrink, which the planner's prior holds; the objective adds the shift back as
-    it predicts it after the horizon (planner.objective, :func:`nlos_row`)."""
+    ½ |δ_k|² on the horizontal axes (ModelState.nlos_shift_m, estimator.nlos_shift.nlos_shift_cov)
+    and without the GPS floor's variance `floor_var_m2` on them (:func:`floor_var_of`): the part
+    more ranges shrink, which the planner's prior holds; the objective adds the shift back as it
+    predicts it after the horizon, and the floor as it is (planner.objective, :func:`nlos_row`)."""
     st = estimate.state
     shift = 0.0 if st is None or st.nlos_shift_m is None else float(st.nlos_shift_m[k])
-    if not shift > 0.0:
-        return cov
-    return np.asarray(cov, dtype=float) - nlos_shift_cov(shift, cov.shape[0])
+    out = np.asarray(cov, dtype=float)
+    if shift > 0.0:
+        out = out - nlos_shift_cov(shift, cov.shape[0])
+    if floor_var_m2 > 0.0:
+        out = out.copy()
+        out[0, 0] -= floor_var_m2
+        out[1, 1] -= floor_var_m2
+    return out
 
 
-def nlos_row(estimate: Estimate, k: int, reflect: np.ndarray | None = None) -> np.ndarray:
-    """(N_NLOS,) user k's NLoS state for the objective, [π₀ n, n, α₀, α₁, α₂, κ]
+def floor_var_of(estimate: Estimate, k: int, floor_m: float) -> float:
+    """v_f [m²]: the variance per horizontal axis that the GPS floor r_floor = `floor_m` (the 95 %
+    bound the drifting GPS leaves however the survey flies, PlanningConstraints.floor_m) holds in
+    user k's covariance and no range removes,
+
+        v_f = min(r_floor² / χ²₂(0.95), FLOOR_SHARE_MAX · λ_min(Σ_k,h))
+
+    (Σ_k,h: the horizontal block without the NLoS shift; the cap keeps the rest positive definite
+    where the estimate holds less than the floor). 0 without a floor."""
+    if not floor_m > 0.0:
+        return 0.0
+    cov_h = survey_cov(estimate, k, np.asarray(estimate.cov_users_m2[k], dtype=float))[:2, :2]
+    lam_min = float(np.linalg.eigvalsh(0.5 * (cov_h + cov_h.T))[0])
+    return float(min(floor_m**2 / CHI2_2DOF_95, FLOOR_SHARE_MAX * max(lam_min, 0.0)))
+
+
+def nlos_row(estimate: Estimate, k: int, reflect: np.ndarray | None = None, floor_var_m2: float = 0.0) -> np.ndarray:
+    """(N_NLOS,) user k's NLoS state and GPS floor for the objective, [π₀ n, n, α₀, α₁, α₂, κ, α₃, v_f]
     (planner.objective): n its ranges so far, π₀ its NLoS share (ModelState.nlos_prob_k), α its
-    NLoS-by-bearing profile (ModelState.nlos_bearing_logit) and κ = |δ_k| / π₀ the shift per unit
-    share (estimator.nlos_shift: |δ| = κ π). Zeros (no shift, κ = 0) where the estimate has none.
+    NLoS profile by bearing and elevation (ModelState.nlos_bearing_logit; a profile of three, by
+    bearing alone, has α₃ = 0) and κ = |δ_k| / π₀ the shift per unit
+    share (estimator.nlos_shift: |δ| = κ π); zeros (no shift, κ = 0) where the estimate has none.
+    v_f = floor_var_m2: the GPS floor's variance per horizontal axis (:func:`floor_var_of`).
     reflect: (2, 2) the mirror's reflection of the horizontal plane, applied to (α₁, α₂)."""
     out = np.zeros(N_NLOS)
+    out[7] = floor_var_m2
     st = estimate.state
     if st is None or st.nlos_shift_m is None or st.nlos_prob_k is None:
         return out
@@ -137,39 +168,47 @@ def nlos_row(estimate: Estimate, k: int, reflect: np.ndarray | None = None) -> n
     if not (shift > 0.0 and pi0 > 0.0):
         return out
     n = float(estimate.n_ranges[k])
-    alpha = np.zeros(3) if st.nlos_bearing_logit is None else np.asarray(st.nlos_bearing_logit[k], dtype=float)
+    alpha = np.zeros(4)
+    if st.nlos_bearing_logit is not None:
+        given = np.asarray(st.nlos_bearing_logit[k], dtype=float)
+        alpha[:len(given)] = given
     if reflect is not None:
-        alpha = np.array([alpha[0], *(reflect @ alpha[1:3])])
-    out[:] = [pi0 * n, n, *alpha, shift / pi0]
+        alpha[1:3] = reflect @ alpha[1:3]
+    out[:7] = [pi0 * n, n, *alpha[:3], shift / pi0, alpha[3]]
     return out
 
 
 def predicted_nlos_var_m2(start_enu_m: np.ndarray, waypoints_enu_m: np.ndarray, hyp: Hypotheses,
                           model: PredictionModel) -> np.ndarray:
-    """(C, K, M) v = ½ (κ π̂)² [m²], the NLoS shift's variance per horizontal axis after flying
-    each candidate horizon (C, H, 3): the slow reference of planner.objective's
+    """(C, K, M) v = ½ (κ π̂)² + v_f [m²], the variance per horizontal axis the ranges leave unseen
+    after flying each candidate horizon (C, H, 3), the NLoS shift's and the GPS floor's: the slow
+    reference of planner.objective's
 
-        π̂ = (π₀ n + Σ_legs (ℓ/(ΔQ)) Σ_q p(β_q)) / (n + Σ_legs ℓ/Δ),  p(β) = σ(α₀ + α₁ cos β + α₂ sin β)
+        π̂ = (π₀ n + Σ_legs (ℓ/(ΔQ)) Σ_q p(β_q, ε_q)) / (n + Σ_legs ℓ/Δ),
+        p(β, ε) = σ(α₀ + α₁ cos β + α₂ sin β + α₃ sin ε)
 
-    with β the bearing of the quadrature point from the user sample."""
+    with β and ε the bearing and elevation of the quadrature point from the user sample."""
     pts, lengths = quadrature_points(start_enu_m, waypoints_enu_m, model.n_quad)
     K, M = hyp.sample_w.shape
     nl = np.zeros((K, M, N_NLOS)) if hyp.nlos is None else np.asarray(hyp.nlos, dtype=float)
     n_meas = np.repeat(lengths / (model.delta_m * model.n_quad), model.n_quad, axis=1)  # (C, HQ)
-    rel = pts[:, None, None, :, :2] - hyp.users_enu_m[None, :, :, None, :2]  # (C, K, M, HQ, 2)
-    rho = np.sqrt(np.sum(rel**2, axis=-1) + SQRT_EPS_M2)
+    rel = pts[:, None, None, :, :] - hyp.users_enu_m[None, :, :, None, :]  # (C, K, M, HQ, 3)
+    rho = np.sqrt(np.sum(rel[..., :2] ** 2, axis=-1) + SQRT_EPS_M2)
+    dist = np.sqrt(np.sum(rel**2, axis=-1) + SQRT_EPS_M2)
     a = nl[None, :, :, None, :]
-    p_nlos = 1.0 / (1.0 + np.exp(-(a[..., 2] + a[..., 3] * rel[..., 0] / rho + a[..., 4] * rel[..., 1] / rho)))
+    p_nlos = 1.0 / (1.0 + np.exp(-(a[..., 2] + a[..., 3] * rel[..., 0] / rho + a[..., 4] * rel[..., 1] / rho
+                                   + a[..., 6] * rel[..., 2] / dist)))
     count = nl[None, ..., 0] + np.einsum("cq,ckmq->ckm", n_meas, p_nlos)
     total = nl[None, ..., 1] + n_meas.sum(axis=1)[:, None, None]
-    return 0.5 * (nl[None, ..., 5] * count / (total + 1e-9)) ** 2
+    return 0.5 * (nl[None, ..., 5] * count / (total + 1e-9)) ** 2 + nl[None, ..., 7]
 
 
-def joint_prior_info(estimate: Estimate, k: int) -> np.ndarray:
+def joint_prior_info(estimate: Estimate, k: int, floor_var_m2: float = 0.0) -> np.ndarray:
     """(d+1, d+1) prior information of user k's (position, bias), bias last [1/m², 1/m²].
 
     The inverse of user k's block of `estimate.state.cov_theta_joint` (rows: the active users of
-    `state.active` in order, d + 1 each) without its NLoS shift (survey_cov), plus ε·I. Without a
+    `state.active` in order, d + 1 each) without its NLoS shift and the GPS floor's variance
+    floor_var_m2 (survey_cov), plus ε·I. Without a
     usable joint covariance: the position marginal's information and ε for the bias (an unknown
     bias, uncorrelated).
     """
@@ -184,9 +223,10 @@ def joint_prior_info(estimate: Estimate, k: int) -> np.ndarray:
             j = int(np.count_nonzero(active[:k]))
             block = joint[j * p:(j + 1) * p, j * p:(j + 1) * p]
             if np.all(np.isfinite(block)):
-                return _info_from_cov(survey_cov(estimate, k, block))
+                return _info_from_cov(survey_cov(estimate, k, block, floor_var_m2))
     out = PRIOR_EPS_PER_M2 * np.eye(p)
-    out[:d, :d] = _info_from_cov(survey_cov(estimate, k, np.asarray(estimate.cov_users_m2[k], dtype=float)))
+    out[:d, :d] = _info_from_cov(survey_cov(estimate, k, np.asarray(estimate.cov_users_m2[k], dtype=float),
+                                            floor_var_m2))
     return out
 
 
@@ -199,6 +239,7 @@ def hypotheses_from_estimate(
     users: np.ndarray | None = None,
     home_enu_m: np.ndarray | None = None,
     max_range_m: float = np.inf,
+    floor_m: float = 0.0,
 ) -> Hypotheses:
     """Samples of the initialised users' posterior (or of `users`, a (K,) bool mask).
 
@@ -211,9 +252,10 @@ def hypotheses_from_estimate(
     from `home_enu_m` is implausible (a diverged solve) and left out. With range biases
     (`estimate.bias_m` not None) the prior information is the joint (position, bias) one of
     :func:`joint_prior_info` (the mirror's reflected by diag(R, 1)); sigma points stay on the
-    position marginal. The prior information leaves out the NLoS shift that no survey shrinks
-    (survey_cov); the sigma points span the whole covariance, shift included (where the user may
-    be).
+    position marginal. The prior information leaves out the NLoS shift and the GPS floor
+    `floor_m` (the 95 % bound the drifting GPS leaves, :func:`floor_var_of`) that no range shrinks
+    (survey_cov), and the rows carry them for the objective to add back (:func:`nlos_row`); the
+    sigma points span the whole covariance, shift included (where the user may be).
     """
     if sigma_points not in ("major", "all", "none"):
         raise ValueError(f"sigma_points must be 'major', 'all' or 'none', got {sigma_points!r}")
@@ -237,7 +279,8 @@ def hypotheses_from_estimate(
     NL = np.zeros((K, M, N_NLOS))
     for row, k in enumerate(idx):
         cov = np.asarray(estimate.cov_users_m2[k], dtype=float)
-        prior_joint = joint_prior_info(estimate, k) if bias else None
+        v_f = floor_var_of(estimate, k, floor_m)
+        prior_joint = joint_prior_info(estimate, k, v_f) if bias else None
         centres = [(estimate.users_enu_m[k], np.eye(d))]
         if amb[k]:
             n = np.zeros(d)
@@ -249,13 +292,13 @@ def hypotheses_from_estimate(
             cov_h = R @ cov @ R.T
             s0 = h * n_set
             U[row, s0:s0 + n_set] = centre
-            NL[row, s0:s0 + n_set] = nlos_row(estimate, k, R[:2, :2] if h else None)
+            NL[row, s0:s0 + n_set] = nlos_row(estimate, k, R[:2, :2] if h else None, v_f)
             if bias:
                 R_ext = np.eye(p)
                 R_ext[:d, :d] = R
                 P[row, s0:s0 + n_set] = R_ext @ prior_joint @ R_ext.T
             else:
-                P[row, s0:s0 + n_set] = _info_from_cov(R @ survey_cov(estimate, k, cov) @ R.T)
+                P[row, s0:s0 + n_set] = _info_from_cov(R @ survey_cov(estimate, k, cov, v_f) @ R.T)
             W[row, s0] = share * (kappa / (r + kappa) if r else 1.0)
             lam, vec = np.linalg.eigh(0.5 * (cov_h + cov_h.T))
             for i in range(r):
@@ -268,15 +311,17 @@ def hypotheses_from_estimate(
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)[idx]
     scale = None if estimate.state is None else np.asarray(estimate.state.noise_scale, dtype=float)[idx]
     return Hypotheses(users_enu_m=U, sample_w=W, prior_info=P, user_w=w, index=idx, bias=bias, noise_scale=scale,
-                      nlos=NL if np.any(NL[..., 5] > 0.0) else None)
+                      nlos=NL if np.any(NL[..., [5, 7]] > 0.0) else None)
 
 
 def hypotheses_from_truth(
-    users_enu_m: np.ndarray, estimate: Estimate | None, dim: int = 2, user_weights: np.ndarray | None = None
+    users_enu_m: np.ndarray, estimate: Estimate | None, dim: int = 2, user_weights: np.ndarray | None = None,
+    floor_m: float = 0.0,
 ) -> Hypotheses:
     """The oracle's single hypothesis: the true positions (K, 3), with the estimator's information
     (its marginal blocks; ε·I for users it has not initialised, or with no estimate yet; the joint
-    (position, bias) information when the estimate carries range biases)."""
+    (position, bias) information when the estimate carries range biases), without the NLoS shift
+    and the GPS floor, which the rows carry (as :func:`hypotheses_from_estimate`)."""
     U = np.asarray(users_enu_m, dtype=float).reshape(-1, 3)
     K = len(U)
     bias = estimate is not None and estimate.bias_m is not None
@@ -286,14 +331,16 @@ def hypotheses_from_truth(
     if estimate is not None:
         ok = users_initialised(estimate)
         for k in np.flatnonzero(ok):
-            NL[k, 0] = nlos_row(estimate, int(k))
+            v_f = floor_var_of(estimate, int(k), floor_m)
+            NL[k, 0] = nlos_row(estimate, int(k), None, v_f)
             if bias:
-                P[k, 0] = joint_prior_info(estimate, int(k))
+                P[k, 0] = joint_prior_info(estimate, int(k), v_f)
             else:
-                P[k, 0] = _info_from_cov(np.asarray(estimate.cov_users_m2[k], dtype=float))
+                P[k, 0] = _info_from_cov(survey_cov(estimate, int(k), np.asarray(estimate.cov_users_m2[k], dtype=float),
+                                                    v_f))
     w = np.ones(K) if user_weights is None else np.asarray(user_weights, dtype=float)
     return Hypotheses(users_enu_m=U[:, None, :], sample_w=np.ones((K, 1)), prior_info=P, user_w=w,
-                      index=np.arange(K), bias=bias, nlos=NL if np.any(NL[..., 5] > 0.0) else None)
+                      index=np.arange(K), bias=bias, nlos=NL if np.any(NL[..., [5, 7]] > 0.0) else None)
 
 
 def quadrature_points(start_enu_m: np.ndarray, waypoints_enu_m: np.ndarray, n_quad: int):
@@ -398,9 +445,11 @@ def objective_values(
     criterion: str = "A",
     cost_per_m: float = 0.0,
     compiled: bool = True,
+    goal: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(C,) J = Σ_k w_k Σ_s c_ks f(I_ks) + λ Σ ℓ for candidate horizons (C, H, 3) (or (C, 3): H = 1):
-    planner.objective's kernel evaluated, the function IPOPT minimises."""
+    """(C,) J = Σ_k w_k Σ_s c_ks g(f(I_ks)) + λ Σ ℓ for candidate horizons (C, H, 3) (or (C, 3): H = 1):
+    planner.objective's kernel evaluated, the function IPOPT minimises. goal: [f_T, w] of the
+    hinge g (planner.objective.goal_expr); None: g(f) = f."""
     W = np.asarray(waypoints_enu_m, dtype=float)
     if W.ndim == 2:
         W = W[:, None, :]
@@ -410,13 +459,19 @@ def objective_values(
                    noise_parameters(model.noise), model.delta_m, rows.nlos, compiled)
     a = np.concatenate([np.broadcast_to(start_enu_m, (len(W), 1, 3)), W[:, :-1]], axis=1)
     lengths = np.sqrt(np.sum((W - a) ** 2, axis=2) + SQRT_EPS_M2)  # as the kernel's ℓ
-    return f @ rows.weights + cost_per_m * lengths.sum(axis=1)
+    return goal_values(f, goal) @ rows.weights + cost_per_m * lengths.sum(axis=1)
 
 
-def prior_value(hyp: Hypotheses, criterion: str = "A") -> float:
-    """Σ_k w_k Σ_s c_ks f(P_ks): the objective before flying (no cost; the NLoS shift as it is)."""
+def prior_row_values(hyp: Hypotheses, criterion: str = "A") -> np.ndarray:
+    """(K·M,) f(P_ks) of every row (hypothesis_rows' order): the criterion before flying."""
     rows = hypothesis_rows(hyp)
-    return float(prior_values(Shape(hyp.dim, hyp.bias, criterion, 1, 2), rows.prior_info, rows.nlos) @ rows.weights)
+    return prior_values(Shape(hyp.dim, hyp.bias, criterion, 1, 2), rows.prior_info, rows.nlos)
+
+
+def prior_value(hyp: Hypotheses, criterion: str = "A", goal: np.ndarray | None = None) -> float:
+    """Σ_k w_k Σ_s c_ks g(f(P_ks)): the objective before flying (no cost; the NLoS shift as it is;
+    goal as in :func:`objective_values`)."""
+    return float(goal_values(prior_row_values(hyp, criterion), goal) @ hypothesis_rows(hyp).weights)
 
 
 def explore_waypoint(planner, state, visited_enu_m: np.ndarray) -> np.ndarray:

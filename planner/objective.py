@@ -21,12 +21,23 @@ line of sight shifts the range one-for-one: σ_gps² is folded into the range va
 NLoS shift (estimator.nlos_shift). A user whose NLoS excess comes from one side carries the shift
 ½ |δ|² I₂ (horizontal) in the covariance the stop rule judges, |δ| = κ π, π the share of its ranges
 that are NLoS and κ = 2μ/c. The horizon's ranges change π: from the n ranges so far, of which π₀ n
-NLoS, and the profile p(β) = σ(α₀ + α₁ cos β + α₂ sin β) of the NLoS probability by the UAV's
-bearing β from the user (estimator.nlos_shift.nlos_bearing_logit),
+NLoS, and the profile p(β, ε) = σ(α₀ + α₁ cos β + α₂ sin β + α₃ sin ε) of the NLoS probability
+by the UAV's bearing β and elevation ε seen from the user (estimator.nlos_shift.nlos_bearing_logit;
+sin ε = (m − u)_up / d),
 
-    π̂ = (π₀ n + Σ_legs (ℓ/(ΔQ)) Σ_q p(β_q)) / (n + Σ_legs ℓ/Δ),    v = ½ (κ π̂)²
+    π̂ = (π₀ n + Σ_legs (ℓ/(ΔQ)) Σ_q p(β_q, ε_q)) / (n + Σ_legs ℓ/Δ),    v = ½ (κ π̂)²
 
-so legs that see the user from its line-of-sight side shrink v. A row without a shift has κ = 0.
+so legs that see the user from its line-of-sight side, or from above its blockers, shrink v. A
+row without a shift has κ = 0.
+
+GPS floor. A drifting GPS error (correlation time τ of tens to hundreds of seconds) moves the
+track and the users together: the part of it the survey's duration does not average away stays in
+every user's bound, whatever the legs (estimator.gps.gps_floor_bound_95_m; PlanningConstraints.
+floor_m = r_floor, its 95 % bound). The row carries it as v_f = r_floor² / χ²₂(0.95) per
+horizontal axis (planner.information.floor_var_of), left out of the prior information P as the
+shift is, and added to v: v ← ½ (κ π̂)² + v_f. More ranges then shrink only the part of the bound
+above the floor, as they do in the estimate, so a user near its floor no longer looks like one
+whose bound a few legs halve.
 
 The row's value is the criterion of Σ = I⁻¹ + v P_h (P_h the horizontal projector; what the stop
 rule and the benchmark measure for "E"):
@@ -36,6 +47,17 @@ rule and the benchmark measure for "E"):
         smooth at isotropy)
 
 (I_h the horizontal block of I; det(I⁻¹ + v P_h) = det(I⁻¹) · det(I + v I P_h).)
+
+Goal. The stop rule asks every user's bound to be within the target T, so what is left to do is
+the part of each bound above T: a user already inside it gains the survey nothing, however much
+its bound still shrinks. With a goal [f_T, w] (f_T = T / sqrt(χ²₂(0.95)) for "E", whose f is the
+bound over sqrt(χ²₂(0.95)); planner.active) a row counts the smooth hinge of its value
+
+    g(f) = w · softplus((f − f_T) / w),   g' = σ((f − f_T)/w),   g'' = σ (1 − σ) / w
+
+(≈ f − f_T above the target, ≈ 0 below it, w the width of the bend), and the objective sums
+w_r g(f_r) instead of w_r f_r; its gradient and Hessian in the waypoints are Σ w_r g' ∇f_r and
+Σ w_r (g' ∇²f_r + g'' ∇f_r ∇f_rᵀ), from the same row kernels. Without a goal g(f) = f.
 
 The objective sums the rows with their weights (planner.active adds the leg-length cost and the
 normalisation). Kernels (:func:`kernel`, one per :class:`Shape`, whatever the number of users and samples): the
@@ -104,8 +126,35 @@ def criterion_expr(info: dict, d: int, criterion: str, v=0.0):
     return (c00 + c11 + c22) / det + 2.0 * v if criterion == "A" else -ca.log(det) + shift_logdet
 
 
-#: length of a row's NLoS vector: [π₀ n, n, α₀, α₁, α₂, κ] (module docstring)
-N_NLOS = 6
+#: length of a row's goal vector: [f_T, w] (:func:`goal_expr`)
+N_GOAL = 2
+
+
+def goal_expr(f, goal):
+    """(g, g', g'') of a row's value f [criterion units] and goal [f_T, w] (SX or MX; module
+    docstring, "Goal"): the smooth hinge g = w · softplus((f − f_T)/w) and its first two
+    derivatives in f."""
+    f_t, width = goal[0], goal[1]
+    x = (f - f_t) / width
+    # softplus(x) = log(1 + eˣ) = max(x, 0) + log(1 + e^−|x|)   (no overflow for large |x|)
+    g = width * (ca.fmax(x, 0.0) + ca.log1p(ca.exp(-ca.fabs(x))))
+    # g' = σ(x),  g'' = σ(x) (1 − σ(x)) / w
+    sig = 1.0 / (1.0 + ca.exp(-x))
+    return g, sig, sig * (1.0 - sig) / width
+
+
+def goal_values(f: np.ndarray, goal: np.ndarray | None) -> np.ndarray:
+    """g(f) of row values f (any shape) for goal [f_T, w] (:func:`goal_expr` in numpy); f itself
+    when goal is None."""
+    if goal is None:
+        return np.asarray(f, dtype=float)
+    f_t, width = float(goal[0]), float(goal[1])
+    # g = w · softplus((f − f_T)/w),  softplus(x) = log(1 + eˣ) = logaddexp(0, x)
+    return width * np.logaddexp(0.0, (np.asarray(f, dtype=float) - f_t) / width)
+
+
+#: length of a row's NLoS vector: [π₀ n, n, α₀, α₁, α₂, κ, α₃, v_f] (module docstring)
+N_NLOS = 8
 
 
 def shift_var_expr(nl_count, n_count, kappa):
@@ -124,7 +173,7 @@ def _position_part(J: dict, d: int, bias: bool) -> dict:
 
 def row_expr(z, x_c, u, P, scale, noise_par, delta, nlos, shape: Shape):
     """SX f of one row (module docstring). z: 3H waypoints stacked; x_c, u: 3; P: p·p row-major;
-    scale: s; noise_par: [s0, a, b, σ_gps²]; delta: Δ; nlos: [π₀ n, n, α₀, α₁, α₂, κ].
+    scale: s; noise_par: [s0, a, b, σ_gps²]; delta: Δ; nlos: [π₀ n, n, α₀, α₁, α₂, κ, α₃, v_f].
     Returns (f, [ℓ_1 … ℓ_H])."""
     d, p, n_q = shape.dim, shape.n_par, shape.n_quad
     t = (np.arange(n_q) + 0.5) / n_q
@@ -144,16 +193,18 @@ def row_expr(z, x_c, u, P, scale, noise_par, delta, nlos, shape: Shape):
             # n / σ_eff², σ_eff² = (s σ(d))² + σ_gps²
             w = per_point / ((scale * (s0 + a * ca.exp(b * dist))) ** 2 + sgps2)
             hv = [rel[i] / dist for i in range(d)] + ([-1.0] if shape.bias else [])
-            # the NLoS probability at this point's bearing from the user, p(β) = σ(α·(1, cos β, sin β))
+            # the NLoS probability at this point's bearing and elevation from the user,
+            # p(β, ε) = σ(α·(1, cos β, sin β, sin ε))
             rho = ca.sqrt(rel[0] ** 2 + rel[1] ** 2 + SQRT_EPS_M2)
-            p_nlos = 1.0 / (1.0 + ca.exp(-(nlos[2] + nlos[3] * rel[0] / rho + nlos[4] * rel[1] / rho)))
+            p_nlos = 1.0 / (1.0 + ca.exp(-(nlos[2] + nlos[3] * rel[0] / rho + nlos[4] * rel[1] / rho
+                                           + nlos[6] * rel[2] / dist)))
             nl_count = nl_count + per_point * p_nlos
             n_count = n_count + per_point
             for i in range(p):
                 for j in range(i, p):
                     acc[i, j] = acc[i, j] + w * hv[i] * hv[j]
         prev = wp
-    v = shift_var_expr(nl_count, n_count, nlos[5])
+    v = shift_var_expr(nl_count, n_count, nlos[5]) + nlos[7]
     return criterion_expr(_position_part(acc, d, shape.bias), d, shape.criterion, v), lengths
 
 
@@ -203,7 +254,7 @@ def kernel(kind: str, shape: Shape, compiled: bool = True) -> ca.Function:
     tag = f"{shape.criterion}{shape.dim}{'b' if shape.bias else ''}h{shape.horizon}q{shape.n_quad}"
     if kind == "prior":
         prior = {(i, j): P[i * p + j] for i in range(p) for j in range(i, p)}
-        v = shift_var_expr(nlos[0], nlos[1], nlos[5])
+        v = shift_var_expr(nlos[0], nlos[1], nlos[5]) + nlos[7]
         f = criterion_expr(_position_part(prior, shape.dim, shape.bias), shape.dim, shape.criterion, v)
         fun = ca.Function(f"prior_{tag}", [P, nlos], [f])
     elif kind in ("value", "vgh"):
@@ -222,6 +273,18 @@ def kernel(kind: str, shape: Shape, compiled: bool = True) -> ca.Function:
     _KERNELS[key] = fun
     log.debug("built the planner's %s kernel for %s (compiled=%s)", kind, shape, key[2])
     return fun
+
+
+_GOAL_FUNCTION: list[ca.Function] = []
+
+
+def goal_function() -> ca.Function:
+    """(f, goal) → (g, g', g'') of :func:`goal_expr` for one row (built once per process, interpreted:
+    three scalars)."""
+    if not _GOAL_FUNCTION:
+        f, goal = ca.SX.sym("f"), ca.SX.sym("goal", N_GOAL)
+        _GOAL_FUNCTION.append(ca.Function("goal", [f, goal], list(goal_expr(f, goal))))
+    return _GOAL_FUNCTION[0]
 
 
 _MAPS: dict[tuple[int, int], ca.Function] = {}

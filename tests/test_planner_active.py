@@ -22,7 +22,7 @@ from planner.information import (
     prior_value,
     quadrature_points,
 )
-from planner.objective import E_GAP_EPS, Shape
+from planner.objective import E_GAP_EPS, Shape, goal_values
 from tests.test_planner import fake_estimate, u_constraints
 from uavloc.errors import PlannerError
 
@@ -68,12 +68,13 @@ def _estimate_two_users_bias(ambiguous: bool = True):
 
 
 def _casadi_objective(planner, state, hyp, lam, n_planes=0):
+    goal = planner.goal(hyp)
     lay = _Layout(Shape(hyp.dim, hyp.bias, planner.criterion, 1, planner.n_quad), hyp.sample_w.size,
-                  planner.max_planes)
+                  planner.max_planes, goal=goal is not None)
     fun = objective_function(lay)
     c = planner.constraints
-    par = pack_params(lay, state.uav_enu_m, hyp, planner.noise, c.delta_m, prior_value(hyp, planner.criterion), lam,
-                      np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor)
+    par = pack_params(lay, state.uav_enu_m, hyp, planner.noise, c.delta_m, prior_value(hyp, planner.criterion, goal),
+                      lam, np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor, goal)
     return lambda p: tuple(np.asarray(v, dtype=float).ravel() for v in fun(p, par))
 
 
@@ -481,10 +482,12 @@ def test_horizon_objective_gradient_and_feasibility(bias):
     planner = make_planner("casadi", c, NOISE, horizon=3, criterion="E")
     state = PlanningState([0.0, -60.0, 30.0], _estimate_two_users_bias() if bias else _estimate_two_users())
     hyp = planner.hypotheses(state)
-    lay = _Layout(Shape(hyp.dim, hyp.bias, "E", 3, planner.n_quad), hyp.sample_w.size, planner.max_planes)
+    goal = planner.goal(hyp)
+    assert goal is not None
+    lay = _Layout(Shape(hyp.dim, hyp.bias, "E", 3, planner.n_quad), hyp.sample_w.size, planner.max_planes, goal=True)
     fun = objective_function(lay)
-    par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, prior_value(hyp, "E"), 0.002,
-                      np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor)
+    par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, prior_value(hyp, "E", goal), 0.002,
+                      np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor, goal)
     path = np.array([[-30.0, -70.0, 20.0], [-70.0, -40.0, 25.0], [-70.0, 10.0, 15.0]])
     value, grad = (np.asarray(v, dtype=float).ravel() for v in fun(path.ravel(), par))
     ev = lambda z: planner.evaluate(state, z.reshape(1, 3, 3), hyp, 0.002)[0]  # noqa: E731
@@ -564,12 +567,14 @@ def test_ipopts_objective_is_the_numpy_prediction_with_noise_scales(criterion, b
     hyp = planner.hypotheses(state)
     assert hyp.bias is bias and np.allclose(hyp.noise_scale, [2.5, 0.7])
     lam, c = 0.003, planner.constraints
+    goal = planner.goal(hyp)
+    assert (goal is not None) is (criterion == "E")
     lay = _Layout(Shape(hyp.dim, hyp.bias, criterion, planner.horizon, planner.n_quad), hyp.sample_w.size,
-                  planner.max_planes)
-    norm = prior_value(hyp, criterion)
+                  planner.max_planes, goal=goal is not None)
+    norm = prior_value(hyp, criterion, goal)
     nlp_f = active_mod._solver(lay).get_function("nlp_f")
     par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, norm, lam, np.zeros((0, 2)), np.zeros(0),
-                      c.home_enu_m, c.return_factor)
+                      c.home_enu_m, c.return_factor, goal)
     rng = np.random.default_rng(11)
     for _ in range(4):
         path = state.uav_enu_m + rng.uniform([-50, -30, -15], [50, 50, 25], size=(planner.horizon, 3)).cumsum(axis=0)
@@ -578,7 +583,7 @@ def test_ipopts_objective_is_the_numpy_prediction_with_noise_scales(criterion, b
         info, lengths = predicted_information(state.uav_enu_m, path[None], hyp, planner.prediction)
         pos = position_information(info[0], bias)
         K, M = hyp.sample_w.shape
-        ref = sum(hyp.user_w[k] * hyp.sample_w[k, m] * _reference_criterion(pos[k, m], criterion)
+        ref = sum(hyp.user_w[k] * hyp.sample_w[k, m] * goal_values(_reference_criterion(pos[k, m], criterion), goal)
                   for k in range(K) for m in range(M)) / norm + lam * lengths.sum()
         assert ipopt_f == pytest.approx(numpy_f, rel=1e-9, abs=1e-12)
         assert numpy_f == pytest.approx(ref, rel=1e-9)

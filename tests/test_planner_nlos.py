@@ -33,12 +33,13 @@ WEST_LOGIT = np.array([-1.0, -4.0, 0.0])
 
 
 def _with_nlos(est, shift_m, pi0, logit):
-    """`est` whose users carry an NLoS shift |δ| (K,), share π₀ (K,) and bearing profile (K, 3)
-    (est's covariance holds the shift's ½ |δ|² on each horizontal axis, as the estimator's does)."""
+    """`est` whose users carry an NLoS shift |δ| (K,), share π₀ (K,) and NLoS profile (K, 3) by
+    bearing or (K, 4) by bearing and elevation (est's covariance holds the shift's ½ |δ|² on each
+    horizontal axis, as the estimator's does)."""
     k = est.n_users
     st = est.state or ModelState(active=np.ones(k, dtype=bool), cov_theta_joint=None, noise_scale=np.ones(k))
     return replace(est, state=replace(st, nlos_shift_m=np.asarray(shift_m, float), nlos_prob_k=np.asarray(pi0, float),
-                                      nlos_bearing_logit=np.asarray(logit, float).reshape(k, 3)))
+                                      nlos_bearing_logit=np.asarray(logit, float).reshape(k, -1)))
 
 
 def _one_user_west_nlos():
@@ -51,25 +52,28 @@ def test_bearing_profile_fit_equals_a_general_purpose_minimiser():
     from estimator.problem import Problem
 
     rng = np.random.default_rng(5)
-    n = 60
+    n = 120
     bearing = rng.uniform(-np.pi, np.pi, n)
-    x = np.column_stack([50 * np.cos(bearing), 50 * np.sin(bearing), np.full(n, 30.0)])
+    run_m, up_m = rng.uniform(20.0, 150.0, n), rng.uniform(15.0, 80.0, n)
+    x = np.column_stack([run_m * np.cos(bearing), run_m * np.sin(bearing), up_m])
     users = np.zeros((1, 3))
-    # posterior NLoS probabilities high to the west, low to the east, noisy
-    y = np.clip(1 / (1 + np.exp(-(-0.5 - 3 * np.cos(bearing)))) + rng.normal(0, 0.05, n), 0, 1)
+    sin_elev = up_m / np.hypot(run_m, up_m)
+    # posterior NLoS probabilities high to the west and seen low (a blocker's shadow), noisy
+    y = np.clip(1 / (1 + np.exp(-(1.0 - 3 * np.cos(bearing) - 4 * sin_elev))) + rng.normal(0, 0.05, n), 0, 1)
     prob = type("P", (), {"n_users": 1, "mask": np.ones((n, 1), bool)})()
     assert not isinstance(prob, Problem)  # only n_users and mask are read
     got = nlos_bearing_logit(prob, x, users, (1 - y)[None], np.array([2.0]))[0]
 
-    phi = np.column_stack([np.ones(n), np.cos(bearing), np.sin(bearing)])
+    phi = np.column_stack([np.ones(n), np.cos(bearing), np.sin(bearing), sin_elev])
 
     def loss(a):
         p = 1 / (1 + np.exp(-(phi @ a)))
         return -np.sum(y * np.log(p) + (1 - y) * np.log(1 - p)) + NLOS_BEARING_RIDGE * a @ a
 
-    ref = minimize(loss, np.zeros(3), method="BFGS", options={"gtol": 1e-10}).x
+    ref = minimize(loss, np.zeros(4), method="BFGS", options={"gtol": 1e-10}).x
     np.testing.assert_allclose(got, ref, atol=1e-5)
     assert got[1] < -1.0  # NLoS to the west: the cos β coefficient is strongly negative
+    assert got[3] < -1.0  # ... and from low: the sin ε coefficient too
     # a user without a shift gets no profile
     assert np.all(nlos_bearing_logit(prob, x, users, (1 - y)[None], np.array([0.0])) == 0.0)
 
@@ -99,9 +103,10 @@ def _dense(start, path, hyp, model, criterion):
 @pytest.mark.parametrize("criterion", ["A", "D", "E"])
 def test_objective_with_an_nlos_shift_equals_a_dense_computation(criterion):
     est = _with_nlos(fake_estimate([[-70, 60, 0], [70, 40, 0]], np.array([np.diag([21.5, 16.5]), np.diag([3.0, 6.0])])),
-                     [5.0, 0.0], [0.25, 0.0], [WEST_LOGIT, np.zeros(3)])
+                     [5.0, 0.0], [0.25, 0.0], [[*WEST_LOGIT, -3.0], np.zeros(4)])
     hyp = hypotheses_from_estimate(est, sigma_points="all")
     assert hyp.nlos is not None and np.all(hyp.nlos[1] == 0.0) and np.allclose(hyp.nlos[0, :, 5], 5.0 / 0.25)
+    assert np.allclose(hyp.nlos[0, :, 6], -3.0)
     model = PredictionModel(NOISE, 2.0, 8)
     start = np.array([0.0, -60.0, 30.0])
     rng = np.random.default_rng(3)
@@ -116,17 +121,34 @@ def test_objective_with_an_nlos_shift_equals_a_dense_computation(criterion):
         _dense(start, np.repeat(start[None], 2, axis=0), hyp, model, criterion), rel=1e-6)
 
 
+def test_a_user_shadowed_from_low_elevations_is_seen_in_line_of_sight_from_higher_up():
+    """With α₃ < 0 (the NLoS ranges were the low ones) the same leg flown higher leaves a smaller
+    shift; with a profile by bearing alone (α₃ = 0), altitude does not change it."""
+    model = PredictionModel(NOISE, 2.0, 8)
+    start = np.array([-80.0, 40.0, 20.0])
+    low, high = np.array([[[-80.0, 100.0, 20.0]]]), np.array([[[-80.0, 100.0, 80.0]]])
+    start_high = np.array([-80.0, 40.0, 80.0])
+
+    def shift_var(logit, s, path):
+        est = _with_nlos(fake_estimate([[0.0, 40.0, 0.0]], np.diag([22.0, 22.0])), [6.0], [0.3], [logit])
+        return predicted_nlos_var_m2(s, path, hypotheses_from_estimate(est, sigma_points="none"), model)[0, 0, 0]
+
+    assert shift_var([*WEST_LOGIT, -4.0], start_high, high) < 0.9 * shift_var([*WEST_LOGIT, -4.0], start, low)
+    assert shift_var(WEST_LOGIT, start_high, high) == pytest.approx(shift_var(WEST_LOGIT, start, low), rel=1e-9)
+
+
 def test_ipopt_minimises_the_same_objective_with_an_nlos_shift():
     est = _one_user_west_nlos()
     planner = make_planner("casadi", u_constraints(), NOISE)
     state = PlanningState([0.0, -20.0, 30.0], est)
     hyp = planner.hypotheses(state)
     assert hyp.nlos is not None
+    goal = planner.goal(hyp)
     lay = _Layout(Shape(hyp.dim, hyp.bias, planner.criterion, planner.horizon, planner.n_quad), hyp.sample_w.size,
-                  planner.max_planes)
+                  planner.max_planes, goal=goal is not None)
     c = planner.constraints
-    par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, prior_value(hyp, planner.criterion), 0.002,
-                      np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor)
+    par = pack_params(lay, state.uav_enu_m, hyp, NOISE, c.delta_m, prior_value(hyp, planner.criterion, goal), 0.002,
+                      np.zeros((0, 2)), np.zeros(0), c.home_enu_m, c.return_factor, goal)
     nlp_f = active_mod._solver(lay).get_function("nlp_f")
     rng = np.random.default_rng(2)
     for _ in range(3):
