@@ -34,6 +34,7 @@ from mission.control.config import ControllerConfig, MissionUser
 from mission.control.flight import MissionController
 from mission.estimation import mission_solver_params
 from mission.gnb import GnbClient
+from mission.kernel_cache import use_kernel_cache
 from mission.safety import SafetyLimits
 from mission.vehicle import Vehicle
 from planner.types import Planner
@@ -68,22 +69,6 @@ def resolve_planner_name(name: str, truth_known: bool = True) -> str:
     return name
 
 
-def compile_planner_in_tmp() -> None:
-    """Have the planner's kernels compiled in the system's temporary folder: CasADi's JIT keeps
-    its C source in the current directory while a kernel lives (and leaves it there when the
-    process is killed), i.e. in the user's working folder. Idempotent; a hook set by the caller
-    stays."""
-    import functools
-    import os
-    import tempfile
-
-    from planner import objective
-
-    if objective.compile_hook is objective.jit_function:
-        objective.compile_hook = functools.partial(objective.jit_function,
-                                                   directory=os.path.join(tempfile.gettempdir(), ""))
-
-
 def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path: str | Path, *,
                             planner: str | None = None, seed: int = 0, time_scale: float = 1.0,
                             truth: Callable[[Origin], np.ndarray] | None = None,
@@ -115,7 +100,7 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
     def planner_at(home: Origin) -> Planner:
         # the oracle gets the true users in the controller's frame (ENU from the vehicle's home)
         opts = {"true_users_enu_m": truth(home)} if name == ORACLE_PLANNER else {}
-        compile_planner_in_tmp()
+        use_kernel_cache()
         return make_planner(name, make_constraints(home), noise, rng_seed=seed, **opts)
 
     def limits_at(home: Origin) -> SafetyLimits:

@@ -32,6 +32,22 @@ def _runs_folder(tmp_path_factory):
         os.environ["UAVLOC_RUNS"] = old
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _kernel_cache(tmp_path_factory):
+    """The planner's compiled kernels (mission.kernel_cache) go to one folder of this test session,
+    not the user's ~/.cache: the first test that plans compiles them, the rest (subprocesses
+    included) load them."""
+    import os
+
+    old = os.environ.get("UAVLOC_KERNEL_CACHE")
+    os.environ["UAVLOC_KERNEL_CACHE"] = str(tmp_path_factory.mktemp("kernel-cache"))
+    yield
+    if old is None:
+        os.environ.pop("UAVLOC_KERNEL_CACHE", None)
+    else:
+        os.environ["UAVLOC_KERNEL_CACHE"] = old
+
+
 @pytest.fixture(autouse=True)
 def _fresh_o1_bookkeeping(request):
     """mission.gnb.client keeps, per (host, port), this process's last `o1 stats` and any it left

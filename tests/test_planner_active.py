@@ -621,19 +621,25 @@ def test_precompile_builds_the_kernels_a_plan_needs_before_the_first_plan():
 
 def test_the_mission_compiles_planner_kernels_outside_the_working_folder(tmp_path, monkeypatch):
     """CasADi's JIT keeps its C source in the current directory while a kernel lives (and leaves
-    it there when the process is killed): not in the user's folder, in the system's temporary one."""
+    it there when the process is killed): not in the user's folder; in the kernel cache, or with
+    the cache off in the system's temporary folder."""
     import casadi as ca
 
-    from mission.controller import compile_planner_in_tmp
+    from mission.kernel_cache import use_kernel_cache
     from planner import objective
 
-    monkeypatch.setattr(objective, "compile_hook", objective.jit_function)
-    monkeypatch.chdir(tmp_path)
-    compile_planner_in_tmp()
-    x = ca.SX.sym("x", 2)
-    f = objective.compile_hook("uavloc_test_kernel", [x], [ca.sumsqr(x)])
-    assert float(f([1.0, 2.0])) == 5.0
-    assert list(tmp_path.iterdir()) == []
+    work, cache = tmp_path / "work", tmp_path / "cache"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    for setting in (str(cache), "off"):
+        monkeypatch.setattr(objective, "compile_hook", objective.jit_function)
+        monkeypatch.setenv("UAVLOC_KERNEL_CACHE", setting)
+        assert use_kernel_cache() == (cache if setting != "off" else None)
+        x = ca.SX.sym("x", 2)
+        f = objective.compile_hook("uavloc_test_kernel", [x], [ca.sumsqr(x)])
+        assert float(f([1.0, 2.0])) == 5.0
+        assert list(work.iterdir()) == []
+    assert [p.suffix for p in cache.iterdir() if not p.name.startswith(".")] == [".so"]
 
 
 def test_a_campaign_spec_compiles_planner_kernels_outside_the_working_folder(tmp_path, monkeypatch):

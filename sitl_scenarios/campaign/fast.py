@@ -32,8 +32,8 @@ from estimator.ranging import range_m_from_raw
 from estimator.types import Estimate, Keyframe, SolverParams
 from mission import geometry
 from mission.control.legs import PLAN_AHEAD_S
-from mission.controller import compile_planner_in_tmp
 from mission.estimation import MissionEstimator
+from mission.kernel_cache import use_kernel_cache
 from mission.result import STATUS_BUDGET, STATUS_TARGET, build_result, status_of_planner_reason
 from planner import PlanningConstraints, PlanningState, make_planner
 from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
@@ -77,7 +77,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     opts = dict(planner_opts or {})
     if planner_name == "oracle":
         opts.setdefault("true_users_enu_m", users)
-    compile_planner_in_tmp()
+    use_kernel_cache()
     planner = make_planner(planner_name, c, noise, rng_seed=seed, **opts)
     est = setup.estimator()
     confirm = setup.confirm

@@ -294,12 +294,12 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
 
 def _check_planner_options(section: CampaignSection, planner_opts: dict, sc: Scenario, where: str) -> None:
     """Build each planner once with its options, so a bad option is an error before any run starts
-    (`precompile = true` compiles its kernels here too: in the system's temporary folder, as the
-    runs do, not in the user's working folder)."""
-    from mission.controller import compile_planner_in_tmp
+    (`precompile = true` compiles its kernels here too: into the kernel cache, as the runs do, not
+    the user's working folder)."""
+    from mission.kernel_cache import use_kernel_cache
     from planner import make_planner
 
-    compile_planner_in_tmp()
+    use_kernel_cache()
     c = sc.planning_constraints()
     truth = [[u.east_m, u.north_m, u.up_m] for u in sc.users]
     for name in section.planners:
