@@ -51,6 +51,7 @@ from mission.control.config import (
     RETURN,
     SAFE_END_TIMEOUT_S,
     STATUS_ABORTED,
+    STATUS_FLOOR,
     STATUS_INTERRUPTED,
     STATUS_RETURNED,
     STATUS_TARGET,
@@ -292,16 +293,27 @@ class MissionController:
         return f.stop or (STATUS_RETURNED, "survey ended")
 
     async def _target_confirmed(self) -> bool:
-        """After a survey that ended "target reached": the mission's final answer (the batch over
-        every keyframe, the last rounds placed first) holds every bound within the target too; else
-        the survey goes on (False). A last range can widen a bound by a metre (seen: 3.86 to 4.84 m
-        against 4 m), and "target reached" must hold for the answer the mission prints."""
+        """After a survey that ended "target reached" or "floor reached": the mission's final
+        answer (the batch over every keyframe, the last rounds placed first) decides. "Target
+        reached" must hold for the answer the mission prints: a last range can widen a bound by a
+        metre (seen: 3.86 to 4.84 m against 4 m), and then the survey goes on (False). A floor the
+        survey's estimate saw may be within the target in the final answer (seen: 3.57 m against
+        4 m after "floor reached"): then the target is reached."""
         f = self.flight
-        if f.stop is None or f.stop[0] != STATUS_TARGET or f.return_reason is not None or self._estimator is None:
+        if (f.stop is None or f.stop[0] not in (STATUS_TARGET, STATUS_FLOOR) or f.return_reason is not None
+                or self._estimator is None):
             return True
         await self.pipeline.drain(self.wall(PLAN_DRAIN_MAX_S))
         final = await asyncio.to_thread(self._estimator.final, list(self.pipeline.keyframes))
-        if targets_reached(final, self.config.flight.target_radius_m):
+        reached = targets_reached(final, self.config.flight.target_radius_m)
+        if f.stop[0] == STATUS_FLOOR:
+            if reached:
+                f.stop = (STATUS_TARGET, "target reached")
+                self.journal.event(f"the final answer over {len(self.pipeline.keyframes)} keyframes bounds every "
+                                   f"user within the {self.config.flight.target_radius_m:g} m target: target reached",
+                                   kind="target_in_final_answer")
+            return True
+        if reached:
             return True
         worst = float(np.max(final.error_bound_95_m()))
         f.resume_survey()

@@ -1,0 +1,64 @@
+"""After the stop rule, the mission's final answer decides what the survey reached
+(MissionController._target_confirmed): "target reached" the final answer does not hold sends the
+survey on; "floor reached" whose final answer is within the target is the target reached."""
+
+from __future__ import annotations
+
+import asyncio
+from types import SimpleNamespace
+
+import numpy as np
+
+from mission.control.config import STATUS_BUDGET, STATUS_FLOOR, STATUS_TARGET
+from mission.control.flight import MissionController
+from mission.control.state import FlightState
+
+
+class _Final:
+    """What planner.stop.targets_reached reads of an Estimate: bounds, ambiguity, user count."""
+
+    def __init__(self, bounds_m):
+        self.bounds_m = np.asarray(bounds_m, float)
+        self.n_users = len(self.bounds_m)
+        self.ambiguous = np.zeros(self.n_users, bool)
+
+    def error_bound_95_m(self):
+        return self.bounds_m
+
+
+def _check(stop, final_bounds_m):
+    events = []
+
+    async def drain(_timeout_s):
+        return None
+
+    flight = FlightState(event=lambda *a, **k: None)
+    flight.finish_survey(*stop, now_s=100.0)
+    ctl = SimpleNamespace(
+        flight=flight, pipeline=SimpleNamespace(drain=drain, keyframes=[object()] * 12),
+        _estimator=SimpleNamespace(final=lambda kfs: _Final(final_bounds_m)),
+        config=SimpleNamespace(flight=SimpleNamespace(target_radius_m=4.0)),
+        journal=SimpleNamespace(event=lambda message, **fields: events.append((message, fields))),
+        wall=lambda s: 0.0)
+    done = asyncio.run(MissionController._target_confirmed(ctl))
+    return done, flight, [f.get("kind") for _, f in events]
+
+
+def test_a_floor_the_final_answer_puts_within_the_target_is_the_target_reached():
+    # three_users_nlos seed 5: "floor reached" at 1436 m, the final answer 3.57 / 1.17 / 1.68 m
+    done, flight, kinds = _check((STATUS_FLOOR, "floor reached"), [3.57, 1.17, 1.68])
+    assert done and flight.stop == (STATUS_TARGET, "target reached") and kinds == ["target_in_final_answer"]
+    done, flight, kinds = _check((STATUS_FLOOR, "floor reached"), [4.2, 1.23, 0.97])
+    assert done and flight.stop == (STATUS_FLOOR, "floor reached") and kinds == []
+
+
+def test_a_target_the_final_answer_does_not_hold_sends_the_survey_on():
+    done, flight, kinds = _check((STATUS_TARGET, "target reached"), [4.84, 2.0, 2.0])
+    assert not done and flight.stop is None and flight.stop_s is None and kinds == ["target_unconfirmed"]
+    done, flight, kinds = _check((STATUS_TARGET, "target reached"), [3.9, 2.0, 2.0])
+    assert done and flight.stop == (STATUS_TARGET, "target reached") and kinds == []
+
+
+def test_other_ends_are_not_judged_again():
+    done, flight, kinds = _check((STATUS_BUDGET, "budget spent"), [1.0, 1.0, 1.0])
+    assert done and flight.stop == (STATUS_BUDGET, "budget spent") and kinds == []
