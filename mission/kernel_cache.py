@@ -84,7 +84,10 @@ def cached_kernel(name: str, inputs: list, outputs: list, cache_dir: Path,
             _compile(source, library, flags)
         except OSError as exc:  # the cache folder cannot be written
             raise RuntimeError(f"cannot write the kernel cache {library.parent}: {exc}") from exc
-    return ca.external(name, str(library))
+    # IPOPT's set-up asks CasADi for derivatives of the value kernel (the Lagrangian's gradient, for
+    # the multipliers at the solution; the steps use the vgh kernel's exact ones): a library
+    # carries no derivative code, so they are finite differences, else every solve fails
+    return ca.external(name, str(library), {"enable_fd": True})
 
 
 def use_kernel_cache() -> Path | None:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mission.kernel_cache import cached_kernel, kernel_cache_dir
-from planner import objective
+from planner import make_planner, objective
 from planner.objective import Shape
 
 
@@ -75,3 +75,27 @@ def test_a_cache_that_cannot_compile_says_so(tmp_path, monkeypatch):
     x = ca.SX.sym("x", 2)
     with pytest.raises(RuntimeError, match="no-such-compiler-uavloc"):
         cached_kernel("uavloc_nocc_test", [x], [ca.sumsqr(x)], tmp_path)
+
+
+def test_the_active_planner_solves_with_cached_kernels(tmp_path, monkeypatch, caplog):
+    """IPOPT's problem asks CasADi for derivatives of the value kernel (its multipliers at the
+    solution); a cached library carries none of its own, so they are CasADi's finite differences.
+    Without them every solve failed at IPOPT's set-up and the planner fell back to its ring (a live
+    PX4 mission then ended 'floor reached')."""
+    import functools
+
+    from planner import active
+    from tests.test_planner import u_constraints
+    from tests.test_planner_active import NOISE, _estimate_two_users
+
+    monkeypatch.setattr(objective, "compile_hook", functools.partial(cached_kernel, cache_dir=tmp_path))
+    monkeypatch.setattr(objective, "_KERNELS", {})
+    monkeypatch.setattr(active, "_SOLVERS", {})
+    planner = make_planner("casadi", u_constraints(), NOISE)
+    from planner import PlanningState
+
+    with caplog.at_level("WARNING"):
+        r = planner.plan(PlanningState(np.array([0.0, -60.0, 30.0]), _estimate_two_users(ambiguous=False), 100.0))
+    assert not [rec for rec in caplog.records if "IPOPT failed" in rec.getMessage()]
+    assert r.status.startswith("ipopt"), r.status
+    assert [p for p in tmp_path.iterdir() if p.suffix == ".so"]
