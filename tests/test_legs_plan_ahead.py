@@ -52,3 +52,22 @@ def test_a_plan_made_ahead_counts_the_metres_to_the_leg_end(ahead_m):
     # (60 − 25) · 20 s / (80 − 60) = 35 s left at the drain so far, 175 m at 5 m/s
     assert state.flown_m == pytest.approx(100.0 + ahead_m)
     assert state.energy_remaining_m == pytest.approx(175.0 - ahead_m)
+
+
+def test_a_leg_takes_the_longer_of_its_horizontal_and_vertical_flight():
+    """A live PX4 leg from 80 m down to 30 m, 57 m across, timed out after 35 s: its time was its
+    3-D metres at cruise speed (7.6 s) where the 1.5 m/s descent takes 33 s."""
+    from types import SimpleNamespace
+
+    flight = SimpleNamespace(climb_mps=3.0, descent_mps=1.5)
+    deps = LegsDeps(config=SimpleNamespace(flight=flight), flight=_Flight(flown_m=0.0), gated=None,
+                    set_speed=_noop, battery_pct=lambda: None, battery_rtl_pct=25.0, planner=_Planner(),
+                    origin=None, journal=None, pos_enu=lambda: np.zeros(3), now=lambda: 0.0, wall=lambda s: s,
+                    drain=_noop, sigma_gps_m=1.0)
+    legs = SurveyLegs(deps)
+    legs.leg_speed_mps = 10.0
+    start, wp = np.array([5.4, 42.7, 79.9]), np.array([29.5, 94.5, 30.3])
+    assert legs.leg_time_s(start, wp) == pytest.approx(49.6 / 1.5)
+    assert legs.leg_time_s(wp, start) == pytest.approx(49.6 / 3.0)  # climbing
+    level = np.array([60.0, 80.0, 30.3])
+    assert legs.leg_time_s(wp, level) == pytest.approx(np.hypot(30.5, -14.5) / 10.0)  # level: cruise
