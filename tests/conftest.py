@@ -18,34 +18,23 @@ def shared_data() -> Path:
 
 
 @pytest.fixture(autouse=True, scope="session")
-def _runs_folder(tmp_path_factory):
-    """Missions flown without --out keep their log under $UAVLOC_RUNS (mission.commands.outdir):
-    the tests' go to a temporary folder, not the user's ~/uavloc-runs (subprocesses inherit it)."""
+def _private_folders(tmp_path_factory):
+    """Folders of this test session, not the user's (subprocesses inherit them): missions flown
+    without --out keep their log under $UAVLOC_RUNS (mission.commands.outdir), not ~/uavloc-runs;
+    the planner's compiled kernels go to $UAVLOC_KERNEL_CACHE (mission.kernel_cache), not
+    ~/.cache: the first test that plans compiles them, the rest load them."""
     import os
 
-    old = os.environ.get("UAVLOC_RUNS")
-    os.environ["UAVLOC_RUNS"] = str(tmp_path_factory.mktemp("uavloc-runs"))
+    folders = {"UAVLOC_RUNS": "uavloc-runs", "UAVLOC_KERNEL_CACHE": "kernel-cache"}
+    old = {name: os.environ.get(name) for name in folders}
+    for name, folder in folders.items():
+        os.environ[name] = str(tmp_path_factory.mktemp(folder))
     yield
-    if old is None:
-        os.environ.pop("UAVLOC_RUNS", None)
-    else:
-        os.environ["UAVLOC_RUNS"] = old
-
-
-@pytest.fixture(autouse=True, scope="session")
-def _kernel_cache(tmp_path_factory):
-    """The planner's compiled kernels (mission.kernel_cache) go to one folder of this test session,
-    not the user's ~/.cache: the first test that plans compiles them, the rest (subprocesses
-    included) load them."""
-    import os
-
-    old = os.environ.get("UAVLOC_KERNEL_CACHE")
-    os.environ["UAVLOC_KERNEL_CACHE"] = str(tmp_path_factory.mktemp("kernel-cache"))
-    yield
-    if old is None:
-        os.environ.pop("UAVLOC_KERNEL_CACHE", None)
-    else:
-        os.environ["UAVLOC_KERNEL_CACHE"] = old
+    for name, value in old.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
 
 
 @pytest.fixture(autouse=True)
