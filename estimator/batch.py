@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
@@ -116,8 +117,46 @@ def solve_batch(
     Users with fewer than p + 1 ranges (p unknowns) are not estimated: NaN rows, inf covariance.
     warm: an Estimate solve_batch returned for a prefix of these keyframes (a refresh,
         estimator.refresh): see _warm_solve; state.warm_started says whether it was used.
+    A fleet's keyframes (Keyframe.vehicle) are solved sorted by vehicle, each vehicle's chain in the
+    order given (estimator.problem); the returned uav_enu_m rows are in the order given.
     Raises EstimatorError on malformed input, naming the offending value.
     """
+    order = _fleet_order(keyframes)
+    if order is None:
+        return _solve_batch(keyframes, n_users, user_up_m, noise, params, init_users_enu_m, warm)
+    if warm is not None:
+        # the warm track in the solve's row order: its keyframes where it has them, the others at
+        # their fixes (a warm answer that does not fit is refused by _warm_solve as before)
+        x_prev = np.asarray(warm.uav_enu_m, dtype=float)
+        if x_prev.ndim == 2 and x_prev.shape[1] == 3 and 0 < x_prev.shape[0] <= len(keyframes):
+            x_in = np.array([np.asarray(kf.gps_enu_m, dtype=float) for kf in keyframes])
+            x_in[: x_prev.shape[0]] = x_prev
+            warm = dataclasses.replace(warm, uav_enu_m=x_in[order])
+    est = _solve_batch([keyframes[i] for i in order], n_users, user_up_m, noise, params, init_users_enu_m, warm)
+    uav = np.empty_like(est.uav_enu_m)
+    uav[order] = est.uav_enu_m
+    return dataclasses.replace(est, uav_enu_m=uav)
+
+
+def _fleet_order(keyframes: Sequence[Keyframe]) -> np.ndarray | None:
+    """(N,) the keyframes' order sorted by vehicle, stable (each vehicle's in the order given), or
+    None when they are already so (one vehicle). Malformed vehicles are left to pack_keyframes."""
+    try:
+        v = np.array([kf.vehicle for kf in keyframes])
+    except AttributeError:
+        return None
+    if v.ndim != 1 or v.dtype.kind not in "iu" or v.size < 2 or v.min() < 0 or np.all(v[1:] >= v[:-1]):
+        return None
+    if any(isinstance(kf.vehicle, bool | np.bool_) for kf in keyframes):
+        return None
+    return np.argsort(v, kind="stable")
+
+
+def _solve_batch(
+    keyframes: Sequence[Keyframe], n_users: int, user_up_m: np.ndarray, noise: NoiseModel,
+    params: SolverParams, init_users_enu_m: np.ndarray | None, warm: Estimate | None,
+) -> Estimate:
+    """solve_batch of keyframes in the solve's row order."""
     prob = pack_keyframes(keyframes, n_users, user_up_m, noise, params)
     k_all, p = prob.n_users, prob.p
     n_ranges = prob.mask.sum(axis=0)
@@ -290,6 +329,9 @@ def _fit_clocks(prob: Problem, res: SolveResult, users: np.ndarray, gain: np.nda
         rows = prob.mask[:n, k] & kept[:, k]
         if int(rows.sum()) < CLOCK_MIN_RANGES:
             continue
+        # in time order (a fleet's rows are sorted by vehicle first)
+        rows = np.flatnonzero(rows)
+        rows = rows[np.argsort(t[rows], kind="stable")]
         fit = fit_one(k, t[rows], r_all[rows, k], grad_all[rows, k])
         if fit is None:
             continue

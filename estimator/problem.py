@@ -8,6 +8,12 @@ Keyframes arrive as a list of :class:`estimator.types.Keyframe`; the solver work
     odom_enu_m  (N, 3)  displacement from keyframe n−1 to n [m, ENU] (row 0 unused)
     odom_mask   (N,)    True where a relative-motion factor links n−1 and n
     odom_sigma_m (N,)   its per-axis σ [m] (NaN where none; None: params.motion_sigma_m)
+    chain_start (N,)    True where keyframe n starts a vehicle's chain: no GPS link or motion factor
+                        to keyframe n−1, another vehicle's (None: keyframe 0 alone)
+
+A fleet's keyframes (Keyframe.vehicle) are solved sorted by vehicle, each vehicle's in the order
+they came (estimator.batch.solve_batch): every chain link is then between rows n−1 and n, and the
+keyframe block of the normal matrix stays block-tridiagonal, with no link across a chain start.
 
 User parameters are packed per user as θ_k = [east, north, (up if 3-D), (bias if estimated)], an
 array Θ of shape (K, p) with p = d + (1 if bias). In 2-D mode `up` is the known ground height.
@@ -125,6 +131,9 @@ def check_keyframe(kf: Keyframe, n_users: int, index: int | None = None) -> tupl
         odom = np.asarray(kf.odom_enu_m, dtype=float)
         if odom.shape != (3,) or not np.isfinite(odom).all():
             raise EstimatorError(f"{where}: odom_enu_m must be 3 finite numbers, got {np.ravel(odom).tolist()}")
+    v = kf.vehicle
+    if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 0:
+        raise EstimatorError(f"{where}: vehicle must be an integer >= 0, got {v!r}")
     sm = kf.odom_sigma_m
     if sm is not None and (isinstance(sm, bool) or not isinstance(sm, int | float | np.floating | np.integer)
                            or not (np.isfinite(sm) and sm > 0)):
@@ -167,6 +176,8 @@ class Problem:
     bias_gain: np.ndarray | None = None
     #: (N,) per-axis σ of each keyframe's motion factor [m] where odom_mask (None: params.motion_sigma_m)
     odom_sigma_m: np.ndarray | None = None
+    #: (N,) True where a keyframe starts a vehicle's chain (module docstring); None: keyframe 0 alone
+    chain_start: np.ndarray | None = None
 
     def odom_weight(self) -> np.ndarray:
         """(N,) weight 1/σ_m,n² of the motion factor linking keyframe n−1 to n; 0 where none."""
@@ -182,7 +193,11 @@ class Problem:
         if self.t_s is None:
             return np.zeros(n)
         tau = self.noise.gps_tau_used_s
-        return gps_phi(self.t_s[:n], tau)
+        phi = gps_phi(self.t_s[:n], tau)
+        if self.chain_start is not None:
+            # a vehicle's first keyframe: its own prior, no link to another vehicle's fix
+            phi[self.chain_start[:n]] = 0.0
+        return phi
 
     @property
     def gps_linked(self) -> bool:
@@ -222,7 +237,8 @@ class Problem:
 
 
 #: the Keyframe fields pack_keyframes reads, in one C-level call per keyframe
-_KEYFRAME_FIELDS = operator.attrgetter("gps_enu_m", "user_idx", "range_m", "odom_enu_m", "t_s", "odom_sigma_m")
+_KEYFRAME_FIELDS = operator.attrgetter("gps_enu_m", "user_idx", "range_m", "odom_enu_m", "t_s", "odom_sigma_m",
+                                       "vehicle")
 
 
 def pack_keyframes(
@@ -243,8 +259,9 @@ def pack_keyframes(
         if not all(map(isinstance, keyframes, repeat(Keyframe))):
             raise ValueError
         # the fields of all keyframes in one pass
-        gps_l, ui, rr, odoms, ts, osig = zip(*map(_KEYFRAME_FIELDS, keyframes), strict=True)
+        gps_l, ui, rr, odoms, ts, osig, vv = zip(*map(_KEYFRAME_FIELDS, keyframes), strict=True)
         t_s = np.array(ts, dtype=float)
+        vehicle = np.array(vv)
         gps = np.array(gps_l, dtype=float)
         # len() raises TypeError on a 0-d value; concatenate raises ValueError on mixed ndim
         lengths_l = list(map(len, ui))
@@ -260,6 +277,8 @@ def pack_keyframes(
             and (idx.size == 0 or (idx.dtype.kind in "iu" and idx.min() >= 0 and idx.max() < n_users))
             and np.isfinite(r).all() and (r.size == 0 or r.min() >= 0)
             and t_s.shape == (n,) and np.isfinite(t_s).all()
+            and vehicle.shape == (n,) and vehicle.dtype.kind in "iu" and vehicle.min() >= 0
+            and not any(map(isinstance, vv, repeat((bool, np.bool_))))
         )
         if ok and idx.size:
             # a user twice in one keyframe: some (keyframe, user) cell counted more than once
@@ -282,6 +301,9 @@ def pack_keyframes(
         raise EstimatorError("keyframes are malformed")  # pragma: no cover (the loop raises)
     rng = np.full((n, n_users), np.nan, order="F")
     rng[kf_of, idx.astype(np.intp)] = r
+    # a keyframe whose vehicle differs from the one before starts that vehicle's chain
+    starts = np.r_[True, vehicle[1:] != vehicle[:-1]]
+    chain_start = starts if starts[1:].any() else None
     odom = np.zeros((n, 3))
     odom_mask = np.zeros(n, dtype=bool)
     odom_sigma = None
@@ -290,11 +312,12 @@ def pack_keyframes(
         default = np.nan if params.motion_sigma_m is None else float(params.motion_sigma_m)
         odom_sigma = np.full(n, np.nan)
         for i, (o, sm) in enumerate(zip(odoms, osig, strict=True)):
-            if o is not None and i > 0:
+            if o is not None and i > 0 and (chain_start is None or not chain_start[i]):
                 odom[i] = o
                 odom_sigma[i] = default if sm is None else float(sm)
         odom_mask = ~np.isnan(odom_sigma)
-    return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params, t_s=t_s, odom_sigma_m=odom_sigma)
+    return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params, t_s=t_s, odom_sigma_m=odom_sigma,
+                   chain_start=chain_start)
 
 
 def users_from_theta(theta: np.ndarray, user_up_m: np.ndarray, user_dim: int) -> np.ndarray:

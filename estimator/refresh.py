@@ -33,6 +33,9 @@ Keyframes that queued up while the estimator was busy are added together and pub
 (`add_keyframes`): at most one refresh for all of them, so an estimator that falls behind (a
 loaded machine, a sped-up simulation) catches up instead of lagging further.
 
+A fleet's keyframes (Keyframe.vehicle) are estimated by the batch refreshes alone: the online
+window links each keyframe to the one before it, another vehicle's in a fleet.
+
 Each published Estimate says which it is: Estimate.source is SOURCE_BATCH or SOURCE_ONLINE, and
 Estimate.keyframes_used the number of keyframes it is the answer for.
 """
@@ -158,6 +161,13 @@ class RefreshedEstimator:
         check_keyframe(kf, self._args[0])
         self._keyframes.append(kf)
         if self._online is None:
+            return
+        if kf.vehicle != self._keyframes[0].vehicle:
+            # the online window links each keyframe to the one before it, which in a fleet is
+            # another vehicle's: a fleet is estimated by the batch refreshes alone (whose chains
+            # follow each vehicle, estimator.problem)
+            self._online = None
+            log.info("keyframes of a second vehicle: batch refreshes only from now on")
             return
         try:
             self._online.add_keyframe(kf)

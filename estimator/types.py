@@ -140,6 +140,9 @@ class Keyframe:
         (its velocity integrated, estimator.motion) [m, ENU] (None: no relative-motion factor).
     t_s: seconds since mission start.
     odom_sigma_m: per-axis σ of odom_enu_m [m] (None: SolverParams.motion_sigma_m).
+    vehicle: index of the vehicle that took it, in a fleet (0..V−1; docs/fleet.md). Each vehicle's
+        keyframes form their own chain: the drifting GPS error and the displacement link a keyframe
+        to the previous keyframe of the same vehicle, never to another vehicle's.
     """
 
     gps_enu_m: np.ndarray
@@ -148,6 +151,7 @@ class Keyframe:
     odom_enu_m: np.ndarray | None = None
     t_s: float = 0.0
     odom_sigma_m: float | None = None
+    vehicle: int = 0
 
 
 #: Estimate.source: a batch solution over every keyframe seen, or the online estimator's
