@@ -12,10 +12,11 @@ wrong unit (`budget_km`), a wrong type, a NaN, a number outside its field's boun
 multicopter mission can mean: `MAX_HEIGHT_M`, `MAX_SPEED_MPS`, ... beside each field) or a
 file that is not UTF-8 is a :class:`MissionConfigError` naming the file, the key and the value.
 :func:`validate_mission` checks what spans fields (distinct users and RNTIs, the altitude band,
-home inside the fence and outside every no-fly zone, ...). Units are in the names (`_m`, `_s`,
-`_mps`, `_pct`, `_deg`, `_hz`); positions are ENU offsets in metres from home (`*_enu_m`, as in
-docs/design.md §9) or geodetic (`*_lat_lon_deg`, [[lat_deg, lon_deg], ...]), one or the other per
-polygon kind; :meth:`GeofenceConfig.polygons_enu_m` turns both into home-ENU once home is known.
+home inside the fence and outside every no-fly zone, a fleet's ids and bands, ...). Units are in
+the names (`_m`, `_s`, `_mps`, `_pct`, `_deg`, `_hz`); positions are ENU offsets in metres from
+home (`*_enu_m`, as in docs/design.md §9) or geodetic (`*_lat_lon_deg`, [[lat_deg, lon_deg],
+...]), one or the other per polygon kind; :meth:`GeofenceConfig.polygons_enu_m` turns both into
+home-ENU once home is known.
 
 A simulation scenario (sitl_scenarios/scenario.py) is a mission file plus world sections (true
 users, buildings, radio, vehicle model, faults): its mission half is a :class:`MissionConfig`
@@ -31,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import re
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -250,7 +252,10 @@ class SafetyConfig:
     off below this charge [%]; battery_rtl_pct: return home below this charge [%]; max_refusals:
     consecutive refused waypoints before returning home; breach_confirm_fixes: consecutive fixes
     outside a position limit that confirm a breach; alt_margin_m: tolerance of the altitude-band
-    check while surveying [m]."""
+    check while surveying [m]. A fleet (`[[vehicles]]`): separation_m: the least horizontal
+    distance between two vehicles at every moment of their legs [m]; separation_vertical_m: two
+    vehicles this far apart in altitude are separated whatever their horizontal distance (altitude
+    layers) [m]; 0: no layers, every pair keeps separation_m."""
 
     link_timeout_s: float = positive(3.0, 60.0)
     link_lost_wait_s: float = positive(10.0, 600.0)
@@ -260,11 +265,41 @@ class SafetyConfig:
     max_refusals: int = bounded(3, 1, 1000)
     breach_confirm_fixes: int = bounded(3, 1, 100)
     alt_margin_m: float = bounded(5.0, 0.0, 50.0)
+    separation_m: float = bounded(15.0, 1.0, 500.0)
+    separation_vertical_m: float = bounded(10.0, 0.0, 200.0)
+
+
+#: a vehicle id of `[[vehicles]]`: letters, digits, '_' and '-', 1 to 32 of them
+VEHICLE_ID = re.compile(r"[A-Za-z0-9_-]{1,32}")
+#: the thinnest altitude band a vehicle of a fleet may be given [m]
+MIN_VEHICLE_BAND_M = 5.0
+
+
+@dataclass(frozen=True)
+class VehicleEntryConfig:
+    """One vehicle of a fleet (a `[[vehicles]]` entry; issue 41: each UAV carries its own gNB).
+    id: its name, unique in the file (letters, digits, `_` and `-`, 1..32 of them); connect: the
+    MAVLink address `uavloc fly` connects it with (e.g. "udpin://0.0.0.0:14541"; empty: the command
+    line's --connect, for a one-vehicle fleet only); gnb: its gNB's address as `--gnb` takes it
+    (empty: the command line's --gnb, for a one-vehicle fleet only); gnb_mode: its gNB's `[gnb]
+    mode` (empty: the mission's); alt_min_m, alt_max_m: its altitude band above home [m], inside
+    the mission's `[flight]` band and at least MIN_VEHICLE_BAND_M thick (a side left out is the
+    mission's); it cruises at the mission's `altitude_m` clipped into its band
+    (:meth:`MissionConfig.vehicle_cruise_alt_m`). A simulation gives each vehicle its addresses
+    itself; :func:`fleet_address_problem` says what a flight lacks."""
+
+    id: str
+    connect: str = ""
+    gnb: str = ""
+    gnb_mode: str = ""
+    alt_min_m: float | None = bounded(None, 0.0, MAX_HEIGHT_M)
+    alt_max_m: float | None = positive(None, MAX_HEIGHT_M)
 
 
 @dataclass(frozen=True)
 class MissionConfig:
-    """A whole mission file."""
+    """A whole mission file. vehicles: the fleet (`[[vehicles]]`); empty: one vehicle, addressed
+    by the command line's --connect and --gnb."""
 
     name: str
     users: tuple[MissionUserConfig, ...]
@@ -274,14 +309,38 @@ class MissionConfig:
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     gnb: GnbSettings = field(default_factory=GnbSettings)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    vehicles: tuple[VehicleEntryConfig, ...] = ()
 
     def noise_model(self) -> NoiseModel:
         return self.noise.noise_model()
 
+    @property
+    def fleet_size(self) -> int:
+        """How many vehicles fly the mission: one without `[[vehicles]]`."""
+        return max(1, len(self.vehicles))
+
+    def vehicle_band_m(self, i: int) -> tuple[float, float]:
+        """(alt_min_m, alt_max_m) above home of vehicle i (0..fleet_size-1) [m]: its own, a side it
+        leaves out the mission's `[flight]` one (all of it without `[[vehicles]]`)."""
+        if not 0 <= i < self.fleet_size:
+            raise IndexError(f"vehicle {i} of a fleet of {self.fleet_size}")
+        f = self.flight
+        if not self.vehicles:
+            return f.alt_min_m, f.alt_max_m
+        v = self.vehicles[i]
+        return (f.alt_min_m if v.alt_min_m is None else v.alt_min_m,
+                f.alt_max_m if v.alt_max_m is None else v.alt_max_m)
+
+    def vehicle_cruise_alt_m(self, i: int) -> float:
+        """Vehicle i's cruise altitude above home [m]: the mission's `altitude_m` clipped into its band."""
+        lo, hi = self.vehicle_band_m(i)
+        return min(max(self.flight.altitude_m, lo), hi)
+
     def header_fields(self, home: Origin) -> dict:
         """The mission log header's optional shape fields (docs/design.md §10): `geofence` and
         `no_fly_zones` as open [[lat_deg, lon_deg], ...] rings, `altitude_band_m` {min_m, max_m}
-        above home. Fields without a value are left out."""
+        above home, and for a fleet (`[[vehicles]]`) `vehicles` [{id, alt_min_m, alt_max_m}] (each
+        one's band above home, :meth:`vehicle_band_m`). Fields without a value are left out."""
 
         def lat_lon(ring_enu_m: np.ndarray) -> list[list[float]]:
             lat, lon, _ = home.enu_to_lla(np.column_stack([ring_enu_m, np.zeros(len(ring_enu_m))]))
@@ -294,22 +353,33 @@ class MissionConfig:
         if zones:
             out["no_fly_zones"] = [lat_lon(z) for z in zones]
         out["altitude_band_m"] = {"min_m": self.flight.alt_min_m, "max_m": self.flight.alt_max_m}
+        if self.vehicles:
+            bands = [self.vehicle_band_m(i) for i in range(len(self.vehicles))]
+            out["vehicles"] = [{"id": v.id, "alt_min_m": lo, "alt_max_m": hi}
+                               for v, (lo, hi) in zip(self.vehicles, bands, strict=True)]
         return out
 
-    def planning_constraints(self, home: Origin, **overrides: Any) -> PlanningConstraints:
+    def planning_constraints(self, home: Origin, *, vehicle: int | None = None,
+                             **overrides: Any) -> PlanningConstraints:
         """The planner's constraints in the home ENU frame (home at (0, 0, 0); altitudes above
-        home become ENU up). `overrides` replace any field (e.g. margin_m=3.0)."""
+        home become ENU up). vehicle: the band and cruise altitude are this vehicle's
+        (:meth:`vehicle_band_m`, :meth:`vehicle_cruise_alt_m`); None: the mission's.
+        `overrides` replace any field (e.g. margin_m=3.0)."""
         from planner.types import PlanningConstraints
 
         fence, zones = self.geofence.polygons_enu_m(home)
         f = self.flight
+        alt_min_m, alt_max_m, cruise_alt_m = f.alt_min_m, f.alt_max_m, f.altitude_m
+        if vehicle is not None:
+            alt_min_m, alt_max_m = self.vehicle_band_m(vehicle)
+            cruise_alt_m = self.vehicle_cruise_alt_m(vehicle)
         kwargs = dict(
             home_enu_m=np.zeros(3),
             fence_enu_m=np.zeros((0, 2)) if fence is None else fence,
             no_fly_enu_m=zones,
-            alt_min_m=f.alt_min_m,
-            alt_max_m=f.alt_max_m,
-            cruise_alt_m=f.altitude_m,
+            alt_min_m=alt_min_m,
+            alt_max_m=alt_max_m,
+            cruise_alt_m=cruise_alt_m,
             leg_max_m=f.leg_max_m,
             max_distance_m=self.geofence.max_distance_m,
             budget_m=f.budget_m,
@@ -332,7 +402,7 @@ class MissionConfig:
 
 def _explain_unknown(cls: type, name: str) -> str | None:
     """Why a key a mission file never holds is wrong (true positions, world sections)."""
-    if name in TRUE_POSITION_KEYS:
+    if name in TRUE_POSITION_KEYS and cls is not VehicleEntryConfig:  # a vehicle is not a user
         return ("a mission file never holds true positions (they are what the flight measures); true user "
                 "positions belong to a simulation world in sitl_scenarios")
     if cls is MissionConfig and name in WORLD_SECTIONS:
@@ -393,6 +463,7 @@ def validate_mission(mc: MissionConfig, where: str) -> None:
                   f"need 0 <= alt_min_m ({f.alt_min_m:g}) <= altitude_m <= alt_max_m ({f.alt_max_m:g})")
     for key, value, why in mc.gnb.problems():
         raise bad(f"gnb.{key}", value, why)
+    _validate_vehicles(mc, bad)
     if mc.noise.gps_tau_s is not None:  # unknown τ (an external autopilot's): judged when known
         floor = gps_floor_problem(mc)
         if floor is not None:
@@ -401,6 +472,68 @@ def validate_mission(mc: MissionConfig, where: str) -> None:
     if s.battery_takeoff_min_pct < s.battery_rtl_pct:
         raise bad("safety.battery_takeoff_min_pct", s.battery_takeoff_min_pct,
                   f"must be >= battery_rtl_pct ({s.battery_rtl_pct:g})")
+
+
+def _validate_vehicles(mc: MissionConfig, bad: Callable[[str, Any, str], UavlocError]) -> None:
+    """The checks of `[[vehicles]]` (validate_mission): ids, gNB modes, altitude bands. The
+    addresses are not checked here (a simulation gives them itself): :func:`fleet_address_problem`."""
+    f = mc.flight
+    modes = typing.get_args(typing.get_type_hints(GnbSettings)["mode"])
+    ids: dict[str, int] = {}
+    for i, v in enumerate(mc.vehicles):
+        key = f"vehicles[{i}]"
+        if not VEHICLE_ID.fullmatch(v.id):
+            raise bad(f"{key}.id", v.id, "a vehicle id is 1 to 32 letters, digits, '_' or '-'")
+        if v.id in ids:
+            raise bad(f"{key}.id", v.id, f"duplicate vehicle id (vehicles[{ids[v.id]}] has it)")
+        ids[v.id] = i
+        if v.gnb_mode:
+            if v.gnb_mode not in modes:
+                raise bad(f"{key}.gnb_mode", v.gnb_mode,
+                          f"must be one of {', '.join(map(repr, modes))}, or \"\" for the mission's gnb.mode")
+            for name, _, why in dataclasses.replace(mc.gnb, mode=v.gnb_mode).problems():
+                if name == "mode":
+                    raise bad(f"{key}.gnb_mode", v.gnb_mode, why)
+        lo, hi = mc.vehicle_band_m(i)
+        if v.alt_min_m is not None and lo < f.alt_min_m:
+            raise bad(f"{key}.alt_min_m", v.alt_min_m,
+                      f"below the mission's flight.alt_min_m ({f.alt_min_m:g}): a vehicle's band lies inside the "
+                      "mission's")
+        if v.alt_max_m is not None and hi > f.alt_max_m:
+            raise bad(f"{key}.alt_max_m", v.alt_max_m,
+                      f"above the mission's flight.alt_max_m ({f.alt_max_m:g}): a vehicle's band lies inside the "
+                      "mission's")
+        if hi - lo < MIN_VEHICLE_BAND_M:
+            side = ("alt_max_m" if v.alt_max_m is not None else "alt_min_m" if v.alt_min_m is not None else None)
+            why = "empty: need alt_min_m < alt_max_m" if hi <= lo else f"{hi - lo:g} m thick"
+            raise bad(f"{key}.{side}" if side else key, getattr(v, side) if side else [lo, hi],
+                      f"the vehicle's band [{lo:g}, {hi:g}] m (a side left out is the mission's flight.alt_min_m / "
+                      f"alt_max_m) is {why}; a vehicle's band is at least {MIN_VEHICLE_BAND_M:g} m thick")
+
+
+def fleet_address_problem(mc: MissionConfig) -> str | None:
+    """What `uavloc fly` lacks to reach the vehicles and gNBs of `mc`, or None. A fleet of two or
+    more vehicles needs every vehicle's own `connect` and `gnb` (the command line's --connect and
+    --gnb address one vehicle), no two the same; a mission without `[[vehicles]]` or with one
+    vehicle takes what it leaves out from the command line. Not a check of :func:`validate_mission`:
+    a simulation gives every vehicle its addresses itself."""
+    n = len(mc.vehicles)
+    if n < 2:
+        return None
+    missing = [f"vehicles[{i}].{key} ({v.id})" for i, v in enumerate(mc.vehicles)
+               for key in ("connect", "gnb") if not getattr(v, key)]
+    if missing:
+        return (f"a fleet of {n} vehicles is flown with each vehicle's own connect and gnb addresses (the command "
+                f"line's --connect and --gnb address one vehicle); empty: {', '.join(missing)}")
+    for key in ("connect", "gnb"):
+        seen: dict[str, int] = {}
+        for i, v in enumerate(mc.vehicles):
+            address = getattr(v, key)
+            if address in seen:
+                return (f"vehicles[{i}].{key} = {address!r} is also vehicles[{seen[address]}].{key}: each vehicle "
+                        f"of a fleet has its own {'MAVLink address' if key == 'connect' else 'gNB'}")
+            seen[address] = i
+    return None
 
 
 def survey_s(flight: FlightConfig) -> float:

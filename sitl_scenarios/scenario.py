@@ -2,7 +2,8 @@
 
     Scenario  =  mission: mission.config.MissionConfig   what is flown: `name`, `description`,
                                                           [[users]] (id, rnti, ground_height_m),
-                                                          [geofence], [flight], [noise], [gnb], [safety]
+                                                          [geofence], [flight], [noise], [gnb], [safety],
+                                                          [[vehicles]] (a fleet)
               +  world: World                             what is true: `seed`, [origin],
                                                           [truth.<user id>], [[buildings]], [radio],
                                                           [vehicle], [faults]

@@ -76,6 +76,9 @@ def _bad_line_log() -> str:
     return "".join(lines)
 
 
+#: a fleet (issue 41) whose two vehicles share an id
+FLEET_SAME_ID = (example_mission_path().read_text(encoding="utf-8")
+                 + '\n[[vehicles]]\nid = "uav-a"\n\n[[vehicles]]\nid = "uav-a"\n')
 HEADER_ONLY = _log_lines()[0]
 OLD_LOG = _write("mission.jsonl", HEADER_ONLY)
 NOT_A_FOLDER = _write("results", "not a folder\n")
@@ -105,6 +108,8 @@ CASES = [
     Case("fly-missing-mission", ["fly", "--mission", "{d}/nosuch.toml", *NOWHERE], 1, ["{d}/nosuch.toml"]),
     Case("fly-mission-not-toml", ["fly", "--mission", "{d}/bad.toml", *NOWHERE], 1, ["{d}/bad.toml"],
          _write("bad.toml", "[flight\n")),
+    Case("fly-fleet-duplicate-id", ["fly", "--mission", "{d}/fleet.toml", *NOWHERE], 1,
+         ["{d}/fleet.toml", "vehicles[1].id", "'uav-a'", "duplicate vehicle id"], _write("fleet.toml", FLEET_SAME_ID)),
     Case("fly-out-is-a-file", ["fly", "--mission", MISSION, *NOWHERE, "--out", "{d}/results"], 1,
          ["{d}/results is a file"], NOT_A_FOLDER),
     Case("fly-log-holds-a-mission", ["fly", "--mission", MISSION, *NOWHERE, "--log", "{d}/mission.jsonl"], 1,
