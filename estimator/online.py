@@ -280,7 +280,9 @@ def check_mirrors(st: OnlineState, prob: Problem, res: SolveResult) -> SolveResu
     restart: dict[int, np.ndarray] = {}
     # users ranged from the same keyframes are initialized and costed together (the same
     # numbers as one at a time: estimator.init.init_users, users_cost)
-    active = np.flatnonzero(st.active).tolist()
+    # (a user the window no longer ranges enough, its ranges all marginalized when the UAV flew
+    # out of its reach, has nothing in the window to restart from)
+    active = np.flatnonzero(st.active & (prob.mask.sum(axis=0) >= prob.min_ranges())).tolist()
     fresh = grid_init(prob, x_win, active)
     groups: dict[bytes, list[int]] = {}
     for k in active:

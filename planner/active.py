@@ -319,6 +319,8 @@ class ActivePlanner(BasePlanner):
         if est is None:
             return None
         ok = users_initialised(est)
+        if state.users is not None:  # a fleet's vehicle plans for the users its cell serves
+            ok &= state.users
         home = self.constraints.home_enu_m
         # a user estimated absurdly far away is a diverged solve, not something to fly toward
         ok &= np.linalg.norm(np.nan_to_num(est.users_enu_m[:, :2] - home[:2], nan=np.inf), axis=1) <= MAX_USER_RANGE_M

@@ -70,7 +70,10 @@ class FloorWatch:
 
     A user is judged stalled only when the estimate now holds at least
     FLOOR_MIN_NEW_KEYFRAME_SHARE · window / Δ keyframes more than the one then (when both say how
-    many they hold, Estimate.keyframes_used: a lagging estimator is not a floor). The two ways mix
+    many they hold, Estimate.keyframes_used: a lagging estimator is not a floor), and, when the
+    ranges per user are known (Estimate.n_ranges), only if that many of the new ones are its own: a
+    user the survey was not measuring (its vehicle busy with users far from it, or its cell out
+    of reach) has not shown that more flight leaves it where it is. The two ways mix
     across users: with a target below the GPS floor, users near the floor are done and a user whose
     bound stalled higher (behind a building) ends the survey as well as it would alone.
 
@@ -81,7 +84,7 @@ class FloorWatch:
     floor_m: float
     window_m: float
     delta_m: float = 0.0
-    history: list[tuple[float, int, np.ndarray, np.ndarray | None]] = field(default_factory=list)
+    history: list[tuple[float, int, np.ndarray, np.ndarray | None, np.ndarray | None]] = field(default_factory=list)
 
     @classmethod
     def of(cls, constraints: PlanningConstraints) -> FloorWatch:
@@ -89,17 +92,20 @@ class FloorWatch:
         return cls(constraints.target_radius_m, constraints.floor_m, window, constraints.delta_m)
 
     def update(self, flown_m: float, bound_95_m: np.ndarray, ambiguous: np.ndarray | None = None,
-               keyframes_used: int = 0, nlos_shift_m: np.ndarray | None = None) -> bool:
+               keyframes_used: int = 0, nlos_shift_m: np.ndarray | None = None,
+               n_ranges: np.ndarray | None = None) -> bool:
         """Record one leg end; True when the survey is at its floor (class docstring). keyframes_used:
         the keyframes the estimate holds (0: not said); nlos_shift_m: (K,) each user's NLoS shift
-        |δ_k| [m] (ModelState.nlos_shift_m), None when not estimated."""
+        |δ_k| [m] (ModelState.nlos_shift_m), None when not estimated; n_ranges: (K,) the ranges each
+        user's estimate holds (Estimate.n_ranges), None: not said."""
         bound = np.asarray(bound_95_m, dtype=float).copy()
         if ambiguous is not None:
             bound[np.asarray(ambiguous, dtype=bool)] = np.inf
         shift_m = None if nlos_shift_m is None else np.nan_to_num(np.asarray(nlos_shift_m, dtype=float))
         if self.history and len(self.history[-1][2]) != len(bound):
             self.history.clear()
-        self.history.append((float(flown_m), int(keyframes_used), bound, shift_m))
+        counts = None if n_ranges is None else np.asarray(n_ranges, dtype=float).copy()
+        self.history.append((float(flown_m), int(keyframes_used), bound, shift_m, counts))
         above = bound > self.target_radius_m
         if not np.any(above) or not np.all(np.isfinite(bound[above])):
             return False
@@ -107,10 +113,10 @@ class FloorWatch:
         if np.all(near_floor[above]):
             return True
         # the newest record at least `window_m` back
-        past = [(kf, b, sh) for m, kf, b, sh in self.history if m <= flown_m - self.window_m]
+        past = [(kf, b, sh, n) for m, kf, b, sh, n in self.history if m <= flown_m - self.window_m]
         if not past:
             return False
-        kf_before, before, shift_before = past[-1]
+        kf_before, before, shift_before, counts_before = past[-1]
         if (keyframes_used > 0 and kf_before > 0 and self.delta_m > 0.0
                 and keyframes_used - kf_before < FLOOR_MIN_NEW_KEYFRAME_SHARE * self.window_m / self.delta_m):
             return False
@@ -118,6 +124,8 @@ class FloorWatch:
         if shift_m is not None and shift_before is not None:
             # an NLoS excess found in the window: the planner may yet fly to where it shrinks
             stalled &= ~(shift_m - shift_before > FLOOR_MIN_SHRINK * before)
+        if counts is not None and counts_before is not None and self.delta_m > 0.0:
+            stalled &= counts - counts_before >= FLOOR_MIN_NEW_KEYFRAME_SHARE * self.window_m / self.delta_m
         return bool(np.all((near_floor | stalled)[above]))
 
 
@@ -133,7 +141,7 @@ def stop_reason(constraints: PlanningConstraints, state: PlanningState,
         return REASON_TARGET
     if (floor is not None and est is not None and est.n_users
             and floor.update(state.flown_m, reported_bound_95_m(est), est.ambiguous, est.keyframes_used,
-                             None if est.state is None else est.state.nlos_shift_m)):
+                             None if est.state is None else est.state.nlos_shift_m, est.n_ranges)):
         return REASON_FLOOR
     if budget_left_m(constraints, state) < constraints.min_leg_m:
         return REASON_BUDGET

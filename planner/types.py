@@ -118,18 +118,26 @@ class PlanningState:
     estimate: the estimator's latest :class:`Estimate`, or None before the first range.
     flown_m: metres flown in the survey so far (counts against `PlanningConstraints.budget_m`).
     energy_remaining_m: metres the battery still allows, return home included (inf: not limited).
+    users: (K,) bool, the users this vehicle's legs can measure and the planner plans for (a fleet's
+        vehicle: those its gNB serves and those none serves yet, planner.fleet); None: every user.
     """
 
     uav_enu_m: np.ndarray
     estimate: Estimate | None = None
     flown_m: float = 0.0
     energy_remaining_m: float = float("inf")
+    users: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         x = np.asarray(self.uav_enu_m, dtype=float).reshape(3)
         if not np.all(np.isfinite(x)):
             raise PlannerError(f"uav_enu_m must be finite, got {x}")
         object.__setattr__(self, "uav_enu_m", x)
+        if self.users is not None:
+            u = np.asarray(self.users, dtype=bool)
+            if u.ndim != 1 or (self.estimate is not None and u.shape != (self.estimate.n_users,)):
+                raise PlannerError(f"users must be a (K,) bool mask, got shape {u.shape}")
+            object.__setattr__(self, "users", u)
 
 
 @dataclass(frozen=True)

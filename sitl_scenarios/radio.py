@@ -201,3 +201,48 @@ class RadioModel:
         if k is None:
             raise SimulatorError(f"no user with RNTI {rnti:#06x} in scenario {self.scenario.name!r}")
         return self.measure(k, uav_enu_m, t_s)
+
+
+# ---------------------------------------------------------------------------------------------
+# cells: which vehicle's gNB serves each UE (a fleet, docs/fleet.md)
+
+
+class CellAttachment:
+    """Which of several gNBs serves each UE, as OAI's UEs attach.
+
+    A UE without a cell attaches (a random access, a new RNTI) to the strongest gNB in coverage,
+    the nearest by slant range (free-space loss grows with distance); it stays on that cell while
+    the cell is on the air and within `coverage_m`, however near another comes (a connected UE does
+    not reselect); when its cell moves out of reach or goes off the air, it attaches again where it
+    can, or has no cell.
+
+    user_enu_m: (K, 3) UE positions [m, ENU]; coverage_m: slant range beyond which a gNB is not heard.
+    serving: (K,) the serving gNB's index, −1: none; attaches: (K,) random accesses so far.
+    """
+
+    def __init__(self, user_enu_m: np.ndarray, coverage_m: float) -> None:
+        self.user_enu_m = np.asarray(user_enu_m, dtype=float).reshape(-1, 3)
+        if not (math.isfinite(coverage_m) and coverage_m > 0):
+            raise SimulatorError(f"coverage_m must be positive, got {coverage_m!r}")
+        self.coverage_m = float(coverage_m)
+        k = len(self.user_enu_m)
+        self.serving = np.full(k, -1, dtype=int)
+        self.attaches = np.zeros(k, dtype=int)
+
+    def update(self, gnb_enu_m: np.ndarray, on_air: np.ndarray | None = None) -> np.ndarray:
+        """Attach and detach UEs for gNBs at (V, 3) [m, ENU] (on_air (V,) bool: gNBs transmitting;
+        None: all); return a copy of `serving`."""
+        g = np.asarray(gnb_enu_m, dtype=float).reshape(-1, 3)
+        on = np.ones(len(g), dtype=bool) if on_air is None else np.asarray(on_air, dtype=bool)
+        d = np.linalg.norm(self.user_enu_m[:, None, :] - g[None, :, :], axis=2)  # (K, V)
+        heard = (d <= self.coverage_m) & on[None, :]
+        for k in range(len(self.serving)):
+            s = self.serving[k]
+            if s >= 0 and s < len(g) and heard[k, s]:
+                continue
+            if heard[k].any():
+                self.serving[k] = int(np.argmin(np.where(heard[k], d[k], np.inf)))
+                self.attaches[k] += 1
+            else:
+                self.serving[k] = -1
+        return self.serving.copy()
