@@ -66,10 +66,14 @@ def leg_violation(c: PlanningConstraints, a: np.ndarray, b: np.ndarray, flown_m:
 
 def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
              targets_m: tuple[float, ...], planner_opts: dict | None = None,
-             on_keyframe: Callable[[Keyframe, Estimate], None] | None = None) -> Outcome:
+             on_keyframe: Callable[[Keyframe, Estimate], None] | None = None, n_vehicles: int = 1) -> Outcome:
     """Fly one scenario in fast mode (see the module docstring); deterministic in (sc, planner, params, seed).
 
     on_keyframe(keyframe, estimate): called with each keyframe and the estimate the run then acts on."""
+    if n_vehicles != 1:
+        from uavloc.errors import CampaignError
+
+        raise CampaignError(f"fast mode flies one vehicle here; n_vehicles={n_vehicles}")
     users = np.array([[u.east_m, u.north_m, u.up_m] for u in sc.users], float)
     setup = MissionEstimator.from_mission(sc.mission_config(), params=params)
     noise = setup.noise
