@@ -21,9 +21,11 @@ from uavloc.errors import CampaignError
 _f, _i, _s = pa.float64(), pa.int64(), pa.string()
 _fl = pa.list_(pa.float64())
 
-#: one row per run (task.run_one's record); list columns are aligned with `targets_m` or with the users
+#: one row per run (task.run_one's record); list columns are aligned with `targets_m` or with the users;
+#: parts written before a column existed read it as null (n_vehicles: those runs flew one vehicle)
 SCHEMA = pa.schema([
-    ("key", _s), ("condition", _s), ("scenario", _s), ("planner", _s), ("estimator", _s), ("seed", _i),
+    ("key", _s), ("condition", _s), ("scenario", _s), ("planner", _s), ("estimator", _s), ("n_vehicles", _i),
+    ("seed", _i),
     ("mode", _s), ("source", _s),
     ("users", _i), ("buildings", _i), ("no_fly", _i), ("fence_vertices", _i), ("gps_sigma_m", _f),
     ("gps_tau_s", _f), ("sawtooth_max_m", _f), ("nlos_excess_mean_m", _f), ("range_s0_m", _f), ("range_a_m", _f),

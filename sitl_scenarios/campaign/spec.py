@@ -1,4 +1,5 @@
-"""Campaign specs: strict TOML naming scenarios × planners × estimators × seeds, and the runs they expand to.
+"""Campaign specs: strict TOML naming scenarios × planners × estimators × fleet sizes × seeds, and the runs
+they expand to.
 
 A spec (every table and key below; anything else is a :class:`CampaignError` naming the key)::
 
@@ -8,6 +9,8 @@ A spec (every table and key below; anything else is a :class:`CampaignError` nam
     seeds = [0, 1, 2]                 # noise seeds: every scenario is flown once per seed
     planners = ["lawnmower", "casadi"]
     targets_m = [1.0, 0.6]            # accuracy targets: metres flown until the mean 95 % bound ≤ T
+    fleet = [1, 2, 3]                 # fleet sizes: vehicles per run, each with its own gNB (1..8; fast
+                                      # mode only above 1; default [1])
     speedup = 20.0                    # full mode: simulated seconds per wall second
     gnb_transport = "telnet"          # full mode: the gNB adapter over "telnet" or "rest" (OAI's web server)
     gnb_mode = "rtt"                  # full mode: measure with the RTT command ("rtt") or the T tracer ("trace")
@@ -29,9 +32,10 @@ A spec (every table and key below; anything else is a :class:`CampaignError` nam
     [families.mission]                # MissionConfig fields over the family's defaults
     budget_m = 1500.0
 
-The runs are the product scenarios × planners × estimators × seeds; each :class:`RunSpec` carries
-everything a worker needs (the scenario itself, not a path) and a key that changes whenever the run's
-definition does, so a resumed campaign skips exactly the runs it already has.
+The runs are the product scenarios × planners × estimators × fleet sizes × seeds; each :class:`RunSpec`
+carries everything a worker needs (the scenario itself, not a path) and a key that changes whenever the
+run's definition does, so a resumed campaign skips exactly the runs it already has (a one-vehicle run
+keeps the key it had before fleets existed).
 """
 
 from __future__ import annotations
@@ -52,7 +56,8 @@ from sitl_scenarios.scenario import Scenario, load_scenario
 from uavloc.errors import CampaignError, ScenarioError, UavlocError
 
 MODES = ("fast", "full")
-
+#: the largest fleet a run may fly (`campaign.fleet`)
+FLEET_MAX = 8
 
 
 @dataclass(frozen=True)
@@ -64,6 +69,7 @@ class CampaignSection:
     seeds: list[int] = field(default_factory=lambda: [0])
     planners: list[str] = field(default_factory=lambda: ["casadi"])
     targets_m: list[float] = field(default_factory=lambda: [1.0])
+    fleet: list[int] = field(default_factory=lambda: [1])
     speedup: float = 20.0
     gnb_transport: str = "telnet"
     gnb_mode: str = "rtt"
@@ -93,11 +99,12 @@ class SpecDocument:
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run: a scenario flown by one planner with one estimator variant and one noise seed.
+    """One run: a scenario flown by one planner with one estimator variant, a fleet size and one noise seed.
 
     key: unique and stable (changes with any part of the definition); condition: the group the
     summary puts it in (family name or scenario condition); scenario_params: flat description of the
-    scenario for the results table; targets_m: accuracy targets [m], descending.
+    scenario for the results table; targets_m: accuracy targets [m], descending; n_vehicles: the
+    fleet size (vehicles flown together, each with its own gNB; above 1 fast mode only).
     """
 
     key: str
@@ -114,6 +121,7 @@ class RunSpec:
     speedup: float = 20.0
     gnb_transport: str = "telnet"
     gnb_mode: str = "rtt"
+    n_vehicles: int = 1
 
 
 @dataclass(frozen=True)
@@ -181,6 +189,12 @@ def _check_section(c: CampaignSection, where: str) -> None:
         raise _err(where, f"campaign.targets_m must be positive numbers, got {c.targets_m}")
     if len(set(c.targets_m)) != len(c.targets_m):
         raise _err(where, f"campaign.targets_m has duplicates: {c.targets_m}")
+    if not c.fleet or len(set(c.fleet)) != len(c.fleet) or any(not 1 <= n <= FLEET_MAX for n in c.fleet):
+        raise _err(where, f"campaign.fleet must be distinct fleet sizes from 1 to {FLEET_MAX} (vehicles per run), "
+                   f"got {c.fleet}")
+    if c.mode == "full" and any(n != 1 for n in c.fleet):
+        raise _err(where, f"campaign.fleet {c.fleet}: full mode flies one vehicle; fleet sizes > 1 need "
+                   'mode = "fast"')
     if not (math.isfinite(c.speedup) and 0 < c.speedup <= 1000):
         raise _err(where, f"campaign.speedup must be in (0, 1000], got {c.speedup}")
     if c.gnb_transport not in ("telnet", "rest"):
@@ -212,7 +226,7 @@ def _scenario_params(sc: Scenario, kind: str) -> dict:
 
 def _run_key(condition: str, sc: Scenario, planner: str, opts: dict, estimator: str, params: SolverParams,
              seed: int, mode: str, targets: tuple[float, ...], speedup: float, gnb_transport: str = "telnet",
-             gnb_mode: str = "rtt") -> str:
+             gnb_mode: str = "rtt", n_vehicles: int = 1) -> str:
     definition = {
         "scenario": dataclasses.asdict(sc), "planner": planner, "planner_opts": opts,
         "params": dataclasses.asdict(params), "seed": seed, "mode": mode, "targets_m": list(targets),
@@ -222,8 +236,12 @@ def _run_key(condition: str, sc: Scenario, planner: str, opts: dict, estimator: 
         definition["gnb_transport"] = gnb_transport
     if gnb_mode != "rtt":
         definition["gnb_mode"] = gnb_mode
+    fleet = ""
+    if n_vehicles != 1:  # likewise: a one-vehicle run keeps the key it had before fleets
+        definition["n_vehicles"] = n_vehicles
+        fleet = f"x{n_vehicles}/"
     digest = hashlib.sha1(json.dumps(definition, sort_keys=True, default=repr).encode()).hexdigest()[:12]
-    return f"{condition}/{sc.name}/{planner}/{estimator}/s{seed}#{digest}"
+    return f"{condition}/{sc.name}/{planner}/{estimator}/{fleet}s{seed}#{digest}"
 
 
 def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None,
@@ -280,14 +298,15 @@ def spec_from_dict(data: dict, where: str = "spec", base_dir: Path | None = None
             opts = dict(planner_opts.get(planner, {}))
             for est_name, est_opts in est_tables.items():
                 params = _solver_params(est_opts, base, f"estimators.{est_name}", where)
-                for seed in section.seeds:
-                    key = _run_key(condition, sc, planner, opts, est_name, params, seed, section.mode, targets,
-                                   section.speedup, section.gnb_transport, section.gnb_mode)
-                    runs.append(RunSpec(key=key, condition=condition, scenario=sc, scenario_params=sp,
-                                        planner=planner, planner_opts=opts, estimator=est_name, params=params,
-                                        seed=seed, mode=section.mode, targets_m=targets,
-                                        speedup=section.speedup, gnb_transport=section.gnb_transport,
-                                        gnb_mode=section.gnb_mode))
+                for n_vehicles in section.fleet:
+                    for seed in section.seeds:
+                        key = _run_key(condition, sc, planner, opts, est_name, params, seed, section.mode, targets,
+                                       section.speedup, section.gnb_transport, section.gnb_mode, n_vehicles)
+                        runs.append(RunSpec(key=key, condition=condition, scenario=sc, scenario_params=sp,
+                                            planner=planner, planner_opts=opts, estimator=est_name, params=params,
+                                            seed=seed, mode=section.mode, targets_m=targets,
+                                            speedup=section.speedup, gnb_transport=section.gnb_transport,
+                                            gnb_mode=section.gnb_mode, n_vehicles=n_vehicles))
     _check_planner_options(section, planner_opts, scenarios[0][1], where)
     return Campaign(section.name, path, section, runs)
 

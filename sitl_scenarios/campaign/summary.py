@@ -1,6 +1,6 @@
 """Summary table and figures of a campaign's records.
 
-Per (condition, planner, estimator): runs, failures, and for each accuracy target the runs that
+Per (condition, planner, fleet size, estimator): runs, failures, and for each accuracy target the runs that
 reached it and the median and 95 % interval (2.5th–97.5th percentile) of the metres flown to it
 (a run that never reached it counts its budget, so a planner that fails is not flattered); the same
 statistics of the final mean true error, the share of estimates inside their own 95 % ellipse, the
@@ -8,7 +8,13 @@ share of users inside their own final 95 % ellipse and the users beyond their fi
 median replan and run times, and the runs whose estimator reported a failure.
 Written to `summary.csv` and `summary.txt`; figures `metres_to_target.png`
 (metres to each target per planner and condition) and `error_vs_bound.png` (each user's final true
-error against its 95 % bound).
+error against its 95 % bound). The text table has a `fleet` column, and the figures' series read
+"casadi ×2", only when some run flew more than one vehicle (summary.csv always has `n_vehicles`).
+
+With more than one fleet size, also the fleet speed-up (:func:`fleet_speedup_rows`, in summary.txt
+after the table and in `fleet_speedup.csv`): per condition, planner, estimator, fleet size N and
+target, the ratio of survey seconds to the target with N vehicles over one vehicle on the same
+scenario and seed.
 """
 
 from __future__ import annotations
@@ -56,15 +62,28 @@ def seconds_or_survey(rec: dict, i: int) -> float:
     return float(s)
 
 
+def fleet_size(rec: dict) -> int:
+    """The vehicles a run flew (records written before n_vehicles: one)."""
+    n = rec.get("n_vehicles")
+    return 1 if n is None else int(n)
+
+
+def series_label(rec: dict, fleets: bool) -> str:
+    """A figure's name for the run's series: its planner, with its fleet size ("casadi ×2") when
+    `fleets` (some run of the campaign flew more than one vehicle)."""
+    return f"{rec['planner']} ×{fleet_size(rec)}" if fleets else rec["planner"]
+
+
 def summary_rows(records: list[dict], targets_m: tuple[float, ...]) -> list[dict]:
-    """One row per (condition, planner, estimator), in the order they first appear."""
+    """One row per (condition, planner, fleet size, estimator), in the order they first appear."""
     groups: dict[tuple, list[dict]] = {}
     for r in records:
-        groups.setdefault((r["condition"], r["planner"], r["estimator"]), []).append(r)
+        groups.setdefault((r["condition"], r["planner"], fleet_size(r), r["estimator"]), []).append(r)
     rows = []
-    for (cond, planner, est), rs in groups.items():
+    for (cond, planner, n_vehicles, est), rs in groups.items():
         ok = [r for r in rs if r["status"] == "ok"]
-        row = {"condition": cond, "planner": planner, "estimator": est, "runs": len(rs), "failed": len(rs) - len(ok)}
+        row = {"condition": cond, "planner": planner, "n_vehicles": n_vehicles, "estimator": est, "runs": len(rs),
+               "failed": len(rs) - len(ok)}
         for i, t in enumerate(targets_m):
             row[f"reached@{t:g}"] = sum(math.isfinite(r["metres_to_m"][i]) for r in ok)
             med, lo, hi = _stats([metres_or_budget(r, i) for r in ok])
@@ -90,8 +109,10 @@ def summary_rows(records: list[dict], targets_m: tuple[float, ...]) -> list[dict
 
 
 def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
-    """A fixed-width text table of summary_rows."""
-    head = f"{'condition':<14} {'planner':<10} {'estimator':<10} {'runs':>4} {'fail':>4}"
+    """A fixed-width text table of summary_rows (a `fleet` column when some row flew more than one vehicle)."""
+    fleets = any(r.get("n_vehicles", 1) != 1 for r in rows)
+    head = f"{'condition':<14} {'planner':<10}" + (f" {'fleet':>5}" if fleets else "")
+    head += f" {'estimator':<10} {'runs':>4} {'fail':>4}"
     for t in targets_m:
         head += f" {'reach@' + format(t, 'g'):>9} {'m@' + format(t, 'g') + ' median [95 %]':>24}"
         head += f" {'s@' + format(t, 'g'):>7}"
@@ -100,7 +121,8 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
              f" {'viol':>4} {'est!':>4}")
     lines = [head, "-" * len(head)]
     for r in rows:
-        line = f"{r['condition']:<14} {r['planner']:<10} {r['estimator']:<10} {r['runs']:>4} {r['failed']:>4}"
+        line = f"{r['condition']:<14} {r['planner']:<10}" + (f" {r['n_vehicles']:>5}" if fleets else "")
+        line += f" {r['estimator']:<10} {r['runs']:>4} {r['failed']:>4}"
         for t in targets_m:
             k = f"m@{t:g}"
             ok = r["runs"] - r["failed"]
@@ -124,23 +146,103 @@ def format_table(rows: list[dict], targets_m: tuple[float, ...]) -> str:
     lines.append("end95: share of users inside their own final 95 % ellipse; >99.9: users beyond their final 99.9 % "
                  "ellipse;")
     lines.append("run s: median wall time of a run; est!: runs whose estimator reported a failure and went on "
-                 "(first_estimator_error column).")
+                 "(first_estimator_error column)" + ("; fleet: vehicles per run." if fleets else "."))
     return "\n".join(lines)
 
 
+def fleet_speedup_rows(records: list[dict], targets_m: tuple[float, ...]) -> list[dict]:
+    """The fleet speed-up: one row per (condition, planner, estimator, fleet size N > 1) and target,
+    in the order they first appear.
+
+    Each run with N vehicles is paired with the one-vehicle run of the same condition, scenario,
+    planner, estimator and seed (the same world and noise seed); the pair's ratio is
+
+        ratio = seconds_to_s with N vehicles / seconds_to_s with one
+
+    (survey seconds until every user's 95 % bound <= T, hover included; < 1: the fleet got there
+    sooner). pairs: the successful N-vehicle runs with a successful one-vehicle partner;
+    both_reached: those pairs where both runs reached T, over which ratio_median and ratio_max are
+    taken (NaN when none). Empty unless the records hold more than one fleet size."""
+    if len({fleet_size(r) for r in records}) < 2:
+        return []
+    ok = [r for r in records if r["status"] == "ok"]
+
+    def pair_key(r: dict) -> tuple:
+        return r["condition"], r["scenario"], r["planner"], r["estimator"], r["seed"]
+
+    solo = {pair_key(r): r for r in ok if fleet_size(r) == 1}
+    groups: dict[tuple, list[tuple[dict, dict]]] = {}
+    for r in ok:
+        one = solo.get(pair_key(r))
+        if fleet_size(r) != 1 and one is not None:
+            groups.setdefault((r["condition"], r["planner"], r["estimator"], fleet_size(r)), []).append((r, one))
+
+    def seconds_to(r: dict, i: int) -> float:
+        s = (r.get("seconds_to_s") or [None] * (i + 1))[i]
+        return math.nan if s is None else float(s)
+
+    rows = []
+    for (cond, planner, est, n), pairs in groups.items():
+        for i, t in enumerate(targets_m):
+            ratios = [a / b for a, b in ((seconds_to(r, i), seconds_to(one, i)) for r, one in pairs)
+                      if math.isfinite(a) and math.isfinite(b) and b > 0.0]
+            rows.append({"condition": cond, "planner": planner, "estimator": est, "n_vehicles": n, "target_m": t,
+                         "pairs": len(pairs), "both_reached": len(ratios),
+                         "ratio_median": float(np.median(ratios)) if ratios else math.nan,
+                         "ratio_max": float(np.max(ratios)) if ratios else math.nan})
+    return rows
+
+
+def format_fleet_speedup(rows: list[dict]) -> str:
+    """A fixed-width text table "fleet speed-up" of fleet_speedup_rows."""
+    head = (f"{'condition':<14} {'planner':<10} {'estimator':<10} {'fleet':>5} {'target':>6} {'both/pairs':>10}"
+            f" {'median':>7} {'max':>7}")
+    lines = ["fleet speed-up: survey seconds to each target, N vehicles / one vehicle", head, "-" * len(head)]
+    for r in rows:
+        both = f"{r['both_reached']}/{r['pairs']}"
+        lines.append(f"{r['condition']:<14} {r['planner']:<10} {r['estimator']:<10} {r['n_vehicles']:>5}"
+                     f" {r['target_m']:>6g} {both:>10} {r['ratio_median']:>7.2f} {r['ratio_max']:>7.2f}")
+    if not rows:
+        lines.append("(no pairs: no successful N-vehicle run has a successful one-vehicle run of the same scenario "
+                     "and seed)")
+    lines.append("")
+    lines.append("ratio: s@T with N vehicles over s@T with one, per pair of runs on the same scenario, seed, planner "
+                 "and estimator (< 1: the fleet got there sooner); median and max over the pairs where both reached "
+                 "T (both); pairs: N-vehicle runs with their one-vehicle run.")
+    return "\n".join(lines)
+
+
+def summary_text(records: list[dict], targets_m: tuple[float, ...]) -> str:
+    """The summary as printed and in summary.txt: the table, then the fleet speed-up when the records
+    hold more than one fleet size."""
+    text = format_table(summary_rows(records, targets_m), targets_m)
+    if len({fleet_size(r) for r in records}) > 1:
+        text += "\n\n" + format_fleet_speedup(fleet_speedup_rows(records, targets_m))
+    return text
+
+
 def write_summary(records: list[dict], targets_m: tuple[float, ...], out_dir: str | Path) -> dict[str, Path]:
-    """summary.csv, summary.txt and the two figures in out_dir; returns their paths."""
+    """summary.csv, summary.txt, fleet_speedup.csv (more than one fleet size) and the two figures in
+    out_dir; returns their paths."""
     out = Path(out_dir)
     rows = summary_rows(records, targets_m)
     paths = {"csv": out / "summary.csv", "txt": out / "summary.txt"}
+    _write_csv(paths["csv"], rows)
+    speedup = fleet_speedup_rows(records, targets_m)
+    if speedup:
+        paths["fleet_speedup"] = out / "fleet_speedup.csv"
+        _write_csv(paths["fleet_speedup"], speedup)
+    paths["txt"].write_text(summary_text(records, targets_m) + "\n", encoding="utf-8")
+    paths.update(write_figures(records, targets_m, out))
+    return paths
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
     if rows:
-        with open(paths["csv"], "w", newline="", encoding="utf-8") as fh:
+        with open(path, "w", newline="", encoding="utf-8") as fh:
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))
             w.writeheader()
             w.writerows(rows)
-    paths["txt"].write_text(format_table(rows, targets_m) + "\n", encoding="utf-8")
-    paths.update(write_figures(records, targets_m, out))
-    return paths
 
 
 def write_figures(records: list[dict], targets_m: tuple[float, ...], out: Path) -> dict[str, Path]:
@@ -152,7 +254,9 @@ def write_figures(records: list[dict], targets_m: tuple[float, ...], out: Path) 
     ok = [r for r in records if r["status"] == "ok"]
     if not ok:
         return {}
-    planners = list(dict.fromkeys(r["planner"] for r in ok))
+    # one series per planner (and fleet size, when some run flew more than one vehicle)
+    fleets = any(fleet_size(r) != 1 for r in records)  # as the table's fleet column
+    planners = list(dict.fromkeys(series_label(r, fleets) for r in ok))
     conditions = list(dict.fromkeys(r["condition"] for r in ok))
     paths = {}
 
@@ -161,7 +265,7 @@ def write_figures(records: list[dict], targets_m: tuple[float, ...], out: Path) 
     width = 0.8 / max(len(conditions), 1)
     for ax, (i, t) in zip(axes[0], enumerate(targets_m), strict=True):
         for j, cond in enumerate(conditions):
-            data = [[metres_or_budget(r, i) for r in ok if r["planner"] == p and r["condition"] == cond]
+            data = [[metres_or_budget(r, i) for r in ok if series_label(r, fleets) == p and r["condition"] == cond]
                     for p in planners]
             pos = np.arange(len(planners)) + (j - (len(conditions) - 1) / 2) * width
             keep = [k for k, d in enumerate(data) if d]
@@ -184,8 +288,8 @@ def write_figures(records: list[dict], targets_m: tuple[float, ...], out: Path) 
     fig, ax = plt.subplots(figsize=(5.5, 5))
     top = 0.0
     for j, p in enumerate(planners):
-        err = np.array([e for r in ok if r["planner"] == p for e in r["final_error_m"]], float)
-        bnd = np.array([b for r in ok if r["planner"] == p for b in r["final_bound95_m"]], float)
+        err = np.array([e for r in ok if series_label(r, fleets) == p for e in r["final_error_m"]], float)
+        bnd = np.array([b for r in ok if series_label(r, fleets) == p for b in r["final_bound95_m"]], float)
         m = np.isfinite(err) & np.isfinite(bnd)
         if np.any(m):
             ax.scatter(bnd[m], err[m], s=10, alpha=0.6, color=f"C{j}", label=p)

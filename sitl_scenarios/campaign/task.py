@@ -30,7 +30,7 @@ TIMING_FIELDS = ("wall_s", "plan_times_s", "plan_median_s", "plan_p95_s", "worke
 def _base_record(run: RunSpec) -> dict:
     rec = {
         "key": run.key, "condition": run.condition, "scenario": run.scenario.name, "planner": run.planner,
-        "estimator": run.estimator, "seed": int(run.seed), "mode": run.mode,
+        "estimator": run.estimator, "n_vehicles": int(run.n_vehicles), "seed": int(run.seed), "mode": run.mode,
         "targets_m": [float(t) for t in run.targets_m], "budget_m": float(run.scenario.mission.flight.budget_m),
         # the 95 % bound the GPS error leaves however the run flies (the mission as flown: τ known)
         "floor_m": float(gps_floor_m(run.scenario.mission_config())),
@@ -81,7 +81,8 @@ def run_one(run: RunSpec) -> dict:
         if run.mode == "fast":
             from sitl_scenarios.campaign.fast import fly_fast
 
-            out = fly_fast(run.scenario, run.planner, run.params, run.seed, run.targets_m, run.planner_opts)
+            out = fly_fast(run.scenario, run.planner, run.params, run.seed, run.targets_m, run.planner_opts,
+                           n_vehicles=run.n_vehicles)
         else:
             from sitl_scenarios.campaign.full import fly_full
 

@@ -1,5 +1,5 @@
 """`uavloc campaign SPEC.toml [--scheduler ADDRESS] [--workers N] [--out DIR]`: a Monte-Carlo campaign
-(scenarios × planners × estimators × seeds) on Dask, with results, a summary table and figures."""
+(scenarios × planners × estimators × fleet sizes × seeds) on Dask, with results, a summary table and figures."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from sitl_scenarios.campaign import load_spec, run_campaign, write_summary
-    from sitl_scenarios.campaign.summary import format_table, summary_rows
+    from sitl_scenarios.campaign.summary import summary_text
 
     if args.workers != 0:
         # Dask's own INFO lines (workers starting, closing) drown the rest unless asked for (-v)
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     done = run_campaign(campaign, out, scheduler=args.scheduler, workers=args.workers,
                         progress=not args.no_progress, retry_failed=args.retry_failed)
     write_summary(done.records, campaign.targets_m, out)
-    print(format_table(summary_rows(done.records, campaign.targets_m), campaign.targets_m))
+    print(summary_text(done.records, campaign.targets_m))
     print(f"\ncampaign {campaign.name}: {len(campaign.runs)} runs, {done.ran} run now on {done.where} "
           f"({done.workers} workers) in {done.wall_s:.1f} s (+{done.setup_s:.1f} s setup), {done.skipped} already "
           f"done, {done.failed} failed; results in {out}/results, summary and figures in {out}")
