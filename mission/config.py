@@ -195,7 +195,9 @@ class GnbSettings:
     connect_timeout_s: per request / connection attempt [s]; msg2_timeout_s: active stock mode, how
     long to wait for the UE's random access after the trigger [s] (real OAI: about 5 s of log time,
     and the rfsimulator may run at 0.4x real time, hence 15 s); retries: reconnect attempts after a
-    lost connection. :meth:`measure_timeout_s` is what the controller allows one measurement;
+    lost connection; coverage_m: the cell's reach, the slant range beyond which the gNB hears no UE
+    [m] (the planner counts no ranges from beyond it). :meth:`measure_timeout_s` is what the
+    controller allows one measurement;
     the adapter's settings are these and its own (:meth:`mission.gnb.config.GnbConfig.of`).
     """
 
@@ -213,6 +215,7 @@ class GnbSettings:
     discovery: Literal["auto", "o1", "single"] = "auto"
     mu: int = bounded(1, 0, 3, what="the numerology is 0..3")
     fs_hz: float = positive(46.08e6, 1e10)
+    coverage_m: float = positive(1500.0, 1e5)
     log_path: str | None = None
     request_timeout_s: float = positive(2.0, 120.0)
     connect_timeout_s: float = positive(2.0, 120.0)
@@ -387,6 +390,7 @@ class MissionConfig:
             target_radius_m=f.target_radius_m,
             floor_m=gps_floor_m(self),
             min_leg_m=min(10.0, f.leg_max_m),
+            coverage_m=self.gnb.coverage_m,
         )
         kwargs.update(overrides)
         return PlanningConstraints(**kwargs)

@@ -38,6 +38,12 @@ the objective is unchanged.
 
 Users the estimator has not initialised: while none can be planned for, or all planned-for users
 already meet the target, the planner explores (planner.information.explore_waypoint).
+
+Transit. With a cell of limited reach, the users still above the target may all be beyond the
+reach of every leg of the horizon: then no leg gains anything (the best ring leg's predicted gain
+is below TRANSIT_GAIN of the objective) and the objective is flat, so its minimum is the cheapest
+leg, a 10 m hop in place. The planner then flies the feasible ring leg that brings it nearest the
+nearest such user (either of its hypotheses while it is ambiguous) instead.
 """
 
 from __future__ import annotations
@@ -65,7 +71,7 @@ from planner.information import (
     prior_value,
     users_initialised,
 )
-from planner.objective import N_GOAL, N_NLOS, SQRT_EPS_M2, Shape, goal_function, kernel, mapped
+from planner.objective import N_GOAL, N_NLOS, N_NOISE_PAR, SQRT_EPS_M2, Shape, goal_function, kernel, mapped
 from planner.stop import reported_bound_95_m
 from planner.types import PlanningConstraints, PlanningState
 from uavloc.errors import PlannerError
@@ -86,6 +92,8 @@ _IPOPT_OPTS = {
     "ipopt.bound_frac": 1e-6,
     "error_on_fail": False,
 }
+#: a ring whose best leg gains less than this share of the objective gains nothing: transit (module docstring)
+TRANSIT_GAIN = 1e-3
 #: users (and mirrors) estimated farther than this from home are treated as not initialised [m].
 MAX_USER_RANGE_M = 5000.0
 
@@ -132,7 +140,8 @@ def _solver(lay: _Layout) -> ca.Function:
     sh, R, n_pl = lay.shape, lay.n_rows, lay.n_planes
     n_h, pp = sh.horizon, sh.n_par**2
     vgh, value = kernel("vgh", sh, lay.compiled), kernel("value", sh, lay.compiled)
-    sizes = [3, 3 * R, pp * R, R, R, N_NLOS * R, 4, 1, 1, 2 * n_pl, n_pl, 3, 1] + ([N_GOAL] if lay.goal else [])
+    sizes = [3, 3 * R, pp * R, R, R, N_NLOS * R, N_NOISE_PAR, 1, 1, 2 * n_pl, n_pl, 3, 1]
+    sizes += [N_GOAL] if lay.goal else []
     par = ca.MX.sym("p", sum(sizes))
     x_c, U, P, s, wts, nl, noise_par, delta, lam, A, c, home, ret, *goal = ca.vertsplit(
         par, list(np.cumsum([0, *sizes])))
@@ -202,6 +211,7 @@ def pack_params(
     home: np.ndarray,
     return_factor: float,
     goal: np.ndarray | None = None,
+    coverage_m: float = float("inf"),
 ) -> np.ndarray:
     """The parameter vector of :func:`_solver`'s problem (weights divided by `norm`; goal [f_T, w]
     when the layout has one, planner.objective's "Goal")."""
@@ -215,7 +225,7 @@ def pack_params(
     A_pad[: len(A)], c_pad[: len(c)] = A, c
     return np.concatenate([
         x_c, rows.users_enu_m.ravel(), rows.prior_info.reshape(lay.n_rows, -1).ravel(), rows.scale,
-        rows.weights / norm, rows.nlos.ravel(), noise_parameters(noise), [delta_m, lam],
+        rows.weights / norm, rows.nlos.ravel(), noise_parameters(noise, coverage_m), [delta_m, lam],
         A_pad.ravel(order="F"), c_pad, home, [return_factor],
         *([] if goal is None else [np.asarray(goal, dtype=float).reshape(N_GOAL)]),
     ])
@@ -376,7 +386,7 @@ class ActivePlanner(BasePlanner):
     @property
     def prediction(self) -> PredictionModel:
         """The objective's prediction of a horizon: the planner's noise, the constraints' Δ, n_quad."""
-        return PredictionModel(self.noise, self.constraints.delta_m, self.n_quad)
+        return PredictionModel(self.noise, self.constraints.delta_m, self.n_quad, self.constraints.coverage_m)
 
     def _prior_value(self, hyp: Hypotheses) -> float:
         """J₀ = prior_value(hyp) with the goal (computed once for the hypotheses of a plan)."""
@@ -460,7 +470,7 @@ class ActivePlanner(BasePlanner):
         # the cell around the first seed leg holds every waypoint, so every leg (convex) stays free
         A, off = convex_cell(c, x[:2], seed[0, :2], self.max_planes)
         par = pack_params(lay, x, hyp, self.noise, c.delta_m, norm, lam, A, off, c.home_enu_m,
-                          c.return_factor, self.goal(hyp))
+                          c.return_factor, self.goal(hyp), c.coverage_m)
         cap = self.leg_cap_m(state)
         energy = state.energy_remaining_m if np.isfinite(state.energy_remaining_m) else 1e12
         lbg, ubg = [min(c.min_leg_m, cap) ** 2], [cap**2]
@@ -494,6 +504,12 @@ class ActivePlanner(BasePlanner):
         if len(ring) == 0:
             return x.copy(), "no ring", float("nan")
         unc = self.uncertainty(state, ring, hyp)
+        finite = unc[np.isfinite(unc)]
+        if len(finite) and 1.0 - float(np.min(finite)) < TRANSIT_GAIN and np.isfinite(self.constraints.coverage_m):
+            wp = self._transit(state, ring)
+            if wp is not None:
+                self._remember(x, wp[None])
+                return wp, "transit", float("nan")
         lam = self.cost_per_m(unc)
         values = unc + lam * np.linalg.norm(ring - x, axis=1)
         values = np.where(np.isfinite(values), values, np.inf)
@@ -535,6 +551,24 @@ class ActivePlanner(BasePlanner):
                 best, best_val, best_status = path, val, "ipopt" if ok else f"ipopt:{status}"
         self._remember(x, best)
         return best[0].copy(), best_status, best_val
+
+    def _transit(self, state: PlanningState, ring: np.ndarray) -> np.ndarray | None:
+        """The ring leg ending nearest the nearest user above the target that this vehicle plans for
+        (its estimate, or its mirror while ambiguous); None when there is none (module docstring)."""
+        est = state.estimate
+        bound = reported_bound_95_m(est)
+        left = users_initialised(est) & ~(bound <= self.constraints.target_radius_m)
+        if state.users is not None:
+            left &= state.users
+        spots = [est.users_enu_m[left, :2]]
+        amb = left & np.asarray(est.ambiguous, dtype=bool) & np.all(np.isfinite(est.mirror_enu_m), axis=1)
+        spots.append(est.mirror_enu_m[amb, :2])
+        spots = np.concatenate(spots)
+        if len(spots) == 0:
+            return None
+        x = state.uav_enu_m[:2]
+        goal = spots[int(np.argmin(np.linalg.norm(spots - x, axis=1)))]
+        return ring[int(np.argmin(np.linalg.norm(ring[:, :2] - goal, axis=1)))].copy()
 
     def _warm_start(self, state: PlanningState) -> np.ndarray | None:
         """The previous plan shifted by one leg (its heading continued when H = 1), if its first leg

@@ -55,7 +55,16 @@ from estimator.factors import range_jacobian, range_residuals
 from estimator.nlos_shift import nlos_shift_cov
 from estimator.noise import NoiseModel
 from estimator.types import CHI2_2DOF_95, Estimate
-from planner.objective import N_NLOS, SQRT_EPS_M2, Shape, goal_values, prior_values, row_values
+from planner.objective import (
+    N_NLOS,
+    NO_COVERAGE_LIMIT_M,
+    SQRT_EPS_M2,
+    Shape,
+    coverage_cut,
+    goal_values,
+    prior_values,
+    row_values,
+)
 
 #: ε of the prior information regulariser [1/m²] (a 1 km standard deviation).
 PRIOR_EPS_PER_M2 = 1e-6
@@ -361,12 +370,14 @@ def quadrature_points(start_enu_m: np.ndarray, waypoints_enu_m: np.ndarray, n_qu
 @dataclass(frozen=True)
 class PredictionModel:
     """How the objective predicts what a horizon measures: `noise`, the range and GPS noise the
-    estimator assumes (σ(d), σ_gps); a range measurement every `delta_m` metres flown [m] (Δ); and
-    `n_quad` midpoint-rule points per leg (Q, :func:`quadrature_points`)."""
+    estimator assumes (σ(d), σ_gps); a range measurement every `delta_m` metres flown [m] (Δ);
+    `n_quad` midpoint-rule points per leg (Q, :func:`quadrature_points`); and the cell's reach
+    `coverage_m`, the slant range beyond which a UE is not heard [m] (inf: everywhere)."""
 
     noise: NoiseModel
     delta_m: float
     n_quad: int
+    coverage_m: float = float("inf")
 
 
 def predicted_information(
@@ -378,7 +389,7 @@ def predicted_information(
     """Posterior information after flying each candidate horizon.
 
     waypoints_enu_m: (C, H, 3) → info (C, K, M, p, p) [1/m²] and leg lengths (C, H) [m].
-    I = P + Σ_legs (ℓ/(ΔQ)) Σ_q g gᵀ / ((s_k σ(d))² + σ_gps²)   (p = d), or with range biases
+    I = P + Σ_legs (ℓ/(ΔQ)) Σ_q c(d) g gᵀ / ((s_k σ(d))² + σ_gps²)   (p = d), or with range biases
     J = P + Σ_legs (ℓ/(ΔQ)) Σ_q h hᵀ / ((s_k σ(d))² + σ_gps²),  h = [−g; 1]  (p = d + 1;
     :func:`position_information` reduces J to the position information); s_k the user's noise
     scale (hyp.noise_scale). h/σ_eff is (minus) the range factor's Jacobian on (u, b) with the
@@ -395,10 +406,12 @@ def predicted_information(
     scale = None if hyp.noise_scale is None else hyp.noise_scale[None, :, None, None]
     dist, sig, _, _ = range_residuals(diff, None, 0.0, noise, scale, noise.sigma_gps_m**2)
     sig = np.broadcast_to(sig, dist.shape)
+    # no ranges beyond the cell's reach (planner.objective, "Coverage")
+    cut = coverage_cut(dist, min(model.coverage_m, NO_COVERAGE_LIMIT_M))
     j_theta = range_jacobian(diff, dist, 1.0 / sig, sig, hyp.dim, hyp.bias)[3:]  # (p, C, K, M, HQ)
     # I = P + Σ_q n_q J_θ J_θᵀ  (J_θ = [û/σ_eff; −1/σ_eff] = −h/σ_eff)
     info = hyp.prior_info[None] + np.einsum("ckmq,ickmq,jckmq->ckmij", np.broadcast_to(
-        n_meas[:, None, None, :], dist.shape), j_theta, j_theta)
+        n_meas[:, None, None, :], dist.shape) * cut, j_theta, j_theta)
     return info, lengths
 
 
@@ -432,9 +445,11 @@ def hypothesis_rows(hyp: Hypotheses) -> Rows:
                 np.repeat(scale, M), nlos.reshape(K * M, N_NLOS), (hyp.user_w[:, None] * hyp.sample_w).reshape(K * M))
 
 
-def noise_parameters(noise: NoiseModel) -> np.ndarray:
-    """[s0, a, b, σ_gps²] of the objective's range noise (planner.objective)."""
-    return np.array([noise.range_s0_m, noise.range_a_m, noise.range_b_per_m, noise.sigma_gps_m**2])
+def noise_parameters(noise: NoiseModel, coverage_m: float = float("inf")) -> np.ndarray:
+    """[s0, a, b, σ_gps², R] of the objective's range noise and the cell's reach R [m]
+    (planner.objective; NO_COVERAGE_LIMIT_M when not limited)."""
+    return np.array([noise.range_s0_m, noise.range_a_m, noise.range_b_per_m, noise.sigma_gps_m**2,
+                     min(coverage_m, NO_COVERAGE_LIMIT_M)])
 
 
 def objective_values(
@@ -456,7 +471,7 @@ def objective_values(
     shape = Shape(hyp.dim, hyp.bias, criterion, W.shape[1], model.n_quad)
     rows = hypothesis_rows(hyp)
     f = row_values(shape, start_enu_m, W, rows.users_enu_m, rows.prior_info, rows.scale,
-                   noise_parameters(model.noise), model.delta_m, rows.nlos, compiled)
+                   noise_parameters(model.noise, model.coverage_m), model.delta_m, rows.nlos, compiled)
     a = np.concatenate([np.broadcast_to(start_enu_m, (len(W), 1, 3)), W[:, :-1]], axis=1)
     lengths = np.sqrt(np.sum((W - a) ** 2, axis=2) + SQRT_EPS_M2)  # as the kernel's ℓ
     return goal_values(f, goal) @ rows.weights + cost_per_m * lengths.sum(axis=1)
@@ -474,8 +489,52 @@ def prior_value(hyp: Hypotheses, criterion: str = "A", goal: np.ndarray | None =
     return float(goal_values(prior_row_values(hyp, criterion), goal) @ hypothesis_rows(hyp).weights)
 
 
+#: grid step of the search for ground no cell has covered yet [m]
+SEARCH_GRID_M = 25.0
+
+
+def track_points_en_m(visited_enu_m: np.ndarray, step_m: float = 10.0) -> np.ndarray:
+    """(T, 2) east-north points every ≤ step_m along a track of positions (V, 3) joined by straight legs."""
+    v = np.asarray(visited_enu_m, dtype=float).reshape(-1, 3)
+    pts = [v[:1, :2]]
+    for a, b in itertools.pairwise(v):
+        n = max(1, int(np.ceil(np.linalg.norm(b[:2] - a[:2]) / step_m)))
+        pts.append(a[:2] + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b[:2] - a[:2]))
+    return np.concatenate(pts)
+
+
+def unsearched_point(constraints, track_en_m: np.ndarray, cruise_up_m: float) -> np.ndarray | None:
+    """(2,) the free point (fence, no-fly zones, distance from home) farthest from the track
+    (T, 2) [m] if a UE there would not have heard the cell from anywhere on it — horizontally
+    beyond √(R² − h²), R the cell's reach, h the cruise height — else None (the ground is covered,
+    or the reach is not limited). A user the mission lists but no cell has heard is somewhere such."""
+    from planner.geometry import in_free_space
+
+    c = constraints
+    if not np.isfinite(c.coverage_m) or len(track_en_m) == 0:
+        return None
+    reach_m = np.sqrt(max(c.coverage_m**2 - cruise_up_m**2, 0.0))
+    lo = c.home_enu_m[:2] - c.max_distance_m
+    hi = c.home_enu_m[:2] + c.max_distance_m
+    if len(c.fence_enu_m):
+        lo, hi = np.maximum(lo, c.fence_enu_m.min(axis=0)), np.minimum(hi, c.fence_enu_m.max(axis=0))
+    ge = np.arange(lo[0], hi[0] + 1e-9, SEARCH_GRID_M)
+    gn = np.arange(lo[1], hi[1] + 1e-9, SEARCH_GRID_M)
+    grid = np.stack(np.meshgrid(ge, gn, indexing="ij"), axis=-1).reshape(-1, 2)
+    grid = grid[in_free_space(grid, c) & (np.linalg.norm(grid - c.home_enu_m[:2], axis=1) <= c.max_distance_m)]
+    if len(grid) == 0:
+        return None
+    far = np.min(np.linalg.norm(grid[:, None, :] - np.asarray(track_en_m)[None, :, :], axis=2), axis=1)
+    i = int(np.argmax(far))
+    return grid[i].copy() if far[i] > reach_m else None
+
+
 def explore_waypoint(planner, state, visited_enu_m: np.ndarray) -> np.ndarray:
-    """Where to fly while no user can be planned for: spread the track out.
+    """Where to fly while no user can be planned for: search, or spread the track out.
+
+    With a cell of limited reach (PlanningConstraints.coverage_m), while ground remains that no
+    point of the track has covered (:func:`unsearched_point`: a user never heard is there), the
+    feasible ring leg ending nearest that ground.
 
     Among the planner's feasible ring candidates, maximise the smallest eigenvalue of the
     east-north scatter of the track (visited positions (V, 3), joined by straight legs, plus the
@@ -488,6 +547,10 @@ def explore_waypoint(planner, state, visited_enu_m: np.ndarray) -> np.ndarray:
     if len(ring) == 0:
         return state.uav_enu_m.copy()
     c = planner.constraints
+    target = unsearched_point(c, track_points_en_m(np.vstack([visited_enu_m.reshape(-1, 3), state.uav_enu_m])),
+                              c.cruise_alt_m - c.home_enu_m[2])
+    if target is not None:
+        return ring[int(np.argmin(np.linalg.norm(ring[:, :2] - target, axis=1)))].copy()
     t = np.linspace(0.0, 1.0, 9)[:, None]
     track = [state.uav_enu_m[None, :2]]
     for a, b in itertools.pairwise(visited_enu_m):

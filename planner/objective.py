@@ -30,6 +30,12 @@ sin ε = (m − u)_up / d),
 so legs that see the user from its line-of-sight side, or from above its blockers, shrink v. A
 row without a shift has κ = 0.
 
+Coverage. A UE farther than the gNB's reach R (slant range) is not heard: a quadrature point's
+ranges count with the smooth cut c(d) = 1 / (1 + exp((d − R)/COVERAGE_EDGE_M)) (1 well inside the
+cell, 0 beyond it; R = NO_COVERAGE_LIMIT_M when the reach is unknown), so that legs that carry the
+UAV out of a user's reach buy it nothing (before, a UAV at the far side of a 900 m world saw the
+users 600 m away through a 400 m cell and hovered up and down where it was).
+
 GPS floor. A drifting GPS error (correlation time τ of tens to hundreds of seconds) moves the
 track and the users together: the part of it the survey's duration does not average away stays in
 every user's bound, whatever the legs (estimator.gps.gps_floor_bound_95_m; PlanningConstraints.
@@ -83,6 +89,12 @@ log = logging.getLogger(__name__)
 SQRT_EPS_M2 = 1e-9
 #: relative ε under the eigenvalue-gap square root of the "E" criterion (smooth at isotropy).
 E_GAP_EPS = 1e-6
+#: entries of the kernels' noise parameters [s0, a, b, σ_gps², R]
+N_NOISE_PAR = 5
+#: width of the coverage edge's smooth cut [m] (module docstring, "Coverage")
+COVERAGE_EDGE_M = 10.0
+#: the reach R given when a cell's reach is not limited [m]
+NO_COVERAGE_LIMIT_M = 1e6
 #: C compiler flags of the kernels: -O1 evaluates about as fast as -O2 and compiles in a few seconds.
 JIT_FLAGS = ("-O1",)
 
@@ -157,6 +169,13 @@ def goal_values(f: np.ndarray, goal: np.ndarray | None) -> np.ndarray:
 N_NLOS = 8
 
 
+def coverage_cut(dist_m, reach_m):
+    """c(d) = 1 / (1 + exp((d − R)/COVERAGE_EDGE_M)) of distances (any shape) [m], numpy (module
+    docstring, "Coverage"; the kernels compute the same in CasADi)."""
+    z = np.clip((np.asarray(dist_m, dtype=float) - reach_m) / COVERAGE_EDGE_M, -700.0, 700.0)
+    return 1.0 / (1.0 + np.exp(z))
+
+
 def shift_var_expr(nl_count, n_count, kappa):
     """v = ½ (κ π̂)², π̂ = nl_count / n_count (module docstring)."""
     pi_hat = nl_count / (n_count + 1e-9)
@@ -173,12 +192,13 @@ def _position_part(J: dict, d: int, bias: bool) -> dict:
 
 def row_expr(z, x_c, u, P, scale, noise_par, delta, nlos, shape: Shape):
     """SX f of one row (module docstring). z: 3H waypoints stacked; x_c, u: 3; P: p·p row-major;
-    scale: s; noise_par: [s0, a, b, σ_gps²]; delta: Δ; nlos: [π₀ n, n, α₀, α₁, α₂, κ, α₃, v_f].
+    scale: s; noise_par: [s0, a, b, σ_gps², R] (R the cell's reach [m]); delta: Δ;
+    nlos: [π₀ n, n, α₀, α₁, α₂, κ, α₃, v_f].
     Returns (f, [ℓ_1 … ℓ_H])."""
     d, p, n_q = shape.dim, shape.n_par, shape.n_quad
     t = (np.arange(n_q) + 0.5) / n_q
     acc = {(i, j): P[i * p + j] for i in range(p) for j in range(i, p)}
-    s0, a, b, sgps2 = noise_par[0], noise_par[1], noise_par[2], noise_par[3]
+    s0, a, b, sgps2, reach = noise_par[0], noise_par[1], noise_par[2], noise_par[3], noise_par[4]
     nl_count, n_count = nlos[0], nlos[1]
     prev, lengths = x_c, []
     for h in range(shape.horizon):
@@ -192,6 +212,8 @@ def row_expr(z, x_c, u, P, scale, noise_par, delta, nlos, shape: Shape):
             dist = ca.sqrt(ca.sumsqr(rel) + SQRT_EPS_M2)
             # n / σ_eff², σ_eff² = (s σ(d))² + σ_gps²
             w = per_point / ((scale * (s0 + a * ca.exp(b * dist))) ** 2 + sgps2)
+            # c(d): no ranges beyond the cell's reach (module docstring, "Coverage")
+            w = w / (1.0 + ca.exp((dist - reach) / COVERAGE_EDGE_M))
             hv = [rel[i] / dist for i in range(d)] + ([-1.0] if shape.bias else [])
             # the NLoS probability at this point's bearing and elevation from the user,
             # p(β, ε) = σ(α·(1, cos β, sin β, sin ε))
@@ -260,7 +282,7 @@ def kernel(kind: str, shape: Shape, compiled: bool = True) -> ca.Function:
     elif kind in ("value", "vgh"):
         z = ca.SX.sym("z", 3 * shape.horizon)
         x_c, u, scale = ca.SX.sym("x_c", 3), ca.SX.sym("u", 3), ca.SX.sym("s")
-        noise_par, delta = ca.SX.sym("noise", 4), ca.SX.sym("delta")
+        noise_par, delta = ca.SX.sym("noise", N_NOISE_PAR), ca.SX.sym("delta")
         f, _ = row_expr(z, x_c, u, P, scale, noise_par, delta, nlos, shape)
         ins = [z, x_c, u, P, scale, noise_par, delta, nlos]
         if kind == "value":

@@ -55,6 +55,8 @@ class PlanningConstraints:
         (planner.stop.FloorWatch).
     margin_m: clearance kept from fence and no-fly edges [m].
     return_factor: the energy check asks leg + return_factor·(straight distance home) ≤ energy.
+    coverage_m: the gNB's reach, the slant range beyond which it hears no UE [m] (inf: everywhere):
+        the objective counts no ranges from beyond it (planner.objective, "Coverage").
     """
 
     home_enu_m: np.ndarray
@@ -72,6 +74,7 @@ class PlanningConstraints:
     margin_m: float = 2.0
     min_leg_m: float = 10.0
     return_factor: float = 1.2
+    coverage_m: float = float("inf")
 
     def __post_init__(self) -> None:
         home = np.asarray(self.home_enu_m, dtype=float).reshape(3)
@@ -96,6 +99,8 @@ class PlanningConstraints:
             raise PlannerError(f"min_leg_m {self.min_leg_m} exceeds leg_max_m {self.leg_max_m}")
         if not self.floor_m >= 0:
             raise PlannerError(f"floor_m must be >= 0, got {self.floor_m!r}")
+        if not self.coverage_m > 0:
+            raise PlannerError(f"coverage_m must be positive, got {self.coverage_m!r}")
         if self.margin_m < 0 or self.return_factor < 1:
             raise PlannerError(f"need margin_m >= 0 and return_factor >= 1, got {self.margin_m}, {self.return_factor}")
 

@@ -115,7 +115,7 @@ class RadioConfig:
     s0_m: float = like(mc.NoiseConfig, "range_s0_m")
     a_m: float = like(mc.NoiseConfig, "range_a_m")
     b_per_m: float = like(mc.NoiseConfig, "range_b_per_m")
-    coverage_m: float = positive(1500.0, 1e5)
+    coverage_m: float = like(mc.GnbSettings, "coverage_m")
     nlos_excess_mean_m: float = bounded(20.0, 0.0, 500.0)
     snr_db_at_100m: float = bounded(30.0, -50.0, 100.0)
     ue_sawtooth_amplitude_m: float = bounded(12.0, 0.0, 200.0)
@@ -273,6 +273,7 @@ MISSION_DEFAULTS_FROM_WORLD = (
     (("noise", "range_b_per_m"), ("radio", "b_per_m")),
     (("gnb", "mu"), ("radio", "mu")),
     (("gnb", "fs_hz"), ("radio", "fs_hz")),
+    (("gnb", "coverage_m"), ("radio", "coverage_m")),
 )
 #: a scenario's mission defaults that differ from a mission file's: its UEs are commercial ones
 #: by default (a clock sawtooth, whose mean is a range bias), so the estimator keeps a range bias

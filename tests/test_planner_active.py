@@ -167,9 +167,10 @@ def test_bias_prior_follows_the_active_layout_and_falls_back_without_a_joint_cov
     assert np.isfinite(prior_value(hypotheses_from_estimate(bare), "E"))
 
 
-def _dense_bias_objective(start, path, hyp, criterion, n_quad, delta=2.0, smooth_e=True):
+def _dense_bias_objective(start, path, hyp, criterion, n_quad, delta=2.0, smooth_e=True, coverage_m=np.inf):
     """Brute force: per user and sample, the full joint (position, bias) information from explicit
-    Jacobians [−g; 1], inverted densely; f of the position block of the covariance."""
+    Jacobians [−g; 1], inverted densely; f of the position block of the covariance. Beyond the
+    cell's reach R a point's ranges count c(d) = 1 / (1 + exp((d − R)/10 m))."""
     pts, lengths = quadrature_points(start, path[None], n_quad)
     n_meas = np.repeat(lengths[0] / (delta * n_quad), n_quad)
     K, M = hyp.sample_w.shape
@@ -183,7 +184,8 @@ def _dense_bias_objective(start, path, hyp, criterion, n_quad, delta=2.0, smooth
                 diff = pt - hyp.users_enu_m[k, m]
                 dist = np.sqrt(diff @ diff + 1e-9)
                 h = np.array([*(-diff[:2] / dist), 1.0])
-                J += n_meas[q] * np.outer(h, h) / (NOISE.range_sigma_m(dist) ** 2 + NOISE.sigma_gps_m**2)
+                cut = 1.0 if not np.isfinite(coverage_m) else 1.0 / (1.0 + np.exp((dist - coverage_m) / 10.0))
+                J += cut * n_meas[q] * np.outer(h, h) / (NOISE.range_sigma_m(dist) ** 2 + NOISE.sigma_gps_m**2)
             cov = np.linalg.inv(J)[:2, :2]
             if criterion == "E" and smooth_e:
                 # the planner's E: 1/sqrt(λ_min) of the position information with the gap smoothed by
@@ -197,19 +199,33 @@ def _dense_bias_objective(start, path, hyp, criterion, n_quad, delta=2.0, smooth
     return total
 
 
+@pytest.mark.parametrize("coverage_m", [np.inf, 90.0])
 @pytest.mark.parametrize("criterion", ["A", "D", "E"])
-def test_bias_objective_equals_a_brute_force_dense_computation(criterion):
+def test_bias_objective_equals_a_brute_force_dense_computation(criterion, coverage_m):
     hyp = hypotheses_from_estimate(_estimate_two_users_bias(True))
     start = np.array([0.0, -60.0, 30.0])
     rng = np.random.default_rng(3)
+    model = PredictionModel(NOISE, 2.0, 8, coverage_m)
     for _ in range(4):
         path = start + rng.uniform([-50, -30, -15], [50, 50, 25], size=(2, 3)).cumsum(axis=0)
-        got = objective_values(start, path[None], hyp, PredictionModel(NOISE, 2.0, 8), criterion)[0]
-        assert got == pytest.approx(_dense_bias_objective(start, path, hyp, criterion, 8), rel=1e-9)
+        got = objective_values(start, path[None], hyp, model, criterion)[0]
+        assert got == pytest.approx(_dense_bias_objective(start, path, hyp, criterion, 8, coverage_m=coverage_m),
+                                    rel=1e-9)
+        # the reference prediction (planner.information) cuts the same ranges
+        info, _ = predicted_information(start, path[None], hyp, model)
+        pos = position_information(info[0], hyp.bias)
+        ref = sum(hyp.user_w[k] * hyp.sample_w[k, m] * _reference_criterion(pos[k, m], criterion)
+                  for k in range(pos.shape[0]) for m in range(pos.shape[1]) if hyp.sample_w[k, m] > 0)
+        assert got == pytest.approx(ref, rel=1e-6)
+        if not np.isfinite(coverage_m):
+            continue
+        assert got != pytest.approx(objective_values(start, path[None], hyp, PredictionModel(NOISE, 2.0, 8),
+                                                     criterion)[0], rel=1e-6)
         assert prior_value(hyp, criterion) == pytest.approx(
             _dense_bias_objective(start, np.repeat(start[None], 2, axis=0), hyp, criterion, 8), rel=1e-9)
         if criterion == "E":  # and the unsmoothed semi-major axis sqrt(λ_max(Σ_pos)) to ~1e-5
-            assert got == pytest.approx(_dense_bias_objective(start, path, hyp, "E", 8, smooth_e=False), rel=1e-5)
+            assert got == pytest.approx(_dense_bias_objective(start, path, hyp, "E", 8, smooth_e=False,
+                                                              coverage_m=coverage_m), rel=1e-5)
 
 
 @pytest.mark.parametrize("criterion", ["A", "D", "E"])

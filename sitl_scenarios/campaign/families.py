@@ -18,6 +18,7 @@ World (ENU metres from home, home at the origin):
   `distance_noise_share` of the scenarios, a = 0 elsewhere;
 - vehicle GPS error: σ `gps_sigma_m` per axis, Gauss–Markov with correlation time `gps_tau_s`
   (0: independent per fix); the mission's `sigma_gps_m` is that σ (when > 0) unless `[families.mission]` sets it;
+- the gNB's reach `coverage_m`: a UE farther (slant range) hears no cell;
 - UE clocks: a sawtooth of amplitude `sawtooth_amplitude_m` and period `sawtooth_period_s`,
   drawn per user.
 
@@ -67,6 +68,7 @@ class FamilySpec:
     sawtooth_amplitude_m: float | list[float] = 0.0
     sawtooth_period_s: float | list[float] = 20.0
     speed_mps: float = 10.0
+    coverage_m: float = 1500.0
     mission: dict[str, Any] = field(default_factory=dict)
 
 
@@ -106,7 +108,7 @@ def validate_family(fam: FamilySpec, where: str) -> None:
         v = getattr(fam, key)
         if not 0.0 <= v <= 1.0:
             raise ScenarioError(f"{where}.{key} must be in [0, 1], got {v!r}")
-    for key in ("max_distance_m", "range_s0_m", "speed_mps"):
+    for key in ("max_distance_m", "range_s0_m", "speed_mps", "coverage_m"):
         if not getattr(fam, key) > 0:
             raise ScenarioError(f"{where}.{key} must be positive, got {getattr(fam, key)!r}")
     # each setting strictly, named by the key the spec gives it (families[i].mission.budget_m)
@@ -194,7 +196,8 @@ def generate_scenario(fam: FamilySpec, j: int, where: str = "") -> Scenario:
         "buildings": buildings,
         "geofence": {"polygon_enu_m": poly.tolist(), "max_distance_m": fam.max_distance_m, "no_fly_enu_m": no_fly},
         "radio": {"s0_m": fam.range_s0_m, "a_m": 0.3 if distance_noise else 0.0,
-                  "b_per_m": 0.01 if distance_noise else 0.0, "nlos_excess_mean_m": nlos_mean_m},
+                  "b_per_m": 0.01 if distance_noise else 0.0, "nlos_excess_mean_m": nlos_mean_m,
+                  "coverage_m": fam.coverage_m},
         "vehicle": {"speed_mps": fam.speed_mps, "gps_sigma_m": gps_sigma_m, "gps_tau_s": gps_tau_s},
         # the mission assumes the GPS σ it flies with (a perfect GPS: the default) unless
         # [families.mission] says otherwise
