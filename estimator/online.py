@@ -320,12 +320,16 @@ def check_mirrors(st: OnlineState, prob: Problem, res: SolveResult) -> SolveResu
                    for k in restart)
         if not back:
             res, st.prior, flipped = trial, prior, True
-    mirrors = mirror_all(prob, res.theta, st.active)
+    # the users the window ranges enough are tested; the others keep their last test
+    tested = np.zeros_like(st.active)
+    tested[active] = True
+    mirrors = _keep_untested(mirror_all(prob, res.theta, tested), st.mirrors)
     # a prior that also holds the first keyframe (Gauss–Markov GPS or motion links) ties the
     # users to the whole marginalized track: reflecting one user's part of it is no longer a
     # consistent mirror hypothesis, so the window's mirror test only flags, it does not flip
     can_flip = st.prior is None or not st.prior.has_x
-    flip = [k for k, mt in enumerate(mirrors) if can_flip and mt is not None and mt.mirror_is_better(chi2)]
+    flip = [k for k, mt in enumerate(mirrors)
+            if can_flip and tested[k] and mt is not None and mt.mirror_is_better(chi2)]
     for group in (([flip] if flip else []) + ([[k] for k in flip] if len(flip) > 1 else [])):
         theta, prior = res.theta.copy(), st.prior
         for k in group:
@@ -341,9 +345,14 @@ def check_mirrors(st: OnlineState, prob: Problem, res: SolveResult) -> SolveResu
         res = observed_s(prob, res, st.active, st.prior)
         st.x[: st.n] = res.x
         st.theta = res.theta
-        mirrors = mirror_all(prob, res.theta, st.active)
+        mirrors = _keep_untested(mirror_all(prob, res.theta, tested), st.mirrors)
     st.mirrors = mirrors
     return res
+
+
+def _keep_untested(mirrors: list, previous: list) -> list:
+    """The new mirror tests, and the last one of each user not tested now."""
+    return [m if m is not None or k >= len(previous) else previous[k] for k, m in enumerate(mirrors)]
 
 
 def user_offset(st: OnlineState, k: int) -> int:

@@ -102,3 +102,23 @@ def test_a_bad_vehicle_index_is_named(bad):
     kfs[2] = dataclasses.replace(kfs[2], vehicle=bad)
     with pytest.raises(EstimatorError, match="keyframe 2: vehicle must be an integer"):
         solve_batch(kfs, 3, USERS[:, 2], NOISE, PARAMS)
+
+
+def test_the_online_window_goes_on_when_a_user_leaves_it():
+    """A UAV that flies out of a user's reach: the user's ranges all leave the online window (it
+    stays estimated from the marginalized prior). The window's mirror check used to restart it from
+    the window's ranges, of which there are none, and the online estimator raised."""
+    from estimator.online import OnlineEstimator
+
+    params = SolverParams(track_clock=False, window=20, online_resolve_every=2, online_check_every=2)
+    online = OnlineEstimator(3, USERS[:, 2], NOISE, params)
+    rng = np.random.default_rng(2)
+    for i in range(80):
+        pos = np.array([60.0 * np.cos(0.1 * i), 60.0 * np.sin(0.1 * i), 30.0]) if i < 40 else \
+            np.array([60.0 + 8.0 * (i - 40), 0.0, 30.0])
+        heard = np.arange(3) if i < 40 else np.array([0])  # users 1 and 2 out of reach after keyframe 40
+        d = np.linalg.norm(USERS[heard] - pos, axis=1)
+        est = online.add_keyframe(Keyframe(pos + rng.normal(0, 0.5, 3), heard, d + rng.normal(0, 1.0, len(heard)),
+                                           t_s=float(i)))
+    assert np.all(np.isfinite(est.users_enu_m[:, :2]))
+    assert np.linalg.norm(est.users_enu_m[1, :2] - USERS[1, :2]) < 5.0
