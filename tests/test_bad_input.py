@@ -110,6 +110,7 @@ CASES = [
          _write("bad.toml", "[flight\n")),
     Case("fly-fleet-duplicate-id", ["fly", "--mission", "{d}/fleet.toml", *NOWHERE], 1,
          ["{d}/fleet.toml", "vehicles[1].id", "'uav-a'", "duplicate vehicle id"], _write("fleet.toml", FLEET_SAME_ID)),
+    Case("sim-a-fleet", ["sim", "two_uavs"], 1, ["two_uavs", "vehicles", "2 vehicles", "fast mode"]),
     Case("fly-out-is-a-file", ["fly", "--mission", MISSION, *NOWHERE, "--out", "{d}/results"], 1,
          ["{d}/results is a file"], NOT_A_FOLDER),
     Case("fly-log-holds-a-mission", ["fly", "--mission", MISSION, *NOWHERE, "--log", "{d}/mission.jsonl"], 1,

@@ -51,12 +51,13 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
-    from mission.config import load_mission, with_settings
+    from mission.config import fleet_flight_problem, load_mission, with_settings
     from mission.controller import controller_from_mission, resolve_planner_name
     from mission.gnb import GnbConfig, OaiGnbClient, parse_gnb_address
     from mission.status import print_result, write_report
     from mission.vehicle import MavsdkVehicle
     from mission.view.live import live_view
+    from uavloc.errors import MissionConfigError
 
     if args.mission is not None:
         mission = load_mission(args.mission)
@@ -64,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
         log.warning("--scenario is deprecated for fly: write a mission file (--mission; see "
                     "mission/examples/flight.toml); the scenario's true positions are ignored")
         mission = _scenario_mission(args.scenario)
+    problem = fleet_flight_problem(mission)
+    if problem is not None:
+        raise MissionConfigError(f"{args.mission or args.scenario}: {problem}")
     gnb_over = {}
     if args.gnb_mode is not None:
         gnb_over["mode"] = args.gnb_mode
