@@ -338,8 +338,12 @@ def _check(sc: Scenario, where: str) -> None:
         if len(b.footprint_enu_m) < 3:
             raise schema.fail(where, f"buildings[{i}].footprint_enu_m", b.footprint_enu_m,
                               "needs >= 3 [east, north] points", ScenarioError)
+    vehicle_ids = [v.id for v in sc.mission.vehicles]
     for i, ev in enumerate(sc.faults.vehicle):
         check_fault_event(ev, where, f"faults.vehicle[{i}]")
+        if ev.vehicle and ev.vehicle not in vehicle_ids:
+            raise schema.fail(where, f"faults.vehicle[{i}].vehicle", ev.vehicle,
+                              f"no [[vehicles]] entry has this id (ids: {vehicle_ids})", ScenarioError)
 
 
 def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:

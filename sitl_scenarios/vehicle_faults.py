@@ -25,12 +25,14 @@ class FaultEvent:
     duration), battery_pct (low_battery).
 
     reposition_refused: COMMAND_INT DO_REPOSITION is answered with MAV_RESULT 9 (unsupported frame),
-    as the PX4 build before PX4 #26626 did; MAVSDK 4.1 reports UNKNOWN and then wedges."""
+    as the PX4 build before PX4 #26626 did; MAVSDK 4.1 reports UNKNOWN and then wedges.
+    vehicle: the id (`[[vehicles]]`) of the fleet's vehicle it strikes; empty: the first (or only)."""
 
     kind: FaultKind
     at_s: float = bounded(dataclasses.MISSING, 0.0, MAX_FAULT_TIME_S)
     duration_s: float | None = bounded(None, 0.0, MAX_FAULT_TIME_S, lo_open=True)
     battery_pct: float | None = bounded(None, 0.0, 100.0)
+    vehicle: str = ""
 
 
 def check_fault_event(ev: FaultEvent, where: str, key: str) -> None:

@@ -138,3 +138,20 @@ def test_two_uavs_in_fast_mode_reach_the_target_sooner_and_apart(two_uavs):
     assert set(seen) == {0, 1}
     assert two.seconds_to[4.0] <= 0.6 * one.seconds_to[4.0]
     assert np.all(np.array(two.final_error_m) <= np.array(two.final_bound95_m))
+
+
+def test_a_vehicle_whose_link_is_lost_returns_and_the_other_finishes_its_users(two_uavs):
+    from sitl_scenarios.vehicle_faults import FaultEvent
+
+    sc, params = two_uavs
+    lost = dataclasses.replace(sc, world=dataclasses.replace(sc.world, faults=dataclasses.replace(
+        sc.world.faults, vehicle=[FaultEvent("link_pause", 15.0, 300.0, vehicle="uav2")])))
+    kfs = []
+    out = fly_fast(lost, "casadi", params, 1, (4.0,), on_keyframe=lambda kf, est: kfs.append(kf), n_vehicles=2)
+    leave_s = 15.0 + sc.mission.safety.link_timeout_s + sc.mission.safety.link_lost_wait_s
+    assert out.events == [f"vehicle uav2: link lost at {leave_s:.1f} s: returns home"]
+    assert all(kf.vehicle == 0 for kf in kfs if kf.t_s > leave_s + 0.5)
+    assert 4.0 in out.seconds_to and not out.violations  # every user within the 4 m target
+    # uav1 ranged the east group (uav2's cell's users until it left) after the loss
+    east = [k for k, u in enumerate(sc.users) if u.east_m > 0]
+    assert any(set(kf.user_idx.tolist()) & set(east) for kf in kfs if kf.vehicle == 0 and kf.t_s > leave_s)

@@ -143,6 +143,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
                                        rng_seed=seed + 7919 * v, **opts) for v in range(n_vehicles)], sep)
     est = setup.estimator()
     confirm = setup.confirm
+    leaves = fault_departures(sc, n_vehicles)
     keyframes: list[Keyframe] = []
     gps_ss, radio_ss = np.random.SeedSequence([seed, sc.seed]).spawn(2)
     gps = [GpsError(sc.vehicle.gps_sigma_m, sc.vehicle.gps_tau_s, np.random.default_rng(
@@ -198,6 +199,15 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     while any(f.flying for f in flyers):
         v, (now_s, is_kf) = min(((i, f.next_event()) for i, f in enumerate(flyers) if f.flying),
                                 key=lambda e: (e[1][0], e[0]))
+        gone = [(w, why) for w, (at_s, why) in leaves.items() if at_s <= now_s and flyers[w].flying]
+        for w, why in gone:  # a fault sends this vehicle home; its cell leaves with it, the others go on
+            g = flyers[w]
+            g.flown_m += float(np.linalg.norm(g.position_at(now_s) - g.x))
+            g.x = g.wp = g.position_at(now_s)
+            g.flying, g.reason = False, why
+            out.events.append(f"vehicle {_vehicle_id(sc, w)}: {why} at {now_s:.1f} s: returns home")
+        if gone:
+            continue
         f = flyers[v]
         if not is_kf:  # the leg's end
             leg = f.leg_m
@@ -262,6 +272,34 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
                           keyframes=len(keyframes), duration_s=out.survey_s, survey_s=out.survey_s,
                           hover_s=out.hover_s)
     return track.fill(out).take_result(result)
+
+
+def _vehicle_id(sc: Scenario, v: int) -> str:
+    """Vehicle v's id: its `[[vehicles]]` id, else its index."""
+    return sc.mission.vehicles[v].id if v < len(sc.mission.vehicles) else str(v)
+
+
+def fault_departures(sc: Scenario, n_vehicles: int) -> dict[int, tuple[float, str]]:
+    """{vehicle: (mission second it leaves the survey for home, why)} from the scenario's vehicle faults,
+    as the mission's safety monitor decides (mission.control.safety_monitor): a link lost longer than
+    `[safety] link_lost_wait_s` (it returns once that wait is over), a battery at or below
+    `battery_rtl_pct`. Other faults do not end a vehicle's survey in fast mode."""
+    ids = [v.id for v in sc.mission.vehicles]
+    safety = sc.mission.safety
+    out: dict[int, tuple[float, str]] = {}
+    for ev in sc.faults.vehicle:
+        v = ids.index(ev.vehicle) if ev.vehicle else 0
+        if v >= n_vehicles:
+            continue
+        if ev.kind == "link_pause" and ev.duration_s is not None and ev.duration_s > safety.link_lost_wait_s:
+            at = (ev.at_s + safety.link_timeout_s + safety.link_lost_wait_s, "link lost")
+        elif ev.kind == "low_battery" and ev.battery_pct is not None and ev.battery_pct <= safety.battery_rtl_pct:
+            at = (ev.at_s, f"battery {ev.battery_pct:g} %")
+        else:
+            continue
+        if v not in out or at[0] < out[v][0]:
+            out[v] = at
+    return out
 
 
 def _vehicle_constraints(sc: Scenario, c: PlanningConstraints, v: int, n_vehicles: int) -> PlanningConstraints:

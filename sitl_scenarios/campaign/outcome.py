@@ -34,7 +34,8 @@ class Outcome:
         failed online part, the flight logs an `estimator_error` event), in order; hover_s: survey
         seconds the vehicle stood waiting (full mode: the mission's `survey_time` event; fast mode:
         each plan's compute time beyond the lead the mission plans ahead with, PLAN_AHEAD_S); survey_s:
-        the survey's mission seconds, hover included.
+        the survey's mission seconds, hover included; events: what befell the vehicles (fast mode: a
+        vehicle that left the survey, when and why), in order.
     """
 
     metres_to: dict = field(default_factory=dict)
@@ -53,6 +54,7 @@ class Outcome:
     inside95: float = math.nan
     nlos_share: float = math.nan
     estimator_errors: list = field(default_factory=list)
+    events: list = field(default_factory=list)
     result: Result | None = None
 
     def take_result(self, result: Result) -> Outcome:
