@@ -40,8 +40,8 @@ Users the estimator has not initialised: while none can be planned for, or all p
 already meet the target, the planner explores (planner.information.explore_waypoint).
 
 Transit. With a cell of limited reach, the users still above the target may all be beyond the
-reach of every leg of the horizon: then no leg gains anything (the best ring leg's predicted gain
-is below TRANSIT_GAIN of the objective) and the objective is flat, so its minimum is the cheapest
+reach of every leg of the horizon: then no leg changes anything (every ring leg's predicted
+objective is within TRANSIT_GAIN of the objective before it) and the objective is flat, so its minimum is the cheapest
 leg, a 10 m hop in place. The planner then flies the feasible ring leg that brings it nearest the
 nearest such user (either of its hypotheses while it is ambiguous) instead.
 """
@@ -505,7 +505,10 @@ class ActivePlanner(BasePlanner):
             return x.copy(), "no ring", float("nan")
         unc = self.uncertainty(state, ring, hyp)
         finite = unc[np.isfinite(unc)]
-        if len(finite) and 1.0 - float(np.min(finite)) < TRANSIT_GAIN and np.isfinite(self.constraints.coverage_m):
+        # flat: no ring leg changes the objective by TRANSIT_GAIN either way (a leg that makes it
+        # worse, e.g. an NLoS side predicted, is no sign that nothing is in reach)
+        flat = len(finite) and float(np.max(np.abs(1.0 - finite))) < TRANSIT_GAIN
+        if flat and np.isfinite(self.constraints.coverage_m):
             wp = self._transit(state, ring)
             if wp is not None:
                 self._remember(x, wp[None])
