@@ -25,6 +25,7 @@ from estimator.problem import (
     pack_keyframes,
     users_from_theta,
 )
+from estimator.silence import silence_refutes
 from estimator.solve import (
     held_bias_prior,
     observed_s,
@@ -67,7 +68,12 @@ def grid_init(prob: Problem, uav: np.ndarray, users: Sequence[int]) -> dict[int,
 def mirror_all(
     prob: Problem, theta: np.ndarray, active: np.ndarray, n_rows: int | None = None
 ) -> list:
-    """Mirror test per user on the first n_rows keyframes (UAV at GPS). None for inactive users."""
+    """Mirror test per user on the first n_rows keyframes (UAV at GPS). None for inactive users.
+
+    With a cell of limited reach (params.coverage_m finite) the silence of the keyframes judges
+    each user's two hypotheses (estimator.silence): a refuted mirror makes the user unambiguous
+    (MirrorTest.mirror_refuted, ambiguous False), a refuted estimate asks for a flip to its
+    mirror (MirrorTest.estimate_refuted, _resolve_mirrors)."""
     n = prob.n_keyframes if n_rows is None else n_rows
     out: list = [None] * prob.n_users
     mask = prob.mask[:n]
@@ -84,20 +90,43 @@ def mirror_all(
         )
         for k, mt in zip(ks, tests, strict=True):
             out[k] = mt
+    if np.isfinite(prob.params.coverage_m):
+        _judge_silence(prob, out, theta, n)
     return out
 
 
+def _judge_silence(prob: Problem, mirrors: list, theta: np.ndarray, n: int) -> None:
+    """Mark in `mirrors` (in place) the hypotheses that silence refutes (estimator.silence): users
+    with a mirror solution whose estimate or mirror it refutes."""
+    ks = [k for k, mt in enumerate(mirrors) if mt is not None and mt.mirror_theta is not None]
+    if not ks:
+        return
+    est = users_from_theta(theta[ks], prob.user_up_m[ks], prob.user_dim)
+    mir = users_from_theta(np.array([mirrors[k].mirror_theta for k in ks]), prob.user_up_m[ks], prob.user_dim)
+    est_ref, mir_ref = silence_refutes(prob, ks, est, mir, n)
+    for k, e_r, m_r in zip(ks, est_ref.tolist(), mir_ref.tolist(), strict=True):
+        if m_r:
+            mirrors[k] = dataclasses.replace(mirrors[k], ambiguous=False, mirror_refuted=True)
+        elif e_r:
+            mirrors[k] = dataclasses.replace(mirrors[k], estimate_refuted=True)
+
+
 def _resolve_mirrors(prob: Problem, res: SolveResult, active: np.ndarray, prior: Prior | None = None):
-    """Mirror tests; a user whose mirror fits clearly better (Δχ² < −χ²_amb) jumps there and
-    the problem is re-solved once. Returns (result, mirror tests)."""
+    """Mirror tests; a user whose mirror fits clearly better (Δχ² < −χ²_amb, and silence does not
+    refute it) or whose estimate silence refutes and its mirror explains the ranges about as well
+    (MirrorTest.silence_prefers_mirror) jumps there and the problem is re-solved once, kept when
+    its cost 2·ΔL rises by less than χ²_amb per user the silence moved (falls, when none).
+    Returns (result, mirror tests)."""
+    chi2 = prob.params.ambiguity_chi2
     mirrors = mirror_all(prob, res.theta, active)
-    flip = [k for k, mt in enumerate(mirrors) if mt is not None and mt.mirror_is_better(prob.params.ambiguity_chi2)]
-    if flip:
+    flip = [k for k, mt in enumerate(mirrors) if mt is not None and mt.mirror_is_better(chi2)]
+    silent = [k for k, mt in enumerate(mirrors) if mt is not None and mt.silence_prefers_mirror(chi2)]
+    if flip or silent:
         theta = res.theta.copy()
-        for k in flip:
+        for k in flip + silent:
             theta[k] = mirrors[k].mirror_theta
         res2 = observed_s(prob, levenberg_marquardt(prob, res.x, theta, active, prior), active, prior)
-        if res2.lin.cost < res.lin.cost:
+        if 2.0 * (res2.lin.cost - res.lin.cost) < chi2 * len(silent):
             res = res2
             mirrors = mirror_all(prob, res.theta, active)
     return res, mirrors

@@ -35,6 +35,9 @@ grows like √N (±15 at N = 100) although the geometry cannot tell the two apar
 track separation of the exact reflection stays around 1 for a straight line and is in the
 hundreds or more for a circle or a lawnmower. The solver jumps to the mirror when the geometry separates the two
 (χ²_sep ≥ χ²_amb) and the mirror fits better by more than χ²_amb.
+
+With a cell of limited reach (SolverParams.coverage_m) the keyframes that did not range a user
+can refute one of the two hypotheses (estimator.silence, applied by estimator.batch.mirror_all).
 """
 
 from __future__ import annotations
@@ -586,20 +589,38 @@ def init_user(
 
 @dataclass(frozen=True)
 class MirrorTest:
-    """Result of the mirror test for one user (see the module docstring)."""
+    """Result of the mirror test for one user (see the module docstring).
+
+    mirror_refuted, estimate_refuted: silence refutes that hypothesis (estimator.silence, a cell of
+    limited reach; set by estimator.batch.mirror_all): a refuted mirror is no ambiguity (ambiguous
+    False) and never flipped to; a refuted estimate whose mirror is not is flipped to the mirror."""
 
     ambiguous: bool
     mirror_theta: np.ndarray | None  # refined mirror θ, None when the reflection coincides with u
     delta_chi2: float  # 2 (L(mirror) − L(u)); negative: the mirror fits better
     separation_chi2: float  # χ²_sep of the two hypotheses on the smoothed track
     linearity: float  # s2/s1 of the horizontal fixes (0: a perfect line)
+    mirror_refuted: bool = False
+    estimate_refuted: bool = False
 
     def mirror_is_better(self, chi2_threshold: float) -> bool:
-        """The geometry separates the two and the mirror fits clearly better."""
+        """The geometry separates the two and the mirror fits clearly better (and silence does not
+        refute it)."""
         return (
             self.mirror_theta is not None
+            and not self.mirror_refuted
             and self.separation_chi2 >= chi2_threshold
             and self.delta_chi2 < -chi2_threshold
+        )
+
+    def silence_prefers_mirror(self, chi2_threshold: float) -> bool:
+        """Silence refutes the estimate and not the mirror, and the mirror explains the ranges
+        about as well (Δχ² < χ²_amb): the user belongs at the mirror."""
+        return (
+            self.mirror_theta is not None
+            and self.estimate_refuted
+            and not self.mirror_refuted
+            and self.delta_chi2 < chi2_threshold
         )
 
 

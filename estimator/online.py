@@ -244,7 +244,7 @@ def after_check(st: OnlineState, newly: np.ndarray, flipped: bool) -> None:
     every = max(int(st.params.online_check_every), 1)
     chi2 = st.params.ambiguity_chi2
     close = any(
-        mt is not None and mt.mirror_theta is not None
+        mt is not None and mt.mirror_theta is not None and not mt.mirror_refuted
         and (mt.ambiguous or mt.delta_chi2 <= ONLINE_CHECK_MARGIN * chi2)
         for mt in st.mirrors
     )
@@ -273,6 +273,12 @@ def check_mirrors(st: OnlineState, prob: Problem, res: SolveResult) -> SolveResu
     (with 200 users along a first straight leg a solve per user made the worker fall minutes
     behind the flight). Flips are kept when the joint cost drops; if it does not, each flip
     is tried alone, as the joint run may have been spoilt by one of them.
+
+    With a cell of limited reach (params.coverage_m) the window's silent keyframes judge the
+    mirrors as in a batch solve (estimator.batch.mirror_all, estimator.silence): a mirror they
+    refute is no ambiguity and never flipped to. A refuted estimate is left to the batch
+    refreshes (estimator.refresh), which see every keyframe: the window forgets the silence
+    as it slides, and its prior ties the user to where it was linearized.
     """
     chi2 = st.params.ambiguity_chi2
     flipped = False

@@ -10,6 +10,7 @@ Keyframes arrive as a list of :class:`estimator.types.Keyframe`; the solver work
     odom_sigma_m (N,)   its per-axis σ [m] (NaN where none; None: params.motion_sigma_m)
     chain_start (N,)    True where keyframe n starts a vehicle's chain: no GPS link or motion factor
                         to keyframe n−1, another vehicle's (None: keyframe 0 alone)
+    vehicle     (N,)    the vehicle (Keyframe.vehicle) that took keyframe n (None: one vehicle)
 
 A fleet's keyframes (Keyframe.vehicle) are solved sorted by vehicle, each vehicle's in the order
 they came (estimator.batch.solve_batch): every chain link is then between rows n−1 and n, and the
@@ -55,6 +56,9 @@ def check_params(params: SolverParams) -> None:
         raise EstimatorError(f"nlos_shift must be true or false, got {params.nlos_shift!r}")
     if params.bias_held not in ("zero", "sawtooth"):
         raise EstimatorError(f"bias_held must be 'zero' or 'sawtooth', got {params.bias_held!r}")
+    cov = params.coverage_m
+    if isinstance(cov, bool) or not isinstance(cov, int | float | np.integer | np.floating) or not cov > 0:
+        raise EstimatorError(f"coverage_m must be positive (inf: unlimited), got {cov!r}")
     if params.motion_sigma_m is not None and not (
         np.isfinite(params.motion_sigma_m) and params.motion_sigma_m > 0
     ):
@@ -178,6 +182,9 @@ class Problem:
     odom_sigma_m: np.ndarray | None = None
     #: (N,) True where a keyframe starts a vehicle's chain (module docstring); None: keyframe 0 alone
     chain_start: np.ndarray | None = None
+    #: (N,) int vehicle of each keyframe (Keyframe.vehicle; estimator.silence: whose cell was silent);
+    #: None: one vehicle
+    vehicle: np.ndarray | None = None
 
     def odom_weight(self) -> np.ndarray:
         """(N,) weight 1/σ_m,n² of the motion factor linking keyframe n−1 to n; 0 where none."""
@@ -317,7 +324,8 @@ def pack_keyframes(
                 odom_sigma[i] = default if sm is None else float(sm)
         odom_mask = ~np.isnan(odom_sigma)
     return Problem(gps, rng, ~np.isnan(rng), odom, odom_mask, up, noise, params, t_s=t_s, odom_sigma_m=odom_sigma,
-                   chain_start=chain_start)
+                   chain_start=chain_start,
+                   vehicle=None if np.all(vehicle == vehicle[0]) else vehicle.astype(np.intp))
 
 
 def users_from_theta(theta: np.ndarray, user_up_m: np.ndarray, user_dim: int) -> np.ndarray:

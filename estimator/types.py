@@ -7,6 +7,7 @@ north) or 3 user coordinates.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
@@ -75,6 +76,11 @@ class SolverParams:
         online_resolve_every − 1 more).
     ambiguity_chi2: a user is flagged ambiguous when its mirror solution costs less than this
         much more, 2·(L(mirror) − L(estimate)) < ambiguity_chi2 (estimator.init).
+    coverage_m: the cell's reach, the slant range [m] beyond which the gNB hears no UE (inf:
+        unknown or unlimited). A finite reach lets silence refute a mirror (estimator.silence):
+        a user not ranged at enough keyframes that would have heard it at its mirror position is
+        not there, and is not ambiguous. It must not overstate the reach by more than
+        1/SILENT_REACH_SHARE − 1 (25 %). inf: no refutation, the mirror test alone (as before).
     online_check_every: the online estimator re-runs the mirror test every this many keyframes.
     step_tol_m, step_tol_uav_m: the batch solver stops when no user parameter moves by
         step_tol_m and no keyframe coordinate by max(step_tol_m, step_tol_uav_m). The keyframes
@@ -124,6 +130,7 @@ class SolverParams:
     step_tol_sigma: float = 1e-3
     window: int = 100
     ambiguity_chi2: float = 9.0
+    coverage_m: float = math.inf
     online_check_every: int = 10
     online_step_tol_m: float = 0.05
     online_resolve_every: int = 5
@@ -230,7 +237,8 @@ class Estimate:
         keyframes plus any marginalization prior) [1/m²].
     bias_m: (K,) estimated range bias per user [m], or None when biases are not estimated.
     uav_enu_m: (N, 3) corrected UAV keyframe positions still in the estimator [m, ENU].
-    ambiguous: (K,) True where a mirror solution explains the ranges about as well.
+    ambiguous: (K,) True where a mirror solution explains the ranges about as well and silence
+        does not refute it (SolverParams.coverage_m, estimator.silence).
     mirror_enu_m: (K, 3) the reflected solution where ambiguous, NaN elsewhere.
     n_ranges: (K,) number of range measurements used per user.
     state: the solve's model choices and joint covariance (None: not from a solve, e.g. made by hand).

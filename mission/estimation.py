@@ -16,8 +16,9 @@ campaigns (fast and full mode) and the benchmarks estimate with.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -34,11 +35,23 @@ MISSION_JACKKNIFE_BLOCKS = 8
 
 def mission_solver_params(mission) -> SolverParams:
     """The estimator settings of a :class:`mission.config.MissionConfig`: its keyframe spacing Δ and
-    range-bias model, the covariance widened by the jackknife (MISSION_JACKKNIFE_BLOCKS) and by a
+    range-bias model, the cell's reach `[gnb] coverage_m` (silence refutes a mirror,
+    estimator.silence), the covariance widened by the jackknife (MISSION_JACKKNIFE_BLOCKS) and by a
     one-sided NLoS excess's shift (SolverParams.nlos_shift), the solver's defaults otherwise."""
     return SolverParams(delta_m=mission.flight.delta_m, estimate_bias=mission.noise.estimate_bias,
                         bias_prior_sigma_m=mission.noise.bias_prior_sigma_m, bias_held=mission.noise.bias_held,
-                        jackknife_blocks=MISSION_JACKKNIFE_BLOCKS, nlos_shift=True)
+                        jackknife_blocks=MISSION_JACKKNIFE_BLOCKS, nlos_shift=True,
+                        coverage_m=float(mission.gnb.coverage_m))
+
+
+def solver_params_header(params: SolverParams) -> dict:
+    """The solver settings as the log header's `config.solver` holds them, read back by
+    mission.replay.solver_params_from_header: every field but an unlimited coverage_m (the log's
+    JSON has no infinities), which is left out and reads back as the default, inf."""
+    out = asdict(params)
+    if not math.isfinite(out["coverage_m"]):
+        del out["coverage_m"]
+    return out
 
 
 @dataclass(frozen=True)

@@ -93,7 +93,9 @@ class ReplayResult:
 
 def solver_params_from_header(mlog: MissionLog) -> SolverParams:
     """The solver settings the mission ran with (header `config.solver`, as the controller logs
-    them), so that a replay reproduces the mission's estimates; SolverParams() when absent.
+    them: mission.estimation.solver_params_header), so that a replay reproduces the mission's
+    estimates; SolverParams() when absent, a field's default where it is absent (coverage_m: inf,
+    as in a log from before the cell's reach reached the estimator, or of an unlimited one).
     Unknown fields are ignored with a warning (a log from a newer or another tool)."""
     solver = mlog.header.config.get("solver")
     if solver is None:

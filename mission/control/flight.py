@@ -68,7 +68,7 @@ from mission.control.loop import LoopLagMonitor
 from mission.control.pipeline import MeasurementPipeline
 from mission.control.safety_monitor import SafetyMonitor
 from mission.control.state import FlightState, SurveyPace, spacing_m
-from mission.estimation import MissionEstimator
+from mission.estimation import MissionEstimator, solver_params_header
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields, read_mission_log
 from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log
@@ -339,7 +339,7 @@ class MissionController:
             sigma_gps_m=self.noise.sigma_gps_m))
         cfg = dict(self.header_config)
         cfg.setdefault("controller", asdict(self.config))
-        cfg.setdefault("solver", asdict(self.params))
+        cfg.setdefault("solver", solver_params_header(self.params))
         lim = self.gate.limits
         area = area_fields(self.origin, lim.fence_enu_m, lim.no_fly_enu_m, lim.alt_min_m, lim.alt_max_m,
                            lim.max_distance_m, self._buildings(self.origin) if self._buildings else None)
