@@ -40,10 +40,11 @@ Users the estimator has not initialised: while none can be planned for, or all p
 already meet the target, the planner explores (planner.information.explore_waypoint).
 
 Transit. With a cell of limited reach, the users still above the target may all be beyond the
-reach of every leg of the horizon: then no leg changes anything (every ring leg's predicted
-objective is within TRANSIT_GAIN of the objective before it) and the objective is flat, so its minimum is the cheapest
-leg, a 10 m hop in place. The planner then flies the feasible ring leg that brings it nearest the
-nearest such user (either of its hypotheses while it is ambiguous) instead.
+reach of every leg of the horizon (farther, horizontally, than √(R² − h²) plus H full legs): no
+leg can range them, and the objective only holds what is left of the users already inside the
+target (the goal's hinge is smooth) or nothing at all, so the planner polished those, or hopped
+10 m in place, while a user 750 m away waited. The planner then flies the feasible ring leg that
+brings it nearest the nearest such user (either of its hypotheses while it is ambiguous).
 """
 
 from __future__ import annotations
@@ -92,8 +93,6 @@ _IPOPT_OPTS = {
     "ipopt.bound_frac": 1e-6,
     "error_on_fail": False,
 }
-#: a ring whose best leg gains less than this share of the objective gains nothing: transit (module docstring)
-TRANSIT_GAIN = 1e-3
 #: users (and mirrors) estimated farther than this from home are treated as not initialised [m].
 MAX_USER_RANGE_M = 5000.0
 
@@ -503,16 +502,12 @@ class ActivePlanner(BasePlanner):
         ring = self.feasible_ring(state)
         if len(ring) == 0:
             return x.copy(), "no ring", float("nan")
-        unc = self.uncertainty(state, ring, hyp)
-        finite = unc[np.isfinite(unc)]
-        # flat: no ring leg changes the objective by TRANSIT_GAIN either way (a leg that makes it
-        # worse, e.g. an NLoS side predicted, is no sign that nothing is in reach)
-        flat = len(finite) and float(np.max(np.abs(1.0 - finite))) < TRANSIT_GAIN
-        if flat and np.isfinite(self.constraints.coverage_m):
+        if np.isfinite(self.constraints.coverage_m):
             wp = self._transit(state, ring)
             if wp is not None:
                 self._remember(x, wp[None])
                 return wp, "transit", float("nan")
+        unc = self.uncertainty(state, ring, hyp)
         lam = self.cost_per_m(unc)
         values = unc + lam * np.linalg.norm(ring - x, axis=1)
         values = np.where(np.isfinite(values), values, np.inf)
@@ -556,8 +551,10 @@ class ActivePlanner(BasePlanner):
         return best[0].copy(), best_status, best_val
 
     def _transit(self, state: PlanningState, ring: np.ndarray) -> np.ndarray | None:
-        """The ring leg ending nearest the nearest user above the target that this vehicle plans for
-        (its estimate, or its mirror while ambiguous); None when there is none (module docstring)."""
+        """When every user above the target that this vehicle plans for (its estimate, or its mirror
+        while ambiguous) is beyond the reach of the whole horizon, the ring leg ending nearest the
+        nearest of them; else None (module docstring, "Transit")."""
+        c = self.constraints
         est = state.estimate
         bound = reported_bound_95_m(est)
         left = users_initialised(est) & ~(bound <= self.constraints.target_radius_m)
@@ -570,7 +567,11 @@ class ActivePlanner(BasePlanner):
         if len(spots) == 0:
             return None
         x = state.uav_enu_m[:2]
-        goal = spots[int(np.argmin(np.linalg.norm(spots - x, axis=1)))]
+        dist = np.linalg.norm(spots - x, axis=1)
+        reach_m = np.sqrt(max(c.coverage_m**2 - (c.cruise_alt_m - c.home_enu_m[2]) ** 2, 0.0))
+        if np.min(dist) <= reach_m + self.horizon * c.leg_max_m:
+            return None
+        goal = spots[int(np.argmin(dist))]
         return ring[int(np.argmin(np.linalg.norm(ring[:, :2] - goal, axis=1)))].copy()
 
     def _warm_start(self, state: PlanningState) -> np.ndarray | None:

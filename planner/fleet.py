@@ -19,9 +19,10 @@ Separation. Two vehicles are apart when their horizontal distance is at least `h
 their altitudes differ by at least `vertical_m` (altitude layers). A leg is checked against the
 whole remaining leg of every other vehicle in space, not in time: a leg flown late or early (wind,
 a slow climb, an autopilot's own speed) is still apart. A vehicle with nowhere left to go for its
-own users while users remain that no cell serves explores away from the others, so that the fleet
-covers the ground; once every user is located and served, a vehicle whose users are within the
-target has nothing it can measure (another cell serves the rest) and its part is done.
+own users while users remain that no cell serves searches the ground no vehicle's track has
+covered nor will where the others are going, so that the fleet covers the ground; once every user
+is located and served, a vehicle whose users are within the target has nothing it can measure
+(another cell serves the rest) and its part is done.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator.types import Estimate
+from planner.information import track_points_en_m, unsearched_point
 from planner.stop import reported_bound_95_m
 from planner.types import Planner, PlanningState, PlanResult
 from uavloc.errors import PlannerError
@@ -149,6 +151,8 @@ class FleetPlanner:
         self.planners = list(planners)
         self.separation = separation
         self.name = self.planners[0].name
+        #: each vehicle's positions at its plans (V lists of (3,)): the ground the fleet has covered
+        self.tracks: list[list[np.ndarray]] = [[] for _ in self.planners]
 
     @property
     def n_vehicles(self) -> int:
@@ -164,6 +168,7 @@ class FleetPlanner:
             raise PlannerError(f"vehicle {vehicle} outside 0..{self.n_vehicles - 1}")
         serving = np.asarray(serving)
         planner = self.planners[vehicle]
+        self.tracks[vehicle].append(state.uav_enu_m.copy())
         if self.n_vehicles > 1 and not has_work(vehicle, serving, state.estimate,
                                                 planner.constraints.target_radius_m):
             log.info("vehicle %d: its users are within the target, other cells serve the rest", vehicle)
@@ -188,12 +193,17 @@ class FleetPlanner:
         return PlanResult(wp.copy(), wp[None].copy(), done=False, status=f"{res.status}+separated")
 
     def _spread(self, planner, state: PlanningState, others: list[np.ndarray], res: PlanResult) -> PlanResult:
-        """An exploring vehicle's leg while users remain that no cell serves: the feasible ring leg
-        ending farthest from where the others are going (the fleet covers the ground between them)."""
+        """An exploring vehicle's leg while users remain that no cell serves: toward the ground no
+        vehicle's track has covered, nor will where the others are going (a UE there would have
+        attached to a cell passing within reach: planner.information.unsearched_point), so that
+        the fleet searches different ground; the planner's own exploration when all is covered."""
         ring = planner.feasible_ring(state) if hasattr(planner, "feasible_ring") else np.zeros((0, 3))
         if len(ring) == 0:
             return res
-        ends = np.array([o[-1, :2] for o in others])
-        far = np.min(np.linalg.norm(ring[:, None, :2] - ends[None], axis=2), axis=1)
-        wp = ring[int(np.argmax(far))]
+        c = planner.constraints
+        pts = [track_points_en_m(np.array(t)) for t in self.tracks if t] + [track_points_en_m(o) for o in others]
+        target = unsearched_point(c, np.concatenate(pts), c.cruise_alt_m - c.home_enu_m[2], state.uav_enu_m[:2])
+        if target is None:
+            return res
+        wp = ring[int(np.argmin(np.linalg.norm(ring[:, :2] - target, axis=1)))]
         return PlanResult(wp.copy(), wp[None].copy(), done=False, status="explore+spread")

@@ -104,11 +104,18 @@ def test_each_vehicle_plans_for_its_own_cells_users_and_keeps_apart():
 def test_a_vehicle_with_nothing_left_in_reach_searches_the_ground_no_cell_covered():
     c = _constraints(coverage_m=150.0)
     track = track_points_en_m(np.array([[0.0, 0.0, 30.0], [-250.0, 0.0, 30.0], [-250.0, 250.0, 30.0]]))
-    far = unsearched_point(c, track, 30.0)
-    assert far is not None and far[0] > 200.0  # the east half: nowhere near the track
+    here = np.array([-250.0, 250.0])
+    near = unsearched_point(c, track, 30.0, here)
+    # the open ground nearest the vehicle: just beyond the reach (≈ 146 m) of the track's nearest point
+    d_track = np.min(np.linalg.norm(track - near, axis=1))
+    assert d_track > np.sqrt(150.0**2 - 30.0**2)
+    grid = np.array([[x, y] for x in np.arange(-300, 301, 25) for y in np.arange(-300, 301, 25)], dtype=float)
+    reach = np.sqrt(150.0**2 - 30.0**2)
+    open_ground = grid[np.min(np.linalg.norm(grid[:, None] - track[None], axis=2), axis=1) > reach]
+    assert np.linalg.norm(near - here) == pytest.approx(np.min(np.linalg.norm(open_ground - here, axis=1)))
     covered = np.array([[x, y] for x in range(-300, 301, 100) for y in range(-300, 301, 100)], dtype=float)
-    assert unsearched_point(c, covered, 30.0) is None
-    assert unsearched_point(dataclasses.replace(c, coverage_m=np.inf), track, 30.0) is None
+    assert unsearched_point(c, covered, 30.0, here) is None
+    assert unsearched_point(dataclasses.replace(c, coverage_m=np.inf), track, 30.0, here) is None
 
 
 def test_a_user_beyond_every_legs_reach_is_flown_to():
