@@ -556,6 +556,8 @@ class ActivePlanner(BasePlanner):
         nearest of them; else None (module docstring, "Transit")."""
         c = self.constraints
         est = state.estimate
+        if est is None:  # (the oracle plans for the true users before the first range)
+            return None
         bound = reported_bound_95_m(est)
         left = users_initialised(est) & ~(bound <= self.constraints.target_radius_m)
         if state.users is not None:

@@ -387,11 +387,12 @@ def test_the_summary_counts_users_inside_their_final_95_and_beyond_their_99_9_el
 @pytest.mark.parametrize("doc", ["README.md", "docs/campaigns.md"])
 def test_the_documented_campaign_example_loads_as_written(doc):
     """The spec shown in the README's "Campaigns" section (and in docs/campaigns.md) is a valid
-    spec: the bundled scenario and 20 generated worlds, 3 seeds, 2 planners."""
+    spec: the bundled scenario and 20 generated worlds, 3 seeds, 2 planners, fleets of 1 and 2 UAVs."""
     text = (REPO / doc).read_text()
     block = text.split("```toml\n[campaign]", 1)[1].split("```", 1)[0]
     campaign = spec_from_dict(tomllib.loads("[campaign]" + block), where=doc)
-    assert len(campaign.runs) == (1 + 20) * 3 * 2
+    assert len(campaign.runs) == (1 + 20) * 3 * 2 * 2
+    assert sorted({r.n_vehicles for r in campaign.runs}) == [1, 2]
     assert campaign.targets_m == (3.0, 2.0)
 
 

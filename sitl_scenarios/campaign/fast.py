@@ -111,10 +111,17 @@ class _Flyer:
 
 
 def launch_points_enu_m(home_enu_m: np.ndarray, n_vehicles: int, separation: Separation) -> np.ndarray:
-    """(V, 3) where a simulated fleet's vehicles take off: on a line east of home, 5 m more than the
-    horizontal separation apart (vehicle 0 at home)."""
-    step = separation.horizontal_m + 5.0
-    return np.asarray(home_enu_m, float)[None, :] + np.array([[v * step, 0.0, 0.0] for v in range(n_vehicles)])
+    """(V, 3) where a simulated fleet's vehicles take off: on a ring around home, vehicle v at bearing
+    θ_v = 2πv/V from east, neighbours 5 m more than the horizontal separation
+    apart (one vehicle: at home). A UE attaches to the nearest cell at take-off, so a ring gives each
+    vehicle the users of its own sector; on a line, the middle vehicle of three took off with none."""
+    home = np.asarray(home_enu_m, float)
+    if n_vehicles == 1:
+        return home[None, :].copy()
+    # neighbours on the ring a chord 2 r sin(π/V) = separation + 5 m apart
+    r = (separation.horizontal_m + 5.0) / (2.0 * np.sin(np.pi / n_vehicles))
+    theta = 2.0 * np.pi * np.arange(n_vehicles) / n_vehicles
+    return home[None, :] + np.column_stack([r * np.cos(theta), r * np.sin(theta), np.zeros(n_vehicles)])
 
 
 def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
@@ -124,7 +131,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     n_vehicles).
 
     n_vehicles: the fleet's size (docs/fleet.md): that many vehicles fly at once from launch points
-    east of home, each with its own GPS error, its own gNB (sitl_scenarios.radio.CellAttachment: a
+    on a ring around home, each with its own GPS error, its own gNB (sitl_scenarios.radio.CellAttachment: a
     user is ranged by the vehicle whose cell serves it) and its own planner of the mission's kind,
     coordinated by planner.fleet.FleetPlanner; one estimator takes every vehicle's keyframes.
     on_keyframe(keyframe, estimate): called with each keyframe and the estimate the run then acts on."""
