@@ -39,7 +39,7 @@ def _constraints(**kw) -> PlanningConstraints:
 def test_segment_distance_is_the_least_distance_of_densely_sampled_points():
     rng = np.random.default_rng(5)
     t = np.linspace(0.0, 1.0, 801)[:, None]
-    for _ in range(200):
+    for _ in range(60):
         a0, a1, b0, b1 = rng.uniform(-50, 50, size=(4, 2))
         pa, pb = a0 + t * (a1 - a0), b0 + t * (b1 - b0)
         brute = np.min(np.linalg.norm(pa[:, None] - pb[None], axis=2))

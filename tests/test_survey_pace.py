@@ -38,8 +38,9 @@ def _scenario(n_users: int, gnb_delay_s: float = 0.0):
 
 
 def _fly(scenario, log_path: Path, speedup: float, spinners: int = 0, timeout_s: float = 240.0):
-    """Fly the scenario (lawnmower); `spinners` threads spin in Python from the survey's start (the
-    interpreter shared with the built-in vehicle, as a busy process shares it).
+    """Fly the scenario (lawnmower); `spinners` threads spin in Python from the survey's start to its
+    end (the interpreter shared with the built-in vehicle, as a busy process shares it; the return
+    home is not starved: the pace is the survey's).
     -> (result, behind_s of the built-in vehicle)."""
     stop = threading.Event()
 
@@ -56,6 +57,9 @@ def _fly(scenario, log_path: Path, speedup: float, spinners: int = 0, timeout_s:
                         await asyncio.sleep(0.01)
                     for _ in range(spinners):
                         threading.Thread(target=spin, daemon=True).start()
+                    while sim.controller.state == "SURVEY":
+                        await asyncio.sleep(0.01)
+                    stop.set()
 
                 spinner = asyncio.get_running_loop().create_task(start_spinning()) if spinners else None
                 try:
