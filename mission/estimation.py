@@ -100,6 +100,13 @@ class MissionEstimator:
         return (self.target_radius_m is not None and estimate is not None
                 and estimate.source == SOURCE_BATCH and targets_reached(estimate, self.target_radius_m))
 
+    def within_target(self, final: Estimate) -> bool:
+        """Whether the final answer bounds every user within the target (no target: False). It
+        decides how a survey that stopped at its target or its floor ends: a flight surveys on when
+        the target is not held, and a floor the final answer bounds within the target is the target
+        reached (mission.control.flight, the campaigns' fast mode)."""
+        return self.target_radius_m is not None and targets_reached(final, self.target_radius_m)
+
     def final(self, keyframes: Sequence[Keyframe]) -> Estimate:
         """The mission's final answer: the batch solution over every keyframe."""
         return solve_batch(list(keyframes), self.n_users, self.user_up_m, self.noise, self.params)

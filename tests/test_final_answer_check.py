@@ -12,6 +12,7 @@ import numpy as np
 from mission.control.config import STATUS_BUDGET, STATUS_FLOOR, STATUS_TARGET
 from mission.control.flight import MissionController
 from mission.control.state import FlightState
+from mission.estimation import MissionEstimator
 
 
 class _Final:
@@ -36,7 +37,9 @@ def _check(stop, final_bounds_m):
     flight.finish_survey(*stop, now_s=100.0)
     ctl = SimpleNamespace(
         flight=flight, pipeline=SimpleNamespace(drain=drain, keyframes=[object()] * 12),
-        _estimator=SimpleNamespace(final=lambda kfs: _Final(final_bounds_m)),
+        # the mission estimator's own rule (MissionEstimator.within_target) over a made-up final answer
+        _estimator=SimpleNamespace(final=lambda kfs: _Final(final_bounds_m), within_target=lambda final: (
+            MissionEstimator.within_target(SimpleNamespace(target_radius_m=4.0), final))),
         config=SimpleNamespace(flight=SimpleNamespace(target_radius_m=4.0)),
         journal=SimpleNamespace(event=lambda message, **fields: events.append((message, fields))),
         wall=lambda s: 0.0)

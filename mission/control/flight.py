@@ -76,7 +76,6 @@ from mission.result import Result, build_result
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.vehicle import PositionFix, Vehicle
 from mission.vehicle.telemetry import TelemetryBuffer, VehicleClock
-from planner.stop import targets_reached
 from planner.types import Planner
 from uavloc.errors import (
     EstimatorError,
@@ -305,7 +304,7 @@ class MissionController:
             return True
         await self.pipeline.drain(self.wall(PLAN_DRAIN_MAX_S))
         final = await asyncio.to_thread(self._estimator.final, list(self.pipeline.keyframes))
-        reached = targets_reached(final, self.config.flight.target_radius_m)
+        reached = self._estimator.within_target(final)
         if f.stop[0] == STATUS_FLOOR:
             if reached:
                 f.stop = (STATUS_TARGET, "target reached")

@@ -36,7 +36,7 @@ from mission import geometry
 from mission.control.legs import PLAN_AHEAD_S
 from mission.estimation import MissionEstimator
 from mission.kernel_cache import use_kernel_cache
-from mission.result import STATUS_BUDGET, STATUS_TARGET, build_result, status_of_planner_reason
+from mission.result import STATUS_BUDGET, STATUS_FLOOR, STATUS_TARGET, build_result, status_of_planner_reason
 from planner import PlanningConstraints, PlanningState, make_planner
 from planner.fleet import REASON_USERS_DONE, FleetPlanner, Separation, vehicles_apart
 from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
@@ -270,6 +270,8 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
     end_s = now_s if status == STATUS_TARGET else max(f.time_s(0.0) for f in flyers)
     if keyframes:  # the mission's final answer
         final = setup.final(keyframes)
+        if status == STATUS_FLOOR and setup.within_target(final):  # as a flight ends such a floor
+            status, reason = STATUS_TARGET, "target reached"
         track.update(final.users_enu_m[:, :2], final.cov_users_m2[:, :2, :2], flown, end_s + out.hover_s)
     out.survey_s = end_s + out.hover_s
     out.nlos_share = n_nlos / n_ranges if n_ranges else float("nan")
