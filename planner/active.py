@@ -570,8 +570,7 @@ class ActivePlanner(BasePlanner):
             return None
         x = state.uav_enu_m[:2]
         dist = np.linalg.norm(spots - x, axis=1)
-        reach_m = np.sqrt(max(c.coverage_m**2 - (c.cruise_alt_m - c.home_enu_m[2]) ** 2, 0.0))
-        if np.min(dist) <= reach_m + self.horizon * c.leg_max_m:
+        if np.min(dist) <= c.reach_m + self.horizon * c.leg_max_m:
             return None
         goal = spots[int(np.argmin(dist))]
         return ring[int(np.argmin(np.linalg.norm(ring[:, :2] - goal, axis=1)))].copy()

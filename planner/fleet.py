@@ -202,7 +202,7 @@ class FleetPlanner:
             return res
         c = planner.constraints
         pts = [track_points_en_m(np.array(t)) for t in self.tracks if t] + [track_points_en_m(o) for o in others]
-        target = unsearched_point(c, np.concatenate(pts), c.cruise_alt_m - c.home_enu_m[2], state.uav_enu_m[:2])
+        target = unsearched_point(c, np.concatenate(pts), state.uav_enu_m[:2])
         if target is None:
             return res
         wp = ring[int(np.argmin(np.linalg.norm(ring[:, :2] - target, axis=1)))]

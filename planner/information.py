@@ -503,12 +503,11 @@ def track_points_en_m(visited_enu_m: np.ndarray, step_m: float = 10.0) -> np.nda
     return np.concatenate(pts)
 
 
-def unsearched_point(constraints, track_en_m: np.ndarray, cruise_up_m: float,
-                     from_en_m: np.ndarray) -> np.ndarray | None:
+def unsearched_point(constraints, track_en_m: np.ndarray, from_en_m: np.ndarray) -> np.ndarray | None:
     """(2,) the free point (fence, no-fly zones, distance from home, on a SEARCH_GRID_M grid) nearest
     `from_en_m` (2,) [m] where a UE would not have heard the cell from anywhere on the track (T, 2)
-    [m] — horizontally beyond √(R² − h²) of every track point, R the cell's reach, h the cruise
-    height — else None (the ground is covered, or the reach is not limited). A user the mission
+    [m] — horizontally beyond the cell's reach at cruise altitude (PlanningConstraints.reach_m) of
+    every track point — else None (the ground is covered, or the reach is not limited). A user the mission
     lists but no cell has heard is somewhere such; the nearest such ground first is the greedy
     cover (the farthest first crossed the world back and forth)."""
     from planner.geometry import in_free_space
@@ -516,7 +515,6 @@ def unsearched_point(constraints, track_en_m: np.ndarray, cruise_up_m: float,
     c = constraints
     if not np.isfinite(c.coverage_m) or len(track_en_m) == 0:
         return None
-    reach_m = np.sqrt(max(c.coverage_m**2 - cruise_up_m**2, 0.0))
     lo = c.home_enu_m[:2] - c.max_distance_m
     hi = c.home_enu_m[:2] + c.max_distance_m
     if len(c.fence_enu_m):
@@ -528,7 +526,7 @@ def unsearched_point(constraints, track_en_m: np.ndarray, cruise_up_m: float,
     if len(grid) == 0:
         return None
     far = np.min(np.linalg.norm(grid[:, None, :] - np.asarray(track_en_m)[None, :, :], axis=2), axis=1)
-    open_ground = grid[far > reach_m]
+    open_ground = grid[far > c.reach_m]
     if len(open_ground) == 0:
         return None
     return open_ground[int(np.argmin(np.linalg.norm(open_ground - np.asarray(from_en_m)[:2], axis=1)))].copy()
@@ -553,7 +551,7 @@ def explore_waypoint(planner, state, visited_enu_m: np.ndarray) -> np.ndarray:
         return state.uav_enu_m.copy()
     c = planner.constraints
     target = unsearched_point(c, track_points_en_m(np.vstack([visited_enu_m.reshape(-1, 3), state.uav_enu_m])),
-                              c.cruise_alt_m - c.home_enu_m[2], state.uav_enu_m[:2])
+                              state.uav_enu_m[:2])
     if target is not None:
         return ring[int(np.argmin(np.linalg.norm(ring[:, :2] - target, axis=1)))].copy()
     t = np.linspace(0.0, 1.0, 9)[:, None]

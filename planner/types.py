@@ -105,6 +105,13 @@ class PlanningConstraints:
             raise PlannerError(f"need margin_m >= 0 and return_factor >= 1, got {self.margin_m}, {self.return_factor}")
 
     @property
+    def reach_m(self) -> float:
+        """Horizontal distance [m] within which a UE on the ground hears the cell of a UAV at the
+        cruise altitude: √(R² − h²), R = coverage_m, h the cruise height above home (inf: no limit)."""
+        h = self.cruise_alt_m - self.home_enu_m[2]
+        return float(np.sqrt(max(self.coverage_m**2 - h * h, 0.0)))
+
+    @property
     def edges_enu_m(self) -> tuple[np.ndarray, np.ndarray]:
         """(E, 2) start and (E, 2) end points of every fence and no-fly edge [m]."""
         polys = ([self.fence_enu_m] if len(self.fence_enu_m) else []) + list(self.no_fly_enu_m)

@@ -105,7 +105,8 @@ def test_a_vehicle_with_nothing_left_in_reach_searches_the_ground_no_cell_covere
     c = _constraints(coverage_m=150.0)
     track = track_points_en_m(np.array([[0.0, 0.0, 30.0], [-250.0, 0.0, 30.0], [-250.0, 250.0, 30.0]]))
     here = np.array([-250.0, 250.0])
-    near = unsearched_point(c, track, 30.0, here)
+    assert c.reach_m == pytest.approx(np.sqrt(150.0**2 - 30.0**2))
+    near = unsearched_point(c, track, here)
     # the open ground nearest the vehicle: just beyond the reach (≈ 146 m) of the track's nearest point
     d_track = np.min(np.linalg.norm(track - near, axis=1))
     assert d_track > np.sqrt(150.0**2 - 30.0**2)
@@ -114,8 +115,8 @@ def test_a_vehicle_with_nothing_left_in_reach_searches_the_ground_no_cell_covere
     open_ground = grid[np.min(np.linalg.norm(grid[:, None] - track[None], axis=2), axis=1) > reach]
     assert np.linalg.norm(near - here) == pytest.approx(np.min(np.linalg.norm(open_ground - here, axis=1)))
     covered = np.array([[x, y] for x in range(-300, 301, 100) for y in range(-300, 301, 100)], dtype=float)
-    assert unsearched_point(c, covered, 30.0, here) is None
-    assert unsearched_point(dataclasses.replace(c, coverage_m=np.inf), track, 30.0, here) is None
+    assert unsearched_point(c, covered, here) is None
+    assert unsearched_point(dataclasses.replace(c, coverage_m=np.inf), track, here) is None
 
 
 def test_a_user_beyond_every_legs_reach_is_flown_to():

@@ -102,12 +102,16 @@ class _Flyer:
             return self.time_s(self.s_m), True
         return self.time_s(leg) + (HOLD_S if leg == 0.0 else 0.0), False
 
+    def arc_m(self, t_s: float) -> float:
+        """Arc length [m] flown along the current leg at mission second t_s (0 before it, the leg's
+        length after)."""
+        return min(max((t_s - self.time_s(0.0)) * self.speed_mps, 0.0), self.leg_m)
+
     def position_at(self, t_s: float) -> np.ndarray:
         leg = self.leg_m
         if leg == 0.0:
             return self.x.copy()
-        s = min(max((t_s - self.time_s(0.0)) * self.speed_mps, 0.0), leg)
-        return self.x + (self.wp - self.x) * (s / leg)
+        return self.x + (self.wp - self.x) * (self.arc_m(t_s) / leg)
 
 
 def launch_points_enu_m(home_enu_m: np.ndarray, n_vehicles: int, separation: Separation) -> np.ndarray:
@@ -171,8 +175,7 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
 
     def flown_total(now_s: float, at: _Flyer | None = None) -> float:
         """Metres the fleet has flown at now_s; `at` is at its next keyframe's arc length exactly."""
-        return sum(g.flown_m + (g.s_m if g is at else min(max((now_s - g.time_s(0.0)) * speed_mps, 0.0), g.leg_m)
-                                if g.flying else 0.0) for g in flyers)
+        return sum(g.flown_m + (g.s_m if g is at else g.arc_m(now_s) if g.flying else 0.0) for g in flyers)
 
     def plan(v: int, now_s: float) -> None:
         """Vehicle v at its leg's end (flyers[v].x) plans its next leg, or leaves the survey."""
@@ -209,8 +212,9 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
         gone = [(w, why) for w, (at_s, why) in leaves.items() if at_s <= now_s and flyers[w].flying]
         for w, why in gone:  # a fault sends this vehicle home; its cell leaves with it, the others go on
             g = flyers[w]
-            g.flown_m += float(np.linalg.norm(g.position_at(now_s) - g.x))
-            g.x = g.wp = g.position_at(now_s)
+            arc_m, g.x = g.arc_m(now_s), g.position_at(now_s)
+            g.wp = g.x
+            g.flown_m += arc_m
             g.flying, g.reason = False, why
             out.events.append(f"vehicle {_vehicle_id(sc, w)}: {why} at {now_s:.1f} s: returns home")
         if gone:
@@ -315,7 +319,7 @@ def _vehicle_constraints(sc: Scenario, c: PlanningConstraints, v: int, n_vehicle
     """Vehicle v's planning constraints: the mission's, in its own altitude band when the mission
     names its vehicles (`[[vehicles]]`)."""
     mission = sc.mission
-    if n_vehicles == 1 or v >= len(getattr(mission, "vehicles", ())):
+    if n_vehicles == 1 or v >= len(mission.vehicles):
         return c
     lo, hi = mission.vehicle_band_m(v)
     return dataclasses.replace(c, alt_min_m=max(c.alt_min_m, lo), alt_max_m=hi,
