@@ -339,6 +339,17 @@ class MissionConfig:
         lo, hi = self.vehicle_band_m(i)
         return min(max(self.flight.altitude_m, lo), hi)
 
+    def vehicle_constraints(self, c, vehicle: int):
+        """Vehicle `vehicle`'s planning constraints from the mission's `c` (planner.types.
+        PlanningConstraints, perhaps with more than this file says: a scenario's buildings): in its
+        own altitude band and at its cruise altitude when the mission names its vehicles
+        (`[[vehicles]]`); `c` itself otherwise."""
+        if self.fleet_size == 1 or vehicle >= len(self.vehicles):
+            return c
+        lo, hi = self.vehicle_band_m(vehicle)
+        lo = max(c.alt_min_m, lo)
+        return dataclasses.replace(c, alt_min_m=lo, alt_max_m=hi, cruise_alt_m=float(np.clip(c.cruise_alt_m, lo, hi)))
+
     def header_fields(self, home: Origin) -> dict:
         """The mission log header's optional shape fields (docs/design.md §10): `geofence` and
         `no_fly_zones` as open [[lat_deg, lon_deg], ...] rings, `altitude_band_m` {min_m, max_m}

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +37,7 @@ from mission.gnb import GnbClient
 from mission.kernel_cache import use_kernel_cache
 from mission.safety import SafetyLimits
 from mission.vehicle import Vehicle
+from planner.fleet import Separation
 from planner.types import Planner
 from uavloc.errors import PlannerError
 
@@ -69,7 +70,8 @@ def resolve_planner_name(name: str, truth_known: bool = True) -> str:
     return name
 
 
-def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path: str | Path, *,
+def controller_from_mission(mission, vehicle: Vehicle | Sequence[Vehicle], gnb: GnbClient | Sequence[GnbClient],
+                            log_path: str | Path, *,
                             planner: str | None = None, seed: int = 0, time_scale: float = 1.0,
                             truth: Callable[[Origin], np.ndarray] | None = None,
                             header_config: dict | None = None, params: SolverParams | None = None,
@@ -77,6 +79,10 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
                             buildings: Callable[[Origin], list] | None = None,
                             **overrides: Any) -> MissionController:
     """A :class:`MissionController` flying a :class:`mission.config.MissionConfig` (a mission file).
+
+    vehicle, gnb: its vehicle and gNB adapters, or a fleet's lists of them (one each per
+    `[[vehicles]]` entry, in its order: docs/fleet.md). Each vehicle flies in its own altitude band
+    at its own cruise altitude with its own planner of the mission's kind.
 
     planner: planner name (default: the mission's `flight.planner`); seed: planner seed;
     time_scale: simulator speedup; truth: simulation only (see MissionController); constraints:
@@ -97,17 +103,23 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
     noise = mission.noise_model()
     make_constraints = constraints or mission.planning_constraints
 
-    def planner_at(home: Origin) -> Planner:
+    fleet = mission.fleet_size > 1
+
+    def planner_at(home: Origin, vehicle: int = 0) -> Planner:
         # the oracle gets the true users in the controller's frame (ENU from the vehicle's home)
         opts = {"true_users_enu_m": truth(home)} if name == ORACLE_PLANNER else {}
         use_kernel_cache()
-        return make_planner(name, make_constraints(home), noise, rng_seed=seed, **opts)
+        c = make_constraints(home)
+        if fleet:
+            c = mission.vehicle_constraints(c, vehicle)
+        # each vehicle's planner its own seed (the fast mode's, sitl_scenarios.campaign.fast)
+        return make_planner(name, c, noise, rng_seed=seed + 7919 * vehicle, **opts)
 
-    def limits_at(home: Origin) -> SafetyLimits:
-        return SafetyLimits.from_mission(mission, home)
+    def limits_at(home: Origin, vehicle: int = 0) -> SafetyLimits:
+        return SafetyLimits.from_mission(mission, home, vehicle=vehicle if fleet else None)
 
     g = mission.geofence
-    if not (g.polygon_lat_lon_deg or g.no_fly_lat_lon_deg):
+    if not fleet and not (g.polygon_lat_lon_deg or g.no_fly_lat_lon_deg):
         # ENU polygons do not depend on home: build now (a caller may wrap the planner before
         # run); the oracle's true users do, it is built once home is known
         here = Origin(0.0, 0.0, 0.0)
@@ -116,11 +128,23 @@ def controller_from_mission(mission, vehicle: Vehicle, gnb: GnbClient, log_path:
     else:
         planner_obj, limits = planner_at, limits_at
     config = ControllerConfig.from_mission(mission, time_scale=time_scale, **overrides)
+
+    def vehicle_config(v: int) -> ControllerConfig:
+        """Vehicle v's settings: the mission's, at its own cruise altitude within its own band."""
+        if not fleet:
+            return config
+        lo, hi = mission.vehicle_band_m(v)
+        return dataclasses.replace(config, flight=dataclasses.replace(
+            config.flight, altitude_m=mission.vehicle_cruise_alt_m(v), alt_min_m=lo, alt_max_m=hi))
+
     users = [MissionUser(u.id, u.rnti, u.ground_height_m) for u in mission.users]
     cfg = {"mission": mission.name, "planner": name, "seed": seed, **(header_config or {})}
     radio = {"mu": mission.gnb.mu, "fs_hz": mission.gnb.fs_hz}
     if params is None:
         params = mission_solver_params(mission)
     return MissionController(vehicle, gnb, planner_obj, users, noise, limits, config, log_path,
-                             params=params, truth=truth, header_config=cfg, radio=radio, buildings=buildings)
+                             params=params, truth=truth, header_config=cfg, radio=radio, buildings=buildings,
+                             vehicle_ids=[v.id for v in mission.vehicles] if fleet else None,
+                             vehicle_config=vehicle_config,
+                             separation=Separation(mission.safety.separation_m, mission.safety.separation_vertical_m))
 

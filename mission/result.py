@@ -15,6 +15,16 @@ is its JSON (docs/design.md §11)::
     survey_s, hover_s, largest_gap_s   the `survey_time` event's, None when absent
     origin                         {lat_deg, lon_deg, alt_m} of the ENU frame, or None
     log                            the mission log's path, or None
+    vehicles                       a fleet's only (docs/fleet.md): one entry per vehicle, below
+    separation_breaches            a fleet's only: how often two vehicles in the air came closer
+                                   than the separation (the `separation_lost` events)
+
+Each vehicle of a fleet (:class:`VehicleResult`, from the events naming it)::
+
+    id; ended                      how its part ended: "survey done: <reason>" or
+                                   "return requested: <reason>" or "aborted: <error>"
+    rtl_sent, landed               its safe end
+    flown_m, survey_s, hover_s     its `survey_time` event's (None when absent)
 
 Each user (:class:`UserResult`, :meth:`UserResult.to_dict`)::
 
@@ -290,6 +300,65 @@ def user_entries_of_estimate(estimate: Any, origin: Origin | None, user_ids: Seq
 
 
 @dataclass(frozen=True)
+class VehicleResult:
+    """One vehicle's part of a fleet's mission (the module docstring)."""
+
+    id: str
+    ended: str
+    rtl_sent: bool
+    landed: bool
+    flown_m: float | None = None
+    survey_s: float | None = None
+    hover_s: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"id": self.id, "ended": self.ended, "rtl_sent": self.rtl_sent, "landed": self.landed,
+                "flown_m": finite_or_none(self.flown_m), "survey_s": finite_or_none(self.survey_s),
+                "hover_s": finite_or_none(self.hover_s)}
+
+
+#: the events that end a vehicle's part, and how VehicleResult.ended names them
+_ENDS = {"stop": "survey done", "return": "return requested", "abort": "aborted"}
+
+
+def vehicles_of_events(vehicle_ids: Sequence[str], events: Sequence[dict]) -> tuple[tuple[VehicleResult, ...], int]:
+    """A fleet's vehicles (one :class:`VehicleResult` each, in `vehicle_ids` order) and its
+    separation breaches, from the mission log's `event` records (each naming its `vehicle` by
+    index; absent: vehicle 0). The first `stop`, `return` or `abort` of a vehicle says how its part
+    ended; its last `survey_time` gives its metres and seconds."""
+    n = len(vehicle_ids)
+    ended: list[str | None] = [None] * n
+    rtl, landed = [False] * n, [False] * n
+    survey: list[dict] = [{} for _ in range(n)]
+    breaches = 0
+    for e in events:
+        kind = e.get("kind")
+        if kind == "separation_lost":
+            breaches += 1
+            continue
+        v = e.get("vehicle", 0)
+        if not isinstance(v, int) or isinstance(v, bool) or not 0 <= v < n:
+            continue
+        if kind in _ENDS and ended[v] is None:
+            reason = e.get("reason")
+            ended[v] = f"{_ENDS[kind]}: {reason if isinstance(reason, str) else e.get('message', '')}"
+        elif kind == "rtl":
+            rtl[v] = True
+        elif kind == "landed":
+            landed[v] = True
+        elif kind == "survey_time":
+            survey[v] = e
+
+    def num(d: dict, key: str) -> float | None:
+        x = d.get(key)
+        return float(x) if isinstance(x, int | float) and not isinstance(x, bool) else None
+
+    return tuple(VehicleResult(vehicle_ids[v], ended[v] or "did not survey", rtl[v], landed[v],
+                               num(survey[v], "flown_m"), num(survey[v], "survey_s"), num(survey[v], "hover_s"))
+                 for v in range(n)), breaches
+
+
+@dataclass(frozen=True)
 class Result:
     """What one mission found (the module docstring): made by :func:`build_result` only.
 
@@ -313,6 +382,8 @@ class Result:
     largest_gap_s: float | None = None
     origin: Origin | None = None
     log_path: Path | None = None
+    vehicles: tuple[VehicleResult, ...] = ()
+    separation_breaches: int | None = None
 
     @property
     def user_ids(self) -> list[str]:
@@ -358,13 +429,15 @@ class Result:
             "largest_gap_s": finite_or_none(self.largest_gap_s),
             "origin": None if self.origin is None else self.origin.to_dict(),
             "log": None if self.log_path is None else str(self.log_path),
-        }
+        } | ({"vehicles": [v.to_dict() for v in self.vehicles], "separation_breaches": self.separation_breaches}
+             if self.vehicles else {})
 
 
 def build_result(*, status: str, reason: str, user_ids: Sequence[str], estimate: Any, origin: Origin | None,
                  flown_m: float, measurements: int, keyframes: int, truth_enu_m: np.ndarray | None = None,
                  duration_s: float | None = None, survey_s: float | None = None, hover_s: float | None = None,
-                 largest_gap_s: float | None = None, log_path: Path | None = None) -> Result:
+                 largest_gap_s: float | None = None, log_path: Path | None = None,
+                 vehicles: Sequence[VehicleResult] = (), separation_breaches: int | None = None) -> Result:
     """The one constructor of a :class:`Result`: the users of `estimate` (an
     `estimator.types.Estimate`, None: nothing located) about `origin`, against truth_enu_m (K, 3)
     when known, and the run's facts as given."""
@@ -372,7 +445,8 @@ def build_result(*, status: str, reason: str, user_ids: Sequence[str], estimate:
     return Result(status=status, reason=reason, users=users, flown_m=float(flown_m), measurements=int(measurements),
                   keyframes=int(keyframes), duration_s=None if duration_s is None else float(duration_s),
                   survey_s=survey_s, hover_s=hover_s, largest_gap_s=largest_gap_s, origin=origin,
-                  log_path=None if log_path is None else Path(log_path))
+                  log_path=None if log_path is None else Path(log_path), vehicles=tuple(vehicles),
+                  separation_breaches=separation_breaches)
 
 
 def format_users_table(users: Sequence[UserResult]) -> str:
@@ -403,6 +477,12 @@ def format_result(result: Result) -> str:
              f"keyframes, {result.flown_m:.0f} m flown"
              + ("" if result.duration_s is None else f" in {result.duration_s:.0f} s"),
              format_users_table(result.users)]
+    for v in result.vehicles:
+        flown = "" if v.flown_m is None else f", {v.flown_m:.0f} m flown"
+        home = "landed" if v.landed else "RTL sent, landing not confirmed" if v.rtl_sent else "NO RTL SENT"
+        lines.append(f"  vehicle {v.id}: {v.ended}{flown}; {home}")
+    if result.vehicles:
+        lines.append(f"  separation breaches: {result.separation_breaches or 0}")
     if result.log_path is not None:
         lines.append(f"mission log: {result.log_path}")
     return "\n".join(lines)

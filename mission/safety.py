@@ -6,7 +6,10 @@ geometry of mission/geometry.py (shapely; polygons are closed sets):
 - geofence inclusion polygon (may be non-convex), no-fly exclusion polygons, maximum horizontal
   distance from home, altitude band above home, battery threshold → RTL;
 - a goto is refused when its target or the straight leg from the current position leaves the fence
-  or enters a no-fly zone.
+  or enters a no-fly zone;
+- in a fleet (docs/fleet.md), a goto is refused when its leg comes within the separation of
+  another vehicle's leg (planner.fleet.legs_separated: horizontally, or by altitude layers), as the
+  fence is: the fleet's planner keeps legs apart, the gate makes sure.
 
 :class:`SafetyGate` answers with reasons (strings) and raises :class:`SafetyError`; it does no I/O.
 The controller's :class:`GatedVehicle` (below) puts the gate in front of every command and logs
@@ -16,13 +19,14 @@ every refusal as an event.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from estimator.geodesy import Origin
 from mission import geometry
+from planner.fleet import Separation, legs_separated
 from uavloc.errors import SafetyError
 
 log = logging.getLogger(__name__)
@@ -64,7 +68,8 @@ class SafetyLimits:
 
     fence_enu_m: (P, 2) inclusion polygon or None; no_fly_enu_m: tuple of (Q, 2) exclusion polygons;
     max_distance_m: horizontal distance from home; alt_min_m/alt_max_m: band of height above home
-    while surveying; battery_rtl_pct: return home below this remaining charge [%].
+    while surveying; battery_rtl_pct: return home below this remaining charge [%]; separation: how
+    far apart a fleet's vehicles stay (None: one vehicle).
     """
 
     fence_enu_m: np.ndarray | None = None
@@ -73,15 +78,23 @@ class SafetyLimits:
     alt_min_m: float = 10.0
     alt_max_m: float = 120.0
     battery_rtl_pct: float = 25.0
+    separation: Separation | None = None
 
     @classmethod
-    def from_mission(cls, mission, home: Origin) -> SafetyLimits:
+    def from_mission(cls, mission, home: Origin, vehicle: int | None = None) -> SafetyLimits:
         """From a :class:`mission.config.MissionConfig` once home is known (geodetic polygons of
-        the mission file become home-ENU)."""
+        the mission file become home-ENU). vehicle: a fleet's vehicle, in its own altitude band
+        (mission.vehicle_band_m), kept apart from the others (`[safety] separation_m`)."""
         fence, zones = mission.geofence.polygons_enu_m(home)
+        lo, hi = mission.flight.alt_min_m, mission.flight.alt_max_m
+        separation = None
+        if vehicle is not None:
+            lo, hi = mission.vehicle_band_m(vehicle)
+            if mission.fleet_size > 1:
+                separation = Separation(mission.safety.separation_m, mission.safety.separation_vertical_m)
         return cls(fence_enu_m=fence, no_fly_enu_m=zones, max_distance_m=mission.geofence.max_distance_m,
-                   alt_min_m=mission.flight.alt_min_m, alt_max_m=mission.flight.alt_max_m,
-                   battery_rtl_pct=mission.safety.battery_rtl_pct)
+                   alt_min_m=lo, alt_max_m=hi, battery_rtl_pct=mission.safety.battery_rtl_pct,
+                   separation=separation)
 
 
 def home_violations(polygons_enu_m: tuple[np.ndarray | None, tuple[np.ndarray, ...]]) -> list[str]:
@@ -129,9 +142,11 @@ class SafetyGate:
         return [m.replace("position (0.0, 0.0) m", "home", 1)
                 for m in self.position_violations(np.zeros(3), check_altitude=False)]
 
-    def check_goto(self, target_enu_m: np.ndarray, current_enu_m: np.ndarray | None) -> None:
+    def check_goto(self, target_enu_m: np.ndarray, current_enu_m: np.ndarray | None,
+                   others: Sequence[np.ndarray] = ()) -> None:
         """Raise :class:`SafetyError` unless the target (3,) and the straight leg from the current
-        position to it stay inside every limit."""
+        position to it stay inside every limit. others: the (2, 3) legs [from; to] the other
+        vehicles of a fleet fly or hold, which the leg must stay apart from (limits.separation)."""
         t = np.asarray(target_enu_m, float)
         if t.shape != (3,) or not np.all(np.isfinite(t)):
             raise SafetyError(f"waypoint must be 3 finite ENU numbers, got {target_enu_m!r}")
@@ -143,6 +158,13 @@ class SafetyGate:
             for i, zone in enumerate(self._no_fly):
                 if geometry.segment_meets(zone, c[:2], t[:2]):
                     problems.append(f"the leg from the current position crosses no-fly zone {i}")
+        sep = self.limits.separation
+        if current_enu_m is not None and sep is not None and not problems:
+            leg = np.array([np.asarray(current_enu_m, float), t])
+            close = sum(1 for o in others if not legs_separated(leg, np.asarray(o, float), sep))
+            if close:
+                problems.append(f"the leg comes within {sep.horizontal_m:g} m (and {sep.vertical_m:g} m in "
+                                f"altitude) of {close} other vehicle{'s' if close > 1 else ''}' leg")
         if problems:
             raise SafetyError(
                 f"waypoint ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) m refused: " + "; ".join(problems)
@@ -211,19 +233,22 @@ EventSink = Callable[..., None]
 class GatedVehicle:
     """The only path from the controller to the vehicle: every command passes the gate first.
 
-    Goto targets are ENU from home (`up` = height above home) and become
+    Goto targets are ENU from home (`up` = height above home; a fleet's: the mission's ENU origin,
+    vehicle 0's home) and become
     goto_location(lat, lon, alt AMSL = home AMSL + height). RTL and land are always allowed (they
     are the safe commands). A refusal is logged as an `event` (kind "refused") through `event` and
     raised as :class:`SafetyError`.
     """
 
     def __init__(self, vehicle, gate: SafetyGate, home: Origin, event: EventSink,
-                 position_enu: Callable[[], np.ndarray | None]):
+                 position_enu: Callable[[], np.ndarray | None],
+                 others: Callable[[], Sequence[np.ndarray]] | None = None):
         self.vehicle = vehicle
         self.gate = gate
         self.home = home
         self._event = event
         self._position_enu = position_enu
+        self._others = others
         self.refusals = 0
 
     def _refuse(self, exc: SafetyError, **fields) -> None:
@@ -244,7 +269,7 @@ class GatedVehicle:
 
     async def goto_enu(self, target_enu_m: np.ndarray, yaw_deg: float = float("nan")) -> None:
         try:
-            self.gate.check_goto(target_enu_m, self._position_enu())
+            self.gate.check_goto(target_enu_m, self._position_enu(), self._others() if self._others else ())
         except SafetyError as exc:
             self._refuse(exc, command="goto", target_enu_m=[float(x) for x in np.ravel(target_enu_m)])
             raise

@@ -255,7 +255,7 @@ def _fly_fixes(ctl, tau_s: float, seconds: float, seed: int = 4) -> None:
         err = phi * err + np.sqrt(1.0 - phi**2) * rng.normal(0.0, 1.0, 2)
         enu = np.array([5.0 * i * dt + err[0], err[1], 40.0])
         lat, lon, alt = (float(v) for v in ctl.origin.enu_to_lla(enu))
-        ctl._on_fix(PositionFix(ctl._t0_mono + i * dt, lat, lon, alt, 40.0, (0.0, 5.0, 0.0)))
+        ctl.crews[0].on_fix(PositionFix(ctl._t0_mono + i * dt, lat, lon, alt, 40.0, (0.0, 5.0, 0.0)))
 
 
 @pytest.mark.parametrize("tau_s", [20.0, 150.0])

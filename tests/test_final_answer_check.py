@@ -35,15 +35,20 @@ def _check(stop, final_bounds_m):
 
     flight = FlightState(event=lambda *a, **k: None)
     flight.finish_survey(*stop, now_s=100.0)
-    ctl = SimpleNamespace(
-        flight=flight, pipeline=SimpleNamespace(drain=drain, keyframes=[object()] * 12),
-        # the mission estimator's own rule (MissionEstimator.within_target) over a made-up final answer
-        _estimator=SimpleNamespace(final=lambda kfs: _Final(final_bounds_m), within_target=lambda final: (
-            MissionEstimator.within_target(SimpleNamespace(target_radius_m=4.0), final))),
-        config=SimpleNamespace(flight=SimpleNamespace(target_radius_m=4.0)),
-        journal=SimpleNamespace(event=lambda message, **fields: events.append((message, fields))),
-        wall=lambda s: 0.0)
-    done = asyncio.run(MissionController._target_confirmed(ctl))
+    crew = SimpleNamespace(flight=flight, pipeline=SimpleNamespace(drain=drain), wall=lambda s: 0.0,
+                           event=lambda message, **fields: events.append((message, fields)))
+
+    async def confirmed():
+        ctl = SimpleNamespace(
+            crews=[crew], _keyframes=[object()] * 12, _confirm_lock=asyncio.Lock(),
+            _finish_all=lambda status, reason: None,
+            # the mission estimator's own rule (MissionEstimator.within_target) over a made-up final answer
+            _estimator=SimpleNamespace(final=lambda kfs: _Final(final_bounds_m), within_target=lambda final: (
+                MissionEstimator.within_target(SimpleNamespace(target_radius_m=4.0), final))),
+            config=SimpleNamespace(flight=SimpleNamespace(target_radius_m=4.0)))
+        return await MissionController._target_confirmed(ctl, crew)
+
+    done = asyncio.run(confirmed())
     return done, flight, [f.get("kind") for _, f in events]
 
 

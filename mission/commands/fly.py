@@ -7,7 +7,10 @@ part of a simulation scenario (its true positions are ignored)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import logging
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -24,11 +27,13 @@ HELP = "fly a localization mission with a MAVLink vehicle (PX4) and an OAI gNB"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--connect", required=True, metavar="URL",
-                   help="MAVSDK connection URL of the vehicle, e.g. udpin://0.0.0.0:14540 or serial:///dev/ttyACM0:57600")
-    p.add_argument("--gnb", required=True, metavar="ADDRESS", type=gnb_address,
+    p.add_argument("--connect", metavar="URL",
+                   help="MAVSDK connection URL of the vehicle, e.g. udpin://0.0.0.0:14540 or "
+                        "serial:///dev/ttyACM0:57600 (required for one vehicle; a fleet's vehicles are addressed "
+                        "in the mission file's [[vehicles]])")
+    p.add_argument("--gnb", metavar="ADDRESS", type=gnb_address,
                    help="the gNB: HOST:PORT or telnet://HOST:PORT (telnet server, default port 9090), "
-                        "http://HOST:PORT (OAI's web server, default port 8090)")
+                        "http://HOST:PORT (OAI's web server, default port 8090) (required for one vehicle)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--mission", metavar="FILE",
                      help="mission file: users (id, RNTI), geofence, altitudes, Δ, target, noise, gNB and "
@@ -51,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
-    from mission.config import fleet_flight_problem, load_mission, with_settings
+    from mission.config import fleet_address_problem, load_mission, with_settings
     from mission.controller import controller_from_mission, resolve_planner_name
     from mission.gnb import GnbConfig, OaiGnbClient, parse_gnb_address
     from mission.status import print_result, write_report
@@ -65,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         log.warning("--scenario is deprecated for fly: write a mission file (--mission; see "
                     "mission/examples/flight.toml); the scenario's true positions are ignored")
         mission = _scenario_mission(args.scenario)
-    problem = fleet_flight_problem(mission)
+    problem = fleet_address_problem(mission)
     if problem is not None:
         raise MissionConfigError(f"{args.mission or args.scenario}: {problem}")
     gnb_over = {}
@@ -79,7 +84,21 @@ def run(args: argparse.Namespace) -> int:
         mission = with_settings(mission, gnb_over, "command line")
     # a flight knows no true positions: the oracle planner is refused before anything connects
     resolve_planner_name(args.planner or mission.flight.planner, truth_known=False)
-    address = parse_gnb_address(args.gnb, default=mission.gnb.transport)
+    # each vehicle's MAVLink and gNB address: a fleet's from its `[[vehicles]]`, one vehicle's from
+    # the command line (what its one entry leaves out)
+    entries = mission.vehicles if mission.fleet_size > 1 else [None]
+    connects = [e.connect if e is not None else args.connect for e in entries]
+    if mission.fleet_size == 1 and mission.vehicles:
+        connects = [mission.vehicles[0].connect or args.connect]
+    gnb_args = [e.gnb if e is not None else args.gnb for e in entries]
+    if mission.fleet_size == 1 and mission.vehicles:
+        gnb_args = [mission.vehicles[0].gnb or args.gnb]
+    lacking = [flag for flag, given in (("--connect", connects[0]), ("--gnb", gnb_args[0])) if not given]
+    if lacking:
+        print(f"uavloc fly: error: {' and '.join(lacking)} required: {args.mission or args.scenario} flies one vehicle "
+              "(a fleet names each vehicle's addresses in [[vehicles]])", file=sys.stderr)
+        return 2
+    addresses = [parse_gnb_address(g, default=mission.gnb.transport) for g in gnb_args]
     if args.out is None and args.log is None:
         args.out = default_out_dir("fly", Path(args.mission).stem if args.mission is not None else "mission")
     log_path = mission_log_path(args.out, args.log, args.out / LOG_NAME if args.out is not None else args.log)
@@ -99,13 +118,25 @@ def run(args: argparse.Namespace) -> int:
             write_report(result.log_path, args.out)
         return EXIT_INTERRUPTED if interrupted else (0 if result.ok else 1)
 
+    def gnb_config(i: int):
+        gcfg = mission.gnb
+        mode = mission.vehicles[i].gnb_mode if i < len(mission.vehicles) else ""
+        if mode and args.gnb_mode is None:  # the command line's --gnb-mode is every vehicle's
+            gcfg = dataclasses.replace(gcfg, mode=mode)
+        a = addresses[i]
+        return GnbConfig.of(gcfg, a.host, a.port, transport=a.transport)
+
     async def main() -> int:
-        gnb_cfg = GnbConfig.of(mission.gnb, address.host, address.port, transport=address.transport)
         async with live_view(args, title="uavloc fly") as view:
-            async with MavsdkVehicle(args.connect) as vehicle, OaiGnbClient(gnb_cfg) as gnb:
+            async with contextlib.AsyncExitStack() as stack:
+                vehicles = [await stack.enter_async_context(MavsdkVehicle(url)) for url in connects]
+                gnbs = [await stack.enter_async_context(OaiGnbClient(gnb_config(i))) for i in range(len(connects))]
+                fleet = len(vehicles) > 1
                 controller = controller_from_mission(
-                    mission, vehicle, gnb, log_path, planner=args.planner,
-                    header_config={"command": "fly", "connect": args.connect, "gnb": args.gnb,
+                    mission, vehicles if fleet else vehicles[0], gnbs if fleet else gnbs[0], log_path,
+                    planner=args.planner,
+                    header_config={"command": "fly", "connect": connects if fleet else connects[0],
+                                   "gnb": gnb_args if fleet else gnb_args[0],
                                    "command_line": getattr(args, "command_line", None),
                                    "mission_file": None if args.mission is None else str(args.mission)})
                 held.controller = controller

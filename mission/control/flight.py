@@ -1,4 +1,4 @@
-"""The mission controller (docs/design.md §1, §7): fly, measure every Δ, estimate, replan, stay safe.
+"""The mission controller (docs/design.md §1, §7; docs/fleet.md): fly, measure every Δ, estimate, replan, stay safe.
 
 States CONNECT → PREFLIGHT → TAKEOFF → SURVEY → RETURN → LANDED, and ABORT from anywhere. The
 flight (:meth:`MissionController._flow`) reads top to bottom: connect, wait for home, open the log,
@@ -13,6 +13,14 @@ nothing but the :class:`FlightState`:
 - the safety monitor (mission.control.safety_monitor): link, battery, position, gNB, time limit;
 - status: a progress line on stderr through `logging`.
 
+A mission flies one vehicle or a fleet (`[[vehicles]]`), and one vehicle is a fleet of one: the
+mission owns the log, the estimator, the planner (planner.fleet.FleetPlanner), the stop rule and
+the final answer; each vehicle's :class:`mission.control.crew.VehicleCrew` owns its link,
+telemetry, gNB rounds, legs, safety monitor and its FlightState, and flies its own states in the
+same task group. A vehicle's fault (its link lost, its battery low, its commands refused, an
+error of its own) sends that vehicle home and the others go on; the stop rule, Ctrl-C or a
+cancellation ends every vehicle's survey. The mission's ENU origin is vehicle 0's home.
+
 The survey asks the planner for a waypoint at each leg end, passes it through the safety gate
 (:class:`GatedVehicle`: nothing reaches the vehicle that the gate did not pass) and flies it
 until arrival within the acceptance radius or the leg timeout. The stop rule (every user's 95 %
@@ -22,16 +30,17 @@ cancellation (Ctrl-C) or a safety condition ends in RTL and a flushed log.
 Time: the log's `t` is mission seconds since start on the vehicle's clock (MAVLink boot time,
 :class:`mission.vehicle.telemetry.VehicleClock`); before the vehicle's time is known (and with a vehicle
 that sends none) it is `(monotonic − start) · time_scale` (the simulator's speedup; 1 for real
-flights). Request timeouts stay in wall seconds.
+flights). Request timeouts stay in wall seconds. A fleet's vehicles each keep their own clock
+from the mission's one start, so their mission seconds agree.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import math
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -51,6 +60,7 @@ from mission.control.config import (
     RETURN,
     SAFE_END_TIMEOUT_S,
     STATUS_ABORTED,
+    STATUS_BUDGET,
     STATUS_FLOOR,
     STATUS_INTERRUPTED,
     STATUS_RETURNED,
@@ -61,66 +71,103 @@ from mission.control.config import (
     MissionResult,
     MissionUser,
 )
+from mission.control.crew import VehicleCrew
 from mission.control.estimator_worker import EstimatorWorker
 from mission.control.journal import MissionJournal, status_line
 from mission.control.legs import PLAN_DRAIN_MAX_S, LegsDeps, SurveyLegs
 from mission.control.loop import LoopLagMonitor
-from mission.control.pipeline import MeasurementPipeline
 from mission.control.safety_monitor import SafetyMonitor
-from mission.control.state import FlightState, SurveyPace, spacing_m
+from mission.control.state import SurveyPace
 from mission.estimation import MissionEstimator, solver_params_header
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields, read_mission_log
 from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log
 from mission.result import Result, build_result
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
-from mission.vehicle import PositionFix, Vehicle
-from mission.vehicle.telemetry import TelemetryBuffer, VehicleClock
-from planner.types import Planner
+from mission.vehicle import Vehicle
+from planner.fleet import FleetPlanner, Separation, vehicles_apart
+from planner.types import Planner, PlanningState, PlanResult
 from uavloc.errors import (
     EstimatorError,
     GnbPreflightError,
     MissionError,
     MissionLogError,
-    SafetyError,
     UavlocError,
     VehicleError,
 )
 
 log = logging.getLogger(__name__)
 
+#: how a fleet's mission ended, from its vehicles' ends: the first of these any vehicle reached
+_FLEET_STATUS_ORDER = (STATUS_TARGET, STATUS_FLOOR, STATUS_BUDGET)
+
+
+class _VehiclePlanner:
+    """Vehicle v's view of the fleet's planner: what its legs ask (`plan(state)`, `name`), answered
+    by FleetPlanner.plan with the users' serving cells and the other vehicles' legs now. Plans run
+    in threads (SurveyLegs.plan), one at a time: the vehicles' planners may share compiled kernels."""
+
+    def __init__(self, fleet: FleetPlanner, vehicle: int, serving: np.ndarray,
+                 committed: Callable[[], list[np.ndarray | None]], lock: threading.Lock):
+        self.fleet, self.vehicle = fleet, vehicle
+        self._serving, self._committed, self._lock = serving, committed, lock
+        self.name = fleet.name
+
+    def plan(self, state: PlanningState) -> PlanResult:
+        committed = self._committed()
+        with self._lock:
+            return self.fleet.plan(self.vehicle, state, self._serving.copy(), committed)
+
 
 class MissionController:
-    """Runs one mission. See the module docstring.
+    """Runs one mission of one vehicle or a fleet. See the module docstring.
 
-    vehicle: a :class:`Vehicle` (connected by the controller); gnb: a connected :class:`GnbClient`;
-    planner: a :class:`planner.types.Planner` whose constraints are in the home ENU frame, or
-    home -> Planner; users: the users to locate; noise/params: the estimator's model and settings;
-    limits: the safety gate's limits (home ENU frame), or home -> SafetyLimits; log_path: the
-    mission log; truth: simulation only: home -> (K, 3) true user positions in the home ENU frame
-    [m] (the `truth` record); header_config: the header's `config` section; radio: its `radio`;
-    buildings: simulation only: home -> [(footprint (Q, 2) [m, ENU from home], height_m)] for the
-    header's `buildings` (the live view and the exports draw them).
+    vehicle, gnb: a :class:`Vehicle` and a connected :class:`GnbClient`, or a fleet's sequences of
+    them (one each per vehicle, in the mission's `[[vehicles]]` order); planner: a
+    :class:`planner.types.Planner` whose constraints are in the home ENU frame, or
+    (home, vehicle) -> Planner; users: the users to locate; noise/params: the estimator's model and
+    settings; limits: the safety gate's limits (home ENU frame), or (home, vehicle) -> SafetyLimits;
+    log_path: the mission log; truth: simulation only: home -> (K, 3) true user positions in the
+    home ENU frame [m] (the `truth` record); header_config: the header's `config` section; radio: its
+    `radio`; buildings: simulation only: home -> [(footprint (Q, 2) [m, ENU from home], height_m)]
+    for the header's `buildings`; vehicle_ids: the vehicles' names (a fleet's `[[vehicles]]` ids);
+    vehicle_config: vehicle -> the ControllerConfig that vehicle flies (its cruise altitude);
+    separation: how far apart a fleet's vehicles stay.
     """
 
-    def __init__(self, vehicle: Vehicle, gnb: GnbClient, planner: Planner | Callable[[Origin], Planner],
+    def __init__(self, vehicle: Vehicle | Sequence[Vehicle], gnb: GnbClient | Sequence[GnbClient],
+                 planner: Planner | Callable[[Origin, int], Planner],
                  users: list[MissionUser], noise: NoiseModel,
-                 limits: SafetyLimits | Callable[[Origin], SafetyLimits], config: ControllerConfig,
+                 limits: SafetyLimits | Callable[[Origin, int], SafetyLimits], config: ControllerConfig,
                  log_path: str | Path, params: SolverParams | None = None,
                  truth: Callable[[Origin], np.ndarray] | None = None,
                  header_config: dict | None = None, radio: dict | None = None,
-                 buildings: Callable[[Origin], list] | None = None):
+                 buildings: Callable[[Origin], list] | None = None,
+                 vehicle_ids: Sequence[str] | None = None,
+                 vehicle_config: Callable[[int], ControllerConfig] | None = None,
+                 separation: Separation | None = None):
         if not users:
             raise MissionError("a mission needs at least one user")
-        self.vehicle, self.gnb = vehicle, gnb
+        vehicles = list(vehicle) if isinstance(vehicle, list | tuple) else [vehicle]
+        gnbs = list(gnb) if isinstance(gnb, list | tuple) else [gnb]
+        if not vehicles or len(gnbs) != len(vehicles):
+            raise MissionError(f"a mission needs one gNB per vehicle: {len(vehicles)} vehicles, {len(gnbs)} gNBs")
+        n = len(vehicles)
+        ids = list(vehicle_ids) if vehicle_ids is not None else [f"uav{i + 1}" for i in range(n)]
+        if len(ids) != n:
+            raise MissionError(f"{len(ids)} vehicle ids for {n} vehicles")
         self.users = list(users)
         self.noise, self.config = noise, config
         self.params = params or SolverParams(delta_m=config.flight.delta_m)
         # a planner or limits given as a function of home are built once home is known (PREFLIGHT)
         self._planner_at = None if hasattr(planner, "plan") else planner
+        #: vehicle 0's planner (a one-vehicle mission's; callers may wrap it before run); the
+        #: fleet's planner is built from every vehicle's once home is known
         self.planner = planner if self._planner_at is None else None
+        self.fleet_planner: FleetPlanner | None = None
         self._limits_at = None if isinstance(limits, SafetyLimits) else limits
-        self.gate: SafetyGate | None = None if self._limits_at is not None else SafetyGate(limits)
+        self._limits = limits if isinstance(limits, SafetyLimits) else None
+        self.separation = separation or Separation()
         self._truth = truth
         self._buildings = buildings
         self.truth_enu_m: np.ndarray | None = None
@@ -129,32 +176,65 @@ class MissionController:
         self.log_path = Path(log_path)
         self.origin: Origin | None = None
         self._t0_mono = time.monotonic()
-        self._clock = VehicleClock(self._t0_mono, config.time_scale)
         self._start_utc = datetime.now(UTC).isoformat(timespec="milliseconds")
-        self._buffer = TelemetryBuffer(4096)
-        self._last_tel_log_t = -math.inf
-        # the telemetry records as logged (t [s], ENU [m], velocity ENU [m/s]) until the take-off is
-        # over, for the GPS correlation time when the noise model leaves it unknown (_flight_noise)
-        self._tau_records: list[tuple[float, np.ndarray, np.ndarray]] | None = (
-            [] if noise.gps_tau_s is None else None)
-        self._takeoff_over = asyncio.Event()
         self._estimator: MissionEstimator | None = None  # the flight's estimator setup, once it runs
-        self.journal = MissionJournal(MissionLogWriter(self.log_path), self.users, self.now, lambda: self.flight.phase)
-        self.flight = FlightState(event=self.journal.event)
-        self.pipeline = MeasurementPipeline(gnb, self.users, config.flight.delta_m, config.gnb_timeout_s, self.flight,
-                                            self._buffer, lambda: self.origin, self.journal.writer, self.now,
-                                            self.mission_t)
-        self.legs: SurveyLegs | None = None  # once home is known (_at_home)
-        self._gated: GatedVehicle | None = None
-        self._connected = False
+        self.journal = MissionJournal(MissionLogWriter(self.log_path), self.users, self.now, lambda: self.state)
+        # what the vehicles share: one keyframe queue and list, the serving cell of each user
+        self.keyframes_out: asyncio.Queue[Keyframe] = asyncio.Queue()
+        self._keyframes: list[Keyframe] = []
+        self.serving = np.full(len(self.users), -1, int)
+        fleet = n > 1
+        self.crews = [VehicleCrew(i, ids[i], vehicles[i], gnbs[i], self.users,
+                                  vehicle_config(i) if vehicle_config is not None else config, self.journal,
+                                  self._t0_mono, fleet=fleet, keyframes_out=self.keyframes_out,
+                                  keyframes=self._keyframes, serving=self.serving, origin=lambda: self.origin,
+                                  on_fix=self._watch_separation if fleet else None,
+                                  collect_tau=i == 0 and noise.gps_tau_s is None)
+                      for i in range(n)]
+        if self._limits is not None:  # limits that do not depend on home: a gate now
+            for c in self.crews:
+                c.gate = SafetyGate(self._limits)
+        self._plan_lock = threading.Lock()
+        self._confirm_lock = asyncio.Lock()
         self.loop_lag = LoopLagMonitor()
         self.result: MissionResult | None = None  # set when the mission ends (also when cancelled)
-        #: how fast the survey really ran against the wall clock (once it ended)
+        #: how fast the survey really ran against the wall clock (once it ended; vehicle 0's)
         self.pace: SurveyPace | None = None
-        self._rtl_sent = self._landed = self._rtl_gave_up = False
-        self._autopilot_landing = False  # RTL not sent: the autopilot was already landing on its own
+        #: a fleet's vehicles closer than the separation: (mission t [s], least distance [m]) of each breach
+        self.separation_breaches: list[tuple[float, float]] = []
+        self._apart = True
 
     # -- what the flight knows, for callers and tests --------------------------------------------
+
+    @property
+    def fleet(self) -> bool:
+        return len(self.crews) > 1
+
+    @property
+    def vehicle(self) -> Vehicle:
+        """Vehicle 0 (a one-vehicle mission's vehicle)."""
+        return self.crews[0].vehicle
+
+    @property
+    def gnb(self) -> GnbClient:
+        return self.crews[0].gnb
+
+    @property
+    def flight(self):
+        """Vehicle 0's FlightState (a one-vehicle mission's)."""
+        return self.crews[0].flight
+
+    @property
+    def pipeline(self):
+        return self.crews[0].pipeline
+
+    @property
+    def legs(self) -> SurveyLegs | None:
+        return self.crews[0].legs
+
+    @property
+    def gate(self) -> SafetyGate | None:
+        return self.crews[0].gate
 
     @property
     def log_writer(self) -> MissionLogWriter:
@@ -163,277 +243,327 @@ class MissionController:
 
     @property
     def state(self) -> str:
-        return self.flight.phase
+        """The mission's phase: its one vehicle's; a fleet's, the first vehicle's still flying (else vehicle 0's)."""
+        for c in self.crews:
+            if c.flight.phase not in (LANDED, ABORT):
+                return c.flight.phase
+        return self.crews[0].flight.phase
 
     @property
     def estimate(self) -> Estimate | None:
-        return self.flight.estimate
+        return self.crews[0].flight.estimate
 
     @estimate.setter
     def estimate(self, est: Estimate | None) -> None:
-        self.flight.estimate = est
+        for c in self.crews:
+            c.flight.estimate = est
 
     @property
     def measurements(self) -> int:
-        return self.flight.measurements
+        return sum(c.flight.measurements for c in self.crews)
 
     @property
     def flown_m(self) -> float:
-        return self.flight.flown_m
+        return sum(c.flight.flown_m for c in self.crews)
 
     @property
     def keyframes(self) -> list[Keyframe]:
-        return self.pipeline.keyframes
+        return self._keyframes
 
     @property
     def event_messages(self) -> list[str]:
         return self.journal.messages
 
     def request_return(self, reason: str) -> None:
-        """Ask the flight to end the survey and return home (first reason wins)."""
-        self.flight.request_return(reason)
+        """Ask every vehicle to end its survey and return home (first reason wins)."""
+        for c in self.crews:
+            c.flight.request_return(reason)
 
     # -- clock ----------------------------------------------------------------------------------
 
     def now(self) -> float:
-        """Mission seconds since start (vehicle seconds once the vehicle's clock is known)."""
-        return self._clock.mission_t(time.monotonic())
+        """Mission seconds since start (vehicle 0's seconds once its clock is known)."""
+        return self.crews[0].now()
 
     def mission_t(self, t_mono_s: float) -> float:
-        return self._clock.mission_t(t_mono_s)
+        return self.crews[0].mission_t(t_mono_s)
 
     def wall(self, mission_s: float) -> float:
-        """Mission seconds → wall seconds (at the vehicle clock's current rate)."""
-        return mission_s / self._clock.rate
-
-    # -- telemetry ------------------------------------------------------------------------------
+        """Mission seconds → wall seconds (at vehicle 0's clock's current rate)."""
+        return self.crews[0].wall(mission_s)
 
     def pos_enu(self) -> np.ndarray | None:
-        latest = self._buffer.latest()
-        return None if latest is None else latest[1]
-
-    def _pos_enu_smoothed(self) -> np.ndarray | None:
-        """Mean of the fixes over the last config.position_smooth_s (mission), or None."""
-        latest = self._buffer.latest()
-        return None if latest is None else self._buffer.mean_since(latest[0] - self.config.position_smooth_s)
-
-    def _on_fix(self, fix: PositionFix) -> None:
-        if self.origin is None:
-            return
-        t = self.mission_t(fix.t_mono_s)
-        pos = self.origin.lla_to_enu(fix.lat_deg, fix.lon_deg, fix.alt_amsl_m)
-        self._buffer.append(t, pos)
-        if fix.vel_ned_mps is not None:
-            self.flight.clock.fix(t, float(np.linalg.norm(fix.vel_ned_mps)))
-        if t - self._last_tel_log_t >= 1.0 / self.config.telemetry_log_hz and self.journal.is_open:
-            self._last_tel_log_t = t
-            extra = {"vel_ned_mps": list(fix.vel_ned_mps)} if fix.vel_ned_mps is not None else {}
-            state = getattr(self.vehicle, "state", None)
-            if state is not None:
-                extra.update(state.status().record_fields())
-            rec = self.journal.writer.write("telemetry", t, lat_deg=fix.lat_deg, lon_deg=fix.lon_deg,
-                                            alt_m=fix.alt_amsl_m, **extra)
-            if self._tau_records is not None and fix.vel_ned_mps is not None:
-                # the numbers as logged, so that replay's estimate from the same records agrees
-                vn, ve, vd = rec["vel_ned_mps"]
-                enu = self.origin.lla_to_enu(rec["lat_deg"], rec["lon_deg"], rec["alt_m"])
-                self._tau_records.append((rec["t"], np.asarray(enu, float), np.array([ve, vn, -vd])))
-        self.flight.wake.pulse()
+        return self.crews[0].pos_enu()
 
     # -- the flight -----------------------------------------------------------------------------
 
     async def _flow(self, tg: asyncio.TaskGroup) -> tuple[str, str]:
-        cfg, f = self.config, self.flight
+        cfg = self.config
         background: list[asyncio.Task] = []
-        f.set_phase(CONNECT)
-        await self.vehicle.connect(cfg.connect_timeout_s)
-        self._connected = True
-        background.append(tg.create_task(self.vehicle.run_telemetry(self._on_fix, self._clock.update),
-                                         name="telemetry"))
-        f.set_phase(PREFLIGHT)
-        self._at_home(await self.vehicle.wait_ready(cfg.ready_timeout_s))
+        await asyncio.gather(*(self._connect(c) for c in self.crews))
+        for c in self.crews:
+            background.append(tg.create_task(c.vehicle.run_telemetry(c.on_fix, c.clock.update),
+                                             name=f"telemetry{self._suffix(c)}"))
+            c.flight.set_phase(PREFLIGHT)
+        homes = await asyncio.gather(*(c.vehicle.wait_ready(cfg.ready_timeout_s) for c in self.crews))
+        self._at_home(homes)
         # the planner's kernels compile (seconds of CPU) while the gNB is probed, not after it
         prepared = tg.create_task(self._prepare_planner(), name="prepare-planner")
         background.append(prepared)
         self._preflight_home()
         await self._preflight_gnb()
-        self._preflight_battery()
+        for c in self.crews:
+            c.preflight_battery()
         await prepared
-        safety = SafetyMonitor(f, cfg, self.gate, self.vehicle.state, self._buffer.latest, self.now)
-        for coro, name in ((self._estimator_task(), "estimator"), (self.pipeline.run_trigger(), "trigger"),
-                           (self.pipeline.run_placer(), "placer"), (safety.run(), "safety"),
-                           (self._status_task(), "status"), (self.loop_lag.run(), "loop-lag")):
+        for coro, name in ((self._estimator_task(), "estimator"), (self._status_task(), "status"),
+                           (self.loop_lag.run(), "loop-lag")):
             background.append(tg.create_task(coro, name=name))
+        for c in self.crews:
+            safety = SafetyMonitor(c.flight, c.config, c.gate, c.vehicle.state, c.buffer.latest, c.now)
+            for coro, name in ((c.pipeline.run_trigger(), "trigger"), (c.pipeline.run_placer(), "placer"),
+                               (safety.run(), "safety")):
+                background.append(tg.create_task(coro, name=f"{name}{self._suffix(c)}"))
         try:
-            await self.legs.takeoff()
-            self._takeoff_over.set()
-            if f.return_reason is None:
-                f.set_phase(SURVEY)
-                f.clock.start(self.now(), time.monotonic())
-                try:
-                    await self.legs.survey()
-                    while not await self._target_confirmed():
-                        await self.legs.survey()
-                finally:
-                    self._survey_ended()
-            f.set_phase(RETURN)
-            if not await self._send_rtl(f.return_reason or (f.stop or ("", "survey done"))[1]):
-                raise VehicleError("the vehicle did not accept RTL")
-            self._landed = await self._wait_landed(self.legs.return_timeout_s())
-            self.journal.event("landed and disarmed" if self._landed else "landing not confirmed before the timeout",
-                               kind="landed" if self._landed else "landing_timeout")
-            f.set_phase(LANDED)
-            await self.pipeline.drain(30.0)  # the last keyframes before the final batch solve
+            ends = await asyncio.gather(*(self._fly_vehicle(c) for c in self.crews), return_exceptions=True)
         finally:
             for task in background:
                 task.cancel()
+        for end in ends:
+            if isinstance(end, BaseException) and not isinstance(end, UavlocError | Exception):
+                raise end  # a cancellation or interrupt
+        errors = [e for e in ends if isinstance(e, BaseException)]
+        if len(errors) == len(ends):
+            raise errors[0]  # every vehicle failed: the mission aborts (a one-vehicle mission: its error)
+        return self._mission_end([e for e in ends if not isinstance(e, BaseException)])
+
+    def _suffix(self, crew: VehicleCrew) -> str:
+        return f"-{crew.id}" if self.fleet else ""
+
+    async def _connect(self, crew: VehicleCrew) -> None:
+        crew.flight.set_phase(CONNECT)
+        await crew.vehicle.connect(self.config.connect_timeout_s)
+        crew.connected = True
+
+    async def _fly_vehicle(self, crew: VehicleCrew) -> tuple[str, str]:
+        """One vehicle's take-off, survey, return and landing; its (status, reason). In a fleet a
+        vehicle's own error sends it home (its safe end) and is returned for the mission to weigh;
+        alone, the error is the mission's."""
+        try:
+            crew.outcome = await self._fly(crew)
+            return crew.outcome
+        except UavlocError as exc:
+            if not self.fleet:
+                raise
+            crew.flight.set_phase(ABORT)
+            log.error("%s aborted: %s", crew.id, exc)
+            crew.event(f"vehicle aborted: {exc}", kind="abort", error=type(exc).__name__, reason=str(exc))
+            await crew.safe_end(str(exc), SAFE_END_TIMEOUT_S)
+            crew.outcome = (STATUS_ABORTED, str(exc))
+            raise
+
+    async def _fly(self, crew: VehicleCrew) -> tuple[str, str]:
+        f, legs = crew.flight, crew.legs
+        await legs.takeoff()
+        crew.takeoff_over.set()
+        if f.return_reason is None:
+            f.set_phase(SURVEY)
+            f.clock.start(crew.now(), time.monotonic())
+            try:
+                await legs.survey()
+                while not await self._target_confirmed(crew):
+                    await legs.survey()
+            finally:
+                crew.survey_ended()
+                if crew.index == 0:
+                    self._note_pace(crew)
+        f.set_phase(RETURN)
+        if not await crew.send_rtl(f.return_reason or (f.stop or ("", "survey done"))[1]):
+            raise VehicleError("the vehicle did not accept RTL")
+        crew.landed = await crew.wait_landed(legs.return_timeout_s())
+        crew.event("landed and disarmed" if crew.landed else "landing not confirmed before the timeout",
+                   kind="landed" if crew.landed else "landing_timeout")
+        f.set_phase(LANDED)
+        await crew.pipeline.drain(30.0)  # the last keyframes before the final batch solve
         if f.return_reason is not None:
             return STATUS_RETURNED, f.return_reason
         return f.stop or (STATUS_RETURNED, "survey ended")
 
-    async def _target_confirmed(self) -> bool:
+    def _mission_end(self, ends: list[tuple[str, str]]) -> tuple[str, str]:
+        """The mission's (status, reason) from its vehicles' ends: its one vehicle's; a fleet's, the
+        first of target, floor, budget any vehicle reached, else vehicle 0's (or the first vehicle's
+        that ended without an error)."""
+        if len(ends) == 1:
+            return ends[0]
+        for status in _FLEET_STATUS_ORDER:
+            for end in ends:
+                if end[0] == status:
+                    return end
+        return ends[0]
+
+    async def _target_confirmed(self, crew: VehicleCrew) -> bool:
         """After a survey that ended "target reached" or "floor reached": the mission's final
         answer (the batch over every keyframe, the last rounds placed first) decides. "Target
         reached" must hold for the answer the mission prints: a last range can widen a bound by a
         metre (seen: 3.86 to 4.84 m against 4 m), and then the survey goes on (False). A floor the
         survey's estimate saw may be within the target in the final answer (seen: 3.57 m against
-        4 m after "floor reached"): then the target is reached."""
-        f = self.flight
+        4 m after "floor reached"): then the target is reached, for every vehicle of a fleet."""
+        f = crew.flight
         if (f.stop is None or f.stop[0] not in (STATUS_TARGET, STATUS_FLOOR) or f.return_reason is not None
                 or self._estimator is None):
             return True
-        await self.pipeline.drain(self.wall(PLAN_DRAIN_MAX_S))
-        final = await asyncio.to_thread(self._estimator.final, list(self.pipeline.keyframes))
-        reached = self._estimator.within_target(final)
-        if f.stop[0] == STATUS_FLOOR:
+        async with self._confirm_lock:  # a fleet's vehicles judge one after the other
+            if f.stop is None:
+                return False
+            await asyncio.gather(*(c.pipeline.drain(c.wall(PLAN_DRAIN_MAX_S)) for c in self.crews))
+            final = await asyncio.to_thread(self._estimator.final, list(self._keyframes))
+            reached = self._estimator.within_target(final)
+            n_kf = len(self._keyframes)
+            if f.stop[0] == STATUS_FLOOR:
+                if reached:
+                    f.stop = (STATUS_TARGET, "target reached")
+                    crew.event(f"the final answer over {n_kf} keyframes bounds every user within the "
+                               f"{self.config.flight.target_radius_m:g} m target: target reached",
+                               kind="target_in_final_answer")
+                    self._finish_all(STATUS_TARGET, "target reached")
+                return True
             if reached:
-                f.stop = (STATUS_TARGET, "target reached")
-                self.journal.event(f"the final answer over {len(self.pipeline.keyframes)} keyframes bounds every "
-                                   f"user within the {self.config.flight.target_radius_m:g} m target: target reached",
-                                   kind="target_in_final_answer")
-            return True
-        if reached:
-            return True
-        worst = float(np.max(final.error_bound_95_m()))
-        f.resume_survey()
-        self.journal.event(f"the final answer over {len(self.pipeline.keyframes)} keyframes bounds a user at "
-                           f"{worst:.2f} m, beyond the {self.config.flight.target_radius_m:g} m target the "
-                           f"survey's estimate reached: surveying on", kind="target_unconfirmed", bound_95_m=worst)
-        f.estimate = final
-        return False
+                return True
+            worst = float(np.max(final.error_bound_95_m()))
+            f.resume_survey()
+            crew.event(f"the final answer over {n_kf} keyframes bounds a user at {worst:.2f} m, beyond the "
+                       f"{self.config.flight.target_radius_m:g} m target the survey's estimate reached: "
+                       f"surveying on", kind="target_unconfirmed", bound_95_m=worst)
+            f.estimate = final
+            return False
 
-    def _at_home(self, home) -> None:
-        """Home is known: the ENU origin, the home-dependent planner and limits, the log header."""
+    def _finish_all(self, status: str, reason: str) -> None:
+        """The stop rule ends every vehicle's survey (those taking off or surveying)."""
+        for c in self.crews:
+            if c.flight.phase in (TAKEOFF, SURVEY):
+                c.flight.finish_survey(status, reason, c.now())
+
+    def _at_home(self, homes: Sequence) -> None:
+        """Every home is known: the ENU origin (vehicle 0's), the home-dependent planner and
+        limits, each vehicle's gate and legs, the log header. homes: each vehicle's (a GeoFix:
+        lat_deg, lon_deg, alt_amsl_m), or a one-vehicle mission's home alone."""
+        if not isinstance(homes, list | tuple):
+            homes = [homes]
+        home = homes[0]
         self.origin = Origin(home.lat_deg, home.lon_deg, home.alt_amsl_m)
         if self._planner_at is not None:
-            self.planner = self._planner_at(self.origin)
-        if self._limits_at is not None:
-            self.gate = SafetyGate(self._limits_at(self.origin))
-        self._gated = GatedVehicle(self.vehicle, self.gate, self.origin, self.journal.event, self._pos_enu_smoothed)
-        self.legs = SurveyLegs(LegsDeps(
-            config=self.config, flight=self.flight, gated=self._gated,
-            set_speed=lambda mps: self.vehicle.set_speed(mps), battery_pct=lambda: self.vehicle.state.battery_pct,
-            battery_rtl_pct=self.gate.limits.battery_rtl_pct, planner=self.planner, origin=self.origin,
-            journal=self.journal, pos_enu=self.pos_enu, now=self.now, wall=self.wall, drain=self.pipeline.drain,
-            sigma_gps_m=self.noise.sigma_gps_m))
+            self.planner = self._planner_at(self.origin, 0)
+        planners = [self.planner] + [self._planner_at(self.origin, i) for i in range(1, len(self.crews))]
+        self.fleet_planner = FleetPlanner(planners, self.separation)
+        for c, h in zip(self.crews, homes, strict=True):
+            c.home = Origin(h.lat_deg, h.lon_deg, h.alt_amsl_m)
+            c.home_enu_m = np.asarray(self.origin.lla_to_enu(h.lat_deg, h.lon_deg, h.alt_amsl_m), float)
+            if self._limits_at is not None:
+                c.gate = SafetyGate(self._limits_at(self.origin, c.index))
+            others = (lambda me=c: [leg for o in self.crews if o is not me
+                                    for leg in [o.committed_leg()] if leg is not None]) if self.fleet else None
+            c.gated = GatedVehicle(c.vehicle, c.gate, self.origin, c.event, c.pos_enu_smoothed, others=others)
+            vplanner = _VehiclePlanner(self.fleet_planner, c.index, self.serving, self._committed, self._plan_lock)
+            c.legs = SurveyLegs(LegsDeps(
+                config=c.config, flight=c.flight, gated=c.gated, set_speed=lambda mps, c=c: c.vehicle.set_speed(mps),
+                battery_pct=lambda c=c: c.vehicle.state.battery_pct, battery_rtl_pct=c.gate.limits.battery_rtl_pct,
+                planner=vplanner, origin=self.origin, journal=self.journal, pos_enu=c.pos_enu, now=c.now,
+                wall=c.wall, drain=c.pipeline.drain, sigma_gps_m=self.noise.sigma_gps_m, event=c.event, tag=c.tag))
         cfg = dict(self.header_config)
         cfg.setdefault("controller", asdict(self.config))
         cfg.setdefault("solver", solver_params_header(self.params))
-        lim = self.gate.limits
+        lim = self.crews[0].gate.limits
         area = area_fields(self.origin, lim.fence_enu_m, lim.no_fly_enu_m, lim.alt_min_m, lim.alt_max_m,
                            lim.max_distance_m, self._buildings(self.origin) if self._buildings else None)
-        self.journal.open(self.origin, self.radio, self.noise, cfg, self._start_utc, area=area)
+        vehicles = None
+        if self.fleet:
+            vehicles = [{"id": c.id, "home": {"lat_deg": c.home.lat_deg,
+                                              "lon_deg": c.home.lon_deg, "alt_m": c.home.alt_m},
+                         "alt_min_m": c.gate.limits.alt_min_m, "alt_max_m": c.gate.limits.alt_max_m}
+                        for c in self.crews]
+        self.journal.open(self.origin, self.radio, self.noise, cfg, self._start_utc, area=area, vehicles=vehicles)
         if self._truth is not None:
             self.truth_enu_m = np.asarray(self._truth(self.origin), float).reshape(len(self.users), 3)
             self.journal.truth(self.origin, self.truth_enu_m)
-        self.journal.event(f"home {home.lat_deg:.7f}, {home.lon_deg:.7f}, {home.alt_amsl_m:.1f} m AMSL", kind="home")
+        for c, h in zip(self.crews, homes, strict=True):
+            c.event(f"home {h.lat_deg:.7f}, {h.lon_deg:.7f}, {h.alt_amsl_m:.1f} m AMSL", kind="home")
 
-    async def _preflight_gnb(self) -> None:
-        """No take-off unless every configured user is among the gNB's UEs and answers one
-        measurement (passive stock mode: is among them; its random accesses come when they come).
-        The event and the error say which RNTIs the gNB has and what it answered."""
-        from mission.gnb.probe import probe_gnb
+    def _committed(self) -> list[np.ndarray | None]:
+        """Each vehicle's committed leg now (VehicleCrew.committed_leg), for the fleet's planner."""
+        return [c.committed_leg() for c in self.crews]
 
-        rntis = [u.rnti for u in self.users]
-        gcfg = getattr(self.gnb, "config", None)
-        passive = getattr(gcfg, "mode", None) == "stock" and getattr(gcfg, "stock_mode", None) == "passive"
-        bound_s = self.config.gnb_timeout_s * (2 + len(rntis))
-        try:
-            async with asyncio.timeout(bound_s):
-                probe = await probe_gnb(self.gnb, rntis=rntis, count=1)
-        except TimeoutError as exc:
-            raise GnbPreflightError(f"not taking off: the gNB did not finish the preflight probe within "
-                                    f"{bound_s:g} s") from exc
-        have = probe.gnb_rntis or []
-        ok = probe.ok or (passive and probe.gnb_rntis is not None and all(r in have for r in rntis))
-        self.journal.event(probe.message(), kind="preflight_gnb", ok=ok, rntis=[f"{r:04x}" for r in have],
-                           probe=probe.to_dict())
-        if not ok:
-            raise GnbPreflightError(f"not taking off: {probe.message()}")
-
-    def _survey_ended(self) -> None:
-        """Log how the survey spent its time and what it measured, as it happened: hover (slower than
-        HOVER_SPEED_MPS), the longest time without a range, the gNB rounds placed (metres flown per
-        round and per range of each user, rounds per minute); and, when it ran materially slower
-        than its speed-up (SurveyPace), a `fell_behind` event and a warning."""
-        c = self.flight.clock
-        c.end(self.now(), time.monotonic(), self.flight.stop_s)
-        share = 100.0 * c.hover_s / c.survey_s if c.survey_s > 0 else 0.0
-        flown_m, n_users = self.flight.flown_m, len(self.users)
-        round_m = spacing_m(flown_m, c.rounds)
-        # each user's ranges: the survey's ranges shared among the users
-        user_m = spacing_m(flown_m * n_users, c.ranges)
-        per_min = c.rounds_per_min()
-        measured = (f"{c.rounds} gNB rounds ({c.ranges} ranges), one every {round_m:.1f} m (Δ = "
-                    f"{self.config.flight.delta_m:g} m), {per_min:.1f} per minute, each user ranged every "
-                    f"{user_m:.1f} m" if round_m is not None and per_min is not None and user_m is not None
-                    else "no gNB round")
-        self.journal.event(f"survey {c.survey_s:.0f} s: hovering {c.hover_s:.1f} s ({share:.1f} %), longest without "
-                           f"a range {c.largest_gap_s:.1f} s; {measured}; {self.legs.planned_ahead} legs planned "
-                           f"ahead", kind="survey_time", survey_s=round(c.survey_s, 2), hover_s=round(c.hover_s, 2),
-                           largest_gap_s=round(c.largest_gap_s, 2), planned_ahead=self.legs.planned_ahead,
-                           flown_m=round(flown_m, 2), rounds=c.rounds, ranges=c.ranges,
-                           spacing_m=None if round_m is None else round(round_m, 2),
-                           user_spacing_m=None if user_m is None else round(user_m, 2),
-                           rounds_per_min=None if per_min is None else round(per_min, 2))
-        self.pace = c.pace(self.config.time_scale)
-        if self.pace is not None and self.pace.fell_behind:
-            log.warning("%s", self.pace.message())
-            self.journal.event(self.pace.message(), kind="fell_behind", **self.pace.to_dict())
+    def _watch_separation(self, crew: VehicleCrew) -> None:
+        """A fleet's vehicles in the air closer than the separation (horizontally and in altitude):
+        an event when it starts (`separation_lost`, with the least distance) and when it ends."""
+        airborne = [c for c in self.crews if c.airborne and c.pos_enu() is not None]
+        if len(airborne) < 2:
+            apart, least = True, float("inf")
+        else:
+            apart, least = vehicles_apart(np.array([c.pos_enu() for c in airborne]), self.separation)
+        if apart == self._apart:
+            return
+        self._apart = apart
+        if not apart:
+            self.separation_breaches.append((self.now(), least))
+            log.warning("vehicles closer than the separation: %.1f m", least)
+            self.journal.event(f"vehicles {', '.join(c.id for c in airborne)} closer than the separation: "
+                               f"{least:.1f} m", kind="separation_lost", least_m=round(least, 2))
+        else:
+            self.journal.event("vehicles apart again", kind="separation_restored")
 
     async def _prepare_planner(self) -> None:
         """The planner's one-time work (CasADi kernels) before take-off, in a thread, so that the
         first plan with an estimate does not hold the vehicle in a hover (planner.types.Planner.prepare)."""
         t0 = time.perf_counter()
-        await asyncio.to_thread(self.planner.prepare)
+        await asyncio.to_thread(self.fleet_planner.prepare)
         took_s = time.perf_counter() - t0
         if took_s > 0.05:
-            self.journal.event(f"planner {self.planner.name} prepared in {took_s:.2f} s (before take-off)",
+            self.journal.event(f"planner {self.fleet_planner.name} prepared in {took_s:.2f} s (before take-off)",
                                kind="planner_prepared", took_s=round(took_s, 3))
 
     def _preflight_home(self) -> None:
         """No take-off from a home outside the fence or inside a no-fly zone (geodetic polygons
         are known in the home frame only now; mission.config refuses ENU ones at load)."""
-        problems = self.gate.home_violations()
-        if problems:
-            raise SafetyError(f"not taking off: {'; '.join(problems)}")
+        for c in self.crews:
+            c.preflight_home()
 
-    def _preflight_battery(self) -> None:
-        """No take-off below battery_takeoff_min_pct (when the vehicle reports its charge)."""
-        pct, floor = self.vehicle.state.battery_pct, self.config.safety.battery_takeoff_min_pct
-        if pct is None:
-            self.journal.event("battery charge unknown before take-off", kind="battery_unknown")
-        elif pct < floor:
-            raise SafetyError(f"not taking off: battery at {pct:g} % is below battery_takeoff_min_pct {floor:g} %")
+    async def _preflight_gnb(self) -> None:
+        """No take-off unless every configured user is among the gNB's UEs and answers one
+        measurement (passive stock mode: is among them; its random accesses come when they come).
+        A fleet's gNBs each serve the UEs attached to their cells: every user must be on one of them.
+        The event and the error say which RNTIs each gNB has and what it answered."""
+        if not self.fleet:
+            await self.crews[0].preflight_gnb()
+            return
+        probes = await asyncio.gather(*(c.probe_gnb() for c in self.crews))
+        have = {r for probe, _ in probes for r in (probe.gnb_rntis or [])}
+        missing = [u for u in self.users if u.rnti not in have]
+        for c, (probe, _) in zip(self.crews, probes, strict=True):
+            if probe.gnb_rntis is None:
+                raise GnbPreflightError(f"not taking off ({c.id}): {probe.message()}")
+            for r in probe.gnb_rntis:
+                k = next((k for k, u in enumerate(self.users) if u.rnti == r), None)
+                if k is not None and self.serving[k] < 0:
+                    self.serving[k] = c.index
+        if missing:
+            raise GnbPreflightError("not taking off: no vehicle's gNB has " + ", ".join(
+                f"{u.id} (RNTI {u.rnti:04x})" for u in missing))
+
+    def _note_pace(self, crew: VehicleCrew) -> None:
+        self.pace = crew.flight.clock.pace(self.config.time_scale)
+        if self.pace is not None and self.pace.fell_behind:
+            log.warning("%s", self.pace.message())
+            self.journal.event(self.pace.message(), kind="fell_behind", **self.pace.to_dict())
 
     # -- background tasks -----------------------------------------------------------------------
 
     def _flight_noise(self) -> NoiseModel:
         """The noise model the flight's estimator uses: the mission's, with the GPS error's
-        correlation time estimated from the telemetry logged so far (take-off) when the mission
-        leaves it unknown (an external autopilot: PX4's EKF output drifts with τ of minutes), as
-        replay estimates it from the whole log; the estimator's default when too little was logged."""
-        records, self._tau_records = self._tau_records, None
+        correlation time estimated from the telemetry logged so far (vehicle 0's take-off) when the
+        mission leaves it unknown (an external autopilot: PX4's EKF output drifts with τ of
+        minutes), as replay estimates it from the whole log; the estimator's default when too
+        little was logged."""
+        crew = self.crews[0]
+        records, crew.tau_records = crew.tau_records, None
         if records is None:
             return self.noise
         tau = None
@@ -454,25 +584,28 @@ class MissionController:
                                 self.noise if noise is None else noise, self.params, self.config.flight.target_radius_m)
 
     async def _estimator_task(self) -> None:
-        f = self.flight
-        if self._tau_records is not None:
+        if self.crews[0].tau_records is not None:
             # the first keyframe comes with the survey: estimate τ from the take-off's telemetry
-            await self._takeoff_over.wait()
+            await self.crews[0].takeoff_over.wait()
         # the stop rule is judged on batch estimates only: a target the online estimate reaches
         # asks the worker for a batch refresh first (mission.estimation)
         setup = self._estimator = self.estimator_setup(self._flight_noise())
-        worker = EstimatorWorker(setup, self.pipeline.keyframes_out, mode=self.config.estimator_mode)
+        worker = EstimatorWorker(setup, self.keyframes_out, mode=self.config.estimator_mode)
 
         def on_estimate(est: Estimate) -> None:
-            f.estimate = est
-            self.journal.estimate(self.origin, est, len(self.pipeline.keyframes), f.flown_m)
-            if f.phase == SURVEY and setup.stops(est):
-                f.finish_survey(STATUS_TARGET, "target reached", self.now())
+            self.estimate = est
+            self.journal.estimate(self.origin, est, len(self._keyframes), self.flown_m,
+                                  vehicles=self._kf_vehicles() if self.fleet else None)
+            if any(c.flight.phase == SURVEY for c in self.crews) and setup.stops(est):
+                self._finish_all(STATUS_TARGET, "target reached")
 
         def on_error(exc: EstimatorError) -> None:
             self.journal.event(f"estimator: {exc}", kind="estimator_error")
 
         await worker.run(on_estimate, on_error)
+
+    def _kf_vehicles(self) -> list[int]:
+        return [kf.vehicle for kf in self._keyframes]
 
     async def _status_task(self) -> None:
         while True:
@@ -480,51 +613,19 @@ class MissionController:
             log.info("%s", self.status_line())
 
     def status_line(self) -> str:
-        f = self.flight
-        home_in = None
-        if f.gnb_down_since is not None and f.phase in (TAKEOFF, SURVEY):
-            home_in = max(0.0, self.config.safety.gnb_lost_wait_s - (self.now() - f.gnb_down_since))
-        return status_line(f.phase, self.now(), f.flown_m, f.measurements, self.users, f.estimate,
-                           f.gnb_problem if f.gnb_down_since is not None else None, home_in)
+        def line(c: VehicleCrew, prefix: str = "") -> str:
+            f = c.flight
+            home_in = None
+            if f.gnb_down_since is not None and f.phase in (TAKEOFF, SURVEY):
+                home_in = max(0.0, self.config.safety.gnb_lost_wait_s - (c.now() - f.gnb_down_since))
+            return prefix + status_line(f.phase, c.now(), f.flown_m, f.measurements, self.users if not prefix else [],
+                                        f.estimate if not prefix else None,
+                                        f.gnb_problem if f.gnb_down_since is not None else None, home_in)
 
-    # -- vehicle helpers ------------------------------------------------------------------------
-
-    async def _send_rtl(self, reason: str, retry_s: float = 60.0) -> bool:
-        """Send RTL, retrying (e.g. while the link is down) for up to `retry_s` wall seconds;
-        True when the vehicle accepted it."""
-        t_end = time.monotonic() + retry_s
-        attempt = 0
-        while True:
-            attempt += 1
-            if self.vehicle.state.flight_mode == "LAND":
-                # the autopilot's own failsafe is landing the vehicle (PX4 after a GPS loss): that is
-                # a safe command already, and RTL would be refused without a position
-                self._autopilot_landing = True
-                self.journal.event(f"RTL not sent: the autopilot is already landing ({reason})", kind="autopilot_land")
-                return True
-            try:
-                await self._gated.return_to_launch()
-            except VehicleError as exc:
-                if attempt == 1 or attempt % 10 == 0:
-                    log.warning("RTL attempt %d failed: %s", attempt, exc)
-                    self.journal.event(f"RTL attempt {attempt} failed: {exc}", kind="rtl_failed")
-                if time.monotonic() >= t_end:
-                    self._rtl_gave_up = True
-                    return False
-                await asyncio.sleep(0.5)
-                continue
-            self._rtl_sent = True
-            self.journal.event(f"RTL: {reason}", kind="rtl", attempts=attempt)
-            return True
-
-    async def _wait_landed(self, timeout_s: float) -> bool:
-        st = self.vehicle.state
-        deadline = time.monotonic() + self.wall(timeout_s)
-        while time.monotonic() < deadline:
-            if st.landed_state == "ON_GROUND" and st.armed is False:
-                return True
-            await self.flight.wake.wait(0.2)
-        return False
+        if not self.fleet:
+            return line(self.crews[0])
+        head = status_line(self.state, self.now(), self.flown_m, self.measurements, self.users, self.estimate)
+        return " || ".join([head] + [line(c, f"{c.id} ") for c in self.crews])
 
     # -- start and end --------------------------------------------------------------------------
 
@@ -532,7 +633,6 @@ class MissionController:
         """Fly the mission and return its result. Cancellation (Ctrl-C) sends RTL, then re-raises."""
         t_wall = time.monotonic()
         status, reason = STATUS_ABORTED, ""
-        f = self.flight
         try:
             try:
                 async with asyncio.TaskGroup() as tg:
@@ -540,20 +640,20 @@ class MissionController:
             except BaseExceptionGroup as eg:
                 raise _first_error(eg) from eg
         except (asyncio.CancelledError, KeyboardInterrupt) as exc:
-            f.set_phase(ABORT)
+            self._set_phase(ABORT)
             how = "cancelled" if isinstance(exc, asyncio.CancelledError) else "Ctrl-C"
             self.journal.event(f"mission interrupted ({how}): returning home", kind="interrupted")
             await self._safe_end("interrupted", INTERRUPT_SAFE_END_TIMEOUT_S)
             self._close(STATUS_INTERRUPTED, "interrupted", t_wall)
             raise
         except UavlocError as exc:
-            f.set_phase(ABORT)
+            self._set_phase(ABORT)
             log.error("mission aborted: %s", exc)
             self.journal.event(f"mission aborted: {exc}", kind="abort", error=type(exc).__name__)
             await self._safe_end(str(exc))
             return self._close(STATUS_ABORTED, str(exc), t_wall)
         except Exception as exc:
-            f.set_phase(ABORT)
+            self._set_phase(ABORT)
             log.exception("mission aborted by an unexpected error")
             self.journal.event(f"mission aborted: unexpected {type(exc).__name__}: {exc}", kind="abort",
                                error=type(exc).__name__)
@@ -562,22 +662,14 @@ class MissionController:
             raise
         return self._close(status, reason, t_wall)
 
+    def _set_phase(self, phase: str) -> None:
+        for c in self.crews:
+            c.flight.set_phase(phase)
+
     async def _safe_end(self, reason: str, timeout_s: float = SAFE_END_TIMEOUT_S) -> None:
-        """Never leave the vehicle without a safe command: RTL when it may be airborne (trying
-        for at most timeout_s wall seconds)."""
-        if not self._connected or self._gated is None or self._rtl_sent or self._rtl_gave_up:
-            return
-        st = self.vehicle.state
-        if st.armed is False and st.landed_state in ("ON_GROUND", "UNKNOWN"):
-            return
-        try:
-            async with asyncio.timeout(timeout_s):
-                sent = await self._send_rtl(reason, retry_s=timeout_s)
-        except TimeoutError:
-            sent = False
-        if not sent:
-            log.error("RTL could not be sent: the vehicle is left to its own failsafe")
-            self.journal.event("RTL could not be sent: the vehicle is left to its own failsafe", kind="rtl_failed")
+        """Never leave a vehicle without a safe command: RTL to every one that may be airborne (trying
+        for at most timeout_s wall seconds, all at once)."""
+        await asyncio.gather(*(c.safe_end(reason, timeout_s) for c in self.crews))
 
     def _replay_log(self) -> ReplayResult:
         """What `uavloc replay LOG` computes, from the log as written so far (the header holds the
@@ -588,8 +680,8 @@ class MissionController:
         return replay(mlog, ReplayOptions(history=False))
 
     def _close(self, status: str, reason: str, t_wall: float) -> MissionResult:
-        est = self.flight.estimate
-        keyframes = self.pipeline.keyframes
+        est = self.estimate
+        keyframes = self._keyframes
         replayed: ReplayResult | None = None
         if keyframes:
             # the final answer is the batch solution over every keyframe, as `uavloc replay`
@@ -609,13 +701,16 @@ class MissionController:
                     self.journal.event(f"final batch estimate failed: {type(exc2).__name__}: {exc2}",
                                        kind="estimator_error")
         if est is not None and self.journal.is_open:
-            self.flight.estimate = est
-            self.journal.estimate(self.origin, est, len(keyframes), self.flight.flown_m, final=True)
+            self.estimate = est
+            self.journal.estimate(self.origin, est, len(keyframes), self.flown_m, final=True,
+                                  vehicles=self._kf_vehicles() if self.fleet else None)
         self.journal.event(f"mission end: {status} ({reason})", kind="end", status=status, reason=reason)
         self.journal.close()
         self.result = MissionResult(
             result=self._result(status, reason, est, replayed), estimate=est, wall_s=time.monotonic() - t_wall,
-            rtl_sent=self._rtl_sent, landed=self._landed, refusals=self._gated.refusals if self._gated else 0,
+            rtl_sent=all(c.rtl_sent for c in self.crews if c.connected) and any(c.connected for c in self.crews),
+            landed=all(c.landed for c in self.crews),
+            refusals=sum(c.gated.refusals for c in self.crews if c.gated is not None),
             events=list(self.journal.messages), loop_lag=self.loop_lag.summary(), pace=self.pace)
         return self.result
 
@@ -634,12 +729,12 @@ class MissionController:
                 log.warning("the mission log does not end as the mission did: the result from the flight's counts")
             except UavlocError as exc:
                 log.warning("the mission log could not be read back: the result from the flight's counts: %s", exc)
-        c = self.flight.clock
+        c = self.crews[0].flight.clock
         surveyed = c.survey_s > 0
         return build_result(
             status=status, reason=reason, user_ids=[u.id for u in self.users], estimate=est, origin=self.origin,
-            truth_enu_m=self.truth_enu_m, flown_m=self.flight.flown_m, measurements=self.flight.measurements,
-            keyframes=len(self.pipeline.keyframes), duration_s=self.now(),
+            truth_enu_m=self.truth_enu_m, flown_m=self.flown_m, measurements=self.measurements,
+            keyframes=len(self._keyframes), duration_s=self.now(),
             survey_s=c.survey_s if surveyed else None, hover_s=c.hover_s if surveyed else None,
             largest_gap_s=c.largest_gap_s if surveyed else None,
             log_path=self.log_path if self.origin is not None else None)

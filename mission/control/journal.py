@@ -46,12 +46,17 @@ class MissionJournal:
             self._pending.append((t, rec))
 
     def open(self, origin: Origin, radio: dict, noise: NoiseModel, config: dict, start_utc: str,
-             area: dict | None = None) -> None:
+             area: dict | None = None, vehicles: list[dict] | None = None) -> None:
         """The header (origin = home; area: its geofence / no-fly / altitude-band / buildings
-        fields, mission.log.area_fields), then the events so far."""
+        fields, mission.log.area_fields; vehicles: a fleet's [{id, home {lat_deg, lon_deg, alt_m},
+        alt_min_m, alt_max_m}], docs/fleet.md), then the events so far."""
         users = [{"id": u.id, "rnti": u.rnti, "ground_alt_m": origin.alt_m + u.up_m} for u in self.users]
         self.writer.open()
-        self.writer.write_header(origin, users, radio, noise=noise, config=config, start_utc=start_utc, area=area)
+        fields = dict(area or {})
+        if vehicles:
+            fields["vehicles"] = vehicles
+        self.writer.write_header(origin, users, radio, noise=noise, config=config, start_utc=start_utc,
+                                 area=fields or None)
         for t, rec in self._pending:
             self.writer.write("event", t, **rec)
         self._pending.clear()
@@ -63,9 +68,11 @@ class MissionJournal:
             {"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]), "alt_m": float(alt[k])}
             for k, u in enumerate(self.users)])
 
-    def estimate(self, origin: Origin, est: Estimate, keyframes: int, flown_m: float, final: bool = False) -> None:
+    def estimate(self, origin: Origin, est: Estimate, keyframes: int, flown_m: float, final: bool = False,
+                 vehicles: list[int] | None = None) -> None:
         """An `estimate` record of the located users (with their ambiguity), the metres flown and
-        the corrected UAV track (the live view's estimated track): the newest keyframe, all at the end."""
+        the corrected UAV track (the live view's estimated track): the newest keyframe, all at the end.
+        vehicles: a fleet's vehicle of each keyframe (the track's `uav_vehicle`, parallel to `uav_lla`)."""
         if not self.is_open:
             return
         lat, lon, alt = origin.enu_to_lla(est.users_enu_m)
@@ -87,6 +94,13 @@ class MissionJournal:
         if len(uav):
             ulat, ulon, ualt = (np.atleast_1d(a) for a in origin.enu_to_lla(uav if final else uav[-1:]))
             extra["uav_lla"] = np.round(np.column_stack([ulat, ulon, ualt]), 8).tolist()
+            if vehicles:
+                # the track's rows are the keyframes' (the newest last), those with a finite position
+                rows = np.all(np.isfinite(np.asarray(est.uav_enu_m, float).reshape(-1, 3)), axis=1)
+                if not final:
+                    extra["uav_vehicle"] = [int(vehicles[-1])]
+                elif len(rows) == len(vehicles):
+                    extra["uav_vehicle"] = np.asarray(vehicles, int)[rows].tolist()
         self.writer.write("estimate", self.now(), users=users, keyframes=keyframes, flown_m=round(flown_m, 2),
                           **extra)
 

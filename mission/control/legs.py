@@ -57,7 +57,8 @@ class LegsDeps:
     threshold [%]; planner; origin: home (ENU frame of the planner and the gate); journal: the
     mission log; pos_enu(): the latest fix [m, ENU] or None; now(): mission seconds; wall(s):
     mission → wall seconds; drain(timeout_s): wait until the measurements so far are solved;
-    sigma_gps_m: the GPS σ (the odometer's dead band).
+    sigma_gps_m: the GPS σ (the odometer's dead band); event: this vehicle's event writer; tag:
+    the fields naming the vehicle in its records (a fleet's).
     """
 
     config: ControllerConfig
@@ -74,6 +75,11 @@ class LegsDeps:
     wall: Callable[[float], float]
     drain: Callable[[float], Awaitable[None]]
     sigma_gps_m: float
+    event: Callable[..., None] | None = None
+    tag: dict = dataclasses.field(default_factory=dict)
+
+    def log_event(self, message: str, **fields) -> None:
+        (self.event or self.journal.event)(message, **fields)
 
 
 class SurveyLegs:
@@ -92,15 +98,17 @@ class SurveyLegs:
         self.planned_ahead = 0
         #: legs started so far (numbered on in a resumed survey)
         self.legs_flown = 0
+        #: the end [m, ENU] of the leg being flown (None between legs): the other vehicles keep clear of it
+        self.current_wp: np.ndarray | None = None
         self._plan_wall_s = 1.0  # how long the last plan took, drain included [wall s]
 
     async def takeoff(self) -> None:
         dep, cfg, f = self.deps, self.deps.config, self.deps.flight
         f.set_phase(TAKEOFF)
         await dep.gated.arm()
-        dep.journal.event("armed", kind="arm")
+        dep.log_event("armed", kind="arm")
         await dep.gated.takeoff(cfg.flight.altitude_m)
-        dep.journal.event(f"takeoff to {cfg.flight.altitude_m:g} m above home", kind="takeoff")
+        dep.log_event(f"takeoff to {cfg.flight.altitude_m:g} m above home", kind="takeoff")
         deadline = time.monotonic() + dep.wall(2.0 * cfg.flight.altitude_m / cfg.flight.climb_mps + 30.0)
         while f.return_reason is None:
             pos = dep.pos_enu()
@@ -200,7 +208,8 @@ class SurveyLegs:
             lat, lon, alt = (float(x) for x in dep.origin.enu_to_lla(wp))
             self.legs_flown += 1
             dep.journal.writer.write(
-                "waypoint", dep.now(), leg=self.legs_flown, lat_deg=lat, lon_deg=lon, alt_m=alt, enu_m=wp.tolist(),
+                "waypoint", dep.now(), **dep.tag, leg=self.legs_flown, lat_deg=lat, lon_deg=lon, alt_m=alt,
+                enu_m=wp.tolist(),
                 planner=getattr(dep.planner, "name", "?"), status=plan.status,
                 objective=plan.objective if math.isfinite(plan.objective) else None, solve_time_s=plan.solve_time_s)
             await self.command_speed()
@@ -215,7 +224,7 @@ class SurveyLegs:
                 # a lost link or a refusal: the safety monitor decides about the link; here wait for
                 # it and replan from wherever the vehicle is then
                 refusals += 1
-                dep.journal.event(f"goto failed: {exc}", kind="goto_failed")
+                dep.log_event(f"goto failed: {exc}", kind="goto_failed")
                 if getattr(exc, "result", None) == "UNKNOWN":
                     # MAVSDK 4.1's answer to a MAV_RESULT it does not know (PX4's 9 to a reposition):
                     # it stops delivering telemetry and may crash on later calls, so send nothing but RTL
@@ -225,7 +234,11 @@ class SurveyLegs:
                 await self.wait_link()
                 continue
             refusals = 0
-            await self.fly_leg(pos, wp)
+            self.current_wp = wp
+            try:
+                await self.fly_leg(pos, wp)
+            finally:
+                self.current_wp = None
         if self.budget_spent():
             f.finish_survey(STATUS_BUDGET, "budget spent", dep.now())
 
@@ -239,11 +252,11 @@ class SurveyLegs:
             self.speed_refusals += 1
             self.leg_speed_mps = min(speed_mps, PX4_DEFAULT_CRUISE_MPS)
             if self.speed_refusals == 1:
-                dep.journal.event(f"speed {speed_mps:g} m/s not accepted ({exc}): legs timed for "
+                dep.log_event(f"speed {speed_mps:g} m/s not accepted ({exc}): legs timed for "
                                   f"{self.leg_speed_mps:g} m/s", kind="speed_refused")
             return
         if self.leg_speed_mps != speed_mps:
-            dep.journal.event(f"cruise speed {speed_mps:g} m/s commanded", kind="speed", speed_mps=speed_mps)
+            dep.log_event(f"cruise speed {speed_mps:g} m/s commanded", kind="speed", speed_mps=speed_mps)
         self.leg_speed_mps = speed_mps
 
     async def wait_link(self) -> None:
@@ -283,7 +296,7 @@ class SurveyLegs:
                 f.finish_survey(STATUS_BUDGET, "budget spent", dep.now())
                 return
             if time.monotonic() > deadline:
-                dep.journal.event(f"leg to ({wp[0]:.1f}, {wp[1]:.1f}, {wp[2]:.1f}) m timed out", kind="leg_timeout")
+                dep.log_event(f"leg to ({wp[0]:.1f}, {wp[1]:.1f}, {wp[2]:.1f}) m timed out", kind="leg_timeout")
                 return
             await f.wake.wait(0.2)
 

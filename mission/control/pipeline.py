@@ -25,13 +25,18 @@
   waits briefly for the logged velocity record after the round; without one (or without velocity)
   the keyframe has no motion factor.
 
-The pipeline owns both queues; the estimator worker reads `keyframes_out`.
+The pipeline owns its place queue; the estimator worker reads `keyframes_out`, which in a fleet
+(docs/fleet.md) every vehicle's pipeline fills, each keyframe naming its vehicle. A fleet's gNB
+serves the users attached to its cell: a round asks it for the users it served last and those
+no vehicle's gNB has (`serving`), and a user its gNB stops answering for is nobody's again, for
+every gNB to try.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 import time
@@ -71,18 +76,26 @@ class MeasurementPipeline:
     gnb, users: whom to measure; delta_m: keyframe spacing; gnb_timeout_s: bound of one measurement
     (wall) [s]; flight: the shared state; buffer: the telemetry (mission time, ENU); origin: () ->
     home; writer: the mission log; now / mission_t: mission seconds now / of a monotonic time.
+    In a fleet: vehicle: this pipeline's vehicle (Keyframe.vehicle); tag: the fields naming it in
+    its records; keyframes_out / keyframes: the mission's queue and list, shared by the vehicles;
+    serving: (K,) the vehicle whose gNB last measured each user (−1: none), shared.
     """
 
     def __init__(self, gnb: GnbClient, users: list[MissionUser], delta_m: float, gnb_timeout_s: float,
                  flight: FlightState, buffer: TelemetryBuffer, origin: Callable[[], Origin | None],
-                 writer: MissionLogWriter, now: Callable[[], float], mission_t: Callable[[float], float]):
+                 writer: MissionLogWriter, now: Callable[[], float], mission_t: Callable[[float], float],
+                 *, vehicle: int = 0, tag: dict | None = None, keyframes_out: asyncio.Queue | None = None,
+                 keyframes: list | None = None, serving: np.ndarray | None = None):
         self.gnb, self.users = gnb, users
         self.delta_m, self.gnb_timeout_s = delta_m, gnb_timeout_s
         self.flight, self.buffer, self.origin, self.writer = flight, buffer, origin, writer
         self.now, self.mission_t = now, mission_t
+        self.vehicle = int(vehicle)
+        self.tag = dict(tag or {})
         self.place_queue: asyncio.Queue[list] = asyncio.Queue()
-        self.keyframes_out: asyncio.Queue[Keyframe] = asyncio.Queue()
-        self.keyframes: list[Keyframe] = []
+        self.keyframes_out: asyncio.Queue[Keyframe] = asyncio.Queue() if keyframes_out is None else keyframes_out
+        self.keyframes: list[Keyframe] = [] if keyframes is None else keyframes
+        self.serving = np.full(len(users), -1, int) if serving is None else serving
         self.user_misses = np.zeros(len(users), int)
         self.protocol_streak = 0
         self._next_user = 0  # whom the next round measures first (rounds take the users in turn)
@@ -102,7 +115,7 @@ class MeasurementPipeline:
     def _on_record(self, rec: dict) -> None:
         """Keep the velocity of each telemetry record as logged, and the header's noise model."""
         kind = rec.get("type")
-        if kind == "telemetry":
+        if kind == "telemetry" and rec.get("vehicle", 0) == self.vehicle:
             self._tel_last_t = float(rec["t"])
             v = rec.get("vel_ned_mps")
             if v is not None:
@@ -167,6 +180,8 @@ class MeasurementPipeline:
         start = self.buffer.latest()
         first, tried = self._next_user, 0
         for k in [(first + i) % n_users for i in range(n_users)]:
+            if self.serving[k] not in (-1, self.vehicle):
+                continue  # another vehicle's gNB serves this user
             if tried and self._moved_since_m(start) >= self.delta_m:
                 self._report_rounds(tried, start)
                 break
@@ -189,6 +204,8 @@ class MeasurementPipeline:
             except GnbNoMeasurementError as exc:
                 self.user_misses[k] += 1
                 log.debug("no measurement for %s: %s", u.id, exc)
+                if self.serving[k] == self.vehicle:
+                    self.serving[k] = -1  # not (or no longer) on this cell: every gNB may try it
                 continue
             except TimeoutError:
                 gnb_failed = f"gNB did not answer within {self.gnb_timeout_s:g} s"
@@ -201,6 +218,7 @@ class MeasurementPipeline:
                     self._next_user = (k + 1) % n_users
             t_mono = s.t_mono_s if (s.t_mono_s and math.isfinite(s.t_mono_s)) else 0.5 * (t_req + time.monotonic())
             samples.append((k, s, t_mono))
+            self.serving[k] = self.vehicle
         now = self.now()
         # answers nobody can read, round after round, are a lost gNB too
         self.protocol_streak = self.protocol_streak + 1 if protocol_errors and not samples else 0
@@ -254,7 +272,8 @@ class MeasurementPipeline:
             return
         lat, lon, alt = (float(x) for x in origin.enu_to_lla(pos))
         uav = {"lat_deg": lat, "lon_deg": lon, "alt_m": alt}
-        records = [self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **s.log_fields())
+        records = [self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **self.tag,
+                                     **s.log_fields())
                    for k, s, tm in samples]
         self.flight.measurements += len(samples)
         self.flight.clock.range_at(t_meas, len(samples))
@@ -265,13 +284,16 @@ class MeasurementPipeline:
         if self._last_pos_t is not None and await self._velocity_covers(t_pos):
             velocity = self._velocity()
         kf = build_keyframe(trigger, origin, self._last_pos_t, velocity, self._noise)
+        if self.vehicle:
+            kf = dataclasses.replace(kf, vehicle=self.vehicle)
         self._last_pos_t = t_pos
         self._forget_velocity_before(t_pos)
         self.keyframes.append(kf)
         self.keyframes_out.put_nowait(kf)
 
     async def drain(self, timeout_s: float) -> None:
-        """Wait until every round so far is placed and solved (bounded)."""
+        """Wait until every round so far is placed and solved (bounded; in a fleet, every vehicle's
+        keyframes queued so far)."""
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(timeout_s):
                 await self.place_queue.join()

@@ -147,7 +147,7 @@ class FlightState:
         if self.return_reason is None:
             self.return_reason = reason
             log.warning("returning home: %s", reason)
-            self.event(f"return requested: {reason}", kind="return")
+            self.event(f"return requested: {reason}", kind="return", reason=reason)
             self.wake.pulse()
 
     def finish_survey(self, status: str, reason: str, now_s: float) -> None:
@@ -155,7 +155,7 @@ class FlightState:
         survey is ending."""
         if not self.ending:
             self.stop, self.stop_s = (status, reason), now_s
-            self.event(f"survey done: {reason}", kind="stop")
+            self.event(f"survey done: {reason}", kind="stop", reason=reason)
             self.wake.pulse()
 
     def resume_survey(self) -> None:

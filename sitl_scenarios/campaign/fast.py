@@ -23,7 +23,6 @@ altitude band, distance from home, leg length and budget (`leg_violation`).
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -150,8 +149,8 @@ def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,
         opts.setdefault("true_users_enu_m", users)
     use_kernel_cache()
     sep = Separation(sc.mission.safety.separation_m, sc.mission.safety.separation_vertical_m)
-    fleet = FleetPlanner([make_planner(planner_name, _vehicle_constraints(sc, c, v, n_vehicles), noise,
-                                       rng_seed=seed + 7919 * v, **opts) for v in range(n_vehicles)], sep)
+    fleet = FleetPlanner([make_planner(planner_name, sc.mission.vehicle_constraints(c, v) if n_vehicles > 1 else c,
+                                       noise, rng_seed=seed + 7919 * v, **opts) for v in range(n_vehicles)], sep)
     est = setup.estimator()
     confirm = setup.confirm
     leaves = fault_departures(sc, n_vehicles)
@@ -313,14 +312,3 @@ def fault_departures(sc: Scenario, n_vehicles: int) -> dict[int, tuple[float, st
         if v not in out or at[0] < out[v][0]:
             out[v] = at
     return out
-
-
-def _vehicle_constraints(sc: Scenario, c: PlanningConstraints, v: int, n_vehicles: int) -> PlanningConstraints:
-    """Vehicle v's planning constraints: the mission's, in its own altitude band when the mission
-    names its vehicles (`[[vehicles]]`)."""
-    mission = sc.mission
-    if n_vehicles == 1 or v >= len(mission.vehicles):
-        return c
-    lo, hi = mission.vehicle_band_m(v)
-    return dataclasses.replace(c, alt_min_m=max(c.alt_min_m, lo), alt_max_m=hi,
-                               cruise_alt_m=float(np.clip(c.cruise_alt_m, max(c.alt_min_m, lo), hi)))
