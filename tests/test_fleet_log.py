@@ -347,3 +347,27 @@ def test_time_order_is_checked_per_vehicle(tmp_path):
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(MissionLogError, match=r"telemetry record of vehicle 0 .* out of time order"):
         read_mission_log(path)
+
+
+def test_report_draws_each_vehicles_own_track(fleet_log, tmp_path, capsys):
+    from mission.cli import main
+    from mission.report.figures import _est_tracks
+    from mission.report.inputs import inputs_from_replay
+
+    out = tmp_path / "report"
+    assert main(["replay", str(fleet_log), "--json", "--out", str(out)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["status"] == "ok" and doc["keyframes"] > 20
+    gj = json.loads((out / "mission.geojson").read_text())
+    for kind in ("gps_track", "estimated_uav_track"):
+        lines = [f for f in gj["features"] if f["properties"]["kind"] == kind]
+        assert sorted(f["properties"]["vehicle"] for f in lines) == [0, 1]
+        for f in lines:
+            lon, lat, alt = np.array(f["geometry"]["coordinates"]).T
+            en = ORIGIN.lla_to_enu(lat, lon, alt)[:, :2]
+            # every point on its own vehicle's circle: no line joins the two vehicles' tracks
+            r = np.linalg.norm(en - CENTRES_EN_M[f["properties"]["vehicle"]], axis=1)
+            assert np.all(np.abs(r - RADIUS_M) < 6.0), kind
+    assert (out / "mission.plan").is_file() and (out / "mission.vehicle1.plan").is_file()
+    inp = inputs_from_replay(replay(read_mission_log(fleet_log)))
+    assert inp.vehicles() == [0, 1] and len(_est_tracks(inp)) == 2
