@@ -148,7 +148,8 @@ def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
         pos = origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
         # NED -> ENU
         vel_enu = np.column_stack([vel[:, 1], vel[:, 0], -vel[:, 2]])
-        series = mlog.tel_vehicle if mlog.n_vehicles > 1 else None
+        vehicles = _vehicle_column(mlog.tel_vehicle, len(mlog.tel_t_s))
+        series = vehicles if vehicles.any() else None
         tau = estimate_gps_tau_s(mlog.tel_t_s, pos, vel_enu, noise.sigma_gps_m, series)
     if tau is None:
         log.info("%s: no gps_tau_s in the header and no telemetry velocity to estimate it: assuming %.0f s",
@@ -180,16 +181,20 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None, noise: Noise
     if len(mlog.rtt_t_s) == 0:
         return []
     noise = noise if noise is not None else mlog.header.noise
-    vehicles = np.asarray(mlog.rtt_vehicle, int) if len(mlog.rtt_vehicle) == len(mlog.rtt_t_s) else None
-    if vehicles is None or not vehicles.any():
-        return _vehicle_keyframes(mlog, np.arange(len(mlog.rtt_t_s)), np.arange(len(mlog.tel_t_s)), 0,
-                                  delta_m, noise, velocity)
-    tel_vehicle = np.asarray(mlog.tel_vehicle, int)
-    chains = [_vehicle_keyframes(mlog, np.flatnonzero(vehicles == v), np.flatnonzero(tel_vehicle == v), int(v),
+    rtt_vehicle = _vehicle_column(mlog.rtt_vehicle, len(mlog.rtt_t_s))
+    tel_vehicle = _vehicle_column(mlog.tel_vehicle, len(mlog.tel_t_s))
+    chains = [_vehicle_keyframes(mlog, np.flatnonzero(rtt_vehicle == v), np.flatnonzero(tel_vehicle == v), int(v),
                                  delta_m, noise, velocity)
-              for v in np.unique(vehicles)]
+              for v in np.unique(rtt_vehicle)]
     # time order across vehicles; heapq.merge keeps each vehicle's own order and breaks ties by vehicle
     return list(heapq.merge(*chains, key=lambda kf: kf.t_s))
+
+
+def _vehicle_column(vehicle: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) int the records' vehicles: the log's column, zeros (one vehicle) where it has none."""
+    if vehicle is None or len(vehicle) != n:
+        return np.zeros(n, int)
+    return np.asarray(vehicle, int)
 
 
 def _vehicle_keyframes(mlog: MissionLog, rtt_ix: np.ndarray, tel_ix: np.ndarray, vehicle: int,
@@ -236,8 +241,7 @@ def _survey_odometer(mlog: MissionLog, keyframes: list[Keyframe], kf_t: np.ndarr
     closed = mlog.last_event("survey_time")
     survey_end_s = max(kf_t[-1], float(closed["t"])) if closed is not None and "t" in closed else kf_t[-1]
     kf_vehicle = np.array([kf.vehicle for kf in keyframes], int)
-    tel_vehicle = (np.asarray(mlog.tel_vehicle, int) if len(mlog.tel_vehicle) == len(mlog.tel_t_s)
-                   else np.zeros(len(mlog.tel_t_s), int))
+    tel_vehicle = _vehicle_column(mlog.tel_vehicle, len(mlog.tel_t_s))
     in_survey = (mlog.tel_t_s >= kf_t[0]) & (mlog.tel_t_s <= survey_end_s)
     kf_flown = np.zeros(len(keyframes))
     flown_m = 0.0

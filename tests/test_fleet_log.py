@@ -371,3 +371,16 @@ def test_report_draws_each_vehicles_own_track(fleet_log, tmp_path, capsys):
     assert (out / "mission.plan").is_file() and (out / "mission.vehicle1.plan").is_file()
     inp = inputs_from_replay(replay(read_mission_log(fleet_log)))
     assert inp.vehicles() == [0, 1] and len(_est_tracks(inp)) == 2
+
+
+def test_one_vehicles_ranges_use_its_own_telemetry_alone(fleet_log, tmp_path):
+    """Vehicle 1 flies and logs telemetry but ranges nobody: vehicle 0's keyframes are unchanged."""
+    lines = [line for line in fleet_log.read_text().splitlines()
+             if not (json.loads(line)["type"] == "rtt" and json.loads(line).get("vehicle") == 1)]
+    path = tmp_path / "v0.jsonl"
+    path.write_text("\n".join(lines) + "\n")
+    mlog = read_mission_log(path)
+    noise = resolve_gps_tau(read_mission_log(fleet_log), mlog.header.noise)
+    kfs = build_keyframes(mlog, noise=noise)
+    direct = _direct_keyframes(fleet_log, noise)[0]
+    assert len(kfs) == len(direct) and all(_same_keyframe(a, b) for a, b in zip(kfs, direct, strict=True))
