@@ -384,3 +384,13 @@ def test_one_vehicles_ranges_use_its_own_telemetry_alone(fleet_log, tmp_path):
     kfs = build_keyframes(mlog, noise=noise)
     direct = _direct_keyframes(fleet_log, noise)[0]
     assert len(kfs) == len(direct) and all(_same_keyframe(a, b) for a, b in zip(kfs, direct, strict=True))
+
+
+def test_delta_reselection_spaces_each_vehicles_own_keyframes(fleet_log):
+    mlog = read_mission_log(fleet_log)
+    kfs = build_keyframes(mlog, delta_m=25.0)
+    for v in (0, 1):
+        gps = np.array([kf.gps_enu_m for kf in kfs if kf.vehicle == v])
+        assert len(gps) > 5 and np.all(np.linalg.norm(np.diff(gps, axis=0), axis=1) >= 25.0)
+    # one selector over both vehicles would keep nearly every keyframe: they are 130 m apart
+    assert len(kfs) < 0.5 * len(build_keyframes(mlog))
