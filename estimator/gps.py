@@ -128,6 +128,7 @@ _CHI2_1_MEDIAN = 0.454936423119572
 
 def estimate_gps_tau_s(
     t_s: np.ndarray, pos_enu_m: np.ndarray, vel_enu_mps: np.ndarray, sigma_gps_m: float,
+    series: np.ndarray | None = None,
 ) -> float | None:
     """Correlation time τ [s] of the GPS error from fixes and the autopilot's velocity.
 
@@ -140,13 +141,23 @@ def estimate_gps_tau_s(
     so with m = median(Δβ²) / (0.455 · 2σ²) over the horizontal axes (the median resists GPS
     glitches) and Δt the median step, τ = −Δt / ln(1 − m). Returns 0.0 (white) when m says
     τ < Δt, None with fewer than TAU_MIN_PAIRS usable pairs.
+
+    series: (T,) int, which receiver each record is of (a fleet's vehicle; None: all one). A pair
+    is two consecutive records of one series (each series in the order given), and the median
+    pools every series' pairs: one τ for receivers of one kind, never a pair of two vehicles' fixes.
     """
     t = np.asarray(t_s, dtype=float)
     x = np.asarray(pos_enu_m, dtype=float)
     v = np.asarray(vel_enu_mps, dtype=float)
+    same = np.ones(max(t.shape[0] - 1, 0), dtype=bool)
+    if series is not None:
+        s = np.asarray(series)
+        order = np.argsort(s, kind="stable")
+        t, x, v, s = t[order], x[order], v[order], s[order]
+        same = s[1:] == s[:-1]
     dt = np.diff(t)
     ok = np.isfinite(v).all(axis=1)
-    use = ok[1:] & ok[:-1] & (dt > 0) & (dt < 5.0)
+    use = ok[1:] & ok[:-1] & (dt > 0) & (dt < 5.0) & same
     if int(use.sum()) < TAU_MIN_PAIRS:
         return None
     # Δβ = Δx̂ − ½ (v_i + v_(i−1)) Δt, horizontal

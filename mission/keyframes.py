@@ -20,6 +20,11 @@ before t_pos,n−1 through the first one strictly after t_pos,n (estimator.motio
 from its own records), found by bisection in the records sorted once by time. The flight
 therefore waits, when placing, for a velocity record after the trigger (:func:`velocity_covers`);
 once it has one, its records give the integral the whole log gives.
+
+In a fleet (docs/fleet.md) each vehicle's keyframes are built from that vehicle's records alone:
+its triggers, the position time of its own previous keyframe and its own telemetry velocity, so
+the displacement links a keyframe to the previous keyframe of the same vehicle; the keyframes
+carry their vehicle (`Keyframe.vehicle`, the `vehicle` argument).
 """
 
 from __future__ import annotations
@@ -131,10 +136,14 @@ def velocity_odometry(velocity: VelocityRecords, t_pos_s: np.ndarray,
 
 
 def build_keyframes_of(triggers: Sequence[TriggerRecords], origin: Origin, prev_position_t_s: float | None,
-                       velocity: VelocityRecords | None, noise: NoiseModel) -> list[Keyframe]:
+                       velocity: VelocityRecords | None, noise: NoiseModel, vehicle: int = 0) -> list[Keyframe]:
     """The keyframes of consecutive triggers' records (module docstring), each with the
     displacement from the one before (the first: from position time prev_position_t_s, none when
-    None) where `velocity` covers the gap, under the noise model's σ_v, τ_v; none without velocity."""
+    None) where `velocity` covers the gap, under the noise model's σ_v, τ_v; none without velocity.
+
+    vehicle: the vehicle (fleet index, Keyframe.vehicle) that took every one of these triggers;
+    prev_position_t_s and `velocity` must then be that vehicle's own (its previous keyframe, its
+    telemetry)."""
     if not triggers:
         return []
     gps = triggers_gps_enu_m(triggers, origin)
@@ -151,11 +160,13 @@ def build_keyframes_of(triggers: Sequence[TriggerRecords], origin: Origin, prev_
         keyframes.append(Keyframe(
             gps_enu_m=gps[i].copy(), user_idx=np.asarray(trig.user_idx).copy(),
             range_m=C_MPS * np.asarray(trig.toa_s, float), t_s=float(trig.t_s[0]),
-            odom_enu_m=disp[row].copy() if linked else None, odom_sigma_m=float(sigma[row]) if linked else None))
+            odom_enu_m=disp[row].copy() if linked else None, odom_sigma_m=float(sigma[row]) if linked else None,
+            vehicle=int(vehicle)))
     return keyframes
 
 
 def build_keyframe(trigger: TriggerRecords, origin: Origin, prev_position_t_s: float | None,
-                   velocity: VelocityRecords | None, noise: NoiseModel) -> Keyframe:
-    """The keyframe of one trigger's records: :func:`build_keyframes_of` for one trigger."""
-    return build_keyframes_of([trigger], origin, prev_position_t_s, velocity, noise)[0]
+                   velocity: VelocityRecords | None, noise: NoiseModel, vehicle: int = 0) -> Keyframe:
+    """The keyframe of one trigger's records: :func:`build_keyframes_of` for one trigger (of
+    vehicle `vehicle`, with that vehicle's previous position time and velocity records)."""
+    return build_keyframes_of([trigger], origin, prev_position_t_s, velocity, noise, vehicle)[0]

@@ -5,6 +5,12 @@ at most the line being written. Reader: :func:`read_mission_log` accepts any fil
 table in docs/design.md §10; a torn last line (no newline, not JSON) is skipped with a warning; anything
 else malformed raises :class:`MissionLogError` naming the line number and the reason, also
 telemetry records out of time order (a shuffled or spliced log: refused, not sorted).
+
+A fleet's log (docs/fleet.md) lists its vehicles in the header (`vehicles`, index = vehicle
+number) and names the vehicle of each `telemetry`, `rtt`, `waypoint` and `event` record
+(`"vehicle": <index>`; absent: vehicle 0, so a one-vehicle log is as before). The reader keeps
+each rtt and telemetry record's vehicle (:attr:`MissionLog.rtt_vehicle`, :attr:`MissionLog.tel_vehicle`)
+and checks every time order per vehicle: each vehicle's records are a track of their own.
 """
 
 from __future__ import annotations
@@ -148,9 +154,17 @@ class MissionLogWriter:
         config: dict | None = None,
         start_utc: str | None = None,
         area: dict | None = None,
+        vehicles: list[dict] | None = None,
     ) -> dict:
         """Write the header line: users as [{"id", "rnti", "ground_alt_m"}], radio {"mu", "fs_hz"};
-        `area`: the optional geofence / no-fly / altitude-band / buildings fields (:func:`area_fields`)."""
+        `area`: the optional geofence / no-fly / altitude-band / buildings fields (:func:`area_fields`,
+        or mission.config's `header_fields`, whose fleet `vehicles` carry each one's altitude band).
+
+        `vehicles` (a fleet only; None or empty for one vehicle): [{"id", "home"}, ...], index =
+        vehicle number, `home` an :class:`Origin` or {"lat_deg", "lon_deg", "alt_m"}: the vehicle's
+        own home (the header's `origin` stays the mission's ENU origin, vehicle 0's home). Merged
+        by index with the `vehicles` of `area` when both are given (their ids must agree and their
+        counts match), so each entry holds id, home and band."""
         fields: dict[str, Any] = {
             "format": FORMAT,
             "start_utc": start_utc or datetime.now(UTC).isoformat(timespec="milliseconds"),
@@ -164,7 +178,29 @@ class MissionLogWriter:
             fields["config"] = config
         if area:
             fields.update(area)
+        if vehicles:
+            fields["vehicles"] = _merge_vehicles(vehicles, fields.get("vehicles"))
         return self.write("header", 0.0, **fields)
+
+
+def _merge_vehicles(vehicles: list[dict], banded: list[dict] | None) -> list[dict]:
+    """The header's `vehicles`: write_header's [{"id", "home"}] merged by index with the area's
+    [{"id", "alt_min_m", "alt_max_m"}] (None: none). Raises MissionLogError when they disagree."""
+    out = []
+    if banded is not None and len(banded) != len(vehicles):
+        raise MissionLogError(f"header vehicles: {len(vehicles)} given, but the area fields list {len(banded)}")
+    for i, v in enumerate(vehicles):
+        if not isinstance(v, dict) or not isinstance(v.get("id"), str) or not v["id"]:
+            raise MissionLogError(f"header vehicles[{i}] needs a string 'id', got {v!r}")
+        entry: dict[str, Any] = dict(banded[i]) if banded is not None else {}
+        if entry.get("id", v["id"]) != v["id"]:
+            raise MissionLogError(f"header vehicles[{i}] is {v['id']!r} here and {entry['id']!r} in the area fields")
+        entry.update(v)
+        home = entry.get("home")
+        if isinstance(home, Origin):
+            entry["home"] = home.to_dict()
+        out.append(entry)
+    return out
 
 
 def _ring_lat_lon(origin: Origin, ring_en_m) -> list[list[float]]:
@@ -224,6 +260,17 @@ class LogUser:
 
 
 @dataclass(frozen=True)
+class LogVehicle:
+    """A fleet's vehicle as its log header lists it: its id, its own home (None when not logged)
+    and its altitude band above the mission's home [m] (None when not logged)."""
+
+    id: str
+    home: Origin | None = None
+    alt_min_m: float | None = None
+    alt_max_m: float | None = None
+
+
+@dataclass(frozen=True)
 class LogHeader:
     start_utc: str
     origin: Origin
@@ -241,9 +288,16 @@ class LogHeader:
     altitude_band_m: dict | None = None
     max_distance_m: float | None = None
     buildings: list[dict] = field(default_factory=list)
+    #: a fleet's vehicles, index = vehicle number (empty: one vehicle, vehicle 0)
+    vehicles: list[LogVehicle] = field(default_factory=list)
 
     def user_index(self) -> dict[str, int]:
         return {u.id: i for i, u in enumerate(self.users)}
+
+    @property
+    def n_vehicles(self) -> int:
+        """How many vehicles the mission flew: the header's `vehicles`, or 1 without them."""
+        return max(1, len(self.vehicles))
 
 
 @dataclass
@@ -252,11 +306,13 @@ class MissionLog:
 
     rtt_*: one entry per `rtt` record, in file order: rtt_t_s (M,), rtt_user (M,) user indices,
     rtt_uav_lla (M, 3) lat_deg/lon_deg/alt_m, rtt_toa_s (M,), rtt_raw: list of the raw-field dicts.
-    tel_t_s (T,), tel_lla (T, 3): telemetry; tel_vel_ned_mps (T, 3): the autopilot's velocity
-    (north, east, down) [m/s], NaN rows where a record has none; tel_status: the vehicle's health
-    each telemetry record carries (all fields None in a log written before them). truth_lla: (K, 3)
-    or None (NaN rows for users absent). t_start_s: the header's time; t_last_s: the last record's
-    time [s].
+    rtt_vehicle (M,): each rtt record's vehicle (0 where a record names none).
+    tel_t_s (T,), tel_lla (T, 3): telemetry; tel_vehicle (T,): its vehicle (0 where it names none),
+    each vehicle's records a track of their own (:meth:`vehicle_telemetry`); tel_vel_ned_mps (T, 3):
+    the autopilot's velocity (north, east, down) [m/s], NaN rows where a record has none;
+    tel_status: the vehicle's health each telemetry record carries (all fields None in a log
+    written before them). truth_lla: (K, 3) or None (NaN rows for users absent). t_start_s: the
+    header's time; t_last_s: the last record's time [s].
     """
 
     path: Path
@@ -277,6 +333,17 @@ class MissionLog:
     skipped_torn_line: int | None = None
     t_start_s: float = 0.0
     t_last_s: float = 0.0
+    rtt_vehicle: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    tel_vehicle: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+
+    @property
+    def n_vehicles(self) -> int:
+        """How many vehicles the mission flew (LogHeader.n_vehicles)."""
+        return self.header.n_vehicles
+
+    def vehicle_telemetry(self, vehicle: int) -> np.ndarray:
+        """(T_v,) indices of vehicle `vehicle`'s telemetry records, in file (= its time) order."""
+        return np.flatnonzero(self.tel_vehicle == vehicle)
 
     def last_event(self, kind: str) -> dict | None:
         """The last `event` record of this kind, or None."""
@@ -371,7 +438,53 @@ def _parse_header(obj: dict) -> LogHeader:
     if not isinstance(start, str):
         raise _LineError(f"start_utc must be a string, got {start!r}")
     return LogHeader(start, Origin(lat, lon, alt), users, mu, fs, noise, noise_d is not None,
-                     config if isinstance(config, dict) else {"value": config}, **_parse_area(obj))
+                     config if isinstance(config, dict) else {"value": config}, **_parse_area(obj),
+                     vehicles=_parse_vehicles(obj))
+
+
+def _parse_vehicles(obj: dict) -> list[LogVehicle]:
+    """The header's optional fleet `vehicles` [{"id", "home"?, "alt_min_m"?, "alt_max_m"?}]."""
+    if "vehicles" not in obj:
+        return []
+    vs = obj["vehicles"]
+    if not isinstance(vs, list) or not vs:
+        raise _LineError(f"field 'vehicles' must be a non-empty list, got {vs!r}")
+    out = []
+    for i, v in enumerate(vs):
+        if not isinstance(v, dict) or not isinstance(v.get("id"), str) or not v["id"]:
+            raise _LineError(f"vehicles[{i}] needs a string 'id', got {v!r}")
+        home = None
+        if "home" in v:
+            home = Origin(*_lla(_table(v, "home"), f"vehicles[{i}].home"))
+        try:
+            lo = _num(v, "alt_min_m", -1000, 100_000, required=False)
+            hi = _num(v, "alt_max_m", -1000, 100_000, required=False)
+        except _LineError as exc:
+            raise _LineError(f"vehicles[{i}]: {exc}") from None
+        if lo is not None and hi is not None and lo > hi:
+            raise _LineError(f"vehicles[{i}]: alt_min_m {lo} is above alt_max_m {hi}")
+        out.append(LogVehicle(v["id"], home, lo, hi))
+    if len({v.id for v in out}) != len(out):
+        raise _LineError("vehicle ids in the header are not unique")
+    return out
+
+
+#: record types that name their vehicle in a fleet's log (`"vehicle": <index>`; absent: 0)
+VEHICLE_RECORD_TYPES = ("telemetry", "rtt", "waypoint", "event")
+
+
+def _vehicle(obj: dict, header: LogHeader) -> int:
+    """The record's vehicle index: its `vehicle` field, 0 when absent; an integer within the
+    header's vehicles (0 alone without them)."""
+    v = obj.get("vehicle", 0)
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise _LineError(f"field 'vehicle' must be an integer vehicle index, got {v!r}")
+    n = header.n_vehicles
+    if not 0 <= v < n:
+        listed = (f"the header lists {n} vehicles (0..{n - 1})" if header.vehicles
+                  else "the header lists no vehicles (one vehicle: 0)")
+        raise _LineError(f"field 'vehicle' = {v!r} is out of range: {listed}")
+    return v
 
 
 def _ring(v: Any, what: str) -> list[list[float]]:
@@ -502,13 +615,14 @@ def read_mission_log(path: str | Path) -> MissionLog:
 
     header: LogHeader | None = None
     user_ix: dict[str, int] = {}
-    rtt_t, rtt_user, rtt_lla, rtt_toa, rtt_raw = [], [], [], [], []
-    tel_t, tel_lla, tel_vel, tel_status = [], [], [], []
+    rtt_t, rtt_user, rtt_lla, rtt_toa, rtt_raw, rtt_veh = [], [], [], [], [], []
+    tel_t, tel_lla, tel_vel, tel_status, tel_veh = [], [], [], [], []
     truth: np.ndarray | None = None
     estimates, waypoints, events = [], [], []
     torn: int | None = None
     t_start = t_last = 0.0
-    last_t: dict[str, tuple[float, int]] = {}  # record type -> (time, line) of the latest one
+    # (record type, vehicle) -> (time, line) of the latest one
+    last_t: dict[tuple[str, int], tuple[float, int]] = {}
     with fh:
         try:
             for lineno, obj, _line in iter_log_objects(fh, path):
@@ -530,22 +644,24 @@ def read_mission_log(path: str | Path) -> MissionLog:
                         continue
                     if rtype == "header":
                         raise _LineError("a second header")
+                    vehicle = _vehicle(obj, header) if rtype in VEHICLE_RECORD_TYPES else 0
                     if rtype in TIME_ORDERED_TYPES:
-                        prev = last_t.get(rtype)
+                        prev = last_t.get((rtype, vehicle))
                         if prev is not None and t < prev[0]:
-                            raise _LineError(f"{rtype} record at t = {t:g} s is earlier than the one on line "
+                            whose = f" of vehicle {vehicle}" if header.vehicles else ""
+                            raise _LineError(f"{rtype} record{whose} at t = {t:g} s is earlier than the one on line "
                                              f"{prev[1]} (t = {prev[0]:g} s): the log is out of time order "
                                              "(refused, not sorted: its track would be one never flown)")
-                        last_t[rtype] = (t, lineno)
+                        last_t[(rtype, vehicle)] = (t, lineno)
                     if rtype == "rtt":
-                        prev = last_t.get("rtt")
+                        prev = last_t.get(("rtt", vehicle))
                         if prev is not None and t < prev[0] - RTT_DISORDER_MAX_S:
                             raise _LineError(
                                 f"rtt record at t = {t:g} s is {prev[0] - t:.1f} s earlier than the one on line "
                                 f"{prev[1]} (t = {prev[0]:g} s): range records out of time order by more than "
                                 f"{RTT_DISORDER_MAX_S:g} s (refused, not sorted: a shuffled or spliced log)")
                         if prev is None or t > prev[0]:
-                            last_t["rtt"] = (t, lineno)
+                            last_t[("rtt", vehicle)] = (t, lineno)
                         uid = obj.get("user")
                         if uid not in user_ix:
                             raise _LineError(f"rtt for unknown user {uid!r}; header users: {sorted(user_ix)}")
@@ -556,6 +672,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
                         rtt_lla.append(uav)
                         rtt_toa.append(toa)
                         rtt_raw.append(raw)
+                        rtt_veh.append(vehicle)
                     elif rtype == "telemetry":
                         tel_t.append(t)
                         tel_lla.append(_lla(obj, "telemetry"))
@@ -564,10 +681,11 @@ def read_mission_log(path: str | Path) -> MissionLog:
                             tel_status.append(VehicleStatus.from_record(obj))
                         except UavlocError as exc:
                             raise _LineError(str(exc)) from None
+                        tel_veh.append(vehicle)
                     elif rtype == "truth":
                         truth = _parse_truth(obj, user_ix) if truth is None else truth
                     elif rtype == "estimate":
-                        _check_estimate(obj, user_ix)
+                        _check_estimate(obj, user_ix, header)
                         estimates.append(obj)
                     elif rtype == "waypoint":
                         waypoints.append(obj)
@@ -601,6 +719,8 @@ def read_mission_log(path: str | Path) -> MissionLog:
         skipped_torn_line=torn,
         t_start_s=t_start,
         t_last_s=t_last,
+        rtt_vehicle=np.asarray(rtt_veh, int),
+        tel_vehicle=np.asarray(tel_veh, int),
     )
 
 
@@ -616,7 +736,7 @@ def _parse_truth(obj: dict, user_ix: dict[str, int]) -> np.ndarray:
     return out
 
 
-def _check_estimate(obj: dict, user_ix: dict[str, int]) -> None:
+def _check_estimate(obj: dict, user_ix: dict[str, int], header: LogHeader) -> None:
     users = obj.get("users")
     if not isinstance(users, list):
         raise _LineError(f"estimate 'users' must be a list, got {users!r}")
@@ -634,3 +754,16 @@ def _check_estimate(obj: dict, user_ix: dict[str, int]) -> None:
         shift = u.get("nlos_shift_m", 0.0)
         if isinstance(shift, bool) or not isinstance(shift, int | float) or not (math.isfinite(shift) and shift >= 0):
             raise _LineError(f"estimate users[{i}].nlos_shift_m must be a finite number >= 0, got {shift!r}")
+    if "uav_vehicle" in obj:
+        uv = obj["uav_vehicle"]
+        if not isinstance(uv, list):
+            raise _LineError(f"estimate uav_vehicle must be a list of vehicle indices, got {uv!r}")
+        uav = obj.get("uav_lla")
+        if not isinstance(uav, list) or len(uav) != len(uv):
+            n_uav = len(uav) if isinstance(uav, list) else "no"
+            raise _LineError(f"estimate uav_vehicle has {len(uv)} entries but uav_lla has {n_uav}: they are parallel")
+        for i, v in enumerate(uv):
+            try:
+                _vehicle({"vehicle": v}, header)
+            except _LineError as exc:
+                raise _LineError(f"estimate uav_vehicle[{i}]: {exc}") from None

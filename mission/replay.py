@@ -8,10 +8,16 @@ spaced them Δ apart); `delta_m` re-selects keyframes at a spacing of Δ metres.
 The final estimate is the batch solution over all keyframes; the history (error bound, and error
 when the log holds `truth`, against metres flown) is the estimate a mission acts on as it would
 have evolved during the flight: the batch refreshed on estimator.refresh's schedule.
+
+A fleet's log (docs/fleet.md; records naming their `vehicle`) replays as the fleet flew: each
+vehicle's keyframes are built from its own records (its triggers, its previous keyframe, its own
+telemetry velocity), the keyframes carry their vehicle, and the estimator chains each vehicle's
+keyframes apart. The metres flown are every vehicle's together, each over its own track.
 """
 
 from __future__ import annotations
 
+import heapq
 import logging
 import math
 import re
@@ -70,11 +76,13 @@ class ReplayHistory:
 class ReplayResult:
     """Outcome of a replay.
 
-    keyframes: the N keyframes used (GPS prior in ENU, user indices, ranges [m]).
+    keyframes: the N keyframes used (GPS prior in ENU, user indices, ranges [m], vehicle), in time
+        order (each vehicle's in its own order).
     kf_gps_enu_m (N, 3), kf_t_s (N,). estimate: the batch estimate over all keyframes.
     truth_enu_m (K, 3) or None; error_m (K,) horizontal error per user when truth is known.
     flown_m: survey metres: odometer (dead band max(5 m, 8 σ_gps)) over the telemetry between the first and the
-        last range (over the keyframes without telemetry) [m].
+        last range (over the keyframes without telemetry) [m]; a fleet's, the sum of each vehicle's
+        odometer over its own track.
     """
 
     log: MissionLog
@@ -126,7 +134,11 @@ def solver_params_from_header(mlog: MissionLog) -> SolverParams:
 def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
     """The noise model with a GPS correlation time: the given one, else estimated from the log's
     telemetry velocity (estimator.gps.estimate_gps_tau_s), else left unknown (the estimator then
-    assumes estimator.noise.DEFAULT_GPS_TAU_S)."""
+    assumes estimator.noise.DEFAULT_GPS_TAU_S).
+
+    A fleet's telemetry is never mixed: each pair of fixes the estimate uses is two consecutive
+    records of one vehicle, and the median pools every vehicle's pairs into one τ (the estimator
+    holds one τ; the vehicles' receivers are of one kind). One vehicle: as before."""
     if noise.gps_tau_s is not None:
         return noise
     vel = mlog.tel_vel_ned_mps
@@ -136,7 +148,9 @@ def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
         pos = origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
         # NED -> ENU
         vel_enu = np.column_stack([vel[:, 1], vel[:, 0], -vel[:, 2]])
-        tau = estimate_gps_tau_s(mlog.tel_t_s, pos, vel_enu, noise.sigma_gps_m)
+        vehicles = _vehicle_column(mlog.tel_vehicle, len(mlog.tel_t_s))
+        series = vehicles if vehicles.any() else None
+        tau = estimate_gps_tau_s(mlog.tel_t_s, pos, vel_enu, noise.sigma_gps_m, series)
     if tau is None:
         log.info("%s: no gps_tau_s in the header and no telemetry velocity to estimate it: assuming %.0f s",
                  mlog.path, noise.gps_tau_used_s)
@@ -150,40 +164,105 @@ def build_keyframes(mlog: MissionLog, delta_m: float | None = None, noise: Noise
     """Group the log's rtt records into triggers and build each one's keyframe
     (mission.keyframes.build_keyframes_of, the flight's builder), optionally re-selected at Δ spacing.
 
-    A group is consecutive records with no user twice that share their first record's UAV position
-    exactly (uavloc writes one position per trigger, however long the trigger's measurements took
-    in vehicle seconds), or, in logs of other tools, lie within GROUP_RADIUS_M and GROUP_WINDOW_S of it.
+    A group is consecutive records of one vehicle (consecutive among that vehicle's records) with no
+    user twice that share their first record's UAV position exactly (uavloc writes one position per
+    trigger, however long the trigger's measurements took in vehicle seconds), or, in logs of other
+    tools, lie within GROUP_RADIUS_M and GROUP_WINDOW_S of it. A group never mixes vehicles.
 
     With `velocity` and telemetry that carries `vel_ned_mps`, each keyframe also gets the
-    displacement from the one kept before it and its σ (under `noise`, the header's when None);
-    none where the records do not cover the gap.
+    displacement from the one of its vehicle kept before it, integrated from that vehicle's
+    telemetry, and its σ (under `noise`, the header's when None); none where the records do not
+    cover the gap. Δ re-selection keeps each vehicle's keyframes Δ apart along its own track.
+
+    Returns the keyframes with their vehicle (Keyframe.vehicle), in time order: the vehicles'
+    sequences merged by each keyframe's time (its first record's), each vehicle's keyframes in
+    the order of its records (a one-vehicle log: exactly its groups' order, as before).
     """
     if len(mlog.rtt_t_s) == 0:
         return []
+    noise = noise if noise is not None else mlog.header.noise
+    rtt_vehicle = _vehicle_column(mlog.rtt_vehicle, len(mlog.rtt_t_s))
+    tel_vehicle = _vehicle_column(mlog.tel_vehicle, len(mlog.tel_t_s))
+    chains = [_vehicle_keyframes(mlog, np.flatnonzero(rtt_vehicle == v), np.flatnonzero(tel_vehicle == v), int(v),
+                                 delta_m, noise, velocity)
+              for v in np.unique(rtt_vehicle)]
+    # time order across vehicles; heapq.merge keeps each vehicle's own order and breaks ties by vehicle
+    return list(heapq.merge(*chains, key=lambda kf: kf.t_s))
+
+
+def _vehicle_column(vehicle: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) int the records' vehicles: the log's column, zeros (one vehicle) where it has none."""
+    if vehicle is None or len(vehicle) != n:
+        return np.zeros(n, int)
+    return np.asarray(vehicle, int)
+
+
+def _vehicle_keyframes(mlog: MissionLog, rtt_ix: np.ndarray, tel_ix: np.ndarray, vehicle: int,
+                       delta_m: float | None, noise: NoiseModel, velocity: bool) -> list[Keyframe]:
+    """The keyframes of one vehicle (:func:`build_keyframes`) from its rtt records rtt_ix (R,) and
+    its telemetry records tel_ix (T,), both indices into the log's arrays in file order."""
+    if rtt_ix.size == 0:
+        return []
     origin = mlog.header.origin
-    pos = origin.lla_to_enu(mlog.rtt_uav_lla[:, 0], mlog.rtt_uav_lla[:, 1], mlog.rtt_uav_lla[:, 2])
+    rtt_lla = mlog.rtt_uav_lla[rtt_ix]
+    rtt_t, rtt_user = mlog.rtt_t_s[rtt_ix], mlog.rtt_user[rtt_ix]
+    pos = origin.lla_to_enu(rtt_lla[:, 0], rtt_lla[:, 1], rtt_lla[:, 2])
     groups: list[list[int]] = []
-    for i in range(len(mlog.rtt_t_s)):
+    for i in range(len(rtt_ix)):
         if groups:
             g = groups[-1]
             first = g[0]
-            same_uav = bool(np.array_equal(mlog.rtt_uav_lla[i], mlog.rtt_uav_lla[first]))
+            same_uav = bool(np.array_equal(rtt_lla[i], rtt_lla[first]))
             near = (np.linalg.norm(pos[i] - pos[first]) <= GROUP_RADIUS_M
-                    and abs(mlog.rtt_t_s[i] - mlog.rtt_t_s[first]) <= GROUP_WINDOW_S)
-            if (same_uav or near) and mlog.rtt_user[i] not in mlog.rtt_user[g]:
+                    and abs(rtt_t[i] - rtt_t[first]) <= GROUP_WINDOW_S)
+            if (same_uav or near) and rtt_user[i] not in rtt_user[g]:
                 g.append(i)
                 continue
         groups.append([i])
     vel = mlog.tel_vel_ned_mps
-    records = VelocityRecords.from_ned(mlog.tel_t_s, vel) if velocity and vel is not None and len(vel) else None
-    noise = noise if noise is not None else mlog.header.noise
-    triggers = [TriggerRecords(t_s=mlog.rtt_t_s[idx], user_idx=mlog.rtt_user[idx], uav_lla=mlog.rtt_uav_lla[idx],
-                               toa_s=mlog.rtt_toa_s[idx]) for idx in map(np.asarray, groups)]
+    records = (VelocityRecords.from_ned(mlog.tel_t_s[tel_ix], vel[tel_ix])
+               if velocity and vel is not None and len(vel) and tel_ix.size else None)
+    triggers = [TriggerRecords(t_s=rtt_t[idx], user_idx=rtt_user[idx], uav_lla=rtt_lla[idx],
+                               toa_s=mlog.rtt_toa_s[rtt_ix][idx]) for idx in map(np.asarray, groups)]
     if delta_m:
         selector = KeyframeSelector(delta_m)
         gps = triggers_gps_enu_m(triggers, origin)
         triggers = [t for t, g in zip(triggers, gps, strict=True) if selector.accept(g)]
-    return build_keyframes_of(triggers, origin, None, records, noise)
+    return build_keyframes_of(triggers, origin, None, records, noise, vehicle)
+
+
+def _survey_odometer(mlog: MissionLog, keyframes: list[Keyframe], kf_t: np.ndarray, kf_gps: np.ndarray,
+                     noise: NoiseModel) -> tuple[np.ndarray, float]:
+    """(metres flown at each keyframe (N,), survey metres) by odometer, as the controller counts
+    them (replay's docstring). A fleet's: each vehicle's odometer over its own telemetry (or its own
+    keyframes), summed; the survey window (first keyframe to the survey's end) is the mission's."""
+    band_m = odometer_dead_band_m(noise.sigma_gps_m)
+    origin = mlog.header.origin
+    closed = mlog.last_event("survey_time")
+    survey_end_s = max(kf_t[-1], float(closed["t"])) if closed is not None and "t" in closed else kf_t[-1]
+    kf_vehicle = np.array([kf.vehicle for kf in keyframes], int)
+    tel_vehicle = _vehicle_column(mlog.tel_vehicle, len(mlog.tel_t_s))
+    in_survey = (mlog.tel_t_s >= kf_t[0]) & (mlog.tel_t_s <= survey_end_s)
+    kf_flown = np.zeros(len(keyframes))
+    flown_m = 0.0
+    for v in np.unique(np.concatenate([kf_vehicle, tel_vehicle[in_survey]])):
+        mine = in_survey & (tel_vehicle == v)
+        own_kf = kf_vehicle == v
+        if np.count_nonzero(mine) >= 2:
+            tel = mlog.tel_lla[mine]
+            cum = odometer_m(origin.lla_to_enu(tel[:, 0], tel[:, 1], tel[:, 2]), band_m)
+            kf_flown += np.interp(kf_t, mlog.tel_t_s[mine], cum)
+            flown_m += float(cum[-1])
+        elif own_kf.any():
+            # its keyframes' odometer, held from each of its keyframes to its next (0 before its first)
+            cum = odometer_m(kf_gps[own_kf], band_m)
+            if own_kf.all():
+                kf_flown += cum
+            else:
+                at = np.searchsorted(kf_t[own_kf], kf_t, side="right") - 1
+                kf_flown += np.where(at >= 0, cum[np.maximum(at, 0)], 0.0)
+            flown_m += float(cum[-1])
+    return kf_flown, flown_m
 
 
 def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
@@ -209,18 +288,8 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
     # over the telemetry of the survey (from the first range to the `survey_time` event that closes
     # it, or to the last range in a log without one; the survey flies on for the seconds the final
     # answer takes to confirm), else over the keyframes
-    band_m = odometer_dead_band_m(noise.sigma_gps_m)
+    kf_flown, flown_m = _survey_odometer(mlog, keyframes, kf_t, kf_gps, noise)
     closed = mlog.last_event("survey_time")
-    survey_end_s = max(kf_t[-1], float(closed["t"])) if closed is not None and "t" in closed else kf_t[-1]
-    in_survey = (mlog.tel_t_s >= kf_t[0]) & (mlog.tel_t_s <= survey_end_s)
-    if np.count_nonzero(in_survey) >= 2:
-        tel = mlog.tel_lla[in_survey]
-        cum = odometer_m(origin.lla_to_enu(tel[:, 0], tel[:, 1], tel[:, 2]), band_m)
-        kf_flown = np.interp(kf_t, mlog.tel_t_s[in_survey], cum)
-        flown_m = float(cum[-1])
-    else:
-        kf_flown = odometer_m(kf_gps, band_m)
-        flown_m = float(kf_flown[-1])
     if closed is not None and isinstance(closed.get("flown_m"), int | float) and math.isfinite(closed["flown_m"]):
         # the controller's own count, from every fix of its legs (the log's telemetry is a sample)
         flown_m = float(closed["flown_m"])

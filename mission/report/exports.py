@@ -154,12 +154,15 @@ def geojson_document(inp: ReportInputs) -> dict:
             if np.all(np.isfinite(t)):
                 geom = {"type": "Point", "coordinates": _lonlatalt(inp.origin, t)[0]}
                 feats.append({"type": "Feature", "geometry": geom, "properties": {"kind": "user_truth", "id": uid}})
-    tracks = [("gps_track", inp.track_enu_m()), ("estimated_uav_track", inp.uav_enu_m),
-              ("waypoints", inp.waypoints_enu_m)]
-    for kind, pts in tracks:
-        if pts is not None and len(pts) >= 2:
-            geom = {"type": "LineString", "coordinates": _lonlatalt(inp.origin, pts)}
-            feats.append({"type": "Feature", "geometry": geom, "properties": {"kind": kind, "points": len(pts)}})
+    fleet = len(inp.vehicles()) > 1
+    for v in inp.vehicles():  # a fleet's tracks: one line per vehicle, each naming its vehicle
+        tracks = [("gps_track", inp.track_enu_m(v)), ("estimated_uav_track", inp.uav_track_enu_m(v)),
+                  ("waypoints", inp.waypoints_of(v))]
+        for kind, pts in tracks:
+            if pts is not None and len(pts) >= 2:
+                geom = {"type": "LineString", "coordinates": _lonlatalt(inp.origin, pts)}
+                props = {"kind": kind, "points": len(pts), **({"vehicle": v} if fleet else {})}
+                feats.append({"type": "Feature", "geometry": geom, "properties": props})
     feats += _shape_features(inp.shapes)
     props = {"title": inp.title, "status": inp.result.status, "flown_m": _num(inp.result.flown_m, 1)}
     if inp.shapes.altitude_band_m is not None:
@@ -233,9 +236,12 @@ def kml_document(inp: ReportInputs) -> str:
                 pt = ET.SubElement(pm, "Point")
                 ET.SubElement(pt, "altitudeMode").text = "absolute"
                 ET.SubElement(pt, "coordinates").text = _kml_coords(_lonlatalt(inp.origin, t))
-    for name, style, pts in (("GPS track", "track", inp.track_enu_m()),
-                             ("estimated UAV track", "estimate", inp.uav_enu_m),
-                             ("waypoints", "waypoints", inp.waypoints_enu_m)):
+    fleet = len(inp.vehicles()) > 1
+    lines = [(f"{name} (vehicle {v})" if fleet else name, style, pts) for v in inp.vehicles()
+             for name, style, pts in (("GPS track", "track", inp.track_enu_m(v)),
+                                      ("estimated UAV track", "estimate", inp.uav_track_enu_m(v)),
+                                      ("waypoints", "waypoints", inp.waypoints_of(v)))]
+    for name, style, pts in lines:
         if pts is None or len(pts) < 2:
             continue
         pm = placemark(name, style)
@@ -396,15 +402,17 @@ def qgc_plan(
 
 
 def plan_from_inputs(inp: ReportInputs, tolerance_m: float = 2.0, max_waypoints: int = 500,
-                     min_height_m: float = 2.0, **kwargs: Any) -> dict:
+                     min_height_m: float = 2.0, vehicle: int = 0, **kwargs: Any) -> dict:
     """Plan of the mission's waypoints when it logged any, else of the flown GPS track simplified
     to within `tolerance_m` (points less than `min_height_m` above home — take-off and landing —
     are left out; the tolerance doubles until at most `max_waypoints` remain). The log's geofence
-    and no-fly zones become the plan's inclusion and exclusion polygons."""
-    if inp.waypoints_enu_m is not None and len(inp.waypoints_enu_m):
-        pts = inp.waypoints_enu_m
+    and no-fly zones become the plan's inclusion and exclusion polygons. A plan is one vehicle's:
+    `vehicle`'s waypoints or track (a fleet gets one plan per vehicle, :func:`write_exports`)."""
+    waypoints = inp.waypoints_of(vehicle)
+    if waypoints is not None and len(waypoints):
+        pts = waypoints
     else:
-        track = inp.track_enu_m()
+        track = inp.track_enu_m(vehicle)
         track = track[track[:, 2] >= min_height_m] if np.any(track[:, 2] >= min_height_m) else track
         tol = tolerance_m
         pts = simplify_track_m(track, tol)
@@ -436,10 +444,16 @@ def _write_text(path: str | Path, text: str) -> Path:
 
 
 def write_exports(inp: ReportInputs, out_dir: str | Path, stem: str = "mission") -> dict[str, Path]:
-    """Write `<stem>.geojson`, `<stem>.kml` and `<stem>.plan` into `out_dir`."""
+    """Write `<stem>.geojson`, `<stem>.kml` and `<stem>.plan` into `out_dir`; a fleet's plans are
+    one per vehicle, `<stem>.plan` vehicle 0's and `<stem>.vehicle<v>.plan` (key `plan_vehicle<v>`)
+    each other one's."""
     out = Path(out_dir)
-    return {
+    paths = {
         "geojson": write_geojson(inp, out / f"{stem}.geojson"),
         "kml": write_kml(inp, out / f"{stem}.kml"),
         "plan": write_plan(plan_from_inputs(inp), out / f"{stem}.plan"),
     }
+    for v in inp.vehicles():
+        if v != 0:
+            paths[f"plan_vehicle{v}"] = write_plan(plan_from_inputs(inp, vehicle=v), out / f"{stem}.vehicle{v}.plan")
+    return paths

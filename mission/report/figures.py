@@ -113,8 +113,21 @@ def _user_colors(k: int) -> list:
     return [cmap(i % 10) for i in range(k)]
 
 
-def _est_track(inp: ReportInputs) -> EstimatedTrack | None:
-    return estimated_track(inp.kf_t_s, inp.kf_gps_enu_m, inp.uav_enu_m, inp.tel_t_s, inp.tel_enu_m)
+def _est_tracks(inp: ReportInputs) -> list[EstimatedTrack]:
+    """Each vehicle's :class:`EstimatedTrack`, from its own keyframes and telemetry."""
+    out = []
+    for v in inp.vehicles():
+        kf = inp.vehicle_rows(inp.kf_vehicle, len(inp.kf_t_s), v)
+        if not kf.any():
+            continue
+        tel_t = tel_enu = None
+        if inp.tel_t_s is not None and inp.tel_enu_m is not None:
+            tel = inp.vehicle_rows(inp.tel_vehicle, len(inp.tel_t_s), v)
+            tel_t, tel_enu = inp.tel_t_s[tel], inp.tel_enu_m[tel]
+        est = estimated_track(inp.kf_t_s[kf], inp.kf_gps_enu_m[kf], inp.uav_track_enu_m(v), tel_t, tel_enu)
+        if est is not None:
+            out.append(est)
+    return out
 
 
 def _en_ring(inp: ReportInputs, ring_lat_lon_deg: np.ndarray) -> np.ndarray:
@@ -125,12 +138,15 @@ def _en_ring(inp: ReportInputs, ring_lat_lon_deg: np.ndarray) -> np.ndarray:
 
 
 def _plot_tracks(ax, inp: ReportInputs, cols: tuple[int, ...]) -> None:
-    """GPS track, estimated track and its part past the last keyframe, on the columns `cols` of ENU."""
-    track = inp.track_enu_m()
-    ax.plot(*(track[:, c] for c in cols), "-", color="0.6", lw=1.0, label="GPS track")
-    est = _est_track(inp)
-    if est is None:
-        return
+    """GPS track, estimated track and its part past the last keyframe, on the columns `cols` of ENU;
+    a fleet's, one line of each per vehicle."""
+    for _, track in inp.tracks_enu_m():
+        ax.plot(*(track[:, c] for c in cols), "-", color="0.6", lw=1.0, label="GPS track")
+    for est in _est_tracks(inp):
+        _plot_est_track(ax, est, cols)
+
+
+def _plot_est_track(ax, est: EstimatedTrack, cols: tuple[int, ...]) -> None:
     if len(est.before_enu_m):
         ax.plot(*(est.before_enu_m[:, c] for c in cols), "--", color="tab:blue", lw=1.0, alpha=0.8,
                 label=BEFORE_FIRST_LABEL)
@@ -143,9 +159,7 @@ def _plot_tracks(ax, inp: ReportInputs, cols: tuple[int, ...]) -> None:
 def _flight_points(inp: ReportInputs) -> np.ndarray:
     """(P, 3) ENU [m] of what every view must show: the tracks, waypoints, home and the users."""
     pts = [inp.track_enu_m(), np.zeros((1, 3)), inp.users_enu_m]
-    est = _est_track(inp)
-    if est is not None:
-        pts.append(est.all_enu_m())
+    pts += [est.all_enu_m() for est in _est_tracks(inp)]
     if inp.truth_enu_m is not None:
         pts.append(inp.truth_enu_m)
     if inp.waypoints_enu_m is not None:

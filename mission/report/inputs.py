@@ -191,6 +191,9 @@ class ReportInputs:
     the GPS position it was taken at.
     hist_flown_m (H,), hist_bound_95_m (H, K), hist_error_m (H, K) or None: how the estimate evolved.
     waypoints_enu_m (W, 3) or None: the planner's waypoints, if the mission logged them.
+    kf_vehicle (N,), tel_vehicle (T,), waypoints_vehicle (W,): each keyframe's, telemetry fix's and
+    waypoint's vehicle in a fleet (docs/fleet.md; None: one vehicle, vehicle 0). Each vehicle's
+    track is its own: draw it with :meth:`tracks_enu_m` and :meth:`vehicle_rows`, never as one line.
     title: the report's title; extra: report-only facts for report.json's `extra`.
     facts: what mission this is (:class:`MissionFacts`, the log header's), or None (not from a log).
     shapes: the geofence, no-fly zones, altitude band and buildings of the log header (empty when
@@ -216,6 +219,9 @@ class ReportInputs:
     extra: dict = field(default_factory=dict)
     shapes: MissionShapes = field(default_factory=lambda: MissionShapes())
     facts: MissionFacts | None = None
+    kf_vehicle: np.ndarray | None = None
+    tel_vehicle: np.ndarray | None = None
+    waypoints_vehicle: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.result.origin is None:
@@ -249,11 +255,50 @@ class ReportInputs:
         """(K, 3) true users [m], or None."""
         return self.result.truth_enu_m()
 
-    def track_enu_m(self) -> np.ndarray:
-        """(T, 3) the flown GPS track: telemetry when present, else the keyframe GPS positions."""
-        if self.tel_enu_m is not None and len(self.tel_enu_m) >= 2:
-            return self.tel_enu_m
-        return self.kf_gps_enu_m
+    def vehicles(self) -> list[int]:
+        """The vehicles that flew (keyframes' and telemetry's), ascending; [0] for one vehicle."""
+        seen = [np.asarray(v, int) for v in (self.kf_vehicle, self.tel_vehicle) if v is not None]
+        found = sorted({int(v) for a in seen for v in a})
+        return found or [0]
+
+    @staticmethod
+    def vehicle_rows(vehicle_of_rows: np.ndarray | None, n: int, vehicle: int) -> np.ndarray:
+        """(n,) bool: the rows of an array whose rows' vehicles are vehicle_of_rows (None: all 0)
+        that are `vehicle`'s."""
+        if vehicle_of_rows is None:
+            return np.full(n, vehicle == 0)
+        return np.asarray(vehicle_of_rows, int) == vehicle
+
+    def track_enu_m(self, vehicle: int | None = None) -> np.ndarray:
+        """(T, 3) the flown GPS track of `vehicle`: its telemetry when it has two fixes or more,
+        else its keyframes' GPS positions. None: every vehicle's points (one vehicle: its track as
+        before; a fleet's: the vehicles' tracks one after the other, points to fit a view, not a line)."""
+        if vehicle is None:
+            vs = self.vehicles()
+            if len(vs) == 1:
+                return self.track_enu_m(vs[0])
+            return np.vstack([self.track_enu_m(v) for v in vs])
+        if self.tel_enu_m is not None:
+            tel = self.tel_enu_m[self.vehicle_rows(self.tel_vehicle, len(self.tel_enu_m), vehicle)]
+            if len(tel) >= 2:
+                return tel
+        return self.kf_gps_enu_m[self.vehicle_rows(self.kf_vehicle, len(self.kf_gps_enu_m), vehicle)]
+
+    def tracks_enu_m(self) -> list[tuple[int, np.ndarray]]:
+        """[(vehicle, its GPS track (T_v, 3))] for every vehicle (:meth:`track_enu_m`)."""
+        return [(v, self.track_enu_m(v)) for v in self.vehicles()]
+
+    def uav_track_enu_m(self, vehicle: int) -> np.ndarray | None:
+        """(N_v, 3) the estimator's corrected track at `vehicle`'s keyframes, or None."""
+        if self.uav_enu_m is None:
+            return None
+        return self.uav_enu_m[self.vehicle_rows(self.kf_vehicle, len(self.uav_enu_m), vehicle)]
+
+    def waypoints_of(self, vehicle: int) -> np.ndarray | None:
+        """(W_v, 3) `vehicle`'s waypoints, or None when the mission logged none."""
+        if self.waypoints_enu_m is None:
+            return None
+        return self.waypoints_enu_m[self.vehicle_rows(self.waypoints_vehicle, len(self.waypoints_enu_m), vehicle)]
 
     def error_bound_95_m(self) -> np.ndarray:
         """(K,) semi-major axis of each user's 95 % ellipse [m]; inf where unknown."""
@@ -278,10 +323,14 @@ def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
     meas_r = np.concatenate([np.asarray(kf.range_m, float) for kf in kfs]) if kfs else np.zeros(0)
     meas_uav = (np.concatenate([np.repeat(np.asarray(kf.gps_enu_m, float)[None], len(kf.range_m), 0) for kf in kfs])
                 if kfs else np.zeros((0, 3)))
-    tel_t = tel_enu = None
+    tel_t = tel_enu = tel_vehicle = None
     if len(mlog.tel_t_s) >= 2:
         tel_t = mlog.tel_t_s
         tel_enu = origin.lla_to_enu(mlog.tel_lla[:, 0], mlog.tel_lla[:, 1], mlog.tel_lla[:, 2])
+        tel_vehicle = getattr(mlog, "tel_vehicle", None)
+    kf_vehicle = np.array([getattr(kf, "vehicle", 0) for kf in kfs], int)
+    fleet = bool(kf_vehicle.any()) or (tel_vehicle is not None and bool(np.asarray(tel_vehicle).any()))
+    waypoints, waypoints_vehicle = waypoints_from_log(mlog, with_vehicle=True)
     uav = np.asarray(est.uav_enu_m, float)
     if uav.shape != result.kf_gps_enu_m.shape:
         uav = None  # a fixed-lag estimator keeps only the last keyframes: nothing to draw against
@@ -299,22 +348,28 @@ def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
         hist_flown_m=None if hist is None else np.asarray(hist.flown_m, float),
         hist_bound_95_m=None if hist is None else np.asarray(hist.bound_95_m, float),
         hist_error_m=None if hist is None or hist.error_m is None else np.asarray(hist.error_m, float),
-        waypoints_enu_m=waypoints_from_log(mlog),
+        waypoints_enu_m=waypoints,
+        kf_vehicle=kf_vehicle if fleet else None,
+        tel_vehicle=tel_vehicle if fleet else None,
+        waypoints_vehicle=waypoints_vehicle if fleet else None,
         shapes=shapes_from_log(mlog),
         title=title or facts.title(),
         facts=facts,
     )
 
 
-def waypoints_from_log(mlog: Any) -> np.ndarray | None:
-    """(W, 3) ENU of the log's `waypoint` records that carry lat_deg/lon_deg/alt_m, or None."""
-    pts = []
+def waypoints_from_log(mlog: Any, with_vehicle: bool = False):
+    """(W, 3) ENU of the log's `waypoint` records that carry lat_deg/lon_deg/alt_m, or None.
+    with_vehicle: (that, (W,) each one's vehicle (the record's `vehicle`, 0 when absent) or None)."""
+    pts, vehicles = [], []
     for w in getattr(mlog, "waypoints", []) or []:
         try:
             pts.append((float(w["lat_deg"]), float(w["lon_deg"]), float(w["alt_m"])))
         except (KeyError, TypeError, ValueError):
             continue
+        vehicles.append(int(w.get("vehicle", 0)))
     if not pts:
-        return None
+        return (None, None) if with_vehicle else None
     a = np.asarray(pts)
-    return mlog.header.origin.lla_to_enu(a[:, 0], a[:, 1], a[:, 2])
+    enu = mlog.header.origin.lla_to_enu(a[:, 0], a[:, 1], a[:, 2])
+    return (enu, np.asarray(vehicles, int)) if with_vehicle else enu

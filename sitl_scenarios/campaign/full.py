@@ -64,14 +64,15 @@ def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: fl
     if truth is None or not mlog.estimates:
         return out.take_result(result.result)
     track = AccuracyTrack(truth, targets_m)
-    # metres flown at time t: the odometer over the telemetry from the first waypoint on
+    # metres flown at time t: the odometer over the telemetry from the first waypoint on; a
+    # fleet's, each vehicle's odometer over its own track, summed
     t0 = mlog.waypoints[0]["t"] if mlog.waypoints else 0.0
-    sel = mlog.tel_t_s >= t0
-    tel_t = mlog.tel_t_s[sel]
-    metres = np.zeros(0)
-    if len(tel_t):
-        enu = np.asarray(origin.lla_to_enu(*mlog.tel_lla[sel].T), float).reshape(-1, 3)
-        metres = odometer_m(enu, max(5.0, 8.0 * sigma_gps_m))
+    odometers = []  # (times (T_v,), metres (T_v,)) of each vehicle
+    for v in np.unique(mlog.tel_vehicle):
+        sel = (mlog.tel_t_s >= t0) & (mlog.tel_vehicle == v)
+        if sel.any():
+            enu = np.asarray(origin.lla_to_enu(*mlog.tel_lla[sel].T), float).reshape(-1, 3)
+            odometers.append((mlog.tel_t_s[sel], odometer_m(enu, max(5.0, 8.0 * sigma_gps_m))))
     ids = {u.id: k for k, u in enumerate(mlog.header.users)}
     k_users = len(ids)
     for rec in mlog.estimates:
@@ -81,6 +82,6 @@ def outcome_from_log(mlog, result, targets_m: tuple[float, ...], sigma_gps_m: fl
             k = ids[u["id"]]
             users_en[k] = np.asarray(origin.lla_to_enu(u["lat_deg"], u["lon_deg"], u["alt_m"]), float)[:2]
             cov[k] = np.asarray(u["cov_en_m2"], float)
-        at_m = float(np.interp(rec["t"], tel_t, metres)) if len(tel_t) else 0.0
+        at_m = float(sum(np.interp(rec["t"], tel_t, metres) for tel_t, metres in odometers))
         track.update(users_en, cov, at_m, float(rec["t"]) - t0)
     return track.fill(out).take_result(result.result)
