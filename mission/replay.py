@@ -33,7 +33,7 @@ from estimator.types import Estimate, Keyframe, SolverParams
 from mission.estimation import MissionEstimator
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframes_of, triggers_gps_enu_m
 from mission.log import MissionLog
-from mission.result import Result, build_result, horizontal_error_m, result_status
+from mission.result import Result, build_result, horizontal_error_m, result_status, vehicles_of_events
 from mission.vehicle.telemetry import odometer_dead_band_m, odometer_m
 from uavloc.errors import MissionLogError
 
@@ -354,6 +354,10 @@ def result_of_log(mlog: MissionLog, replayed: ReplayResult | None) -> Result:
         status = result_status(est) if est is not None else "incomplete"
         reason, t_end = "the log has no end record", mlog.t_last_s
     survey = mlog.last_event("survey_time") or {}
+    vehicles, breaches = (), None
+    if mlog.header.vehicles:  # a fleet: each vehicle's part, and the vehicles' survey as one
+        vehicles, breaches = vehicles_of_events([v.id for v in mlog.header.vehicles], mlog.events)
+        survey = _fleet_survey(vehicles, [e for e in mlog.events if e.get("kind") == "survey_time"])
 
     def seconds(key: str) -> float | None:
         v = survey.get(key)
@@ -369,7 +373,17 @@ def result_of_log(mlog: MissionLog, replayed: ReplayResult | None) -> Result:
         measurements=0 if replayed is None else replayed.n_measurements,
         keyframes=0 if replayed is None else len(replayed.keyframes),
         duration_s=t_end - mlog.t_start_s, survey_s=seconds("survey_s"), hover_s=seconds("hover_s"),
-        largest_gap_s=seconds("largest_gap_s"), log_path=mlog.path)
+        largest_gap_s=seconds("largest_gap_s"), log_path=mlog.path, vehicles=vehicles, separation_breaches=breaches)
+
+
+def _fleet_survey(vehicles, survey_events: list[dict]) -> dict:
+    """A fleet's survey seconds: the longest vehicle's survey_s, the vehicles' hover summed, and the
+    longest any vehicle went without a range (each vehicle's `survey_time` event)."""
+    surveys = [v.survey_s for v in vehicles if v.survey_s is not None]
+    hovers = [v.hover_s for v in vehicles if v.hover_s is not None]
+    gaps = [float(e["largest_gap_s"]) for e in survey_events if isinstance(e.get("largest_gap_s"), int | float)]
+    return {"survey_s": max(surveys) if surveys else None, "hover_s": sum(hovers) if hovers else None,
+            "largest_gap_s": max(gaps) if gaps else None}
 
 
 def result_of_replay(result: ReplayResult) -> Result:

@@ -189,7 +189,7 @@ class MissionController:
                                   self._t0_mono, fleet=fleet, keyframes_out=self.keyframes_out,
                                   keyframes=self._keyframes, serving=self.serving, origin=lambda: self.origin,
                                   on_fix=self._watch_separation if fleet else None,
-                                  collect_tau=i == 0 and noise.gps_tau_s is None)
+                                  collect_tau=noise.gps_tau_s is None)
                       for i in range(n)]
         if self._limits is not None:  # limits that do not depend on home: a gate now
             for c in self.crews:
@@ -558,18 +558,21 @@ class MissionController:
 
     def _flight_noise(self) -> NoiseModel:
         """The noise model the flight's estimator uses: the mission's, with the GPS error's
-        correlation time estimated from the telemetry logged so far (vehicle 0's take-off) when the
-        mission leaves it unknown (an external autopilot: PX4's EKF output drifts with τ of
-        minutes), as replay estimates it from the whole log; the estimator's default when too
-        little was logged."""
-        crew = self.crews[0]
-        records, crew.tau_records = crew.tau_records, None
-        if records is None:
+        correlation time estimated from the telemetry logged so far (the take-off; a fleet's vehicles
+        each a series of their own) when the mission leaves it unknown (an external autopilot: PX4's
+        EKF output drifts with τ of minutes), as replay estimates it from the whole log; the
+        estimator's default when too little was logged."""
+        if self.crews[0].tau_records is None:
             return self.noise
+        records, series = [], []
+        for c in self.crews:
+            mine, c.tau_records = c.tau_records or [], None
+            records += mine
+            series += [c.index] * len(mine)
         tau = None
         if len(records) > 1:
             t, pos, vel = (np.array(c) for c in zip(*records, strict=True))
-            tau = estimate_gps_tau_s(t, pos, vel, self.noise.sigma_gps_m)
+            tau = estimate_gps_tau_s(t, pos, vel, self.noise.sigma_gps_m, series=np.array(series))
         if tau is None:
             self.journal.event(f"GPS error correlation time unknown and too little telemetry to estimate it "
                                f"({len(records)} records): assuming {self.noise.gps_tau_used_s:g} s", kind="gps_tau")

@@ -52,11 +52,8 @@ class MissionJournal:
         alt_min_m, alt_max_m}], docs/fleet.md), then the events so far."""
         users = [{"id": u.id, "rnti": u.rnti, "ground_alt_m": origin.alt_m + u.up_m} for u in self.users]
         self.writer.open()
-        fields = dict(area or {})
-        if vehicles:
-            fields["vehicles"] = vehicles
         self.writer.write_header(origin, users, radio, noise=noise, config=config, start_utc=start_utc,
-                                 area=fields or None)
+                                 area=area, vehicles=vehicles or None)
         for t, rec in self._pending:
             self.writer.write("event", t, **rec)
         self._pending.clear()

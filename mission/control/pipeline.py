@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import logging
 import math
 import time
@@ -283,9 +282,7 @@ class MeasurementPipeline:
         velocity = None
         if self._last_pos_t is not None and await self._velocity_covers(t_pos):
             velocity = self._velocity()
-        kf = build_keyframe(trigger, origin, self._last_pos_t, velocity, self._noise)
-        if self.vehicle:
-            kf = dataclasses.replace(kf, vehicle=self.vehicle)
+        kf = build_keyframe(trigger, origin, self._last_pos_t, velocity, self._noise, vehicle=self.vehicle)
         self._last_pos_t = t_pos
         self._forget_velocity_before(t_pos)
         self.keyframes.append(kf)
