@@ -667,3 +667,39 @@ def test_one_vehicle_keeps_the_colours_and_the_legend_of_before_fleets(browser, 
     assert snap["vehicles"] == [{"vehicle": None, "id": "vehicle", "fill": _rgb("#1d232a")}]
     assert snap["homes"] == [{"vehicle": None, "stroke": _rgb("#1d232a")}]
     assert snap["heading"] == "vehicle"
+
+
+def test_the_3d_pane_draws_each_vehicle_of_a_fleet_in_its_colour(browser):
+    """WebGL (SwiftShader), from above: where each vehicle projects, the pixel is nearer its own
+    colour than the other vehicle's."""
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import FLEET, ORIGIN, USERS, lla
+
+    feed = LiveFeed()
+    feed.state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS, "vehicles": FLEET,
+                      "altitude_band_m": {"min_m": 10.0, "max_m": 60.0}})
+    for i in range(10):
+        feed.state.apply({"type": "telemetry", "t": 1.0 + i, "vehicle": 0, **lla(-40.0 + 2 * i, 0, 30.0),
+                          "heading_deg": 90.0})
+        feed.state.apply({"type": "telemetry", "t": 1.0 + i, "vehicle": 1, **lla(50.0, -20.0 + 3 * i, 30.0),
+                          "heading_deg": 0.0})
+    with _server_in_thread(feed) as server:
+        page = browser.new_page()
+        errors = _watch(page)
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => window.uavloc3d && (window.uavloc3d.ready || window.uavloc3d.error)")
+            assert page.evaluate("() => window.uavloc3d.error || null") is None
+            page.wait_for_function("() => document.querySelectorAll('#markers .vehicle').length === 2")
+            page.evaluate("() => window.uavloc3d.setView('top')")
+            px = page.evaluate("""() => {
+                const api = window.uavloc3d;
+                const pts = window.uavlocState.frame.vehicles.map((v) => api.project(...v.vehicle.enu_m));
+                return api.pixels(pts);
+            }""")
+        finally:
+            page.close()
+    assert errors == []
+    blue, green = "#2f6fdb", "#1e8e3e"
+    assert _color_distance(px[0], blue) < _color_distance(px[0], green), px
+    assert _color_distance(px[1], green) < _color_distance(px[1], blue), px
