@@ -552,3 +552,154 @@ def test_the_3d_pane_draws_the_vehicle_and_the_users_where_they_project(browser,
     assert max(probe["px"]["vehicle"][:3]) < 110, probe["px"]["vehicle"]  # the dark vehicle
     assert _color_distance(probe["px"]["ue1"], "#d35400") < 110, probe["px"]["ue1"]
     assert _color_distance(probe["px"]["ue2"], "#16a085") < 110, probe["px"]["ue2"]
+
+
+JS_FLEET = """() => {
+  const css = (node, prop) => node ? getComputedStyle(node)[prop] : null;
+  const pts = (node) => node ? node.getAttribute('points').trim().split(/\\s+/).filter(Boolean).length : 0;
+  const lines = (k) => k === 0 ? [document.getElementById('track'), document.getElementById('est-track'),
+                                  document.getElementById('leg')]
+                               : [...document.querySelectorAll(`#fleet-lines g[data-vehicle="${k}"] > *`)];
+  const out = {legendFleet: document.getElementById('legend').classList.contains('fleet'),
+               fleetLegendHidden: document.getElementById('fleet-legend').hidden,
+               items: [...document.querySelectorAll('#fleet-legend .vitem')].map(b => ({
+                 vehicle: b.dataset.vehicle, text: b.textContent, condition: b.dataset.condition,
+                 warn: b.classList.contains('warn'), on: b.classList.contains('on')})),
+               homes: [...document.querySelectorAll('#markers .home')].map(h => ({
+                 vehicle: h.dataset.home, stroke: css(h, 'stroke')})),
+               vehicles: [...document.querySelectorAll('#markers .vehicle')].map(v => ({
+                 vehicle: v.dataset.vehicle, id: v.id, fill: css(v, 'fill')})),
+               labels: [...document.querySelectorAll('#markers .vlabel')].map(t => t.textContent),
+               events: [...document.querySelectorAll('#events li[data-vehicle]')].map(li => li.textContent),
+               strip: document.getElementById('h-bat').textContent,
+               heading: document.querySelector('#panel h2').textContent,
+               lines: {}};
+  for (const k of [0, 1]) {
+    const [track, est, leg] = lines(k);
+    out.lines[k] = {track: pts(track), est: pts(est), stroke: css(track, 'stroke'), estStroke: css(est, 'stroke'),
+                    leg: leg ? leg.getAttribute('visibility') : null, legStroke: css(leg, 'stroke')};
+  }
+  return out;
+}"""
+
+
+def _rgb(hex_color: str) -> str:
+    return "rgb({}, {}, {})".format(*(int(hex_color[i:i + 2], 16) for i in (1, 3, 5)))
+
+
+def test_a_fleet_draws_each_vehicle_in_its_colour_with_a_legend_of_ids_and_health(browser, tmp_path):
+    """Two vehicles (tests/test_view_state.py fleet_records): mid-survey each has its own coloured
+    track, estimated track, leg, marker and home, and a legend entry with its id, battery, mode and
+    condition; uav2's link loss shows in its entry; clicking it puts uav2 in the strip."""
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import fleet_records
+
+    recs = fleet_records()
+    feed = LiveFeed()
+    with _server_in_thread(feed) as server:
+        page = browser.new_page()
+        errors = _watch(page)
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => Number(document.body.dataset.frames || 0) >= 1")
+            for rec in recs:
+                feed.on_record(rec)
+                if rec["type"] == "estimate":
+                    break
+            page.wait_for_function("() => document.querySelectorAll('#fleet-lines polyline.est-track').length === 1"
+                                   " && document.querySelectorAll('#fleet-legend .vitem').length === 2")
+            page.wait_for_function(f"() => Number(document.body.dataset.version) === {feed.state.version}")
+            mid = page.evaluate(JS_FLEET)
+            page.screenshot(path=str(_screens_dir(tmp_path) / "view-fleet.png"))
+            page.click('#fleet-legend .vitem[data-vehicle="1"]')
+            page.wait_for_function("() => document.getElementById('h-vehicle').textContent.includes('uav2')")
+            picked = page.evaluate(JS_FLEET)
+            for rec in recs[recs.index(next(r for r in recs if r["type"] == "estimate")) + 1:]:
+                feed.on_record(rec)
+            page.wait_for_function("() => document.getElementById('m-state').textContent.startsWith('LANDED')")
+            end = page.evaluate(JS_FLEET)
+        finally:
+            page.close()
+    assert errors == []
+    blue, green = _rgb("#2f6fdb"), _rgb("#1e8e3e")
+    assert mid["legendFleet"] and not mid["fleetLegendHidden"]
+    # 11 fixes each by the estimate (t = 11.5); the estimate's track: 3 keyframes of uav1, 2 of uav2
+    assert mid["lines"]["0"]["track"] == 11 and mid["lines"]["1"]["track"] == 11
+    assert mid["lines"]["0"]["est"] == 3 and mid["lines"]["1"]["est"] == 2
+    assert mid["lines"]["0"]["stroke"] == mid["lines"]["0"]["estStroke"] == mid["lines"]["0"]["legStroke"] == blue
+    assert mid["lines"]["1"]["stroke"] == mid["lines"]["1"]["estStroke"] == green
+    assert mid["lines"]["0"]["leg"] == "visible" and mid["lines"]["1"]["leg"] == "hidden"  # uav2 returned
+    assert [(v["vehicle"], v["fill"]) for v in mid["vehicles"]] == [("0", blue), ("1", green)]
+    assert mid["vehicles"][0]["id"] == "vehicle" and mid["labels"] == ["uav1", "uav2"]
+    assert [(h["vehicle"], h["stroke"]) for h in mid["homes"]] == [("0", blue), ("1", green)]
+    (i1, i2) = mid["items"]
+    assert i1["text"] == "uav1 · 80 % · OFFBOARD · flying" and not i1["warn"] and i1["on"]
+    assert i2["text"].startswith("uav2 · 40 % · OFFBOARD · returning") and i2["condition"] == "returning"
+    assert any(e.startswith("9.4 suav2 vehicle link lost") for e in mid["events"]), mid["events"]
+    assert picked["strip"].startswith("40 %") and picked["items"][1]["on"] and not picked["items"][0]["on"]
+    assert mid["strip"].startswith("80 %")
+    assert [i["condition"] for i in end["items"]] == ["landed", "landed"]
+
+
+def test_one_vehicle_keeps_the_colours_and_the_legend_of_before_fleets(browser, tmp_path):
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import write_mission
+
+    feed = LiveFeed()
+    for rec in write_mission(tmp_path / "m.jsonl"):
+        feed.state.apply(rec)
+        if rec["type"] == "estimate":
+            break
+    with _server_in_thread(feed) as server:
+        page = browser.new_page()
+        errors = _watch(page)
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => document.getElementById('m-state').textContent.startsWith('SURVEY')")
+            snap = page.evaluate(JS_FLEET)
+        finally:
+            page.close()
+    assert errors == []
+    assert not snap["legendFleet"] and snap["fleetLegendHidden"] and snap["items"] == [] and snap["labels"] == []
+    assert snap["lines"]["0"]["stroke"] == _rgb("#2f6fdb") and snap["lines"]["0"]["estStroke"] == _rgb("#e67e22")
+    assert snap["lines"]["0"]["legStroke"] == _rgb("#8e44ad") and snap["lines"]["0"]["leg"] == "visible"
+    assert snap["lines"]["1"]["track"] == 0
+    assert snap["vehicles"] == [{"vehicle": None, "id": "vehicle", "fill": _rgb("#1d232a")}]
+    assert snap["homes"] == [{"vehicle": None, "stroke": _rgb("#1d232a")}]
+    assert snap["heading"] == "vehicle"
+
+
+def test_the_3d_pane_draws_each_vehicle_of_a_fleet_in_its_colour(browser):
+    """WebGL (SwiftShader), from above: where each vehicle projects, the pixel is nearer its own
+    colour than the other vehicle's."""
+    from mission.view.server import LiveFeed
+    from tests.test_view_state import FLEET, ORIGIN, USERS, lla
+
+    feed = LiveFeed()
+    feed.state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS, "vehicles": FLEET,
+                      "altitude_band_m": {"min_m": 10.0, "max_m": 60.0}})
+    for i in range(10):
+        feed.state.apply({"type": "telemetry", "t": 1.0 + i, "vehicle": 0, **lla(-40.0 + 2 * i, 0, 30.0),
+                          "heading_deg": 90.0})
+        feed.state.apply({"type": "telemetry", "t": 1.0 + i, "vehicle": 1, **lla(50.0, -20.0 + 3 * i, 30.0),
+                          "heading_deg": 0.0})
+    with _server_in_thread(feed) as server:
+        page = browser.new_page()
+        errors = _watch(page)
+        try:
+            page.goto(server.url)
+            page.wait_for_function("() => window.uavloc3d && (window.uavloc3d.ready || window.uavloc3d.error)")
+            assert page.evaluate("() => window.uavloc3d.error || null") is None
+            page.wait_for_function("() => document.querySelectorAll('#markers .vehicle').length === 2")
+            page.evaluate("() => window.uavloc3d.setView('top')")
+            px = page.evaluate("""() => {
+                const api = window.uavloc3d;
+                const pts = window.uavlocState.frame.vehicles.map((v) => api.project(...v.vehicle.enu_m));
+                return api.pixels(pts);
+            }""")
+        finally:
+            page.close()
+    assert errors == []
+    blue, green = "#2f6fdb", "#1e8e3e"
+    assert _color_distance(px[0], blue) < _color_distance(px[0], green), px
+    assert _color_distance(px[1], green) < _color_distance(px[1], blue), px

@@ -3,9 +3,11 @@ the writer's listeners and the header's optional area fields. Pure: no server, n
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import asdict
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -419,3 +421,219 @@ def test_the_target_line_judges_the_printed_bound_and_keeps_what_the_stop_judged
     assert target["stop"]["r95_m"] == {"ue1": pytest.approx(ellipse_95([[2.0, 0.5], [0.5, 1.0]])["a_m"]),
                                        "ue2": pytest.approx(3.0 * math.sqrt(CHI2_2DOF_95))}
     assert f["users"][0]["r95_m"] == pytest.approx(ellipse_95([[0.5, 0.1], [0.1, 0.4]])["a_m"])
+
+
+# -- a fleet ----------------------------------------------------------------------------------------
+
+GOLDEN = Path(__file__).resolve().parent / "data" / "view_one_vehicle.json"
+
+
+def _digest(frame: dict) -> str:
+    return hashlib.sha256(json.dumps(frame, sort_keys=True).encode()).hexdigest()[:16]
+
+
+@pytest.mark.parametrize("stream", ["mission", "no_flown_field"])
+def test_a_one_vehicle_stream_gives_the_frames_of_before_fleets_with_its_vehicle_added(stream):
+    """tests/data/view_one_vehicle.json: the frames the view of before fleets made after each record
+    (events of every kind the fleet reads, a malformed status, the odometer without `flown_m`).
+    Now: the same frames with `vehicles`, whose one entry is what the frame's vehicle fields say."""
+    data = json.loads(GOLDEN.read_text())["streams"][stream]
+    state = ViewState()
+    for i, rec in enumerate(data["records"]):
+        state.apply(rec)
+        doc = state.frame()[0]
+        (veh,) = doc.pop("vehicles")
+        if str(i) in data["frames"]:
+            assert doc == data["frames"][str(i)], i
+        assert _digest(doc) == data["frame_sha256_16"][i], (i, rec)
+        assert veh["vehicle"] == doc["vehicle"] and veh["waypoint"] == doc["waypoint"]
+        assert veh["health"] == doc["health"]
+        assert veh["index"] == 0 and veh["id"] == "vehicle 0" and veh["home_enu_m"] == [0.0, 0.0, 0.0]
+
+
+FLEET = [{"id": "uav1", "home": lla(0, 0)}, {"id": "uav2", "home": lla(50, -20)}]
+
+
+def fleet_records() -> list[dict]:
+    """Two vehicles flying east and north from their homes, each ranging its own user, then uav2
+    loses its link, returns and lands while uav1 surveys on; then uav1 returns and lands."""
+    recs: list[dict] = [
+        {"type": "header", "t": 0.0, "origin": ORIGIN.to_dict(), "users": USERS, "vehicles": FLEET,
+         "config": {"controller": {"flight": {"target_radius_m": 3.0}, "safety": {"link_timeout_s": 2.0}}}},
+        {"type": "event", "t": 0.5, "message": "armed", "kind": "arm", "state": "TAKEOFF"},
+    ]
+    for i in range(20):
+        t = 1.0 + i
+        recs.append({"type": "telemetry", "t": t, "vehicle": 0, **lla(2.0 * i, 0, 30),
+                     **VehicleStatus(battery_pct=90.0 - i, flight_mode="OFFBOARD", armed=True).record_fields()})
+        if i < 12:  # uav2's telemetry: none after its landing; absent vehicle field on none of these
+            recs.append({"type": "telemetry", "t": t + 0.1, "vehicle": 1, **lla(50, -20 + 3.0 * i, 40),
+                         **VehicleStatus(battery_pct=60.0 - 2 * i, flight_mode="OFFBOARD",
+                                         armed=True).record_fields()})
+        if i == 2:
+            recs.append({"type": "waypoint", "t": t + 0.2, "vehicle": 0, "leg": 1, **lla(40, 0, 30)})
+            recs.append({"type": "waypoint", "t": t + 0.3, "vehicle": 1, "leg": 1, **lla(50, 40, 40)})
+        if i % 2 == 0:
+            recs.append({"type": "rtt", "t": t + 0.05, "vehicle": 0, "user": "ue1", "uav": lla(0, 0, 30),
+                         "toa_s": 2e-7})
+            if i < 8:
+                recs.append({"type": "rtt", "t": t + 0.06, "vehicle": 1, "user": "ue2", "uav": lla(0, 0, 30),
+                             "toa_s": 2e-7})
+        if i == 8:
+            recs.append({"type": "event", "t": t + 0.4, "message": "vehicle link lost", "kind": "link_lost",
+                         "vehicle": 1, "state": "RETURN"})
+            recs.append({"type": "event", "t": t + 0.5, "message": "RTL: link lost", "kind": "rtl", "vehicle": 1,
+                         "state": "RETURN"})
+        if i == 9:
+            recs.append({"type": "event", "t": t + 0.5, "message": "vehicle link restored", "kind": "link_restored",
+                         "vehicle": 1})
+        if i == 10:
+            recs.append({"type": "estimate", "t": t + 0.5, "keyframes": 6, "users": [
+                {"id": "ue1", **lla(40, 30), "cov_en_m2": [[4.0, 0.0], [0.0, 1.0]]}],
+                "uav_lla": [list(lla(2.0 * j, 0, 30).values()) for j in range(3)]
+                + [list(lla(50, -20 + 3.0 * j, 40).values()) for j in range(2)],
+                "uav_vehicle": [0, 0, 0, 1, 1]})
+        if i == 12:
+            recs.append({"type": "event", "t": t + 0.5, "message": "landed", "kind": "landed", "vehicle": 1})
+    recs += [{"type": "event", "t": 21.5, "message": "RTL: target reached", "kind": "rtl", "vehicle": 0},
+             {"type": "event", "t": 25.0, "message": "landed", "kind": "landed", "vehicle": 0}]
+    return recs
+
+
+def _state_until(recs: list[dict], stop) -> ViewState:
+    state = ViewState()
+    for rec in recs:
+        state.apply(rec)
+        if stop(rec):
+            break
+    return state
+
+
+def test_a_two_vehicle_stream_keeps_each_vehicles_track_leg_home_and_health():
+    recs = fleet_records()
+    state = _state_until(recs, lambda r: r["type"] == "rtt" and r["t"] > 8.0)  # t = 9.05, both surveying
+    doc = state.frame()[0]
+    assert doc["state"] == "SURVEY"
+    v0, v1 = doc["vehicles"]
+    assert (v0["id"], v1["id"]) == ("uav1", "uav2")
+    np.testing.assert_allclose(v0["home_enu_m"], [0, 0, 0], atol=0.01)
+    np.testing.assert_allclose(v1["home_enu_m"], [50, -20, 0], atol=0.01)
+    # tracks: vehicle 1's items carry its index, vehicle 0's are as before
+    track = doc["track"]["items"]
+    mine = [p for p in track if len(p) == 4]
+    theirs = [p for p in track if len(p) == 5]
+    assert len(mine) == len(theirs) == 9 and {p[4] for p in theirs} == {1}
+    np.testing.assert_allclose([p[1:4] for p in mine], [[2.0 * i, 0, 30] for i in range(9)], atol=0.01)
+    np.testing.assert_allclose([p[1:4] for p in theirs], [[50, -20 + 3.0 * i, 40] for i in range(9)], atol=0.01)
+    np.testing.assert_allclose(v0["vehicle"]["enu_m"], [16, 0, 30], atol=0.01)
+    np.testing.assert_allclose(v1["vehicle"]["enu_m"], [50, 4, 40], atol=0.01)
+    # each leg starts where its own vehicle was
+    np.testing.assert_allclose(v0["waypoint"]["from_enu_m"], [4, 0, 30], atol=0.01)
+    np.testing.assert_allclose(v0["waypoint"]["enu_m"], [40, 0, 30], atol=0.01)
+    np.testing.assert_allclose(v1["waypoint"]["from_enu_m"], [50, -14, 40], atol=0.01)
+    np.testing.assert_allclose(v1["waypoint"]["enu_m"], [50, 40, 40], atol=0.01)
+    # health: each vehicle's own battery and its own gNB's measurements
+    assert v0["health"]["battery_pct"] == 82.0 and v1["health"]["battery_pct"] == 44.0
+    assert v0["health"]["measurements_per_min"] == 5 and v1["health"]["measurements_per_min"] == 4
+    assert doc["measurements"] == 9
+    assert [u["measurements"] for u in doc["users"]] == [5, 4]
+    assert not any(v["returning"] or v["landed"] or v["link_lost"] for v in (v0, v1))
+    # the frame's own vehicle fields are vehicle 0's
+    assert doc["vehicle"] == v0["vehicle"] and doc["health"] == v0["health"] and doc["waypoint"] == v0["waypoint"]
+
+
+def test_one_vehicle_returning_and_landing_leaves_the_mission_surveying_until_every_one_does():
+    recs = fleet_records()
+    after = lambda kind, k: lambda r: r.get("kind") == kind and r.get("vehicle") == k  # noqa: E731
+    doc = _state_until(recs, after("link_lost", 1)).frame()[0]
+    assert doc["vehicles"][1]["link_lost"] and doc["state"] == "SURVEY"  # the vehicle's state is not the mission's
+    doc = _state_until(recs, after("rtl", 1)).frame()[0]
+    v0, v1 = doc["vehicles"]
+    assert v1["returning"] and v1["link_lost"] and v1["waypoint"] is None
+    assert not v0["returning"] and v0["waypoint"] is not None and doc["state"] == "SURVEY"
+    assert doc["events"]["items"][-1]["vehicle"] == 1
+    doc = _state_until(recs, after("landed", 1)).frame()[0]
+    v0, v1 = doc["vehicles"]
+    assert v1["landed"] and not v1["returning"] and not v1["link_lost"] and doc["state"] == "SURVEY"
+    doc = _state_until(recs, after("rtl", 0)).frame()[0]
+    assert doc["state"] == "RETURN" and doc["vehicles"][0]["returning"]
+    doc = _state_until(recs, lambda r: False).frame()[0]
+    assert doc["state"] == "LANDED" and all(v["landed"] for v in doc["vehicles"])
+    # uav2 went silent at its landing (12.1 s): stale at the end, uav1 fresh until 20 s
+    v0, v1 = doc["vehicles"]
+    assert v1["health"]["vehicle_stale"] and v1["health"]["vehicle_age_s"] == pytest.approx(25.0 - 12.1)
+    assert v0["health"]["vehicle_age_s"] == pytest.approx(5.0)
+
+
+def test_the_estimated_track_names_each_keyframes_vehicle():
+    recs = fleet_records()
+    doc = _state_until(recs, lambda r: r["type"] == "estimate").frame()[0]
+    items = doc["est_track"]["items"]
+    assert [len(p) for p in items] == [3, 3, 3, 4, 4] and items[3][3] == items[4][3] == 1
+    np.testing.assert_allclose(items[4][:3], [50, -17, 40], atol=0.01)
+
+
+def test_the_fleets_metres_without_the_field_are_every_vehicles_odometer():
+    recs = [r for r in fleet_records() if r["type"] != "estimate"]
+    doc = _state_until(recs, lambda r: r["type"] == "telemetry" and r["t"] == 11.0).frame()[0]
+    # from their legs' starts, in steps of at least the 5 m dead band: uav1 4 -> 16 m east in 2 m
+    # fixes (12 m counted), uav2 -14 -> 4 m north in 3 m fixes (18 m counted)
+    assert doc["flown_m"] == pytest.approx(12.0 + 18.0, abs=0.01)
+
+
+@pytest.mark.parametrize("odd", [
+    {"type": "telemetry", "t": 2.0, "vehicle": 3, **lla(5, 5, 10)},
+    {"type": "rtt", "t": 2.0, "vehicle": 2, "user": "ue1", "uav": lla(0, 0), "toa_s": 2e-7},
+    {"type": "event", "t": 2.0, "vehicle": 4, "message": "vehicle link lost", "kind": "link_lost"},
+    {"type": "waypoint", "t": 2.0, "vehicle": 2, "leg": 1, **lla(5, 5, 10)},
+    {"type": "estimate", "t": 2.0, "users": [], "uav_lla": [list(lla(0, 0).values())], "uav_vehicle": [5]},
+])
+def test_a_vehicle_the_header_did_not_list_is_added_not_raised(odd):
+    state = ViewState()
+    state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS, "vehicles": FLEET})
+    state.apply(odd)
+    doc = state.frame()[0]
+    k = max(odd.get("vehicle", 0), *odd.get("uav_vehicle", [0]))
+    assert [v["id"] for v in doc["vehicles"]] == ["uav1", "uav2"] + [f"vehicle {j}" for j in range(2, k + 1)]
+    assert doc["vehicles"][-1]["home_enu_m"] is None and state.records == 2
+    json.dumps(doc)
+
+
+@pytest.mark.parametrize("odd", [
+    {"type": "telemetry", "t": 2.0, "vehicle": -1, **lla(5, 5, 10)},
+    {"type": "telemetry", "t": 2.0, "vehicle": "1", **lla(5, 5, 10)},
+    {"type": "telemetry", "t": 2.0, "vehicle": True, **lla(5, 5, 10)},
+    {"type": "telemetry", "t": 2.0, "vehicle": 10**9, **lla(5, 5, 10)},
+    {"type": "rtt", "t": 2.0, "vehicle": 1.5, "user": "ue1"},
+    {"type": "event", "t": 2.0, "vehicle": None, "message": "x", "kind": "rtl"},
+    {"type": "estimate", "t": 2.0, "users": [], "uav_lla": [list(lla(0, 0).values())], "uav_vehicle": [0, 1]},
+    {"type": "estimate", "t": 2.0, "users": [], "uav_lla": [list(lla(0, 0).values())], "uav_vehicle": ["a"]},
+    {"type": "estimate", "t": 2.0, "users": [], "uav_lla": [list(lla(0, 0).values())], "uav_vehicle": 3},
+])
+def test_a_vehicle_that_is_no_index_skips_the_record(odd):
+    state = ViewState()
+    state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS, "vehicles": FLEET})
+    state.apply(odd)
+    doc = state.frame()[0]
+    assert len(doc["vehicles"]) == 2 and doc["track"]["items"] == [] and doc["est_track"]["items"] == []
+    assert doc["measurements"] == 0 and doc["events"]["items"] == [] and state.records == 1
+
+
+@pytest.mark.parametrize("vehicles", [
+    "uav1", [], [None, {"id": "b"}], [{"id": "a", "home": {"lat_deg": "x"}}, {"home": lla(1, 1)}], [{"id": True}]])
+def test_an_odd_vehicles_list_in_the_header_names_what_it_can(vehicles):
+    state = ViewState()
+    state.apply({"type": "header", "t": 0, "origin": ORIGIN.to_dict(), "users": USERS, "vehicles": vehicles})
+    state.apply({"type": "telemetry", "t": 1.0, **lla(1, 1, 10)})
+    doc = state.frame()[0]
+    assert doc["vehicles"] and doc["vehicles"][0]["vehicle"] is not None and len(doc["track"]["items"]) == 1
+    json.dumps(doc)
+
+
+def test_the_timeline_of_a_fleet_gives_the_same_state_from_any_checkpoint():
+    recs = fleet_records()
+    tl = Timeline(recs, checkpoint_every=5)
+    for t in [25.0, 3.0, 9.5, 13.7, 2.0, 25.0]:
+        got = tl.state_at(t).frame()[0]
+        fresh = Timeline(recs).state_at(t).frame()[0]
+        assert json.dumps(got, sort_keys=True) == json.dumps(fresh, sort_keys=True)

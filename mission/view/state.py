@@ -7,12 +7,20 @@ the ENU frame of the header's origin (east, north, up; metres):
 - static: geofence, no-fly zones, buildings, altitude band, max distance, the users, and the true
   users (simulation only);
 - the GPS track (telemetry) and the estimated track (the estimator's corrected keyframes);
-- the vehicle, the next waypoint and the leg to it;
-- the vehicle's health (:class:`VehicleHealth`, from the newest `telemetry` record: altitudes,
-  speeds, heading, battery, flight mode, armed, GPS), the age of the newest vehicle and gNB
-  records and the measurements of the last minute (all in mission seconds);
+- per vehicle (:class:`VehicleView`): its id and home, its position, the next waypoint and the leg
+  to it, its health (:class:`VehicleHealth`, from its newest `telemetry` record: altitudes,
+  speeds, heading, battery, flight mode, armed, GPS), the age of its newest vehicle and gNB
+  records and its measurements of the last minute (all in mission seconds), and whether it lost
+  its link, is returning or has landed;
 - each user's estimate with its 95 % ellipse, σ, ambiguity flag and measurement count;
 - mission state, metres flown, measurements, keyframes, the events (RTL reasons, gNB lost, ...).
+
+A fleet (docs/fleet.md): the header's optional `vehicles` list names each vehicle (index = vehicle
+number) and its home; `telemetry`, `rtt`, `waypoint` and `event` records name their vehicle
+(`"vehicle": k`, absent: 0), an estimate's `uav_vehicle` the vehicle of each `uav_lla` row. A
+record naming a vehicle the header did not list adds it. A track item carries its vehicle as a
+last element when it is not vehicle 0, so a one-vehicle mission's frames are those of before
+fleets, with `vehicles` added (tests/data/view_one_vehicle.json).
 
 :meth:`ViewState.frame` turns it into a JSON-able document. Long series (tracks, events) are sent
 incrementally: a frame carries only what a client's :class:`Cursor` has not seen, so a client
@@ -55,6 +63,9 @@ VEHICLE_STALE_S = 3.0
 GNB_STALE_S = 5.0
 #: window of the measurement rate [mission s]
 RATE_WINDOW_S = 60.0
+#: the most vehicles a log can name (MAVLink system ids are 1..255); a record naming a higher
+#: index is skipped
+MAX_VEHICLES = 255
 
 
 @dataclass(frozen=True)
@@ -162,6 +173,80 @@ def _r(x: float, nd: int = 2) -> float:
     return round(float(x), nd)
 
 
+def vehicle_index(rec: dict, key: str = "vehicle") -> int:
+    """The vehicle a record names (`rec[key]`, absent: 0); ValueError for anything but an integer
+    in [0, MAX_VEHICLES)."""
+    v = rec.get(key, 0)
+    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < MAX_VEHICLES:
+        raise ValueError(f"{key} must be an integer in [0, {MAX_VEHICLES}), got {v!r}")
+    return v
+
+
+class VehicleView:
+    """One vehicle's part of the view: what its own records say.
+
+    index: its number in the log; id: the header's name for it (`vehicle K` when the header names
+    none); home_enu_m: its home [m] (the origin for a one-vehicle mission; None when unknown);
+    vehicle: {"t", "enu_m", "vel_en_mps"} of its newest fix; health: its newest status;
+    waypoint: its next waypoint and leg; returning, landed, link_lost: from its events (`rtl` or
+    `return`, `landed`, `link_lost` until `link_restored`)."""
+
+    def __init__(self, index: int, vid: str | None = None, home_enu_m: list[float] | None = None):
+        self.index = index
+        self.id = vid if vid else f"vehicle {index}"
+        self.home_enu_m = home_enu_m
+        self.vehicle: dict | None = None
+        self.health: VehicleHealth | None = None
+        self.waypoint: dict | None = None
+        self.last_rtt_t_s: float | None = None
+        self.rtt_times: deque[float] = deque()  # measurement times of the last RATE_WINDOW_S
+        self.odometer = Odometer(FALLBACK_DEAD_BAND_M)
+        self.returning = False
+        self.landed = False
+        self.link_lost = False
+
+    def copy(self) -> VehicleView:
+        new = copy.copy(self)
+        new.rtt_times = deque(self.rtt_times)
+        new.odometer = copy.copy(self.odometer)
+        return new
+
+    def ranged(self, t_s: float) -> None:
+        """A range measured by this vehicle's gNB at t_s [mission s]."""
+        self.last_rtt_t_s = t_s if self.last_rtt_t_s is None else max(self.last_rtt_t_s, t_s)
+        self.rtt_times.append(t_s)
+        while self.rtt_times and self.rtt_times[0] <= self.last_rtt_t_s - RATE_WINDOW_S:
+            self.rtt_times.popleft()
+
+    def health_frame(self, t_s: float, vehicle_stale_s: float) -> dict | None:
+        """The instrument strip at mission time t_s: VehicleHealth, the ages of the newest vehicle
+        and gNB records [mission s] (and whether they are stale), measurements in the last minute."""
+        if self.health is None and self.last_rtt_t_s is None:
+            return None
+        out: dict[str, Any] = asdict(self.health) if self.health is not None else {}
+        for k, v in list(out.items()):
+            if isinstance(v, float):
+                out[k] = _r(v, 3)
+        veh_age = None if self.health is None else max(0.0, t_s - self.health.t_s)
+        gnb_age = None if self.last_rtt_t_s is None else max(0.0, t_s - self.last_rtt_t_s)
+        t0 = t_s - RATE_WINDOW_S
+        out.update({
+            "vehicle_age_s": None if veh_age is None else _r(veh_age, 2),
+            "vehicle_stale": veh_age is None or veh_age > vehicle_stale_s,
+            "vehicle_stale_after_s": vehicle_stale_s,
+            "gnb_age_s": None if gnb_age is None else _r(gnb_age, 2),
+            "gnb_stale": gnb_age is None or gnb_age > GNB_STALE_S,
+            "gnb_stale_after_s": GNB_STALE_S,
+            "measurements_per_min": sum(1 for t in self.rtt_times if t > t0),
+        })
+        return out
+
+    def frame(self, t_s: float, vehicle_stale_s: float) -> dict:
+        return {"index": self.index, "id": self.id, "home_enu_m": self.home_enu_m, "vehicle": self.vehicle,
+                "waypoint": self.waypoint, "health": self.health_frame(t_s, vehicle_stale_s),
+                "returning": self.returning, "landed": self.landed, "link_lost": self.link_lost}
+
+
 class ViewState:
     """See the module docstring. Feed records with :meth:`apply`; read with :meth:`frame`.
 
@@ -174,13 +259,10 @@ class ViewState:
         self.static: dict = {}
         self.static_version = 0
         self.t_s = 0.0
-        self.track = Series()  # [t, e, n, u] GPS track
-        self.est_track = Series()  # [e, n, u] corrected keyframes
-        self.events = Series(max_events)  # {"t", "message", "kind", "state"}
-        self.vehicle: dict | None = None
-        self.health: VehicleHealth | None = None
-        self.last_rtt_t_s: float | None = None
-        self._rtt_times: deque[float] = deque()  # measurement times of the last RATE_WINDOW_S
+        self.track = Series()  # [t, e, n, u] GPS track, [t, e, n, u, k] of vehicle k > 0
+        self.est_track = Series()  # [e, n, u] corrected keyframes, [e, n, u, k] of vehicle k > 0
+        self.events = Series(max_events)  # {"t", "message", "kind", "state"[, "vehicle"]}
+        self.fleet: list[VehicleView] = []  # by vehicle index; one once the header is read
         self.vehicle_stale_s = VEHICLE_STALE_S
         self.stop_bounds: dict | None = None  # {"t", "r95_m": {user: r95}} when the stop rule fired
         self.users: dict[str, dict] = {}
@@ -188,14 +270,12 @@ class ViewState:
         self.meas_per_user: dict[str, int] = {}
         self.measurements = 0
         self.keyframes = 0
-        self.waypoint: dict | None = None
         self.state = "CONNECT"
         self.status: str | None = None
         self.reason: str | None = None  # why the mission ended (the `end` event's reason)
         self.final = False
         self.flown_m = 0.0
         self._flown_from_log = False
-        self._odometer = Odometer(FALLBACK_DEAD_BAND_M)
         self.records = 0
         self.version = 0  # bumps with every record applied
 
@@ -206,9 +286,29 @@ class ViewState:
         new.static = dict(self.static)
         new.track, new.est_track, new.events = self.track.copy(), self.est_track.copy(), self.events.copy()
         new.users, new.meas_per_user = dict(self.users), dict(self.meas_per_user)
-        new._odometer = copy.copy(self._odometer)
-        new._rtt_times = deque(self._rtt_times)
+        new.fleet = [v.copy() for v in self.fleet]
         return new
+
+    # vehicle 0's, as the state held them before fleets
+    @property
+    def vehicle(self) -> dict | None:
+        return self.fleet[0].vehicle if self.fleet else None
+
+    @property
+    def health(self) -> VehicleHealth | None:
+        return self.fleet[0].health if self.fleet else None
+
+    @property
+    def waypoint(self) -> dict | None:
+        return self.fleet[0].waypoint if self.fleet else None
+
+    def vehicle_view(self, index: int) -> VehicleView:
+        """Vehicle `index`'s part, added (with those below it) when no record named it yet."""
+        if not 0 <= index < MAX_VEHICLES:
+            raise ValueError(f"vehicle {index!r} is out of [0, {MAX_VEHICLES})")
+        while len(self.fleet) <= index:
+            self.fleet.append(VehicleView(len(self.fleet)))
+        return self.fleet[index]
 
     # -- records --------------------------------------------------------------------------------
 
@@ -256,6 +356,7 @@ class ViewState:
         if isinstance(link_s, int | float) and not isinstance(link_s, bool) and 0 < link_s < 1e6:
             self.vehicle_stale_s = float(link_s)
         self.user_ids = [str(u["id"]) for u in rec["users"]]
+        self._header_vehicles(rec.get("vehicles"))
         self.meas_per_user = dict.fromkeys(self.user_ids, 0)
         self.static = {
             "origin": {"lat_deg": self.origin.lat_deg, "lon_deg": self.origin.lon_deg, "alt_m": self.origin.alt_m},
@@ -275,33 +376,53 @@ class ViewState:
         }
         self.static_version += 1
 
+    def _header_vehicles(self, listed: Any) -> None:
+        """The header's `vehicles` (a fleet: [{"id", "home": {lat_deg, lon_deg, alt_m}}, ...]), or
+        one vehicle at home (the origin) without it. What does not fit is left out, not raised."""
+        if not isinstance(listed, list) or not listed:
+            self.vehicle_view(0).home_enu_m = [0.0, 0.0, 0.0]
+            return
+        for k, entry in enumerate(listed[:MAX_VEHICLES]):
+            v = self.vehicle_view(k)
+            if not isinstance(entry, dict):
+                continue
+            if isinstance(entry.get("id"), str | int) and not isinstance(entry.get("id"), bool):
+                v.id = str(entry["id"])
+            try:
+                v.home_enu_m = self._enu(entry["home"])
+            except (KeyError, TypeError, ValueError):
+                v.home_enu_m = None
+
     def _on_truth(self, rec: dict) -> None:
         self.static["truth"] = {str(u["id"]): self._enu(u) for u in rec["users"] if u.get("id") in self.meas_per_user}
         self.static_version += 1
 
     def _on_telemetry(self, rec: dict) -> None:
+        k = vehicle_index(rec)
         p = self._enu(rec)
-        self.track.append([_r(rec["t"], 3), *p])
+        t = _r(rec["t"], 3)
+        v = self.vehicle_view(k)
+        self.track.append([t, *p, k] if k else [t, *p])
         vel = rec.get("vel_ned_mps")
         vel_en = [_r(vel[1]), _r(vel[0])] if isinstance(vel, list) and len(vel) >= 2 else None
-        self.vehicle = {"t": _r(rec["t"], 3), "enu_m": p, "vel_en_mps": vel_en}
+        v.vehicle = {"t": t, "enu_m": p, "vel_en_mps": vel_en}
         try:
-            self.health = VehicleHealth.of(rec, p[2])
+            v.health = VehicleHealth.of(rec, p[2])
         except MissionError:
-            self.health = None  # a malformed status: the strip shows nothing rather than a wrong number
+            v.health = None  # a malformed status: the strip shows nothing rather than a wrong number
         if not self._flown_from_log and self.state == "SURVEY":
-            self.flown_m = self._odometer.update(np.asarray(p))
+            v.odometer.update(np.asarray(p))
+            # the fleet's metres: every vehicle's odometer together
+            self.flown_m = sum(u.odometer.total_m for u in self.fleet)
 
     def _on_rtt(self, rec: dict) -> None:
         uid = rec["user"]
         if uid in self.meas_per_user:
+            t = float(rec["t"])
+            v = self.vehicle_view(vehicle_index(rec))
             self.meas_per_user[uid] += 1
             self.measurements += 1
-            t = float(rec["t"])
-            self.last_rtt_t_s = t if self.last_rtt_t_s is None else max(self.last_rtt_t_s, t)
-            self._rtt_times.append(t)
-            while self._rtt_times and self._rtt_times[0] <= self.last_rtt_t_s - RATE_WINDOW_S:
-                self._rtt_times.popleft()
+            v.ranged(t)
 
     def _on_estimate(self, rec: dict) -> None:
         for u in rec["users"]:
@@ -324,7 +445,16 @@ class ViewState:
         if isinstance(uav, list) and uav:
             pts = np.asarray(uav, float).reshape(-1, 3)
             enu = self.origin.lla_to_enu(pts[:, 0], pts[:, 1], pts[:, 2])
-            items = [[_r(e), _r(n), _r(up)] for e, n, up in enu]
+            of = rec.get("uav_vehicle")
+            if of is None:
+                of = [0] * len(pts)
+            if not isinstance(of, list) or len(of) != len(pts):
+                raise ValueError(f"uav_vehicle must list one vehicle per uav_lla row, got {of!r}")
+            ks = [vehicle_index({"k": k}, "k") for k in of]
+            for k in set(ks):
+                self.vehicle_view(k)
+            items = [[_r(e), _r(n), _r(up), k] if k else [_r(e), _r(n), _r(up)]
+                     for (e, n, up), k in zip(enu, ks, strict=True)]
             if rec.get("final") or len(items) > 1:
                 self.est_track.replace(items)  # the whole smoothed track
             else:
@@ -333,20 +463,24 @@ class ViewState:
             self.final = True
 
     def _on_waypoint(self, rec: dict) -> None:
+        k = vehicle_index(rec)
         p = self._enu(rec)
-        start = self.vehicle["enu_m"] if self.vehicle is not None else None
-        self.waypoint = {"t": _r(rec["t"], 3), "leg": rec.get("leg"), "enu_m": p, "from_enu_m": start,
-                         "planner": rec.get("planner"), "status": rec.get("status")}
+        v = self.vehicle_view(k)
+        start = v.vehicle["enu_m"] if v.vehicle is not None else None
+        v.waypoint = {"t": _r(rec["t"], 3), "leg": rec.get("leg"), "enu_m": p, "from_enu_m": start,
+                      "planner": rec.get("planner"), "status": rec.get("status")}
         if self.state in ("CONNECT", "PREFLIGHT", "TAKEOFF"):
             self.state = "SURVEY"
         if self.state == "SURVEY" and start is not None and not self._flown_from_log:
-            self._odometer.start(np.asarray(start))
+            v.odometer.start(np.asarray(start))
 
     def _on_event(self, rec: dict) -> None:
         msg = str(rec.get("message", ""))
         kind = rec.get("kind")
         state = rec.get("state")
-        if isinstance(state, str) and state:
+        v = self.vehicle_view(vehicle_index(rec))
+        # an event naming its vehicle is that vehicle's: its state is not the mission's
+        if isinstance(state, str) and state and "vehicle" not in rec:
             self.state = state
         if kind == "end":
             self.status = rec.get("status")
@@ -355,10 +489,23 @@ class ViewState:
         if kind == "stop" and self.stop_bounds is None:
             # the bounds the stop rule judged: the estimate the survey ended on
             self.stop_bounds = {"t": _r(rec["t"], 3), "r95_m": {u: v["r95_m"] for u, v in self.users.items()}}
+        if kind in ("rtl", "return"):
+            v.returning, v.landed = True, False
+        elif kind == "landed":
+            v.returning, v.landed = False, True
+        elif kind in ("link_lost", "link_restored"):
+            v.link_lost = kind == "link_lost"
         if kind in ("rtl", "landed"):
-            self.state = "RETURN" if kind == "rtl" else "LANDED"
-            self.waypoint = None
-        self.events.append({"t": _r(rec["t"], 3), "message": msg, "kind": kind, "state": state})
+            v.waypoint = None
+            # the mission returns once every vehicle does, and has landed once every one has
+            if all(u.landed for u in self.fleet):
+                self.state = "LANDED"
+            elif all(u.returning or u.landed for u in self.fleet):
+                self.state = "RETURN"
+        item = {"t": _r(rec["t"], 3), "message": msg, "kind": kind, "state": state}
+        if "vehicle" in rec:
+            item["vehicle"] = v.index
+        self.events.append(item)
 
     # -- output ---------------------------------------------------------------------------------
 
@@ -375,28 +522,11 @@ class ViewState:
             out.append(entry)
         return out
 
-    def health_frame(self) -> dict | None:
-        """The instrument strip at the state's time: VehicleHealth, the ages of the newest vehicle
-        and gNB records [mission s] (and whether they are stale), measurements in the last minute."""
-        if self.health is None and self.last_rtt_t_s is None:
+    def health_frame(self, index: int = 0) -> dict | None:
+        """Vehicle `index`'s instrument strip at the state's time (:meth:`VehicleView.health_frame`)."""
+        if index >= len(self.fleet):
             return None
-        out: dict[str, Any] = asdict(self.health) if self.health is not None else {}
-        for k, v in list(out.items()):
-            if isinstance(v, float):
-                out[k] = _r(v, 3)
-        veh_age = None if self.health is None else max(0.0, self.t_s - self.health.t_s)
-        gnb_age = None if self.last_rtt_t_s is None else max(0.0, self.t_s - self.last_rtt_t_s)
-        t0 = self.t_s - RATE_WINDOW_S
-        out.update({
-            "vehicle_age_s": None if veh_age is None else _r(veh_age, 2),
-            "vehicle_stale": veh_age is None or veh_age > self.vehicle_stale_s,
-            "vehicle_stale_after_s": self.vehicle_stale_s,
-            "gnb_age_s": None if gnb_age is None else _r(gnb_age, 2),
-            "gnb_stale": gnb_age is None or gnb_age > GNB_STALE_S,
-            "gnb_stale_after_s": GNB_STALE_S,
-            "measurements_per_min": sum(1 for t in self._rtt_times if t > t0),
-        })
-        return out
+        return self.fleet[index].health_frame(self.t_s, self.vehicle_stale_s)
 
     def target_frame(self) -> dict | None:
         """The target line: the stop rule's radius and each located user's printed r95 judged
@@ -411,15 +541,21 @@ class ViewState:
 
     def frame(self, cursor: Cursor | None = None) -> tuple[dict, Cursor]:
         """A JSON-able frame with everything `cursor` has not seen (all of it for None), and the
-        client's new cursor."""
+        client's new cursor.
+
+        vehicles: each vehicle's :meth:`VehicleView.frame`; vehicle, waypoint, health: vehicle 0's
+        (as in the frames of before fleets)."""
         cursor = cursor or Cursor()
         new = Cursor(static=self.static_version)
+        vehicles = [v.frame(self.t_s, self.vehicle_stale_s) for v in self.fleet]
+        first = vehicles[0] if vehicles else {}
         doc: dict[str, Any] = {
             "t": _r(self.t_s, 3), "version": self.version, "state": self.state, "status": self.status,
             "reason": self.reason, "final": self.final, "flown_m": _r(self.flown_m, 1),
             "measurements": self.measurements, "keyframes": self.keyframes,
-            "vehicle": self.vehicle, "waypoint": self.waypoint,
-            "users": self.users_frame(), "health": self.health_frame(), "target": self.target_frame(),
+            "vehicle": first.get("vehicle"), "waypoint": first.get("waypoint"),
+            "users": self.users_frame(), "health": first.get("health"), "target": self.target_frame(),
+            "vehicles": vehicles,
         }
         if cursor.static != self.static_version and self.static:
             doc["static"] = self.static

@@ -5,12 +5,16 @@
 (() => {
   const SVGNS = "http://www.w3.org/2000/svg";
   const COLORS = ["#d35400", "#16a085", "#8e44ad", "#c0392b", "#2980b9", "#7a8a00", "#d63384", "#34495e"];
+  // a fleet's vehicles (track, estimated track, leg, marker, home); one vehicle keeps the colours of view.css
+  const VEHICLE_COLORS = ["#2f6fdb", "#1e8e3e", "#b5179e", "#8d5524", "#0097a7", "#c99700", "#d62728", "#5a5a5a"];
+  window.uavlocPalette = { users: COLORS, vehicles: VEHICLE_COLORS };
   const WARN_KINDS = new Set(["return", "rtl_failed", "gnb_lost", "link_lost", "abort", "interrupted",
     "refused", "dropped", "estimator_error", "leg_timeout", "landing_timeout", "goto_failed", "breach"]);
   const NOTE_KINDS = new Set(["rtl", "stop", "landed", "end", "gnb_restored", "link_restored"]);
   const $ = (id) => document.getElementById(id);
   const S = { info: null, static: null, frame: null, series: { track: null, est_track: null, events: null } };
   const view = { cx: 0, cy: 0, scale: 2, auto: true, whole: false, w: 800, h: 600 };
+  let selected = 0; // the vehicle the strip and the "next waypoint" row show (a fleet: click its legend entry)
   let frames = 0;
   window.uavlocState = S; // the 3-D view (view3d.js) draws the same state
 
@@ -58,6 +62,30 @@
     const i = Math.max(0, users.findIndex((u) => u.id === id));
     return COLORS[i % COLORS.length];
   }
+  function vehicleColor(k) { return VEHICLE_COLORS[k % VEHICLE_COLORS.length]; }
+  function fleetOf(f) { return (f && f.vehicles) || []; }
+  function isFleet(f) { return fleetOf(f).length > 1; }
+  function shown(f) { const vs = fleetOf(f); return vs[selected] || vs[0] || null; }
+  // a track's items by vehicle: the vehicle is element `at` of an item (absent: vehicle 0)
+  function byVehicle(items, at) {
+    const out = new Map();
+    for (const p of items) {
+      const k = p.length > at ? p[at] : 0;
+      if (!out.has(k)) out.set(k, []);
+      out.get(k).push(p);
+    }
+    return out;
+  }
+  // a vehicle's condition in words, and whether it needs the operator's eye
+  function vehicleCondition(v) {
+    const h = v.health || {};
+    const words = [];
+    if (v.landed) words.push("landed");
+    else if (v.returning) words.push("returning");
+    if (v.link_lost || (v.health && h.vehicle_stale && !v.landed)) words.push("link lost");
+    return { text: words.join(" · ") || (v.vehicle ? "flying" : "no telemetry"),
+      warn: words.includes("link lost") || (h.battery_pct != null && h.battery_pct < 30) };
+  }
   function fmt(x, nd = 1) { return x === null || x === undefined || !isFinite(x) ? "-" : Number(x).toFixed(nd); }
   function fmtT(t) {
     if (!isFinite(t)) return "-";
@@ -82,6 +110,10 @@
     const f = S.frame || {};
     (f.users || []).forEach((u) => { if (u.located) { const r = Math.min(u.r95_m, 200); add(u.enu_m[0] - r, u.enu_m[1] - r); add(u.enu_m[0] + r, u.enu_m[1] + r); } });
     if (f.waypoint) add(f.waypoint.enu_m[0], f.waypoint.enu_m[1]);
+    fleetOf(f).forEach((v) => {
+      if (v.waypoint) add(v.waypoint.enu_m[0], v.waypoint.enu_m[1]);
+      if (v.home_enu_m) add(v.home_enu_m[0], v.home_enu_m[1]);
+    });
     return [Math.min(...xs), Math.min(...ys), Math.max(...xs), Math.max(...ys)];
   }
 
@@ -190,24 +222,59 @@
     return el("circle", { cx: x, cy: y, r: 4, ...attrs }, parent);
   }
 
-  function drawDynamic() {
-    const f = S.frame;
-    const tr = S.series.track ? S.series.track.items : [];
-    $("track").setAttribute("points", tr.map((p) => `${p[1]},${p[2]}`).join(" "));
-    const et = S.series.est_track ? S.series.est_track.items : [];
-    $("est-track").setAttribute("points", et.map((p) => `${p[0]},${p[1]}`).join(" "));
-    const leg = $("leg");
-    const wp = f && f.waypoint;
-    const start = wp && (wp.from_enu_m || (f.vehicle && f.vehicle.enu_m));
+  // vehicle k's lines: vehicle 0's are the page's #track, #est-track and #leg; the others' are made
+  // in #fleet-lines; in a fleet each in its vehicle's colour, one vehicle in view.css's colours
+  function vehicleLines(k) {
+    if (k === 0) return { track: $("track"), est: $("est-track"), leg: $("leg") };
+    const g = $("fleet-lines");
+    let set = g.querySelector(`g[data-vehicle="${k}"]`);
+    if (!set) {
+      set = el("g", { "data-vehicle": k }, g);
+      el("polyline", { class: "track" }, set);
+      el("polyline", { class: "est-track" }, set);
+      el("line", { class: "leg", visibility: "hidden" }, set);
+    }
+    const [track, est, leg] = set.children;
+    return { track, est, leg };
+  }
+
+  function drawLeg(leg, v) {
+    const wp = v && v.waypoint;
+    const start = wp && (wp.from_enu_m || (v.vehicle && v.vehicle.enu_m));
     if (wp && start) {
       leg.setAttribute("x1", start[0]); leg.setAttribute("y1", start[1]);
       leg.setAttribute("x2", wp.enu_m[0]); leg.setAttribute("y2", wp.enu_m[1]);
       leg.setAttribute("visibility", "visible");
     } else leg.setAttribute("visibility", "hidden");
+  }
+
+  function drawDynamic() {
+    const f = S.frame;
+    const vehicles = fleetOf(f), fleet = isFleet(f);
+    const tracks = byVehicle(S.series.track ? S.series.track.items : [], 4);
+    const ests = byVehicle(S.series.est_track ? S.series.est_track.items : [], 3);
+    const n = Math.max(1, vehicles.length, ...[...tracks.keys(), ...ests.keys()].map((k) => k + 1));
+    for (const set of [...$("fleet-lines").children]) if (Number(set.dataset.vehicle) >= n) set.remove();
+    for (let k = 0; k < n; k++) {
+      const lines = vehicleLines(k);
+      lines.track.setAttribute("points", (tracks.get(k) || []).map((p) => `${p[1]},${p[2]}`).join(" "));
+      lines.est.setAttribute("points", (ests.get(k) || []).map((p) => `${p[0]},${p[1]}`).join(" "));
+      drawLeg(lines.leg, k === 0 && !vehicles.length ? f : vehicles[k]);
+      // the colour as a style (view.css's class rules win over presentation attributes)
+      for (const node of [lines.track, lines.est, lines.leg]) node.style.stroke = fleet ? vehicleColor(k) : "";
+    }
 
     const eg = $("ellipses"), mk = $("markers");
     clear(eg); clear(mk);
-    marker("square", ...toScreen(0, 0), { class: "home" }, mk);
+    if (!fleet) marker("square", ...toScreen(0, 0), { class: "home" }, mk);
+    else {
+      vehicles.forEach((v) => {
+        if (!v.home_enu_m) return;
+        const sq = marker("square", ...toScreen(v.home_enu_m[0], v.home_enu_m[1]), { class: "home", "data-home": v.index }, mk);
+        sq.style.stroke = vehicleColor(v.index);
+        el("title", {}, sq).textContent = `home of ${v.id}`;
+      });
+    }
     const st = S.static || { truth: {} };
     for (const [id, p] of Object.entries(st.truth || {})) {
       marker("cross", ...toScreen(p[0], p[1]), { class: "truth", stroke: userColor(id), "data-truth": id }, mk);
@@ -226,17 +293,66 @@
       marker("dot", x, y, { fill: c, stroke: "#fff", "data-marker": u.id }, mk);
       el("text", { x: x + 7, y: y - 7, class: "ulabel", fill: c }, mk).textContent = u.id + (u.ambiguous ? " ?" : "");
     }
-    if (wp) {
-      const [x, y] = toScreen(wp.enu_m[0], wp.enu_m[1]);
-      el("circle", { cx: x, cy: y, r: 7, class: "wp", id: "waypoint" }, mk);
-      el("path", { d: `M${x - 10},${y}L${x + 10},${y}M${x},${y - 10}L${x},${y + 10}`, class: "wp" }, mk);
+    const each = vehicles.length ? vehicles : [{ index: 0, vehicle: f && f.vehicle, waypoint: f && f.waypoint }];
+    for (const veh of each) {
+      const k = veh.index, wp = veh.waypoint;
+      if (wp) {
+        const [x, y] = toScreen(wp.enu_m[0], wp.enu_m[1]);
+        const ring = el("circle", { cx: x, cy: y, r: 7, class: "wp", ...(k === 0 ? { id: "waypoint" } : {}), "data-waypoint": k }, mk);
+        const cross = el("path", { d: `M${x - 10},${y}L${x + 10},${y}M${x},${y - 10}L${x},${y + 10}`, class: "wp" }, mk);
+        if (fleet) ring.style.stroke = cross.style.stroke = vehicleColor(k);
+      }
     }
-    if (f && f.vehicle) {
-      const [x, y] = toScreen(f.vehicle.enu_m[0], f.vehicle.enu_m[1]);
-      const v = f.vehicle.vel_en_mps;
+    for (const veh of each) {
+      if (!veh.vehicle) continue;
+      const k = veh.index;
+      const [x, y] = toScreen(veh.vehicle.enu_m[0], veh.vehicle.enu_m[1]);
+      const v = veh.vehicle.vel_en_mps;
       const heading = v && Math.hypot(v[0], v[1]) > 0.3 ? Math.atan2(v[0], v[1]) * 180 / Math.PI : 0;
-      el("path", { d: "M0,-11L7,8L0,4L-7,8Z", class: "vehicle", id: "vehicle", transform: `translate(${x} ${y}) rotate(${heading})` }, mk);
+      const attrs = { d: "M0,-11L7,8L0,4L-7,8Z", class: "vehicle", transform: `translate(${x} ${y}) rotate(${heading})` };
+      if (k === 0) attrs.id = "vehicle";
+      if (fleet) attrs["data-vehicle"] = k;
+      const body = el("path", attrs, mk);
+      if (fleet) body.style.fill = vehicleColor(k);
+      if (fleet) el("text", { x: x + 9, y: y + 14, class: "vlabel", fill: vehicleColor(k), "data-vehicle-label": k }, mk).textContent = veh.id;
     }
+  }
+
+  // a fleet: one legend entry per vehicle (its colour, id and health); click one to show it in the strip
+  function drawFleetLegend() {
+    const f = S.frame, box = $("fleet-legend");
+    const fleet = isFleet(f);
+    $("legend").classList.toggle("fleet", fleet);
+    box.hidden = !fleet;
+    if (!fleet) { clear(box); return; }
+    const vehicles = fleetOf(f);
+    while (box.children.length > vehicles.length) box.lastChild.remove();
+    vehicles.forEach((v, i) => {
+      let item = box.children[i];
+      if (!item) {
+        item = document.createElement("button");
+        item.type = "button";
+        item.className = "vitem";
+        item.addEventListener("click", () => { selected = Number(item.dataset.vehicle); render(); });
+        box.appendChild(item);
+      }
+      const h = v.health || {};
+      const cond = vehicleCondition(v);
+      const parts = [v.id];
+      if (h.battery_pct != null) parts.push(`${fmt(h.battery_pct, 0)} %`);
+      if (h.flight_mode) parts.push(h.flight_mode);
+      parts.push(cond.text);
+      item.dataset.vehicle = String(v.index);
+      item.dataset.condition = cond.text;
+      item.classList.toggle("warn", cond.warn);
+      item.classList.toggle("on", v.index === (shown(f) || {}).index);
+      clear(item);
+      const sw = document.createElement("i");
+      sw.className = "sw vsw";
+      sw.style.borderColor = vehicleColor(v.index);
+      item.append(sw, parts.join(" · "));
+      item.title = `${v.id}: click to show it in the vehicle strip`;
+    });
   }
 
   function drawPanel() {
@@ -248,8 +364,11 @@
     $("m-flown").textContent = `${fmt(f.flown_m, 0)} m`;
     $("m-meas").textContent = String(f.measurements);
     $("m-kf").textContent = String(f.keyframes);
-    const wp = f.waypoint;
-    $("m-wp").textContent = wp ? `leg ${wp.leg}: (${fmt(wp.enu_m[0])}, ${fmt(wp.enu_m[1])}, ${fmt(wp.enu_m[2])}) m` +
+    const veh = shown(f), fleet = isFleet(f);
+    const wp = veh ? veh.waypoint : f.waypoint;
+    $("h-vehicle").textContent = fleet && veh ? ` · ${veh.id}` : "";
+    $("h-vehicle").style.color = fleet && veh ? vehicleColor(veh.index) : "";
+    $("m-wp").textContent = wp ? (fleet ? `${veh.id} ` : "") + `leg ${wp.leg}: (${fmt(wp.enu_m[0])}, ${fmt(wp.enu_m[1])}, ${fmt(wp.enu_m[2])}) m` +
       (wp.planner ? ` · ${wp.planner}` : "") : "-";
     drawTarget(f.target);
     drawHealth();
@@ -277,7 +396,9 @@
     }
     const ol = $("events");
     const evs = S.series.events ? S.series.events.items : [];
-    if (ol.dataset.count !== String(evs.length) || ol.dataset.gen !== String(S.series.events && S.series.events.gen)) {
+    const fleetKey = fleetOf(f).map((v) => v.id).join("\n");
+    if (ol.dataset.count !== String(evs.length) || ol.dataset.gen !== String(S.series.events && S.series.events.gen)
+        || ol.dataset.fleet !== fleetKey) {
       clear(ol);
       for (let i = evs.length - 1; i >= 0; i--) {
         const ev = evs[i];
@@ -286,10 +407,19 @@
         else if (NOTE_KINDS.has(ev.kind)) li.className = "note";
         const t = document.createElement("span");
         t.className = "t"; t.textContent = `${fmt(ev.t, 1)} s`;
-        li.append(t, ev.message);
+        li.append(t);
+        const who = isFleet(f) && ev.vehicle != null ? fleetOf(f)[ev.vehicle] : null;
+        if (who) {
+          const b = document.createElement("span");
+          b.className = "vtag"; b.style.color = vehicleColor(who.index); b.textContent = who.id;
+          li.dataset.vehicle = String(who.index);
+          li.append(b, " ");
+        }
+        li.append(ev.message);
         ol.appendChild(li);
       }
       ol.dataset.count = String(evs.length);
+      ol.dataset.fleet = fleetKey;
       ol.dataset.gen = String(S.series.events && S.series.events.gen);
     }
   }
@@ -334,7 +464,9 @@
   }
 
   function drawHealth() {
-    const h = (S.frame && S.frame.health) || {};
+    const veh = shown(S.frame);
+    const health = veh ? veh.health : S.frame && S.frame.health;
+    const h = health || {};
     const idle = idleWall();
     for (const [id, get, show, warn] of HEALTH) {
       const v = get(h);
@@ -345,7 +477,7 @@
       if (idle && (id === "h-veh-age" || id === "h-gnb-age")) { text += ` +${idle.toFixed(0)} s idle`; bad = true; }
       node.textContent = text;
       node.dataset.value = known ? String(v) : "";
-      node.parentElement.classList.toggle("warn", bad || ((id === "h-veh-age" || id === "h-gnb-age") && !known && !!S.frame && !!S.frame.health));
+      node.parentElement.classList.toggle("warn", bad || ((id === "h-veh-age" || id === "h-gnb-age") && !known && !!S.frame && !!health));
     }
   }
   setInterval(() => { if (idleWall()) drawHealth(); }, 1000);
@@ -361,6 +493,7 @@
     drawGrid();
     drawArea();
     drawDynamic();
+    drawFleetLegend();
     drawPanel();
   }
 

@@ -115,29 +115,58 @@ if (renderer) {
       staticGroup.add(mesh);
       staticGroup.add(new THREE.LineSegments(new THREE.EdgesGeometry(geom), new THREE.LineBasicMaterial({ color: 0x4d565f })));
     }
-    const s = Math.max(1.5, action / 120);
-    markerM = s;
-    const home = new THREE.Mesh(new THREE.BoxGeometry(2 * s, 0.2, 2 * s), new THREE.MeshBasicMaterial({ color: 0x1d232a }));
-    home.position.set(0, 0.1, 0);
-    staticGroup.add(home);
+    markerM = Math.max(1.5, action / 120);
+  }
+
+  // one vehicle in the colours of before fleets; a fleet's vehicles each in its colour (view.js's palette)
+  const ONE = { track: 0x2f6fdb, est: 0xe67e22, leg: 0x8e44ad, body: 0x1d232a, home: 0x1d232a };
+  function vehicleColors(k, fleet) {
+    if (!fleet) return ONE;
+    const pal = (window.uavlocPalette && window.uavlocPalette.vehicles) || ["#2f6fdb"];
+    const c = new THREE.Color(pal[k % pal.length]).getHex();
+    return { track: c, est: c, leg: c, body: c, home: c };
+  }
+  // a track's items by vehicle: the vehicle is element `at` of an item (absent: vehicle 0)
+  function byVehicle(items, at) {
+    const out = new Map();
+    for (const p of items) {
+      const k = p.length > at ? p[at] : 0;
+      if (!out.has(k)) out.set(k, []);
+      out.get(k).push(p);
+    }
+    return out;
   }
 
   function buildDynamic(S) {
     disposeGroup(dynamicGroup);
     const f = S.frame || {}, st = S.static || {};
     const s = markerM; // marker size [m]
-    const track = S.series.track ? S.series.track.items : [];
-    if (track.length > 1) dynamicGroup.add(line(track.map((p) => W(p[1], p[2], p[3])), 0x2f6fdb));
-    const est = S.series.est_track ? S.series.est_track.items : [];
-    if (est.length > 1) dynamicGroup.add(line(est.map((p) => W(p[0], p[1], p[2])), 0xe67e22, { dashed: true, dash: s * 2 }));
-    const wp = f.waypoint;
-    const start = wp && (wp.from_enu_m || (f.vehicle && f.vehicle.enu_m));
-    if (wp && start) {
-      dynamicGroup.add(line([W(...start), W(...wp.enu_m)], 0x8e44ad, { dashed: true, dash: s }));
-      const m = new THREE.Mesh(new THREE.TorusGeometry(1.2 * s, 0.25 * s, 8, 24), new THREE.MeshBasicMaterial({ color: 0x8e44ad }));
-      m.position.copy(W(...wp.enu_m));
-      m.rotation.x = Math.PI / 2;
-      dynamicGroup.add(m);
+    const vehicles = f.vehicles && f.vehicles.length ? f.vehicles
+      : [{ index: 0, vehicle: f.vehicle, waypoint: f.waypoint, health: f.health, home_enu_m: [0, 0, 0] }];
+    const fleet = vehicles.length > 1;
+    for (const [k, track] of byVehicle(S.series.track ? S.series.track.items : [], 4)) {
+      if (track.length > 1) dynamicGroup.add(line(track.map((p) => W(p[1], p[2], p[3])), vehicleColors(k, fleet).track));
+    }
+    for (const [k, est] of byVehicle(S.series.est_track ? S.series.est_track.items : [], 3)) {
+      if (est.length > 1) dynamicGroup.add(line(est.map((p) => W(p[0], p[1], p[2])), vehicleColors(k, fleet).est, { dashed: true, dash: s * 2 }));
+    }
+    for (const v of vehicles) {
+      const col = vehicleColors(v.index, fleet);
+      const wp = v.waypoint;
+      const start = wp && (wp.from_enu_m || (v.vehicle && v.vehicle.enu_m));
+      if (wp && start) {
+        dynamicGroup.add(line([W(...start), W(...wp.enu_m)], col.leg, { dashed: true, dash: s }));
+        const m = new THREE.Mesh(new THREE.TorusGeometry(1.2 * s, 0.25 * s, 8, 24), new THREE.MeshBasicMaterial({ color: col.leg }));
+        m.position.copy(W(...wp.enu_m));
+        m.rotation.x = Math.PI / 2;
+        dynamicGroup.add(m);
+      }
+      if (v.home_enu_m && (fleet || v.index === 0)) {
+        const home = new THREE.Mesh(new THREE.BoxGeometry(2 * s, 0.2, 2 * s), new THREE.MeshBasicMaterial({ color: col.home }));
+        home.position.copy(fleet ? W(v.home_enu_m[0], v.home_enu_m[1], v.home_enu_m[2] + 0.1) : W(0, 0, 0.1));
+        home.userData.home = v.index;
+        dynamicGroup.add(home);
+      }
     }
     for (const [id, p] of Object.entries(st.truth || {})) {
       const c = userColor(S, id), u = p[2];
@@ -166,22 +195,24 @@ if (renderer) {
       pin.userData.user = u.id;
       dynamicGroup.add(pin);
     }
-    if (f.vehicle) {
-      const [e, n, up] = f.vehicle.enu_m;
-      const v = f.vehicle.vel_en_mps;
-      const h = S.frame.health && S.frame.health.heading_deg;
+    for (const veh of vehicles) {
+      if (!veh.vehicle) continue;
+      const col = vehicleColors(veh.index, fleet);
+      const [e, n, up] = veh.vehicle.enu_m;
+      const v = veh.vehicle.vel_en_mps;
+      const h = veh.health && veh.health.heading_deg;
       const hdg = h != null ? h * Math.PI / 180 : (v && Math.hypot(v[0], v[1]) > 0.3 ? Math.atan2(v[0], v[1]) : 0);
-      const body = new THREE.Mesh(new THREE.ConeGeometry(1.3 * s, 3.5 * s, 4), new THREE.MeshLambertMaterial({ color: 0x1d232a }));
+      const body = new THREE.Mesh(new THREE.ConeGeometry(1.3 * s, 3.5 * s, 4), new THREE.MeshLambertMaterial({ color: col.body }));
       body.rotation.x = -Math.PI / 2; // the cone's tip points north (−z)
       const g = new THREE.Group();
       g.add(body);
       g.rotation.y = -hdg; // heading clockwise from north
       g.position.copy(W(e, n, up));
-      g.userData.vehicle = true;
+      g.userData.vehicle = veh.index;
       dynamicGroup.add(g);
-      dynamicGroup.add(line([W(e, n, up), W(e, n, 0)], 0x1d232a, { opacity: 0.35 })); // drop line to the ground
+      dynamicGroup.add(line([W(e, n, up), W(e, n, 0)], col.body, { opacity: 0.35 })); // drop line to the ground
       const shadow = new THREE.Mesh(new THREE.CircleGeometry(0.8 * s, 16).rotateX(-Math.PI / 2),
-        new THREE.MeshBasicMaterial({ color: 0x1d232a, transparent: true, opacity: 0.25, depthWrite: false }));
+        new THREE.MeshBasicMaterial({ color: col.body, transparent: true, opacity: 0.25, depthWrite: false }));
       shadow.position.copy(W(e, n, 0.1));
       dynamicGroup.add(shadow);
     }
@@ -197,6 +228,10 @@ if (renderer) {
     (S.series.track ? S.series.track.items : []).forEach((p) => add(p[1], p[2], p[3]));
     (f.users || []).forEach((u) => { if (u.located) { const r = Math.min(u.r95_m, 200); add(u.enu_m[0] - r, u.enu_m[1] - r, 0); add(u.enu_m[0] + r, u.enu_m[1] + r, 0); } });
     if (f.waypoint) add(...f.waypoint.enu_m);
+    (f.vehicles || []).forEach((v) => {
+      if (v.waypoint) add(...v.waypoint.enu_m);
+      if (v.home_enu_m) add(...v.home_enu_m);
+    });
     return [Math.min(...es), Math.max(...es), Math.min(...ns), Math.max(...ns), Math.max(...us)];
   }
 
