@@ -65,6 +65,13 @@ async def ask(gnb: SimulatedGnb, line: str) -> str:
         w.close()
 
 
+async def until(condition, timeout_s: float = 5.0) -> None:
+    """Poll `condition()` until it holds (the T server's occasions come in real time)."""
+    async with asyncio.timeout(timeout_s):
+        while not condition():
+            await asyncio.sleep(0.02)
+
+
 # ---------------------------------------------------------------------------------------------
 # the built-in vehicles
 
@@ -143,7 +150,8 @@ def test_a_ue_is_served_by_one_gnb_of_the_fleet_and_reattaches_with_a_random_acc
             # as for an RNTI it does not have: the same line as for one no gNB has
             assert await c0.request(f"rtt pdcch_order {RNTI_B:04x}") == f"error rnti {RNTI_B:04x} not connected\n"
             assert await c0.request("rtt pdcch_order 0999") == "error rnti 0999 not connected\n"
-            await asyncio.sleep(0.3)  # SRS occasions: UE a's random access in gNB 0's trace
+            await until(lambda: tracer.tracker.counts.rars >= 1)  # UE a's random access in gNB 0's trace
+            await asyncio.sleep(0.2)  # SRS occasions of gNB 0: no other random access
             rars_before = tracer.tracker.counts.rars
             log_before = logs[0].read_text() if logs[0].exists() else ""
 
@@ -153,7 +161,7 @@ def test_a_ue_is_served_by_one_gnb_of_the_fleet_and_reattaches_with_a_random_acc
             got = await c0.measure(RNTI_B)
             where[1] = [150.0, 0.0, 40.0]  # back over b: a connected UE does not reselect
             assert await c0.discover() == [RNTI_A, RNTI_B] and await c1.discover() == []
-            await asyncio.sleep(0.3)
+            await until(lambda: tracer.tracker.counts.rars >= 2)
             return rars_before, log_before, got, tracer.tracker.counts.rars, tracer.tracker.ues()
 
     rars_before, log_before, got, rars_after, traced = run(body())
@@ -245,3 +253,17 @@ def test_a_simulated_fleet_starts_a_vehicle_and_a_gnb_per_vehicle(tmp_path: Path
     home = vehicle_home(sc, 0)  # the mission's frame: vehicle 0's home, 10 m east of the origin
     truth = seen["truth"](home)
     np.testing.assert_allclose(truth[0, :2], [-360.0 - 10.0, 80.0], atol=0.01)
+
+
+def test_a_one_vehicle_mission_hands_the_controller_its_single_vehicle_and_gnb(tmp_path: Path, monkeypatch):
+    seen = {}
+    monkeypatch.setattr(sim_runner, "controller_from_scenario",
+                        lambda scenario, vehicle, gnb, log_path, **kw: seen.update(vehicle=vehicle, gnb=gnb))
+
+    async def body():
+        async with SimulatedMission(load_scenario("paper"), tmp_path / "m.jsonl", speedup=5.0) as m:
+            assert m.cells is None and m.gnb_sim.cell is None and m.vehicle_sim.origin == m.scenario.origin_geo
+            return m.vehicles, m.gnb_clients
+
+    vehicles, clients = run(body())
+    assert seen["vehicle"] is vehicles[0] and seen["gnb"] is clients[0] and len(vehicles) == len(clients) == 1

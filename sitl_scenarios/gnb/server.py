@@ -473,8 +473,7 @@ class SimulatedGnb:
         got = self._round_trip_ta(k)
         if got is not None:
             self.ra_log.initial(self._frame(), self.current_rnti[k], *got)
-            log.info("user %d attached to cell %d (RNTI %04x)", k, self.cell.index if self.cell else 0,
-                     self.current_rnti[k])
+            log.info("UE %04x attached to this cell", self.current_rnti[k])
 
     def _connected_rntis(self) -> list[int]:
         """UEs in coverage of the UAV (all of them while the UAV position is unknown), or with a
