@@ -11,15 +11,26 @@
 - the gNB adapter (`mission.gnb.OaiGnbClient`) and the MAVSDK vehicle adapter;
 - the :class:`MissionController`, which :meth:`run` runs.
 
-Frames: with the built-in vehicle the scenario's origin is the vehicle's home; with PX4 SITL the
-scenario's positions are offsets from the vehicle's home (docs/design.md §9). The `truth` record is
-computed accordingly. Fault tests reach the parts through `.vehicle_sim`, `.gnb_sim`,
-`.controller` and :meth:`kill_gnb`.
+A fleet (`scenario.mission.fleet_size` > 1, built-in vehicles only; docs/fleet.md): N built-in
+vehicles (system ids 1..N, each at the launch point the fast mode gives it:
+`sitl_scenarios.fleet.vehicle_home`, each on its own UDP ports), N MAVSDK adapters, N simulated gNBs
+(each on its own TCP ports, following its own vehicle's true position, on its vehicle's simulated
+clock) sharing one cell attachment (`sitl_scenarios.gnb.cells.SharedCells`, the scenario's
+`[radio] coverage_m`), and N gNB adapters; the controller gets the lists. They are `.vehicle_sims`,
+`.vehicles`, `.gnb_sims`, `.gnb_clients` (one element each for one vehicle); `.vehicle_sim`,
+`.vehicle`, `.gnb_sim` and `.gnb_client` are element 0.
+
+Frames: the scenario's positions are ENU of its origin. A built-in vehicle's home is its launch
+point (the origin for one vehicle); the mission's frame is vehicle 0's home, and the `truth` and
+buildings go through geodetic coordinates into it. With PX4 SITL the scenario's positions are
+offsets from the vehicle's home (docs/design.md §9). Fault tests reach the parts through
+`.vehicle_sim`, `.gnb_sim`, `.controller` and :meth:`kill_gnb`.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import socket
@@ -33,7 +44,9 @@ from mission.control.config import MissionResult
 from mission.control.flight import MissionController
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.vehicle import MavsdkVehicle
+from sitl_scenarios.fleet import enu_between
 from sitl_scenarios.gnb import SimulatedGnb
+from sitl_scenarios.gnb.cells import SharedCells
 from sitl_scenarios.scenario import Scenario, controller_from_scenario
 from sitl_scenarios.vehicle import VehicleSimulator
 from uavloc.errors import MissionError
@@ -84,6 +97,15 @@ class SimulatedMission:
         self.gnb_mode = gnb_mode if gnb_mode is not None else scenario.mission.gnb.mode
         if self.gnb_mode not in ("rtt", "trace", "auto"):
             raise MissionError(f"the simulated gNB measures in mode rtt, trace or auto, not {self.gnb_mode!r}")
+        #: how many vehicles fly: the mission's fleet (built-in vehicles), one with `connect`
+        self.fleet_size = scenario.mission.fleet_size if connect is None else 1
+        self.vehicle_sims: list[VehicleSimulator] = []
+        self.vehicles: list[MavsdkVehicle] = []
+        #: a killed gNB's place holds None
+        self.gnb_sims: list[SimulatedGnb | None] = []
+        self.gnb_clients: list[OaiGnbClient] = []
+        #: the fleet's shared cell attachment (None: one vehicle)
+        self.cells: SharedCells | None = None
         self.vehicle_sim: VehicleSimulator | None = None
         self.gnb_sim: SimulatedGnb | None = None
         self.gnb_client: OaiGnbClient | None = None
@@ -95,8 +117,15 @@ class SimulatedMission:
 
     # -- positions seen by the simulated gNB (ENU of the scenario frame) ------------------------
 
-    def _true_position_builtin(self) -> np.ndarray | None:
-        return np.asarray(self.vehicle_sim.state().pos_enu_m, float)
+    def _true_position_builtin(self, index: int = 0) -> np.ndarray | None:
+        """Built-in vehicle `index`'s true position in the scenario's ENU frame [m] (its simulator
+        works in the ENU frame of its own home, its launch point)."""
+        sim = self.vehicle_sims[index]
+        return enu_between(np.asarray(sim.state().pos_enu_m, float), sim.origin, self.scenario.origin_geo)
+
+    def _fleet_positions(self) -> np.ndarray:
+        """(N, 3) every built-in vehicle's true position in the scenario's ENU frame [m]."""
+        return np.array([self._true_position_builtin(i) for i in range(len(self.vehicle_sims))])
 
     def _position_followed(self) -> np.ndarray | None:
         """PX4 SITL: the vehicle's reported position in the ENU frame of its home."""
@@ -107,6 +136,10 @@ class SimulatedMission:
         p = st.position
         return home.lla_to_enu(p.lat_deg, p.lon_deg, p.alt_amsl_m)
 
+    def _vehicle_clock(self, index: int) -> float:
+        """Built-in vehicle `index`'s simulated clock [s]."""
+        return float(self.vehicle_sims[index].state().t_s)
+
     def _sim_clock(self) -> float:
         if self.vehicle_sim is not None:
             return float(self.vehicle_sim.state().t_s)
@@ -115,7 +148,8 @@ class SimulatedMission:
         return time.monotonic() - self._t0
 
     def _truth(self, home: Origin) -> np.ndarray:
-        """True users in the controller's frame (ENU from the vehicle's reported home)."""
+        """True users in the controller's frame (ENU from the vehicle's reported home: vehicle 0's
+        for a fleet)."""
         users = np.array([[u.east_m, u.north_m, u.up_m] for u in self.scenario.users], float)
         if self.connect is not None:
             return users  # scenario positions are offsets from the vehicle's home
@@ -140,40 +174,33 @@ class SimulatedMission:
         await stack.__aenter__()
         try:
             if self.connect is None:
-                port = free_udp_port()
-                self.vehicle_sim = await stack.enter_async_context(VehicleSimulator.from_scenario(
-                    self.scenario, seed=self.seed, speedup=self.speedup, target=("127.0.0.1", port),
-                    bind=("127.0.0.1", 0), max_stream_wall_hz=self.max_stream_wall_hz))
-                url = f"udpin://127.0.0.1:{port}"
-                position = self._true_position_builtin
+                for i in range(self.fleet_size):
+                    port = free_udp_port()
+                    self.vehicle_sims.append(await stack.enter_async_context(VehicleSimulator.from_scenario(
+                        self.scenario, i, seed=self.seed, speedup=self.speedup, target=("127.0.0.1", port),
+                        bind=("127.0.0.1", 0), max_stream_wall_hz=self.max_stream_wall_hz)))
+                    self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(f"udpin://127.0.0.1:{port}")))
             else:
-                url = self.connect
-                position = self._position_followed
-            self.vehicle = await stack.enter_async_context(MavsdkVehicle(url))
+                self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(self.connect)))
+            self.vehicle_sim = self.vehicle_sims[0] if self.vehicle_sims else None
+            self.vehicle = self.vehicles[0]
             self._gnb_stack = contextlib.AsyncExitStack()
             await self._gnb_stack.__aenter__()
             stack.push_async_callback(self._close_gnb)
-            self.gnb_sim = await self._gnb_stack.enter_async_context(SimulatedGnb(
-                self.scenario, position, host="127.0.0.1", port=0, clock=self._sim_clock, seed=self.seed,
-                rest_port=0 if self.gnb_transport == "rest" else None,
-                t_port=0 if self.gnb_mode in ("trace", "auto") else None))
-            rest = self.gnb_transport == "rest"
-            self.gnb_client = await self._gnb_stack.enter_async_context(OaiGnbClient(GnbConfig.of(
-                self.scenario.mission.gnb, "127.0.0.1", self.gnb_sim.rest_port if rest else self.gnb_sim.port,
-                transport="rest" if rest else "telnet", seed=self.seed, mu=self.scenario.radio.mu,
-                fs_hz=self.scenario.radio.fs_hz, mode=self.gnb_mode, t_port=self.gnb_sim.t_port or 2021,
-                # an RTT keyframes take is at most this old in simulated seconds
-                trace_max_age_s=self.scenario.mission.gnb.trace_max_age_s / self.speedup,
-                # a jump the mission's own range noise can make (3 σ0) is no jump
-                trace_jump_tolerance_m=max(self.scenario.mission.gnb.trace_jump_tolerance_m,
-                                           3.0 * self.scenario.mission.noise.range_s0_m),
-                request_timeout_s=self.gnb_request_timeout_s, connect_timeout_s=self.gnb_request_timeout_s,
-                retries=1, backoff_max_s=0.2)))
+            if self.fleet_size > 1:
+                self.cells = SharedCells.of_scenario(self.scenario, self._fleet_positions, self.fleet_size)
+            for i in range(self.fleet_size):
+                gnb = await self._gnb_stack.enter_async_context(self._simulated_gnb(i))
+                self.gnb_sims.append(gnb)
+                self.gnb_clients.append(await self._gnb_stack.enter_async_context(self._gnb_client(gnb)))
+            self.gnb_sim, self.gnb_client = self.gnb_sims[0], self.gnb_clients[0]
             overrides = dict(self.controller_overrides)
             # the controller's gNB timeout covers the adapter's own timeout and one reconnect
             overrides.setdefault("gnb_timeout_s", 3.0 * self.gnb_request_timeout_s + 0.5)
+            fleet = self.fleet_size > 1
             self.controller = controller_from_scenario(
-                self.scenario, self.vehicle, self.gnb_client, self.log_path, planner=self.planner,
+                self.scenario, self.vehicles if fleet else self.vehicle,
+                self.gnb_clients if fleet else self.gnb_client, self.log_path, planner=self.planner,
                 seed=self.seed, time_scale=self.speedup, truth=self._truth, buildings=self._buildings,
                 external_vehicle=self.connect is not None,
                 header_config={"command": "sim", "speedup": self.speedup, "connect": self.connect,
@@ -186,6 +213,39 @@ class SimulatedMission:
         self._stack = stack
         return self
 
+    def _simulated_gnb(self, index: int) -> SimulatedGnb:
+        """The simulated gNB of vehicle `index` (not started): on free loopback ports, at its
+        vehicle's true position on its vehicle's clock; a fleet's in its cell of the shared attachment."""
+        if self.connect is not None:
+            position, clock = self._position_followed, self._sim_clock
+        elif self.fleet_size == 1:
+            position, clock = self._true_position_builtin, self._sim_clock
+        else:
+            position = functools.partial(self._true_position_builtin, index)
+            clock = functools.partial(self._vehicle_clock, index)
+        # gNB 0 draws as the one gNB of a one-vehicle mission; the others from seeds of their own
+        seed = self.seed if index == 0 else int(np.random.SeedSequence([self.seed, index]).generate_state(1)[0])
+        return SimulatedGnb(
+            self.scenario, position, host="127.0.0.1", port=0, clock=clock, seed=seed,
+            rest_port=0 if self.gnb_transport == "rest" else None,
+            t_port=0 if self.gnb_mode in ("trace", "auto") else None,
+            cell=None if self.cells is None else self.cells.cell(index))
+
+    def _gnb_client(self, gnb: SimulatedGnb) -> OaiGnbClient:
+        """The gNB adapter of a simulated gNB (not started)."""
+        rest = self.gnb_transport == "rest"
+        return OaiGnbClient(GnbConfig.of(
+            self.scenario.mission.gnb, "127.0.0.1", gnb.rest_port if rest else gnb.port,
+            transport="rest" if rest else "telnet", seed=self.seed, mu=self.scenario.radio.mu,
+            fs_hz=self.scenario.radio.fs_hz, mode=self.gnb_mode, t_port=gnb.t_port or 2021,
+            # an RTT keyframes take is at most this old in simulated seconds
+            trace_max_age_s=self.scenario.mission.gnb.trace_max_age_s / self.speedup,
+            # a jump the mission's own range noise can make (3 σ0) is no jump
+            trace_jump_tolerance_m=max(self.scenario.mission.gnb.trace_jump_tolerance_m,
+                                       3.0 * self.scenario.mission.noise.range_s0_m),
+            request_timeout_s=self.gnb_request_timeout_s, connect_timeout_s=self.gnb_request_timeout_s,
+            retries=1, backoff_max_s=0.2))
+
     async def __aexit__(self, *exc: object) -> None:
         stack, self._stack = self._stack, None
         if stack is not None:
@@ -196,13 +256,17 @@ class SimulatedMission:
         if gstack is not None:
             await gstack.aclose()
 
-    async def kill_gnb(self) -> None:
-        """Fault injection: stop the simulated gNB server (its port closes; the adapter sees a dead gNB)."""
-        if self.gnb_sim is None:
+    async def kill_gnb(self, index: int = 0) -> None:
+        """Fault injection: stop vehicle `index`'s simulated gNB server (its port closes; the adapter
+        sees a dead gNB; a fleet's gNB leaves the air and its UEs attach to the others)."""
+        if not 0 <= index < len(self.gnb_sims) or self.gnb_sims[index] is None:
             return
-        sim, self.gnb_sim = self.gnb_sim, None
+        sim = self.gnb_sims[index]
+        self.gnb_sims[index] = None
+        if index == 0:
+            self.gnb_sim = None
         await sim.__aexit__(None, None, None)
-        log.warning("simulated gNB killed")
+        log.warning("simulated gNB %d killed", index)
 
     async def run(self) -> MissionResult:
         """Run the mission; the simulators keep running until the context exits."""

@@ -39,6 +39,7 @@ from mission.result import STATUS_BUDGET, STATUS_FLOOR, STATUS_TARGET, build_res
 from planner import PlanningConstraints, PlanningState, make_planner
 from planner.fleet import REASON_USERS_DONE, FleetPlanner, Separation, vehicles_apart
 from sitl_scenarios.campaign.outcome import AccuracyTrack, Outcome
+from sitl_scenarios.fleet import launch_points_enu_m
 from sitl_scenarios.radio import CellAttachment, RadioModel
 from sitl_scenarios.scenario import Scenario
 from sitl_scenarios.vehicle.sensors import GpsError
@@ -111,20 +112,6 @@ class _Flyer:
         if leg == 0.0:
             return self.x.copy()
         return self.x + (self.wp - self.x) * (self.arc_m(t_s) / leg)
-
-
-def launch_points_enu_m(home_enu_m: np.ndarray, n_vehicles: int, separation: Separation) -> np.ndarray:
-    """(V, 3) where a simulated fleet's vehicles take off: on a ring around home, vehicle v at bearing
-    θ_v = 2πv/V from east, neighbours 5 m more than the horizontal separation
-    apart (one vehicle: at home). A UE attaches to the nearest cell at take-off, so a ring gives each
-    vehicle the users of its own sector; on a line, the middle vehicle of three took off with none."""
-    home = np.asarray(home_enu_m, float)
-    if n_vehicles == 1:
-        return home[None, :].copy()
-    # neighbours on the ring a chord 2 r sin(π/V) = separation + 5 m apart
-    r = (separation.horizontal_m + 5.0) / (2.0 * np.sin(np.pi / n_vehicles))
-    theta = 2.0 * np.pi * np.arange(n_vehicles) / n_vehicles
-    return home[None, :] + np.column_stack([r * np.cos(theta), r * np.sin(theta), np.zeros(n_vehicles)])
 
 
 def fly_fast(sc: Scenario, planner_name: str, params: SolverParams, seed: int,

@@ -1,5 +1,6 @@
 """The simulated OAI gNB: telnet (`server`), OAI's web server (`rest`), its T tracer (`ttrace`),
-the random-access log lines (`ra`) and injected faults (`faults`). ``python -m sitl_scenarios.gnb``
+the random-access log lines (`ra`), injected faults (`faults`) and a fleet's gNBs sharing one cell
+attachment (`cells`). ``python -m sitl_scenarios.gnb``
 serves it.
 
 The names below are loaded on first use: `sitl_scenarios.scenario` imports `faults` while the
@@ -12,6 +13,7 @@ import importlib
 from typing import Any
 
 _WHERE = {"GnbFaults": "sitl_scenarios.gnb.faults", "SimulatedGnb": "sitl_scenarios.gnb.server",
+          "GnbCell": "sitl_scenarios.gnb.cells", "SharedCells": "sitl_scenarios.gnb.cells",
           "MavlinkPositionSource": "sitl_scenarios.position", "static_position": "sitl_scenarios.position"}
 __all__ = sorted(_WHERE)
 

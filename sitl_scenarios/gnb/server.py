@@ -31,6 +31,15 @@ who it was: ``Received a MAC CE for C-RNTI with <old>`` (a connected-mode RA, TA
 UE). :meth:`SimulatedGnb.reattach` makes a UE go idle and attach again with a new RNTI (as
 ``ciUE force_RRC_IDLE`` does), :meth:`SimulatedGnb.crnti_access` makes it do a C-RNTI RA.
 
+A fleet's gNBs (one per vehicle) share one cell attachment: with ``cell``
+(:class:`sitl_scenarios.gnb.cells.GnbCell`) the gNB serves only the UEs attached to its cell
+(``o1 stats``, ``ci``, the RTT command, the T tracer, the REST API alike); any other UE is to it an
+RNTI it does not have, answered as such (``error rnti .. not connected``, a crash on ``ci
+force_reestab <rnti>``). A UE that attaches to its cell, other than those attached when the fleet
+came on the air, makes an initial access there (the RA lines in the log, a RAR in the T tracer),
+keeping its RNTI (a simplification: OAI would give it a new one; `sitl_scenarios.gnb.cells`). A gNB
+that stops or crashes leaves the air and its UEs attach elsewhere.
+
 Answers come from the true geometry through :class:`sitl_scenarios.radio.RadioModel`. The UAV
 position comes from a callable (the built-in vehicle, in-process) or from a MAVLink stream
 (:class:`MavlinkPositionSource`, GLOBAL_POSITION_INT). Faults (delay, malformed answer, dropped
@@ -64,6 +73,7 @@ import numpy as np
 
 from estimator.ranging import C_MPS
 from mission.gnb.oai import PROMPT_GNB, format_rtt_line, unknown_command_text
+from sitl_scenarios.gnb.cells import GnbCell
 from sitl_scenarios.gnb.faults import GnbFaults
 from sitl_scenarios.gnb.ra import OaiRaLog
 from sitl_scenarios.gnb.rest import GnbRestServer
@@ -103,7 +113,9 @@ class SimulatedGnb:
     (default: the scenario's); seed: seeds the radio model and the fault draws (default: the
     scenario's seed); rtt_module / rtt_command: names of the RTT command; msg2_delay_s: time from
     `ci force_reestab` to the Msg2 log line [s]; reestab_new_rnti: a UE comes back from
-    reestablishment with a new C-RNTI (as a real UE may), shown in its Msg2 line.
+    reestablishment with a new C-RNTI (as a real UE may), shown in its Msg2 line; cell: this gNB's
+    cell of a fleet's shared attachment (None: one gNB, every UE in coverage is its own); its
+    `position` should be the one the shared cells' `positions` give for it.
     """
 
     def __init__(
@@ -127,7 +139,11 @@ class SimulatedGnb:
         rest_port: int | None = None,
         stock_websrv: bool = False,
         t_port: int | None = None,
+        cell: GnbCell | None = None,
     ) -> None:
+        if cell is not None and len(cell.shared.current_rnti) != len(scenario.users):
+            raise SimulatorError(f"the shared cells have {len(cell.shared.current_rnti)} UEs, the scenario "
+                                 f"{len(scenario.users)}")
         if stock_reaction not in _STOCK_REACTIONS:
             raise SimulatorError(f"stock_reaction must be one of {_STOCK_REACTIONS}, got {stock_reaction!r}")
         self.scenario = scenario
@@ -159,8 +175,14 @@ class SimulatedGnb:
         #: the T tracer's port (None: none; 0: an ephemeral port, read it after entering)
         self.t_port = t_port
         self.t_server: SimulatedTServer | None = None
-        #: current C-RNTI of each user (a new one after a reestablishment or a re-attach)
-        self.current_rnti: list[int] = [u.rnti for u in scenario.users]
+        #: this gNB's cell of a fleet's shared attachment (None: a single gNB)
+        self.cell = cell
+        #: {user: attach number} of the UEs attached to this cell, as this gNB last saw them
+        self._cell_attach: dict[int, int] = {}
+        #: current C-RNTI of each user (a new one after a reestablishment or a re-attach); a fleet's
+        #: gNBs share one list (a UE keeps its RNTI across cells)
+        self.current_rnti: list[int] = (cell.shared.current_rnti if cell is not None
+                                        else [u.rnti for u in scenario.users])
         #: old contexts of UEs that went idle: RNTI -> monotonic time the gNB drops it
         self.lingering: dict[int, float] = {}
         #: why the simulated gNB crashed (as OAI does on a `ci` command with an unknown RNTI)
@@ -239,6 +261,8 @@ class SimulatedGnb:
         if self._server is None or self._tg is None:
             return
         server, tg, self._server, self._tg = self._server, self._tg, None, None
+        if self.cell is not None:
+            self.cell.leave_air()
         server.close()
         rest, self.rest = self.rest, None
         if rest is not None:
@@ -427,14 +451,43 @@ class SimulatedGnb:
         p = np.asarray(pos, float).reshape(3)
         return p if np.all(np.isfinite(p)) else None
 
+    def served_users(self) -> dict[int, int]:
+        """{user index: attach number} of the UEs this gNB serves: every user (number 0) without a
+        shared cell; with one, the UEs attached to its cell now. Each attach this gNB has not seen
+        yet, other than one the fleet started with, is an initial access in its log."""
+        if self.cell is None:
+            return dict.fromkeys(range(len(self.radio.users)), 0)
+        now = self.cell.served()
+        for k in [k for k, n in self._cell_attach.items() if now.get(k) != n]:
+            del self._cell_attach[k]  # attached elsewhere, or to no cell
+        for k, n in now.items():
+            if k not in self._cell_attach:
+                self._cell_attach[k] = n
+                if not self.cell.attached_at_start(k):
+                    self._attach_access(k)
+        return now
+
+    def _attach_access(self, k: int) -> None:
+        """User k attaches to this cell: an initial access with its RNTI as the TC-RNTI (it keeps
+        its RNTI across cells: sitl_scenarios.gnb.cells) and the full round-trip TA."""
+        got = self._round_trip_ta(k)
+        if got is not None:
+            self.ra_log.initial(self._frame(), self.current_rnti[k], *got)
+            log.info("UE %04x attached to this cell", self.current_rnti[k])
+
     def _connected_rntis(self) -> list[int]:
-        """UEs in coverage of the UAV (all of them while the UAV position is unknown), and the old
-        contexts of UEs that went idle until the gNB drops them."""
-        uav = self._uav()
+        """UEs in coverage of the UAV (all of them while the UAV position is unknown), or with a
+        shared cell the UEs attached to it, and the old contexts of UEs that went idle until the
+        gNB drops them."""
         out = []
-        for k in range(len(self.radio.users)):
-            if uav is None or np.linalg.norm(uav - self.radio.user_enu_m[k]) <= self.scenario.radio.coverage_m:
-                out.append(self.current_rnti[k])
+        if self.cell is not None:
+            served = self.served_users()
+            out = [self.current_rnti[k] for k in range(len(self.radio.users)) if k in served]
+        else:
+            uav = self._uav()
+            for k in range(len(self.radio.users)):
+                if uav is None or np.linalg.norm(uav - self.radio.user_enu_m[k]) <= self.scenario.radio.coverage_m:
+                    out.append(self.current_rnti[k])
         now = time.monotonic()
         for r, until in list(self.lingering.items()):
             if until <= now:
@@ -525,10 +578,14 @@ class SimulatedGnb:
         return json.dumps(doc, indent=2) + "\nOK\n"
 
     def _measure(self, rnti: int) -> RawRtt | str:
-        """A RawRtt, or the reason there is none."""
+        """A RawRtt, or the reason there is none (a UE of another cell is not connected here)."""
         k = self._user_of(rnti)
-        if k is None:
+        if k is None or (self.cell is not None and k not in self.served_users()):
             return "not connected"
+        return self._measure_user(k)
+
+    def _measure_user(self, k: int) -> RawRtt | str:
+        """User k's RawRtt from this gNB's UAV position now, or the reason there is none."""
         uav = self._uav()
         if uav is None:
             return "no UAV position"
@@ -594,6 +651,8 @@ class SimulatedGnb:
         if self.log_path is not None:
             with self.log_path.open("a", encoding="utf-8") as fh:
                 fh.write(f"{self.crashed}\n")
+        if self.cell is not None:
+            self.cell.leave_air()
         if self._server is not None:
             self._server.close()
         for w in list(self._writers):
@@ -610,7 +669,7 @@ class SimulatedGnb:
 
     def _round_trip_ta(self, k: int) -> tuple[int, int] | None:
         """(PRACH timing estimate: the TA rounded to the nearest step, μ) of user k, or None."""
-        res = self._measure(self.current_rnti[k])
+        res = self._measure_user(k)
         if isinstance(res, str):
             log.info("no random access of user %d: %s", k, res)
             return None

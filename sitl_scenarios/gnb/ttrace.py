@@ -9,8 +9,8 @@ emits, in an order of its own (ids differ from OAI's, as between OAI versions).
 
 Habits, in the gNB's air time (the simulation clock: frames of 10 ms):
 
-- a UE's random access when it first comes into coverage: a PRACH event and a RAR whose TA is the
-  round trip floored to a TA step;
+- a UE's random access when it first comes into coverage (a fleet's gNB: each time the UE attaches
+  to its cell): a PRACH event and a RAR whose TA is the round trip floored to a TA step;
 - an SRS impulse response every 8 frames per UE (1 536 taps, int16 I/Q, zero delay at index 768,
   peak ~31 dB over the mean): the round trip (sitl_scenarios.radio: distance, noise, the UE clock
   sawtooth, NLoS) less the UE's timing advance; out of coverage, and at `stale_prob` per occasion,
@@ -111,6 +111,7 @@ class _Ue:
     n_ta: int  # the UE's timing advance [TA steps]
     residual: float = 0.0  # the latest SRS residual [samples]
     apply: list[tuple[float, int]] = field(default_factory=list)  # (air time, command) the UE will apply
+    attach: int = 0  # its attach number (SimulatedGnb.served_users) when it made its random access here
 
 
 class SimulatedTServer:
@@ -230,13 +231,17 @@ class SimulatedTServer:
 
     def _srs_occasion(self, f: int, t_air: float, t_wall_s: float, on: set[int]) -> list[bytes]:
         out: list[bytes] = []
-        for k in range(len(self.gnb.radio.users)):
+        served = self.gnb.served_users()  # a fleet's gNB: the UEs attached to its cell
+        for k in [k for k, ue in self.ues.items() if served.get(k) != ue.attach]:
+            del self.ues[k]  # gone to another cell (or attached again): a random access when back
+        for k, attach in served.items():
             rtt = self._rtt_samples(k, t_air)
             ue = self.ues.get(k)
             if ue is None:
                 if rtt is None:
                     continue
                 out += self._random_access(k, f, rtt, t_wall_s, on)
+                self.ues[k].attach = attach
                 continue
             for when, cmd in [a for a in ue.apply if a[0] <= t_air]:
                 ue.n_ta += cmd - 31

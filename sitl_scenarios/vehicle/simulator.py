@@ -65,7 +65,8 @@ class VehicleSimulator:
     scheduled fault events; gps_fix_delay_s: simulated time until the first GPS fix;
     tick_wall_s: simulation step in wall seconds; max_stream_wall_hz: cap of each stream's rate
     on the wire; clock: the wall clock [s] the simulation follows (time.monotonic; a test can hand
-    in one it moves itself).
+    in one it moves itself); system_id: its MAVLink system id (1..255; a fleet's vehicle i is
+    i + 1, as PX4's `px4 -i i`), also its MAV_SYS_ID / SYSID_THISMAV parameter.
 
     Start/stop: `async with` (the caller's loop is never blocked: the simulation runs in a
     thread), `with`, or :meth:`start` / :meth:`stop`. An error inside the simulation thread is
@@ -86,9 +87,13 @@ class VehicleSimulator:
         tick_wall_s: float = 0.01,
         max_stream_wall_hz: float = 25.0,
         clock: Callable[[], float] = time.monotonic,
+        system_id: int = SYSTEM_ID,
     ) -> None:
         if not (math.isfinite(speedup) and speedup > 0):
             raise SimulatorError(f"speedup must be a positive number, got {speedup!r}")
+        if isinstance(system_id, bool) or not isinstance(system_id, int) or not 1 <= system_id <= 255:
+            raise SimulatorError(f"system_id must be an integer in 1..255, got {system_id!r}")
+        self.system_id = system_id
         if not tick_wall_s > 0 or not max_stream_wall_hz > 0:
             raise SimulatorError("tick_wall_s and max_stream_wall_hz must be positive")
         self.origin = origin
@@ -106,18 +111,21 @@ class VehicleSimulator:
         self._rng = np.random.default_rng([int(seed), 0x5EED])
         kind = personality(self.vehicle.autopilot)  # PX4 or ArduCopter on the wire and in flight
         self._ap = kind.autopilot(origin, self.vehicle, self._rng, gps_fix_delay_s=gps_fix_delay_s)
+        for name in ("MAV_SYS_ID", "SYSID_THISMAV"):  # the personality's own name for it
+            if self._ap.params.index_of(name) is not None:
+                self._ap.params.set(name, system_id)
         self._faults = VehicleFaults(faults)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
-        self._link = UdpLink(targets, bind, SYSTEM_ID, COMPONENT_ID)
+        self._link = UdpLink(targets, bind, system_id, COMPONENT_ID)
         self._wall_last_s = 0.0
         self._owed_s = 0.0  # simulated time the wall clock brought that is not yet simulated
         self.behind_s = 0.0  # simulated time dropped when the thread fell behind the wall clock
         self._gps_loss_when: Callable[[VehicleState], bool] | None = None
         self._schedule = StreamSchedule(self.speedup, max_stream_wall_hz, kind.intervals_s)
-        self._streams = kind.streams(self._ap, origin, self.vehicle, time.time(), SYSTEM_ID)
+        self._streams = kind.streams(self._ap, origin, self.vehicle, time.time(), system_id)
         wall_s = self._wall_now
         self._commands = kind.commands(self._ap, origin, self._send, self._send_stream, self._schedule,
                                          self._faults, wall_s)
@@ -129,13 +137,26 @@ class VehicleSimulator:
         }
 
     @classmethod
-    def from_scenario(cls, scenario: Scenario, **kwargs: Any) -> VehicleSimulator:
-        """A simulator at the scenario's origin with its vehicle, seed and `[[faults.vehicle]]`."""
+    def from_scenario(cls, scenario: Scenario, index: int = 0, **kwargs: Any) -> VehicleSimulator:
+        """The scenario's vehicle `index` (0..fleet_size−1) with the scenario's vehicle, seed and
+        `[[faults.vehicle]]`: system id index + 1, home at the launch point the fast mode gives it
+        (sitl_scenarios.fleet.vehicle_home; a one-vehicle scenario's is its origin). Each vehicle of
+        a fleet draws its GPS noise from its own seed (the scenario's for vehicle 0) and needs its
+        own `bind`/`target` ports (the caller's). Its faults: the `[[faults.vehicle]]` events that
+        name it (`vehicle` = its `[[vehicles]]` id; no id: vehicle 0), as the fast mode reads them."""
+        from sitl_scenarios.fleet import vehicle_home
+
+        home = vehicle_home(scenario, index)
         if kwargs.get("seed") is None:
             kwargs["seed"] = scenario.seed
+        if index > 0:
+            kwargs["seed"] = int(np.random.SeedSequence([int(kwargs["seed"]), index]).generate_state(1)[0])
         if kwargs.get("faults") is None:
-            kwargs["faults"] = list(scenario.faults.vehicle)
-        return cls(scenario.origin_geo, scenario.vehicle, **kwargs)
+            ids = [v.id for v in scenario.mission.vehicles]
+            kwargs["faults"] = [ev for ev in scenario.faults.vehicle
+                                if (ids.index(ev.vehicle) if ev.vehicle else 0) == index]
+        kwargs.setdefault("system_id", index + 1)
+        return cls(home, scenario.vehicle, **kwargs)
 
     # --- lifecycle ----------------------------------------------------------------------------
     def start(self) -> None:
@@ -359,7 +380,7 @@ class VehicleSimulator:
     def _for_us(self, msg: Any) -> bool:
         ts = getattr(msg, "target_system", 0)
         tc = getattr(msg, "target_component", 0)
-        return ts in (0, SYSTEM_ID) and tc in (0, COMPONENT_ID)
+        return ts in (0, self.system_id) and tc in (0, COMPONENT_ID)
 
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
