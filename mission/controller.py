@@ -77,6 +77,7 @@ def controller_from_mission(mission, vehicle: Vehicle | Sequence[Vehicle], gnb: 
                             header_config: dict | None = None, params: SolverParams | None = None,
                             constraints: Callable[[Origin], Any] | None = None,
                             buildings: Callable[[Origin], list] | None = None,
+                            origin: Callable[[Sequence], Origin] | None = None,
                             **overrides: Any) -> MissionController:
     """A :class:`MissionController` flying a :class:`mission.config.MissionConfig` (a mission file).
 
@@ -86,8 +87,9 @@ def controller_from_mission(mission, vehicle: Vehicle | Sequence[Vehicle], gnb: 
 
     planner: planner name (default: the mission's `flight.planner`); seed: planner seed;
     time_scale: simulator speedup; truth: simulation only (see MissionController); constraints:
-    home -> PlanningConstraints (default `mission.planning_constraints(home)`); overrides:
-    ControllerConfig fields, or mission file settings by their key alone (`time_limit_s=600`:
+    home -> PlanningConstraints (default `mission.planning_constraints(home)`); origin: the
+    vehicles' homes -> the mission's ENU origin (MissionController; default vehicle 0's home);
+    overrides: ControllerConfig fields, or mission file settings by their key alone (`time_limit_s=600`:
     the mission is flown with them, mission.config.with_settings). Geodetic polygons of the
     mission file become home-ENU once the vehicle's home is known (the planner and the safety
     limits are built then).
@@ -146,5 +148,6 @@ def controller_from_mission(mission, vehicle: Vehicle | Sequence[Vehicle], gnb: 
                              params=params, truth=truth, header_config=cfg, radio=radio, buildings=buildings,
                              vehicle_ids=[v.id for v in mission.vehicles] if fleet else None,
                              vehicle_config=vehicle_config,
-                             separation=Separation(mission.safety.separation_m, mission.safety.separation_vertical_m))
+                             separation=Separation(mission.safety.separation_m, mission.safety.separation_vertical_m),
+                             origin=origin)
 

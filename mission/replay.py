@@ -289,10 +289,15 @@ def replay(mlog: MissionLog, options: ReplayOptions = ReplayOptions(),
     # it, or to the last range in a log without one; the survey flies on for the seconds the final
     # answer takes to confirm), else over the keyframes
     kf_flown, flown_m = _survey_odometer(mlog, keyframes, kf_t, kf_gps, noise)
-    closed = mlog.last_event("survey_time")
-    if closed is not None and isinstance(closed.get("flown_m"), int | float) and math.isfinite(closed["flown_m"]):
-        # the controller's own count, from every fix of its legs (the log's telemetry is a sample)
-        flown_m = float(closed["flown_m"])
+    # the controller's own count, from every fix of its legs (the log's telemetry is a sample): the
+    # last `survey_time` event of each vehicle, summed over a fleet's
+    closed: dict[int, float] = {}
+    for e in mlog.events:
+        v, m = e.get("vehicle", 0), e.get("flown_m")
+        if e.get("kind") == "survey_time" and isinstance(m, int | float) and math.isfinite(m):
+            closed[v] = float(m)
+    if closed:
+        flown_m = sum(closed.values())
 
     # the mission's estimator (mission.estimation), without a stop rule
     setup = MissionEstimator(n_users, user_up_m, noise, params)

@@ -207,17 +207,42 @@ class RadioModel:
 # cells: which vehicle's gNB serves each UE (a fleet, docs/fleet.md)
 
 
+#: the carrier of the recorded OAI gNB (its rfsim config, band 78: `-C 3319680000`) [Hz]
+CARRIER_HZ = 3.31968e9
+#: antenna heights above the ground [m]: a UE held in the hand; a gNB on a vehicle standing on the ground
+UE_ANTENNA_M = 1.5
+GNB_ANTENNA_M = 0.5
+
+
+def reach_m(coverage_m: float, gnb_height_m, ue_height_m=UE_ANTENNA_M, carrier_hz: float = CARRIER_HZ):
+    """Slant range [m] within which a UE hears a gNB whose antenna is gnb_height_m above the UE's
+    ground (arrays broadcast). `coverage_m` is the reach of a gNB in the air, where the path is free
+    space; near the ground the wave reflected off it cancels the direct one beyond the two-ray
+    breakpoint d_bp = 4 h_gNB h_UE / λ, and the loss grows as d⁴ instead of d². The reach R is where
+    the loss equals free space's at coverage_m (R0):
+
+        20 log R0 = 20 log d_bp + 40 log (R / d_bp)   ⇒   R = √(R0 · d_bp)   when d_bp < R0, else R0
+
+    (3.3 GHz: a gNB at 40 m reaches R0 up to d_bp ≈ 2.7 km; one on a landed vehicle, d_bp ≈ 33 m,
+    reaches ≈ 120 m of a 450 m cell)."""
+    lam_m = C_MPS / carrier_hz
+    d_bp = 4.0 * np.maximum(gnb_height_m, GNB_ANTENNA_M) * ue_height_m / lam_m
+    return np.where(d_bp < coverage_m, np.sqrt(coverage_m * d_bp), coverage_m)
+
+
 class CellAttachment:
     """Which of several gNBs serves each UE, as OAI's UEs attach.
 
-    A UE without a cell attaches (a random access, a new RNTI) to the strongest gNB in coverage,
-    the nearest by slant range (free-space loss grows with distance); it stays on that cell while
-    the cell is on the air and within `coverage_m`, however near another comes (a connected UE does
-    not reselect); when its cell moves out of reach or goes off the air, it attaches again where it
-    can, or has no cell.
+    A UE without a cell attaches (a random access, a new RNTI) to the strongest gNB in reach, the
+    nearest by slant range (free-space loss grows with distance); it stays on that cell while the
+    cell is on the air and within reach, however near another comes (a connected UE does not
+    reselect); when its cell moves out of reach or goes off the air, it attaches again where it
+    can, or has no cell. The reach is `coverage_m` for a gNB in the air and shorter near the ground
+    (:func:`reach_m`): a vehicle that lands takes its cell's far UEs off it.
 
-    user_enu_m: (K, 3) UE positions [m, ENU]; coverage_m: slant range beyond which a gNB is not heard.
-    serving: (K,) the serving gNB's index, −1: none; attaches: (K,) random accesses so far.
+    user_enu_m: (K, 3) UE positions [m, ENU; up: the ground they stand on]; coverage_m: slant range
+    beyond which a gNB in the air is not heard. serving: (K,) the serving gNB's index, −1: none;
+    attaches: (K,) random accesses so far.
     """
 
     def __init__(self, user_enu_m: np.ndarray, coverage_m: float) -> None:
@@ -235,7 +260,8 @@ class CellAttachment:
         g = np.asarray(gnb_enu_m, dtype=float).reshape(-1, 3)
         on = np.ones(len(g), dtype=bool) if on_air is None else np.asarray(on_air, dtype=bool)
         d = np.linalg.norm(self.user_enu_m[:, None, :] - g[None, :, :], axis=2)  # (K, V)
-        heard = (d <= self.coverage_m) & on[None, :]
+        above_m = g[None, :, 2] - self.user_enu_m[:, None, 2] + GNB_ANTENNA_M  # the gNB's antenna over the UE's ground
+        heard = (d <= reach_m(self.coverage_m, above_m)) & on[None, :]
         for k in range(len(self.serving)):
             s = self.serving[k]
             if s >= 0 and s < len(g) and heard[k, s]:

@@ -446,6 +446,10 @@ def controller_from_scenario(scenario: Scenario, vehicle: Any, gnb: Any, log_pat
     from mission.controller import controller_from_mission
 
     header = {"scenario": scenario.name, **(kwargs.pop("header_config", None) or {})}
+    if scenario.mission.fleet_size > 1 and not external_vehicle:
+        # the built-in fleet takes off on a ring around the scenario's origin (sitl_scenarios.fleet):
+        # the mission's ENU frame, where its fence and buildings are, is that origin's
+        kwargs.setdefault("origin", lambda homes: scenario.origin_geo)
     return controller_from_mission(
         scenario.mission_config(external_vehicle), vehicle, gnb, log_path,
         seed=scenario.seed if seed is None else seed, header_config=header,

@@ -238,7 +238,7 @@ def test_a_simulated_fleet_starts_a_vehicle_and_a_gnb_per_vehicle(tmp_path: Path
             assert len(m.vehicles) == len(m.gnb_sims) == len(m.gnb_clients) == 2
             assert m.vehicle_sim is m.vehicle_sims[0] and m.gnb_client is m.gnb_clients[0]
             assert len({c.config.port for c in m.gnb_clients}) == 2
-            # on the ground at their launch points: the west group's cell is vehicle 1's (10 m west)
+            # on the ground at their launch points (10 m east and west of the origin)
             np.testing.assert_allclose(m._fleet_positions()[:, :2], scenario_launch_points_enu_m(sc)[:, :2],
                                        atol=0.5)
             listed = [await c.discover() for c in m.gnb_clients]
@@ -248,7 +248,9 @@ def test_a_simulated_fleet_starts_a_vehicle_and_a_gnb_per_vehicle(tmp_path: Path
             return listed
 
     listed = run(body())
-    assert listed == [[0x4604, 0x4605, 0x4606], [0x4601, 0x4602, 0x4603], [0x4601 + k for k in range(6)]]
+    # on the ground a gNB reaches ~120 m (sitl_scenarios.radio.reach_m): the groups, 350 m and more
+    # away, attach once the vehicles are in the air
+    assert listed == [[], [], []]
     assert isinstance(seen["vehicle"], list) and isinstance(seen["gnb"], list) and len(seen["gnb"]) == 2
     home = vehicle_home(sc, 0)  # the mission's frame: vehicle 0's home, 10 m east of the origin
     truth = seen["truth"](home)
@@ -267,3 +269,21 @@ def test_a_one_vehicle_mission_hands_the_controller_its_single_vehicle_and_gnb(t
 
     vehicles, clients = run(body())
     assert seen["vehicle"] is vehicles[0] and seen["gnb"] is clients[0] and len(vehicles) == len(clients) == 1
+
+
+def test_a_gnb_on_the_ground_reaches_less_far_than_one_in_the_air():
+    """The two-ray breakpoint (sitl_scenarios.radio.reach_m): in the air the cell's coverage, on the
+    ground √(R0 d_bp); a cell whose vehicle lands loses its far UEs, which attach to a cell in the air."""
+    from sitl_scenarios.radio import CellAttachment, reach_m
+
+    assert float(reach_m(450.0, 40.5)) == 450.0
+    landed = float(reach_m(450.0, 0.5))
+    lam_m = 299_792_458.0 / 3.31968e9
+    assert landed == pytest.approx(np.sqrt(450.0 * 4.0 * 0.5 * 1.5 / lam_m)) and 100.0 < landed < 140.0
+    users = np.array([[300.0, 0.0, 0.0], [-300.0, 0.0, 0.0]])
+    cells = CellAttachment(users, 450.0)
+    air = np.array([[250.0, 0.0, 40.0], [-250.0, 0.0, 40.0]])
+    assert cells.update(air).tolist() == [0, 1]
+    # vehicle 0 lands 300 m from its UE, vehicle 1 flies over to it: the UE changes cells once
+    assert cells.update(np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 40.0]])).tolist() == [1, 1]
+    assert cells.attaches.tolist() == [2, 1]

@@ -82,7 +82,7 @@ class VehicleCrew:
         #: over, for the GPS correlation time when the noise model leaves it unknown
         self.tau_records: list[tuple[float, np.ndarray, np.ndarray]] | None = [] if collect_tau else None
         self.takeoff_over = asyncio.Event()
-        self.flight = FlightState(event=self.event)
+        self.flight = FlightState(event=self.event, name=vehicle_id if fleet else None)
         self.pipeline = MeasurementPipeline(gnb, users, config.flight.delta_m, config.gnb_timeout_s, self.flight,
                                             self.buffer, origin, journal.writer, self.now, self.mission_t,
                                             vehicle=index, tag=self.tag, keyframes_out=keyframes_out,
@@ -196,10 +196,10 @@ class VehicleCrew:
                               f"{floor:g} %")
 
     async def preflight_gnb(self) -> None:
-        """No take-off unless every configured user is among the gNB's UEs and answers one
-        measurement (passive stock mode: is among them). A fleet's gNB serves the users attached
-        to its cell: the mission needs every user on some vehicle's gNB (`probe`), not on each.
-        Returns nothing; raises GnbPreflightError naming the RNTIs the gNB has and what it answered."""
+        """A one-vehicle mission's gNB check: no take-off unless every configured user is among the
+        gNB's UEs and answers one measurement (passive stock mode: is among them); GnbPreflightError
+        names the RNTIs the gNB has and what it answered. A fleet's gNBs are checked together
+        (MissionController._preflight_gnb over :meth:`probe_gnb`)."""
         probe, ok = await self.probe_gnb()
         if not ok:
             raise GnbPreflightError(f"not taking off{self._of()}: {probe.message()}")
@@ -220,8 +220,20 @@ class VehicleCrew:
                                     f"{bound_s:g} s") from exc
         have = probe.gnb_rntis or []
         ok = probe.ok or (passive and probe.gnb_rntis is not None and all(r in have for r in rntis))
-        self.event(probe.message(), kind="preflight_gnb", ok=ok, rntis=[f"{r:04x}" for r in have],
-                   probe=probe.to_dict())
+        message = probe.message()
+        if self.fleet:
+            # a fleet's gNB serves the UEs attached to its cell: those must answer (the mission
+            # checks that every user is on some cell)
+            present = [u for u in probe.ues if u.present]
+            failed = [u for u in present if not u.ok]
+            ok = probe.gnb_rntis is not None and (passive or not failed)
+            served = ", ".join(f"{u.rnti:04x}" for u in present)
+            message = (f"gNB {'ready' if ok else 'not ready'} ({getattr(probe, 'mode', '?')}): its cell serves "
+                       f"{len(present)} of the mission's {len(rntis)} UEs [{served}]"
+                       + "".join(f"; UE {u.rnti:04x}: no measurement ({u.errors[-1] if u.errors else 'no answer'})"
+                                 for u in failed)
+                       + ("" if probe.gnb_rntis is not None else f"; {probe.message()}"))
+        self.event(message, kind="preflight_gnb", ok=ok, rntis=[f"{r:04x}" for r in have], probe=probe.to_dict())
         return probe, ok
 
     def _of(self) -> str:

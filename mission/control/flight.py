@@ -132,7 +132,9 @@ class MissionController:
     `radio`; buildings: simulation only: home -> [(footprint (Q, 2) [m, ENU from home], height_m)]
     for the header's `buildings`; vehicle_ids: the vehicles' names (a fleet's `[[vehicles]]` ids);
     vehicle_config: vehicle -> the ControllerConfig that vehicle flies (its cruise altitude);
-    separation: how far apart a fleet's vehicles stay.
+    separation: how far apart a fleet's vehicles stay; origin: the vehicles' homes (GeoFix each)
+    -> the mission's ENU origin (default: vehicle 0's home; a simulated fleet's: the scenario's
+    origin, the centre of its launch points).
     """
 
     def __init__(self, vehicle: Vehicle | Sequence[Vehicle], gnb: GnbClient | Sequence[GnbClient],
@@ -145,7 +147,8 @@ class MissionController:
                  buildings: Callable[[Origin], list] | None = None,
                  vehicle_ids: Sequence[str] | None = None,
                  vehicle_config: Callable[[int], ControllerConfig] | None = None,
-                 separation: Separation | None = None):
+                 separation: Separation | None = None,
+                 origin: Callable[[Sequence], Origin] | None = None):
         if not users:
             raise MissionError("a mission needs at least one user")
         vehicles = list(vehicle) if isinstance(vehicle, list | tuple) else [vehicle]
@@ -175,6 +178,7 @@ class MissionController:
         self.radio = radio or {}
         self.log_path = Path(log_path)
         self.origin: Origin | None = None
+        self._origin_at = origin
         self._t0_mono = time.monotonic()
         self._start_utc = datetime.now(UTC).isoformat(timespec="milliseconds")
         self._estimator: MissionEstimator | None = None  # the flight's estimator setup, once it runs
@@ -376,6 +380,9 @@ class MissionController:
                 crew.survey_ended()
                 if crew.index == 0:
                     self._note_pace(crew)
+                # its users are nobody's now: the vehicles still surveying plan for them, and
+                # every gNB tries them (its cell may still serve them until it is out of reach)
+                self.serving[self.serving == crew.index] = -1
         f.set_phase(RETURN)
         if not await crew.send_rtl(f.return_reason or (f.stop or ("", "survey done"))[1]):
             raise VehicleError("the vehicle did not accept RTL")
@@ -443,13 +450,14 @@ class MissionController:
                 c.flight.finish_survey(status, reason, c.now())
 
     def _at_home(self, homes: Sequence) -> None:
-        """Every home is known: the ENU origin (vehicle 0's), the home-dependent planner and
+        """Every home is known: the ENU origin (vehicle 0's home by default), the home-dependent planner and
         limits, each vehicle's gate and legs, the log header. homes: each vehicle's (a GeoFix:
         lat_deg, lon_deg, alt_amsl_m), or a one-vehicle mission's home alone."""
         if not isinstance(homes, list | tuple):
             homes = [homes]
         home = homes[0]
-        self.origin = Origin(home.lat_deg, home.lon_deg, home.alt_amsl_m)
+        self.origin = (self._origin_at(homes) if self._origin_at is not None
+                       else Origin(home.lat_deg, home.lon_deg, home.alt_amsl_m))
         if self._planner_at is not None:
             self.planner = self._planner_at(self.origin, 0)
         planners = [self.planner] + [self._planner_at(self.origin, i) for i in range(1, len(self.crews))]
@@ -529,24 +537,28 @@ class MissionController:
     async def _preflight_gnb(self) -> None:
         """No take-off unless every configured user is among the gNB's UEs and answers one
         measurement (passive stock mode: is among them; its random accesses come when they come).
-        A fleet's gNBs each serve the UEs attached to their cells: every user must be on one of them.
-        The event and the error say which RNTIs each gNB has and what it answered."""
+        The event and the error say which RNTIs the gNB has and what it answered.
+
+        A fleet's gNBs each serve the UEs attached to their cells, and a fleet flies users spread
+        wider than one cell's reach (a gNB on the ground reaches less far than one in the air:
+        sitl_scenarios.radio.reach_m): every gNB must answer, and every UE on its cell must answer
+        a measurement; users no gNB has yet are logged (`users_unserved`) and attach as the vehicles
+        come within reach."""
         if not self.fleet:
             await self.crews[0].preflight_gnb()
             return
         probes = await asyncio.gather(*(c.probe_gnb() for c in self.crews))
-        have = {r for probe, _ in probes for r in (probe.gnb_rntis or [])}
-        missing = [u for u in self.users if u.rnti not in have]
-        for c, (probe, _) in zip(self.crews, probes, strict=True):
-            if probe.gnb_rntis is None:
-                raise GnbPreflightError(f"not taking off ({c.id}): {probe.message()}")
-            for r in probe.gnb_rntis:
+        for c, (probe, ok) in zip(self.crews, probes, strict=True):
+            if not ok:
+                raise GnbPreflightError(f"not taking off: {c.id}'s gNB: {probe.message()}")
+            for r in probe.gnb_rntis or []:
                 k = next((k for k, u in enumerate(self.users) if u.rnti == r), None)
                 if k is not None and self.serving[k] < 0:
                     self.serving[k] = c.index
-        if missing:
-            raise GnbPreflightError("not taking off: no vehicle's gNB has " + ", ".join(
-                f"{u.id} (RNTI {u.rnti:04x})" for u in missing))
+        unserved = [u.id for k, u in enumerate(self.users) if self.serving[k] < 0]
+        if unserved:
+            self.journal.event(f"no vehicle's gNB serves {', '.join(unserved)} yet: they attach as the vehicles come "
+                               "within reach", kind="users_unserved", users=unserved)
 
     def _note_pace(self, crew: VehicleCrew) -> None:
         self.pace = crew.flight.clock.pace(self.config.time_scale)

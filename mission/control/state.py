@@ -131,6 +131,8 @@ class FlightState:
     wake: Pulse = field(default_factory=Pulse)
     #: hover time and the longest time without a range, over the survey
     clock: SurveyClock = field(default_factory=SurveyClock)
+    #: whose state this is in log lines: a fleet's vehicle id (None: the mission's one vehicle)
+    name: str | None = None
 
     @property
     def ending(self) -> bool:
@@ -139,14 +141,14 @@ class FlightState:
 
     def set_phase(self, phase: str) -> None:
         if phase != self.phase:
-            log.info("mission state %s -> %s", self.phase, phase)
+            log.info("%s state %s -> %s", self.name or "mission", self.phase, phase)
             self.phase = phase
 
     def request_return(self, reason: str) -> None:
         """End the survey and return home (the first reason wins)."""
         if self.return_reason is None:
             self.return_reason = reason
-            log.warning("returning home: %s", reason)
+            log.warning("%sreturning home: %s", f"{self.name}: " if self.name else "", reason)
             self.event(f"return requested: {reason}", kind="return", reason=reason)
             self.wake.pulse()
 

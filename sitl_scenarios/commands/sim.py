@@ -67,17 +67,12 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
-    from mission.config import fleet_flight_problem
     from mission.status import print_result, write_report
     from mission.view.live import live_view
     from sitl_scenarios.scenario import load_scenario, with_autopilot
     from sitl_scenarios.sim_runner import SimulatedMission
-    from uavloc.errors import ScenarioError
 
     scenario = load_scenario(args.scenario)
-    problem = fleet_flight_problem(scenario.mission)
-    if problem is not None:
-        raise ScenarioError(f"{args.scenario}: {problem}")
     if args.autopilot is not None:
         if args.connect is not None:
             log.warning("--autopilot is ignored with --connect (the autopilot says what it is)")
