@@ -239,6 +239,19 @@ class VehicleCrew:
     def _of(self) -> str:
         return f" ({self.id})" if self.fleet else ""
 
+    async def set_return_layer(self) -> None:
+        """A fleet's vehicle returns home at its own cruise altitude (its layer: vehicles in disjoint
+        bands stay apart on the way home too); a vehicle that refuses returns at its autopilot's own
+        (an event says so)."""
+        height_m = self.config.flight.altitude_m
+        try:
+            await self.vehicle.set_return_altitude(height_m)
+        except VehicleError as exc:
+            self.event(f"return altitude {height_m:g} m not set ({exc}): it returns at its autopilot's own",
+                       kind="return_alt_refused")
+            return
+        self.event(f"returns home at {height_m:g} m above home", kind="return_alt", height_m=height_m)
+
     # -- the survey's record ----------------------------------------------------------------------
 
     def survey_ended(self) -> None:

@@ -367,6 +367,8 @@ class MissionController:
 
     async def _fly(self, crew: VehicleCrew) -> tuple[str, str]:
         f, legs = crew.flight, crew.legs
+        if self.fleet:
+            await crew.set_return_layer()
         await legs.takeoff()
         crew.takeoff_over.set()
         if f.return_reason is None:

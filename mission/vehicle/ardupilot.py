@@ -290,6 +290,26 @@ class ArduPilotLink:
         """DO_CHANGE_SPEED (ground speed): ArduCopter flies the following GUIDED targets at it."""
         await self.command(f"set speed {speed_mps:g} m/s", M.MAV_CMD_DO_CHANGE_SPEED, 1, speed_mps, -1)
 
+    async def set_param(self, name: str, value: float) -> None:
+        """PARAM_SET, acknowledged by the PARAM_VALUE ArduPilot sends back with the value it holds;
+        VehicleCommandError when it holds another value, VehicleTimeoutError without an answer."""
+        msg = M.MAVLink_param_set_message(self.target_system, 1, name.encode(), float(value), M.MAV_PARAM_TYPE_REAL32)
+        try:
+            async with asyncio.timeout(self.request_timeout_s):
+                async with contextlib.aclosing(self.direct.subscribe_message("PARAM_VALUE")) as it:
+                    await self.send(msg)
+                    async for got in it:
+                        f = json.loads(got.fields_json)
+                        if got.system_id != self.target_system or str(f.get("param_id", "")).rstrip("\x00") != name:
+                            continue
+                        if not math.isclose(float(f["param_value"]), float(value), rel_tol=1e-6, abs_tol=1e-6):
+                            raise VehicleCommandError(f"vehicle: set {name} {value:g}: it holds {f['param_value']:g}",
+                                                      "DENIED")
+                        return
+        except TimeoutError as exc:
+            raise VehicleTimeoutError(f"vehicle: set {name} {value:g}: no PARAM_VALUE within "
+                                      f"{self.request_timeout_s:g} s") from exc
+
     async def return_to_launch(self) -> None:
         await self.set_mode(RTL)
 

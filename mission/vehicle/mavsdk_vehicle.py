@@ -115,6 +115,11 @@ class Vehicle(Protocol):
 
     async def return_to_launch(self) -> None: ...
 
+    async def set_return_altitude(self, height_m: float) -> None:
+        """The height above home the vehicle returns at on RTL (a fleet's vehicles each at their own
+        altitude layer); VehicleError when the vehicle does not take it."""
+        ...
+
     async def land(self) -> None: ...
 
     async def close(self) -> None: ...
@@ -476,6 +481,16 @@ class MavsdkVehicle:
         if self._ardupilot is not None:
             return await self._ardupilot.return_to_launch()
         await self._request("return to launch", self._action.return_to_launch())
+
+    async def set_return_altitude(self, height_m: float) -> None:
+        """PX4: RTL_RETURN_ALT through MAVSDK's `set_return_to_launch_altitude` (PX4 returns at
+        max(current height, it), docs/fleet.md); ArduPilot: RTL_ALT [cm] (PARAM_SET, acknowledged
+        by its PARAM_VALUE)."""
+        self._need()
+        if self._ardupilot is not None:
+            return await self._ardupilot.set_param("RTL_ALT", 100.0 * float(height_m))
+        await self._request(f"set return altitude {height_m:g} m",
+                            self._action.set_return_to_launch_altitude(float(height_m)))
 
     async def land(self) -> None:
         self._need()
