@@ -551,16 +551,6 @@ def fleet_address_problem(mc: MissionConfig) -> str | None:
     return None
 
 
-def fleet_flight_problem(mc: MissionConfig) -> str | None:
-    """Why `uavloc fly` and `uavloc sim` cannot fly `mc`, or None: they fly one vehicle; a mission
-    naming two or more (`[[vehicles]]`) flies in a campaign's fast mode (docs/fleet.md)."""
-    if mc.fleet_size < 2:
-        return None
-    ids = ", ".join(v.id for v in mc.vehicles)
-    return (f"vehicles: this mission names {mc.fleet_size} vehicles ({ids}); `uavloc fly` and `uavloc sim` fly one "
-            "vehicle so far: a fleet flies in `uavloc campaign`'s fast mode (docs/fleet.md)")
-
-
 def survey_s(flight: FlightConfig) -> float:
     """The longest a survey can last [s]: its budget at the cruise speed, within the time limit."""
     return min(flight.budget_m / flight.cruise_speed_mps, flight.time_limit_s)

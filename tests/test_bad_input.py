@@ -79,6 +79,9 @@ def _bad_line_log() -> str:
 #: a fleet (issue 41) whose two vehicles share an id
 FLEET_SAME_ID = (example_mission_path().read_text(encoding="utf-8")
                  + '\n[[vehicles]]\nid = "uav-a"\n\n[[vehicles]]\nid = "uav-a"\n')
+#: a fleet whose vehicles have no addresses: `uavloc fly` cannot reach them
+FLEET_NO_ADDRESS = (example_mission_path().read_text(encoding="utf-8")
+                    + '\n[[vehicles]]\nid = "uav-a"\n\n[[vehicles]]\nid = "uav-b"\n')
 HEADER_ONLY = _log_lines()[0]
 OLD_LOG = _write("mission.jsonl", HEADER_ONLY)
 NOT_A_FOLDER = _write("results", "not a folder\n")
@@ -110,7 +113,9 @@ CASES = [
          _write("bad.toml", "[flight\n")),
     Case("fly-fleet-duplicate-id", ["fly", "--mission", "{d}/fleet.toml", *NOWHERE], 1,
          ["{d}/fleet.toml", "vehicles[1].id", "'uav-a'", "duplicate vehicle id"], _write("fleet.toml", FLEET_SAME_ID)),
-    Case("sim-a-fleet", ["sim", "two_uavs"], 1, ["two_uavs", "vehicles", "2 vehicles", "fast mode"]),
+    Case("fly-fleet-without-addresses", ["fly", "--mission", "{d}/fleet.toml"], 1,
+         ["{d}/fleet.toml", "vehicles[0].connect (uav-a)", "vehicles[1].gnb (uav-b)"],
+         _write("fleet.toml", FLEET_NO_ADDRESS)),
     Case("fly-out-is-a-file", ["fly", "--mission", MISSION, *NOWHERE, "--out", "{d}/results"], 1,
          ["{d}/results is a file"], NOT_A_FOLDER),
     Case("fly-log-holds-a-mission", ["fly", "--mission", MISSION, *NOWHERE, "--log", "{d}/mission.jsonl"], 1,
