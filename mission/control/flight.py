@@ -107,16 +107,16 @@ class _VehiclePlanner:
     by FleetPlanner.plan with the users' serving cells and the other vehicles' legs now. Plans run
     in threads (SurveyLegs.plan), one at a time: the vehicles' planners may share compiled kernels."""
 
-    def __init__(self, fleet: FleetPlanner, vehicle: int, serving: np.ndarray,
+    def __init__(self, fleet: FleetPlanner, vehicle: int, serving: Callable[[], np.ndarray],
                  committed: Callable[[], list[np.ndarray | None]], lock: threading.Lock):
         self.fleet, self.vehicle = fleet, vehicle
         self._serving, self._committed, self._lock = serving, committed, lock
         self.name = fleet.name
 
     def plan(self, state: PlanningState) -> PlanResult:
-        committed = self._committed()
+        serving, committed = self._serving(), self._committed()
         with self._lock:
-            return self.fleet.plan(self.vehicle, state, self._serving.copy(), committed)
+            return self.fleet.plan(self.vehicle, state, serving, committed)
 
 
 class MissionController:
@@ -472,7 +472,8 @@ class MissionController:
             others = (lambda me=c: [leg for o in self.crews if o is not me
                                     for leg in [o.committed_leg()] if leg is not None]) if self.fleet else None
             c.gated = GatedVehicle(c.vehicle, c.gate, self.origin, c.event, c.pos_enu_smoothed, others=others)
-            vplanner = _VehiclePlanner(self.fleet_planner, c.index, self.serving, self._committed, self._plan_lock)
+            vplanner = _VehiclePlanner(self.fleet_planner, c.index, self._serving_now, self._committed,
+                                       self._plan_lock)
             c.legs = SurveyLegs(LegsDeps(
                 config=c.config, flight=c.flight, gated=c.gated, set_speed=lambda mps, c=c: c.vehicle.set_speed(mps),
                 battery_pct=lambda c=c: c.vehicle.state.battery_pct, battery_rtl_pct=c.gate.limits.battery_rtl_pct,
@@ -496,6 +497,15 @@ class MissionController:
             self.journal.truth(self.origin, self.truth_enu_m)
         for c, h in zip(self.crews, homes, strict=True):
             c.event(f"home {h.lat_deg:.7f}, {h.lon_deg:.7f}, {h.alt_amsl_m:.1f} m AMSL", kind="home")
+
+    def _serving_now(self) -> np.ndarray:
+        """(K,) whose user is whose, for planning: `serving`, with the users of a vehicle asked to
+        return home nobody's (the others plan for them at once, before its survey has wound down)."""
+        s = self.serving.copy()
+        for c in self.crews:
+            if c.flight.return_reason is not None:
+                s[s == c.index] = -1
+        return s
 
     def _committed(self) -> list[np.ndarray | None]:
         """Each vehicle's committed leg now (VehicleCrew.committed_leg), for the fleet's planner."""
