@@ -137,3 +137,26 @@ def test_a_vehicle_that_loses_its_link_returns_and_the_other_finishes_its_users(
     assert set(mlog.rtt_user[late]) & set(west), "uav1 never ranged the west group"
     _assert_apart_and_fenced(sc, truth)
     assert_log_replays_to_the_result(log_path, result)
+
+
+@pytest.mark.slow
+def test_cancelling_a_fleet_mission_sends_every_vehicle_home(tmp_path):
+    """Ctrl-C, SIGTERM and SIGHUP cancel the mission (mission.runtime): every vehicle gets RTL."""
+    sc = load_scenario("two_uavs")
+    log_path = tmp_path / "mission.jsonl"
+
+    async def main():
+        async with SimulatedMission(sc, log_path, speedup=SPEEDUP) as sim:
+            task = asyncio.create_task(sim.run())
+            await _wait(lambda: sim.controller.measurements >= 20, 120, "20 ranges")
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            return sim.controller, [s.state() for s in sim.vehicle_sims]
+
+    ctl, states = asyncio.run(main())
+    assert [c.rtl_sent for c in ctl.crews] == [True, True]
+    assert all(s.mode == "return_to_launch" or not s.in_air for s in states), [s.mode for s in states]
+    mlog = read_mission_log(log_path)
+    assert sorted(e.get("vehicle") for e in mlog.events if e.get("kind") == "rtl") == [0, 1]
+    assert mlog.last_event("end")["status"] == "interrupted"
