@@ -54,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     ap.add_argument("--autopilot", choices=("px4", "ardupilot"),
                     help="whose personality the vehicle has (default: the scenario's [vehicle] autopilot)")
+    ap.add_argument("--vehicle", type=int, default=0, metavar="I",
+                    help="which vehicle of the scenario's fleet ([[vehicles]], from 0): its system id I+1 and its "
+                         "home at its launch point (default 0)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
@@ -68,7 +71,9 @@ def main(argv: list[str] | None = None) -> int:
                                   "bind": (bind_host or "0.0.0.0", int(bind_port))}
         if args.seed is not None:
             kwargs["seed"] = args.seed
-        sim = VehicleSimulator.from_scenario(scenario, **kwargs)
+        if not 0 <= args.vehicle < scenario.mission.fleet_size:
+            ap.error(f"--vehicle {args.vehicle}: {args.scenario} flies vehicles 0..{scenario.mission.fleet_size - 1}")
+        sim = VehicleSimulator.from_scenario(scenario, args.vehicle, **kwargs)
         with sim:
             t_end = None if args.duration is None else time.monotonic() + args.duration
             while t_end is None or time.monotonic() < t_end:
