@@ -4,26 +4,28 @@
 
 - the vehicle: the built-in MAVLink vehicle (`sitl_scenarios.vehicle.VehicleSimulator`, in its own
   thread, at `speedup`) on a free loopback UDP port, or — with `connect` — a running PX4 SITL that
-  MAVSDK reaches at that URL;
+  MAVSDK reaches at that URL (a fleet's: one URL per vehicle, a list);
 - the simulated OAI gNB (`sitl_scenarios.gnb.SimulatedGnb`) on a free loopback TCP port, whose UAV
   position is the built-in vehicle's true position, or the PX4 vehicle's reported position (it
   follows the vehicle the controller flies); its clock is the simulation's;
 - the gNB adapter (`mission.gnb.OaiGnbClient`) and the MAVSDK vehicle adapter;
 - the :class:`MissionController`, which :meth:`run` runs.
 
-A fleet (`scenario.mission.fleet_size` > 1, built-in vehicles only; docs/fleet.md): N built-in
-vehicles (system ids 1..N, each at the launch point the fast mode gives it:
-`sitl_scenarios.fleet.vehicle_home`, each on its own UDP ports), N MAVSDK adapters, N simulated gNBs
-(each on its own TCP ports, following its own vehicle's true position, on its vehicle's simulated
-clock) sharing one cell attachment (`sitl_scenarios.gnb.cells.SharedCells`, the scenario's
-`[radio] coverage_m`), and N gNB adapters; the controller gets the lists. They are `.vehicle_sims`,
+A fleet (`scenario.mission.fleet_size` > 1; docs/fleet.md): N built-in vehicles (system ids 1..N,
+each at the launch point the fast mode gives it: `sitl_scenarios.fleet.vehicle_home`, each on its
+own UDP ports) or N external autopilots (`connect`, a list of N URLs: PX4 SITL instances), N
+MAVSDK adapters, N simulated gNBs (each on its own TCP ports, following its own vehicle: a built-in
+vehicle's true position on its simulated clock, an external one's reported position on the
+controller's mission clock) sharing one cell attachment (`sitl_scenarios.gnb.cells.SharedCells`,
+the scenario's `[radio] coverage_m`), and N gNB adapters; the controller gets the lists. They are `.vehicle_sims`,
 `.vehicles`, `.gnb_sims`, `.gnb_clients` (one element each for one vehicle); `.vehicle_sim`,
 `.vehicle`, `.gnb_sim` and `.gnb_client` are element 0.
 
 Frames: the scenario's positions are ENU of its origin. A built-in vehicle's home is its launch
 point (the origin for one vehicle); the mission's frame is vehicle 0's home, and the `truth` and
 buildings go through geodetic coordinates into it. With PX4 SITL the scenario's positions are
-offsets from the vehicle's home (docs/design.md §9). Fault tests reach the parts through
+offsets from the vehicle's home (docs/design.md §9); with a fleet of them, from vehicle 0's home,
+the mission's origin, and each gNB follows its vehicle in that frame. Fault tests reach the parts through
 `.vehicle_sim`, `.gnb_sim`, `.controller` and :meth:`kill_gnb`.
 """
 
@@ -35,6 +37,7 @@ import logging
 import math
 import socket
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +57,21 @@ from uavloc.errors import MissionError
 log = logging.getLogger(__name__)
 
 
+def connect_urls(connect: str | Sequence[str] | None, scenario: Scenario) -> list[str] | None:
+    """The external autopilots' MAVSDK URLs of `SimulatedMission(connect=...)`: one URL (a string)
+    flies one vehicle; a list flies the scenario's fleet, one URL per `[[vehicles]]` entry. None:
+    built-in vehicles. MissionError, naming `connect`, when the count is not the fleet's."""
+    if connect is None:
+        return None
+    urls = [connect] if isinstance(connect, str) else [str(u) for u in connect]
+    n = scenario.mission.fleet_size
+    if len(urls) != n or not all(u.strip() for u in urls):
+        what = f"the {n} vehicles of its [[vehicles]]" if n > 1 else "its one vehicle"
+        raise MissionError(f"connect: scenario {scenario.name!r} flies {what}: give one MAVLink URL per vehicle, "
+                           f"got {len(urls)} ({', '.join(map(repr, urls)) or 'none'})")
+    return urls
+
+
 def free_udp_port(host: str = "127.0.0.1") -> int:
     """A UDP port nobody listens on right now (the OS picks it)."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
@@ -66,14 +84,15 @@ class SimulatedMission:
 
     scenario: the scenario; log_path: the mission log; seed: simulators' and planner's seed
     (default: the scenario's); speedup: built-in vehicle speed factor; planner: planner name;
-    connect: MAVSDK URL of a running PX4 SITL (None: built-in vehicle); max_stream_wall_hz: cap of
+    connect: MAVSDK URL of a running PX4 SITL (None: built-in vehicle), or a fleet's list of them,
+    one per `[[vehicles]]` entry in its order; max_stream_wall_hz: cap of
     the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields or
     mission settings by their key alone (mission.controller.controller_from_mission); header_config:
     more fields of the log header's `config` (the CLI's `command_line`).
     """
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
-                 speedup: float = 20.0, planner: str | None = None, connect: str | None = None,
+                 speedup: float = 20.0, planner: str | None = None, connect: str | Sequence[str] | None = None,
                  max_stream_wall_hz: float = 100.0, gnb_request_timeout_s: float = 1.0,
                  controller_overrides: dict | None = None, gnb_transport: str = "telnet",
                  gnb_mode: str | None = None, header_config: dict | None = None):
@@ -86,6 +105,8 @@ class SimulatedMission:
         self.planner = planner
         self.header_config = dict(header_config or {})
         self.connect = connect
+        #: the external autopilots' URLs, one per vehicle (None: built-in vehicles)
+        self.connect_urls = connect_urls(connect, scenario)
         self.max_stream_wall_hz = max_stream_wall_hz
         self.gnb_request_timeout_s = gnb_request_timeout_s
         self.controller_overrides = dict(controller_overrides or {})
@@ -97,8 +118,8 @@ class SimulatedMission:
         self.gnb_mode = gnb_mode if gnb_mode is not None else scenario.mission.gnb.mode
         if self.gnb_mode not in ("rtt", "trace", "auto"):
             raise MissionError(f"the simulated gNB measures in mode rtt, trace or auto, not {self.gnb_mode!r}")
-        #: how many vehicles fly: the mission's fleet (built-in vehicles), one with `connect`
-        self.fleet_size = scenario.mission.fleet_size if connect is None else 1
+        #: how many vehicles fly: the mission's fleet (built-in vehicles), one per `connect` URL
+        self.fleet_size = scenario.mission.fleet_size if connect is None else len(self.connect_urls)
         self.vehicle_sims: list[VehicleSimulator] = []
         self.vehicles: list[MavsdkVehicle] = []
         #: a killed gNB's place holds None
@@ -135,6 +156,29 @@ class SimulatedMission:
         home = Origin(st.home.lat_deg, st.home.lon_deg, st.home.alt_amsl_m)
         p = st.position
         return home.lla_to_enu(p.lat_deg, p.lon_deg, p.alt_amsl_m)
+
+    def _position_followed_in_fleet(self, index: int) -> np.ndarray | None:
+        """External vehicle `index`'s reported position [m] in the mission's ENU frame: the
+        controller's origin (vehicle 0's home as PX4 reported it before take-off), vehicle 0's
+        reported home until the controller knows it; None while unknown."""
+        origin = self.controller.origin if self.controller is not None else None
+        if origin is None:
+            home = self.vehicles[0].state.home
+            if home is None:
+                return None
+            origin = Origin(home.lat_deg, home.lon_deg, home.alt_amsl_m)
+        p = self.vehicles[index].state.position
+        if p is None:
+            return None
+        return np.asarray(origin.lla_to_enu(p.lat_deg, p.lon_deg, p.alt_amsl_m), float)
+
+    def _fleet_positions_followed(self) -> np.ndarray | None:
+        """(N, 3) every external vehicle's reported position in the mission's ENU frame [m] (a row
+        of NaN: not known yet; None: no vehicle's is)."""
+        rows = [self._position_followed_in_fleet(i) for i in range(len(self.vehicles))]
+        if all(r is None for r in rows):
+            return None
+        return np.array([np.full(3, np.nan) if r is None else r for r in rows], float)
 
     def _vehicle_clock(self, index: int) -> float:
         """Built-in vehicle `index`'s simulated clock [s]."""
@@ -181,14 +225,16 @@ class SimulatedMission:
                         bind=("127.0.0.1", 0), max_stream_wall_hz=self.max_stream_wall_hz)))
                     self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(f"udpin://127.0.0.1:{port}")))
             else:
-                self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(self.connect)))
+                for url in self.connect_urls:
+                    self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(url)))
             self.vehicle_sim = self.vehicle_sims[0] if self.vehicle_sims else None
             self.vehicle = self.vehicles[0]
             self._gnb_stack = contextlib.AsyncExitStack()
             await self._gnb_stack.__aenter__()
             stack.push_async_callback(self._close_gnb)
             if self.fleet_size > 1:
-                self.cells = SharedCells.of_scenario(self.scenario, self._fleet_positions, self.fleet_size)
+                positions = self._fleet_positions if self.connect is None else self._fleet_positions_followed
+                self.cells = SharedCells.of_scenario(self.scenario, positions, self.fleet_size)
             for i in range(self.fleet_size):
                 gnb = await self._gnb_stack.enter_async_context(self._simulated_gnb(i))
                 self.gnb_sims.append(gnb)
@@ -203,7 +249,8 @@ class SimulatedMission:
                 self.gnb_clients if fleet else self.gnb_client, self.log_path, planner=self.planner,
                 seed=self.seed, time_scale=self.speedup, truth=self._truth, buildings=self._buildings,
                 external_vehicle=self.connect is not None,
-                header_config={"command": "sim", "speedup": self.speedup, "connect": self.connect,
+                header_config={"command": "sim", "speedup": self.speedup,
+                               "connect": self.connect_urls if fleet or self.connect is None else self.connect_urls[0],
                                "gnb_transport": self.gnb_transport, "gnb_mode": self.gnb_client.mode,
                                **self.header_config},
                 **overrides)
@@ -216,8 +263,11 @@ class SimulatedMission:
     def _simulated_gnb(self, index: int) -> SimulatedGnb:
         """The simulated gNB of vehicle `index` (not started): on free loopback ports, at its
         vehicle's true position on its vehicle's clock; a fleet's in its cell of the shared attachment."""
-        if self.connect is not None:
+        if self.connect is not None and self.fleet_size == 1:
             position, clock = self._position_followed, self._sim_clock
+        elif self.connect is not None:
+            # an external fleet: its vehicle's reported position, the mission's clock
+            position, clock = functools.partial(self._position_followed_in_fleet, index), self._sim_clock
         elif self.fleet_size == 1:
             position, clock = self._true_position_builtin, self._sim_clock
         else:

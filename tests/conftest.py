@@ -70,33 +70,79 @@ def px4_build():
     return build
 
 
-@pytest.fixture
-def px4(px4_build, tmp_path):
-    """A fresh PX4 SITL (SIH quadrotor) of the user's build for one test: its own instance (1-8,
-    one not in use), speed factor tests.px4.PX4_SPEED, a fresh working directory; stopped after the
-    test. Skips when PX4 does not print `Ready for takeoff!` in time."""
-    from sitl_scenarios.px4_sitl import Px4Sitl, instance_busy
-    from tests.px4 import PX4_SPEED, READY_TIMEOUT_S
+def _free_px4_instance(taken: tuple[int, ...] = ()) -> int:
+    """The next PX4 instance of PX4_INSTANCES (round robin over the session) that no PX4 server
+    runs as and whose ports are free, other than `taken`; skips the test when there is none."""
+    from sitl_scenarios.px4_sitl import instance_busy
 
     global _px4_next
-    instance = None
     for _ in range(2 * len(PX4_INSTANCES)):
         candidate = next(_px4_next, None)
         if candidate is None:
             _px4_next = iter(PX4_INSTANCES)
             continue
-        if not instance_busy(candidate):
-            instance = candidate
-            break
-    if instance is None:
-        pytest.skip(f"every PX4 instance {PX4_INSTANCES.start}-{PX4_INSTANCES.stop - 1} is in use")
+        if candidate not in taken and not instance_busy(candidate):
+            return candidate
+    pytest.skip(f"every PX4 instance {PX4_INSTANCES.start}-{PX4_INSTANCES.stop - 1} is in use")
+
+
+def _wait_px4_ready(sitl) -> None:
+    """Skips when PX4 does not print `Ready for takeoff!` in time, with its last lines."""
+    from tests.px4 import READY_TIMEOUT_S
+
+    if not sitl.wait_ready(READY_TIMEOUT_S):
+        tail = "".join(sitl.lines[-8:])
+        pytest.skip(f"PX4 SITL (instance {sitl.instance}) did not print 'Ready for takeoff!' within "
+                    f"{READY_TIMEOUT_S:g} s; its last lines:\n{tail}")
+
+
+@pytest.fixture
+def px4(px4_build, tmp_path):
+    """A fresh PX4 SITL (SIH quadrotor) of the user's build for one test: its own instance (1-8,
+    one not in use), speed factor tests.px4.PX4_SPEED, a fresh working directory; stopped after the
+    test. Skips when PX4 does not print `Ready for takeoff!` in time."""
+    from sitl_scenarios.px4_sitl import Px4Sitl
+    from tests.px4 import PX4_SPEED
+
+    instance = _free_px4_instance()
     sitl = Px4Sitl(px4_build, instance, PX4_SPEED, tmp_path / "px4-work", output=tmp_path / "px4.log")
     sitl.start()
     try:
-        if not sitl.wait_ready(READY_TIMEOUT_S):
-            tail = "".join(sitl.lines[-8:])
-            pytest.skip(f"PX4 SITL (instance {instance}) did not print 'Ready for takeoff!' within "
-                        f"{READY_TIMEOUT_S:g} s; its last lines:\n{tail}")
+        _wait_px4_ready(sitl)
         yield sitl
     finally:
         sitl.stop()
+
+
+#: SIH's default home (PX4_HOME_LAT/LON/ALT unset): lat, lon [deg], alt [m AMSL]
+PX4_SIH_HOME = (47.3977433, 8.5455916, 489.0)
+#: how far east of the first the second vehicle of `px4_pair` takes off [m]
+PX4_PAIR_EAST_M = 20.0
+
+
+@pytest.fixture
+def px4_pair(px4_build, tmp_path):
+    """Two fresh PX4 SITLs (SIH quadrotors) for one test, as `px4` starts one: each its own free
+    instance, speed factor tests.px4.PX4_SPEED, its own working directory; the first at SIH's
+    default home, the second PX4_PAIR_EAST_M east of it (same altitude). Both start at once; skips
+    when either does not print `Ready for takeoff!` in time; both stopped after the test."""
+    from estimator.geodesy import Origin
+    from sitl_scenarios.px4_sitl import Px4Sitl
+    from tests.px4 import PX4_SPEED
+
+    first = _free_px4_instance()
+    second = _free_px4_instance(taken=(first,))
+    lat, lon, alt = Origin(*PX4_SIH_HOME).enu_to_lla([PX4_PAIR_EAST_M, 0.0, 0.0])
+    homes = (PX4_SIH_HOME, (float(lat), float(lon), float(alt)))
+    sitls = [Px4Sitl(px4_build, instance, PX4_SPEED, tmp_path / f"px4-work-{i}", home=home,
+                     output=tmp_path / f"px4-{i}.log")
+             for i, (instance, home) in enumerate(zip((first, second), homes, strict=True))]
+    try:
+        for sitl in sitls:
+            sitl.start()
+        for sitl in sitls:
+            _wait_px4_ready(sitl)
+        yield sitls
+    finally:
+        for sitl in sitls:
+            sitl.stop()

@@ -1,6 +1,7 @@
 """After the stop rule, the mission's final answer decides what the survey reached
 (MissionController._target_confirmed): "target reached" the final answer does not hold sends the
-survey on; "floor reached" whose final answer is within the target is the target reached."""
+survey on; "floor reached" whose final answer is within the target is the target reached; a
+fleet's "its users done" is the target reached, its own users done, or surveying on."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from mission.control.config import STATUS_BUDGET, STATUS_FLOOR, STATUS_TARGET
 from mission.control.flight import MissionController
 from mission.control.state import FlightState
 from mission.estimation import MissionEstimator
+from planner.fleet import REASON_USERS_DONE
 
 
 class _Final:
@@ -27,25 +29,32 @@ class _Final:
         return self.bounds_m
 
 
-def _check(stop, final_bounds_m):
+def _check(stop, final_bounds_m, serving=None, finished=None):
+    """(done, the crew's FlightState, event kinds) of vehicle 0's survey ended `stop`, whose final
+    answer bounds the users at final_bounds_m; serving: each user's cell (a fleet's; default vehicle
+    0's); finished: gets the status of each end of every vehicle's survey (_finish_all)."""
     events = []
+    finished = [] if finished is None else finished
 
     async def drain(_timeout_s):
         return None
 
     flight = FlightState(event=lambda *a, **k: None)
     flight.finish_survey(*stop, now_s=100.0)
-    crew = SimpleNamespace(flight=flight, pipeline=SimpleNamespace(drain=drain), wall=lambda s: 0.0,
+    crew = SimpleNamespace(index=0, flight=flight, pipeline=SimpleNamespace(drain=drain), wall=lambda s: 0.0,
                            event=lambda message, **fields: events.append((message, fields)))
 
     async def confirmed():
         ctl = SimpleNamespace(
             crews=[crew], _keyframes=[object()] * 12, _confirm_lock=asyncio.Lock(),
-            _finish_all=lambda status, reason: None,
+            _finish_all=lambda status, reason: finished.append(status),
+            serving=np.zeros(len(final_bounds_m), int) if serving is None else np.asarray(serving),
+            users=[SimpleNamespace(id=f"ue{k + 1}") for k in range(len(final_bounds_m))],
             # the mission estimator's own rule (MissionEstimator.within_target) over a made-up final answer
             _estimator=SimpleNamespace(final=lambda kfs: _Final(final_bounds_m), within_target=lambda final: (
                 MissionEstimator.within_target(SimpleNamespace(target_radius_m=4.0), final))),
             config=SimpleNamespace(flight=SimpleNamespace(target_radius_m=4.0)))
+        ctl._users_done_confirmed = lambda *a: MissionController._users_done_confirmed(ctl, *a)
         return await MissionController._target_confirmed(ctl, crew)
 
     done = asyncio.run(confirmed())
@@ -70,3 +79,20 @@ def test_a_target_the_final_answer_does_not_hold_sends_the_survey_on():
 def test_other_ends_are_not_judged_again():
     done, flight, kinds = _check((STATUS_BUDGET, "budget spent"), [1.0, 1.0, 1.0])
     assert done and flight.stop == (STATUS_BUDGET, "budget spent") and kinds == []
+
+
+def test_a_fleet_vehicle_whose_users_are_done_is_judged_on_the_final_answer():
+    """PX4 fleet, the plan made ahead 16 s before the leg's end: "its users done" on bounds of
+    3.4 m, the final answer 6.0 m for a user of its cell (tests/test_px4_fleet.py)."""
+    users_done = ("no_feasible_leg", REASON_USERS_DONE)
+    # every user within the target in the final answer: the target reached, for the whole fleet
+    finished = []
+    done, flight, kinds = _check(users_done, [3.6, 3.9, 3.5, 3.8], serving=[0, 0, 1, 1], finished=finished)
+    assert done and flight.stop == (STATUS_TARGET, "target reached")
+    assert kinds == ["target_in_final_answer"] and finished == [STATUS_TARGET]
+    # its own users within the target, another cell's user not: its part is done, as the planner said
+    done, flight, kinds = _check(users_done, [3.6, 3.9, 6.0, 3.8], serving=[0, 0, 1, 1])
+    assert done and flight.stop == users_done and kinds == []
+    # a user of its own cell beyond the target: it surveys on
+    done, flight, kinds = _check(users_done, [3.6, 6.0, 3.5, 3.8], serving=[0, 0, 1, 1])
+    assert not done and flight.stop is None and kinds == ["users_done_unconfirmed"]

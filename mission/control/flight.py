@@ -85,7 +85,7 @@ from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log
 from mission.result import Result, build_result
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.vehicle import Vehicle
-from planner.fleet import FleetPlanner, Separation, vehicles_apart
+from planner.fleet import REASON_USERS_DONE, FleetPlanner, Separation, vehicles_apart
 from planner.types import Planner, PlanningState, PlanResult
 from uavloc.errors import (
     EstimatorError,
@@ -415,10 +415,17 @@ class MissionController:
         reached" must hold for the answer the mission prints: a last range can widen a bound by a
         metre (seen: 3.86 to 4.84 m against 4 m), and then the survey goes on (False). A floor the
         survey's estimate saw may be within the target in the final answer (seen: 3.57 m against
-        4 m after "floor reached"): then the target is reached, for every vehicle of a fleet."""
+        4 m after "floor reached"): then the target is reached, for every vehicle of a fleet.
+
+        A fleet's vehicle whose planner found its users within the target ("its users done",
+        planner.fleet) judged that on the estimate of the moment, an online one perhaps, narrower
+        than a batch answer (seen on PX4: 3.9 m online, 6.0 m in the final answer): the final answer
+        decides here too. Every user within the target: the target is reached; this vehicle's users
+        within it: its part is done; else it surveys on (:meth:`_users_done_confirmed`)."""
         f = crew.flight
-        if (f.stop is None or f.stop[0] not in (STATUS_TARGET, STATUS_FLOOR) or f.return_reason is not None
-                or self._estimator is None):
+        users_done = f.stop is not None and f.stop[1] == REASON_USERS_DONE
+        if (f.stop is None or (f.stop[0] not in (STATUS_TARGET, STATUS_FLOOR) and not users_done)
+                or f.return_reason is not None or self._estimator is None):
             return True
         async with self._confirm_lock:  # a fleet's vehicles judge one after the other
             if f.stop is None:
@@ -427,6 +434,8 @@ class MissionController:
             final = await asyncio.to_thread(self._estimator.final, list(self._keyframes))
             reached = self._estimator.within_target(final)
             n_kf = len(self._keyframes)
+            if users_done:
+                return self._users_done_confirmed(crew, final, reached)
             if f.stop[0] == STATUS_FLOOR:
                 if reached:
                     f.stop = (STATUS_TARGET, "target reached")
@@ -444,6 +453,30 @@ class MissionController:
                        f"surveying on", kind="target_unconfirmed", bound_95_m=worst)
             f.estimate = final
             return False
+
+    def _users_done_confirmed(self, crew: VehicleCrew, final: Estimate, reached: bool) -> bool:
+        """A survey that ended "its users done", against the final answer `final` (reached: every
+        user within the target in it): True when the vehicle's part is done (the target reached for
+        the fleet, or its own users within the target), False when it surveys on."""
+        f, target = crew.flight, self.config.flight.target_radius_m
+        n_kf = len(self._keyframes)
+        if reached:
+            f.stop = (STATUS_TARGET, "target reached")
+            crew.event(f"the final answer over {n_kf} keyframes bounds every user within the {target:g} m target: "
+                       "target reached", kind="target_in_final_answer")
+            self._finish_all(STATUS_TARGET, "target reached")
+            return True
+        bound = final.error_bound_95_m()
+        mine = (self.serving == crew.index) & ~((bound <= target) & ~np.asarray(final.ambiguous, bool))
+        if not mine.any():
+            return True
+        worst = float(np.max(bound[mine]))
+        f.resume_survey()
+        crew.event(f"the final answer over {n_kf} keyframes bounds a user of its cell at {worst:.2f} m, beyond the "
+                   f"{target:g} m target its survey's estimate reached: surveying on", kind="users_done_unconfirmed",
+                   bound_95_m=worst, users=[self.users[k].id for k in np.flatnonzero(mine)])
+        f.estimate = final
+        return False
 
     def _finish_all(self, status: str, reason: str) -> None:
         """The stop rule ends every vehicle's survey (those taking off or surveying)."""

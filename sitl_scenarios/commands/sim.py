@@ -1,6 +1,7 @@
-"""`uavloc sim SCENARIO [--seed N] [--speedup X] [--planner NAME] [--out DIR] [--json] [--connect URL]
+"""`uavloc sim SCENARIO [--seed N] [--speedup X] [--planner NAME] [--out DIR] [--json] [--connect URL[,URL...]]
 [--gnb-transport telnet|rest] [--autopilot px4|ardupilot]`:
-a whole mission against the built-in vehicle and the simulated gNB (or a running PX4 or ArduPilot SITL)."""
+a whole mission against the built-in vehicle and the simulated gNB (or a running PX4 or ArduPilot SITL;
+a fleet scenario's: one URL per vehicle, comma-separated)."""
 
 from __future__ import annotations
 
@@ -55,9 +56,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gnb-mode", choices=("rtt", "trace", "auto"),
                    help="how the adapter measures: the RTT command (a modified gNB), the T tracer (a stock gNB's "
                         "TA and SRS), or the best the gNB serves (default: the scenario's [gnb] mode, rtt)")
-    p.add_argument("--connect", metavar="URL",
+    p.add_argument("--connect", metavar="URL[,URL...]",
                    help="fly a running PX4 or ArduPilot SITL instead (e.g. udpin://0.0.0.0:14540); the simulated "
-                        "gNB follows it and scenario positions are offsets from its home")
+                        "gNB follows it and scenario positions are offsets from its home. A fleet scenario: one URL "
+                        "per [[vehicles]] entry, comma-separated (udpin://127.0.0.1:14541,udpin://127.0.0.1:14542); "
+                        "positions are offsets from the first vehicle's home")
     p.add_argument("--autopilot", choices=("px4", "ardupilot"),
                    help="the built-in vehicle's personality (default: the scenario's [vehicle] autopilot, px4)")
     add_view_arguments(p)
@@ -73,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
     from sitl_scenarios.sim_runner import SimulatedMission
 
     scenario = load_scenario(args.scenario)
+    connect = connect_argument(args.connect, scenario)
     if args.autopilot is not None:
         if args.connect is not None:
             log.warning("--autopilot is ignored with --connect (the autopilot says what it is)")
@@ -105,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     async def main() -> int:
         async with live_view(args, title=f"uavloc sim {scenario.name}") as view:
             async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
-                                        planner=args.planner, connect=args.connect,
+                                        planner=args.planner, connect=connect,
                                         gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode,
                                         header_config={"command_line": getattr(args, "command_line", None)}) as sim:
                 held.sim = sim
@@ -132,6 +136,23 @@ def run(args: argparse.Namespace) -> int:
             code = finish(result, interrupted=True)
     runner.exit_if_stuck(code)
     return code
+
+
+def connect_argument(text: str | None, scenario) -> str | list[str] | None:
+    """`--connect`: one URL for a one-vehicle scenario, a fleet scenario's comma-separated list of one
+    URL per `[[vehicles]]` entry; ScenarioError (exit 1), naming --connect, for another count."""
+    if text is None:
+        return None
+    from uavloc.errors import ScenarioError
+
+    urls = [u.strip() for u in text.split(",")]
+    n = scenario.mission.fleet_size
+    if len(urls) != n or not all(urls):
+        what = f"the {n} vehicles of its [[vehicles]]" if n > 1 else "one vehicle"
+        raise ScenarioError(f"--connect {text!r}: scenario {scenario.name!r} flies {what}; give "
+                            f"{'one URL per vehicle, comma-separated' if n > 1 else 'one URL'} "
+                            f"({len([u for u in urls if u])} given)")
+    return urls if n > 1 else urls[0]
 
 
 @dataclass
