@@ -324,10 +324,13 @@ _ENDS = {"stop": "survey done", "return": "return requested", "abort": "aborted"
 def vehicles_of_events(vehicle_ids: Sequence[str], events: Sequence[dict]) -> tuple[tuple[VehicleResult, ...], int]:
     """A fleet's vehicles (one :class:`VehicleResult` each, in `vehicle_ids` order) and its
     separation breaches, from the mission log's `event` records (each naming its `vehicle` by
-    index; absent: vehicle 0). The first `stop`, `return` or `abort` of a vehicle says how its part
-    ended; its last `survey_time` gives its metres and seconds."""
+    index; absent: vehicle 0). The last `stop`, `return`, `abort` or `target_in_final_answer` of a
+    vehicle before its survey's `survey_time` says how its part ended (a survey the final answer
+    sent on ends again later; a return requested on the way home changes nothing); its last
+    `survey_time` gives its metres and seconds."""
     n = len(vehicle_ids)
-    ended: list[str | None] = [None] * n
+    ended: list[str | None] = [None] * n  # how its survey ended, once its `survey_time` closed it
+    pending: list[str | None] = [None] * n  # the latest end before that
     rtl, landed = [False] * n, [False] * n
     survey: list[dict] = [{} for _ in range(n)]
     breaches = 0
@@ -341,19 +344,22 @@ def vehicles_of_events(vehicle_ids: Sequence[str], events: Sequence[dict]) -> tu
             continue
         if kind in _ENDS and ended[v] is None:
             reason = e.get("reason")
-            ended[v] = f"{_ENDS[kind]}: {reason if isinstance(reason, str) else e.get('message', '')}"
+            pending[v] = f"{_ENDS[kind]}: {reason if isinstance(reason, str) else e.get('message', '')}"
+        elif kind == "target_in_final_answer" and ended[v] is None:
+            pending[v] = "survey done: target reached"  # the final answer turned its end into the target
         elif kind == "rtl":
             rtl[v] = True
         elif kind == "landed":
             landed[v] = True
         elif kind == "survey_time":
             survey[v] = e
+            ended[v] = ended[v] or pending[v]
 
     def num(d: dict, key: str) -> float | None:
         x = d.get(key)
         return float(x) if isinstance(x, int | float) and not isinstance(x, bool) else None
 
-    return tuple(VehicleResult(vehicle_ids[v], ended[v] or "did not survey", rtl[v], landed[v],
+    return tuple(VehicleResult(vehicle_ids[v], ended[v] or pending[v] or "did not survey", rtl[v], landed[v],
                                num(survey[v], "flown_m"), num(survey[v], "survey_s"), num(survey[v], "hover_s"))
                  for v in range(n)), breaches
 

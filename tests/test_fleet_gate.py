@@ -59,10 +59,11 @@ def test_each_vehicles_part_and_the_breaches_are_read_from_the_events():
         {"kind": "separation_lost", "least_m": 12.0},
         {"kind": "survey_time", "vehicle": 1, "flown_m": 100.0, "survey_s": 50.0, "hover_s": 1.0},
         {"kind": "landed", "vehicle": 1},
-        {"kind": "stop", "vehicle": 0, "reason": "target reached"},
-        {"kind": "stop", "vehicle": 0, "reason": "a later stop changes nothing"},
-        {"kind": "rtl", "vehicle": 0},
+        {"kind": "stop", "vehicle": 0, "reason": "floor reached"},
+        {"kind": "target_in_final_answer", "vehicle": 0},  # the final answer made it the target
         {"kind": "survey_time", "vehicle": 0, "flown_m": 400.0, "survey_s": 90.0, "hover_s": 0.5},
+        {"kind": "rtl", "vehicle": 0},
+        {"kind": "return", "vehicle": 0, "reason": "battery low on the way home changes nothing"},
         {"kind": "rtl", "vehicle": 7},  # no such vehicle: ignored
     ]
     vehicles, breaches = vehicles_of_events(["uav1", "uav2"], events)
