@@ -55,6 +55,7 @@ def _check(stop, final_bounds_m, serving=None, finished=None):
                 MissionEstimator.within_target(SimpleNamespace(target_radius_m=4.0), final))),
             config=SimpleNamespace(flight=SimpleNamespace(target_radius_m=4.0)))
         ctl._users_done_confirmed = lambda *a: MissionController._users_done_confirmed(ctl, *a)
+        ctl._serving_now = lambda: ctl.serving.copy()
         return await MissionController._target_confirmed(ctl, crew)
 
     done = asyncio.run(confirmed())
@@ -95,4 +96,7 @@ def test_a_fleet_vehicle_whose_users_are_done_is_judged_on_the_final_answer():
     assert done and flight.stop == users_done and kinds == []
     # a user of its own cell beyond the target: it surveys on
     done, flight, kinds = _check(users_done, [3.6, 6.0, 3.5, 3.8], serving=[0, 0, 1, 1])
+    assert not done and flight.stop is None and kinds == ["users_done_unconfirmed"]
+    # a user nobody serves (its vehicle went home) beyond the target: it surveys on, for that user
+    done, flight, kinds = _check(users_done, [3.6, 3.9, 6.0, 3.8], serving=[0, 0, -1, 1])
     assert not done and flight.stop is None and kinds == ["users_done_unconfirmed"]

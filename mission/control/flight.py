@@ -467,12 +467,14 @@ class MissionController:
             self._finish_all(STATUS_TARGET, "target reached")
             return True
         bound = final.error_bound_95_m()
-        mine = (self.serving == crew.index) & ~((bound <= target) & ~np.asarray(final.ambiguous, bool))
+        # its users, and those nobody serves now (a vehicle gone home left them: planner.fleet.has_work)
+        serving = self._serving_now()
+        mine = ((serving == crew.index) | (serving < 0)) & ~((bound <= target) & ~np.asarray(final.ambiguous, bool))
         if not mine.any():
             return True
         worst = float(np.max(bound[mine]))
         f.resume_survey()
-        crew.event(f"the final answer over {n_kf} keyframes bounds a user of its cell at {worst:.2f} m, beyond the "
+        crew.event(f"the final answer over {n_kf} keyframes bounds a user it can measure at {worst:.2f} m, beyond the "
                    f"{target:g} m target its survey's estimate reached: surveying on", kind="users_done_unconfirmed",
                    bound_95_m=worst, users=[self.users[k].id for k in np.flatnonzero(mine)])
         f.estimate = final
