@@ -26,7 +26,7 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 FIGURES = Path(__file__).parent / "data" / "ardupilot_figures.json"
 RECORDING = "ardupilot-4.7-sitl"
 TOLERANCE = 0.15
-SPEEDUP = 8.0
+SPEEDUP = 16.0
 LEGS = ["15m_east", "40m_north", "80m_east", "300m_north"]
 #: per leg: peak and p99 ground speed, time to rest (`stop_s`: slower than 0.3 m/s after the peak)
 #: and settle time (within 1 m and slower than 0.3 m/s). The recording's RTL was sent before the

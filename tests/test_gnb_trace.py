@@ -143,7 +143,7 @@ def test_uavloc_gnb_probe_mode_trace_exits_0(tmp_path):
 @pytest.mark.sim
 def test_a_mission_flown_in_trace_mode_reaches_its_target(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "mission", "-q", "sim", "paper", "--gnb-mode", "trace", "--seed", "2",
-                           "--speedup", "10", "--json", "--out", str(tmp_path / "out")],
+                           "--speedup", "20", "--json", "--out", str(tmp_path / "out")],
                           cwd=REPO, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     doc = json.loads(proc.stdout)

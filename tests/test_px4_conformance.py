@@ -31,7 +31,7 @@ RECORDING = "px4-v1.18-sih"
 TOLERANCE = 0.15
 #: the legs flight at this speedup (kinematics), the GPS-loss flight at this one (its 50 Hz
 #: streams carried in full: the stream rates are measured on it)
-LEGS_SPEEDUP, GPSLOSS_SPEEDUP = 8.0, 2.0
+LEGS_SPEEDUP, GPSLOSS_SPEEDUP = 16.0, 2.0
 #: streams the recorded PX4 GCS link carries that the built-in vehicle does not send (nothing of
 #: uavloc reads them): actuator, attitude and global position targets, estimator and sensor
 #: reports, Remote ID

@@ -148,7 +148,7 @@ def live_mission(browser, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("live")
     screens = _screens_dir(tmp)
     out = tmp / "out"
-    proc = _Proc(["sim", "paper", "--json", "--out", str(out), "--view", "127.0.0.1:0"])
+    proc = _Proc(["sim", "paper", "--json", "--speedup", "20", "--out", str(out), "--view", "127.0.0.1:0"])
     page = browser.new_page()
     errors = _watch(page)
     snapshots = []
