@@ -24,13 +24,13 @@ pytestmark = pytest.mark.sim
 DELTA_M = 2.0
 
 
-def _scenario(n_users: int, gnb_delay_s: float = 0.0):
+def _scenario(n_users: int, gnb_delay_s: float = 0.0, budget_m: float = 300.0):
     users = [{"id": f"ue{k}", "rnti": 0x4601 + k, "east_m": 40.0 + 20.0 * math.cos(k),
               "north_m": 30.0 + 20.0 * math.sin(k)} for k in range(n_users)]
     doc = {"name": "pace", "seed": 3, **user_tables(users),
            "geofence": {"polygon_enu_m": [[-100, -100], [150, -100], [150, 150], [-100, 150]], "max_distance_m": 300},
            "flight": {"delta_m": DELTA_M, "altitude_m": 30.0, "alt_min_m": 20.0, "alt_max_m": 60.0,
-                      "budget_m": 300.0, "target_radius_m": 1.0, "leg_max_m": 60.0},
+                      "budget_m": budget_m, "target_radius_m": 1.0, "leg_max_m": 60.0},
            "vehicle": {"speed_mps": 8.0}}
     if gnb_delay_s:
         doc["faults"] = {"gnb": {"delay_s": gnb_delay_s, "delay_rate": 1.0}}
@@ -82,7 +82,8 @@ def test_a_starved_simulation_says_it_fell_behind_and_by_how_much(tmp_path, capl
     warns, and its result and --json document carry them."""
     log_path = tmp_path / "m.jsonl"
     with caplog.at_level("WARNING"):
-        result, behind_s = _fly(_scenario(1), log_path, 40.0, spinners=3)
+        # a 150 m survey: a minute of a starved simulation's pace is enough to say it
+        result, behind_s = _fly(_scenario(1, budget_m=150.0), log_path, 40.0, spinners=3)
     assert behind_s > 0.0  # the simulation really fell behind
     (ev,) = _events(log_path, "fell_behind")
     (survey,) = _events(log_path, "survey_time")
@@ -100,7 +101,7 @@ def test_a_starved_simulation_says_it_fell_behind_and_by_how_much(tmp_path, capl
 def test_a_simulation_that_keeps_up_says_nothing(tmp_path, caplog):
     log_path = tmp_path / "m.jsonl"
     with caplog.at_level("WARNING"):
-        result, behind_s = _fly(_scenario(1), log_path, 10.0)
+        result, behind_s = _fly(_scenario(1, budget_m=150.0), log_path, 10.0)
     assert behind_s == 0.0
     assert _events(log_path, "fell_behind") == []
     assert not any("asked ×" in r.getMessage() for r in caplog.records)
