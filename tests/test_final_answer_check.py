@@ -6,6 +6,7 @@ fleet's "its users done" is the target reached, its own users done, or surveying
 from __future__ import annotations
 
 import asyncio
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -59,6 +60,8 @@ def _check(stop, final_bounds_m, serving=None, finished=None):
         return await MissionController._target_confirmed(ctl, crew)
 
     done = asyncio.run(confirmed())
+    for _, fields in events:  # what the mission log can hold: no NaN, no infinity (mission.log)
+        assert all(math.isfinite(v) for v in fields.values() if isinstance(v, float)), fields
     return done, flight, [f.get("kind") for _, f in events]
 
 
@@ -99,4 +102,8 @@ def test_a_fleet_vehicle_whose_users_are_done_is_judged_on_the_final_answer():
     assert not done and flight.stop is None and kinds == ["users_done_unconfirmed"]
     # a user nobody serves (its vehicle went home) beyond the target: it surveys on, for that user
     done, flight, kinds = _check(users_done, [3.6, 3.9, 6.0, 3.8], serving=[0, 0, -1, 1])
+    assert not done and flight.stop is None and kinds == ["users_done_unconfirmed"]
+    # … or not located at all (seen: a vehicle sent home after 18 ranges left its users unlocated;
+    # the event's infinite bound once cost the other vehicle its survey)
+    done, flight, kinds = _check(users_done, [3.6, 3.9, np.inf, 3.8], serving=[0, 0, -1, 1])
     assert not done and flight.stop is None and kinds == ["users_done_unconfirmed"]

@@ -446,9 +446,9 @@ class MissionController:
                 return True
             if reached:
                 return True
-            worst = float(np.max(final.error_bound_95_m()))
+            worst = _worst_bound_m(final.error_bound_95_m())
             f.resume_survey()
-            crew.event(f"the final answer over {n_kf} keyframes bounds a user at {worst:.2f} m, beyond the "
+            crew.event(f"the final answer over {n_kf} keyframes {_bound_words(worst)} of a user, beyond the "
                        f"{self.config.flight.target_radius_m:g} m target the survey's estimate reached: "
                        f"surveying on", kind="target_unconfirmed", bound_95_m=worst)
             f.estimate = final
@@ -472,9 +472,9 @@ class MissionController:
         mine = ((serving == crew.index) | (serving < 0)) & ~((bound <= target) & ~np.asarray(final.ambiguous, bool))
         if not mine.any():
             return True
-        worst = float(np.max(bound[mine]))
+        worst = _worst_bound_m(bound[mine])
         f.resume_survey()
-        crew.event(f"the final answer over {n_kf} keyframes bounds a user it can measure at {worst:.2f} m, beyond the "
+        crew.event(f"the final answer over {n_kf} keyframes {_bound_words(worst)} of a user it can measure, beyond the "
                    f"{target:g} m target its survey's estimate reached: surveying on", kind="users_done_unconfirmed",
                    bound_95_m=worst, users=[self.users[k].id for k in np.flatnonzero(mine)])
         f.estimate = final
@@ -800,6 +800,19 @@ class MissionController:
             survey_s=c.survey_s if surveyed else None, hover_s=c.hover_s if surveyed else None,
             largest_gap_s=c.largest_gap_s if surveyed else None,
             log_path=self.log_path if self.origin is not None else None)
+
+
+def _worst_bound_m(bounds_m: np.ndarray) -> float | None:
+    """The largest finite 95 % bound [m], None when no user is located (its bound is infinite):
+    what an event record can hold (the log refuses NaN and infinities)."""
+    b = np.asarray(bounds_m, float)
+    if np.any(~np.isfinite(b)) or b.size == 0:
+        return None
+    return float(np.max(b))
+
+
+def _bound_words(worst_m: float | None) -> str:
+    return "leaves no position" if worst_m is None else f"gives a {worst_m:.2f} m bound"
 
 
 def _first_error(eg: BaseExceptionGroup) -> BaseException:
