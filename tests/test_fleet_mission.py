@@ -8,7 +8,6 @@ separation and the fence are checked on what the vehicles did, not on what the c
 from __future__ import annotations
 
 import asyncio
-import time
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,7 @@ from mission.geometry import contains_point
 from mission.log import read_mission_log
 from sitl_scenarios.scenario import load_scenario
 from sitl_scenarios.sim_runner import SimulatedMission
-from tests.test_mission_e2e import assert_log_replays_to_the_result
+from tests.test_mission_e2e import _wait, assert_log_replays_to_the_result
 
 #: the built-in vehicles' speed factor (two vehicles, two gNBs and the controller share 2 cores)
 SPEEDUP = 20.0
@@ -36,14 +35,6 @@ async def _sample_truth(sim: SimulatedMission, out: list[np.ndarray], period_s: 
     while True:
         out.append(sim._fleet_positions())
         await asyncio.sleep(period_s)
-
-
-async def _wait(predicate, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.02)
 
 
 def _fly(sc, log_path: Path, during=None, speedup: float = SPEEDUP, **kw):

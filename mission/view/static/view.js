@@ -8,6 +8,8 @@
   // a fleet's vehicles (track, estimated track, leg, marker, home); one vehicle keeps the colours of view.css
   const VEHICLE_COLORS = ["#2f6fdb", "#1e8e3e", "#b5179e", "#8d5524", "#0097a7", "#c99700", "#d62728", "#5a5a5a"];
   window.uavlocPalette = { users: COLORS, vehicles: VEHICLE_COLORS };
+  // one grouping of a track's items by vehicle, for the map and the 3-D view (view3d.js)
+  window.uavlocByVehicle = (items, at) => byVehicle(items, at);
   const WARN_KINDS = new Set(["return", "rtl_failed", "gnb_lost", "link_lost", "abort", "interrupted",
     "refused", "dropped", "estimator_error", "leg_timeout", "landing_timeout", "goto_failed", "breach"]);
   const NOTE_KINDS = new Set(["rtl", "stop", "landed", "end", "gnb_restored", "link_restored"]);

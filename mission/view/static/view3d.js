@@ -126,16 +126,8 @@ if (renderer) {
     const c = new THREE.Color(pal[k % pal.length]).getHex();
     return { track: c, est: c, leg: c, body: c, home: c };
   }
-  // a track's items by vehicle: the vehicle is element `at` of an item (absent: vehicle 0)
-  function byVehicle(items, at) {
-    const out = new Map();
-    for (const p of items) {
-      const k = p.length > at ? p[at] : 0;
-      if (!out.has(k)) out.set(k, []);
-      out.get(k).push(p);
-    }
-    return out;
-  }
+  // a track's items by vehicle (view.js: the vehicle is element `at` of an item, absent: vehicle 0)
+  const byVehicle = (items, at) => window.uavlocByVehicle(items, at);
 
   function buildDynamic(S) {
     disposeGroup(dynamicGroup);
