@@ -73,3 +73,27 @@ def test_a_scenarios_held_bias_follows_the_kind_of_its_ues():
     data["noise"]["bias_held"] = "always"
     with pytest.raises(ScenarioError, match="bias_held"):
         scenario_from_dict(data, str(path))
+
+
+def test_sim_refuses_a_target_below_the_gps_floor_of_the_built_in_vehicles_gps(tmp_path, capsys):
+    """Issue 48: the floor check of a mission file also judges a scenario, with the world's τ."""
+    from mission.cli import main
+    from sitl_scenarios.scenario import SCENARIO_DIR
+
+    text = (SCENARIO_DIR / "five_commercial_ues.toml").read_text()
+    assert "target_radius_m = 4.0" in text
+    path = tmp_path / "five_1m.toml"
+    path.write_text(text.replace("target_radius_m = 4.0", "target_radius_m = 1.0"))
+    assert main(["sim", str(path), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert str(path) in err and "flight.target_radius_m = 1" in err and "below the GPS floor of 1.92 m" in err
+    assert "gps_tau_s = 120 s" in err and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name", ["paper", "three_users_nlos", "five_commercial_ues", "two_uavs", "clock_sawtooth",
+                                  "edge_of_coverage"])
+def test_every_bundled_scenarios_target_lies_above_its_gps_floor(name):
+    from mission.config import gps_floor_problem
+    from sitl_scenarios.scenario import load_scenario
+
+    assert gps_floor_problem(load_scenario(name).mission_config()) is None

@@ -84,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
             scenario = with_autopilot(scenario, args.autopilot)
     if args.connect is not None and args.speedup != 10.0:
         log.warning("--speedup is ignored with --connect (PX4 SITL sets its own speed)")
+    if args.connect is None:
+        check_gps_floor(scenario, args.scenario)
     if args.out is None:
         args.out = default_out_dir("sim", scenario.name)
     log_path = mission_log_path(args.out, None, args.out / LOG_NAME)
@@ -136,6 +138,21 @@ def run(args: argparse.Namespace) -> int:
             code = finish(result, interrupted=True)
     runner.exit_if_stuck(code)
     return code
+
+
+def check_gps_floor(scenario, where: str) -> None:
+    """A target below the GPS floor of the GPS the built-in vehicle flies with (the world's
+    `[vehicle] gps_tau_s` when the mission leaves τ unknown) is refused, as a mission file's is
+    (mission.config.gps_floor_problem); ScenarioError (exit 1) naming the file and the key. With
+    --connect τ is the autopilot's, unknown until the flight estimates it."""
+    from mission.config import gps_floor_problem
+    from uavloc.errors import ScenarioError
+
+    problem = gps_floor_problem(scenario.mission_config())
+    if problem is not None:
+        raise ScenarioError(f"{where}: flight.target_radius_m = "
+                            f"{scenario.mission.flight.target_radius_m:g}: {problem} (the built-in vehicle's GPS "
+                            f"drifts with [vehicle] gps_tau_s = {scenario.vehicle.gps_tau_s:g} s)")
 
 
 def connect_argument(text: str | None, scenario) -> str | list[str] | None:
