@@ -415,8 +415,8 @@ class TTraceImport:
 
     def why_no_range(self, rnti: int) -> str:
         """Why the recording gives UE `rnti` no range (in the tracker's words)."""
-        return self.tracker.why_none(rnti).replace("the T trace", "the recording").replace(
-            "re-attach it with uavloc connected", "record again from before the UEs attach")
+        return self.tracker.why_none(rnti, reattach="record again from before the UEs attach",
+                                     where="the recording")
 
     def why_empty(self) -> str:
         """Why the recording gave no round trip at all: the first of what the counts show."""

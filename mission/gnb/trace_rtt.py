@@ -54,6 +54,10 @@ from uavloc.errors import GnbProtocolError
 
 #: RNTIs that are not a UE's (SI-RNTI, P-RNTI: SIB1 and paging PDUs)
 _NOT_UE_RNTIS = frozenset({0xFFFF, 0xFFFE})
+#: how to re-attach a UE that attached before the T client connected (OAI 2025.w36, rfsim:
+#: ../shared/data/oai-2025.w36-ttrace, runs sa_no_core and dora_jump_0_300_reattach)
+REATTACH_HINT = ("re-attach it while uavloc's T client is connected: `ciUE force_RRC_IDLE` on the nrUE's telnet "
+                 "server (the UE re-attaches in SA; in --do-ra mode it exits instead), or restart the nrUE")
 #: SFN period [frames]; frames are 10 ms
 SFN_PERIOD = 1024
 FRAME_S = 0.01
@@ -379,14 +383,15 @@ class TraceRttTracker:
         ue = self._ues.get(rnti)
         return None if ue is None else ue.accepted
 
-    def why_none(self, rnti: int) -> str:
-        """Why this UE has no RTT now: what the latest of its occasions was held for."""
+    def why_none(self, rnti: int, reattach: str = REATTACH_HINT, where: str = "the T trace") -> str:
+        """Why this UE has no RTT now: what the latest of its occasions was held for. reattach:
+        what to do about a UE that attached before the trace began; where: what the trace is."""
         ue = self._ues.get(rnti)
         if ue is None:
             if rnti in self.unknown_rntis:
-                return (f"UE {rnti:04x} attached before the T trace began: its random access (the RAR's absolute "
-                        f"TA) was not seen, so its round trip is unknown; re-attach it with uavloc connected")
-            return f"UE {rnti:04x} has made no random access and sent no SRS in the trace"
+                return (f"UE {rnti:04x} attached before {where} began: its random access (the RAR's absolute "
+                        f"TA) was not seen, so its round trip is unknown; {reattach}")
+            return f"UE {rnti:04x} has made no random access and sent no SRS in {where}"
         return ue.held or f"UE {rnti:04x} has sent no SRS since its random access"
 
     def ues(self) -> list[int]:
