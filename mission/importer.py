@@ -39,8 +39,12 @@ payloads, parsed by `mission.gnb.oai` (the same parsers as the live adapter):
 GNB_PHY_UL_TIME_CHANNEL_ESTIMATE -on GNB_MAC_DL_PDU_WITH_DATA -on GNB_MAC_DL_RAR_PDU_WITH_DATA`),
 read by the trace mode's own tracker (`mission.gnb.trace_rtt`): each UE's round trip from its RAR
 TA, the TA commands it applied and the SRS peak, stamped with the gNB's CLOCK_REALTIME; the newest
-of each UE every `interval_s` becomes a measurement. The recording must start before the UEs
-attach (their RAR holds the absolute TA).
+of each UE every `interval_s` becomes a measurement, with the live trace mode's thresholds
+(`TraceSettings`: `[gnb]`'s defaults). The recording must start before the UEs attach (their RAR
+holds the absolute TA); it is decoded with its own T_messages.txt (`--t-messages` only for one
+without), and an empty one, one cut inside that preamble, or one whose UEs attached before it
+began is an error that says so. A user without any range is a warning naming it and why, an error
+when no user has one (:func:`import_flight`).
 
 Lines without a measurement are ignored; a measurement line without a timestamp, or a malformed
 one, is an error naming the line. Measurements outside the track's time span (or in a gap of the

@@ -180,3 +180,38 @@ def test_trace_mode_does_not_hold_the_telnet_server_between_requests():
     rntis, got, held = run(body())
     assert rntis == got == [0x4601, 0x4602]
     assert held is None
+
+
+def test_uavloc_gnb_probe_says_on_stderr_what_it_waits_for():
+    """`uavloc gnb probe --mode trace` against `python -m sitl_scenarios.gnb --t-port 0`: the first
+    probe sees the UEs attach (exit 0); the second, started after, prints its waiting line on stderr
+    and exits 1 naming the UE that attached before the T trace began and how to re-attach it."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    srv = subprocess.Popen([sys.executable, "-m", "sitl_scenarios.gnb", "--scenario", "paper", "--host", "127.0.0.1",
+                            "--port", "0", "--t-port", "0", "--static-enu", "0", "0", "40"],
+                           cwd=repo, stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        while "T tracer on" not in line:
+            line = srv.stderr.readline()
+            assert line, "the simulated gNB did not start"
+        port = line.split(" on 127.0.0.1:")[1].split(",")[0]
+        t_port = line.rsplit(":", 1)[1].strip()
+        probe = [sys.executable, "-m", "mission", "gnb", "probe", "--gnb", f"127.0.0.1:{port}", "--mode", "trace",
+                 "--t-port", t_port, "--count", "1", "--json"]
+        first = subprocess.run([*probe, "--wait", "20"], cwd=repo, capture_output=True, text=True, timeout=60)
+        second = subprocess.run([*probe, "--wait", "4.5"], cwd=repo, capture_output=True, text=True, timeout=60)
+    finally:
+        srv.terminate()
+        srv.wait(10)
+    assert first.returncode == 0, first.stdout + first.stderr
+    assert second.returncode == 1, second.stdout + second.stderr
+    assert "gnb probe: waiting for UEs" in second.stderr and "attached before the T trace began" in second.stderr
+    doc = json.loads(second.stdout)
+    assert "attached before the T trace began" in doc["message"] and "ciUE force_RRC_IDLE" in doc["message"]
+    assert doc["trace"]["connected"] and doc["trace"]["srs"] > 0 and doc["trace"]["rtts"] == 0

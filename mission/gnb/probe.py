@@ -8,8 +8,12 @@ its configured RNTIs before take-off and refuses to take off unless ``result.ok`
     if not result.ok:
         raise MissionError(f"not taking off: {result.message()}")
 
+In trace mode the probe waits (``wait_s``, a progress line every PROGRESS_EVERY_S) for UEs to attach
+while its T client is connected, since only a random access seen in the trace gives a UE's absolute
+TA; a UE that attached before is named with how to re-attach it.
+
 A probe never raises for what the gNB says or fails to say: every failure becomes a `problem`
-(setup: no telnet server, wrong module, no UE, a log without `wall_clock` time stamps) or an
+(setup: no telnet server, no T tracer, wrong module, no UE, a log without `wall_clock` time stamps) or an
 error of one UE (no measurement, no random access seen), in the gNB's own words.
 """
 
