@@ -331,7 +331,8 @@ async def _probe_trace(client: OaiGnbClient, tracer: TTracerClient, res: ProbeRe
     deadline = t_start + wait_s
     ues: dict[int, UeProbe] = {r: UeProbe(rnti=r, expected=True, present=False) for r in rntis or []}
     why: dict[int, str] = {}
-    last_discovery = last_progress = -math.inf
+    last_discovery = -math.inf
+    last_progress = t_start - PROGRESS_EVERY_S + 1.0  # the first line after 1 s: none when all goes at once
     fatal: str | None = None
     while True:
         now = clock()
