@@ -39,8 +39,12 @@ payloads, parsed by `mission.gnb.oai` (the same parsers as the live adapter):
 GNB_PHY_UL_TIME_CHANNEL_ESTIMATE -on GNB_MAC_DL_PDU_WITH_DATA -on GNB_MAC_DL_RAR_PDU_WITH_DATA`),
 read by the trace mode's own tracker (`mission.gnb.trace_rtt`): each UE's round trip from its RAR
 TA, the TA commands it applied and the SRS peak, stamped with the gNB's CLOCK_REALTIME; the newest
-of each UE every `interval_s` becomes a measurement. The recording must start before the UEs
-attach (their RAR holds the absolute TA).
+of each UE every `interval_s` becomes a measurement, with the live trace mode's thresholds
+(`TraceSettings`: `[gnb]`'s defaults). The recording must start before the UEs attach (their RAR
+holds the absolute TA); it is decoded with its own T_messages.txt (`--t-messages` only for one
+without), and an empty one, one cut inside that preamble, or one whose UEs attached before it
+began is an error that says so. A user without any range is a warning naming it and why, an error
+when no user has one (:func:`import_flight`).
 
 Lines without a measurement are ignored; a measurement line without a timestamp, or a malformed
 one, is an error naming the line. Measurements outside the track's time span (or in a gap of the
@@ -54,7 +58,7 @@ import logging
 import math
 import re
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -74,7 +78,7 @@ from mission.gnb.oai import (
     strip_ansi,
 )
 from mission.gnb.trace_rtt import TraceCounts, TraceRttTracker, TraceSettings
-from mission.gnb.ttrace import iter_recording, parse_t_messages
+from mission.gnb.ttrace import iter_recording, parse_t_messages, recording_preamble
 from mission.log import MissionLogWriter
 from uavloc.errors import GnbProtocolError, ImportDataError, RangingError, UavlocError
 
@@ -399,22 +403,79 @@ def read_gnb_log(path: str | Path, **kwargs) -> tuple[list[GnbMeasurement], GnbL
 # alignment and writing
 
 
+@dataclass(frozen=True)
+class TTraceImport:
+    """What :func:`read_t_trace` read: measurements (GnbMeasurement, time order); tracker (the
+    TraceRttTracker that followed the recording: its counts, the UEs it knows, why one has no
+    range); t_messages: whose T_messages.txt decoded it ("the recording's own" or a path)."""
+
+    measurements: list[GnbMeasurement]
+    tracker: TraceRttTracker
+    t_messages: str
+
+    @property
+    def counts(self) -> TraceCounts:
+        return self.tracker.counts
+
+    def why_no_range(self, rnti: int) -> str:
+        """Why the recording gives UE `rnti` no range (in the tracker's words)."""
+        return self.tracker.why_none(rnti, reattach="record again from before the UEs attach",
+                                     where="the recording")
+
+    def why_empty(self) -> str:
+        """Why the recording gave no round trip at all: the first of what the counts show."""
+        c, tr = self.counts, self.tracker
+        if c.events == 0:
+            return ("it holds the gNB's T_messages.txt and no event (stopped at once, or recorded without `-on` "
+                    "for GNB_PHY_UL_TIME_CHANNEL_ESTIMATE, GNB_MAC_DL_PDU_WITH_DATA, GNB_MAC_DL_RAR_PDU_WITH_DATA)")
+        if c.rars == 0 and tr.unknown_rntis:
+            ues = ", ".join(f"{r:04x}" for r in sorted(tr.unknown_rntis))
+            return (f"UE(s) {ues} sent SRS or TA commands but their random access is not in it: they attached before "
+                    "the recording began, and only the RAR carries the absolute TA; start `record` first, then "
+                    "attach (or re-attach) the UEs")
+        if c.srs == 0:
+            return (f"it has no SRS event ({c.rars} random access(es), {c.ta_commands} TA commands): the gNB needs "
+                    "do_SRS = 1, and a core network or --do-ra on gNB and UE")
+        return "; ".join(self.why_no_range(r) for r in tr.ues()) or (
+            f"{c.srs} SRS events but no UE's random access ({c.rars} RARs)")
+
+
 def read_t_trace(path: str | Path, mu: int = 1, fs_hz: float = 46.08e6, interval_s: float = 0.25,
                  time_offset_s: float = 0.0, t_messages: str | Path | None = None,
-                 settings: TraceSettings | None = None) -> tuple[list[GnbMeasurement], TraceCounts]:
+                 settings: TraceSettings | None = None) -> TTraceImport:
     """Measurements from a T-tracer recording: per UE, the newest RTT the trace tracker accepted in
-    each `interval_s` window of the gNB's clock (plus time_offset_s). t_messages: the gNB's
-    T_messages.txt for a recording without the server's own (OAI's `record` keeps it)."""
+    each `interval_s` window of the gNB's clock (plus time_offset_s). settings: the tracker's
+    (default: the trace mode's own, TraceSettings of `[gnb]`'s defaults at mu, fs_hz).
+
+    t_messages: the gNB's T_messages.txt, used only for a recording without the server's own (OAI's
+    `record` keeps it); given beside a recording that has its own, the recording's wins and a
+    different file is warned about. ImportDataError for an empty recording, one cut inside its
+    preamble, or one without a preamble and without t_messages."""
     try:
         data = Path(path).read_bytes()
     except OSError as exc:
         raise ImportDataError(f"{path}: cannot read the T-tracer recording ({exc.strerror or exc})") from None
+    try:
+        own, _ = recording_preamble(data)
+    except GnbProtocolError as exc:
+        raise ImportDataError(f"{path}: {exc}") from None
     db = None
+    source = "the recording's own"
     if t_messages is not None:
         try:
             db = parse_t_messages(Path(t_messages).read_text(errors="replace"))
         except OSError as exc:
             raise ImportDataError(f"{t_messages}: cannot read ({exc.strerror or exc})") from None
+        except GnbProtocolError as exc:
+            raise ImportDataError(f"--t-messages {t_messages}: {exc}") from None
+        if own is None:
+            source = str(t_messages)
+        elif db != own:
+            log.warning("%s carries the T_messages.txt of the gNB that recorded it (%d events); --t-messages %s "
+                        "(%d events) differs from it and is ignored", path, len(own.events), t_messages,
+                        len(db.events))
+        else:
+            log.info("%s carries its own T_messages.txt, the same as --t-messages %s", path, t_messages)
     s = settings if settings is not None else TraceSettings(mu=mu, fs_hz=fs_hz)
     tracker = TraceRttTracker(s)
     out: list[GnbMeasurement] = []
@@ -432,8 +493,9 @@ def read_t_trace(path: str | Path, mu: int = 1, fs_hz: float = 46.08e6, interval
             out.append(GnbMeasurement(r.t_wall_s + time_offset_s, r.rnti, r.ta, s.mu, r.peak, s.fs_hz, None, toa,
                                       "trace", 0))
     except GnbProtocolError as exc:
-        raise ImportDataError(f"{path}: {exc}") from None
-    return out, tracker.counts
+        hint = " (pass the gNB's T_messages.txt with --t-messages)" if "does not start with" in str(exc) else ""
+        raise ImportDataError(f"{path}: {exc}{hint}") from None
+    return TTraceImport(out, tracker, source)
 
 
 @dataclass(frozen=True)
@@ -458,6 +520,18 @@ class ImportSummary:
     start_utc: str
     duration_s: float
     time_base: str
+    users_without_ranges: dict[str, str] = field(default_factory=dict)
+
+
+def _why_absent(user: ImportUser, measurements: list[GnbMeasurement], ok: np.ndarray,
+                why_absent: Callable[[int], str] | None) -> str:
+    """Why `user` gets no range: none of its RNTI at all, or all outside the track."""
+    n = sum(1 for m in measurements if m.rnti == user.rnti)
+    if n:
+        return f"its {n} measurement(s) all fall outside the GPS track (or in its gaps)"
+    seen = sorted({m.rnti for m in measurements})
+    why = f"RNTI {user.rnti:04x} has no measurement (the ranges are of {', '.join(f'{r:04x}' for r in seen)})"
+    return f"{why}: {why_absent(user.rnti)}" if why_absent is not None else why
 
 
 def interpolate_track(track: GpsTrack, origin: Origin, t_unix_s: np.ndarray,
@@ -489,12 +563,19 @@ def import_flight(
     truth_lla: dict[str, tuple[float, float, float]] | None = None,
     max_gap_s: float = 3.0,
     config: dict | None = None,
+    why_absent: Callable[[int], str] | None = None,
+    source: str = "gNB log",
 ) -> ImportSummary:
     """Align the measurements with the track and write a mission log to `out_path` (replaced).
 
     origin: the mission origin (default: HOME_POSITION of the tlog, else the first fix).
     Mission time t = UTC − UTC of the first fix. Telemetry records: every fix; rtt records: every
     measurement of a known RNTI inside the track, with the interpolated UAV position.
+
+    A user given without any range: an ImportDataError when no user has one, else a warning naming
+    it and why (its RNTI is not in the `source`, or its measurements fall outside the track;
+    why_absent(rnti) says more, e.g. a T-tracer recording's "attached before the recording
+    began"); the summary lists such users (`users_without_ranges`).
     """
     if not users:
         raise ImportDataError("no users given: name them with --users ID:RNTI[:GROUND_ALT_M]")
@@ -531,12 +612,17 @@ def import_flight(
         log.warning("measurements of RNTIs not among the users, dropped: %s",
                     ", ".join(f"{r:04x} ({n})" for r, n in sorted(unknown.items())))
     keep = [i for i, m in enumerate(measurements) if ok[i] and m.rnti in by_rnti]
+    kept = Counter(measurements[i].rnti for i in keep)
+    absent = {u.id: _why_absent(u, measurements, ok, why_absent) for u in users if not kept[u.rnti]}
     if not keep:
         seen = sorted({m.rnti for m in measurements})
         raise ImportDataError(
-            f"no measurement of the given users: the gNB log has RNTIs {', '.join(f'{r:04x}' for r in seen)}; "
-            f"--users gave {', '.join(f'{r:04x}' for r in by_rnti)}"
+            f"no measurement of the given users: the {source} has RNTIs {', '.join(f'{r:04x}' for r in seen)}; "
+            f"--users gave {', '.join(f'{r:04x}' for r in by_rnti)} ("
+            + "; ".join(f"{uid}: {why}" for uid, why in absent.items()) + ")"
         )
+    for uid, why in absent.items():
+        log.warning("user %s (RNTI %04x) has no range: %s", uid, next(u.rnti for u in users if u.id == uid), why)
     t_start = float(track.t_unix_s[0])
     mus = {measurements[i].mu for i in keep}
     fss = {measurements[i].fs_hz for i in keep if measurements[i].fs_hz is not None}
@@ -590,7 +676,7 @@ def import_flight(
     summary = ImportSummary(
         path=out_path, fixes=len(track.t_unix_s), measurements=len(keep), per_user=dict(per_user),
         dropped_outside=dropped_outside, dropped_unknown_rnti=dict(unknown), start_utc=start_utc,
-        duration_s=float(track.t_unix_s[-1] - t_start), time_base=track.time_base,
+        duration_s=float(track.t_unix_s[-1] - t_start), time_base=track.time_base, users_without_ranges=absent,
     )
     log.info("wrote %s: %d fixes, %d ranges (%s)", out_path, summary.fixes, summary.measurements,
              ", ".join(f"{k}: {v}" for k, v in summary.per_user.items()))

@@ -165,8 +165,9 @@ def test_rfsimu_output_after_the_prompt_real_answers():
 class Replay:
     """A TCP server answering each request line with the recorded segments (nothing on connect)."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, silent: tuple[bytes, ...] = ()) -> None:
         self.answers = {s.rstrip(b"\n"): segs for s, segs in exchanges(name)}
+        self.answers.update({key: [] for key in silent})  # requests a gNB that stopped answering leaves unanswered
         self.port = 0
         self.requests: list[bytes] = []
 
@@ -222,6 +223,33 @@ def test_adapter_on_the_replayed_gnb_session_with_a_ue():
     assert parse_rfsim_distance(late).offset_samples == 0
     assert late_lines and late_lines[0].startswith("rfsimu_vtime_cmd: vtime measurement")
     assert not any(r.startswith(b"ci force") for r in requests)
+
+
+def test_auto_never_recommends_an_rtt_command_that_did_not_answer():
+    """The recorded gNB with its UE, silent to `rtt pdcch_order` (a stock gNB that stopped
+    answering): not "served", never recommended; auto says it found no way to measure, and the
+    telnet server that answered is not called missing."""
+    from mission.gnb.probe import probe_address
+
+    async def body():
+        free = await asyncio.start_server(lambda r, w: w.close(), "127.0.0.1", 0)
+        no_t_port = free.sockets[0].getsockname()[1]
+        free.close()
+        await free.wait_closed()
+        async with Replay("05_gnb_probe_with_ue.txt", silent=(b"rtt pdcch_order 8d15",)) as rep:
+            cfg = dict(port=rep.port, t_port=no_t_port, request_timeout_s=0.5, connect_timeout_s=0.5, retries=0)
+            rtt = await probe_address(GnbConfig(mode="rtt", **cfg), count=1)
+            auto = await probe_address(GnbConfig(mode="auto", **cfg), count=1)
+            return rtt, auto
+
+    rtt, auto = run(body(), timeout_s=30.0)
+    served, why = rtt.modes["rtt"]
+    assert not served and why.startswith("`rtt pdcch_order` did not answer (no answer"), why
+    assert rtt.recommended is None and "  recommended mode: none" in rtt.lines()
+    (problem,) = auto.problems
+    assert problem.startswith(f"gNB at telnet://127.0.0.1:{auto.address.split(':')[1]}: no way to measure ranges: "
+                              "`rtt pdcch_order` did not answer"), problem
+    assert auto.recommended is None and "no telnet server" not in problem
 
 
 # ---------------------------------------------------------------------------------------------

@@ -59,6 +59,14 @@ class GnbUnknownCommandError(GnbProtocolError):
     """The gNB answered `... is not a softmodem command` (telnet module not loaded or misnamed)."""
 
 
+class GnbTracerError(GnbError):
+    """The gNB's T tracer (its T port, not its telnet server) cannot be reached or read."""
+
+
+class GnbNoModeError(GnbError):
+    """Mode "auto": the gNB answered, but serves no way to measure ranges (each way tried said why)."""
+
+
 class GnbPreflightError(GnbError):
     """Before take-off, a configured user is not among the gNB's UEs or did not answer a measurement."""
 

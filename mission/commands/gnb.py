@@ -1,9 +1,12 @@
-"""`uavloc gnb probe --gnb ADDRESS [--mode rtt|trace|stock|auto] [--t-port P] [--gnb-log FILE] [--count N] [--json]`.
+"""`uavloc gnb probe --gnb ADDRESS [--mode rtt|trace|stock|auto] [--t-port P] [--gnb-log FILE] [--count N]
+[--wait S] [--json]`.
 
 The preflight check an operator runs before take-off: discover the gNB's UEs, take N
 measurements of each, print ranges, TA, SRS peak and timing, or say exactly what is wrong; and
 which ways to measure the gNB serves (its RTT command, a T tracer with SRS events, a log file)
-and which is best. Exit status 0 when every UE answered, 1 otherwise. The logic is `mission.gnb.probe.probe_address`.
+and which is best. In trace mode it waits up to --wait seconds, its T client connected, for UEs to
+attach and give their round trips. Exit status 0 when every UE answered, 1 otherwise. The logic is
+`mission.gnb.probe.probe_address`.
 """
 
 from __future__ import annotations
@@ -58,7 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     q.add_argument("--rnti", type=_rnti, action="append", metavar="HEX",
                    help="a configured UE that must be present and answer (repeatable; default: every UE found)")
     q.add_argument("--wait", type=_seconds, default=15.0, metavar="S",
-                   help="stock active: how long to wait for the UE's random access (default 15)")
+                   help="trace: how long to wait, with the T client connected, for UEs to attach and give their "
+                        "N round trips (a line on stderr says what it waits for; it ends as soon as every UE has "
+                        "them); stock active: how long to wait for the UE's random access (default 15)")
     q.add_argument("--timeout", type=_seconds, default=2.0, metavar="S", help="per request (default 2)")
     q.add_argument("--rtt-module", default="rtt", help="RTT command set: module name (default rtt)")
     q.add_argument("--rtt-command", default="pdcch_order", help="RTT command set: command (default pdcch_order)")
@@ -84,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
                     rtt_command=args.rtt_command, request_timeout_s=args.timeout, connect_timeout_s=args.timeout,
                     retries=1, msg2_timeout_s=args.wait, mu=args.mu,
                     log_history=args.mode == "stock" and args.stock == "passive")
-    result = asyncio.run(probe_address(cfg, rntis=args.rnti, count=args.count))
+    result = asyncio.run(probe_address(cfg, rntis=args.rnti, count=args.count, wait_s=args.wait,
+                                       progress=lambda line: print(line, file=sys.stderr, flush=True)))
     if args.json:
         json.dump(result.to_dict(), sys.stdout, indent=2)
         sys.stdout.write("\n")

@@ -24,12 +24,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a recording of the gNB's T tracer made with OAI's `record` (trace mode: RAR TA, TA commands "
                         "and SRS peak, started before the UEs attached)")
     p.add_argument("--t-messages", type=Path, metavar="FILE",
-                   help="the gNB's T_messages.txt, for a recording that lacks the server's own")
+                   help="the gNB's T_messages.txt, for a recording that lacks the server's own (a recording "
+                        "that has its own is decoded with it; a different FILE is then warned about and ignored)")
     p.add_argument("--t-interval", type=float, default=0.25, metavar="S",
                    help="--t-trace: one range per UE every S seconds of the gNB's clock (default 0.25)")
     p.add_argument("--users", nargs="+", required=True, metavar="ID:RNTI[:GROUND_ALT_M]",
                    help="users to keep: id, RNTI in hex as OAI prints it, optional ground altitude AMSL [m] "
-                        "(default: the origin's)")
+                        "(default: the origin's); a user without any range is a warning naming it, an error "
+                        "when no user has one")
     p.add_argument("-o", "--out", type=Path, required=True, help="mission log to write (replaced)")
     p.add_argument("--origin", metavar="LAT,LON,ALT", help="mission origin (default: HOME_POSITION, else first fix)")
     p.add_argument("--time-base", choices=("auto", "system", "tlog"), default="auto",
@@ -142,18 +144,20 @@ def run(args: argparse.Namespace) -> int:
             raise ImportDataError(f"--noise {args.noise}: {exc}") from exc
 
     track = read_tlog_gps(args.tlog, time_base=args.time_base, max_speed_mps=args.max_speed)
+    why_absent = None
     if args.t_trace is not None:
-        meas, counts = read_t_trace(args.t_trace, mu=1 if args.mu is None else args.mu,
-                                    fs_hz=46.08e6 if args.fs is None else args.fs, interval_s=args.t_interval,
-                                    time_offset_s=args.gnb_time_offset, t_messages=args.t_messages)
-        log.info("%s: %d events, %d SRS (%d stale), %d TA commands (%d applied), %d RTTs; %d ranges kept",
-                 args.t_trace, counts.events, counts.srs, counts.srs_stale, counts.ta_commands, counts.ta_applied,
-                 counts.rtts, len(meas))
+        tt = read_t_trace(args.t_trace, mu=1 if args.mu is None else args.mu,
+                          fs_hz=46.08e6 if args.fs is None else args.fs, interval_s=args.t_interval,
+                          time_offset_s=args.gnb_time_offset, t_messages=args.t_messages)
+        meas, counts, why_absent = tt.measurements, tt.counts, tt.why_no_range
+        log.info("%s: %d events (T_messages.txt: %s), %d SRS (%d stale), %d TA commands (%d applied), %d RTTs; "
+                 "%d ranges kept", args.t_trace, counts.events, tt.t_messages, counts.srs, counts.srs_stale,
+                 counts.ta_commands, counts.ta_applied, counts.rtts, len(meas))
         if not meas:
-            raise ImportDataError(f"{args.t_trace}: no round trip in the recording ({counts.srs} SRS events, "
-                                  f"{counts.rars} random accesses): the recording must start before the UEs attach, "
-                                  "and the gNB run with do_SRS = 1 (and a core, or --do-ra)")
+            raise ImportDataError(f"{args.t_trace}: no round trip in the recording: {tt.why_empty()}")
     else:
+        if args.t_messages is not None:
+            raise ImportDataError("--t-messages goes with --t-trace (the T-tracer recording it decodes)")
         meas, gsum = read_gnb_log(args.gnb_log, mu=args.mu, fs_hz=args.fs, time_offset_s=args.gnb_time_offset)
         log.info("%s: %s measurements, %d error replies, %d SRS lines without a Msg2 before them",
                  args.gnb_log, dict(gsum.counts) or 0, gsum.errors, gsum.unpaired_srs)
@@ -163,15 +167,19 @@ def run(args: argparse.Namespace) -> int:
               "time_base": track.time_base, "clock_offset_s": track.clock_offset_s,
               "gnb_time_offset_s": args.gnb_time_offset}
     summary = import_flight(track, meas, users, args.out, origin=origin, fs_hz=args.fs, noise=noise,
-                            truth_lla=truth, max_gap_s=args.max_gap, config=config)
+                            truth_lla=truth, max_gap_s=args.max_gap, config=config, why_absent=why_absent,
+                            source="T-tracer recording" if args.t_trace is not None else "gNB log")
     doc = {"out": str(summary.path), "fixes": summary.fixes, "measurements": summary.measurements,
            "per_user": summary.per_user, "dropped_outside_track": summary.dropped_outside,
            "dropped_unknown_rnti": {f"{k:04x}": v for k, v in summary.dropped_unknown_rnti.items()},
-           "start_utc": summary.start_utc, "duration_s": summary.duration_s, "time_base": summary.time_base}
+           "start_utc": summary.start_utc, "duration_s": summary.duration_s, "time_base": summary.time_base,
+           "users_without_ranges": summary.users_without_ranges}
     if args.json:
         print(json.dumps(doc, indent=2))
     else:
         print(f"{summary.path}: {summary.fixes} GPS fixes, {summary.measurements} ranges "
               f"({', '.join(f'{k}: {v}' for k, v in summary.per_user.items())}) over {summary.duration_s:.0f} s "
               f"from {summary.start_utc}")
+        for uid, why in summary.users_without_ranges.items():
+            print(f"  user {uid}: no range ({why})")
     return 0

@@ -7,6 +7,9 @@ over the transport the address names (`mission.gnb.transport`: ``HOST:PORT`` or
 ``telnet://HOST:PORT`` telnet, ``http://HOST:PORT`` REST). Everything below is written once, above
 the transport. The client is an async context manager that owns its connection:
 
+- in trace mode the telnet connection is opened per request and closed after it (OAI's telnet
+  server serves one client at a time, and the trace needs it only for discovery); otherwise it is
+  held for the client's life;
 - a request is one line ``module command [args]``; telnet sends it and reads up to the prompt
   ``softmodem_gnb> ``, REST posts it to ``/oaisoftmodem/<module>/commands`` and reads the
   ``display`` lines; every request has a timeout; late ``rfsimu_*_cmd:`` lines (OAI prints
@@ -62,15 +65,17 @@ from mission.gnb.oai import (
 )
 from mission.gnb.oai_ra import RandomAccess, RntiChange
 from mission.gnb.trace_rtt import TraceRtt
-from mission.gnb.tracer import TTracerClient
+from mission.gnb.tracer import TTracerClient, trace_served_why
 from mission.gnb.transport import GnbAddress, GnbTransport, TransportLost, make_transport, parse_gnb_address
 from uavloc.errors import (
     GnbBusyError,
     GnbError,
     GnbNoMeasurementError,
+    GnbNoModeError,
     GnbNoRandomAccessError,
     GnbProtocolError,
     GnbTimeoutError,
+    GnbTracerError,
     GnbUnknownCommandError,
     RangingError,
 )
@@ -168,10 +173,28 @@ class OaiGnbClient:
                 await self._choose_mode()
             elif self.mode == "trace":
                 await self._start_tracer()
+            async with self._lock:
+                await self._let_go_locked()
         except BaseException:
             await self.aclose()
             raise
         return self
+
+    @property
+    def holds_connection(self) -> bool:
+        """Whether the telnet connection is kept between requests: not in trace mode, which needs
+        the telnet server only for discovery. OAI's telnet server serves one client at a time, so a
+        held connection would keep out a user's concurrent `rfsimu setdistance` (which got an empty
+        answer, then timed out, while uavloc held it: issue 50). Over REST there is no such queue."""
+        return not (self.mode == "trace" and self.address.transport == "telnet")
+
+    async def _let_go_locked(self) -> None:
+        """Under the lock, after a request: close the telnet connection when it is not held
+        (holds_connection); the next request opens a new one."""
+        if not self.holds_connection and self.transport.connected:
+            await self._space_before_leaving()
+            await self.transport.goodbye()
+            await self._close(spaced=True)
 
     def _new_tracer(self) -> TTracerClient:
         cfg = self.config
@@ -180,8 +203,14 @@ class OaiGnbClient:
                              rng=random.Random(cfg.seed + 1), wall=self.wall)
 
     async def _start_tracer(self) -> None:
+        """Connect the T-tracer client; GnbTracerError (naming the T port) when it cannot."""
         tracer = self._new_tracer()
-        await tracer.__aenter__()
+        try:
+            await tracer.__aenter__()
+        except GnbTracerError:
+            raise
+        except GnbError as exc:  # the T server answered something that is not a T stream
+            raise GnbTracerError(str(exc)) from None
         self.tracer = tracer
 
     async def rtt_command_served(self, rntis: list[int]) -> tuple[bool, str]:
@@ -204,7 +233,10 @@ class OaiGnbClient:
         gNB: one measurement of a discovered UE), the T tracer with SRS events (a stock gNB run with
         --T_stdout 2), the log file (stock, coarse). Sets `mode` and `mode_reason` (logged)."""
         tried: list[str] = []
-        served, why = await self.rtt_command_served(await self.discover())
+        try:
+            served, why = await self.rtt_command_served(await self.discover())
+        except GnbError as exc:  # a silent or lost gNB: the command was not seen to answer
+            served, why = False, f"`{self.config.rtt_module} {self.config.rtt_command}` did not answer ({exc})"
         if served:
             self.mode, self.mode_reason = "rtt", why
         else:
@@ -218,15 +250,15 @@ class OaiGnbClient:
                 assert self.tracer is not None
                 if self.tracer.status().has_srs:
                     self.mode = "trace"
-                    self.mode_reason = f"T tracer at {self.tracer.address} with SRS events"
+                    self.mode_reason = trace_served_why(self.tracer.status())
                 else:
-                    tried.append(f"the T tracer at {self.tracer.address} has no SRS event")
+                    tried.append(f"the T tracer at {self.tracer.address}: its T_messages.txt has no SRS event")
                     await self.tracer.__aexit__(None, None, None)
                     self.tracer = None
         if self.mode == "auto" and self.stock_log is not None:
             self.mode, self.mode_reason = "stock", f"the gNB log {self.config.log_path} (coarse: one TA step)"
         if self.mode == "auto":
-            raise GnbError(f"gNB at {self.address}: no way to measure ranges: {'; '.join(tried)}; and no gNB log "
+            raise GnbNoModeError(f"gNB at {self.address}: no way to measure ranges: {'; '.join(tried)}; and no gNB log "
                            f"(gnb.log_path) for the stock mode")
         log.info("gNB mode %s: %s%s", self.mode, self.mode_reason, f" (not: {'; '.join(tried)})" if tried else "")
 
@@ -300,7 +332,10 @@ class OaiGnbClient:
         async with self._lock:
             if line == "o1 stats":
                 await self._o1_spacing()
-            return await self._request_locked(line, self.config.retries)
+            try:
+                return await self._request_locked(line, self.config.retries)
+            finally:
+                await self._let_go_locked()
 
     async def _request_locked(self, line: str, retries: int, reconnect: bool = True) -> str:
         if "\n" in line or "\r" in line:
@@ -380,16 +415,22 @@ class OaiGnbClient:
         rfsimu without a connected peer). Over REST the web server waits for that output itself."""
         check_ci_line(line)
         async with self._lock:
-            body = await self._request_locked(line, self.config.retries)
-            out = [body] if body.strip() else []
-            out += await self.transport.read_late(wait_s)
-            return "".join(out)
+            try:
+                body = await self._request_locked(line, self.config.retries)
+                out = [body] if body.strip() else []
+                out += await self.transport.read_late(wait_s)
+                return "".join(out)
+            finally:
+                await self._let_go_locked()
 
     # -- discovery -----------------------------------------------------------------------------
     async def discover(self) -> list[int]:
         """RNTIs of the connected UEs, by `o1 stats` or `ci get_single_rnti` (config.discovery)."""
         async with self._lock:
-            return await self._discover_locked()
+            try:
+                return await self._discover_locked()
+            finally:
+                await self._let_go_locked()
 
     async def _discover_locked(self) -> list[int]:
         mode = self.config.discovery
@@ -490,7 +531,10 @@ class OaiGnbClient:
                     f"not sending `{line}`: the gNB's UEs are [{', '.join(f'{r:04x}' for r in rntis)}], "
                     f"without {rnti:04x} (stock OAI crashes on an RNTI it does not have)")
             self.ci_sent.append(line)
-            return await self._request_locked(line, 0, reconnect=False)
+            try:
+                return await self._request_locked(line, 0, reconnect=False)
+            finally:
+                await self._let_go_locked()
 
     # -- the gNB log (stock modes) -----------------------------------------------------------------
     @property

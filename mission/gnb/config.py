@@ -8,7 +8,7 @@ import random
 from dataclasses import dataclass
 from typing import Any
 
-from estimator.ranging import MU_VALUES, one_way_m_per_sample
+from estimator.ranging import MU_VALUES
 from mission.config import GnbSettings
 from mission.gnb.oai import PROMPT_GNB
 from mission.gnb.trace_rtt import TraceSettings
@@ -55,11 +55,8 @@ class GnbConfig(GnbSettings):
         return cls(**{**mine, "host": host, "port": port, **overrides})
 
     def trace_settings(self) -> TraceSettings:
-        """How the trace mode reads the T stream (mission.gnb.trace_rtt)."""
-        return TraceSettings(mu=self.mu, fs_hz=self.fs_hz, min_peak_to_mean_db=self.srs_min_peak_to_mean_db,
-                             max_range_rate_mps=self.trace_max_range_rate_mps,
-                             rate_tolerance_samples=self.trace_jump_tolerance_m / one_way_m_per_sample(self.fs_hz),
-                             clock_step_samples=self.trace_clock_step_m / one_way_m_per_sample(self.fs_hz))
+        """How the trace mode reads the T stream (mission.gnb.trace_rtt): TraceSettings.of(self)."""
+        return TraceSettings.of(self)
 
     def __post_init__(self) -> None:
         if self.transport not in ("telnet", "rest"):

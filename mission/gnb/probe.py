@@ -8,8 +8,12 @@ its configured RNTIs before take-off and refuses to take off unless ``result.ok`
     if not result.ok:
         raise MissionError(f"not taking off: {result.message()}")
 
+In trace mode the probe waits (``wait_s``, a progress line every PROGRESS_EVERY_S) for UEs to attach
+while its T client is connected, since only a random access seen in the trace gives a UE's absolute
+TA; a UE that attached before is named with how to re-attach it.
+
 A probe never raises for what the gNB says or fails to say: every failure becomes a `problem`
-(setup: no telnet server, wrong module, no UE, a log without `wall_clock` time stamps) or an
+(setup: no telnet server, no T tracer, wrong module, no UE, a log without `wall_clock` time stamps) or an
 error of one UE (no measurement, no random access seen), in the gNB's own words.
 """
 
@@ -26,12 +30,14 @@ from pathlib import Path
 from mission.gnb.client import GnbClient, GnbConfig, OaiGnbClient
 from mission.gnb.oai import RttSample
 from mission.gnb.oai_ra import log_time_format
-from mission.gnb.tracer import TraceStatus
+from mission.gnb.tracer import TraceStatus, TTracerClient, trace_served_why
 from uavloc.errors import (
     GnbError,
     GnbNoMeasurementError,
+    GnbNoModeError,
     GnbNoRandomAccessError,
     GnbProtocolError,
+    GnbTracerError,
     GnbUnknownCommandError,
 )
 
@@ -198,10 +204,13 @@ def check_log_stamps(path: Path) -> tuple[str | None, str | None]:
 
 async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count: int = 1,
                     log_path: Path | None = None, address: str = "", mode: str = "",
-                    clock: Callable[[], float] = time.monotonic) -> ProbeResult:
+                    clock: Callable[[], float] = time.monotonic, wait_s: float = 0.0,
+                    progress: Callable[[str], None] | None = None) -> ProbeResult:
     """Discover the gNB's UEs and take `count` measurements of each UE of `rntis` (default: every UE
-    the gNB lists). log_path: a gNB log whose time stamps are checked (stock modes). Never raises
-    a GnbError: see ProbeResult."""
+    the gNB lists). log_path: a gNB log whose time stamps are checked (stock modes). Trace mode:
+    wait up to `wait_s` [s] (at least TRACE_WAIT_S) for UEs to attach and give their round trips
+    while the T client is connected, saying what it waits for through `progress` (one line every
+    PROGRESS_EVERY_S). Never raises a GnbError: see ProbeResult."""
     if count < 1:
         raise GnbError(f"a probe takes at least one measurement per UE, got count={count}")
     cfg: GnbConfig | None = client.config if isinstance(client, OaiGnbClient) else None
@@ -215,6 +224,26 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
         res.log_stamps, problem = check_log_stamps(log_path)
         if problem:
             res.problems.append(problem)
+    tracer = client.tracer if isinstance(client, OaiGnbClient) and client.mode == "trace" else None
+    if tracer is not None:
+        fatal = await _probe_trace(client, tracer, res, rntis, count, wait_s, progress, clock)
+    else:
+        fatal = await _probe_requests(client, res, rntis, count, cfg, clock)
+    present = [u for u in res.ues if u.present]
+    if present and not any(u.ok for u in present) and mode.startswith("stock") and not fatal:
+        res.problems.append("no random access seen for any UE")
+    if isinstance(client, OaiGnbClient):
+        res.mode_reason = client.mode_reason
+        if client.tracer is not None:
+            res.trace = client.tracer.status()
+    res.duration_s = clock() - t0
+    return res
+
+
+async def _probe_requests(client: GnbClient, res: ProbeResult, rntis: list[int] | None, count: int,
+                          cfg: GnbConfig | None, clock: Callable[[], float]) -> str | None:
+    """rtt and stock modes: one discovery, then `count` measurements of each UE (requests, or the
+    log in passive stock mode); fills `res`, returns what stopped it (None when nothing did)."""
     try:
         res.gnb_rntis = await client.discover()
     except GnbUnknownCommandError as exc:
@@ -255,7 +284,7 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
         for _ in range(count):
             t1 = clock()
             try:
-                s = await _measure_waiting(client, u.rnti)
+                s = await client.measure(u.rnti)
             except GnbUnknownCommandError as exc:
                 u.errors.append(str(exc))
                 res.problems.append(f"wrong telnet module: {exc}")
@@ -277,35 +306,101 @@ async def probe_gnb(client: GnbClient, *, rntis: list[int] | None = None, count:
                 continue
             u.samples.append(s)
             u.took_s.append(clock() - t1)
-    present = [u for u in res.ues if u.present]
-    if present and not any(u.ok for u in present) and mode.startswith("stock") and not fatal:
-        res.problems.append("no random access seen for any UE")
-    if isinstance(client, OaiGnbClient):
-        res.mode_reason = client.mode_reason
-        if client.tracer is not None:
-            res.trace = client.tracer.status()
-    res.duration_s = clock() - t0
-    return res
+    return fatal
 
 
-#: trace mode: how long the probe waits for a UE's next RTT in the T trace [s] (SRS every 80 ms, a
-#: first RTT after three agreeing occasions; an rfsimulator may run at 0.4x real time)
+#: trace mode: the least the probe waits for the UEs' round trips [s] (SRS every 80 ms, a first
+#: RTT after three agreeing occasions; an rfsimulator may run at 0.4x real time)
 TRACE_WAIT_S = 3.0
+#: trace mode: how often the waiting probe asks the gNB for its UEs [s] (a telnet connection each)
+TRACE_DISCOVER_EVERY_S = 1.0
+#: how often the waiting probe says what it waits for [s]
+PROGRESS_EVERY_S = 2.0
 
 
-async def _measure_waiting(client: GnbClient, rnti: int):
-    """client.measure(rnti); in trace mode, waiting up to TRACE_WAIT_S for the trace to give one."""
-    tracer = client.tracer if isinstance(client, OaiGnbClient) and client.mode == "trace" else None
-    if tracer is None:
-        return await client.measure(rnti)
-    deadline = time.monotonic() + TRACE_WAIT_S
+async def _probe_trace(client: OaiGnbClient, tracer: TTracerClient, res: ProbeResult, rntis: list[int] | None,
+                       count: int, wait_s: float, progress: Callable[[str], None] | None,
+                       clock: Callable[[], float]) -> str | None:
+    """Trace mode: take `count` round trips of each UE (of `rntis`, else every UE the gNB lists)
+    from the T trace, waiting up to max(wait_s, TRACE_WAIT_S) for UEs to attach while the T client
+    is connected (their random access carries the absolute TA) and for their round trips. The gNB
+    is asked for its UEs every TRACE_DISCOVER_EVERY_S; `progress` gets a line every
+    PROGRESS_EVERY_S. Fills `res`; returns what stopped it (None when nothing did)."""
+    t_start = clock()
+    wait_s = max(wait_s, TRACE_WAIT_S)
+    deadline = t_start + wait_s
+    ues: dict[int, UeProbe] = {r: UeProbe(rnti=r, expected=True, present=False) for r in rntis or []}
+    why: dict[int, str] = {}
+    last_discovery = -math.inf
+    last_progress = t_start - PROGRESS_EVERY_S + 1.0  # the first line after 1 s: none when all goes at once
+    fatal: str | None = None
     while True:
-        try:
-            return await client.measure(rnti)
-        except GnbNoMeasurementError:
-            if time.monotonic() >= deadline:
-                raise
-            await tracer.wait_for_events(min(0.2, max(0.0, deadline - time.monotonic())))
+        now = clock()
+        if now - last_discovery >= TRACE_DISCOVER_EVERY_S:
+            last_discovery = now
+            try:
+                res.gnb_rntis = await client.discover()
+            except GnbUnknownCommandError as exc:
+                fatal = f"discovery failed, telnet module missing: {exc}"
+            except GnbError as exc:
+                fatal = f"discovery failed: {exc}"
+            if fatal:
+                res.problems.append(fatal)
+                break
+            for r in res.gnb_rntis or []:
+                if rntis is None:
+                    ues.setdefault(r, UeProbe(rnti=r, expected=False, present=True))
+            for r, u in ues.items():
+                u.present = r in (res.gnb_rntis or [])
+        for u in ues.values():
+            while u.present and len(u.samples) < count:
+                t1 = clock()
+                try:
+                    sample = await client.measure(u.rnti)
+                except GnbError as exc:
+                    why[u.rnti] = str(exc)
+                    break
+                if not math.isfinite(sample.range_m):
+                    why[u.rnti] = f"non-finite range from TA {sample.ta}"
+                    break
+                u.samples.append(sample)
+                u.took_s.append(clock() - t1)
+        if (ues and all(len(u.samples) >= count for u in ues.values())) or clock() >= deadline:
+            break
+        if progress is not None and clock() - last_progress >= PROGRESS_EVERY_S:
+            last_progress = clock()
+            progress(_waiting_line(clock() - t_start, wait_s, ues, why, count, tracer))
+        await tracer.wait_for_events(min(0.25, max(0.0, deadline - clock())))
+    res.ues = sorted(ues.values(), key=lambda u: (not u.expected, u.rnti))
+    for u in res.ues:
+        if len(u.samples) >= count:
+            continue
+        if not u.present:
+            if res.gnb_rntis is not None:
+                u.errors.append("not among the gNB's UEs")
+        elif fatal:
+            u.errors.append(f"not measured: {fatal}")
+        else:
+            u.errors.append(why.get(u.rnti, "no round trip in the T trace")
+                            + f" (after waiting {clock() - t_start:.0f} s with the T client connected)")
+    if res.gnb_rntis is not None and not res.gnb_rntis:
+        res.problems.append(f"no UE is connected to the gNB (waited {clock() - t_start:.0f} s with the T client "
+                            f"connected: attach the UEs while the probe waits, --wait S)")
+    return fatal
+
+
+def _waiting_line(elapsed_s: float, wait_s: float, ues: dict[int, UeProbe], why: dict[int, str], count: int,
+                  tracer: TTracerClient) -> str:
+    """One progress line of the waiting trace probe."""
+    c = tracer.tracker.counts
+    if not ues:
+        what = "the gNB lists no UE yet: attach them now"
+    else:
+        what = "; ".join(f"UE {u.rnti:04x} {len(u.samples)}/{count}"
+                         + ("" if len(u.samples) >= count or not u.present else f" ({why.get(u.rnti, 'waiting')})")
+                         + ("" if u.present else " (not listed by the gNB)") for u in ues.values())
+    return (f"gnb probe: waiting for UEs {elapsed_s:.0f}/{wait_s:.0f} s: {what}; T trace: {c.rars} random "
+            f"access(es), {c.srs} SRS")
 
 
 async def served_modes(client: OaiGnbClient, rntis: list[int]) -> dict[str, tuple[bool, str]]:
@@ -315,8 +410,8 @@ async def served_modes(client: OaiGnbClient, rntis: list[int]) -> dict[str, tupl
     out: dict[str, tuple[bool, str]] = {}
     try:
         out["rtt"] = await client.rtt_command_served(rntis)
-    except GnbError as exc:  # a timeout, a lost connection: the command exists, the gNB did not answer it
-        out["rtt"] = (True, f"`{cfg.rtt_module} {cfg.rtt_command}` exists ({exc})")
+    except GnbError as exc:  # a timeout, a lost connection: the command was not seen to answer
+        out["rtt"] = (False, f"`{cfg.rtt_module} {cfg.rtt_command}` did not answer ({exc})")
     tracer = client.tracer
     try:
         if tracer is None:
@@ -326,12 +421,13 @@ async def served_modes(client: OaiGnbClient, rntis: list[int]) -> dict[str, tupl
         else:
             st = tracer.status()
         if not st.has_srs:
-            out["trace"] = (False, f"T tracer at {st.address}: its T_messages.txt has no SRS event")
-        elif st.srs == 0:
-            out["trace"] = (False, f"T tracer at {st.address}: no SRS event yet (the gNB needs do_SRS = 1, and "
-                                   f"without a core --do-ra on gNB and UE)")
+            out["trace"] = (False, f"the T tracer at {st.address}: its T_messages.txt has no SRS event")
+        elif st.srs == 0 and rntis:
+            out["trace"] = (False, f"the T tracer at {st.address} answered, but no SRS event came while the gNB has "
+                                   f"{len(rntis)} UE(s): the gNB needs do_SRS = 1, and without a core --do-ra on gNB "
+                                   f"and UE")
         else:
-            out["trace"] = (True, f"T tracer at {st.address}: {st.srs} SRS events")
+            out["trace"] = (True, trace_served_why(st))
     except GnbError as exc:
         out["trace"] = (False, str(exc))
     if cfg.log_path is None:
@@ -342,17 +438,28 @@ async def served_modes(client: OaiGnbClient, rntis: list[int]) -> dict[str, tupl
     return out
 
 
-async def probe_address(config: GnbConfig, *, rntis: list[int] | None = None, count: int = 1) -> ProbeResult:
-    """probe_gnb on a fresh connection to config's gNB; a gNB that cannot be reached is a problem."""
+async def probe_address(config: GnbConfig, *, rntis: list[int] | None = None, count: int = 1, wait_s: float = 0.0,
+                        progress: Callable[[str], None] | None = None) -> ProbeResult:
+    """probe_gnb on a fresh connection to config's gNB; a gNB that cannot be reached is a problem
+    naming the side that failed (its telnet or web server, or its T tracer)."""
     if count < 1:
         raise GnbError(f"a probe takes at least one measurement per UE, got count={count}")
     address = _address(config)
     mode = mode_name(config.mode, config.stock_mode)
     try:
         async with OaiGnbClient(config) as client:
-            res = await probe_gnb(client, rntis=rntis, count=count)
+            res = await probe_gnb(client, rntis=rntis, count=count, wait_s=wait_s, progress=progress)
             res.modes = await served_modes(client, res.gnb_rntis or [])
             return res
+    except GnbNoModeError as exc:  # auto: the gNB answered, and serves no way to measure
+        res = ProbeResult(address=address, mode=mode, count=count)
+        res.problems.append(str(exc))
+        return res
+    except GnbTracerError as exc:  # the telnet (or web) server answered: the T port failed
+        res = ProbeResult(address=address, mode=mode, count=count)
+        server = "web server" if config.transport == "rest" else "telnet server"
+        res.problems.append(f"T tracer failed (the {server} at {address} answered): {exc}")
+        return res
     except GnbError as exc:
         res = ProbeResult(address=address, mode=mode, count=count)
         what = "no web server" if config.transport == "rest" else "no telnet server"

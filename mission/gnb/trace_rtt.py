@@ -19,7 +19,7 @@ The gNB never prints a UE's round trip, but its T tracer carries what rebuilds i
 - a round trip that grows faster than a vehicle can fly (`max_range_rate_mps`) is not a range: a
   level reached by a jump up (an rfsim distance set on one side only, a UE re-synchronizing) is
   reported only once it has held long enough for that change to be physical. A drop up to
-  `clock_step_samples` is taken at once: a commercial UE corrects its clock in steps, so its round
+  `clock_step_m` is taken at once: a commercial UE corrects its clock in steps, so its round
   trip rises slowly and then drops (docs/design.md §4); holding the drops would keep only the
   sawtooth's upper part. Time here is the gNB's air
   time (its frame counter), not the wall clock (an rfsimulator runs faster or slower than real
@@ -36,6 +36,7 @@ import math
 from dataclasses import dataclass, field
 
 from estimator.ranging import one_way_m_per_sample, ta_step_s
+from mission.config import GnbSettings
 from mission.gnb.ttrace import (
     EV_DL_PDU,
     EV_DL_RETX,
@@ -53,35 +54,62 @@ from uavloc.errors import GnbProtocolError
 
 #: RNTIs that are not a UE's (SI-RNTI, P-RNTI: SIB1 and paging PDUs)
 _NOT_UE_RNTIS = frozenset({0xFFFF, 0xFFFE})
+#: how to re-attach a UE that attached before the T client connected (OAI 2025.w36, rfsim:
+#: ../shared/data/oai-2025.w36-ttrace, runs sa_no_core and dora_jump_0_300_reattach)
+REATTACH_HINT = ("re-attach it while uavloc's T client is connected: `ciUE force_RRC_IDLE` on the nrUE's telnet "
+                 "server (the UE re-attaches in SA; in --do-ra mode it exits instead), or restart the nrUE")
 #: SFN period [frames]; frames are 10 ms
 SFN_PERIOD = 1024
 FRAME_S = 0.01
 
 
+#: the thresholds' one definition: a mission file's [gnb] defaults (mission.config.GnbSettings),
+#: which `uavloc import --t-trace` and the live trace mode both read
+_GNB = GnbSettings()
+
+
 @dataclass(frozen=True)
 class TraceSettings:
-    """How the tracker reads the trace.
+    """How the tracker reads the trace: the thresholds of `[gnb]` (mission.config.GnbSettings, one
+    definition for `uavloc import --t-trace` and the live trace mode; :meth:`of` makes them from a
+    mission's settings) and the tracker's own counts.
 
     mu, fs_hz: the gNB's numerology and sampling rate (`-E`: 46.08 Msps at 106 PRB, μ = 1);
     min_peak_to_mean_db: an SRS estimate whose peak stands less above the mean tap power is stale
-    (real ~31 dB, stale ~9 dB in OAI 2025.w36's rfsim); resolve_occasions: SRS occasions after a
-    TA command within which its step must show, else it was dropped; max_range_rate_mps: the
-    fastest a range may change (vehicle plus user speed) [m/s]; rate_tolerance_samples: what
-    quantization and peak jitter may add to that [RTT samples]; clock_step_samples: the largest
-    drop taken at once (a UE clock correction) [RTT samples]; confirm_occasions: SRS occasions
-    that must agree before a UE's first RTT (after its random access) is reported; max_rntis: UEs
-    kept (the oldest forgotten first).
+    (real ~31 dB, stale ~9 dB in OAI 2025.w36's rfsim); max_range_rate_mps: the fastest a range may
+    change (vehicle plus user speed) [m/s]; jump_tolerance_m: what quantization and peak jitter may
+    add to that [m of range]; clock_step_m: the largest drop taken at once (a UE clock correction)
+    [m of range]; resolve_occasions: SRS occasions after a TA command within which its step must
+    show, else it was dropped; confirm_occasions: SRS occasions that must agree before a UE's first
+    RTT (after its random access) is reported; max_rntis: UEs kept (the oldest forgotten first).
     """
 
-    mu: int = 1
-    fs_hz: float = 46.08e6
-    min_peak_to_mean_db: float = 18.0
+    mu: int = _GNB.mu
+    fs_hz: float = _GNB.fs_hz
+    min_peak_to_mean_db: float = _GNB.srs_min_peak_to_mean_db
+    max_range_rate_mps: float = _GNB.trace_max_range_rate_mps
+    jump_tolerance_m: float = _GNB.trace_jump_tolerance_m
+    clock_step_m: float = _GNB.trace_clock_step_m
     resolve_occasions: int = 3
-    max_range_rate_mps: float = 12.0
-    rate_tolerance_samples: float = 1.5
-    clock_step_samples: float = 9.2
     confirm_occasions: int = 3
     max_rntis: int = 256
+
+    @classmethod
+    def of(cls, gnb: GnbSettings) -> TraceSettings:
+        """The tracker's settings from a mission file's (or the adapter's) `[gnb]`."""
+        return cls(mu=gnb.mu, fs_hz=gnb.fs_hz, min_peak_to_mean_db=gnb.srs_min_peak_to_mean_db,
+                   max_range_rate_mps=gnb.trace_max_range_rate_mps, jump_tolerance_m=gnb.trace_jump_tolerance_m,
+                   clock_step_m=gnb.trace_clock_step_m)
+
+    @property
+    def rate_tolerance_samples(self) -> float:
+        """jump_tolerance_m in RTT samples: m / (c / 2 fs) (1.54 for 5 m at 46.08 Msps)."""
+        return self.jump_tolerance_m / one_way_m_per_sample(self.fs_hz)
+
+    @property
+    def clock_step_samples(self) -> float:
+        """clock_step_m in RTT samples (4.61 for 15 m at 46.08 Msps)."""
+        return self.clock_step_m / one_way_m_per_sample(self.fs_hz)
 
     @property
     def step_samples(self) -> float:
@@ -355,14 +383,15 @@ class TraceRttTracker:
         ue = self._ues.get(rnti)
         return None if ue is None else ue.accepted
 
-    def why_none(self, rnti: int) -> str:
-        """Why this UE has no RTT now: what the latest of its occasions was held for."""
+    def why_none(self, rnti: int, reattach: str = REATTACH_HINT, where: str = "the T trace") -> str:
+        """Why this UE has no RTT now: what the latest of its occasions was held for. reattach:
+        what to do about a UE that attached before the trace began; where: what the trace is."""
         ue = self._ues.get(rnti)
         if ue is None:
             if rnti in self.unknown_rntis:
-                return (f"UE {rnti:04x} attached before the T trace began: its random access (the RAR's absolute "
-                        f"TA) was not seen, so its round trip is unknown; re-attach it with uavloc connected")
-            return f"UE {rnti:04x} has made no random access and sent no SRS in the trace"
+                return (f"UE {rnti:04x} attached before {where} began: its random access (the RAR's absolute "
+                        f"TA) was not seen, so its round trip is unknown; {reattach}")
+            return f"UE {rnti:04x} has made no random access and sent no SRS in {where}"
         return ue.held or f"UE {rnti:04x} has sent no SRS since its random access"
 
     def ues(self) -> list[int]:

@@ -33,7 +33,7 @@ from mission.gnb.ttrace import (
     decode_event,
     split_frames,
 )
-from uavloc.errors import GnbError, GnbProtocolError
+from uavloc.errors import GnbError, GnbProtocolError, GnbTracerError
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,14 @@ class TraceStatus:
     rtts: int
     last_event_age_s: float | None
     problem: str
+
+
+def trace_served_why(st: TraceStatus) -> str:
+    """Why the trace mode is served by the T tracer of status `st` (one wording for the mode
+    choice and the probe): it answered with a T_messages.txt that has an SRS event, and whether
+    SRS events came yet (none before a UE is attached with SRS configured)."""
+    got = f"{st.srs} SRS events so far" if st.srs else "no SRS event yet: none comes before a UE attaches with SRS"
+    return f"the T tracer at {st.address} answered, its T_messages.txt has the SRS event ({got})"
 
 
 class TTracerClient:
@@ -130,7 +138,7 @@ class TTracerClient:
             async with asyncio.timeout(self.connect_timeout_s):
                 self._reader, self._writer = await asyncio.open_connection(self.host, self.port)
         except (OSError, TimeoutError) as exc:
-            raise GnbError(f"no T tracer at {self.address} ({exc or 'timed out'}): start the gNB with "
+            raise GnbTracerError(f"no T tracer at {self.address} ({exc or 'timed out'}): start the gNB with "
                            f"{T_OPTIONS_HINT}") from None
         self._buf.clear()
         self._early = []
@@ -138,7 +146,7 @@ class TTracerClient:
             db = await self._read_preamble()
         except OSError as exc:
             self._close()
-            raise GnbError(f"the T tracer at {self.address} dropped the connection: {exc}") from None
+            raise GnbTracerError(f"the T tracer at {self.address} dropped the connection: {exc}") from None
         except BaseException:
             self._close()
             raise
@@ -160,7 +168,7 @@ class TTracerClient:
                 while asm.db is None:
                     data = await self._reader.read(1 << 16)
                     if not data:
-                        raise GnbError(f"the T tracer at {self.address} closed the connection before sending its "
+                        raise GnbTracerError(f"the T tracer at {self.address} closed the connection before sending its "
                                        "T_messages.txt (another tracer connected? OAI's T server takes one)")
                     self._buf += data
                     frames, used = split_frames(self._buf)
@@ -254,4 +262,4 @@ class TTracerClient:
             return False
 
 
-__all__ = ["T_OPTIONS_HINT", "TTracerClient", "TraceStatus"]
+__all__ = ["T_OPTIONS_HINT", "TTracerClient", "TraceStatus", "trace_served_why"]

@@ -254,22 +254,56 @@ class TMessagesAssembler:
         return False
 
 
+def recording_preamble(data: bytes | bytearray) -> tuple[TMessages | None, int]:
+    """A recording's own T_messages.txt (the server's events −1, then −2, at its start) and how many
+    frames it spans: (db, frames), or (None, 0) for a recording that does not start with one.
+
+    GnbProtocolError naming what is wrong: an empty recording; one that ends inside the preamble
+    (cut at byte N: the recording was stopped, or the file truncated, before the server had sent
+    its T_messages.txt); bytes that are not T frames."""
+    n = len(data)
+    if n == 0:
+        raise _error("the recording is empty (0 bytes): nothing was recorded (was `record` stopped at once, "
+                     "or the file overwritten?)")
+    frames, used = split_frames(data)
+    asm = TMessagesAssembler()
+    for i, body in enumerate(frames):
+        if not asm.feed(body):
+            if i:
+                raise _error(f"the recording's T_messages.txt preamble ends at byte {used} without its end marker "
+                             "(event -2): the recording is damaged")
+            return None, 0
+        if asm.db is not None:
+            return asm.db, i + 1
+    # every whole frame was preamble (or there was none): the recording ends inside it, or in its
+    # first frame
+    if frames or (n - used >= 4 + _HEAD.size and frame_head(bytes(data[used + 4:used + 4 + _HEAD.size]))[1]
+                  in (ID_MESSAGES_TXT, ID_MESSAGES_END)):
+        where = (f"its frame at byte {used} needs {4 + _INT32.unpack_from(data, used)[0]} bytes" if n - used >= 4
+                 else "before its end marker, event -2")
+        raise _error(f"the recording is cut inside the gNB's T_messages.txt preamble at byte {n} ({where}): it was "
+                     "stopped, or the file truncated, before the T server had sent its event database; record "
+                     "again (OAI's `record` keeps the whole preamble)")
+    raise _error(f"the recording is cut at byte {n}, inside its first frame (of {4 + _INT32.unpack_from(data, 0)[0]} "
+                 "bytes)" if n >= 4 else f"the recording is {n} byte(s) long: not even one frame header")
+
+
 def iter_recording(data: bytes, db: TMessages | None = None) -> Iterator[TEvent]:
     """Every event of a recording made with OAI's `record` (or read off the socket), in order.
 
-    The recording's own T_messages.txt preamble (events −1, −2) is used when `db` is None; a
-    recording without one needs the gNB's T_messages.txt passed as `db`. A truncated last frame
-    is dropped (a recording stopped mid-write)."""
+    The recording's own T_messages.txt preamble (events −1, −2: the gNB's that recorded it) is
+    always used when it has one; `db` (the gNB's T_messages.txt) only for a recording without one.
+    A truncated last frame is dropped (a recording stopped mid-write). GnbProtocolError for an
+    empty recording, one cut inside its preamble (:func:`recording_preamble`), or one without a
+    preamble and without `db`."""
+    own, skip = recording_preamble(data)
+    if own is not None:
+        db = own
+    elif db is None:
+        raise _error("the recording does not start with the gNB's T_messages.txt (events -1, -2): pass the "
+                     "gNB's T_messages.txt")
     frames, _ = split_frames(data)
-    asm = TMessagesAssembler()
-    for body in frames:
-        if asm.feed(body):
-            if db is None and asm.db is not None:
-                db = asm.db
-            continue
-        if db is None:
-            raise _error("the recording does not start with the gNB's T_messages.txt (events -1, -2): pass the "
-                         "gNB's T_messages.txt")
+    for body in frames[skip:]:
         yield decode_event(body, db)
 
 
