@@ -47,7 +47,8 @@ def flight(tmp_path_factory) -> tuple[Path, dict]:
     stdout = io.StringIO()
     try:
         with contextlib.redirect_stdout(stdout):
-            code = main(["-q", "sim", "paper", "--speedup", "20", "--seed", "1", "--json", "--out", str(out)])
+            code = main(["-q", "sim", "paper", "--speedup", "20", "--seed", "1", "--planner", "lawnmower", "--json",
+                         "--out", str(out)])
     finally:
         mp.undo()
     assert code == 0
