@@ -397,7 +397,7 @@ def status_of_answer(status: str, reason: str, replayed: ReplayResult | None) ->
         return STATUS_TARGET_MISSED, (f"the final answer bounds {', '.join(beyond)}, beyond the {target_radius_m:g} m "
                                       f"target the survey stopped at")
     if status in (STATUS_FLOOR, STATUS_BUDGET, STATUS_NO_LEG) and reached:
-        return STATUS_TARGET, f"target reached in the final answer (the survey ended: {reason})"
+        return STATUS_TARGET, f"target reached in the final answer (the survey ended {status})"
     return status, reason
 
 

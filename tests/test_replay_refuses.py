@@ -145,7 +145,8 @@ def test_a_status_the_answer_does_not_support_is_recomputed_and_said(paper, tmp_
     budget = _ended(path, tmp_path / "budget.jsonl", 2.0 * bound, STATUS_BUDGET, "budget spent")
     code, got, err = _replay_json(budget, capsys)
     assert code == 0 and got["status"] == STATUS_TARGET and got["status_logged"] == STATUS_BUDGET
-    assert "budget spent" in got["reason"] and "recorded status budget_spent" in err
+    assert got["reason"] == "target reached in the final answer (the survey ended budget_spent)"
+    assert "recorded status budget_spent" in err
     # a status the answer supports: printed as recorded, no warning
     held = _ended(path, tmp_path / "held.jsonl", 2.0 * bound, STATUS_TARGET, "target reached")
     code, got, err = _replay_json(held, capsys)
