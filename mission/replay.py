@@ -377,12 +377,13 @@ def status_of_answer(status: str, reason: str, replayed: ReplayResult | None) ->
     """(status, reason) the final answer (the replay of the mission's log, None: no ranges) supports,
     from those the mission recorded, under the header's target (:func:`target_radius_of_header`):
     `target_reached` only when every user's printed 95 % bound is within the target and none is
-    ambiguous, as the stop rule judges it (planner.stop.targets_reached). A survey recorded as target_reached whose
-    answer does not hold it is `target_missed` (the reason names the users beyond the target); one
-    that ended at its floor, its budget or without a feasible leg whose answer bounds every user
-    within the target has reached it. How a flight ended otherwise (returned, aborted, interrupted)
-    stands, and so does every status without a target or an estimate to judge by. The flight
-    ends with this status (mission.control.flight) and replay recomputes it from the same log."""
+    ambiguous, as the stop rule judges it (planner.stop.targets_reached). A survey recorded as
+    target_reached whose answer does not hold it is `target_missed` (the reason names the users
+    beyond the target); one that ended at its floor, its budget or without a feasible leg whose
+    answer bounds every user within the target has reached it. How a flight ended otherwise
+    (returned, aborted, interrupted) stands, and so does every status without a target or an
+    estimate to judge by. The flight ends with this status (mission.control.flight) and replay
+    recomputes it from the same log."""
     target_radius_m = None if replayed is None else target_radius_of_header(replayed.log)
     if target_radius_m is None:
         return status, reason
