@@ -32,6 +32,8 @@ import numpy as np
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from estimator.ranging import toa_s_from_raw
+from mission.log_checks import LineError as _LineError
+from mission.log_checks import RangeRecords
 from mission.vehicle.telemetry import VehicleStatus
 from uavloc.errors import MissionLogError, UavlocError
 
@@ -335,6 +337,13 @@ class MissionLog:
     t_last_s: float = 0.0
     rtt_vehicle: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     tel_vehicle: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    #: the GPS error's correlation time [s] the flight's estimator used (its last `gps_tau` event's
+    #: `gps_tau_s`), None when the log holds none (replay then estimates it: mission.replay.resolve_gps_tau)
+    gps_tau_s: float | None = None
+    #: rtt records dropped as exact repeats of an earlier one (same user, vehicle, time and values),
+    #: and the line of the first one dropped (None: none)
+    duplicate_rtt: int = 0
+    duplicate_rtt_line: int | None = None
 
     @property
     def n_vehicles(self) -> int:
@@ -356,10 +365,6 @@ class MissionLog:
     def user_up_m(self) -> np.ndarray:
         """(K,) ENU up of each user's ground [m] (ground_alt_m − origin altitude)."""
         return np.array([u.ground_alt_m - self.header.origin.alt_m for u in self.header.users])
-
-
-class _LineError(Exception):
-    pass
 
 
 def _num(obj: dict, key: str, lo: float = -math.inf, hi: float = math.inf, required: bool = True):
@@ -473,9 +478,17 @@ def _parse_vehicles(obj: dict) -> list[LogVehicle]:
 VEHICLE_RECORD_TYPES = ("telemetry", "rtt", "waypoint", "event")
 
 
+#: record types a fleet's log must name the vehicle of (a range or fix of no vehicle has no track)
+VEHICLE_REQUIRED_TYPES = ("telemetry", "rtt")
+
+
 def _vehicle(obj: dict, header: LogHeader) -> int:
     """The record's vehicle index: its `vehicle` field, 0 when absent; an integer within the
-    header's vehicles (0 alone without them)."""
+    header's vehicles (0 alone without them). A fleet's telemetry and rtt records must name theirs."""
+    if "vehicle" not in obj and header.vehicles and obj.get("type") in VEHICLE_REQUIRED_TYPES:
+        raise _LineError(f"{obj['type']} record names no 'vehicle', but the header lists {len(header.vehicles)} "
+                         f"vehicles ({', '.join(v.id for v in header.vehicles)}): a fleet's {obj['type']} records each "
+                         "name their vehicle (refused: its track cannot be told)")
     v = obj.get("vehicle", 0)
     if isinstance(v, bool) or not isinstance(v, int):
         raise _LineError(f"field 'vehicle' must be an integer vehicle index, got {v!r}")
@@ -623,6 +636,8 @@ def read_mission_log(path: str | Path) -> MissionLog:
     t_start = t_last = 0.0
     # (record type, vehicle) -> (time, line) of the latest one
     last_t: dict[tuple[str, int], tuple[float, int]] = {}
+    ranges = RangeRecords(path)
+    gps_tau: float | None = None
     with fh:
         try:
             for lineno, obj, _line in iter_log_objects(fh, path):
@@ -667,6 +682,8 @@ def read_mission_log(path: str | Path) -> MissionLog:
                             raise _LineError(f"rtt for unknown user {uid!r}; header users: {sorted(user_ix)}")
                         uav = _lla(_table(obj, "uav"), "uav")
                         toa, raw = _rtt_toa(obj, header)
+                        if not ranges.first(lineno, (vehicle, user_ix[uid], t), (toa, uav)):
+                            continue
                         rtt_t.append(t)
                         rtt_user.append(user_ix[uid])
                         rtt_lla.append(uav)
@@ -692,6 +709,8 @@ def read_mission_log(path: str | Path) -> MissionLog:
                     elif rtype == "event":
                         if not isinstance(obj.get("message", ""), str):
                             raise _LineError(f"event message must be a string, got {obj.get('message')!r}")
+                        if obj.get("kind") == "gps_tau" and "gps_tau_s" in obj:
+                            gps_tau = _num(obj, "gps_tau_s", 0.0, 1e5)
                         events.append(obj)
                     t_last = t
                 except _LineError as exc:
@@ -700,6 +719,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
             raise MissionLogError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     if header is None:
         raise MissionLogError(f"{path}: empty log, no header line")
+    ranges.warn()
     return MissionLog(
         path=path,
         header=header,
@@ -721,6 +741,9 @@ def read_mission_log(path: str | Path) -> MissionLog:
         t_last_s=t_last,
         rtt_vehicle=np.asarray(rtt_veh, int),
         tel_vehicle=np.asarray(tel_veh, int),
+        gps_tau_s=gps_tau,
+        duplicate_rtt=ranges.dropped,
+        duplicate_rtt_line=ranges.first_dropped_line,
     )
 
 

@@ -33,8 +33,20 @@ from estimator.types import Estimate, Keyframe, SolverParams
 from mission.estimation import MissionEstimator
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframes_of, triggers_gps_enu_m
 from mission.log import MissionLog
-from mission.result import Result, build_result, horizontal_error_m, result_status, vehicles_of_events
+from mission.result import (
+    STATUS_BUDGET,
+    STATUS_FLOOR,
+    STATUS_NO_LEG,
+    STATUS_TARGET,
+    STATUS_TARGET_MISSED,
+    Result,
+    build_result,
+    horizontal_error_m,
+    result_status,
+    vehicles_of_events,
+)
 from mission.vehicle.telemetry import odometer_dead_band_m, odometer_m
+from planner.stop import targets_reached
 from uavloc.errors import MissionLogError
 
 log = logging.getLogger(__name__)
@@ -132,15 +144,21 @@ def solver_params_from_header(mlog: MissionLog) -> SolverParams:
 
 
 def resolve_gps_tau(mlog: MissionLog, noise: NoiseModel) -> NoiseModel:
-    """The noise model with a GPS correlation time: the given one, else estimated from the log's
-    telemetry velocity (estimator.gps.estimate_gps_tau_s), else left unknown (the estimator then
-    assumes estimator.noise.DEFAULT_GPS_TAU_S).
+    """The noise model with a GPS correlation time: the given one, else the one the flight's
+    estimator used (the log's `gps_tau` event: estimated from the take-off's telemetry or assumed;
+    the stop rule judged with it, so the final answer uses it too), else estimated from the log's
+    telemetry velocity (estimator.gps.estimate_gps_tau_s; a log of another tool or of a flight cut
+    short before its survey), else left unknown (the estimator then assumes
+    estimator.noise.DEFAULT_GPS_TAU_S).
 
     A fleet's telemetry is never mixed: each pair of fixes the estimate uses is two consecutive
     records of one vehicle, and the median pools every vehicle's pairs into one τ (the estimator
     holds one τ; the vehicles' receivers are of one kind). One vehicle: as before."""
     if noise.gps_tau_s is not None:
         return noise
+    if mlog.gps_tau_s is not None:
+        log.info("%s: no gps_tau_s in the header; the flight's (its gps_tau event): %.1f s", mlog.path, mlog.gps_tau_s)
+        return replace(noise, gps_tau_s=mlog.gps_tau_s)
     vel = mlog.tel_vel_ned_mps
     tau = None
     if vel is not None and len(mlog.tel_t_s) > 1:
@@ -345,16 +363,58 @@ def end_of_log(mlog: MissionLog) -> tuple[str, str, float] | None:
     return end["status"], reason, float(end["t"])
 
 
+def target_radius_of_header(mlog: MissionLog) -> float | None:
+    """The stop rule's radius [m] the mission flew with (header `config.controller.flight.target_radius_m`,
+    as the controller logs its settings), None when the log does not say (another tool's log)."""
+    controller = mlog.header.config.get("controller")
+    flight = controller.get("flight") if isinstance(controller, dict) else None
+    r = flight.get("target_radius_m") if isinstance(flight, dict) else None
+    ok = isinstance(r, int | float) and not isinstance(r, bool) and math.isfinite(r) and r > 0
+    return float(r) if ok else None
+
+
+def status_of_answer(status: str, reason: str, replayed: ReplayResult | None) -> tuple[str, str]:
+    """(status, reason) the final answer (the replay of the mission's log, None: no ranges) supports,
+    from those the mission recorded, under the header's target (:func:`target_radius_of_header`):
+    `target_reached` only when every user's printed 95 % bound is within the target and none is
+    ambiguous, as the stop rule judges it (planner.stop.targets_reached). A survey recorded as
+    target_reached whose answer does not hold it is `target_missed` (the reason names the users
+    beyond the target); one that ended at its floor, its budget or without a feasible leg whose
+    answer bounds every user within the target has reached it. How a flight ended otherwise
+    (returned, aborted, interrupted) stands, and so does every status without a target or an
+    estimate to judge by. The flight ends with this status (mission.control.flight) and replay
+    recomputes it from the same log."""
+    target_radius_m = None if replayed is None else target_radius_of_header(replayed.log)
+    if target_radius_m is None:
+        return status, reason
+    estimate, user_ids = replayed.estimate, [u.id for u in replayed.log.header.users]
+    reached = targets_reached(estimate, target_radius_m)
+    if status == STATUS_TARGET and not reached:
+        bound = estimate.error_bound_95_m()
+        ambiguous = np.asarray(estimate.ambiguous, bool)
+        beyond = [f"{u} " + ("ambiguous" if ambiguous[k] else f"at {bound[k]:.2f} m" if np.isfinite(bound[k])
+                             else "not located")
+                  for k, u in enumerate(user_ids) if ambiguous[k] or not bound[k] <= target_radius_m]
+        return STATUS_TARGET_MISSED, (f"the final answer bounds {', '.join(beyond)}, beyond the {target_radius_m:g} m "
+                                      f"target the survey stopped at")
+    if status in (STATUS_FLOOR, STATUS_BUDGET, STATUS_NO_LEG) and reached:
+        return STATUS_TARGET, f"target reached in the final answer (the survey ended {status})"
+    return status, reason
+
+
 def result_of_log(mlog: MissionLog, replayed: ReplayResult | None) -> Result:
     """The mission's :class:`mission.result.Result` from its log and the replay of it (None: the log
-    has no ranges: nothing located): status and reason from the log's `end` record (without one:
-    :func:`mission.result.result_status` of the estimate), duration from the header to that record
-    (or the last record), the `survey_time` event's seconds. The mission builds its result so from
-    its own closed log, and `uavloc replay` the same way."""
+    has no ranges: nothing located): status and reason those the log's `end` record holds judged
+    against the replay's answer (:func:`status_of_answer`; Result.status_logged keeps the record's;
+    without one: :func:`mission.result.result_status` of the estimate), duration from the header to
+    that record (or the last record), the `survey_time` event's seconds. The mission builds its
+    result so from its own closed log, and `uavloc replay` the same way."""
     end = end_of_log(mlog)
     est = None if replayed is None else replayed.estimate
+    status_logged = None
     if end is not None:
-        status, reason, t_end = end
+        status_logged, reason, t_end = end
+        status, reason = status_of_answer(status_logged, reason, replayed)
     else:
         status = result_status(est) if est is not None else "incomplete"
         reason, t_end = "the log has no end record", mlog.t_last_s
@@ -378,7 +438,8 @@ def result_of_log(mlog: MissionLog, replayed: ReplayResult | None) -> Result:
         measurements=0 if replayed is None else replayed.n_measurements,
         keyframes=0 if replayed is None else len(replayed.keyframes),
         duration_s=t_end - mlog.t_start_s, survey_s=seconds("survey_s"), hover_s=seconds("hover_s"),
-        largest_gap_s=seconds("largest_gap_s"), log_path=mlog.path, vehicles=vehicles, separation_breaches=breaches)
+        largest_gap_s=seconds("largest_gap_s"), log_path=mlog.path, vehicles=vehicles, separation_breaches=breaches,
+        status_logged=status_logged)
 
 
 def _fleet_survey(vehicles, survey_events: list[dict]) -> dict:

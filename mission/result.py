@@ -7,8 +7,11 @@ and by a campaign's fast mode (no log: from its estimate). The CLI summary, `--j
 report.json, report.html and a campaign's rows are renderings of it; :meth:`Result.to_document`
 is its JSON (docs/design.md §11)::
 
-    status, reason                 how the mission ended (a log without an `end` record: "ok",
-                                   "ambiguous" or "incomplete" of the estimate, :func:`result_status`)
+    status, reason                 how the mission ended, judged against its final answer
+                                   (mission.replay.status_of_answer; a log without an `end` record:
+                                   "ok", "ambiguous" or "incomplete" of the estimate, :func:`result_status`)
+    status_logged                  the status the log's `end` record holds (None: no such record);
+                                   another than `status` where the answer does not support it
     users                          one entry per user, below
     flown_m, measurements, keyframes
     duration_s                     mission seconds, the log's header to its `end` record
@@ -68,8 +71,10 @@ STATUS_FLOOR = "floor_reached"  # the bounds stopped shrinking above the target 
 STATUS_RETURNED = "returned"  # a safety condition ended the survey early
 STATUS_ABORTED = "aborted"  # an error ended the mission (RTL sent when airborne)
 STATUS_INTERRUPTED = "interrupted"  # cancelled / Ctrl-C (RTL sent when airborne)
+#: the survey stopped at its target, but the final answer bounds a user beyond it (mission.replay.status_of_answer)
+STATUS_TARGET_MISSED = "target_missed"
 #: the statuses of a mission that ended normally (the command exits 0 when every user is located)
-NORMAL_END = (STATUS_TARGET, STATUS_FLOOR, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED)
+NORMAL_END = (STATUS_TARGET, STATUS_FLOOR, STATUS_BUDGET, STATUS_NO_LEG, STATUS_RETURNED, STATUS_TARGET_MISSED)
 
 
 def status_of_planner_reason(reason: str) -> str:
@@ -390,6 +395,15 @@ class Result:
     log_path: Path | None = None
     vehicles: tuple[VehicleResult, ...] = ()
     separation_breaches: int | None = None
+    status_logged: str | None = None
+
+    def status_note(self) -> str | None:
+        """What to warn about when the log recorded another status than its answer supports, else None."""
+        if self.status_logged is None or self.status_logged == self.status:
+            return None
+        where = f"{self.log_path}: " if self.log_path is not None else ""
+        return (f"{where}the log recorded status {self.status_logged}, but its final answer supports "
+                f"{self.status} ({self.reason}): the status printed is the answer's")
 
     @property
     def user_ids(self) -> list[str]:
@@ -434,7 +448,7 @@ class Result:
             "survey_s": finite_or_none(self.survey_s), "hover_s": finite_or_none(self.hover_s),
             "largest_gap_s": finite_or_none(self.largest_gap_s),
             "origin": None if self.origin is None else self.origin.to_dict(),
-            "log": None if self.log_path is None else str(self.log_path),
+            "log": None if self.log_path is None else str(self.log_path), "status_logged": self.status_logged,
         } | ({"vehicles": [v.to_dict() for v in self.vehicles], "separation_breaches": self.separation_breaches}
              if self.vehicles else {})
 
@@ -443,7 +457,8 @@ def build_result(*, status: str, reason: str, user_ids: Sequence[str], estimate:
                  flown_m: float, measurements: int, keyframes: int, truth_enu_m: np.ndarray | None = None,
                  duration_s: float | None = None, survey_s: float | None = None, hover_s: float | None = None,
                  largest_gap_s: float | None = None, log_path: Path | None = None,
-                 vehicles: Sequence[VehicleResult] = (), separation_breaches: int | None = None) -> Result:
+                 vehicles: Sequence[VehicleResult] = (), separation_breaches: int | None = None,
+                 status_logged: str | None = None) -> Result:
     """The one constructor of a :class:`Result`: the users of `estimate` (an
     `estimator.types.Estimate`, None: nothing located) about `origin`, against truth_enu_m (K, 3)
     when known, and the run's facts as given."""
@@ -452,7 +467,7 @@ def build_result(*, status: str, reason: str, user_ids: Sequence[str], estimate:
                   keyframes=int(keyframes), duration_s=None if duration_s is None else float(duration_s),
                   survey_s=survey_s, hover_s=hover_s, largest_gap_s=largest_gap_s, origin=origin,
                   log_path=None if log_path is None else Path(log_path), vehicles=tuple(vehicles),
-                  separation_breaches=separation_breaches)
+                  separation_breaches=separation_breaches, status_logged=status_logged)
 
 
 def format_users_table(users: Sequence[UserResult]) -> str:

@@ -40,6 +40,9 @@ def print_result(result: MissionResult | Result, as_json: bool, stream: TextIO |
         out.write("\n")
     else:
         out.write(format_result(res) + "\n")
+    note = res.status_note()
+    if note is not None:
+        log.warning("%s", note)
     missing = res.not_located()
     if missing and res.status != STATUS_INTERRUPTED and isinstance(result, MissionResult):
         log.error("not located: %s (the mission exits non-zero)", ", ".join(missing))

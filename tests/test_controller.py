@@ -301,6 +301,8 @@ def test_flight_keeps_the_default_gps_correlation_time_without_telemetry_to_esti
     assert ctl._flight_noise() is ctl.noise and ctl.noise.gps_tau_used_s == 60.0
     (ev,) = [e for e in read_mission_log(tmp_path / "m.jsonl").events if e.get("kind") == "gps_tau"]
     assert "assuming 60 s" in ev["message"]
+    # the τ assumed is logged with its value: replay's final answer uses it (mission.replay.resolve_gps_tau)
+    assert (ev["gps_tau_s"], ev["estimated"]) == (60.0, False)
 
 
 def test_flight_uses_a_known_gps_correlation_time_as_given(tmp_path):

@@ -47,3 +47,23 @@ def test_the_recorded_px4_mission_replays_to_its_printed_answer_and_is_honest(sh
         assert (round(u["error_bound_95_m"], 2), round(u["error_m"], 2)) == (bound, error), u["id"]
         # honest: the true error is inside the 95 % bound the estimate claims
         assert u["error_m"] <= u["error_bound_95_m"], u
+
+
+def test_the_recorded_px4_mission_replays_with_the_tau_its_flight_used(shared_data, capsys):
+    """The log as recorded: replay uses the τ the flight estimated at take-off (its `gps_tau` event,
+    154 s; the whole log's telemetry gives another), the stop rule's; the answer is as honest, its
+    status the one it supports, and within a few decimetres of the one printed."""
+    from mission.log import read_mission_log
+    from mission.replay import resolve_gps_tau
+
+    rec = shared_data / RECORDING
+    mlog = read_mission_log(rec / "mission.jsonl")
+    assert resolve_gps_tau(mlog, mlog.header.noise).gps_tau_s == mlog.gps_tau_s == pytest.approx(154.476, abs=1e-3)
+    _, printed = _printed((rec / "mission.uavloc-output.txt").read_text())
+    assert main(["replay", str(rec / "mission.jsonl"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["status"] == doc["status_logged"] == "target_reached"
+    for u, m in zip(doc["users"], printed, strict=True):
+        east, north, bound = (float(m.group(i)) for i in (5, 6, 7))
+        assert abs(u["enu_m"][0] - east) < 0.5 and abs(u["enu_m"][1] - north) < 0.5, u["id"]
+        assert u["error_bound_95_m"] == pytest.approx(bound, abs=0.05) and u["error_m"] <= u["error_bound_95_m"], u

@@ -81,7 +81,7 @@ from mission.control.state import SurveyPace
 from mission.estimation import MissionEstimator, solver_params_header
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields, read_mission_log
-from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log
+from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log, status_of_answer
 from mission.result import Result, build_result
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.vehicle import Vehicle
@@ -619,8 +619,8 @@ class MissionController:
         """The noise model the flight's estimator uses: the mission's, with the GPS error's
         correlation time estimated from the telemetry logged so far (the take-off; a fleet's vehicles
         each a series of their own) when the mission leaves it unknown (an external autopilot: PX4's
-        EKF output drifts with τ of minutes), as replay estimates it from the whole log; the
-        estimator's default when too little was logged."""
+        EKF output drifts with τ of minutes); the estimator's default when too little was logged.
+        The τ used is logged (event gps_tau): replay's final answer uses it (resolve_gps_tau)."""
         if self.crews[0].tau_records is None:
             return self.noise
         records, series = [], []
@@ -634,10 +634,11 @@ class MissionController:
             tau = estimate_gps_tau_s(t, pos, vel, self.noise.sigma_gps_m, series=np.array(series))
         if tau is None:
             self.journal.event(f"GPS error correlation time unknown and too little telemetry to estimate it "
-                               f"({len(records)} records): assuming {self.noise.gps_tau_used_s:g} s", kind="gps_tau")
+                               f"({len(records)} records): assuming {self.noise.gps_tau_used_s:g} s", kind="gps_tau",
+                               gps_tau_s=self.noise.gps_tau_used_s, estimated=False)
             return self.noise
         self.journal.event(f"GPS error correlation time estimated from {len(records)} telemetry records: "
-                           f"{tau:.0f} s", kind="gps_tau", gps_tau_s=tau)
+                           f"{tau:.0f} s", kind="gps_tau", gps_tau_s=tau, estimated=True)
         return replace(self.noise, gps_tau_s=tau)
 
     def estimator_setup(self, noise: NoiseModel | None = None) -> MissionEstimator:
@@ -748,16 +749,19 @@ class MissionController:
         if keyframes:
             # the final answer is the batch solution over every keyframe, as `uavloc replay`
             # computes it from the log: the same keyframes (one builder, mission.keyframes) under
-            # replay's noise model and solver settings, the GPS error's τ estimated from the whole
-            # log's telemetry when the mission leaves it unknown; the pipeline's keyframes under
-            # the mission's noise model if the log cannot be read back
+            # the header's noise model and solver settings and the τ the flight logged (event
+            # gps_tau), and the status it supports (status_of_answer, as replay judges it); the
+            # pipeline's keyframes under the flight's noise model if the log cannot be read back
             try:
                 replayed = self._replay_log()
                 est = replayed.estimate
+                if (judged := status_of_answer(status, reason, replayed)) != (status, reason):
+                    status, reason = judged
+                    self.journal.event(f"the final answer: {status} ({reason})", kind="status_of_answer")
             except Exception as exc:  # also a bug in replay: fall back, never lose the result
                 log.warning("final estimate from the pipeline's keyframes: the log could not be replayed: %s", exc)
                 try:
-                    est = self.estimator_setup().final(keyframes)
+                    est = (self._estimator or self.estimator_setup()).final(keyframes)
                 except Exception as exc2:  # a bug must not cost the mission its log or its last estimate
                     log.exception("final batch estimate failed")
                     self.journal.event(f"final batch estimate failed: {type(exc2).__name__}: {exc2}",
