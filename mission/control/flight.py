@@ -733,6 +733,13 @@ class MissionController:
         for at most timeout_s wall seconds, all at once)."""
         await asyncio.gather(*(c.safe_end(reason, timeout_s) for c in self.crews))
 
+    def last_resort(self, why: str, timeout_s: float = 4.0) -> None:
+        """RTL to every vehicle that may be airborne and the log's end record, from a thread other
+        than the event loop's, which does not answer (mission.runtime's signal watchdog)."""
+        from mission.control.last_resort import end_from_outside
+
+        end_from_outside(self.crews, self.journal, why, timeout_s)
+
     def _replay_log(self) -> ReplayResult:
         """What `uavloc replay LOG` computes, from the log as written so far (the header holds the
         mission's noise model and solver settings)."""
