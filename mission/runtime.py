@@ -278,6 +278,17 @@ class _SignalWatch:
             os.close(self._read_fd)
 
 
+def _forget_wakeup_fd() -> None:
+    """In a forked child (the watchdog's pipe inherited): its signals are not the parent's."""
+    with contextlib.suppress(ValueError, OSError):
+        signal.set_wakeup_fd(-1)
+
+
+# a fork (not used by uavloc's own children, which are spawned or exec'd) would otherwise write its
+# signals into the parent's watchdog pipe
+os.register_at_fork(after_in_child=_forget_wakeup_fd)
+
+
 def _ignore(signum: int, frame: Any) -> None:
     """The Python-level handler of an ending signal while the watchdog receives them."""
 
