@@ -217,3 +217,43 @@ def test_sigterm_ends_a_loaded_fleet_mission_within_seconds(tmp_path) -> None:
     end = records[-1]
     assert end["type"] == "event" and end["kind"] == "end" and end["status"] == "interrupted", end
     assert [r.get("kind") for r in records].count("end") == 1
+
+
+@pytest.mark.sim
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_the_last_resort_rtl_needs_no_event_loop(autopilot) -> None:
+    """The watchdog's RTL (MavsdkVehicle.return_to_launch_blocking), called from a thread of its
+    own, sends a vehicle in the air home: MAVSDK's blocking call on PX4, DO_SET_MODE RTL on
+    ArduPilot."""
+    from estimator.geodesy import Origin
+    from mission.vehicle import MavsdkVehicle
+    from sitl_scenarios.scenario import VehicleConfig
+    from sitl_scenarios.vehicle import VehicleSimulator
+    from tests.test_ardupilot_mission import _free_udp_port
+
+    home = Origin(43.6143, 7.0716, 150.0)
+
+    async def fly() -> str:
+        port = _free_udp_port()
+        async with VehicleSimulator(home, VehicleConfig(autopilot=autopilot), speedup=20.0,
+                                    target=("127.0.0.1", port), bind=("127.0.0.1", 0)) as sim, \
+                MavsdkVehicle(f"udpin://127.0.0.1:{port}") as v:
+            await v.connect(20.0)
+            telemetry = asyncio.create_task(v.run_telemetry(lambda fix: None))
+            await v.wait_ready(60.0)
+            await v.arm()
+            await v.takeoff(10.0)
+            await sim.wait_for(lambda s: s.pos_enu_m[2] > 9.0, 30.0)
+            done = threading.Event()
+
+            def last_resort() -> None:
+                v.return_to_launch_blocking()
+                done.set()
+
+            threading.Thread(target=last_resort, daemon=True).start()
+            await sim.wait_for(lambda s: s.mode == "return_to_launch", 20.0)
+            assert await asyncio.to_thread(done.wait, 10.0)  # returned, without raising
+            telemetry.cancel()
+            return sim.state().mode
+
+    assert asyncio.run(asyncio.wait_for(fly(), 120.0)) == "return_to_launch"
