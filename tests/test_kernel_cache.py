@@ -99,3 +99,103 @@ def test_the_active_planner_solves_with_cached_kernels(tmp_path, monkeypatch, ca
     assert not [rec for rec in caplog.records if "IPOPT failed" in rec.getMessage()]
     assert r.status.startswith("ipopt"), r.status
     assert [p for p in tmp_path.iterdir() if p.suffix == ".so"]
+
+
+# -- a damaged cache is never loaded (issue 49) -------------------------------------------------
+
+#: a process that loads the kernel `uavloc_damage_test` from the cache folder argv[1], prints its
+#: value at (1, 2, 3, 4) and its warnings (logging to stderr)
+_LOADER = (
+    "import logging, sys; logging.basicConfig(level=logging.WARNING, format='%(message)s')\n"
+    "import casadi as ca; from pathlib import Path; from mission.kernel_cache import cached_kernel\n"
+    "x = ca.SX.sym('x', 4)\n"
+    "f = cached_kernel('uavloc_damage_test', [x], [ca.sumsqr(ca.sin(x))], Path(sys.argv[1]))\n"
+    "print(float(f([1, 2, 3, 4])))\n"
+)
+_WANT = float(np.sum(np.sin([1, 2, 3, 4]) ** 2))
+
+
+def _load_in_a_process(cache, timeout_s=120.0):
+    """Load the kernel in a process of its own (a damaged library may kill it) -> CompletedProcess."""
+    return subprocess.run([sys.executable, "-c", _LOADER, str(cache)], capture_output=True, text=True,
+                          timeout=timeout_s)
+
+
+def _library(cache):
+    (lib,) = [p for p in cache.iterdir() if p.suffix == ".so"]
+    return lib
+
+
+def _assert_rebuilt(proc, lib, why):
+    """The process loaded the kernel (exit 0, its value) after one warning naming `why`."""
+    assert proc.returncode == 0, proc.stderr
+    assert float(proc.stdout) == pytest.approx(_WANT)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and why in lines[0] and "compiled it again" in lines[0], proc.stderr
+    sidecar = lib.with_name(lib.name + ".sha256")
+    from mission.kernel_cache import _digest
+
+    assert sidecar.read_text().split() == [str(n) for n in _digest(lib)]
+    assert not [p for p in lib.parent.iterdir() if ".loading-" in p.name or p.name.startswith(".")]
+
+
+@pytest.fixture
+def filled_cache(tmp_path):
+    proc = _load_in_a_process(tmp_path)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    return tmp_path
+
+
+@pytest.mark.parametrize("damage, why", [
+    ("truncated", "bytes"),           # half of the library: dlopen would die of SIGBUS
+    ("garbage", "SHA-256"),           # as many bytes, none of them a library
+    ("no sidecar", "no size and hash"),
+])
+def test_a_damaged_library_is_compiled_again_not_loaded(filled_cache, damage, why):
+    lib = _library(filled_cache)
+    data = lib.read_bytes()
+    if damage == "truncated":
+        lib.write_bytes(data[: len(data) // 2])
+    elif damage == "garbage":
+        lib.write_bytes(np.random.default_rng(3).bytes(len(data)))
+    else:
+        lib.with_name(lib.name + ".sha256").unlink()
+    _assert_rebuilt(_load_in_a_process(filled_cache), lib, why)
+    assert lib.read_bytes() == data
+    second = _load_in_a_process(filled_cache)  # and from then on loaded in silence
+    assert second.returncode == 0 and second.stderr == "", second.stderr
+
+
+def test_a_library_that_killed_its_loader_is_not_loaded_again(filled_cache, tmp_path_factory):
+    """A verified library whose loading kills the process (here its constructor aborts; in the
+    field a library damaged after its hash was written): the first process dies, leaving its
+    loading marker; the next one discards the library, compiles it again and loads it."""
+    from mission.kernel_cache import _digest
+
+    lib = _library(filled_cache)
+    src = tmp_path_factory.mktemp("bomb") / "bomb.c"
+    src.write_text("#include <stdlib.h>\n__attribute__((constructor)) static void bomb(void) { abort(); }\n")
+    subprocess.run(["cc", "-shared", "-fPIC", str(src), "-o", str(lib)], check=True, timeout=60)
+    size, sha = _digest(lib)
+    lib.with_name(lib.name + ".sha256").write_text(f"{size} {sha}\n")
+    died = _load_in_a_process(filled_cache)
+    assert died.returncode < 0, (died.returncode, died.stderr)  # killed by its signal
+    assert [p for p in filled_cache.iterdir() if ".loading-" in p.name]
+    _assert_rebuilt(_load_in_a_process(filled_cache), lib, "died while loading")
+
+
+def test_a_loading_marker_of_a_live_process_is_not_a_crash(filled_cache):
+    """Several processes load the same library at once: a marker whose process still runs is left
+    alone (the library is loaded, not compiled again)."""
+    lib = _library(filled_cache)
+    mtime = lib.stat().st_mtime_ns
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        marker = lib.with_name(f"{lib.name}.loading-{sleeper.pid}")
+        marker.touch()
+        proc = _load_in_a_process(filled_cache)
+        assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+        assert lib.stat().st_mtime_ns == mtime and marker.exists()
+    finally:
+        sleeper.kill()
+        sleeper.wait()

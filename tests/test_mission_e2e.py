@@ -335,3 +335,41 @@ def test_sim_flies_the_oracle_planner_at_the_true_users(capsys):
     assert code == 0, err[-3000:]
     doc = json.loads(out)
     assert doc["status"] == "target_reached" and doc["users"][0]["error_m"] < 5.0, doc
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_sim_at_x200_takes_off(tmp_path):
+    """Issue 49: at x200 the built-in vehicle disarmed before take-off ("Disarmed: no takeoff":
+    COM_DISARM_PRFLT's 10 simulated s are 0.05 wall s) and the mission blamed the take-off. The
+    paper scenario with a short survey (budget 150 m): armed, in the air at the cruise altitude,
+    a survey flown."""
+    scenario = tmp_path / "short.toml"
+    text = (REPO / "sitl_scenarios" / "paper.toml").read_text()
+    assert "budget_m = 1200.0" in text
+    scenario.write_text(text.replace("budget_m = 1200.0", "budget_m = 150.0"))
+    out = tmp_path / "out"
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "mission", "sim", str(scenario), "--speedup", "200", "--planner",
+                           "lawnmower", "--out", str(out), "--json"], cwd=REPO, capture_output=True, text=True,
+                          timeout=240)
+    wall_s = time.monotonic() - t0
+    assert "disarmed before take-off" not in proc.stderr and "not reached in time" not in proc.stderr, \
+        proc.stderr[-3000:]
+    mlog = read_mission_log(out / "mission.jsonl")
+    kinds = [e.get("kind", "") for e in mlog.events]
+    assert "arm" in kinds and "takeoff" in kinds, kinds
+    alt_m = mlog.tel_lla[:, 2]
+    assert float(np.max(alt_m) - alt_m[0]) >= 38.0  # it climbed to its 40 m
+    assert "survey_time" in kinds, kinds
+    print(f"x200 short mission: {wall_s:.1f} wall s, exit {proc.returncode}")
+
+
+def test_a_disarm_before_take_off_is_named_by_the_autopilots_words():
+    from mission.control.legs import disarm_text
+
+    texts = [(1.0, "INFO", "Disarmed by external command"), (5.0, "CRITICAL", "Arming denied: no global position"),
+             (6.0, "INFO", "Armed by external command"), (7.0, "INFO", "Disarmed: no takeoff")]
+    assert disarm_text(texts, 4.0) == "Disarmed: no takeoff"  # earlier ones are another arming's
+    assert disarm_text(texts[:3], 4.0) is None
+    assert disarm_text([(9.0, "INFO", "Disarming motors")], 4.0) == "Disarming motors"  # ArduPilot

@@ -220,12 +220,43 @@ def test_px4_refusals() -> None:
     assert ap.disarm(force=True)[0] == ACCEPTED
 
 
-def test_armed_without_takeoff_disarms_after_com_disarm_prflt() -> None:
+def _run_at(ap: Autopilot, sim_s: float, speedup: float) -> None:
+    """Advance sim_s simulated seconds with the wall clock running at 1/speedup of them."""
+    for _ in range(round(sim_s / 0.1)):
+        ap.step(0.1, ap.t_s / speedup)
+
+
+@pytest.mark.parametrize("speedup", [1.0, 0.5])
+def test_armed_without_takeoff_disarms_after_com_disarm_prflt(speedup) -> None:
     ap = make()
     ap.arm()
-    run(ap, ap.params["COM_DISARM_PRFLT"] - 0.5)
+    _run_at(ap, ap.params["COM_DISARM_PRFLT"] - 0.5, speedup)
     assert ap.armed
-    run(ap, 1.0)
+    _run_at(ap, 1.0, speedup)
+    assert not ap.armed
+    assert ap.messages[-1][1] == "Disarmed: no takeoff"
+
+
+def test_the_preflight_disarm_waits_for_the_ground_station_at_x200() -> None:
+    """Issue 49: at x200 COM_DISARM_PRFLT's 10 simulated seconds are 0.05 wall seconds, less than
+    the ground station's arm-then-take-off round trips: the vehicle disarmed before the take-off
+    command came. It waits COM_DISARM_PRFLT on the wall clock too, then takes off when told."""
+    ap = make()
+    ap.arm()
+    wait_s = ap.params["COM_DISARM_PRFLT"]
+    _run_at(ap, 100 * wait_s, 200.0)  # 1000 simulated s, 5 wall s: the take-off is on its way
+    assert ap.armed
+    ap.takeoff()
+    run(ap, 3.0)
+    assert ap.in_air
+
+
+def test_the_preflight_disarm_still_comes_at_x200() -> None:
+    """...and a vehicle left armed on the ground disarms once COM_DISARM_PRFLT passed on both clocks."""
+    ap = make()
+    ap.arm()
+    wait_s = ap.params["COM_DISARM_PRFLT"]
+    _run_at(ap, 200 * wait_s + 1.0, 200.0)  # 10 wall s
     assert not ap.armed
 
 

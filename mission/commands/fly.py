@@ -140,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
                                    "command_line": getattr(args, "command_line", None),
                                    "mission_file": None if args.mission is None else str(args.mission)})
                 held.controller = controller
+                runner.last_resort = controller.last_resort
                 view.follow(controller.log_writer)
                 result = await controller.run()
             # the vehicle link and the gNB are closed: the page shows the finished mission

@@ -36,8 +36,11 @@ MAX_WAIT_S = 3600.0
 
 #: wall seconds the safe end may spend getting RTL accepted after an error
 SAFE_END_TIMEOUT_S = 60.0
-#: ... and after Ctrl-C (the user waits; a second Ctrl-C exits at once, mission.runtime)
-INTERRUPT_SAFE_END_TIMEOUT_S = 20.0
+#: ... and after Ctrl-C (the user waits; mission.runtime's watchdog acts alone 15 s after the signal)
+INTERRUPT_SAFE_END_TIMEOUT_S = 10.0
+#: wall seconds the planner's one-time preparation (its CasADi kernels compiled, ~8 s on an idle
+#: machine, 106 s seen on 2 loaded cores) may take before take-off; beyond it the mission aborts
+PREPARE_TIMEOUT_S = 300.0
 
 
 @dataclass(frozen=True)

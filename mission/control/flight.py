@@ -40,10 +40,11 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import asdict, replace
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -57,6 +58,7 @@ from mission.control.config import (
     INTERRUPT_SAFE_END_TIMEOUT_S,
     LANDED,
     PREFLIGHT,
+    PREPARE_TIMEOUT_S,
     RETURN,
     SAFE_END_TIMEOUT_S,
     STATUS_ABORTED,
@@ -84,7 +86,7 @@ from mission.log import MissionLogWriter, area_fields, read_mission_log
 from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log, status_of_answer
 from mission.result import Result, build_result
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
-from mission.vehicle import Vehicle
+from mission.vehicle import Vehicle, VehicleTimeoutError
 from planner.fleet import REASON_USERS_DONE, FleetPlanner, Separation, vehicles_apart
 from planner.types import Planner, PlanningState, PlanResult
 from uavloc.errors import (
@@ -92,11 +94,14 @@ from uavloc.errors import (
     GnbPreflightError,
     MissionError,
     MissionLogError,
+    PlannerError,
     UavlocError,
     VehicleError,
 )
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 #: how a fleet's mission ended, from its vehicles' ends: the first of these any vehicle reached
 _FLEET_STATUS_ORDER = (STATUS_TARGET, STATUS_FLOOR, STATUS_BUDGET)
@@ -309,7 +314,8 @@ class MissionController:
             background.append(tg.create_task(c.vehicle.run_telemetry(c.on_fix, c.clock.update),
                                              name=f"telemetry{self._suffix(c)}"))
             c.flight.set_phase(PREFLIGHT)
-        homes = await asyncio.gather(*(c.vehicle.wait_ready(cfg.ready_timeout_s) for c in self.crews))
+        homes = await asyncio.gather(*(self._named(c, PREFLIGHT, c.vehicle.wait_ready(cfg.ready_timeout_s))
+                                       for c in self.crews))
         self._at_home(homes)
         # the planner's kernels compile (seconds of CPU) while the gNB is probed, not after it
         prepared = tg.create_task(self._prepare_planner(), name="prepare-planner")
@@ -318,7 +324,13 @@ class MissionController:
         await self._preflight_gnb()
         for c in self.crews:
             c.preflight_battery()
-        await prepared
+        try:
+            async with asyncio.timeout(PREPARE_TIMEOUT_S):
+                await prepared
+        except TimeoutError as exc:
+            raise PlannerError(f"PREFLIGHT: the planner {self.fleet_planner.name} was not prepared within "
+                               f"{PREPARE_TIMEOUT_S:g} s (its kernels compile before take-off); not taking off"
+                               ) from exc
         for coro, name in ((self._estimator_task(), "estimator"), (self._status_task(), "status"),
                            (self.loop_lag.run(), "loop-lag")):
             background.append(tg.create_task(coro, name=name))
@@ -345,8 +357,15 @@ class MissionController:
 
     async def _connect(self, crew: VehicleCrew) -> None:
         crew.flight.set_phase(CONNECT)
-        await crew.vehicle.connect(self.config.connect_timeout_s)
+        await self._named(crew, CONNECT, crew.vehicle.connect(self.config.connect_timeout_s))
         crew.connected = True
+
+    async def _named(self, crew: VehicleCrew, state: str, wait: Awaitable[T]) -> T:
+        """`wait` (bounded by its own timeout); its timeout error names the state and, in a fleet, the vehicle."""
+        try:
+            return await wait
+        except VehicleTimeoutError as exc:
+            raise VehicleTimeoutError(f"{state}{f' ({crew.id})' if self.fleet else ''}: {exc}") from exc
 
     async def _fly_vehicle(self, crew: VehicleCrew) -> tuple[str, str]:
         """One vehicle's take-off, survey, return and landing; its (status, reason). In a fleet a
@@ -733,6 +752,13 @@ class MissionController:
         """Never leave a vehicle without a safe command: RTL to every one that may be airborne (trying
         for at most timeout_s wall seconds, all at once)."""
         await asyncio.gather(*(c.safe_end(reason, timeout_s) for c in self.crews))
+
+    def last_resort(self, why: str, timeout_s: float = 4.0) -> None:
+        """RTL to every vehicle that may be airborne and the log's end record, from a thread other
+        than the event loop's, which does not answer (mission.runtime's signal watchdog)."""
+        from mission.control.last_resort import end_from_outside
+
+        end_from_outside(self.crews, self.journal, why, timeout_s)
 
     def _replay_log(self) -> ReplayResult:
         """What `uavloc replay LOG` computes, from the log as written so far (the header holds the

@@ -28,6 +28,8 @@ class MissionJournal:
         self.users = users
         self.now, self.phase = now, phase
         self.messages: list[str] = []
+        #: the end record is written (the controller's close, or mission.control.last_resort)
+        self.ended = False
         self._pending: list[tuple[float, dict]] = []
 
     @property
@@ -39,6 +41,7 @@ class MissionJournal:
         t = self.now()
         rec = {"message": message, "state": self.phase(), **fields}
         self.messages.append(message)
+        self.ended = self.ended or fields.get("kind") == "end"
         log.debug("event: %s", message)
         if self.is_open:
             self.writer.write("event", t, **rec)

@@ -47,6 +47,19 @@ PLAN_DRAIN_MAX_S = 10.0
 PLAN_AHEAD_S = 5.0
 
 
+#: the take-off's wait never ends sooner than this [wall s] (Legs.takeoff)
+TAKEOFF_WALL_FLOOR_S = 10.0
+
+
+def disarm_text(texts: list[tuple[float, str, str]], since_mono_s: float) -> str | None:
+    """The first status text since `since_mono_s` saying the vehicle disarmed ("Disarmed: no
+    takeoff" on PX4, "Disarming motors" on ArduPilot), or None. texts: (t_mono_s, severity, text)."""
+    for t_mono_s, _severity, text in texts:
+        if t_mono_s >= since_mono_s and "disarm" in text.lower() and "denied" not in text.lower():
+            return text
+    return None
+
+
 @dataclass(frozen=True)
 class LegsDeps:
     """What the survey legs use of the flight, once home is known.
@@ -105,15 +118,26 @@ class SurveyLegs:
     async def takeoff(self) -> None:
         dep, cfg, f = self.deps, self.deps.config, self.deps.flight
         f.set_phase(TAKEOFF)
+        st = dep.gated.vehicle.state
+        t_arm_mono_s = time.monotonic()
         await dep.gated.arm()
         dep.log_event("armed", kind="arm")
+        seen_armed = bool(st.armed)
         await dep.gated.takeoff(cfg.flight.altitude_m)
         dep.log_event(f"takeoff to {cfg.flight.altitude_m:g} m above home", kind="takeoff")
-        deadline = time.monotonic() + dep.wall(2.0 * cfg.flight.altitude_m / cfg.flight.climb_mps + 30.0)
+        # the climb's time in mission seconds, on the wall clock at the simulation's rate, but never
+        # less than TAKEOFF_WALL_FLOOR_S: at x200 the climb is a fraction of a wall second, less
+        # than the telemetry's own latency
+        deadline = time.monotonic() + max(dep.wall(2.0 * cfg.flight.altitude_m / cfg.flight.climb_mps + 30.0),
+                                          TAKEOFF_WALL_FLOOR_S)
         while f.return_reason is None:
             pos = dep.pos_enu()
             if pos is not None and pos[2] >= cfg.flight.altitude_m - max(1.5, cfg.flight.acceptance_m):
                 return
+            seen_armed = seen_armed or bool(st.armed)
+            said = disarm_text(st.texts, t_arm_mono_s)
+            if said is not None or (seen_armed and st.armed is False and pos is not None and pos[2] < 1.0):
+                raise VehicleError(f"the vehicle disarmed before take-off ({said or 'it reports disarmed'})")
             if time.monotonic() > deadline:
                 raise VehicleError(f"takeoff to {cfg.flight.altitude_m:g} m not reached in time (at "
                                    f"{'?' if pos is None else f'{pos[2]:.1f}'} m)")

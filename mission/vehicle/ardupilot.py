@@ -313,6 +313,15 @@ class ArduPilotLink:
     async def return_to_launch(self) -> None:
         await self.set_mode(RTL)
 
+    def return_to_launch_blocking(self) -> None:
+        """RTL without the event loop, from any thread (mission.control.last_resort): DO_SET_MODE
+        RTL sent once through MavlinkDirect's blocking send; its COMMAND_ACK is not awaited."""
+        msg = M.MAVLink_command_long_message(self.target_system, 1, M.MAV_CMD_DO_SET_MODE, 0,
+                                             float(M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(RTL),
+                                             0.0, 0.0, 0.0, 0.0, 0.0)
+        # the blocking plugin MavlinkDirectAsync wraps (its calls run in the loop's executor)
+        self.direct._plugin.send_message(self._direct(msg))
+
     async def land(self) -> None:
         await self.set_mode(LAND)
 

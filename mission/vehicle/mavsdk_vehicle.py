@@ -115,6 +115,11 @@ class Vehicle(Protocol):
 
     async def return_to_launch(self) -> None: ...
 
+    def return_to_launch_blocking(self) -> None:
+        """RTL without the event loop, from any thread (the signal watchdog's last resort,
+        mission.control.last_resort); VehicleError when refused."""
+        ...
+
     async def set_return_altitude(self, height_m: float) -> None:
         """The height above home the vehicle returns at on RTL (a fleet's vehicles each at their own
         altitude layer); VehicleError when the vehicle does not take it."""
@@ -481,6 +486,22 @@ class MavsdkVehicle:
         if self._ardupilot is not None:
             return await self._ardupilot.return_to_launch()
         await self._request("return to launch", self._action.return_to_launch())
+
+    def return_to_launch_blocking(self) -> None:
+        """RTL without the event loop, from any thread: the signal watchdog's last resort when the
+        loop does not answer (mission.control.last_resort). MAVSDK's blocking call, the one
+        `ActionAsync` runs in the loop's executor; blocks until the autopilot answers or MAVSDK's
+        own command timeout. VehicleCommandError when refused."""
+        from mavsdk.exceptions import MavsdkError
+
+        self._need()
+        if self._ardupilot is not None:
+            return self._ardupilot.return_to_launch_blocking()
+        try:
+            self._action._plugin.return_to_launch()
+        except MavsdkError as exc:
+            result = _enum_name(getattr(exc, "result", "UNKNOWN"))
+            raise VehicleCommandError(f"vehicle: return to launch failed: {result}", result) from exc
 
     async def set_return_altitude(self, height_m: float) -> None:
         """PX4: RTL_RETURN_ALT through MAVSDK's `set_return_to_launch_altitude` (PX4 returns at

@@ -115,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
                                         gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode,
                                         header_config={"command_line": getattr(args, "command_line", None)}) as sim:
                 held.sim = sim
+                runner.last_resort = sim.controller.last_resort
                 view.follow(sim.controller.log_writer)
                 result = await sim.run()
             # the vehicle and the simulators are closed: the page shows the finished mission

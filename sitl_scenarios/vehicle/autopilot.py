@@ -126,6 +126,7 @@ class Autopilot(Navigator):
         self._land_xy: tuple[float, float] | None = None
         self._rtl = RtlState()
         self._landed_since_s: float | None = None  # armed and on the ground since
+        self._landed_since_wall_s = 0.0  # the same instant on the wall clock
         self._touchdown_s: float | None = None  # on the ground, landing not yet detected, since
         self._takeoff_from_s: float | None = None  # a take-off's climb started
         self._has_flown = False  # left the ground since arming
@@ -278,6 +279,7 @@ class Autopilot(Navigator):
         self.armed = True
         self._has_flown = self.in_air
         self._landed_since_s = self.t_s if not self.in_air else None
+        self._landed_since_wall_s = self._wall_s
         if not self.in_air:
             self.home = [self.nav_pos[0], self.nav_pos[1], 0.0]  # PX4 sets home where it arms (its estimate)
             self.home_set = True
@@ -637,9 +639,14 @@ class Autopilot(Navigator):
                 self.landed_state = LANDED_TAKEOFF
                 return
             if self._landed_since_s is None:
-                self._landed_since_s = self.t_s
+                self._landed_since_s, self._landed_since_wall_s = self.t_s, self._wall_s
             wait = self.params["COM_DISARM_LAND"] if self._has_flown else self.params["COM_DISARM_PRFLT"]
-            if wait >= 0 and self.t_s - self._landed_since_s >= wait:
+            # the pre-flight disarm waits for the ground station's take-off command, whose round
+            # trips take wall time: COM_DISARM_PRFLT must also pass on the wall clock (at x200 its
+            # 10 simulated s are 0.05 wall s, less than one command's round trip; the vehicle
+            # disarmed before the take-off came). Never sooner in wall time than at x1.
+            wall_ok = self._has_flown or self._wall_s - self._landed_since_wall_s >= wait
+            if wait >= 0 and self.t_s - self._landed_since_s >= wait and wall_ok:
                 after = self.MODE_AFTER_LANDING
                 if self._has_flown and after is not None and self.mode in (FlightMode.LAND, FlightMode.RTL):
                     self._set_mode(after)
