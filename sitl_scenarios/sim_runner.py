@@ -153,7 +153,7 @@ class SimulatedMission:
         the world)."""
         if self.world is None:
             raise MissionError("true positions are the built-in vehicles' (this mission flies external ones)")
-        return np.asarray(self.world.call("positions"), float)
+        return self.world.positions()
 
     # -- with `connect`: the gNB follows the external vehicle's reported position --------------
 

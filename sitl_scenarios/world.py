@@ -486,23 +486,40 @@ class WorldProcess:
         """:meth:`call` off the event loop."""
         return await asyncio.to_thread(self.call, op, *args, timeout_s=timeout_s)
 
+    def positions(self) -> np.ndarray:
+        """(N, 3) every vehicle's true position in the scenario's ENU frame [m]."""
+        return np.asarray(self.call("positions"), float)
+
+    def track(self, index: int = 0) -> dict[float, np.ndarray]:
+        """{t_s: (3,) true position [m, the scenario's ENU frame]} of every snapshot of vehicle
+        `index` the world handed its gNBs and cells (the latest TRACK_LEN)."""
+        return self.call("track", index)
+
+    async def starve(self, threads: int) -> None:
+        """Fault: `threads` CPU-bound Python threads in the world's process until :meth:`feed`."""
+        await self.acall("starve", threads)
+
+    async def feed(self) -> None:
+        """End :meth:`starve`."""
+        await self.acall("feed")
+
     def close(self) -> None:
-        """Stop the child: ask it, then terminate, then kill (each with its timeout); idempotent."""
+        """Stop the child: ask it (STOP_TIMEOUT_S), then terminate it, then kill it (KILL_TIMEOUT_S
+        each); idempotent."""
         proc, conn = self.process, self._conn
+        deadline = time.monotonic() + STOP_TIMEOUT_S
         with self._lock:
             self._conn = None
             if proc is not None and conn is not None and proc.is_alive():
-                with contextlib.suppress(OSError, ValueError):
+                with contextlib.suppress(OSError, ValueError, EOFError):
                     conn.send(("stop", ()))
-                    deadline = time.monotonic() + STOP_TIMEOUT_S
                     while proc.is_alive() and time.monotonic() < deadline:
                         if conn.poll(0.05):
-                            with contextlib.suppress(EOFError):
-                                conn.recv()  # "stopped", or a late answer
+                            conn.recv()  # "stopped", or a late answer
             if conn is not None:
                 conn.close()
-        if proc is not None:
-            proc.join(STOP_TIMEOUT_S if proc.is_alive() else 0.0)
+        if proc is not None and proc.pid is not None:
+            proc.join(max(0.0, deadline - time.monotonic()))
             if proc.is_alive():
                 log.warning("the simulated world's process did not stop within %g s: terminating it", STOP_TIMEOUT_S)
                 proc.terminate()
