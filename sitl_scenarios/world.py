@@ -405,6 +405,25 @@ class _Relay(logging.Handler):
             logger.handle(record)
 
 
+@contextlib.contextmanager
+def _children_allowed():
+    """Let a daemonic process (a Dask worker flying a full-mode campaign run) start the world:
+    multiprocessing refuses children to daemons lest they be orphaned when the daemon is ended,
+    and the world cannot be: it ends by itself when its pipe to the parent closes."""
+    import multiprocessing
+
+    config = multiprocessing.current_process()._config  # the only place the flag lives
+    daemon = config.get("daemon")
+    config["daemon"] = False
+    try:
+        yield
+    finally:
+        if daemon is not None:
+            config["daemon"] = daemon
+        else:
+            config.pop("daemon", None)
+
+
 class WorldProcess:
     """The world's child process, from the parent (see the module docstring). `info` once entered;
     :meth:`call` / :meth:`acall` send one control request."""
@@ -439,7 +458,8 @@ class WorldProcess:
                                    name="uavloc-world", daemon=True)
         self._conn = parent_conn
         try:
-            self.process.start()
+            with _children_allowed():
+                self.process.start()
             child_conn.close()
             reply = self._receive(START_TIMEOUT_S, "to open its ports")
             if reply[0] != "ok":
