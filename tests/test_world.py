@@ -145,3 +145,35 @@ def test_each_range_is_computed_from_the_true_position_at_its_stamp(tmp_path):
     ts = np.array(sorted(track))
     assert len(ts) > 100 and np.all(np.diff(ts) > 0)
     assert not _alive(pid)
+
+
+def _start_and_close_a_world(conn) -> None:
+    """In a daemonic process: start a world, report its pid, close it."""
+    world = WorldProcess(WorldSpec(load_scenario("paper"), 1, 10.0, (free_udp_port(),)))
+    world.start()
+    try:
+        conn.send((world.info.pid, world.call("vehicle", 0, "state", ()).t_s))
+    finally:
+        world.close()
+    conn.send(world.process.exitcode)
+
+
+def test_a_daemonic_process_such_as_a_dask_worker_can_start_the_world():
+    """A full-mode campaign run flies in a Dask worker, a daemonic process, which multiprocessing
+    refuses children: the world starts there too, and ends with it."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    here, there = ctx.Pipe()
+    proc = ctx.Process(target=_start_and_close_a_world, args=(there,), daemon=True)
+    proc.start()
+    try:
+        assert here.poll(120), "no answer from the daemonic process"
+        pid, t_s = here.recv()
+        assert t_s >= 0.0
+        assert here.poll(30) and here.recv() == 0
+        proc.join(10)
+        assert proc.exitcode == 0 and not _alive(pid)
+    finally:
+        proc.kill()
+        proc.join()
