@@ -4,6 +4,7 @@ its gNB computes each range from the vehicle's true position at the instant it s
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import os
 import signal
@@ -177,3 +178,28 @@ def test_a_daemonic_process_such_as_a_dask_worker_can_start_the_world():
     finally:
         proc.kill()
         proc.join()
+
+
+def test_a_gnbs_stamp_and_uav_position_are_one_snapshot_of_the_vehicle():
+    """Within one step of the world's event loop every read of vehicle 0 (the gNB's clock, its UAV
+    position, the fleet's cells) is one snapshot, however far the vehicle's thread has gone on
+    meanwhile; the next step reads afresh."""
+    from sitl_scenarios.vehicle import VehicleSimulator
+    from sitl_scenarios.world import _Truth
+
+    sc = load_scenario("paper")
+
+    async def body():
+        async with VehicleSimulator.from_scenario(sc, speedup=50.0, target=None, bind=("127.0.0.1", 0)) as sim:
+            truth = _Truth([sim], sc.origin_geo)
+            await asyncio.sleep(0.05)
+            t_stamp = truth.clock(0)
+            time.sleep(0.1)  # the vehicle's thread simulates 5 s meanwhile
+            assert sim.state().t_s > t_stamp + 1.0
+            assert truth.clock(0) == t_stamp
+            np.testing.assert_array_equal(truth.position(0), truth.track[0][t_stamp])
+            await asyncio.sleep(0)
+            return t_stamp, truth.clock(0)
+
+    t_stamp, t_next = asyncio.run(body())
+    assert t_next > t_stamp + 1.0
