@@ -229,6 +229,7 @@ class SimulatedMission:
             else:
                 for url in self.connect_urls:
                     self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(url)))
+                self.vehicle = self.vehicles[0]  # what the gNBs follow
                 stack.push_async_callback(self._close_gnb)
                 if self.fleet_size > 1:
                     self.cells = SharedCells.of_scenario(self.scenario, self._fleet_positions_followed,
