@@ -335,15 +335,23 @@ def world_main(conn: Any, spec: WorldSpec, log_queue: Any, level: int) -> None:
     """The child's entry point: build the world, report its WorldInfo (or ("err", message)), serve
     control requests until asked to stop or until the parent is gone."""
     _quiet_child(log_queue, level)
+    code = 0
     try:
         asyncio.run(_serve(conn, spec))
     except BaseException as exc:  # reported to the parent, which raises it as a SimulatorError
+        code = 1
         log.exception("the world process failed")
         with contextlib.suppress(OSError, ValueError):
             conn.send(("err", f"{type(exc).__name__}: {exc}"))
     finally:
         with contextlib.suppress(OSError):
             conn.close()
+    # everything is closed: hand the last log records over and end here, without the seconds an
+    # interpreter with numpy, aiohttp and pymavlink loaded takes to tear itself down on a busy machine
+    logging.shutdown()
+    log_queue.close()
+    log_queue.join_thread()
+    os._exit(code)
 
 
 async def _serve(conn: Any, spec: WorldSpec) -> None:
