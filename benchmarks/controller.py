@@ -10,8 +10,9 @@
    Target: lag < 20 ms.
 2. A whole `uavloc sim three_users_nlos --json` in a subprocess (imports, MAVSDK, simulators, real
    estimator and planner), wall time. Target: < 60 s.
-3. Viewers mode (`--viewers N`): the same simulated mission in this process (SimulatedMission:
-   built-in vehicle thread, simulated gNB, controller, estimator child process), once bare and once
+3. Viewers mode (`--viewers N`): the same simulated mission from this process (SimulatedMission:
+   controller here, the world (built-in vehicle, simulated gNB) and the estimator in child
+   processes), once bare and once
    with the live view (`--view`: LiveFeed on the mission log writer + ViewServer in the mission's
    loop) watched by N WebSocket viewers in another process (N − 1 read every frame, one reads a
    frame per second: a slow client). Rounds alternate bare / viewers so both meet the same load.

@@ -2,31 +2,37 @@
 
 :class:`SimulatedMission` is an async context manager that owns
 
-- the vehicle: the built-in MAVLink vehicle (`sitl_scenarios.vehicle.VehicleSimulator`, in its own
-  thread, at `speedup`) on a free loopback UDP port, or — with `connect` — a running PX4 SITL that
-  MAVSDK reaches at that URL (a fleet's: one URL per vehicle, a list);
-- the simulated OAI gNB (`sitl_scenarios.gnb.SimulatedGnb`) on a free loopback TCP port, whose UAV
-  position is the built-in vehicle's true position, or the PX4 vehicle's reported position (it
-  follows the vehicle the controller flies); its clock is the simulation's;
-- the gNB adapter (`mission.gnb.OaiGnbClient`) and the MAVSDK vehicle adapter;
+- the simulated world (`sitl_scenarios.world.WorldProcess`): a child process of its own that runs
+  the built-in MAVLink vehicle(s) (`sitl_scenarios.vehicle.VehicleSimulator`, at `speedup`), the
+  simulated OAI gNB(s) (`sitl_scenarios.gnb.SimulatedGnb`) and a fleet's shared cells, on loopback
+  ports it opens itself and reports back; each gNB's UAV position and clock are its vehicle's true
+  position and simulated clock, read in the world at the moment the gNB stamps a range;
+- or — with `connect` — a running PX4 (or ArduPilot) SITL that MAVSDK reaches at that URL (a
+  fleet's: one URL per vehicle, a list), and then the simulated gNB(s) in this process, following
+  the vehicle's *reported* position as the controller's MAVSDK adapter receives it (only this
+  process has it) on the controller's mission clock;
+- the gNB adapter(s) (`mission.gnb.OaiGnbClient`) and the MAVSDK vehicle adapter(s), which reach
+  the world only over its sockets, as they reach PX4 and a gNB;
 - the :class:`MissionController`, which :meth:`run` runs.
 
 A fleet (`scenario.mission.fleet_size` > 1; docs/fleet.md): N built-in vehicles (system ids 1..N,
 each at the launch point the fast mode gives it: `sitl_scenarios.fleet.vehicle_home`, each on its
-own UDP ports) or N external autopilots (`connect`, a list of N URLs: PX4 SITL instances), N
-MAVSDK adapters, N simulated gNBs (each on its own TCP ports, following its own vehicle: a built-in
-vehicle's true position on its simulated clock, an external one's reported position on the
-controller's mission clock) sharing one cell attachment (`sitl_scenarios.gnb.cells.SharedCells`,
-the scenario's `[radio] coverage_m`), and N gNB adapters; the controller gets the lists. They are `.vehicle_sims`,
-`.vehicles`, `.gnb_sims`, `.gnb_clients` (one element each for one vehicle); `.vehicle_sim`,
-`.vehicle`, `.gnb_sim` and `.gnb_client` are element 0.
+own UDP ports) or N external autopilots (`connect`), N MAVSDK adapters, N simulated gNBs (each on
+its own TCP ports, following its own vehicle) sharing one cell attachment
+(`sitl_scenarios.gnb.cells.SharedCells`, the scenario's `[radio] coverage_m`), and N gNB adapters;
+the controller gets the lists. They are `.vehicle_sims`, `.vehicles`, `.gnb_sims`, `.gnb_clients`
+(one element each for one vehicle); `.vehicle_sim`, `.vehicle`, `.gnb_sim` and `.gnb_client` are
+element 0.
+
+Fault tests reach the world through `.vehicle_sims` / `.gnb_sims` / `.cells`, proxies with the
+simulators' method names over the world's control channel (`sitl_scenarios.world_proxy`),
+`.world` (`starve()`, `feed()`, `track()`), `.controller` and :meth:`kill_gnb`.
 
 Frames: the scenario's positions are ENU of its origin. A built-in vehicle's home is its launch
 point (the origin for one vehicle); the mission's frame is vehicle 0's home, and the `truth` and
 buildings go through geodetic coordinates into it. With PX4 SITL the scenario's positions are
 offsets from the vehicle's home (docs/design.md §9); with a fleet of them, from vehicle 0's home,
-the mission's origin, and each gNB follows its vehicle in that frame. Fault tests reach the parts through
-`.vehicle_sim`, `.gnb_sim`, `.controller` and :meth:`kill_gnb`.
+the mission's origin, and each gNB follows its vehicle in that frame.
 """
 
 from __future__ import annotations
@@ -47,11 +53,11 @@ from mission.control.config import MissionResult
 from mission.control.flight import MissionController
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.vehicle import MavsdkVehicle
-from sitl_scenarios.fleet import enu_between
 from sitl_scenarios.gnb import SimulatedGnb
 from sitl_scenarios.gnb.cells import SharedCells
 from sitl_scenarios.scenario import Scenario, controller_from_scenario
-from sitl_scenarios.vehicle import VehicleSimulator
+from sitl_scenarios.world import WorldProcess, WorldSpec, gnb_seed
+from sitl_scenarios.world_proxy import CellsProxy, GnbProxy, VehicleProxy
 from uavloc.errors import MissionError
 
 log = logging.getLogger(__name__)
@@ -120,15 +126,19 @@ class SimulatedMission:
             raise MissionError(f"the simulated gNB measures in mode rtt, trace or auto, not {self.gnb_mode!r}")
         #: how many vehicles fly: the mission's fleet (built-in vehicles), one per `connect` URL
         self.fleet_size = scenario.mission.fleet_size if connect is None else len(self.connect_urls)
-        self.vehicle_sims: list[VehicleSimulator] = []
+        #: the world's process (None: `connect`, an external autopilot)
+        self.world: WorldProcess | None = None
+        #: the world's built-in vehicles (proxies; none with `connect`)
+        self.vehicle_sims: list[VehicleProxy] = []
         self.vehicles: list[MavsdkVehicle] = []
-        #: a killed gNB's place holds None
-        self.gnb_sims: list[SimulatedGnb | None] = []
+        #: the world's gNBs (proxies), or with `connect` this process's SimulatedGnb; a killed
+        #: gNB's place holds None
+        self.gnb_sims: list[GnbProxy | SimulatedGnb | None] = []
         self.gnb_clients: list[OaiGnbClient] = []
         #: the fleet's shared cell attachment (None: one vehicle)
-        self.cells: SharedCells | None = None
-        self.vehicle_sim: VehicleSimulator | None = None
-        self.gnb_sim: SimulatedGnb | None = None
+        self.cells: CellsProxy | SharedCells | None = None
+        self.vehicle_sim: VehicleProxy | None = None
+        self.gnb_sim: GnbProxy | SimulatedGnb | None = None
         self.gnb_client: OaiGnbClient | None = None
         self.vehicle: MavsdkVehicle | None = None
         self.controller: MissionController | None = None
@@ -138,15 +148,14 @@ class SimulatedMission:
 
     # -- positions seen by the simulated gNB (ENU of the scenario frame) ------------------------
 
-    def _true_position_builtin(self, index: int = 0) -> np.ndarray | None:
-        """Built-in vehicle `index`'s true position in the scenario's ENU frame [m] (its simulator
-        works in the ENU frame of its own home, its launch point)."""
-        sim = self.vehicle_sims[index]
-        return enu_between(np.asarray(sim.state().pos_enu_m, float), sim.origin, self.scenario.origin_geo)
-
     def _fleet_positions(self) -> np.ndarray:
-        """(N, 3) every built-in vehicle's true position in the scenario's ENU frame [m]."""
-        return np.array([self._true_position_builtin(i) for i in range(len(self.vehicle_sims))])
+        """(N, 3) every built-in vehicle's true position in the scenario's ENU frame [m] (asked of
+        the world)."""
+        if self.world is None:
+            raise MissionError("true positions are the built-in vehicles' (this mission flies external ones)")
+        return self.world.positions()
+
+    # -- with `connect`: the gNB follows the external vehicle's reported position --------------
 
     def _position_followed(self) -> np.ndarray | None:
         """PX4 SITL: the vehicle's reported position in the ENU frame of its home."""
@@ -180,15 +189,11 @@ class SimulatedMission:
             return None
         return np.array([np.full(3, np.nan) if r is None else r for r in rows], float)
 
-    def _vehicle_clock(self, index: int) -> float:
-        """Built-in vehicle `index`'s simulated clock [s]."""
-        return float(self.vehicle_sims[index].state().t_s)
-
     def _sim_clock(self) -> float:
-        if self.vehicle_sim is not None:
-            return float(self.vehicle_sim.state().t_s)
+        """An external vehicle's gNB clock: the vehicle's clock, at any speed factor, through the
+        controller (before it exists: this process's monotonic time since the start)."""
         if self.controller is not None:
-            return self.controller.now()  # PX4 SITL: the vehicle's clock, at any speed factor
+            return self.controller.now()
         return time.monotonic() - self._t0
 
     def _truth(self, home: Origin) -> np.ndarray:
@@ -217,27 +222,23 @@ class SimulatedMission:
         stack = contextlib.AsyncExitStack()
         await stack.__aenter__()
         try:
+            self._gnb_stack = contextlib.AsyncExitStack()
+            await self._gnb_stack.__aenter__()
             if self.connect is None:
-                for i in range(self.fleet_size):
-                    port = free_udp_port()
-                    self.vehicle_sims.append(await stack.enter_async_context(VehicleSimulator.from_scenario(
-                        self.scenario, i, seed=self.seed, speedup=self.speedup, target=("127.0.0.1", port),
-                        bind=("127.0.0.1", 0), max_stream_wall_hz=self.max_stream_wall_hz)))
-                    self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(f"udpin://127.0.0.1:{port}")))
+                await self._enter_world(stack)
             else:
                 for url in self.connect_urls:
                     self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(url)))
+                self.vehicle = self.vehicles[0]  # what the gNBs follow
+                stack.push_async_callback(self._close_gnb)
+                if self.fleet_size > 1:
+                    self.cells = SharedCells.of_scenario(self.scenario, self._fleet_positions_followed,
+                                                         self.fleet_size)
+                for i in range(self.fleet_size):
+                    self.gnb_sims.append(await self._gnb_stack.enter_async_context(self._followed_gnb(i)))
             self.vehicle_sim = self.vehicle_sims[0] if self.vehicle_sims else None
             self.vehicle = self.vehicles[0]
-            self._gnb_stack = contextlib.AsyncExitStack()
-            await self._gnb_stack.__aenter__()
-            stack.push_async_callback(self._close_gnb)
-            if self.fleet_size > 1:
-                positions = self._fleet_positions if self.connect is None else self._fleet_positions_followed
-                self.cells = SharedCells.of_scenario(self.scenario, positions, self.fleet_size)
-            for i in range(self.fleet_size):
-                gnb = await self._gnb_stack.enter_async_context(self._simulated_gnb(i))
-                self.gnb_sims.append(gnb)
+            for gnb in self.gnb_sims:
                 self.gnb_clients.append(await self._gnb_stack.enter_async_context(self._gnb_client(gnb)))
             self.gnb_sim, self.gnb_client = self.gnb_sims[0], self.gnb_clients[0]
             overrides = dict(self.controller_overrides)
@@ -260,28 +261,35 @@ class SimulatedMission:
         self._stack = stack
         return self
 
-    def _simulated_gnb(self, index: int) -> SimulatedGnb:
-        """The simulated gNB of vehicle `index` (not started): on free loopback ports, at its
-        vehicle's true position on its vehicle's clock; a fleet's in its cell of the shared attachment."""
-        if self.connect is not None and self.fleet_size == 1:
-            position, clock = self._position_followed, self._sim_clock
-        elif self.connect is not None:
-            # an external fleet: its vehicle's reported position, the mission's clock
-            position, clock = functools.partial(self._position_followed_in_fleet, index), self._sim_clock
-        elif self.fleet_size == 1:
-            position, clock = self._true_position_builtin, self._sim_clock
+    async def _enter_world(self, stack: contextlib.AsyncExitStack) -> None:
+        """Start the world's process (the built-in vehicles, the gNBs, the fleet's cells) and the
+        MAVSDK adapters that listen to its vehicles; the gNB adapters close before the world."""
+        ports = tuple(free_udp_port() for _ in range(self.fleet_size))
+        self.world = await stack.enter_async_context(WorldProcess(WorldSpec(
+            self.scenario, self.seed, self.speedup, ports, max_stream_wall_hz=self.max_stream_wall_hz,
+            gnb_transport=self.gnb_transport, gnb_mode=self.gnb_mode)))
+        for i, port in enumerate(ports):
+            self.vehicle_sims.append(VehicleProxy(self.world, i))
+            self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(f"udpin://127.0.0.1:{port}")))
+        stack.push_async_callback(self._close_gnb)
+        self.gnb_sims.extend(GnbProxy(self.world, i) for i in range(len(self.world.info.gnbs)))
+        self.cells = CellsProxy(self.world) if self.fleet_size > 1 else None
+
+    def _followed_gnb(self, index: int) -> SimulatedGnb:
+        """With `connect`: the simulated gNB of external vehicle `index` (not started), in this
+        process, on free loopback ports, at the vehicle's reported position on the mission clock; a
+        fleet's in its cell of the shared attachment."""
+        if self.fleet_size == 1:
+            position = self._position_followed
         else:
-            position = functools.partial(self._true_position_builtin, index)
-            clock = functools.partial(self._vehicle_clock, index)
-        # gNB 0 draws as the one gNB of a one-vehicle mission; the others from seeds of their own
-        seed = self.seed if index == 0 else int(np.random.SeedSequence([self.seed, index]).generate_state(1)[0])
+            position = functools.partial(self._position_followed_in_fleet, index)
         return SimulatedGnb(
-            self.scenario, position, host="127.0.0.1", port=0, clock=clock, seed=seed,
-            rest_port=0 if self.gnb_transport == "rest" else None,
+            self.scenario, position, host="127.0.0.1", port=0, clock=self._sim_clock,
+            seed=gnb_seed(self.seed, index), rest_port=0 if self.gnb_transport == "rest" else None,
             t_port=0 if self.gnb_mode in ("trace", "auto") else None,
             cell=None if self.cells is None else self.cells.cell(index))
 
-    def _gnb_client(self, gnb: SimulatedGnb) -> OaiGnbClient:
+    def _gnb_client(self, gnb: GnbProxy | SimulatedGnb) -> OaiGnbClient:
         """The gNB adapter of a simulated gNB (not started)."""
         rest = self.gnb_transport == "rest"
         return OaiGnbClient(GnbConfig.of(
@@ -315,8 +323,11 @@ class SimulatedMission:
         self.gnb_sims[index] = None
         if index == 0:
             self.gnb_sim = None
-        await sim.__aexit__(None, None, None)
-        log.warning("simulated gNB %d killed", index)
+        if self.world is not None:
+            await self.world.acall("kill_gnb", index)
+        else:
+            await sim.__aexit__(None, None, None)
+            log.warning("simulated gNB %d killed", index)
 
     async def run(self) -> MissionResult:
         """Run the mission; the simulators keep running until the context exits."""

@@ -504,7 +504,7 @@ def test_a_whole_sim_mission_over_rest_locates_every_user(tmp_path):
     async def body():
         async with SimulatedMission(sc, log_path=tmp_path / "m.jsonl", speedup=40.0, gnb_transport="rest") as m:
             result = await m.run()
-            return result, m.gnb_client.config.transport, m.gnb_sim.rest.requests
+            return result, m.gnb_client.config.transport, m.gnb_sim.rest_requests
 
     result, transport, rest_requests = run(body(), timeout_s=240.0)
     assert transport == "rest" and rest_requests > 10

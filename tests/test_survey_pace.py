@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import math
 import re
-import threading
 from pathlib import Path
 
 import pytest
@@ -38,16 +37,10 @@ def _scenario(n_users: int, gnb_delay_s: float = 0.0, budget_m: float = 300.0):
 
 
 def _fly(scenario, log_path: Path, speedup: float, spinners: int = 0, timeout_s: float = 240.0):
-    """Fly the scenario (lawnmower); `spinners` threads spin in Python from the survey's start to its
-    end (the interpreter shared with the built-in vehicle, as a busy process shares it; the return
-    home is not starved: the pace is the survey's).
+    """Fly the scenario (lawnmower); `spinners` threads spin in Python in the world's process from the
+    survey's start to its end (the interpreter shared with the built-in vehicle, as a busy process
+    shares it; the return home is not starved: the pace is the survey's).
     -> (result, behind_s of the built-in vehicle)."""
-    stop = threading.Event()
-
-    def spin() -> None:
-        x = 0
-        while not stop.is_set():
-            x += 1
 
     async def main():
         async with asyncio.timeout(timeout_s):
@@ -55,17 +48,15 @@ def _fly(scenario, log_path: Path, speedup: float, spinners: int = 0, timeout_s:
                 async def start_spinning() -> None:
                     while sim.controller.state != "SURVEY":
                         await asyncio.sleep(0.01)
-                    for _ in range(spinners):
-                        threading.Thread(target=spin, daemon=True).start()
+                    await sim.world.starve(spinners)
                     while sim.controller.state == "SURVEY":
                         await asyncio.sleep(0.01)
-                    stop.set()
+                    await sim.world.feed()
 
                 spinner = asyncio.get_running_loop().create_task(start_spinning()) if spinners else None
                 try:
                     return await sim.run(), sim.vehicle_sim.behind_s
                 finally:
-                    stop.set()
                     if spinner is not None:
                         spinner.cancel()
 
@@ -77,9 +68,9 @@ def _events(path: Path, kind: str) -> list[dict]:
 
 
 def test_a_starved_simulation_says_it_fell_behind_and_by_how_much(tmp_path, caplog):
-    """×40 with three threads spinning beside the built-in vehicle: the vehicle drops simulated time
-    (its behind_s) and the mission logs `fell_behind` with the requested and the achieved speed-up,
-    warns, and its result and --json document carry them."""
+    """×40 with three threads spinning in the world's process, beside the built-in vehicle: the
+    vehicle drops simulated time (its behind_s) and the mission logs `fell_behind` with the requested
+    and the achieved speed-up, warns, and its result and --json document carry them."""
     log_path = tmp_path / "m.jsonl"
     with caplog.at_level("WARNING"):
         # a 150 m survey: a minute of a starved simulation's pace is enough to say it
