@@ -8,8 +8,9 @@ world is seen by the controller as what it is (late telemetry, late answers), no
 event loop serving both. The world knows the true positions; the controller reaches it only over
 its sockets (MAVLink over UDP, the gNB's telnet/REST/T-tracer over TCP), exactly as PX4 and a gNB.
 
-Parent side: :class:`WorldProcess` (an async context manager) starts the child with the
-multiprocessing 'spawn' context (the parent has threads and an event loop: no 'fork'), hands it a
+Parent side: :class:`WorldProcess` (an async context manager) starts the child from
+multiprocessing's fork server (:func:`world_context`: the parent has threads and an event loop, so
+no plain 'fork'; the server imports the world's modules once per parent), hands it a
 :class:`WorldSpec`, and reads back the :class:`WorldInfo` (the ports the child opened on 127.0.0.1,
 port 0) through a pipe. That pipe is also the control channel of the fault tests: one request at a
 time, `(op, args)` -> `("ok", value)` or `("err", message)`; `sitl_scenarios.world_proxy` wraps it
@@ -432,6 +433,32 @@ def _children_allowed():
             config.pop("daemon", None)
 
 
+#: what a world imports, also lazily (the vehicle, the gNB, their libraries): the fork server holds them
+WORLD_MODULES = [__name__, "sitl_scenarios.vehicle.simulator", "sitl_scenarios.vehicle.cli",
+                 "sitl_scenarios.gnb.server", "sitl_scenarios.gnb.rest", "sitl_scenarios.gnb.ttrace",
+                 "sitl_scenarios.fleet", "mission.safety"]
+
+
+def world_context() -> Any:
+    """The multiprocessing context worlds start in: a fork server (a fresh interpreter, single-threaded,
+    with :data:`WORLD_MODULES` imported once per parent) forks each world. Not a fork of this process
+    (threads, an event loop), and not a fresh interpreter per world: a world imports some 500 modules,
+    seconds on a busy machine, which a test session starting dozens of worlds would pay each time."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(WORLD_MODULES)
+    return ctx
+
+
+def start_world_server() -> None:
+    """Start the fork server now (its imports run beside the caller's own start-up); idempotent."""
+    import multiprocessing.forkserver
+
+    world_context()
+    multiprocessing.forkserver.ensure_running()
+
+
 class WorldProcess:
     """The world's child process, from the parent (see the module docstring). `info` once entered;
     :meth:`call` / :meth:`acall` send one control request."""
@@ -453,9 +480,7 @@ class WorldProcess:
         await asyncio.to_thread(self.close)
 
     def start(self) -> None:
-        import multiprocessing
-
-        ctx = multiprocessing.get_context("spawn")
+        ctx = world_context()
         parent_conn, child_conn = ctx.Pipe(duplex=True)
         self._queue = ctx.Queue()
         # the parent's DEBUG (-vv) sees the world's every line; otherwise its warnings only

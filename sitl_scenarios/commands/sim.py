@@ -75,6 +75,10 @@ def run(args: argparse.Namespace) -> int:
     from sitl_scenarios.scenario import load_scenario, with_autopilot
     from sitl_scenarios.sim_runner import SimulatedMission
 
+    if args.connect is None:
+        from sitl_scenarios.world import start_world_server
+
+        start_world_server()  # the world's imports run while the scenario loads and the planner compiles
     scenario = load_scenario(args.scenario)
     connect = connect_argument(args.connect, scenario)
     if args.autopilot is not None:
