@@ -106,7 +106,7 @@ _O1_UNANSWERED: dict[tuple[str, int], float] = {}
 O1_SETTLE_REQUEST = "e"
 
 #: a request timeout that fired this share of the timeout late or more was the event loop's lag,
-#: not the gNB's silence: the answer gets another timeout (at most LOOP_LAG_EXTENSIONS times)
+#: not the gNB's silence: the answer gets that lag again (at most LOOP_LAG_EXTENSIONS times)
 LOOP_LAG_SHARE = 0.1
 LOOP_LAG_EXTENSIONS = 3
 
@@ -402,14 +402,15 @@ class OaiGnbClient:
         """After the request timeout fired at loop time `deadline` with `line` sent: its answer, if
         the prompt is in the bytes already read (the event loop ran late, the gNB did not), or, when
         the loop itself lagged past the deadline by more than LOOP_LAG_SHARE of the timeout, if it
-        comes within another request timeout (at most LOOP_LAG_EXTENSIONS times): the timeout is the
-        gNB's time to answer, not the machine's. None: a timeout."""
+        comes within that lag again (the time the loop took from the gNB, given back; at most
+        LOOP_LAG_EXTENSIONS times): the timeout is the gNB's time to answer, not the machine's.
+        None: a timeout."""
         cfg, t = self.config, self.transport
         loop = asyncio.get_running_loop()
         lag_s = loop.time() - deadline
         for extension in range(LOOP_LAG_EXTENSIONS + 1):
             lagged = lag_s > LOOP_LAG_SHARE * cfg.request_timeout_s and extension < LOOP_LAG_EXTENSIONS
-            wait_s = cfg.request_timeout_s if lagged else 0.0
+            wait_s = lag_s if lagged else 0.0
             start = loop.time()
             text = await t.answer_after_timeout(line, wait_s)
             if text is not None:
