@@ -256,7 +256,7 @@ class MeasurementPipeline:
         if refused > self.clock_refused:
             if self.clock_refused == 0:
                 self.flight.event(f"ranges refused: the gNB host's clock offset is not bounded yet ({refused} so far)",
-                                  kind="gnb_clock_unbounded", refused=refused, **self.tag)
+                                  kind="gnb_clock_unbounded", refused=refused)
             self.clock_refused = refused
         if est is None or not est.bounded:
             return
@@ -265,7 +265,7 @@ class MeasurementPipeline:
             self._offset_logged = est.offset_s
             self.flight.event(f"the gNB host's clock is {est.offset_s:+.3f} s behind ours (±{est.spread_s:.3f} s, "
                               f"{est.samples} stamps): its stamps are corrected by it", kind="gnb_clock_offset",
-                              **est.to_dict(), **self.tag)
+                              **est.to_dict())
 
     def _report_rounds(self, served: int, start: tuple[float, np.ndarray] | None) -> None:
         """Once per mission: the first round cut short says how many users the gNB served while the
@@ -328,7 +328,7 @@ class MeasurementPipeline:
                                   f"dropped so far)", kind="range_timing_dropped", user=self.users[k].id,
                                   half_s=round(verdict.half_s, 4), speed_mps=round(verdict.speed_mps, 2),
                                   error_m=round(verdict.error_m, 2), sigma_m=round(verdict.sigma_m, 2),
-                                  dropped=self.timing_dropped, **self.tag)
+                                  dropped=self.timing_dropped)
         return kept
 
     async def place(self, samples: list) -> None:
