@@ -35,6 +35,7 @@ every gNB to try.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import math
@@ -68,6 +69,8 @@ VELOCITY_WAIT_S = 5.0
 #: leg's end moved less than Δ for 3.5 s in a `paper` survey, a gap without ranges. Longer than
 #: replay's GROUP_WINDOW_S (1 s), so that replay never merges two such rounds into one keyframe
 MAX_RANGE_GAP_S = 1.5
+#: logged velocity records kept for judging a range's timing (at 5 Hz: 13 minutes)
+SPEED_HISTORY = 4096
 #: a `range_timing_dropped` event for the first range dropped and then for every this many
 TIMING_EVENT_EVERY = 50
 #: the gNB clock offset is logged again when it moved by more than this [s]
@@ -108,6 +111,9 @@ class MeasurementPipeline:
         # the header's noise model, and the last keyframe's position time
         self._vel_t: list[float] = []
         self._vel_enu: list[tuple[float, float, float]] = []
+        #: (mission t [s], speed [m/s]) of the logged velocity, the last SPEED_HISTORY records (the
+        #: velocity lists above are trimmed to the keyframes' needs; a range's interval may be longer)
+        self._speed_hist: collections.deque[tuple[float, float]] = collections.deque(maxlen=SPEED_HISTORY)
         self._noise = NoiseModel()
         self._last_pos_t: float | None = None
         self._tel_last_t = -np.inf  # the last telemetry record's t, with or without velocity
@@ -130,6 +136,7 @@ class MeasurementPipeline:
             if v is not None:
                 self._vel_t.append(float(rec["t"]))
                 self._vel_enu.append((float(v[1]), float(v[0]), -float(v[2])))
+                self._speed_hist.append((float(rec["t"]), float(np.linalg.norm(np.asarray(v, float)))))
         elif kind == "header" and isinstance(rec.get("noise"), dict):
             self._noise = NoiseModel.from_log_dict(rec["noise"])
 
@@ -300,8 +307,10 @@ class MeasurementPipeline:
     def _speed_mps(self, t0_s: float, t1_s: float) -> float:
         """The UAV's speed [m/s] around [t0_s, t1_s] (mission s): the logged velocity's
         (mission.control.timing.speed_around_mps), else the fixes' mean speed over it, else 0."""
-        v = speed_around_mps(np.asarray(self._vel_t, float), np.asarray(self._vel_enu, float).reshape(-1, 3),
-                             t0_s, t1_s)
+        hist = np.asarray(self._speed_hist, float).reshape(-1, 2)
+        speed = np.zeros((hist.shape[0], 3))
+        speed[:, 0] = hist[:, 1]
+        v = speed_around_mps(hist[:, 0], speed, t0_s, t1_s)
         if v is not None:
             return v
         if t1_s > t0_s:
