@@ -179,6 +179,7 @@ def test_a_survey_hovering_most_of_its_time_fell_behind_though_its_clock_kept_pa
     assert pace.to_dict()["fell_behind"] is True and pace.to_dict()["hover_share"] == 0.6
     assert not SurveyPace(10.0, 300.0, 30.0, hover_s=10.0, largest_gap_s=3.0, ranges=100).fell_behind
     assert SurveyPace(10.0, 300.0, 30.0, ranges=80, late_dropped=20).fell_behind
+    assert not SurveyPace(10.0, 60.0, 6.0, ranges=0, late_dropped=1).fell_behind  # one range says nothing yet
 
 
 def test_the_flight_says_at_once_when_its_survey_falls_behind(caplog):

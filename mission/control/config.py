@@ -95,8 +95,10 @@ FELL_BEHIND_SHARE = 0.8
 #: more of the survey than this share hovering: the flight waited for its planner or its estimator
 #: (issue 48: `paper --speedup 100` hovered 60 % of its survey and said nothing)
 HOVER_SHARE_MAX = 0.25
-#: more of the ranges than this share dropped as timed too loosely (mission.control.timing)
+#: more of the ranges than this share dropped as timed too loosely (mission.control.timing), judged
+#: once at least LATE_JUDGE_MIN ranges were measured
 LATE_SHARE_MAX = 0.1
+LATE_JUDGE_MIN = 10
 
 
 @dataclass(frozen=True)
@@ -145,7 +147,7 @@ class SurveyPace:
             out.append(f"the UAV hovered {100.0 * self.hover_share:.0f} % of the survey ({self.hover_s:.0f} of "
                        f"{self.survey_s:.0f} s) waiting for plans (limit {100.0 * HOVER_SHARE_MAX:.0f} %)")
         total = self.ranges + self.late_dropped
-        if total and self.late_dropped > LATE_SHARE_MAX * total:
+        if total >= LATE_JUDGE_MIN and self.late_dropped > LATE_SHARE_MAX * total:
             out.append(f"{self.late_dropped} of {total} ranges were timed too loosely to place and were dropped")
         return out
 
