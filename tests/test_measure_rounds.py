@@ -56,7 +56,7 @@ def test_rounds_end_after_delta_and_take_the_users_in_turn(tmp_path):
             for _ in range(8):
                 x0 = buf.latest()[1][0]
                 await pipe.measure_round()
-                rounds.append(([k for k, _, _ in pipe.place_queue.get_nowait()], x0, buf.latest()[1][0]))
+                rounds.append(([k for k, *_ in pipe.place_queue.get_nowait()], x0, buf.latest()[1][0]))
             return rounds
 
     rounds = asyncio.run(main())

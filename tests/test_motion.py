@@ -349,7 +349,7 @@ def test_flight_pipeline_keyframes_carry_the_velocity_displacement_replay_rebuil
             t = 0.45 + 0.5 * i
             telemetry_until(t + 1.2)  # the logged records after the round are there when it is placed
             samples = [(k, RttSample(users[k].rnti, 100, 1, 3.5, 46.08e6, None, 1e-7 * (k + 1), t + 0.01 * k),
-                        t + 0.01 * k) for k in range(2)]
+                        t + 0.01 * k, 0.0) for k in range(2)]
             await pipe.place(samples)
         writer.close()
         return pipe.keyframes

@@ -95,23 +95,38 @@ class ControllerConfig:
 
 #: below this share of the requested speed-up a simulation fell behind it (issue 39)
 FELL_BEHIND_SHARE = 0.8
+#: more of the survey than this share hovering: the flight waited for its planner or its estimator
+#: (issue 48: `paper --speedup 100` hovered 60 % of its survey and said nothing)
+HOVER_SHARE_MAX = 0.25
+#: more of the ranges than this share dropped as timed too loosely (mission.control.timing), judged
+#: once at least LATE_JUDGE_MIN ranges were measured
+LATE_SHARE_MAX = 0.1
+LATE_JUDGE_MIN = 10
 
 
 @dataclass(frozen=True)
 class SurveyPace:
-    """How fast the survey really ran against the wall clock (issue 39: a simulation that cannot keep
-    its speed-up must say so, and by how much).
+    """How fast the survey really ran against the wall clock, and whether it kept the pace its
+    speed-up asks (issue 39, issue 48: a simulation that cannot keep its speed-up must say so, and
+    by how much).
 
     requested_speedup: the controller's time_scale (mission seconds per wall second asked for);
     survey_s / survey_wall_s: the survey's mission seconds (the vehicle's clock, as the controller
     reads it) and wall seconds. achieved_speedup = survey_s / survey_wall_s: it falls below the
     requested one when the simulation runs slow (a starved built-in vehicle drops the time it cannot
-    work off, its `behind_s`; a PX4 SITL runs below its speed factor).
+    work off, its `behind_s`; a PX4 SITL runs below its speed factor). hover_s: survey seconds
+    spent hovering (waiting for a plan); largest_gap_s: the longest stretch without a range [s]
+    (reported, not judged: a gNB that stopped answering is no slow simulation);
+    ranges / late_dropped: the survey's ranges placed, and those dropped as timed too loosely.
     """
 
     requested_speedup: float
     survey_s: float
     survey_wall_s: float
+    hover_s: float = 0.0
+    largest_gap_s: float = 0.0
+    ranges: int = 0
+    late_dropped: int = 0
 
     @property
     def achieved_speedup(self) -> float:
@@ -119,23 +134,45 @@ class SurveyPace:
         return self.survey_s / self.survey_wall_s
 
     @property
+    def hover_share(self) -> float:
+        """hover_s / survey_s (0 without survey seconds)."""
+        return self.hover_s / self.survey_s if self.survey_s > 0 else 0.0
+
+    def reasons(self) -> list[str]:
+        """Why the survey did not keep its pace (empty: it did)."""
+        out = []
+        achieved = round(self.achieved_speedup, 2)
+        if self.achieved_speedup < FELL_BEHIND_SHARE * self.requested_speedup:
+            out.append(f"the simulation fell behind its speed-up ({self.survey_s:.0f} mission seconds of survey "
+                       f"took {self.survey_wall_s:.1f} wall seconds, {100.0 * achieved / self.requested_speedup:.0f} "
+                       f"% of the pace asked)")
+        if self.hover_share > HOVER_SHARE_MAX:
+            out.append(f"the UAV hovered {100.0 * self.hover_share:.0f} % of the survey ({self.hover_s:.0f} of "
+                       f"{self.survey_s:.0f} s) waiting for plans (limit {100.0 * HOVER_SHARE_MAX:.0f} %)")
+        total = self.ranges + self.late_dropped
+        if total >= LATE_JUDGE_MIN and self.late_dropped > LATE_SHARE_MAX * total:
+            out.append(f"{self.late_dropped} of {total} ranges were timed too loosely to place and were dropped")
+        return out
+
+    @property
     def fell_behind(self) -> bool:
-        """The survey ran materially slower than asked (below FELL_BEHIND_SHARE of it)."""
-        return self.achieved_speedup < FELL_BEHIND_SHARE * self.requested_speedup
+        """The survey did not keep the pace its speed-up asks (any of :meth:`reasons`)."""
+        return bool(self.reasons())
 
     def message(self) -> str:
-        """One line: "asked ×20, ran ×6.3: ..." (by how much, and what it means). It prints the
-        speed-up the log records (to_dict's two decimals), so the line and the field never disagree."""
+        """One line: "asked ×20, ran ×6.3: ..." (what fell behind, by how much, and what it means).
+        It prints the speed-up the log records (to_dict's two decimals), so the line and the field
+        never disagree."""
         achieved = round(self.achieved_speedup, 2)
-        return (f"asked ×{self.requested_speedup:g}, ran ×{achieved:.1f}: the simulation fell "
-                f"behind its speed-up ({self.survey_s:.0f} mission seconds of survey took {self.survey_wall_s:.1f} "
-                f"wall seconds, {100.0 * achieved / self.requested_speedup:.0f} % of the pace asked); "
+        return (f"asked ×{self.requested_speedup:g}, ran ×{achieved:.1f}: {'; '.join(self.reasons())}; "
                 f"the machine is too busy for it, try a smaller --speedup")
 
     def to_dict(self) -> dict:
         """The mission log's `fell_behind` event fields and the `--json` document's `speedup` entry."""
         return {"requested_speedup": self.requested_speedup, "achieved_speedup": round(self.achieved_speedup, 2),
-                "survey_wall_s": round(self.survey_wall_s, 2), "fell_behind": self.fell_behind}
+                "survey_wall_s": round(self.survey_wall_s, 2), "hover_share": round(self.hover_share, 3),
+                "largest_gap_s": round(self.largest_gap_s, 2), "ranges_dropped_late": self.late_dropped,
+                "fell_behind": self.fell_behind, "why": self.reasons()}
 
 
 @dataclass

@@ -139,6 +139,7 @@ class VehicleCrew:
         self.buffer.append(t, pos)
         if fix.vel_ned_mps is not None:
             self.flight.clock.fix(t, float(np.linalg.norm(fix.vel_ned_mps)))
+            self.flight.check_pace(self.config.time_scale, t, time.monotonic())
         if t - self._last_tel_log_t >= 1.0 / self.config.telemetry_log_hz and self.journal.is_open:
             self._last_tel_log_t = t
             extra = {"vel_ned_mps": list(fix.vel_ned_mps)} if fix.vel_ned_mps is not None else {}
@@ -276,7 +277,7 @@ class VehicleCrew:
                    flown_m=round(flown_m, 2), rounds=c.rounds, ranges=c.ranges,
                    spacing_m=None if round_m is None else round(round_m, 2),
                    user_spacing_m=None if user_m is None else round(user_m, 2),
-                   rounds_per_min=None if per_min is None else round(per_min, 2))
+                   rounds_per_min=None if per_min is None else round(per_min, 2), ranges_dropped_late=c.late_dropped)
 
     # -- the safe commands ------------------------------------------------------------------------
 

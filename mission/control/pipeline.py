@@ -35,6 +35,7 @@ every gNB to try.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import math
@@ -50,6 +51,7 @@ from estimator.noise import NoiseModel
 from estimator.types import Keyframe
 from mission.control.config import MissionUser
 from mission.control.state import FlightState
+from mission.control.timing import judge_range_timing, speed_around_mps
 from mission.gnb import GnbClient
 from mission.keyframes import TriggerRecords, VelocityRecords, build_keyframe, velocity_covers
 from mission.log import MissionLogWriter
@@ -67,6 +69,12 @@ VELOCITY_WAIT_S = 5.0
 #: leg's end moved less than Δ for 3.5 s in a `paper` survey, a gap without ranges. Longer than
 #: replay's GROUP_WINDOW_S (1 s), so that replay never merges two such rounds into one keyframe
 MAX_RANGE_GAP_S = 1.5
+#: logged velocity records kept for judging a range's timing (at 5 Hz: 13 minutes)
+SPEED_HISTORY = 4096
+#: a `range_timing_dropped` event for the first range dropped and then for every this many
+TIMING_EVENT_EVERY = 50
+#: the gNB clock offset is logged again when it moved by more than this [s]
+OFFSET_LOG_STEP_S = 0.05
 
 
 class MeasurementPipeline:
@@ -103,10 +111,18 @@ class MeasurementPipeline:
         # the header's noise model, and the last keyframe's position time
         self._vel_t: list[float] = []
         self._vel_enu: list[tuple[float, float, float]] = []
+        #: (mission t [s], speed [m/s]) of the logged velocity, the last SPEED_HISTORY records (the
+        #: velocity lists above are trimmed to the keyframes' needs; a range's interval may be longer)
+        self._speed_hist: collections.deque[tuple[float, float]] = collections.deque(maxlen=SPEED_HISTORY)
         self._noise = NoiseModel()
         self._last_pos_t: float | None = None
         self._tel_last_t = -np.inf  # the last telemetry record's t, with or without velocity
         self._user_index = {u.id: k for k, u in enumerate(users)}
+        #: ranges dropped as timed too loosely for where they would be placed (mission.control.timing)
+        self.timing_dropped = 0
+        #: stamped ranges the gNB refused for an unbounded clock offset, and the offset last logged [s]
+        self.clock_refused = 0
+        self._offset_logged: float | None = None
         writer.subscribe(self._on_record)
 
     # -- the log, as written --------------------------------------------------------------------
@@ -120,6 +136,7 @@ class MeasurementPipeline:
             if v is not None:
                 self._vel_t.append(float(rec["t"]))
                 self._vel_enu.append((float(v[1]), float(v[0]), -float(v[2])))
+                self._speed_hist.append((float(rec["t"]), float(np.linalg.norm(np.asarray(v, float)))))
         elif kind == "header" and isinstance(rec.get("noise"), dict):
             self._noise = NoiseModel.from_log_dict(rec["noise"])
 
@@ -215,8 +232,12 @@ class MeasurementPipeline:
             finally:
                 if gnb_failed is None:
                     self._next_user = (k + 1) % n_users
-            t_mono = s.t_mono_s if (s.t_mono_s and math.isfinite(s.t_mono_s)) else 0.5 * (t_req + time.monotonic())
-            samples.append((k, s, t_mono))
+            if s.t_mono_s and math.isfinite(s.t_mono_s):
+                t_mono, t_unc = s.t_mono_s, float(getattr(s, "t_unc_s", 0.0))
+            else:  # a client without a time: somewhere between asking and being answered
+                t_end = time.monotonic()
+                t_mono, t_unc = 0.5 * (t_req + t_end), 0.5 * (t_end - t_req)
+            samples.append((k, s, t_mono, t_unc))
             self.serving[k] = self.vehicle
         now = self.now()
         # answers nobody can read, round after round, are a lost gNB too
@@ -228,8 +249,30 @@ class MeasurementPipeline:
             self.flight.gnb_failed(now, gnb_failed)
         else:
             self.flight.gnb_answered(now)
+        self._note_clock_offset()
         if samples:
             self.place_queue.put_nowait(samples)
+
+    def _note_clock_offset(self) -> None:
+        """Log the gNB host's clock offset (trace and stock modes: mission.gnb.clock_offset) when it
+        is first bounded and whenever it moves by more than OFFSET_LOG_STEP_S; count the stamped
+        ranges refused while it was not."""
+        estimate = getattr(self.gnb, "clock_offset", None)
+        est = estimate() if callable(estimate) else None
+        refused = int(getattr(self.gnb, "clock_refused", 0) or 0)
+        if refused > self.clock_refused:
+            if self.clock_refused == 0:
+                self.flight.event(f"ranges refused: the gNB host's clock offset is not bounded yet ({refused} so far)",
+                                  kind="gnb_clock_unbounded", refused=refused)
+            self.clock_refused = refused
+        if est is None or not est.bounded:
+            return
+        last = self._offset_logged
+        if last is None or abs(est.offset_s - last) > OFFSET_LOG_STEP_S:
+            self._offset_logged = est.offset_s
+            self.flight.event(f"the gNB host's clock is {est.offset_s:+.3f} s behind ours (±{est.spread_s:.3f} s, "
+                              f"{est.samples} stamps): its stamps are corrected by it", kind="gnb_clock_offset",
+                              **est.to_dict())
 
     def _report_rounds(self, served: int, start: tuple[float, np.ndarray] | None) -> None:
         """Once per mission: the first round cut short says how many users the gNB served while the
@@ -261,9 +304,48 @@ class MeasurementPipeline:
             await self.flight.wake.wait(0.2)
         return self.buffer.at(t_s, max_extrapolate_s=0.5)
 
+    def _speed_mps(self, t0_s: float, t1_s: float) -> float:
+        """The UAV's speed [m/s] around [t0_s, t1_s] (mission s): the logged velocity's
+        (mission.control.timing.speed_around_mps), else the fixes' mean speed over it, else 0."""
+        hist = np.asarray(self._speed_hist, float).reshape(-1, 2)
+        speed = np.zeros((hist.shape[0], 3))
+        speed[:, 0] = hist[:, 1]
+        v = speed_around_mps(hist[:, 0], speed, t0_s, t1_s)
+        if v is not None:
+            return v
+        if t1_s > t0_s:
+            with contextlib.suppress(MissionError):
+                return float(np.linalg.norm(self.buffer.at(t1_s, max_extrapolate_s=0.5)
+                                            - self.buffer.at(t0_s, max_extrapolate_s=0.5))) / (t1_s - t0_s)
+        return 0.0
+
+    def _timed(self, samples: list) -> list[tuple[int, object, float, float]]:
+        """The round's samples whose timing is good enough to place them (mission.control.timing),
+        as (user, sample, mission t [s], half-interval [mission s]); the others counted and dropped."""
+        kept = []
+        for k, s, tm, unc in samples:
+            t = self.mission_t(tm)
+            half = 0.5 * (self.mission_t(tm + unc) - self.mission_t(tm - unc)) if unc > 0 else 0.0
+            verdict = judge_range_timing(s.range_m, half, self._speed_mps(t - half, t + half), self._noise)
+            if verdict.keep:
+                kept.append((k, s, t, half))
+                continue
+            self.timing_dropped += 1
+            self.flight.clock.dropped_late()
+            if self.timing_dropped == 1 or self.timing_dropped % TIMING_EVENT_EVERY == 0:
+                self.flight.event(f"range of {self.users[k].id} dropped: {verdict.describe()} ({self.timing_dropped} "
+                                  f"dropped so far)", kind="range_timing_dropped", user=self.users[k].id,
+                                  half_s=round(verdict.half_s, 4), speed_mps=round(verdict.speed_mps, 2),
+                                  error_m=round(verdict.error_m, 2), sigma_m=round(verdict.sigma_m, 2),
+                                  dropped=self.timing_dropped)
+        return kept
+
     async def place(self, samples: list) -> None:
         origin = self.origin()
-        t_meas = float(np.mean([self.mission_t(tm) for _, _, tm in samples]))
+        timed = self._timed(samples)
+        if not timed:
+            return
+        t_meas = float(np.mean([t for _, _, t, _ in timed]))
         try:
             pos = await self.position_at(t_meas)
         except MissionError as exc:
@@ -271,11 +353,11 @@ class MeasurementPipeline:
             return
         lat, lon, alt = (float(x) for x in origin.enu_to_lla(pos))
         uav = {"lat_deg": lat, "lon_deg": lon, "alt_m": alt}
-        records = [self.writer.write("rtt", self.mission_t(tm), user=self.users[k].id, uav=uav, **self.tag,
-                                     **s.log_fields())
-                   for k, s, tm in samples]
-        self.flight.measurements += len(samples)
-        self.flight.clock.range_at(t_meas, len(samples))
+        records = [self.writer.write("rtt", t, user=self.users[k].id, uav=uav, **self.tag, **s.log_fields(),
+                                     **({"t_unc_s": round(half, 6)} if half > 0 else {}))
+                   for k, s, t, half in timed]
+        self.flight.measurements += len(timed)
+        self.flight.clock.range_at(t_meas, len(timed))
         # the keyframe of the records as logged, by replay's builder (mission.keyframes)
         trigger = TriggerRecords.from_records(records, self._user_index)
         t_pos = trigger.position_t_s

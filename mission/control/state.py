@@ -23,6 +23,9 @@ log = logging.getLogger(__name__)
 #: slower than this [m/s, 3-D speed], a surveying vehicle hovers (issue 39: a survey that waits for
 #: the planner); a leg that mostly climbs or descends is flown, not hovered
 HOVER_SPEED_MPS = 0.5
+#: the survey's pace is judged while it runs once it has lasted this long [mission s]: its first
+#: seconds wait for the first plan
+PACE_JUDGE_AFTER_S = 60.0
 
 
 @dataclass
@@ -30,8 +33,9 @@ class SurveyClock:
     """How the survey spent its time, in mission seconds: t0_s, t1_s its start and end; hover_s the
     time slower than HOVER_SPEED_MPS; largest_gap_s the longest time without a range (from the
     start, between rounds, to the end); rounds / ranges: gNB rounds placed (one keyframe each) and
-    the ranges in them during the survey; wall0_s, wall1_s: the wall instants (monotonic) of its
-    start and end (:meth:`pace`).
+    the ranges in them during the survey; late_dropped: ranges dropped during the survey as timed
+    too loosely to place (mission.control.timing); wall0_s, wall1_s: the wall instants (monotonic)
+    of its start and end (:meth:`pace`).
     Pure: the caller passes the instants.
     """
 
@@ -41,6 +45,7 @@ class SurveyClock:
     largest_gap_s: float = 0.0
     rounds: int = 0
     ranges: int = 0
+    late_dropped: int = 0
     wall0_s: float | None = None
     wall1_s: float | None = None
     _last_fix_s: float | None = None
@@ -65,6 +70,11 @@ class SurveyClock:
         self.rounds += 1
         self.ranges += ranges
         self._gap_to(t_s)
+
+    def dropped_late(self, ranges: int = 1) -> None:
+        """`ranges` ranges dropped as timed too loosely (counted during the survey only)."""
+        if self.t0_s is not None and self.t1_s is None:
+            self.late_dropped += ranges
 
     def _gap_to(self, t_s: float) -> None:
         prev = self._last_range_s if self._last_range_s is not None else self.t0_s
@@ -95,7 +105,22 @@ class SurveyClock:
         when it lasted no wall time)."""
         if self.t1_s is None or self.wall0_s is None or self.wall1_s is None or self.wall1_s <= self.wall0_s:
             return None
-        return SurveyPace(requested_speedup, self.survey_s, self.wall1_s - self.wall0_s)
+        return SurveyPace(requested_speedup, self.survey_s, self.wall1_s - self.wall0_s, self.hover_s,
+                          self.largest_gap_s, self.ranges, self.late_dropped)
+
+    def pace_now(self, requested_speedup: float, t_s: float, wall_s: float) -> SurveyPace | None:
+        """The survey's pace so far, at mission time t_s and wall instant wall_s, once it has run
+        PACE_JUDGE_AFTER_S mission seconds (None before, after its end, or without wall instants):
+        what the flight checks while surveying, to say at once that it falls behind."""
+        if self.t0_s is None or self.t1_s is not None or self.wall0_s is None:
+            return None
+        survey_s = t_s - self.t0_s
+        if survey_s < PACE_JUDGE_AFTER_S or wall_s <= self.wall0_s:
+            return None
+        # the stretch since the last range is a gap too, so far
+        gap_s = max(self.largest_gap_s, t_s - (self._last_range_s if self._last_range_s is not None else self.t0_s))
+        return SurveyPace(requested_speedup, survey_s, wall_s - self.wall0_s, self.hover_s, gap_s, self.ranges,
+                          self.late_dropped)
 
 
 def spacing_m(flown_m: float, count: int) -> float | None:
@@ -133,6 +158,23 @@ class FlightState:
     clock: SurveyClock = field(default_factory=SurveyClock)
     #: whose state this is in log lines: a fleet's vehicle id (None: the mission's one vehicle)
     name: str | None = None
+    #: the survey was seen falling behind its speed-up (said once: :meth:`check_pace`)
+    pace_warned: bool = False
+
+    def check_pace(self, requested_speedup: float, t_s: float, wall_s: float) -> SurveyPace | None:
+        """While surveying: the moment the survey's pace so far (SurveyClock.pace_now at mission
+        time t_s, wall instant wall_s) falls behind its speed-up, say so on the console (a warning)
+        and in the log (event `falling_behind`), once. The pace when it was said now, else None."""
+        if self.pace_warned:
+            return None
+        pace = self.clock.pace_now(requested_speedup, t_s, wall_s)
+        if pace is None or not pace.fell_behind:
+            return None
+        self.pace_warned = True
+        who = f"{self.name}: " if self.name else ""
+        log.warning("falling behind: %s%s", who, pace.message())
+        self.event(f"falling behind: {pace.message()}", kind="falling_behind", **pace.to_dict())
+        return pace
 
     @property
     def ending(self) -> bool:

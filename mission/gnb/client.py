@@ -49,6 +49,7 @@ from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 from estimator.ranging import toa_s_from_raw
+from mission.gnb.clock_offset import OffsetEstimate
 from mission.gnb.config import FORBIDDEN_CI, GnbConfig, backoff_delay_s, check_ci_line, parse_host_port
 from mission.gnb.log_follower import LogFollower, StockLog
 from mission.gnb.oai import (
@@ -109,6 +110,12 @@ _O1_UNANSWERED: dict[tuple[str, int], float] = {}
 #: a closed socket aborted the real gNB (EXIT_STATUS 134) once in ~20 runs of test_oai_live.
 O1_SETTLE_REQUEST = "e"
 
+#: a request timeout that fired this share of the timeout late or more was the event loop's lag,
+#: not the gNB's silence: the answer gets that lag again (at most LOOP_LAG_EXTENSIONS times)
+LOOP_LAG_SHARE = 0.1
+LOOP_LAG_EXTENSIONS = 3
+
+
 @runtime_checkable
 class GnbClient(Protocol):
     """What the mission controller needs from a gNB.
@@ -149,11 +156,15 @@ class OaiGnbClient:
         self._lock = asyncio.Lock()
         self._stock_lock = asyncio.Lock()
         #: stock modes: the gNB log and what it proved (None without a log_path)
-        self.stock_log = StockLog(self.config.log_path, self.config.log_poll_s, self.config.log_history) if (
-            self.config.log_path is not None) else None
+        self.stock_log = StockLog(self.config.log_path, self.config.log_poll_s, self.config.log_history,
+                                  wall=self.wall) if self.config.log_path is not None else None
         self.late_lines: collections.deque[str] = collections.deque(maxlen=64)
         self.known_rntis: list[int] = []
         self.reconnects = 0
+        #: answers taken after their request timeout fired late (the event loop lagged)
+        self.late_answers = 0
+        #: (sent, received) clock instants [s] of the last answered request
+        self.last_exchange_s: tuple[float, float] = (math.nan, math.nan)
         self.ci_sent: list[str] = []
         #: the mode measuring now: the configured one, or ("auto") the one chosen on entering
         self.mode: str = cfg.mode
@@ -362,28 +373,41 @@ class OaiGnbClient:
             fresh = t.fresh
             o1 = line == "o1 stats"
             sent = answered = False
+            loop = asyncio.get_running_loop()
             try:
-                async with asyncio.timeout(cfg.request_timeout_s):
-                    if o1:
-                        await self._settle_o1()
-                        fresh = t.fresh
-                    sent = True
-                    text = await t.exchange(line)
-                    answered = True
-                    if o1:  # it ran before its answer: the spacing counts from the later time
-                        _O1_LAST_SENT[self._key] = time.monotonic()
+                deadline = loop.time() + cfg.request_timeout_s
+                try:
+                    async with asyncio.timeout_at(deadline):
+                        if o1:
+                            await self._settle_o1()
+                            fresh = t.fresh
+                        sent = True
+                        t_sent = self.clock()
+                        text = await t.exchange(line)
+                except TimeoutError:
+                    # the answer may be in already (the loop resumed late) or the loop, not the
+                    # gNB, may have spent the time: only then is it taken or waited for
+                    late = await self._late_answer(line, deadline) if sent else None
+                    if late is None:
+                        raise
+                    text = late
+                answered = True
+                self.last_exchange_s = (t_sent, self.clock())
+                if o1:  # it ran before its answer: the spacing counts from the later time
+                    _O1_LAST_SENT[self._key] = time.monotonic()
             except TimeoutError:
                 got = t.unanswered()
                 await self._close()
-                if got:
-                    # something answered, but not an OAI telnet server: say what, not "no answer"
+                if got and fresh and cfg.prompt.encode() not in got:
+                    # a new connection that never showed the prompt: not an OAI telnet server?
                     raise protocol_error(
                         f"{cfg.host}:{cfg.port} sent {len(got)} byte(s) but no '{cfg.prompt}' prompt within "
                         f"{cfg.request_timeout_s:g} s after {line!r} (is this the gNB's telnet server, "
                         "nr-softmodem --telnetsrv?); it sent", got) from None
-                if fresh:
+                if fresh and not got:
                     raise GnbBusyError(t.busy_message(line, cfg.request_timeout_s)) from None
-                raise GnbTimeoutError(f"no answer to {line!r} within {cfg.request_timeout_s:g} s") from None
+                partial = f" ({len(got)} byte(s) of it came, without the prompt)" if got else ""
+                raise GnbTimeoutError(f"no answer to {line!r} within {cfg.request_timeout_s:g} s{partial}") from None
             except asyncio.CancelledError:
                 # cancelled mid-exchange (e.g. the caller's own timeout): the answer may still
                 # arrive, so this connection is out of step; drop it without awaiting
@@ -408,6 +432,31 @@ class OaiGnbClient:
                                f"answering ({refused} attempts): it serves one client at a time; is "
                                f"another client connected?")
         raise GnbError(f"request {line!r} failed after {retries + 1} attempts: {last}")
+
+    async def _late_answer(self, line: str, deadline: float) -> str | None:
+        """After the request timeout fired at loop time `deadline` with `line` sent: its answer, if
+        the prompt is in the bytes already read (the event loop ran late, the gNB did not), or, when
+        the loop itself lagged past the deadline by more than LOOP_LAG_SHARE of the timeout, if it
+        comes within that lag again (the time the loop took from the gNB, given back; at most
+        LOOP_LAG_EXTENSIONS times): the timeout is the gNB's time to answer, not the machine's.
+        None: a timeout."""
+        cfg, t = self.config, self.transport
+        loop = asyncio.get_running_loop()
+        lag_s = loop.time() - deadline
+        for extension in range(LOOP_LAG_EXTENSIONS + 1):
+            lagged = lag_s > LOOP_LAG_SHARE * cfg.request_timeout_s and extension < LOOP_LAG_EXTENSIONS
+            wait_s = lag_s if lagged else 0.0
+            start = loop.time()
+            text = await t.answer_after_timeout(line, wait_s)
+            if text is not None:
+                self.late_answers += 1
+                log.info("answer to %r taken after its %g s timeout (the event loop ran %.2f s late)", line,
+                         cfg.request_timeout_s, lag_s)
+                return text
+            if not lagged:
+                return None
+            lag_s = loop.time() - (start + wait_s)
+        return None
 
     async def request_late(self, line: str, wait_s: float = 2.0) -> str:
         """Send a command whose output OAI prints after the prompt (`rfsimu ...`) and return the
@@ -555,6 +604,22 @@ class OaiGnbClient:
         return self.stock_log.feed() if self.stock_log is not None else []
 
     # -- measurement ---------------------------------------------------------------------------
+    def clock_offset(self) -> OffsetEstimate | None:
+        """The gNB host's clock offset as the stamps of the mode measuring now give it (trace: the T
+        events; stock: the log's wall-clock lines); None for the RTT command (no stamps) or before
+        any stamp."""
+        if self.mode == "trace" and self.tracer is not None:
+            return self.tracer.offset.estimate(self.wall())
+        if self.mode == "stock" and self.stock_log is not None and not self.stock_log.history:
+            return self.stock_log.offset.estimate(self.wall())
+        return None
+
+    @property
+    def clock_refused(self) -> int:
+        """Stamped ranges refused so far because the gNB host's clock offset was not bounded."""
+        return ((self.tracer.offset.refused if self.tracer is not None else 0)
+                + (self.stock_log.offset.refused if self.stock_log is not None else 0))
+
     async def measure(self, rnti: int) -> RttSample:
         """One range measurement of the UE `rnti` (see GnbClient)."""
         if isinstance(rnti, bool) or not isinstance(rnti, int) or not 0 < rnti <= 0xFFFF:
@@ -582,7 +647,13 @@ class OaiGnbClient:
             if not st.connected:
                 why += f"; {st.problem or 'the T tracer is disconnected'}"
             raise GnbNoMeasurementError(f"no RTT of UE {rnti:04x} in the T trace: {why}")
-        age_s = self.wall() - r.t_wall_s
+        est = tracer.offset.estimate(self.wall())
+        if est is None or not est.bounded:
+            tracer.offset.refused += 1
+            raise GnbNoMeasurementError(f"the RTT of UE {rnti:04x} in the T trace cannot be placed in time: the gNB "
+                                        f"host's clock offset is not bounded ({tracer.offset.why_unbounded(est)})")
+        # the trace stamp in our wall time: s + θ̂ (mission.gnb.clock_offset)
+        age_s = self.wall() - (r.t_wall_s + est.offset_s)
         if age_s > self.config.trace_max_age_s:
             raise GnbNoMeasurementError(
                 f"the newest RTT of UE {rnti:04x} in the T trace is {age_s:.2f} s old (frame {r.frame}.{r.slot}, "
@@ -597,7 +668,7 @@ class OaiGnbClient:
             raise GnbNoMeasurementError(f"UE {rnti:04x}: the trace's TA {r.ta} and peak {r.peak:g} give no ToA "
                                         f"({exc})") from None
         return RttSample(rnti, r.ta, cfg.mu, r.peak, cfg.fs_hz, None, toa, self.clock() - max(0.0, age_s), "trace",
-                         t_wall_s=r.t_wall_s)
+                         t_wall_s=r.t_wall_s, t_unc_s=est.spread_s)
 
     async def measure_many(self, rntis: list[int]) -> dict[int, RttSample]:
         """Measure several UEs one after the other; UEs without a measurement are left out (logged)."""
@@ -611,9 +682,9 @@ class OaiGnbClient:
 
     async def _measure_rtt(self, rnti: int) -> RttSample:
         line = f"{self.config.rtt_module} {self.config.rtt_command} {rnti:04x}"
-        t0 = self.clock()
         body = await self.request(line)
-        t1 = self.clock()
+        # measured between the request's send and the answer's receipt (the gNB gives no stamp)
+        t0, t1 = self.last_exchange_s
         results = parse_rtt_reply(check_known_command(body, line))
         for r in results:
             if isinstance(r, RttErrorReply) and r.rnti in (None, rnti):
@@ -621,7 +692,7 @@ class OaiGnbClient:
         mine = [r for r in results if not isinstance(r, RttErrorReply) and r.rnti == rnti]
         if len(mine) != 1:
             raise protocol_error(f"expected one RTT result for RNTI {rnti:04x}, got {len(mine)}", body)
-        return sample_from_rtt(mine[0], 0.5 * (t0 + t1))
+        return sample_from_rtt(mine[0], 0.5 * (t0 + t1), 0.5 * (t1 - t0))
 
     def _measure_passive(self, rnti: int) -> RttSample:
         """The newest round-trip random access of the UE since the last call (nothing is sent)."""

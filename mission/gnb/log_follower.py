@@ -10,14 +10,22 @@ from __future__ import annotations
 
 import collections
 import logging
+import time
 from collections.abc import Callable
 from pathlib import Path
 
+from mission.gnb.clock_offset import ClockOffset
 from mission.gnb.oai import Msg2Record, RttSample, sample_from_msg2
-from mission.gnb.oai_ra import RandomAccess, RaTracker, RntiChange
+from mission.gnb.oai_ra import RandomAccess, RaTracker, RntiChange, parse_stamp
 from uavloc.errors import GnbError, GnbNoMeasurementError, GnbProtocolError
 
 log = logging.getLogger(__name__)
+
+#: the log stamps that are the gNB host's wall time
+WALL_STAMPS = ("wall_clock", "utc_time")
+#: stamped log lines needed before the log's clock offset counts as bounded (a random access
+#: writes three or more)
+LOG_OFFSET_MIN_SAMPLES = 3
 
 
 class LogFollower:
@@ -69,10 +77,14 @@ class StockLog:
     path: the gNB log; poll_s: polling period of the follower [s]; history: read the log from its
     start (else from its end at start()). rnti_alias: an RNTI -> the RNTI that UE has now (proven
     by a `Reestablishment RNTI <new> req C-RNTI <old>` line); rnti_changes: those proofs;
-    recent: every random access proven, newest last; stamps: time-stamp kinds seen.
+    recent: every random access proven, newest last; stamps: time-stamp kinds seen; offset: the
+    gNB host's clock against `wall`, from every wall-clock-stamped line's arrival − stamp
+    (mission.gnb.clock_offset; not for a log read from its start, whose lines did not arrive when
+    written).
     """
 
-    def __init__(self, path: Path, poll_s: float = 0.01, history: bool = False) -> None:
+    def __init__(self, path: Path, poll_s: float = 0.01, history: bool = False,
+                 wall: Callable[[], float] = time.time) -> None:
         self.path = Path(path)
         self.follower = LogFollower(self.path, poll_s)
         self.history = history
@@ -83,6 +95,8 @@ class StockLog:
         self.recent: collections.deque[RandomAccess] = collections.deque(maxlen=256)
         self.rnti_changes: list[RntiChange] = []
         self.rnti_alias: dict[int, int] = {}
+        self.wall = wall
+        self.offset = ClockOffset(min_samples=LOG_OFFSET_MIN_SAMPLES)
 
     def start(self) -> None:
         """Begin following (at the end of the file unless `history`); later calls do nothing."""
@@ -108,7 +122,14 @@ class StockLog:
         logged and skipped: the lines after it still count."""
         self.start()
         out: list[RandomAccess | RntiChange] = []
-        for line in self.follower.read_lines():
+        lines = self.follower.read_lines()
+        if lines and not self.history:
+            arrival = self.wall()
+            for line in lines:
+                t_s, kind = parse_stamp(line)
+                if t_s is not None and kind in WALL_STAMPS:
+                    self.offset.add(arrival, t_s)
+        for line in lines:
             try:
                 events = self.tracker.feed(line)
             except GnbProtocolError as exc:
@@ -147,15 +168,24 @@ class StockLog:
         """
         rec = Msg2Record(ra.tc_rnti, ra.frame, ra.slot, ra.timing_offset, None, ra.preamble)
         now = clock()
-        if ra.t_s is not None and ra.stamp in ("wall_clock", "utc_time"):
-            t_mono = now - max(0.0, wall() - ra.t_s)
-            return sample_from_msg2(rec, rnti, mu, t_mono, ra.t_s)
+        if ra.t_s is not None and ra.stamp in WALL_STAMPS:
+            if self.history:  # a log read from its start: its stamps taken at face value
+                return sample_from_msg2(rec, rnti, mu, now - max(0.0, wall() - ra.t_s), ra.t_s)
+            est = self.offset.estimate(self.wall())
+            if est is None or not est.bounded:
+                self.offset.refused += 1
+                raise GnbNoMeasurementError(
+                    f"the random access of UE {rnti:04x} at {ra.t_s:.3f} (gNB clock) cannot be placed in time: "
+                    f"the gNB host's clock offset is not bounded ({self.offset.why_unbounded(est)})")
+            # the stamp in our wall time: s + θ̂ (mission.gnb.clock_offset)
+            t_mono = now - max(0.0, wall() - (ra.t_s + est.offset_s))
+            return sample_from_msg2(rec, rnti, mu, t_mono, ra.t_s, t_unc_s=est.spread_s)
         if require_wall:
             raise GnbNoMeasurementError(
                 f"the gNB log {self.path} has no wall_clock time stamps (found {ra.stamp!r}): a passive "
                 f"random access cannot be placed in time; run the gNB with "
                 f"--log_config.global_log_options level,nocolor,wall_clock")
-        return sample_from_msg2(rec, rnti, mu, now)
+        return sample_from_msg2(rec, rnti, mu, now, t_unc_s=self.follower.poll_s)
 
 
 __all__ = ["LogFollower", "StockLog"]

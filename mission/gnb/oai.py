@@ -230,7 +230,10 @@ class RttSample:
     source: "rtt" (RTT command set), "trace" (a stock gNB's T tracer: RAR TA plus applied TA
     commands plus SRS peak) or "msg2" (stock modes, coarse TA only); t_wall_s: UNIX time of the
     random access from the gNB log's `wall_clock` stamp (stock modes) or of the SRS occasion from
-    the T trace (trace mode); None otherwise.
+    the T trace (trace mode); None otherwise. t_unc_s: half-width [s, monotonic] of the interval
+    around t_mono_s within which it was measured (a telnet answer: half the time from the request's
+    send to the answer's receipt; a gNB stamp: the uncertainty of its clock offset); the placer
+    prices it against σ(d) (mission.control.timing).
     """
 
     rnti: int
@@ -243,6 +246,7 @@ class RttSample:
     t_mono_s: float
     source: Literal["rtt", "msg2", "trace"] = "rtt"
     t_wall_s: float | None = None
+    t_unc_s: float = 0.0
 
     @property
     def range_m(self) -> float:
@@ -259,14 +263,14 @@ class RttSample:
         return out
 
 
-def sample_from_rtt(reply: RttReply, t_mono_s: float) -> RttSample:
-    """RttReply + monotonic time -> RttSample (τ̂ = (TA·step + peak/fs) / 2 via estimator.ranging)."""
+def sample_from_rtt(reply: RttReply, t_mono_s: float, t_unc_s: float = 0.0) -> RttSample:
+    """RttReply + monotonic time (± t_unc_s) -> RttSample (τ̂ = (TA·step + peak/fs) / 2 via estimator.ranging)."""
     try:
         toa = toa_s_from_raw(reply.ta, reply.mu, reply.srs_peak, reply.fs_hz)
     except RangingError as exc:
         raise protocol_error(f"RTT fields do not give a ToA ({exc})", repr(reply)) from None
     return RttSample(reply.rnti, reply.ta, reply.mu, reply.srs_peak, reply.fs_hz, reply.snr_db, toa,
-                     float(t_mono_s), "rtt")
+                     float(t_mono_s), "rtt", t_unc_s=float(t_unc_s))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -516,14 +520,14 @@ def parse_srs_toa_line(line: str) -> SrsToaRecord | None:
 
 
 def sample_from_msg2(rec: Msg2Record, rnti: int, mu: int, t_mono_s: float,
-                     t_wall_s: float | None = None) -> RttSample:
+                     t_wall_s: float | None = None, t_unc_s: float = 0.0) -> RttSample:
     """A coarse RttSample from a Msg2 timing advance (μ of the UL BWP supplied by the caller)."""
     try:
         toa = toa_s_from_raw(rec.timing_offset, mu)
     except RangingError as exc:
         raise protocol_error(f"Msg2 timing_offset does not give a ToA ({exc})", repr(rec)) from None
     return RttSample(rnti, rec.timing_offset, mu, 0.0, None, None, toa, float(t_mono_s), "msg2",
-                     None if t_wall_s is None else float(t_wall_s))
+                     None if t_wall_s is None else float(t_wall_s), float(t_unc_s))
 
 
 # ---------------------------------------------------------------------------------------------

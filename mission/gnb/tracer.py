@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from mission.gnb.clock_offset import ClockOffset
 from mission.gnb.config import backoff_delay_s
 from mission.gnb.trace_rtt import TraceRttTracker, TraceSettings
 from mission.gnb.ttrace import (
@@ -83,6 +84,8 @@ class TTracerClient:
                  wall: Callable[[], float] = time.time) -> None:
         self.host, self.port = host, int(port)
         self.tracker = TraceRttTracker(settings)
+        #: the gNB host's clock against ours, from every event's arrival − stamp (mission.gnb.clock_offset)
+        self.offset = ClockOffset()
         self.connect_timeout_s = connect_timeout_s
         self.preamble_timeout_s = preamble_timeout_s
         self.db: TMessages | None = t_messages
@@ -230,6 +233,7 @@ class TTracerClient:
         if not frames:
             return
         assert self.db is not None
+        arrival = self.wall()
         for body in frames:
             try:
                 ev = decode_event(body, self.db)
@@ -237,6 +241,7 @@ class TTracerClient:
                 self.tracker.counts.malformed += 1
                 self.tracker.counts.last_malformed = str(exc)
                 continue
+            self.offset.add(arrival, ev.t_wall_s)
             self.tracker.feed(ev)
         self.last_event_wall_s = self.wall()
         self.fed.set()

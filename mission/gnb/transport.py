@@ -123,6 +123,8 @@ class GnbTransport(Protocol):
 
     async def read_late(self, wait_s: float) -> list[str]: ...
 
+    async def answer_after_timeout(self, line: str, wait_s: float) -> str | None: ...
+
     async def goodbye(self) -> None: ...
 
     async def close(self) -> None: ...
@@ -184,6 +186,29 @@ class TelnetTransport:
         try:
             self._writer.write(line.encode() + b"\n")
             await self._writer.drain()
+        except (ConnectionError, OSError) as exc:
+            raise TransportLost(f"connection to the gNB failed: {exc}") from None
+        return await self._read_answer(line)
+
+    async def answer_after_timeout(self, line: str, wait_s: float) -> str | None:
+        """The answer of the exchange a timeout interrupted, if it came after all: taken from the
+        stream's buffer at once when the prompt is there (the event loop resumed after the deadline
+        with the answer already read), else read for at most wait_s [s] more (0: not at all);
+        None when no prompt came. Raises as `exchange` does for a lost or malformed stream."""
+        if self._reader is None:
+            return None
+        if self._prompt not in self.unanswered() and wait_s <= 0:
+            return None
+        try:
+            # with the prompt in the buffer readuntil returns without waiting
+            async with asyncio.timeout(max(wait_s, 0.0) if self._prompt not in self.unanswered() else None):
+                return await self._read_answer(line)
+        except TimeoutError:
+            return None
+
+    async def _read_answer(self, line: str) -> str:
+        assert self._reader is not None
+        try:
             data = await self._reader.readuntil(self._prompt)
         except asyncio.IncompleteReadError as exc:
             raise TransportLost(f"the gNB closed the connection ({len(exc.partial)} bytes of answer)") from None
@@ -425,6 +450,9 @@ class RestTransport:
 
     def unanswered(self) -> bytes:
         return b""  # an HTTP answer comes whole or not at all
+
+    async def answer_after_timeout(self, line: str, wait_s: float) -> str | None:
+        return None  # an interrupted HTTP request is gone with its connection
 
     def busy_message(self, line: str, timeout_s: float) -> str:
         return (f"no answer to {line!r} within {timeout_s:g} s from the gNB web server at {self.address}: it runs "

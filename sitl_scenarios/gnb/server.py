@@ -115,7 +115,8 @@ class SimulatedGnb:
     `ci force_reestab` to the Msg2 log line [s]; reestab_new_rnti: a UE comes back from
     reestablishment with a new C-RNTI (as a real UE may), shown in its Msg2 line; cell: this gNB's
     cell of a fleet's shared attachment (None: one gNB, every UE in coverage is its own); its
-    `position` should be the one the shared cells' `positions` give for it.
+    `position` should be the one the shared cells' `positions` give for it. clock_offset_s: the gNB
+    host's clock runs this far [s] ahead of `wall` (its log and T trace stamps; issue 48).
     """
 
     def __init__(
@@ -140,6 +141,7 @@ class SimulatedGnb:
         stock_websrv: bool = False,
         t_port: int | None = None,
         cell: GnbCell | None = None,
+        clock_offset_s: float = 0.0,
     ) -> None:
         if cell is not None and len(cell.shared.current_rnti) != len(scenario.users):
             raise SimulatorError(f"the shared cells have {len(cell.shared.current_rnti)} UEs, the scenario "
@@ -164,7 +166,7 @@ class SimulatedGnb:
         self.stock_reaction = stock_reaction
         self.reattach_delay_s = reattach_delay_s
         self.linger_s = linger_s
-        self.wall = wall
+        self.wall = (lambda: wall() + clock_offset_s) if clock_offset_s else wall
         #: the web server's port (None: no REST API; 0: an ephemeral port, read it after entering)
         self.rest_port = rest_port
         #: REST: the commands take the web server's blank buffer " " for an argument, as stock OAI
@@ -189,7 +191,7 @@ class SimulatedGnb:
         self.crashed: str | None = None
         self._last_o1_s: float | None = None  # monotonic time of the last `o1 stats`
         #: writes OAI's random-access lines to log_path
-        self.ra_log = OaiRaLog(self.log_path, wall, random.Random(int(seq.spawn(1)[0].generate_state(1)[0])))
+        self.ra_log = OaiRaLog(self.log_path, self.wall, random.Random(int(seq.spawn(1)[0].generate_state(1)[0])))
         self._t_seed = int(seq.spawn(1)[0].generate_state(1)[0])
         #: recent RTT results with their truth, newest last (for tests and diagnostics)
         self.truth: collections.deque[RawRtt] = collections.deque(maxlen=100_000)
@@ -732,8 +734,8 @@ async def _run(args: argparse.Namespace) -> None:
             scenario, position, host=args.host, port=args.port, log_path=args.log, seed=args.seed,
             rtt_module=args.rtt_module, rtt_command=args.rtt_command, stock_reaction=args.stock_reaction,
             rest_port=args.rest_port, stock_websrv=args.stock_websrv, t_port=args.t_port,
-            faults=None if args.rtt_module_lost_after is None else dataclasses.replace(
-                GnbFaults.from_scenario(scenario), rtt_module_lost_at_s=args.rtt_module_lost_after)))
+            clock_offset_s=args.clock_offset, faults=None if args.rtt_module_lost_after is None else
+            dataclasses.replace(GnbFaults.from_scenario(scenario), rtt_module_lost_at_s=args.rtt_module_lost_after)))
         rest = "" if gnb.rest_port is None else f", REST on http://{args.host}:{gnb.rest_port}"
         rest += "" if gnb.t_port is None else f", T tracer on {args.host}:{gnb.t_port}"
         print(f"simulated gNB for scenario {scenario.name!r} on {args.host}:{gnb.port}{rest}", file=sys.stderr)
@@ -773,6 +775,7 @@ def main(argv: list[str] | None = None) -> int:
                         "random access then an idle re-attach (the recorded OAI), or nothing (no traffic)")
     p.add_argument("--rtt-module-lost-after", type=float, metavar="S",
                    help="fault: the RTT module is gone S seconds after the server started")
+    p.add_argument("--clock-offset", type=float, default=0.0, metavar="S", help="the gNB host's clock runs S s ahead")
     p.add_argument("-v", "--verbose", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
