@@ -282,18 +282,20 @@ MIN_VEHICLE_BAND_M = 5.0
 class VehicleEntryConfig:
     """One vehicle of a fleet (a `[[vehicles]]` entry; issue 41: each UAV carries its own gNB).
     id: its name, unique in the file (letters, digits, `_` and `-`, 1..32 of them); connect: the
-    MAVLink address `uavloc fly` connects it with (e.g. "udpin://0.0.0.0:14541"; empty: the command
-    line's --connect, for a one-vehicle fleet only); gnb: its gNB's address as `--gnb` takes it
-    (empty: the command line's --gnb, for a one-vehicle fleet only); gnb_mode: its gNB's `[gnb]
+    MAVLink address `uavloc fly` connects it with (e.g. "udpin://0.0.0.0:14541"; absent: the command
+    line's --connect, for a one-vehicle fleet only; an empty string is an error, not "absent");
+    gnb: its gNB's address as `--gnb` takes it (absent: the command line's --gnb, for a one-vehicle
+    fleet only); gnb_mode: its gNB's `[gnb]
     mode` (empty: the mission's); alt_min_m, alt_max_m: its altitude band above home [m], inside
     the mission's `[flight]` band and at least MIN_VEHICLE_BAND_M thick (a side left out is the
     mission's); it cruises at the mission's `altitude_m` clipped into its band
     (:meth:`MissionConfig.vehicle_cruise_alt_m`). A simulation gives each vehicle its addresses
-    itself; :func:`fleet_address_problem` says what a flight lacks."""
+    itself, and a scenario's entries hold neither (sitl_scenarios.scenario);
+    :func:`fleet_address_problem` says what a flight lacks."""
 
     id: str
-    connect: str = ""
-    gnb: str = ""
+    connect: str | None = None
+    gnb: str | None = None
     gnb_mode: str = ""
     alt_min_m: float | None = bounded(None, 0.0, MAX_HEIGHT_M)
     alt_max_m: float | None = positive(None, MAX_HEIGHT_M)
@@ -502,6 +504,18 @@ def _validate_vehicles(mc: MissionConfig, bad: Callable[[str, Any, str], UavlocE
         if v.id in ids:
             raise bad(f"{key}.id", v.id, f"duplicate vehicle id (vehicles[{ids[v.id]}] has it)")
         ids[v.id] = i
+        for name in ("connect", "gnb"):
+            value = getattr(v, name)
+            if value is not None and not value.strip():
+                raise bad(f"{key}.{name}", value, f"empty: leave the key out for the command line's --{name} (one "
+                          "vehicle only), or give the address")
+        if v.gnb:
+            from mission.gnb.transport import parse_gnb_address
+
+            try:
+                parse_gnb_address(v.gnb, default=mc.gnb.transport)
+            except UavlocError as exc:
+                raise bad(f"{key}.gnb", v.gnb, str(exc)) from None
         if v.gnb_mode:
             if v.gnb_mode not in modes:
                 raise bad(f"{key}.gnb_mode", v.gnb_mode,
@@ -540,14 +554,26 @@ def fleet_address_problem(mc: MissionConfig) -> str | None:
     if missing:
         return (f"a fleet of {n} vehicles is flown with each vehicle's own connect and gnb addresses (the command "
                 f"line's --connect and --gnb address one vehicle); empty: {', '.join(missing)}")
-    for key in ("connect", "gnb"):
-        seen: dict[str, int] = {}
-        for i, v in enumerate(mc.vehicles):
-            address = getattr(v, key)
-            if address in seen:
-                return (f"vehicles[{i}].{key} = {address!r} is also vehicles[{seen[address]}].{key}: each vehicle "
-                        f"of a fleet has its own {'MAVLink address' if key == 'connect' else 'gNB'}")
-            seen[address] = i
+    return duplicate_address_problem(mc, [v.connect for v in mc.vehicles], [v.gnb for v in mc.vehicles],
+                                     [f"vehicles[{i}].{{key}}" for i in range(n)])
+
+
+def duplicate_address_problem(mc: MissionConfig, connects: list[str], gnbs: list[str],
+                              names: list[str]) -> str | None:
+    """Two vehicles given one MAVLink endpoint or one gNB, however spelt (mission.addresses: the
+    hosts resolved, `udp://` as `udpin://`, `telnet://h:p` as `h:p`), or None. names: each
+    vehicle's name with `{key}` for the key ("vehicles[1].{key}")."""
+    from mission.addresses import first_duplicate, gnb_endpoint, mavlink_endpoint
+
+    checks = (("connect", connects, mavlink_endpoint, "MAVLink address"),
+              ("gnb", gnbs, lambda a: gnb_endpoint(a, mc.gnb.transport), "gNB"))
+    for key, addresses, endpoint, what in checks:
+        dup = first_duplicate(addresses, endpoint)
+        if dup is not None:
+            i, j = dup
+            same = "" if addresses[i] == addresses[j] else f" (as {addresses[i]!r})"
+            return (f"{names[j].format(key=key)} = {addresses[j]!r} reaches the same endpoint as "
+                    f"{names[i].format(key=key)}{same}: each vehicle of a fleet has its own {what}")
     return None
 
 

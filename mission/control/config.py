@@ -59,6 +59,8 @@ class ControllerConfig:
 
     time_scale: mission seconds per wall second (simulator speedup);
     connect_timeout_s, ready_timeout_s (wall): the vehicle's connection and readiness;
+    preflight_timeout_s (wall): the whole PREFLIGHT (every vehicle's home, the gNB probes, the
+    planner's preparation), beyond which the mission aborts naming the vehicles not through it;
     gnb_timeout_s (wall): per measurement request; telemetry_log_hz (mission): telemetry records;
     status_interval_s (wall): progress lines;
     position_smooth_s (mission): the position a waypoint's leg is checked from is the mean of
@@ -71,6 +73,7 @@ class ControllerConfig:
     time_scale: float = positive(1.0, MAX_TIME_SCALE)
     connect_timeout_s: float = positive(30.0, MAX_WAIT_S)
     ready_timeout_s: float = positive(60.0, MAX_WAIT_S)
+    preflight_timeout_s: float = positive(300.0, MAX_WAIT_S)
     gnb_timeout_s: float = positive(2.0, MAX_WAIT_S)
     telemetry_log_hz: float = positive(5.0, 1000.0)
     status_interval_s: float = positive(2.0, MAX_WAIT_S)

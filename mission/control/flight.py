@@ -82,7 +82,7 @@ from mission.estimation import MissionEstimator, solver_params_header
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields, read_mission_log
 from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log
-from mission.result import Result, build_result
+from mission.result import Result, VehicleResult, build_result, vehicles_of_events
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.vehicle import Vehicle
 from planner.fleet import REASON_USERS_DONE, FleetPlanner, Separation, vehicles_apart
@@ -92,6 +92,7 @@ from uavloc.errors import (
     GnbPreflightError,
     MissionError,
     MissionLogError,
+    SafetyError,
     UavlocError,
     VehicleError,
 )
@@ -207,6 +208,8 @@ class MissionController:
         #: a fleet's vehicles closer than the separation: (mission t [s], least distance [m]) of each breach
         self.separation_breaches: list[tuple[float, float]] = []
         self._apart = True
+        #: PREFLIGHT: what each vehicle (or the mission) is still waiting for, named if it runs out of time
+        self._pending: dict[str, str] = {}
 
     # -- what the flight knows, for callers and tests --------------------------------------------
 
@@ -309,16 +312,27 @@ class MissionController:
             background.append(tg.create_task(c.vehicle.run_telemetry(c.on_fix, c.clock.update),
                                              name=f"telemetry{self._suffix(c)}"))
             c.flight.set_phase(PREFLIGHT)
-        homes = await asyncio.gather(*(c.vehicle.wait_ready(cfg.ready_timeout_s) for c in self.crews))
-        self._at_home(homes)
-        # the planner's kernels compile (seconds of CPU) while the gNB is probed, not after it
-        prepared = tg.create_task(self._prepare_planner(), name="prepare-planner")
-        background.append(prepared)
-        self._preflight_home()
-        await self._preflight_gnb()
-        for c in self.crews:
-            c.preflight_battery()
-        await prepared
+        self._pending = {c.id: "its home position" for c in self.crews}
+        bound = asyncio.timeout(cfg.preflight_timeout_s)
+        try:
+            async with bound:
+                homes = await asyncio.gather(*(self._step(c, c.vehicle.wait_ready(cfg.ready_timeout_s),
+                                                          "its gNB's probe") for c in self.crews))
+                self._at_home(homes)
+                # the planner's kernels compile (seconds of CPU) while the gNB is probed, not after it
+                prepared = tg.create_task(self._prepare_planner(), name="prepare-planner")
+                background.append(prepared)
+                self._preflight_home()
+                await self._preflight_gnb()
+                for c in self.crews:
+                    c.preflight_battery()
+                self._pending = {"mission": "the planner's preparation"}
+                await prepared
+        except TimeoutError as exc:
+            if not bound.expired():
+                raise
+            raise MissionError(f"PREFLIGHT not done within {cfg.preflight_timeout_s:g} s (wall): still waiting for "
+                               + ", ".join(f"{k}: {v}" for k, v in self._pending.items())) from exc
         for coro, name in ((self._estimator_task(), "estimator"), (self._status_task(), "status"),
                            (self.loop_lag.run(), "loop-lag")):
             background.append(tg.create_task(coro, name=name))
@@ -339,6 +353,14 @@ class MissionController:
         if len(errors) == len(ends):
             raise errors[0]  # every vehicle failed: the mission aborts (a one-vehicle mission: its error)
         return self._mission_end([e for e in ends if not isinstance(e, BaseException)])
+
+    async def _step(self, crew: VehicleCrew, step, then: str):
+        """`await step`, then mark crew's PREFLIGHT as waiting for `then` ("" : done)."""
+        out = await step
+        self._pending[crew.id] = then
+        if not then:
+            del self._pending[crew.id]
+        return out
 
     def _suffix(self, crew: VehicleCrew) -> str:
         return f"-{crew.id}" if self.fleet else ""
@@ -576,10 +598,16 @@ class MissionController:
                                kind="planner_prepared", took_s=round(took_s, 3))
 
     def _preflight_home(self) -> None:
-        """No take-off from a home outside the fence or inside a no-fly zone (geodetic polygons
-        are known in the home frame only now; mission.config refuses ENU ones at load)."""
-        for c in self.crews:
-            c.preflight_home()
+        """No take-off from a home outside the fence, inside a no-fly zone or beyond max_distance_m
+        of the origin (geodetic polygons are known in the home frame only now; mission.config
+        refuses ENU ones at load): a fleet's every vehicle is held to it, and none arms when one fails."""
+        if not self.fleet:
+            self.crews[0].preflight_home()
+            return
+        bad = [(c, p) for c in self.crews for p in [c.home_problems()] if p]
+        if bad:
+            raise SafetyError("not taking off: no vehicle of the fleet arms: " + "; ".join(
+                f"{c.id}'s {'; '.join(p)}" for c, p in bad))
 
     async def _preflight_gnb(self) -> None:
         """No take-off unless every configured user is among the gNB's UEs and answers one
@@ -594,7 +622,7 @@ class MissionController:
         if not self.fleet:
             await self.crews[0].preflight_gnb()
             return
-        probes = await asyncio.gather(*(c.probe_gnb() for c in self.crews))
+        probes = await asyncio.gather(*(self._step(c, c.probe_gnb(), "") for c in self.crews))
         for c, (probe, ok) in zip(self.crews, probes, strict=True):
             if not ok:
                 raise GnbPreflightError(f"not taking off: {c.id}'s gNB: {probe.message()}")
@@ -793,13 +821,27 @@ class MissionController:
                 log.warning("the mission log could not be read back: the result from the flight's counts: %s", exc)
         c = self.crews[0].flight.clock
         surveyed = c.survey_s > 0
+        vehicles, breaches = self._fleet_parts()
         return build_result(
             status=status, reason=reason, user_ids=[u.id for u in self.users], estimate=est, origin=self.origin,
             truth_enu_m=self.truth_enu_m, flown_m=self.flown_m, measurements=self.measurements,
             keyframes=len(self._keyframes), duration_s=self.now(),
             survey_s=c.survey_s if surveyed else None, hover_s=c.hover_s if surveyed else None,
             largest_gap_s=c.largest_gap_s if surveyed else None,
-            log_path=self.log_path if self.origin is not None else None)
+            log_path=self.log_path if self.origin is not None else None, vehicles=vehicles,
+            separation_breaches=breaches)
+
+    def _fleet_parts(self) -> tuple[tuple[VehicleResult, ...], int | None]:
+        """A fleet's `vehicles` and `separation_breaches` for a result not replayed (an aborted
+        fleet's too, docs/fleet.md): from the closed log's events as replay reads them, or, when
+        the log cannot be read back, each vehicle's safe end and the breaches the flight counted."""
+        if not self.fleet:
+            return (), None
+        try:
+            return vehicles_of_events([c.id for c in self.crews], read_mission_log(self.journal.writer.path).events)
+        except (UavlocError, OSError):
+            return (tuple(VehicleResult(c.id, "did not survey", c.rtl_sent, c.landed) for c in self.crews),
+                    len(self.separation_breaches))
 
 
 def _worst_bound_m(bounds_m: np.ndarray) -> float | None:

@@ -72,11 +72,13 @@ def run(args: argparse.Namespace) -> int:
     from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
     from mission.status import print_result, write_report
     from mission.view.live import live_view
-    from sitl_scenarios.scenario import load_scenario, with_autopilot
+    from sitl_scenarios.scenario import check_fleet_load, load_scenario, with_autopilot
     from sitl_scenarios.sim_runner import SimulatedMission
 
     scenario = load_scenario(args.scenario)
     connect = connect_argument(args.connect, scenario)
+    if connect is None:
+        check_fleet_load(scenario, args.speedup)
     if args.autopilot is not None:
         if args.connect is not None:
             log.warning("--autopilot is ignored with --connect (the autopilot says what it is)")
@@ -152,6 +154,13 @@ def connect_argument(text: str | None, scenario) -> str | list[str] | None:
         raise ScenarioError(f"--connect {text!r}: scenario {scenario.name!r} flies {what}; give "
                             f"{'one URL per vehicle, comma-separated' if n > 1 else 'one URL'} "
                             f"({len([u for u in urls if u])} given)")
+    from mission.addresses import first_duplicate, mavlink_endpoint
+
+    dup = first_duplicate(urls, mavlink_endpoint)
+    if dup is not None:
+        i, j = dup
+        raise ScenarioError(f"--connect {text!r}: URL {j + 1} ({urls[j]!r}) reaches the same MAVLink endpoint as URL "
+                            f"{i + 1} ({urls[i]!r}): each vehicle of scenario {scenario.name!r} has its own autopilot")
     return urls if n > 1 else urls[0]
 
 
