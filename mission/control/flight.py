@@ -402,6 +402,7 @@ class MissionController:
                     await legs.survey()
             finally:
                 crew.survey_ended()
+                f.log_return()  # a return requested during the survey: after its survey_time
                 if crew.index == 0:
                     self._note_pace(crew)
                 # its users are nobody's now: the vehicles still surveying plan for them, and
