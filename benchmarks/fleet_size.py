@@ -5,7 +5,7 @@
 
 Each run flies `uavloc sim`'s mission (sitl_scenarios.sim_runner.SimulatedMission) of two_uavs with
 N built-in vehicles (each its own simulator thread, MAVSDK server and simulated gNB), a short
-survey (`--survey-s` mission seconds: [flight] time_limit_s, that and the take-off), in a child process under a wall
+survey (`--survey-s` mission seconds at the cruise speed: [flight] budget_m), in a child process under a wall
 bound, and prints one row per (speed-up, vehicles):
 
 - wall_s: the run's wall seconds (connect, preflight, take-off, survey, return, landing);
@@ -44,10 +44,6 @@ REPO = _HERE.parent
 sys.path[:] = [str(REPO)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 
-#: mission seconds before the survey starts (connect, take-off to 40 m at 3 m/s)
-TAKEOFF_S = 60.0
-
-
 def scenario_dict(n_vehicles: int, n_users: int, survey_s: float, planner: str) -> dict:
     """two_uavs with `n_vehicles` [[vehicles]], `n_users` users on a ring around the origin, a
     survey of `survey_s` mission seconds."""
@@ -64,8 +60,10 @@ def scenario_dict(n_vehicles: int, n_users: int, survey_s: float, planner: str) 
         users.append({"id": uid, "rnti": hex(0x4601 + k)})
         truth[uid] = {"east_m": round(90.0 * np.cos(a), 2), "north_m": round(90.0 * np.sin(a), 2)}
     d["users"], d["truth"] = users, truth
-    # the time limit counts from the start: the take-off to 40 m (about 20 s) comes first
-    d["flight"] = {**d["flight"], "time_limit_s": float(survey_s) + TAKEOFF_S, "planner": planner}
+    # the survey ends on its budget: survey_s at the cruise speed (the time limit counts from the
+    # start, connect and preflight included, which take more mission seconds at a higher speed-up)
+    speed = d["vehicle"]["speed_mps"]
+    d["flight"] = {**d["flight"], "budget_m": float(survey_s) * speed, "planner": planner}
     return d
 
 

@@ -59,8 +59,8 @@ class ControllerConfig:
 
     time_scale: mission seconds per wall second (simulator speedup);
     connect_timeout_s, ready_timeout_s (wall): the vehicle's connection and readiness;
-    preflight_timeout_s (wall): the whole PREFLIGHT (every vehicle's home, the gNB probes, the
-    planner's preparation), beyond which the mission aborts naming the vehicles not through it;
+    preflight_timeout_s (wall): PREFLIGHT once every home is known (the gNB probes, the battery,
+    the planner's preparation), beyond which the mission aborts naming what it still waits for;
     gnb_timeout_s (wall): per measurement request; telemetry_log_hz (mission): telemetry records;
     status_interval_s (wall): progress lines;
     position_smooth_s (mission): the position a waypoint's leg is checked from is the mean of

@@ -312,17 +312,17 @@ class MissionController:
             background.append(tg.create_task(c.vehicle.run_telemetry(c.on_fix, c.clock.update),
                                              name=f"telemetry{self._suffix(c)}"))
             c.flight.set_phase(PREFLIGHT)
-        self._pending = {c.id: "its home position" for c in self.crews}
+        homes = await asyncio.gather(*(c.vehicle.wait_ready(cfg.ready_timeout_s) for c in self.crews))
+        self._at_home(homes)
+        # the planner's kernels compile (seconds of CPU) while the gNB is probed, not after it
+        prepared = tg.create_task(self._prepare_planner(), name="prepare-planner")
+        background.append(prepared)
+        self._preflight_home()
+        # the rest of PREFLIGHT has a wall bound (each vehicle's wait for its home has its own)
+        self._pending = {c.id: "its gNB's probe" for c in self.crews}
         bound = asyncio.timeout(cfg.preflight_timeout_s)
         try:
             async with bound:
-                homes = await asyncio.gather(*(self._step(c, c.vehicle.wait_ready(cfg.ready_timeout_s),
-                                                          "its gNB's probe") for c in self.crews))
-                self._at_home(homes)
-                # the planner's kernels compile (seconds of CPU) while the gNB is probed, not after it
-                prepared = tg.create_task(self._prepare_planner(), name="prepare-planner")
-                background.append(prepared)
-                self._preflight_home()
                 await self._preflight_gnb()
                 for c in self.crews:
                     c.preflight_battery()
@@ -354,12 +354,10 @@ class MissionController:
             raise errors[0]  # every vehicle failed: the mission aborts (a one-vehicle mission: its error)
         return self._mission_end([e for e in ends if not isinstance(e, BaseException)])
 
-    async def _step(self, crew: VehicleCrew, step, then: str):
-        """`await step`, then mark crew's PREFLIGHT as waiting for `then` ("" : done)."""
-        out = await step
-        self._pending[crew.id] = then
-        if not then:
-            del self._pending[crew.id]
+    async def _probed(self, crew: VehicleCrew):
+        """crew's gNB probe (VehicleCrew.probe_gnb); PREFLIGHT no longer waits for it once done."""
+        out = await crew.probe_gnb()
+        self._pending.pop(crew.id, None)
         return out
 
     def _suffix(self, crew: VehicleCrew) -> str:
@@ -623,7 +621,7 @@ class MissionController:
         if not self.fleet:
             await self.crews[0].preflight_gnb()
             return
-        probes = await asyncio.gather(*(self._step(c, c.probe_gnb(), "") for c in self.crews))
+        probes = await asyncio.gather(*(self._probed(c) for c in self.crews))
         for c, (probe, ok) in zip(self.crews, probes, strict=True):
             if not ok:
                 raise GnbPreflightError(f"not taking off: {c.id}'s gNB: {probe.message()}")
