@@ -141,7 +141,7 @@ class SafetyGate:
         fine): outside the fence polygon, inside a no-fly zone, or farther from the ENU origin than
         max_distance_m. home_enu_m: (3,) [m] in the limits' frame (a fleet's: the mission's origin,
         vehicle 0's home); None: the origin itself."""
-        if home_enu_m is None or not np.any(np.asarray(home_enu_m, float)[:2]):
+        if home_enu_m is None or float(np.hypot(*np.asarray(home_enu_m, float)[:2])) < 1e-3:  # at the origin
             return [m.replace("position (0.0, 0.0) m", "home", 1)
                     for m in self.position_violations(np.zeros(3), check_altitude=False)]
         h = np.asarray(home_enu_m, float)
