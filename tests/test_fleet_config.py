@@ -429,3 +429,13 @@ def test_fly_refuses_one_gnb_spelt_two_ways(tmp_path):
     err = _no_traceback(proc)
     assert proc.returncode == 1, err
     assert "vehicles[1].gnb = 'localhost:9' reaches the same endpoint as vehicles[0].gnb" in err, err
+
+
+def test_fly_refuses_an_option_a_one_vehicle_entry_overrides(tmp_path):
+    f = tmp_path / "solo.toml"
+    f.write_text(fleet_text([{"id": "solo", "connect": "udpin://0.0.0.0:14540"}]), encoding="utf-8")
+    proc = _cli(["fly", "--mission", str(f), "--connect", "udpin://0.0.0.0:14541", "--gnb", "127.0.0.1:9", "--out",
+                 str(tmp_path / "out")], tmp_path)
+    err = _no_traceback(proc)
+    assert proc.returncode == 2, err
+    assert "--connect (the file gives vehicles[0].connect) would be ignored" in err and "--gnb" not in err.split(":")[1]

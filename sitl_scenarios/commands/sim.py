@@ -42,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed_argument, metavar="N",
                    help="seed of the simulators and the planner (default: the scenario's)")
     p.add_argument("--speedup", type=in_range(float, 0.0, 1e4, closed=False, what="a number"), default=10.0,
-                   help="simulated seconds per wall second of the built-in vehicle (default 10)")
+                   help="simulated seconds per wall second of the built-in vehicle (default 10); a built-in "
+                        "fleet's vehicles × speed-up is at most 20 (benchmarks/fleet_size.py)")
     p.add_argument("--planner", metavar="NAME",
                    help="casadi, greedy, lawnmower, circle, random, oracle (default: the scenario's, casadi "
                         "when available)")
