@@ -14,7 +14,8 @@ compared as the endpoints they reach, not as text.
 - A gNB (`HOST[:PORT]`, `telnet://HOST[:PORT]`, `http://HOST[:PORT]`, mission.gnb.transport):
   one TCP endpoint, host and port (the default port is the transport's), whatever the scheme.
 
-Pure apart from the resolver; :func:`first_duplicate` is what the configuration checks call.
+Pure apart from the resolver; :func:`fleet_address_problem` is `uavloc fly`'s check of a fleet's
+addresses, :func:`first_duplicate` that of `uavloc sim --connect`.
 """
 
 from __future__ import annotations
@@ -22,9 +23,13 @@ from __future__ import annotations
 import ipaddress
 import os
 import socket
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mission.config import MissionConfig
 
 #: what every local (loopback or wildcard) host resolves to
 LOCAL = "this machine"
@@ -113,11 +118,45 @@ def gnb_endpoint(address: str, default_transport: str = "telnet") -> Endpoint:
     return Endpoint("tcp", False, resolve_host(a.host), a.port)
 
 
-def first_duplicate(addresses: Sequence[str], endpoint: Callable[[str], Endpoint]) -> tuple[int, int] | None:
-    """(i, j), i < j, of the first two addresses that reach one endpoint, or None."""
-    ends = [endpoint(a) for a in addresses]
+def first_duplicate(ends: Sequence[Endpoint]) -> tuple[int, int] | None:
+    """(i, j), i < j, of the first two endpoints that are one (:meth:`Endpoint.same`), or None."""
     for j in range(len(ends)):
         for i in range(j):
             if ends[i].same(ends[j]):
                 return i, j
+    return None
+
+
+def fleet_address_problem(mc: MissionConfig) -> str | None:
+    """What `uavloc fly` lacks to reach the vehicles and gNBs of `mc` (a mission.config.MissionConfig),
+    or None. A fleet of two or more vehicles needs every vehicle's own `connect` and `gnb` (the
+    command line's --connect and --gnb address one vehicle), well formed, no two on one endpoint
+    however spelt; a mission without `[[vehicles]]` or with one vehicle takes what it leaves out
+    from the command line. Not a check of mission.config.validate_mission: a simulation gives every
+    vehicle its addresses itself."""
+    from uavloc.errors import UavlocError
+
+    n = len(mc.vehicles)
+    if n < 2:
+        return None
+    missing = [f"vehicles[{i}].{key} ({v.id})" for i, v in enumerate(mc.vehicles)
+               for key in ("connect", "gnb") if not getattr(v, key)]
+    if missing:
+        return (f"a fleet of {n} vehicles is flown with each vehicle's own connect and gnb addresses (the command "
+                f"line's --connect and --gnb address one vehicle); not given: {', '.join(missing)}")
+    gnbs = []
+    for i, v in enumerate(mc.vehicles):
+        try:
+            gnbs.append(gnb_endpoint(v.gnb, mc.gnb.transport))
+        except UavlocError as exc:
+            return f"vehicles[{i}].gnb = {v.gnb!r}: {exc}"
+    checks = (("connect", [v.connect for v in mc.vehicles], [mavlink_endpoint(v.connect) for v in mc.vehicles],
+               "MAVLink address"), ("gnb", [v.gnb for v in mc.vehicles], gnbs, "gNB"))
+    for key, texts, ends, what in checks:
+        dup = first_duplicate(ends)
+        if dup is not None:
+            i, j = dup
+            same = "" if texts[i] == texts[j] else f" (as {texts[i]!r})"
+            return (f"vehicles[{j}].{key} = {texts[j]!r} reaches the same endpoint as vehicles[{i}].{key}{same}: "
+                    f"each vehicle of a fleet has its own {what}")
     return None

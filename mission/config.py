@@ -291,7 +291,7 @@ class VehicleEntryConfig:
     mission's); it cruises at the mission's `altitude_m` clipped into its band
     (:meth:`MissionConfig.vehicle_cruise_alt_m`). A simulation gives each vehicle its addresses
     itself, and a scenario's entries hold neither (sitl_scenarios.scenario);
-    :func:`fleet_address_problem` says what a flight lacks."""
+    :func:`mission.addresses.fleet_address_problem` says what a flight lacks."""
 
     id: str
     connect: str | None = None
@@ -493,7 +493,8 @@ def validate_mission(mc: MissionConfig, where: str) -> None:
 
 def _validate_vehicles(mc: MissionConfig, bad: Callable[[str, Any, str], UavlocError]) -> None:
     """The checks of `[[vehicles]]` (validate_mission): ids, gNB modes, altitude bands. The
-    addresses are not checked here (a simulation gives them itself): :func:`fleet_address_problem`."""
+    addresses are not checked here (a simulation gives them itself):
+    :func:`mission.addresses.fleet_address_problem`."""
     f = mc.flight
     modes = typing.get_args(typing.get_type_hints(GnbSettings)["mode"])
     ids: dict[str, int] = {}
@@ -509,13 +510,6 @@ def _validate_vehicles(mc: MissionConfig, bad: Callable[[str, Any, str], UavlocE
             if value is not None and not value.strip():
                 raise bad(f"{key}.{name}", value, f"empty: leave the key out for the command line's --{name} (one "
                           "vehicle only), or give the address")
-        if v.gnb:
-            from mission.gnb.transport import parse_gnb_address
-
-            try:
-                parse_gnb_address(v.gnb, default=mc.gnb.transport)
-            except UavlocError as exc:
-                raise bad(f"{key}.gnb", v.gnb, str(exc)) from None
         if v.gnb_mode:
             if v.gnb_mode not in modes:
                 raise bad(f"{key}.gnb_mode", v.gnb_mode,
@@ -538,43 +532,6 @@ def _validate_vehicles(mc: MissionConfig, bad: Callable[[str, Any, str], UavlocE
             raise bad(f"{key}.{side}" if side else key, getattr(v, side) if side else [lo, hi],
                       f"the vehicle's band [{lo:g}, {hi:g}] m (a side left out is the mission's flight.alt_min_m / "
                       f"alt_max_m) is {why}; a vehicle's band is at least {MIN_VEHICLE_BAND_M:g} m thick")
-
-
-def fleet_address_problem(mc: MissionConfig) -> str | None:
-    """What `uavloc fly` lacks to reach the vehicles and gNBs of `mc`, or None. A fleet of two or
-    more vehicles needs every vehicle's own `connect` and `gnb` (the command line's --connect and
-    --gnb address one vehicle), no two the same; a mission without `[[vehicles]]` or with one
-    vehicle takes what it leaves out from the command line. Not a check of :func:`validate_mission`:
-    a simulation gives every vehicle its addresses itself."""
-    n = len(mc.vehicles)
-    if n < 2:
-        return None
-    missing = [f"vehicles[{i}].{key} ({v.id})" for i, v in enumerate(mc.vehicles)
-               for key in ("connect", "gnb") if not getattr(v, key)]
-    if missing:
-        return (f"a fleet of {n} vehicles is flown with each vehicle's own connect and gnb addresses (the command "
-                f"line's --connect and --gnb address one vehicle); empty: {', '.join(missing)}")
-    return duplicate_address_problem(mc, [v.connect for v in mc.vehicles], [v.gnb for v in mc.vehicles],
-                                     [f"vehicles[{i}].{{key}}" for i in range(n)])
-
-
-def duplicate_address_problem(mc: MissionConfig, connects: list[str], gnbs: list[str],
-                              names: list[str]) -> str | None:
-    """Two vehicles given one MAVLink endpoint or one gNB, however spelt (mission.addresses: the
-    hosts resolved, `udp://` as `udpin://`, `telnet://h:p` as `h:p`), or None. names: each
-    vehicle's name with `{key}` for the key ("vehicles[1].{key}")."""
-    from mission.addresses import first_duplicate, gnb_endpoint, mavlink_endpoint
-
-    checks = (("connect", connects, mavlink_endpoint, "MAVLink address"),
-              ("gnb", gnbs, lambda a: gnb_endpoint(a, mc.gnb.transport), "gNB"))
-    for key, addresses, endpoint, what in checks:
-        dup = first_duplicate(addresses, endpoint)
-        if dup is not None:
-            i, j = dup
-            same = "" if addresses[i] == addresses[j] else f" (as {addresses[i]!r})"
-            return (f"{names[j].format(key=key)} = {addresses[j]!r} reaches the same endpoint as "
-                    f"{names[i].format(key=key)}{same}: each vehicle of a fleet has its own {what}")
-    return None
 
 
 def survey_s(flight: FlightConfig) -> float:

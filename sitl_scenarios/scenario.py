@@ -35,6 +35,7 @@ from mission import config as mc
 from mission import schema
 from mission.config import MAX_DISTANCE_M
 from mission.schema import bounded, like, positive
+from planner.fleet import Separation
 from planner.types import PlanningConstraints
 from sitl_scenarios.gnb.faults import GnbFaults
 from sitl_scenarios.vehicle_faults import FaultEvent, check_fault_event
@@ -362,6 +363,20 @@ def _check(sc: Scenario, where: str) -> None:
                               f"no [[vehicles]] entry has this id (ids: {vehicle_ids})", ScenarioError)
 
 
+def launch_points_enu_m(home_enu_m: np.ndarray, n_vehicles: int, separation: Separation) -> np.ndarray:
+    """(V, 3) where a simulated fleet's vehicles take off: on a ring around home, vehicle v at bearing
+    θ_v = 2πv/V from east, neighbours 5 m more than the horizontal separation
+    apart (one vehicle: at home). A UE attaches to the nearest cell at take-off, so a ring gives each
+    vehicle the users of its own sector; on a line, the middle vehicle of three took off with none."""
+    home = np.asarray(home_enu_m, float)
+    if n_vehicles == 1:
+        return home[None, :].copy()
+    # neighbours on the ring a chord 2 r sin(π/V) = separation + 5 m apart
+    r = (separation.horizontal_m + 5.0) / (2.0 * np.sin(np.pi / n_vehicles))
+    theta = 2.0 * np.pi * np.arange(n_vehicles) / n_vehicles
+    return home[None, :] + np.column_stack([r * np.cos(theta), r * np.sin(theta), np.zeros(n_vehicles)])
+
+
 def _check_launch_points(sc: Scenario, where: str) -> None:
     """A built-in fleet takes off from its launch points (sitl_scenarios.fleet: a ring whose size
     grows with `[safety] separation_m`): each must be a place one vehicle's home may be, inside the
@@ -370,11 +385,12 @@ def _check_launch_points(sc: Scenario, where: str) -> None:
     if sc.mission.fleet_size < 2:
         return
     from mission.safety import SafetyGate, SafetyLimits
-    from sitl_scenarios.fleet import scenario_launch_points_enu_m
 
     fence, zones = sc.geofence.polygons_enu_m(sc.origin_geo)
     gate = SafetyGate(SafetyLimits(fence_enu_m=fence, no_fly_enu_m=zones, max_distance_m=sc.geofence.max_distance_m))
-    points = scenario_launch_points_enu_m(sc)
+    safety = sc.mission.safety
+    points = launch_points_enu_m(np.zeros(3), sc.mission.fleet_size,
+                                 Separation(safety.separation_m, safety.separation_vertical_m))
     bad = [(v, p, gate.home_violations(p)) for v, p in zip(sc.mission.vehicles, points, strict=True)]
     bad = [b for b in bad if b[2]]
     if bad:

@@ -55,8 +55,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
+    from mission.addresses import fleet_address_problem
     from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
-    from mission.config import fleet_address_problem, load_mission, with_settings
+    from mission.config import load_mission, with_settings
     from mission.controller import controller_from_mission, resolve_planner_name
     from mission.gnb import GnbConfig, OaiGnbClient, parse_gnb_address
     from mission.status import print_result, write_report

@@ -157,7 +157,7 @@ def connect_argument(text: str | None, scenario) -> str | list[str] | None:
                             f"({len([u for u in urls if u])} given)")
     from mission.addresses import first_duplicate, mavlink_endpoint
 
-    dup = first_duplicate(urls, mavlink_endpoint)
+    dup = first_duplicate([mavlink_endpoint(u) for u in urls])
     if dup is not None:
         i, j = dup
         raise ScenarioError(f"--connect {text!r}: URL {j + 1} ({urls[j]!r}) reaches the same MAVLink endpoint as URL "
