@@ -282,18 +282,20 @@ MIN_VEHICLE_BAND_M = 5.0
 class VehicleEntryConfig:
     """One vehicle of a fleet (a `[[vehicles]]` entry; issue 41: each UAV carries its own gNB).
     id: its name, unique in the file (letters, digits, `_` and `-`, 1..32 of them); connect: the
-    MAVLink address `uavloc fly` connects it with (e.g. "udpin://0.0.0.0:14541"; empty: the command
-    line's --connect, for a one-vehicle fleet only); gnb: its gNB's address as `--gnb` takes it
-    (empty: the command line's --gnb, for a one-vehicle fleet only); gnb_mode: its gNB's `[gnb]
+    MAVLink address `uavloc fly` connects it with (e.g. "udpin://0.0.0.0:14541"; absent: the command
+    line's --connect, for a one-vehicle fleet only; an empty string is an error, not "absent");
+    gnb: its gNB's address as `--gnb` takes it (absent: the command line's --gnb, for a one-vehicle
+    fleet only); gnb_mode: its gNB's `[gnb]
     mode` (empty: the mission's); alt_min_m, alt_max_m: its altitude band above home [m], inside
     the mission's `[flight]` band and at least MIN_VEHICLE_BAND_M thick (a side left out is the
     mission's); it cruises at the mission's `altitude_m` clipped into its band
     (:meth:`MissionConfig.vehicle_cruise_alt_m`). A simulation gives each vehicle its addresses
-    itself; :func:`fleet_address_problem` says what a flight lacks."""
+    itself, and a scenario's entries hold neither (sitl_scenarios.scenario);
+    :func:`mission.addresses.fleet_address_problem` says what a flight lacks."""
 
     id: str
-    connect: str = ""
-    gnb: str = ""
+    connect: str | None = None
+    gnb: str | None = None
     gnb_mode: str = ""
     alt_min_m: float | None = bounded(None, 0.0, MAX_HEIGHT_M)
     alt_max_m: float | None = positive(None, MAX_HEIGHT_M)
@@ -491,7 +493,8 @@ def validate_mission(mc: MissionConfig, where: str) -> None:
 
 def _validate_vehicles(mc: MissionConfig, bad: Callable[[str, Any, str], UavlocError]) -> None:
     """The checks of `[[vehicles]]` (validate_mission): ids, gNB modes, altitude bands. The
-    addresses are not checked here (a simulation gives them itself): :func:`fleet_address_problem`."""
+    addresses are not checked here (a simulation gives them itself):
+    :func:`mission.addresses.fleet_address_problem`."""
     f = mc.flight
     modes = typing.get_args(typing.get_type_hints(GnbSettings)["mode"])
     ids: dict[str, int] = {}
@@ -502,6 +505,11 @@ def _validate_vehicles(mc: MissionConfig, bad: Callable[[str, Any, str], UavlocE
         if v.id in ids:
             raise bad(f"{key}.id", v.id, f"duplicate vehicle id (vehicles[{ids[v.id]}] has it)")
         ids[v.id] = i
+        for name in ("connect", "gnb"):
+            value = getattr(v, name)
+            if value is not None and not value.strip():
+                raise bad(f"{key}.{name}", value, f"empty: leave the key out for the command line's --{name} (one "
+                          "vehicle only), or give the address")
         if v.gnb_mode:
             if v.gnb_mode not in modes:
                 raise bad(f"{key}.gnb_mode", v.gnb_mode,
@@ -524,31 +532,6 @@ def _validate_vehicles(mc: MissionConfig, bad: Callable[[str, Any, str], UavlocE
             raise bad(f"{key}.{side}" if side else key, getattr(v, side) if side else [lo, hi],
                       f"the vehicle's band [{lo:g}, {hi:g}] m (a side left out is the mission's flight.alt_min_m / "
                       f"alt_max_m) is {why}; a vehicle's band is at least {MIN_VEHICLE_BAND_M:g} m thick")
-
-
-def fleet_address_problem(mc: MissionConfig) -> str | None:
-    """What `uavloc fly` lacks to reach the vehicles and gNBs of `mc`, or None. A fleet of two or
-    more vehicles needs every vehicle's own `connect` and `gnb` (the command line's --connect and
-    --gnb address one vehicle), no two the same; a mission without `[[vehicles]]` or with one
-    vehicle takes what it leaves out from the command line. Not a check of :func:`validate_mission`:
-    a simulation gives every vehicle its addresses itself."""
-    n = len(mc.vehicles)
-    if n < 2:
-        return None
-    missing = [f"vehicles[{i}].{key} ({v.id})" for i, v in enumerate(mc.vehicles)
-               for key in ("connect", "gnb") if not getattr(v, key)]
-    if missing:
-        return (f"a fleet of {n} vehicles is flown with each vehicle's own connect and gnb addresses (the command "
-                f"line's --connect and --gnb address one vehicle); empty: {', '.join(missing)}")
-    for key in ("connect", "gnb"):
-        seen: dict[str, int] = {}
-        for i, v in enumerate(mc.vehicles):
-            address = getattr(v, key)
-            if address in seen:
-                return (f"vehicles[{i}].{key} = {address!r} is also vehicles[{seen[address]}].{key}: each vehicle "
-                        f"of a fleet has its own {'MAVLink address' if key == 'connect' else 'gNB'}")
-            seen[address] = i
-    return None
 
 
 def survey_s(flight: FlightConfig) -> float:

@@ -330,7 +330,8 @@ def vehicles_of_events(vehicle_ids: Sequence[str], events: Sequence[dict]) -> tu
     """A fleet's vehicles (one :class:`VehicleResult` each, in `vehicle_ids` order) and its
     separation breaches, from the mission log's `event` records (each naming its `vehicle` by
     index; absent: vehicle 0). The last `stop`, `return`, `abort` or `target_in_final_answer` of a
-    vehicle before its survey's `survey_time` says how its part ended (a survey the final answer
+    vehicle before its survey's `survey_time`, or a `return` requested during the survey and logged
+    after it (`in_survey`), says how its part ended (a survey the final answer
     sent on ends again later; a return requested on the way home changes nothing); its last
     `survey_time` gives its metres and seconds."""
     n = len(vehicle_ids)
@@ -347,7 +348,11 @@ def vehicles_of_events(vehicle_ids: Sequence[str], events: Sequence[dict]) -> tu
         v = e.get("vehicle", 0)
         if not isinstance(v, int) or isinstance(v, bool) or not 0 <= v < n:
             continue
-        if kind in _ENDS and ended[v] is None:
+        if kind == "return" and e.get("in_survey") is True and ended[v] is not None:
+            # requested during the survey, logged after its survey_time: it ended the survey
+            reason = e.get("reason")
+            ended[v] = f"{_ENDS[kind]}: {reason if isinstance(reason, str) else e.get('message', '')}"
+        elif kind in _ENDS and ended[v] is None:
             reason = e.get("reason")
             pending[v] = f"{_ENDS[kind]}: {reason if isinstance(reason, str) else e.get('message', '')}"
         elif kind == "target_in_final_answer" and ended[v] is None:

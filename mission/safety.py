@@ -136,11 +136,19 @@ class SafetyGate:
                        f"[{lim.alt_min_m:g}, {lim.alt_max_m:g}] m")
         return out
 
-    def home_violations(self) -> list[str]:
-        """Every limit home (the ENU origin, where the vehicle takes off and lands) breaks, as
-        messages (empty: fine): outside the fence polygon or inside a no-fly zone."""
-        return [m.replace("position (0.0, 0.0) m", "home", 1)
-                for m in self.position_violations(np.zeros(3), check_altitude=False)]
+    def home_violations(self, home_enu_m: np.ndarray | None = None) -> list[str]:
+        """Every limit a vehicle's home (where it takes off and lands) breaks, as messages (empty:
+        fine): outside the fence polygon, inside a no-fly zone, or farther from the ENU origin than
+        max_distance_m. home_enu_m: (3,) [m] in the limits' frame (a fleet's: the mission's origin,
+        vehicle 0's home); None: the origin itself."""
+        if home_enu_m is None or float(np.hypot(*np.asarray(home_enu_m, float)[:2])) < 1e-3:  # at the origin
+            return [m.replace("position (0.0, 0.0) m", "home", 1)
+                    for m in self.position_violations(np.zeros(3), check_altitude=False)]
+        h = np.asarray(home_enu_m, float)
+        where = f"position ({h[0]:.1f}, {h[1]:.1f}) m"
+        return [m.replace(where, f"home {where[len('position '):]}", 1).replace(
+                    "m from home exceeds", "m from the mission's origin exceeds", 1)
+                for m in self.position_violations(h, check_altitude=False)]
 
     def check_goto(self, target_enu_m: np.ndarray, current_enu_m: np.ndarray | None,
                    others: Sequence[np.ndarray] = ()) -> None:
@@ -163,8 +171,9 @@ class SafetyGate:
             leg = np.array([np.asarray(current_enu_m, float), t])
             close = sum(1 for o in others if not legs_separated(leg, np.asarray(o, float), sep))
             if close:
+                whose = "another vehicle's leg" if close == 1 else f"{close} other vehicles' legs"
                 problems.append(f"the leg comes within {sep.horizontal_m:g} m (and {sep.vertical_m:g} m in "
-                                f"altitude) of {close} other vehicle{'s' if close > 1 else ''}' leg")
+                                f"altitude) of {whose}")
         if problems:
             raise SafetyError(
                 f"waypoint ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) m refused: " + "; ".join(problems)

@@ -7,22 +7,8 @@ import numpy as np
 
 from estimator.geodesy import Origin
 from planner.fleet import Separation
-from sitl_scenarios.scenario import Scenario
+from sitl_scenarios.scenario import Scenario, launch_points_enu_m
 from uavloc.errors import SimulatorError
-
-
-def launch_points_enu_m(home_enu_m: np.ndarray, n_vehicles: int, separation: Separation) -> np.ndarray:
-    """(V, 3) where a simulated fleet's vehicles take off: on a ring around home, vehicle v at bearing
-    θ_v = 2πv/V from east, neighbours 5 m more than the horizontal separation
-    apart (one vehicle: at home). A UE attaches to the nearest cell at take-off, so a ring gives each
-    vehicle the users of its own sector; on a line, the middle vehicle of three took off with none."""
-    home = np.asarray(home_enu_m, float)
-    if n_vehicles == 1:
-        return home[None, :].copy()
-    # neighbours on the ring a chord 2 r sin(π/V) = separation + 5 m apart
-    r = (separation.horizontal_m + 5.0) / (2.0 * np.sin(np.pi / n_vehicles))
-    theta = 2.0 * np.pi * np.arange(n_vehicles) / n_vehicles
-    return home[None, :] + np.column_stack([r * np.cos(theta), r * np.sin(theta), np.zeros(n_vehicles)])
 
 
 def scenario_launch_points_enu_m(scenario: Scenario) -> np.ndarray:

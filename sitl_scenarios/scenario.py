@@ -35,6 +35,7 @@ from mission import config as mc
 from mission import schema
 from mission.config import MAX_DISTANCE_M
 from mission.schema import bounded, like, positive
+from planner.fleet import Separation
 from planner.types import PlanningConstraints
 from sitl_scenarios.gnb.faults import GnbFaults
 from sitl_scenarios.vehicle_faults import FaultEvent, check_fault_event
@@ -44,6 +45,14 @@ SCENARIO_DIR = Path(__file__).resolve().parent
 
 #: the largest seed (numpy's SeedSequence takes non-negative integers; 32 bits is plenty)
 MAX_SEED = 2**32 - 1
+
+#: the largest built-in fleet × speed-up `uavloc sim` flies, and the largest built-in fleet at any
+#: speed-up (benchmarks/fleet_size.py on 2 cores, docs/fleet.md): each built-in vehicle is a
+#: simulator thread, a MAVSDK server and a simulated gNB, whose work grows with the speed-up;
+#: beyond them the loop lags by seconds and the gNBs go unanswered (8 vehicles at ×5: lag p99 9.5 s,
+#: no range), then the fleet does not end (16 at ×5); 4 at ×5 held, as two_uavs does at ×10
+MAX_VEHICLE_SPEEDUP = 20.0
+MAX_BUILTIN_VEHICLES = 8
 
 
 @dataclass(frozen=True)
@@ -338,12 +347,60 @@ def _check(sc: Scenario, where: str) -> None:
         if len(b.footprint_enu_m) < 3:
             raise schema.fail(where, f"buildings[{i}].footprint_enu_m", b.footprint_enu_m,
                               "needs >= 3 [east, north] points", ScenarioError)
+    for i, v in enumerate(sc.mission.vehicles):
+        for key in ("connect", "gnb"):
+            if getattr(v, key) is not None:
+                raise schema.fail(where, f"vehicles[{i}].{key}", getattr(v, key),
+                                  "a scenario's vehicles are the simulator's: `uavloc sim` gives each its own "
+                                  "addresses (built-in vehicles and simulated gNBs; external autopilots by "
+                                  "`--connect URL,URL`), so the key would be ignored; leave it out", ScenarioError)
+    _check_launch_points(sc, where)
     vehicle_ids = [v.id for v in sc.mission.vehicles]
     for i, ev in enumerate(sc.faults.vehicle):
         check_fault_event(ev, where, f"faults.vehicle[{i}]")
         if ev.vehicle and ev.vehicle not in vehicle_ids:
             raise schema.fail(where, f"faults.vehicle[{i}].vehicle", ev.vehicle,
                               f"no [[vehicles]] entry has this id (ids: {vehicle_ids})", ScenarioError)
+
+
+def launch_points_enu_m(home_enu_m: np.ndarray, n_vehicles: int, separation: Separation) -> np.ndarray:
+    """(V, 3) where a simulated fleet's vehicles take off: on a ring around home, vehicle v at bearing
+    θ_v = 2πv/V from east, neighbours 5 m more than the horizontal separation
+    apart (one vehicle: at home). A UE attaches to the nearest cell at take-off, so a ring gives each
+    vehicle the users of its own sector; on a line, the middle vehicle of three took off with none."""
+    home = np.asarray(home_enu_m, float)
+    if n_vehicles == 1:
+        return home[None, :].copy()
+    # neighbours on the ring a chord 2 r sin(π/V) = separation + 5 m apart
+    r = (separation.horizontal_m + 5.0) / (2.0 * np.sin(np.pi / n_vehicles))
+    theta = 2.0 * np.pi * np.arange(n_vehicles) / n_vehicles
+    return home[None, :] + np.column_stack([r * np.cos(theta), r * np.sin(theta), np.zeros(n_vehicles)])
+
+
+def _check_launch_points(sc: Scenario, where: str) -> None:
+    """A built-in fleet takes off from its launch points (sitl_scenarios.fleet: a ring whose size
+    grows with `[safety] separation_m`): each must be a place one vehicle's home may be, inside the
+    fence, outside every no-fly zone, within max_distance_m of the origin, as a flight checks a
+    vehicle's home before take-off (mission.safety.SafetyGate.home_violations)."""
+    if sc.mission.fleet_size < 2:
+        return
+    from mission.safety import SafetyGate, SafetyLimits
+
+    fence, zones = sc.geofence.polygons_enu_m(sc.origin_geo)
+    gate = SafetyGate(SafetyLimits(fence_enu_m=fence, no_fly_enu_m=zones, max_distance_m=sc.geofence.max_distance_m))
+    safety = sc.mission.safety
+    points = launch_points_enu_m(np.zeros(3), sc.mission.fleet_size,
+                                 Separation(safety.separation_m, safety.separation_vertical_m))
+    bad = [(v, p, gate.home_violations(p)) for v, p in zip(sc.mission.vehicles, points, strict=True)]
+    bad = [b for b in bad if b[2]]
+    if bad:
+        radius_m = float(np.hypot(*points[0, :2]))
+        raise schema.fail(where, "safety.separation_m", sc.mission.safety.separation_m,
+                          f"the {sc.mission.fleet_size} vehicles take off on a ring of {radius_m:.1f} m around the "
+                          f"origin (neighbours separation_m + 5 m apart), and "
+                          + "; ".join(f"{v.id}'s {'; '.join(why)}" for v, _, why in bad)
+                          + ": no vehicle takes off from there (a smaller separation_m or fleet, or a wider "
+                            "[geofence])", ScenarioError)
 
 
 def scenario_from_dict(data: dict, where: str = "scenario") -> Scenario:
@@ -427,6 +484,26 @@ def load_scenario(name_or_path: str | Path, base_dir: Path | None = None) -> Sce
     """Read a scenario file (or a bundled scenario by name, :func:`resolve_scenario_path`) strictly."""
     path = resolve_scenario_path(name_or_path, base_dir)
     return scenario_from_dict(schema.read_toml(path, "scenario file", ScenarioError), str(path))
+
+
+def check_fleet_load(scenario: Scenario, speedup: float) -> None:
+    """MissionError unless this machine carries the scenario's built-in fleet at `speedup`:
+    at most MAX_BUILTIN_VEHICLES vehicles and vehicles × speed-up at most MAX_VEHICLE_SPEEDUP."""
+    from uavloc.errors import MissionError
+
+    n = scenario.mission.fleet_size
+    load = n * speedup
+    if n <= MAX_BUILTIN_VEHICLES and load <= MAX_VEHICLE_SPEEDUP:
+        return
+    why = (f"{n} vehicles, more than the {MAX_BUILTIN_VEHICLES} built-in vehicles it can carry"
+           if n > MAX_BUILTIN_VEHICLES else
+           f"{n} vehicles × speed-up {speedup:g} = {load:g}, above the {MAX_VEHICLE_SPEEDUP:g} it can carry")
+    hint = (f"--speedup {MAX_VEHICLE_SPEEDUP / n:g} or less" if n <= MAX_BUILTIN_VEHICLES
+            else f"at most {MAX_BUILTIN_VEHICLES} [[vehicles]]")
+    raise MissionError(f"scenario {scenario.name!r} flies {n} built-in vehicles at ×{speedup:g}: {why} "
+                       f"(vehicles × speed-up <= {MAX_VEHICLE_SPEEDUP:g}, at most {MAX_BUILTIN_VEHICLES} "
+                       f"vehicles: benchmarks/fleet_size.py on 2 cores; beyond, the loop lags by seconds, the gNBs "
+                       f"go unanswered and the fleet stalls); give {hint}")
 
 
 def with_autopilot(scenario: Scenario, autopilot: str) -> Scenario:

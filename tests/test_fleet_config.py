@@ -5,7 +5,10 @@ in scenario files and the log header. Nothing here flies."""
 from __future__ import annotations
 
 import copy
+import os
 import re
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -13,12 +16,12 @@ import numpy as np
 import pytest
 
 from estimator.geodesy import Origin
+from mission.addresses import fleet_address_problem
 from mission.config import (
     MissionConfig,
     SafetyConfig,
     VehicleEntryConfig,
     example_mission_path,
-    fleet_address_problem,
     load_mission,
     mission_from_dict,
     with_settings,
@@ -29,7 +32,8 @@ from uavloc.errors import MissionConfigError, ScenarioError
 
 EXAMPLE = example_mission_path()
 HOME = Origin(47.397742, 8.545594, 488.0)
-DOC = Path(__file__).resolve().parents[1] / "docs" / "config-files.md"
+REPO = Path(__file__).resolve().parents[1]
+DOC = REPO / "docs" / "config-files.md"
 #: the example mission's [flight] band is [20, 80] m, its altitude 40 m
 FLEET = [
     {"id": "uav-a", "connect": "udpin://0.0.0.0:14541", "gnb": "10.0.0.11:9090", "alt_max_m": 35.0},
@@ -165,14 +169,15 @@ def test_a_bad_fleet_is_refused_from_disk(tmp_path):
 
 def test_missing_addresses_load_and_fleet_address_problem_says_what_a_flight_lacks():
     # a simulation gives every vehicle its addresses: the file loads
-    mc = mission_from_dict(example_dict(_vehicle(1, connect=None, gnb="")))
+    mc = mission_from_dict(example_dict(_vehicle(1, connect=None, gnb=None)))
     problem = fleet_address_problem(mc)
     assert problem is not None
     assert "vehicles[1].connect (uav_B2)" in problem and "vehicles[1].gnb (uav_B2)" in problem
     assert "vehicles[0]" not in problem and "--connect" in problem
     mc = mission_from_dict(example_dict(_vehicle(1, gnb=FLEET[0]["gnb"])))
     problem = fleet_address_problem(mc)
-    assert problem is not None and "vehicles[1].gnb = '10.0.0.11:9090' is also vehicles[0].gnb" in problem
+    assert problem is not None and "vehicles[1].gnb = '10.0.0.11:9090' reaches the same endpoint as vehicles[0].gnb" \
+        in problem
     mc = mission_from_dict(example_dict(_vehicle(1, connect=FLEET[0]["connect"])))
     assert "vehicles[1].connect" in (fleet_address_problem(mc) or "")
     # one vehicle, or none: the command line's --connect and --gnb address it
@@ -188,9 +193,13 @@ def _scenario_doc(vehicles: list[dict] | None = None) -> dict:
     return d
 
 
+#: FLEET as a scenario names it: the simulator gives every vehicle its addresses
+SIM_FLEET = [{k: v for k, v in e.items() if k not in ("connect", "gnb")} for e in FLEET]
+
+
 def test_a_scenarios_vehicles_are_its_missions_as_in_a_mission_file():
-    sc = scenario_from_dict(_scenario_doc(FLEET), "fleet_scenario.toml")
-    mission_only = {k: v for k, v in _scenario_doc(FLEET).items()
+    sc = scenario_from_dict(_scenario_doc(SIM_FLEET), "fleet_scenario.toml")
+    mission_only = {k: v for k, v in _scenario_doc(SIM_FLEET).items()
                     if k in {f for f in MissionConfig.__dataclass_fields__}}
     assert sc.mission.vehicles == mission_from_dict(mission_only).vehicles
     assert sc.mission.fleet_size == 2 and sc.mission.vehicle_band_m(1) == (50.0, 70.0)
@@ -241,3 +250,192 @@ def test_the_documented_example_loads():
     mc = mission_from_dict(data, str(DOC))
     assert mc.fleet_size == 2 and fleet_address_problem(mc) is None
     assert mc.vehicle_band_m(0) == (20.0, 45.0) and mc.vehicle_band_m(1) == (55.0, 80.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# the fleet as a whole (issue 49): addresses as endpoints, keys a command would ignore, launch points
+
+
+def _with_addresses(key: str, a: str, b: str) -> list[dict]:
+    out = copy.deepcopy(FLEET)
+    out[0][key], out[1][key] = a, b
+    return out
+
+
+# (key, address of vehicle 0, of vehicle 1): one endpoint spelt two ways
+SAME = [
+    ("connect", "udpin://0.0.0.0:14541", "udpin://127.0.0.1:14541"),
+    ("connect", "udpin://0.0.0.0:14541", "udp://:14541"),
+    ("connect", "udpin://localhost:14541", "udpin://0.0.0.0:14541"),
+    ("connect", "udpin://192.0.2.7:14541", "udpin://0.0.0.0:14541"),  # a wildcard takes the port on every address
+    ("connect", "tcp://127.0.0.1:5760", "tcpout://localhost:5760"),
+    ("connect", "serial:///dev/ttyACM0:57600", "serial:///dev/ttyACM0:115200"),
+    ("gnb", "telnet://10.0.0.11:9090", "10.0.0.11:9090"),
+    ("gnb", "10.0.0.11", "10.0.0.11:9090"),
+    ("gnb", "0.0.0.0:9090", "127.0.0.1:9090"),
+    ("gnb", "localhost:9090", "127.0.0.1:9090"),
+    ("gnb", "http://10.0.0.11:8090/", "10.0.0.11:8090"),
+]
+# two endpoints
+APART = [
+    ("connect", "udpin://0.0.0.0:14541", "udpin://0.0.0.0:14542"),
+    ("connect", "udpin://0.0.0.0:14541", "udpout://127.0.0.1:14541"),
+    ("connect", "udpout://10.0.0.1:14541", "udpout://10.0.0.2:14541"),
+    ("connect", "udpin://192.0.2.7:14541", "udpin://192.0.2.8:14541"),
+    ("connect", "serial:///dev/ttyACM0:57600", "serial:///dev/ttyACM1:57600"),
+    ("gnb", "10.0.0.11:9090", "10.0.0.11:9091"),
+    ("gnb", "http://10.0.0.11", "10.0.0.11"),  # 8090 and 9090
+]
+
+
+@pytest.mark.parametrize(("key", "a", "b"), SAME, ids=[f"{k}-{b}" for k, _, b in SAME])
+def test_one_endpoint_spelt_two_ways_is_a_duplicate_address(key, a, b):
+    problem = fleet_address_problem(mission_from_dict(example_dict(_with_addresses(key, a, b))))
+    assert problem is not None, (a, b)
+    assert f"vehicles[1].{key} = {b!r} reaches the same endpoint as vehicles[0].{key}" in problem, problem
+
+
+@pytest.mark.parametrize(("key", "a", "b"), APART, ids=[f"{k}-{b}" for k, _, b in APART])
+def test_two_endpoints_are_not_a_duplicate(key, a, b):
+    assert fleet_address_problem(mission_from_dict(example_dict(_with_addresses(key, a, b)))) is None
+
+
+@pytest.mark.parametrize("key", ["connect", "gnb"])
+def test_an_empty_address_is_refused_not_taken_for_absent(tmp_path, key):
+    f = tmp_path / "fleet.toml"
+    f.write_text(fleet_text(_vehicle(1, **{key: ""})), encoding="utf-8")
+    with pytest.raises(MissionConfigError, match=re.escape(f"{f}: key 'vehicles[1].{key}' = '': empty")) as info:
+        load_mission(f)
+    assert f"--{key}" in str(info.value)
+
+
+def test_a_malformed_gnb_address_is_what_a_flight_lacks():
+    problem = fleet_address_problem(mission_from_dict(example_dict(_vehicle(0, gnb="10.0.0.11:abc")), "fleet.toml"))
+    assert problem is not None and problem.startswith("vehicles[0].gnb = '10.0.0.11:abc': ") and "'abc'" in problem
+
+
+@pytest.mark.parametrize("key", ["connect", "gnb"])
+def test_an_address_in_a_scenarios_vehicles_is_refused_naming_the_key(key):
+    vehicles = copy.deepcopy(SIM_FLEET)
+    vehicles[1][key] = FLEET[1][key]
+    with pytest.raises(ScenarioError) as info:
+        scenario_from_dict(_scenario_doc(vehicles), "fleet_scenario.toml")
+    msg = str(info.value)
+    assert msg.startswith(f"fleet_scenario.toml: key 'vehicles[1].{key}'"), msg
+    assert "ignored" in msg and "--connect" in msg
+
+
+def _two_uavs_doc() -> dict:
+    return tomllib.loads((SCENARIO_DIR / "two_uavs.toml").read_text(encoding="utf-8"))
+
+
+def test_launch_points_outside_the_fence_are_refused_at_load_naming_each_vehicle():
+    """two_uavs with separation_m = 500 and a third vehicle: a ring of 291.6 m, uav2 and uav3 at
+    (-145.8, ±252.5) outside the ±250 m fence."""
+    d = _two_uavs_doc()
+    d["vehicles"].append({"id": "uav3"})
+    d["safety"]["separation_m"] = 500.0
+    with pytest.raises(ScenarioError) as info:
+        scenario_from_dict(d, "three.toml")
+    msg = str(info.value)
+    assert msg.startswith("three.toml: key 'safety.separation_m' = 500.0"), msg
+    for w in ["291.6 m", "uav2's home (-145.8, 252.5) m is outside the geofence polygon",
+              "uav3's home (-145.8, -252.5) m is outside the geofence polygon"]:
+        assert w in msg, (w, msg)
+    assert "uav1" not in msg
+    # inside a no-fly zone, or beyond max_distance_m, as well
+    d = _two_uavs_doc()
+    d["geofence"]["no_fly_enu_m"] = [[[5.0, -5.0], [20.0, -5.0], [20.0, 5.0], [5.0, 5.0]]]
+    with pytest.raises(ScenarioError, match=r"uav1's home \(10\.0, 0\.0\) m is inside no-fly zone 0"):
+        scenario_from_dict(d, "nofly.toml")
+    d = _two_uavs_doc()
+    d["geofence"]["max_distance_m"] = 8.0
+    with pytest.raises(ScenarioError, match="10.0 m from the mission's origin exceeds max_distance_m 8"):
+        scenario_from_dict(d, "near.toml")
+    scenario_from_dict(_two_uavs_doc(), "two_uavs.toml")  # as shipped: inside
+
+
+def test_a_fleet_larger_than_the_machine_carries_is_refused_with_the_figure():
+    from sitl_scenarios.scenario import MAX_BUILTIN_VEHICLES, MAX_VEHICLE_SPEEDUP, check_fleet_load
+    from uavloc.errors import MissionError
+
+    d = _two_uavs_doc()
+    two = scenario_from_dict(d, "two_uavs.toml")
+    check_fleet_load(two, MAX_VEHICLE_SPEEDUP / 2)  # the limit itself flies
+    with pytest.raises(MissionError) as info:
+        check_fleet_load(two, MAX_VEHICLE_SPEEDUP)
+    msg = str(info.value)
+    assert f"2 vehicles × speed-up {MAX_VEHICLE_SPEEDUP:g} = {2 * MAX_VEHICLE_SPEEDUP:g}" in msg
+    assert f"--speedup {MAX_VEHICLE_SPEEDUP / 2:g} or less" in msg
+    d["vehicles"] = [{"id": f"uav{i}"} for i in range(MAX_BUILTIN_VEHICLES + 1)]
+    many = scenario_from_dict(d, "many.toml")
+    with pytest.raises(MissionError, match=f"more than the {MAX_BUILTIN_VEHICLES} built-in vehicles"):
+        check_fleet_load(many, 0.1)
+
+
+# ---------------------------------------------------------------------------------------------
+# the commands: refused before anything connects or starts
+
+
+def _cli(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable, "-m", "mission", *argv], cwd=cwd, capture_output=True, text=True,
+                          timeout=120, env=env)
+
+
+def _no_traceback(proc: subprocess.CompletedProcess) -> str:
+    assert "Traceback" not in proc.stderr, proc.stderr
+    return proc.stderr
+
+
+def test_sim_of_a_50_vehicle_fleet_is_refused_at_once_with_the_figure(tmp_path):
+    from sitl_scenarios.scenario import MAX_BUILTIN_VEHICLES
+
+    text = (SCENARIO_DIR / "two_uavs.toml").read_text(encoding="utf-8")
+    text = text.replace('[[vehicles]]\nid = "uav1"\n\n[[vehicles]]\nid = "uav2"\n',
+                        "".join(f'[[vehicles]]\nid = "uav{i}"\n\n' for i in range(1, 51)))
+    (tmp_path / "fifty.toml").write_text(text, encoding="utf-8")
+    proc = _cli(["sim", str(tmp_path / "fifty.toml"), "--speedup", "20", "--out", str(tmp_path / "out")], tmp_path)
+    err = _no_traceback(proc)
+    assert proc.returncode == 1, err
+    for w in ["'two_uavs'", "50 built-in vehicles at ×20", f"more than the {MAX_BUILTIN_VEHICLES}",
+              "vehicles × speed-up <="]:
+        assert w in err, (w, err)
+    assert not (tmp_path / "out" / "mission.jsonl").exists()
+
+
+def test_sim_with_one_autopilot_given_twice_is_refused(tmp_path):
+    proc = _cli(["sim", "two_uavs", "--connect", "udpin://0.0.0.0:14541,udpin://127.0.0.1:14541", "--out",
+                 str(tmp_path / "out")], tmp_path)
+    err = _no_traceback(proc)
+    assert proc.returncode == 1, err
+    assert "--connect" in err and "URL 2 ('udpin://127.0.0.1:14541') reaches the same MAVLink endpoint as URL 1" in err
+
+
+@pytest.mark.parametrize(("option", "value"), [("--connect", "udpin://0.0.0.0:14540"), ("--gnb", "127.0.0.1:9")])
+def test_fly_refuses_an_address_option_beside_a_fleet_file(tmp_path, option, value):
+    f = tmp_path / "fleet.toml"
+    f.write_text(fleet_text(FLEET), encoding="utf-8")
+    proc = _cli(["fly", "--mission", str(f), option, value, "--out", str(tmp_path / "out")], tmp_path)
+    err = _no_traceback(proc)
+    assert proc.returncode == 2, err
+    assert f"{option} (the file gives each of its 2 vehicles' {option[2:]}) would be ignored" in err, err
+
+
+def test_fly_refuses_one_gnb_spelt_two_ways(tmp_path):
+    f = tmp_path / "fleet.toml"
+    f.write_text(fleet_text(_with_addresses("gnb", "telnet://127.0.0.1:9", "localhost:9")), encoding="utf-8")
+    proc = _cli(["fly", "--mission", str(f), "--out", str(tmp_path / "out")], tmp_path)
+    err = _no_traceback(proc)
+    assert proc.returncode == 1, err
+    assert "vehicles[1].gnb = 'localhost:9' reaches the same endpoint as vehicles[0].gnb" in err, err
+
+
+def test_fly_refuses_an_option_a_one_vehicle_entry_overrides(tmp_path):
+    f = tmp_path / "solo.toml"
+    f.write_text(fleet_text([{"id": "solo", "connect": "udpin://0.0.0.0:14540"}]), encoding="utf-8")
+    proc = _cli(["fly", "--mission", str(f), "--connect", "udpin://0.0.0.0:14541", "--gnb", "127.0.0.1:9", "--out",
+                 str(tmp_path / "out")], tmp_path)
+    err = _no_traceback(proc)
+    assert proc.returncode == 2, err
+    assert "--connect (the file gives vehicles[0].connect) would be ignored" in err and "--gnb (" not in err

@@ -4,6 +4,7 @@ system ids, and simulated gNBs sharing one cell attachment, talked to over their
 from __future__ import annotations
 
 import asyncio
+import re
 import socket
 import time
 from pathlib import Path
@@ -287,3 +288,52 @@ def test_a_gnb_on_the_ground_reaches_less_far_than_one_in_the_air():
     # vehicle 0 lands 300 m from its UE, vehicle 1 flies over to it: the UE changes cells once
     assert cells.update(np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 40.0]])).tolist() == [1, 1]
     assert cells.attaches.tolist() == [2, 1]
+
+
+def test_a_fleet_whose_launch_points_leave_the_fence_is_refused_before_any_vehicle_arms(tmp_path: Path):
+    """two_uavs with separation_m = 500 and a third vehicle (issue 49), past the scenario's own check
+    (which refuses it at load, tests/test_fleet_config.py): the flight holds every vehicle to the home
+    check, none arms, the error names uav2 and uav3, and the aborted fleet's result has its vehicles."""
+    import dataclasses
+
+    from mission.log import read_mission_log
+    from mission.status import mission_document
+
+    sc = load_scenario("two_uavs")
+    m = sc.mission
+    m = dataclasses.replace(m, vehicles=(*m.vehicles, dataclasses.replace(m.vehicles[0], id="uav3")),
+                            safety=dataclasses.replace(m.safety, separation_m=500.0))
+    sc = dataclasses.replace(sc, mission=m)
+
+    async def body():
+        async with SimulatedMission(sc, tmp_path / "m.jsonl", speedup=20.0, planner="lawnmower") as sim:
+            return await sim.run()
+
+    res = run(body(), timeout_s=90.0)
+    assert res.status == "aborted", res.reason
+    assert res.reason.startswith("not taking off: no vehicle of the fleet arms: "), res.reason
+    # the homes are the vehicles' GPS fixes at (-145.8, ±252.5): a few metres of GPS error
+    assert re.search(r"uav2's home \(-14\d\.\d, 25\d\.\d\) m is outside the geofence polygon", res.reason)
+    assert re.search(r"uav3's home \(-14\d\.\d, -25\d\.\d\) m is outside the geofence polygon", res.reason)
+    assert "uav1" not in res.reason
+    kinds = [e.get("kind") for e in read_mission_log(tmp_path / "m.jsonl").events]
+    assert "abort" in kinds and "arm" not in kinds and "takeoff" not in kinds
+    doc = mission_document(res)
+    assert [v["id"] for v in doc["vehicles"]] == ["uav1", "uav2", "uav3"]
+    assert doc["separation_breaches"] == 0 and not any(v["landed"] is None for v in doc["vehicles"])
+
+
+def test_a_fleet_not_through_preflight_in_time_aborts_naming_the_state_and_the_vehicles(tmp_path: Path):
+    """PREFLIGHT, once every home is known, has a wall bound (ControllerConfig.preflight_timeout_s;
+    each vehicle's wait for its home has ready_timeout_s): a fleet not through it (here a bound no
+    gNB probe meets) aborts, naming PREFLIGHT and what each vehicle still waits for."""
+    async def body():
+        async with SimulatedMission(load_scenario("two_uavs"), tmp_path / "m.jsonl", speedup=20.0,
+                                    planner="lawnmower", controller_overrides={"preflight_timeout_s": 0.001}) as sim:
+            return await sim.run()
+
+    res = run(body(), timeout_s=60.0)
+    assert res.status == "aborted", res.reason
+    assert res.reason == ("PREFLIGHT not done within 0.001 s (wall): still waiting for uav1: its gNB's probe, "
+                          "uav2: its gNB's probe"), res.reason
+    assert [v.id for v in res.result.vehicles] == ["uav1", "uav2"] and res.result.separation_breaches == 0

@@ -55,8 +55,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
+    from mission.addresses import fleet_address_problem
     from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
-    from mission.config import fleet_address_problem, load_mission, with_settings
+    from mission.config import load_mission, with_settings
     from mission.controller import controller_from_mission, resolve_planner_name
     from mission.gnb import GnbConfig, OaiGnbClient, parse_gnb_address
     from mission.status import print_result, write_report
@@ -70,9 +71,21 @@ def run(args: argparse.Namespace) -> int:
         log.warning("--scenario is deprecated for fly: write a mission file (--mission; see "
                     "mission/examples/flight.toml); the scenario's true positions are ignored")
         mission = _scenario_mission(args.scenario)
+    source = args.mission or args.scenario
+    # an address the command would not use is an error, never dropped: a fleet's are its file's,
+    # and a vehicle entry's own wins over the command line's
+    ignored = [f"--{key} (the file gives {what})" for key, given in (("connect", args.connect), ("gnb", args.gnb))
+               for what in [f"each of its {mission.fleet_size} vehicles' {key}" if mission.fleet_size > 1
+                            else f"vehicles[0].{key}" if mission.vehicles and getattr(mission.vehicles[0], key)
+                            else None] if given is not None and what is not None]
+    if ignored:
+        print(f"uavloc fly: error: {' and '.join(ignored)} would be ignored: {source} names "
+              f"{'a fleet of ' + str(mission.fleet_size) + ' vehicles' if mission.fleet_size > 1 else 'the address'}"
+              "; leave the option out or the key", file=sys.stderr)
+        return 2
     problem = fleet_address_problem(mission)
     if problem is not None:
-        raise MissionConfigError(f"{args.mission or args.scenario}: {problem}")
+        raise MissionConfigError(f"{source}: {problem}")
     gnb_over = {}
     if args.gnb_mode is not None:
         gnb_over["mode"] = args.gnb_mode
@@ -87,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     # each vehicle's MAVLink and gNB address: a fleet's from its `[[vehicles]]`, one vehicle's from
     # the command line (what its one entry leaves out)
     entries = mission.vehicles if mission.fleet_size > 1 else [None]
-    connects = [e.connect if e is not None else args.connect for e in entries]
+    connects = [e.connect if e is not None else args.connect for e in entries]  # (fleet_address_problem: given)
     if mission.fleet_size == 1 and mission.vehicles:
         connects = [mission.vehicles[0].connect or args.connect]
     gnb_args = [e.gnb if e is not None else args.gnb for e in entries]

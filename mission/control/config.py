@@ -62,6 +62,8 @@ class ControllerConfig:
 
     time_scale: mission seconds per wall second (simulator speedup);
     connect_timeout_s, ready_timeout_s (wall): the vehicle's connection and readiness;
+    preflight_timeout_s (wall): PREFLIGHT once every home is known (the gNB probes, the battery,
+    the planner's preparation), beyond which the mission aborts naming what it still waits for;
     gnb_timeout_s (wall): per measurement request; telemetry_log_hz (mission): telemetry records;
     status_interval_s (wall): progress lines;
     position_smooth_s (mission): the position a waypoint's leg is checked from is the mean of
@@ -74,6 +76,7 @@ class ControllerConfig:
     time_scale: float = positive(1.0, MAX_TIME_SCALE)
     connect_timeout_s: float = positive(30.0, MAX_WAIT_S)
     ready_timeout_s: float = positive(60.0, MAX_WAIT_S)
+    preflight_timeout_s: float = positive(300.0, MAX_WAIT_S)
     gnb_timeout_s: float = positive(2.0, MAX_WAIT_S)
     telemetry_log_hz: float = positive(5.0, 1000.0)
     status_interval_s: float = positive(2.0, MAX_WAIT_S)

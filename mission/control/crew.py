@@ -181,9 +181,15 @@ class VehicleCrew:
 
     # -- preflight ------------------------------------------------------------------------------
 
+    def home_problems(self) -> list[str]:
+        """What keeps this vehicle on the ground where it stands (empty: nothing): its home outside
+        the fence, inside a no-fly zone or beyond max_distance_m of the mission's origin (vehicle 0's
+        home, a simulated fleet's scenario origin)."""
+        return self.gate.home_violations(self.home_enu_m)
+
     def preflight_home(self) -> None:
-        """No take-off from a home outside the fence or inside a no-fly zone."""
-        problems = self.gate.home_violations()
+        """No take-off from a home outside the fence, inside a no-fly zone or too far from the origin."""
+        problems = self.home_problems()
         if problems:
             raise SafetyError(f"not taking off{self._of()}: {'; '.join(problems)}")
 

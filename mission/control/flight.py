@@ -84,7 +84,7 @@ from mission.estimation import MissionEstimator, solver_params_header
 from mission.gnb import GnbClient
 from mission.log import MissionLogWriter, area_fields, read_mission_log
 from mission.replay import ReplayOptions, ReplayResult, replay, result_of_log, status_of_answer
-from mission.result import Result, build_result
+from mission.result import Result, VehicleResult, build_result, vehicles_of_events
 from mission.safety import GatedVehicle, SafetyGate, SafetyLimits
 from mission.vehicle import Vehicle, VehicleTimeoutError
 from planner.fleet import REASON_USERS_DONE, FleetPlanner, Separation, vehicles_apart
@@ -95,6 +95,7 @@ from uavloc.errors import (
     MissionError,
     MissionLogError,
     PlannerError,
+    SafetyError,
     UavlocError,
     VehicleError,
 )
@@ -212,6 +213,8 @@ class MissionController:
         #: a fleet's vehicles closer than the separation: (mission t [s], least distance [m]) of each breach
         self.separation_breaches: list[tuple[float, float]] = []
         self._apart = True
+        #: PREFLIGHT: what each vehicle (or the mission) is still waiting for, named if it runs out of time
+        self._pending: dict[str, str] = {}
 
     # -- what the flight knows, for callers and tests --------------------------------------------
 
@@ -321,16 +324,27 @@ class MissionController:
         prepared = tg.create_task(self._prepare_planner(), name="prepare-planner")
         background.append(prepared)
         self._preflight_home()
-        await self._preflight_gnb()
-        for c in self.crews:
-            c.preflight_battery()
+        # the rest of PREFLIGHT has a wall bound (each vehicle's wait for its home has its own)
+        self._pending = {c.id: "its gNB's probe" for c in self.crews}
+        bound = asyncio.timeout(cfg.preflight_timeout_s)
         try:
-            async with asyncio.timeout(PREPARE_TIMEOUT_S):
-                await prepared
+            async with bound:
+                await self._preflight_gnb()
+                for c in self.crews:
+                    c.preflight_battery()
+                self._pending = {"mission": "the planner's preparation"}
+                try:
+                    async with asyncio.timeout(PREPARE_TIMEOUT_S):
+                        await prepared
+                except TimeoutError as exc:
+                    raise PlannerError(f"PREFLIGHT: the planner {self.fleet_planner.name} was not prepared within "
+                                       f"{PREPARE_TIMEOUT_S:g} s (its kernels compile before take-off); not taking "
+                                       "off") from exc
         except TimeoutError as exc:
-            raise PlannerError(f"PREFLIGHT: the planner {self.fleet_planner.name} was not prepared within "
-                               f"{PREPARE_TIMEOUT_S:g} s (its kernels compile before take-off); not taking off"
-                               ) from exc
+            if not bound.expired():
+                raise
+            raise MissionError(f"PREFLIGHT not done within {cfg.preflight_timeout_s:g} s (wall): still waiting for "
+                               + ", ".join(f"{k}: {v}" for k, v in self._pending.items())) from exc
         for coro, name in ((self._estimator_task(), "estimator"), (self._status_task(), "status"),
                            (self.loop_lag.run(), "loop-lag")):
             background.append(tg.create_task(coro, name=name))
@@ -351,6 +365,12 @@ class MissionController:
         if len(errors) == len(ends):
             raise errors[0]  # every vehicle failed: the mission aborts (a one-vehicle mission: its error)
         return self._mission_end([e for e in ends if not isinstance(e, BaseException)])
+
+    async def _probed(self, crew: VehicleCrew):
+        """crew's gNB probe (VehicleCrew.probe_gnb); PREFLIGHT no longer waits for it once done."""
+        out = await crew.probe_gnb()
+        self._pending.pop(crew.id, None)
+        return out
 
     def _suffix(self, crew: VehicleCrew) -> str:
         return f"-{crew.id}" if self.fleet else ""
@@ -399,6 +419,7 @@ class MissionController:
                     await legs.survey()
             finally:
                 crew.survey_ended()
+                f.log_return()  # a return requested during the survey: after its survey_time
                 if crew.index == 0:
                     self._note_pace(crew)
                 # its users are nobody's now: the vehicles still surveying plan for them, and
@@ -595,10 +616,16 @@ class MissionController:
                                kind="planner_prepared", took_s=round(took_s, 3))
 
     def _preflight_home(self) -> None:
-        """No take-off from a home outside the fence or inside a no-fly zone (geodetic polygons
-        are known in the home frame only now; mission.config refuses ENU ones at load)."""
-        for c in self.crews:
-            c.preflight_home()
+        """No take-off from a home outside the fence, inside a no-fly zone or beyond max_distance_m
+        of the origin (geodetic polygons are known in the home frame only now; mission.config
+        refuses ENU ones at load): a fleet's every vehicle is held to it, and none arms when one fails."""
+        if not self.fleet:
+            self.crews[0].preflight_home()
+            return
+        bad = [(c, p) for c in self.crews for p in [c.home_problems()] if p]
+        if bad:
+            raise SafetyError("not taking off: no vehicle of the fleet arms: " + "; ".join(
+                f"{c.id}'s {'; '.join(p)}" for c, p in bad))
 
     async def _preflight_gnb(self) -> None:
         """No take-off unless every configured user is among the gNB's UEs and answers one
@@ -613,7 +640,7 @@ class MissionController:
         if not self.fleet:
             await self.crews[0].preflight_gnb()
             return
-        probes = await asyncio.gather(*(c.probe_gnb() for c in self.crews))
+        probes = await asyncio.gather(*(self._probed(c) for c in self.crews))
         for c, (probe, ok) in zip(self.crews, probes, strict=True):
             if not ok:
                 raise GnbPreflightError(f"not taking off: {c.id}'s gNB: {probe.message()}")
@@ -823,13 +850,27 @@ class MissionController:
                 log.warning("the mission log could not be read back: the result from the flight's counts: %s", exc)
         c = self.crews[0].flight.clock
         surveyed = c.survey_s > 0
+        vehicles, breaches = self._fleet_parts()
         return build_result(
             status=status, reason=reason, user_ids=[u.id for u in self.users], estimate=est, origin=self.origin,
             truth_enu_m=self.truth_enu_m, flown_m=self.flown_m, measurements=self.measurements,
             keyframes=len(self._keyframes), duration_s=self.now(),
             survey_s=c.survey_s if surveyed else None, hover_s=c.hover_s if surveyed else None,
             largest_gap_s=c.largest_gap_s if surveyed else None,
-            log_path=self.log_path if self.origin is not None else None)
+            log_path=self.log_path if self.origin is not None else None, vehicles=vehicles,
+            separation_breaches=breaches)
+
+    def _fleet_parts(self) -> tuple[tuple[VehicleResult, ...], int | None]:
+        """A fleet's `vehicles` and `separation_breaches` for a result not replayed (an aborted
+        fleet's too, docs/fleet.md): from the closed log's events as replay reads them, or, when
+        the log cannot be read back, each vehicle's safe end and the breaches the flight counted."""
+        if not self.fleet:
+            return (), None
+        try:
+            return vehicles_of_events([c.id for c in self.crews], read_mission_log(self.journal.writer.path).events)
+        except (UavlocError, OSError):
+            return (tuple(VehicleResult(c.id, "did not survey", c.rtl_sent, c.landed) for c in self.crews),
+                    len(self.separation_breaches))
 
 
 def _worst_bound_m(bounds_m: np.ndarray) -> float | None:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from estimator.types import Estimate
-from mission.control.config import CONNECT, SurveyPace
+from mission.control.config import CONNECT, SURVEY, SurveyPace
 from mission.control.loop import Pulse
 
 log = logging.getLogger(__name__)
@@ -160,6 +160,8 @@ class FlightState:
     name: str | None = None
     #: the survey was seen falling behind its speed-up (said once: :meth:`check_pace`)
     pace_warned: bool = False
+    #: a requested return whose `return` event waits for the end of the survey (request_return)
+    _return_unlogged: bool = False
 
     def check_pace(self, requested_speedup: float, t_s: float, wall_s: float) -> SurveyPace | None:
         """While surveying: the moment the survey's pace so far (SurveyClock.pace_now at mission
@@ -187,12 +189,24 @@ class FlightState:
             self.phase = phase
 
     def request_return(self, reason: str) -> None:
-        """End the survey and return home (the first reason wins)."""
+        """End the survey and return home (the first reason wins). During the survey its `return`
+        event is logged once the survey has ended, after its `survey_time` (:meth:`log_return`),
+        so that a vehicle's log reads survey, then return; otherwise at once."""
         if self.return_reason is None:
             self.return_reason = reason
             log.warning("%sreturning home: %s", f"{self.name}: " if self.name else "", reason)
-            self.event(f"return requested: {reason}", kind="return", reason=reason)
+            self._return_unlogged = True
+            if self.phase != SURVEY:
+                self.log_return()
             self.wake.pulse()
+
+    def log_return(self) -> None:
+        """The `return` event of a return requested and not logged yet (in_survey: requested during
+        the survey, logged after its `survey_time`)."""
+        if self.return_reason is not None and self._return_unlogged:
+            self._return_unlogged = False
+            self.event(f"return requested: {self.return_reason}", kind="return", reason=self.return_reason,
+                       **({"in_survey": True} if self.phase == SURVEY else {}))
 
     def finish_survey(self, status: str, reason: str, now_s: float) -> None:
         """A normal end of the survey (the stop rule) at mission time now_s; ignored once the

@@ -42,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed_argument, metavar="N",
                    help="seed of the simulators and the planner (default: the scenario's)")
     p.add_argument("--speedup", type=in_range(float, 0.0, 1e4, closed=False, what="a number"), default=10.0,
-                   help="simulated seconds per wall second of the built-in vehicle (default 10)")
+                   help="simulated seconds per wall second of the built-in vehicle (default 10); a built-in "
+                        "fleet's vehicles × speed-up is at most 20 (benchmarks/fleet_size.py)")
     p.add_argument("--planner", metavar="NAME",
                    help="casadi, greedy, lawnmower, circle, random, oracle (default: the scenario's, casadi "
                         "when available)")
@@ -72,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from mission.commands.outdir import LOG_NAME, default_out_dir, mission_log_path
     from mission.status import print_result, write_report
     from mission.view.live import live_view
-    from sitl_scenarios.scenario import load_scenario, with_autopilot
+    from sitl_scenarios.scenario import check_fleet_load, load_scenario, with_autopilot
     from sitl_scenarios.sim_runner import SimulatedMission
 
     if args.connect is None:
@@ -81,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
         start_world_server()  # the world's imports run while the scenario loads and the planner compiles
     scenario = load_scenario(args.scenario)
     connect = connect_argument(args.connect, scenario)
+    if connect is None:
+        check_fleet_load(scenario, args.speedup)
     if args.autopilot is not None:
         if args.connect is not None:
             log.warning("--autopilot is ignored with --connect (the autopilot says what it is)")
@@ -174,6 +177,13 @@ def connect_argument(text: str | None, scenario) -> str | list[str] | None:
         raise ScenarioError(f"--connect {text!r}: scenario {scenario.name!r} flies {what}; give "
                             f"{'one URL per vehicle, comma-separated' if n > 1 else 'one URL'} "
                             f"({len([u for u in urls if u])} given)")
+    from mission.addresses import first_duplicate, mavlink_endpoint
+
+    dup = first_duplicate([mavlink_endpoint(u) for u in urls])
+    if dup is not None:
+        i, j = dup
+        raise ScenarioError(f"--connect {text!r}: URL {j + 1} ({urls[j]!r}) reaches the same MAVLink endpoint as URL "
+                            f"{i + 1} ({urls[i]!r}): each vehicle of scenario {scenario.name!r} has its own autopilot")
     return urls if n > 1 else urls[0]
 
 

@@ -475,7 +475,9 @@ class SimulatedGnb:
         got = self._round_trip_ta(k)
         if got is not None:
             self.ra_log.initial(self._frame(), self.current_rnti[k], *got)
-            log.info("UE %04x attached to this cell", self.current_rnti[k])
+            # whose cell: the fleet's gNB index (vehicle index) and its telnet port
+            log.info("UE %04x attached to the cell of gNB %d (vehicle %d, port %d)", self.current_rnti[k],
+                     self.cell.index, self.cell.index, self.port)
 
     def _connected_rntis(self) -> list[int]:
         """UEs in coverage of the UAV (all of them while the UAV position is unknown), or with a
