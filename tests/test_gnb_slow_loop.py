@@ -187,3 +187,32 @@ def test_a_fresh_connection_that_never_shows_the_prompt_is_still_not_a_gnb():
     with thread_server(lambda n, line: b"HTTP/1.1 400 Bad Request\r\n") as port, \
             pytest.raises(GnbProtocolError, match="is this the gNB's telnet server"):
         run(body(port))
+
+
+@pytest.mark.parametrize(("silent", "ok"), [(1, True), (2, True), (3, False)])
+def test_the_preflight_probe_asks_again_after_a_timeout(silent, ok):
+    """A gNB too busy to answer `o1 stats` once (a loaded machine) does not stop the take-off: the
+    probe asks again, TIMEOUT_TRIES times in all; a gNB silent every time fails it."""
+    from mission.gnb.probe import TIMEOUT_TRIES, probe_gnb
+
+    assert TIMEOUT_TRIES == 3
+    asked = {"o1 stats": 0}
+
+    def answer(n: int, line: str) -> bytes:
+        if line == "o1 stats":
+            asked[line] += 1
+            if asked[line] <= silent:
+                return b""  # no answer: the request times out
+        return oai_answer(n, line)
+
+    async def probe(port: int):
+        client = OaiGnbClient(config(port))
+        async with client:
+            return await probe_gnb(client, rntis=[0x4601], count=1)
+
+    with thread_server(answer) as port:
+        res = run(probe(port), timeout_s=30.0)
+    assert res.ok is ok, res.message()
+    assert asked["o1 stats"] == (silent + 1 if ok else TIMEOUT_TRIES)
+    if not ok:
+        assert "discovery failed" in res.message() and "o1 stats" in res.message()

@@ -22,10 +22,11 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TypeVar
 
 from mission.gnb.client import GnbClient, GnbConfig, OaiGnbClient
 from mission.gnb.oai import RttSample
@@ -37,14 +38,19 @@ from uavloc.errors import (
     GnbNoModeError,
     GnbNoRandomAccessError,
     GnbProtocolError,
+    GnbTimeoutError,
     GnbTracerError,
     GnbUnknownCommandError,
 )
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 #: how much of the end of a gNB log the time-stamp check reads [bytes]
 LOG_TAIL_BYTES = 1 << 20
+#: tries of one request that timed out (a slow answer on a busy machine is a timeout, asked again;
+#: a gNB that stays silent fails the probe after these)
+TIMEOUT_TRIES = 3
 
 
 @dataclass
@@ -245,7 +251,7 @@ async def _probe_requests(client: GnbClient, res: ProbeResult, rntis: list[int] 
     """rtt and stock modes: one discovery, then `count` measurements of each UE (requests, or the
     log in passive stock mode); fills `res`, returns what stopped it (None when nothing did)."""
     try:
-        res.gnb_rntis = await client.discover()
+        res.gnb_rntis = await _asked_again(client.discover)
     except GnbUnknownCommandError as exc:
         res.problems.append(f"discovery failed, telnet module missing: {exc}")
     except GnbError as exc:
@@ -284,7 +290,7 @@ async def _probe_requests(client: GnbClient, res: ProbeResult, rntis: list[int] 
         for _ in range(count):
             t1 = clock()
             try:
-                s = await client.measure(u.rnti)
+                s = await _asked_again(lambda r=u.rnti: client.measure(r))
             except GnbUnknownCommandError as exc:
                 u.errors.append(str(exc))
                 res.problems.append(f"wrong telnet module: {exc}")
@@ -307,6 +313,18 @@ async def _probe_requests(client: GnbClient, res: ProbeResult, rntis: list[int] 
             u.samples.append(s)
             u.took_s.append(clock() - t1)
     return fatal
+
+
+async def _asked_again(request: Callable[[], Awaitable[T]]) -> T:
+    """request(), asked again after a timeout, TIMEOUT_TRIES times in all (the last timeout raised)."""
+    for attempt in range(TIMEOUT_TRIES):
+        try:
+            return await request()
+        except GnbTimeoutError as exc:
+            if attempt + 1 == TIMEOUT_TRIES:
+                raise
+            log.info("gNB request timed out (try %d of %d), asking again: %s", attempt + 1, TIMEOUT_TRIES, exc)
+    raise AssertionError("unreachable")
 
 
 #: trace mode: the least the probe waits for the UEs' round trips [s] (SRS every 80 ms, a first
