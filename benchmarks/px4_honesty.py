@@ -355,8 +355,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="fly a run again (fresh PX4s) this many times when it aborts before take-off (default 2)")
     ap.add_argument("--keep", type=Path, metavar="DIR", help="keep the flights' folders and PX4's output here")
     args = ap.parse_args(argv)
-    # stopped (SIGTERM): unwind, so that every PX4 and every command started is stopped
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     build = build_from_env()
     why = missing_requirement(build)
     if why is not None:
@@ -448,4 +446,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    # stopped (SIGTERM): unwind, so that every PX4 and every command started is stopped
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     raise SystemExit(main())
