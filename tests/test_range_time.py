@@ -201,3 +201,17 @@ def test_the_flight_says_at_once_when_its_survey_falls_behind(caplog):
     (ev,) = [e for e in events if e.get("kind") == "falling_behind"]
     assert ev["fell_behind"] is True and ev["hover_share"] > HOVER_SHARE_MAX
     assert any(r.levelname == "WARNING" and "falling behind" in r.getMessage() for r in caplog.records)
+
+
+def test_a_survey_said_to_fall_behind_while_flying_fell_behind_though_it_caught_up():
+    """The console said "falling behind" mid-survey (6 of 53 ranges dropped late); by the end the
+    share was under the limit: the result still says fell_behind, with what was said."""
+    caught_up = SurveyPace(10.0, 100.0, 9.8, hover_s=1.0, ranges=90, late_dropped=6)
+    assert not caught_up.fell_behind
+    said = SurveyPace(10.0, 60.0, 5.9, ranges=47, late_dropped=6).reasons()
+    assert said
+    from dataclasses import replace
+
+    final = replace(caught_up, said_while_flying=tuple(said))
+    assert final.fell_behind and final.to_dict()["fell_behind"] is True
+    assert final.reasons() == [f"while surveying: {said[0]}"]

@@ -130,6 +130,9 @@ class SurveyPace:
     largest_gap_s: float = 0.0
     ranges: int = 0
     late_dropped: int = 0
+    #: why the survey was said to fall behind while it flew (FlightState.check_pace): a survey that
+    #: caught up by its end still fell behind (its ranges of that stretch are in the answer)
+    said_while_flying: tuple[str, ...] = ()
 
     @property
     def achieved_speedup(self) -> float:
@@ -155,6 +158,8 @@ class SurveyPace:
         total = self.ranges + self.late_dropped
         if total >= LATE_JUDGE_MIN and self.late_dropped > LATE_SHARE_MAX * total:
             out.append(f"{self.late_dropped} of {total} ranges were timed too loosely to place and were dropped")
+        if not out and self.said_while_flying:
+            out.append(f"while surveying: {'; '.join(self.said_while_flying)}")
         return out
 
     @property

@@ -582,6 +582,8 @@ class MissionController(FinalAnswer):
 
     def _note_pace(self, crew: VehicleCrew) -> None:
         self.pace = crew.flight.clock.pace(self.config.time_scale)
+        if self.pace is not None and crew.flight.pace_said:
+            self.pace = replace(self.pace, said_while_flying=crew.flight.pace_said)
         if self.pace is not None and self.pace.fell_behind:
             log.warning("%s", self.pace.message())
             self.journal.event(self.pace.message(), kind="fell_behind", **self.pace.to_dict())

@@ -160,6 +160,8 @@ class FlightState:
     name: str | None = None
     #: the survey was seen falling behind its speed-up (said once: :meth:`check_pace`)
     pace_warned: bool = False
+    #: what it said then (SurveyPace.reasons)
+    pace_said: tuple[str, ...] = ()
     #: a requested return whose `return` event waits for the end of the survey (request_return)
     _return_unlogged: bool = False
 
@@ -173,6 +175,7 @@ class FlightState:
         if pace is None or not pace.fell_behind:
             return None
         self.pace_warned = True
+        self.pace_said = tuple(pace.reasons())
         who = f"{self.name}: " if self.name else ""
         log.warning("falling behind: %s%s", who, pace.message())
         self.event(f"falling behind: {pace.message()}", kind="falling_behind", **pace.to_dict())
