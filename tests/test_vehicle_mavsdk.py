@@ -182,3 +182,41 @@ def test_takeoff_when_disarmed_selects_takeoff_mode_and_climbs_once_armed() -> N
             await first(tel.subscribe_position(), lambda p: p.relative_altitude_m > 1.0, link.wall(30))
 
     asyncio.run(run())
+
+
+@pytest.mark.parametrize(("timeouts", "ok"), [(1, True), (2, True), (3, False)])
+def test_an_unacknowledged_idempotent_command_is_sent_again(timeouts, ok):
+    """On a loaded machine MAVSDK gives up on an acknowledgement that comes late (result TIMEOUT,
+    seen as "takeoff failed: TIMEOUT" beside busy loops): arm, the take-off height and take-off are
+    sent again, COMMAND_TIMEOUT_TRIES times in all; any other refusal is not."""
+    from mavsdk.asyncio.plugins.action import ActionError, ActionResult
+
+    from mission.vehicle.mavsdk_vehicle import COMMAND_TIMEOUT_TRIES, MavsdkVehicle
+    from mission.vehicle.types import VehicleCommandError
+
+    assert COMMAND_TIMEOUT_TRIES == 3
+    sent = []
+
+    async def takeoff():
+        sent.append(1)
+        if len(sent) <= timeouts:
+            raise ActionError(ActionResult.TIMEOUT, "takeoff()")
+        return None
+
+    v = MavsdkVehicle("udpin://127.0.0.1:0", request_timeout_s=1.0)
+    if ok:
+        asyncio.run(v._request_again_on_timeout("takeoff", takeoff))
+        assert len(sent) == timeouts + 1
+    else:
+        with pytest.raises(VehicleCommandError, match="TIMEOUT"):
+            asyncio.run(v._request_again_on_timeout("takeoff", takeoff))
+        assert len(sent) == COMMAND_TIMEOUT_TRIES
+
+    async def denied():
+        sent.append(2)
+        raise ActionError(ActionResult.COMMAND_DENIED, "arm()")
+
+    sent.clear()
+    with pytest.raises(VehicleCommandError, match="COMMAND_DENIED"):
+        asyncio.run(v._request_again_on_timeout("arm", denied))
+    assert sent == [2]

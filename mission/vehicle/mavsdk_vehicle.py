@@ -30,6 +30,8 @@ from mission.vehicle.types import GeoFix, VehicleCommandError, VehicleTimeoutErr
 from uavloc.errors import VehicleError
 
 log = logging.getLogger(__name__)
+#: tries of an idempotent command whose acknowledgement MAVSDK gave up waiting for (result TIMEOUT)
+COMMAND_TIMEOUT_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -447,20 +449,34 @@ class MavsdkVehicle:
                 return None
             raise VehicleCommandError(f"vehicle: {what} failed: {result}", result) from exc
 
+    async def _request_again_on_timeout(self, what: str, make_call: Callable[[], Awaitable]):
+        """An idempotent command (arm, the take-off height, take-off) sent again when MAVSDK gave up
+        waiting for its acknowledgement (result TIMEOUT: on a loaded machine the answer can come
+        after MAVSDK's own retransmissions), COMMAND_TIMEOUT_TRIES times in all."""
+        for attempt in range(COMMAND_TIMEOUT_TRIES):
+            try:
+                return await self._request(what, make_call())
+            except VehicleCommandError as exc:
+                if exc.result != "TIMEOUT" or attempt + 1 == COMMAND_TIMEOUT_TRIES:
+                    raise
+                log.warning("vehicle: %s: no acknowledgement (MAVSDK TIMEOUT), sending it again (try %d of %d)",
+                            what, attempt + 2, COMMAND_TIMEOUT_TRIES)
+        raise AssertionError("unreachable")
+
     async def arm(self) -> None:
         self._need()
         if self._ardupilot is not None:
             return await self._ardupilot.arm()
-        await self._request("arm", self._action.arm())
+        await self._request_again_on_timeout("arm", self._action.arm)
 
     async def takeoff(self, height_m: float) -> None:
         """Set the takeoff height above home and take off."""
         self._need()
         if self._ardupilot is not None:
             return await self._ardupilot.takeoff(float(height_m))
-        await self._request(f"set takeoff altitude {height_m:g} m",
-                            self._action.set_takeoff_altitude(float(height_m)))
-        await self._request("takeoff", self._action.takeoff())
+        await self._request_again_on_timeout(f"set takeoff altitude {height_m:g} m",
+                                             lambda: self._action.set_takeoff_altitude(float(height_m)))
+        await self._request_again_on_timeout("takeoff", self._action.takeoff)
 
     async def goto_location(self, lat_deg: float, lon_deg: float, alt_amsl_m: float,
                             yaw_deg: float = float("nan")) -> None:
