@@ -48,6 +48,10 @@ def _run(coro, timeout_s: float = 150.0):
     (SafetyView(now_s=100.0, phase=SURVEY, gnb_down_since_s=85.0, gnb_problem="x"), None),
     (SafetyView(now_s=100.0, phase=SURVEY, gnb_down_since_s=79.0, gnb_problem="'rtt' is not a softmodem command"),
      "gNB lost for more than 20 s: 'rtt' is not a softmodem command"),
+    # 21 mission seconds at x10 are 2.1 wall seconds: a busy machine, not a lost gNB
+    (SafetyView(now_s=100.0, phase=SURVEY, gnb_down_since_s=79.0, gnb_problem="x", gnb_down_wall_s=2.1), None),
+    (SafetyView(now_s=100.0, phase=SURVEY, gnb_down_since_s=79.0, gnb_problem="x", gnb_down_wall_s=10.5),
+     "gNB lost for more than 20 s: x"),
     (SafetyView(now_s=100.0, phase=SURVEY, battery_pct=24.0), "battery"),
     (SafetyView(now_s=100.0, phase=SURVEY, breach="outside the geofence (3 fixes in a row)"), "outside the geofence"),
     # the link first: RTL over a lost link is what the vehicle's own failsafe does anyway

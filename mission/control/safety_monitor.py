@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -28,6 +29,8 @@ AUTOPILOT_FAILSAFE_MODES = ("LAND", "RETURN_TO_LAUNCH")
 #: STATUSTEXT severities copied into the mission log as `vehicle_text` events
 LOGGED_TEXT_SEVERITIES = ("WARNING", "ERROR", "CRITICAL", "ALERT", "EMERGENCY")
 
+#: the least wall time [s] a gNB must stay silent to be lost (with gnb_lost_wait_s mission seconds)
+GNB_LOST_WALL_MIN_S = 5.0
 #: survey mission seconds and battery percent used below which the drain is not yet known
 ENERGY_MIN_SURVEY_S = 5.0
 ENERGY_MIN_USED_PCT = 1.0
@@ -38,6 +41,7 @@ class SafetyView:
     """The mission now, as the safety monitor sees it. Times in mission seconds.
 
     now_s; phase; link_lost_since_s / gnb_down_since_s (None: fine); gnb_problem: the gNB's words;
+    gnb_down_wall_s: wall seconds the gNB has been down (None: not measured);
     battery_pct (None: unknown); breach: the position limit a confirmed breach broke (None: none);
     position_lost: the vehicle reports no valid global position; flight_mode: a failsafe mode the
     autopilot switched to by itself (None: none); vehicle_text: its last warning (PX4's failsafe message).
@@ -48,6 +52,7 @@ class SafetyView:
     link_lost_since_s: float | None = None
     gnb_down_since_s: float | None = None
     gnb_problem: str | None = None
+    gnb_down_wall_s: float | None = None
     battery_pct: float | None = None
     breach: str | None = None
     position_lost: bool = False
@@ -69,7 +74,13 @@ def return_reason(view: SafetyView, cfg: ControllerConfig, gate: SafetyGate) -> 
     reason = gate.return_reason(None, view.battery_pct) or view.breach
     if reason:
         return reason
-    if view.gnb_down_since_s is not None and view.now_s - view.gnb_down_since_s > cfg.safety.gnb_lost_wait_s:
+    # the wait is mission seconds (the vehicle's clock) and, for a simulation at a speed-up, at least
+    # GNB_LOST_WALL_MIN_S of wall time too: a gNB answers in its own (wall) time, and a busy machine
+    # that holds it 2 s is no lost gNB, however many mission seconds ×10 makes of them (loop stalls of
+    # 1.4-5.8 s were seen beside busy loops)
+    wall_wait_s = min(cfg.safety.gnb_lost_wait_s, GNB_LOST_WALL_MIN_S)
+    if (view.gnb_down_since_s is not None and view.now_s - view.gnb_down_since_s > cfg.safety.gnb_lost_wait_s
+            and (view.gnb_down_wall_s is None or view.gnb_down_wall_s > wall_wait_s)):
         return f"gNB lost for more than {cfg.safety.gnb_lost_wait_s:g} s: {view.gnb_problem}"
     if view.now_s > cfg.flight.time_limit_s:
         return f"mission time limit {cfg.flight.time_limit_s:g} s reached"
@@ -157,6 +168,8 @@ class SafetyMonitor:
                                         alt_margin_m=cfg.safety.alt_margin_m)
         view = SafetyView(now_s=now, phase=f.phase, link_lost_since_s=f.link_lost_since,
                           gnb_down_since_s=f.gnb_down_since, gnb_problem=f.gnb_problem,
+                          gnb_down_wall_s=(None if f.gnb_down_since_wall is None
+                                           else time.monotonic() - f.gnb_down_since_wall),
                           battery_pct=st.battery_pct, breach=breach, position_lost=self.position_lost,
                           flight_mode=self.failsafe_mode, vehicle_text=self.last_text)
         reason = return_reason(view, cfg, self.gate)

@@ -10,6 +10,7 @@ every change that ends the survey wakes the flight through `wake`.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -149,6 +150,8 @@ class FlightState:
     on_leg: bool = False
     link_lost_since: float | None = None
     gnb_down_since: float | None = None
+    #: the monotonic wall instant of gnb_down_since [s] (the gNB's silence is judged in wall time too)
+    gnb_down_since_wall: float | None = None
     gnb_problem: str | None = None
     flown_m: float = 0.0
     measurements: int = 0
@@ -228,6 +231,7 @@ class FlightState:
         self.gnb_problem = problem
         if self.gnb_down_since is None:
             self.gnb_down_since = now_s
+            self.gnb_down_since_wall = time.monotonic()
             log.warning("gNB lost: %s", problem)
             self.event(f"gNB lost: {problem}", kind="gnb_lost")
 
@@ -236,7 +240,7 @@ class FlightState:
         if self.gnb_down_since is not None:
             self.event(f"gNB restored after {now_s - self.gnb_down_since:.1f} s", kind="gnb_restored")
             log.info("gNB restored")
-            self.gnb_down_since = None
+            self.gnb_down_since = self.gnb_down_since_wall = None
             self.gnb_problem = None
 
     def link(self, now_s: float, lost: bool) -> None:

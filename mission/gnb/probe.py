@@ -33,6 +33,7 @@ from mission.gnb.oai import RttSample
 from mission.gnb.oai_ra import log_time_format
 from mission.gnb.tracer import TraceStatus, TTracerClient, trace_served_why
 from uavloc.errors import (
+    GnbBusyError,
     GnbError,
     GnbNoMeasurementError,
     GnbNoModeError,
@@ -320,7 +321,7 @@ async def _asked_again(request: Callable[[], Awaitable[T]]) -> T:
     for attempt in range(TIMEOUT_TRIES):
         try:
             return await request()
-        except GnbTimeoutError as exc:
+        except (GnbTimeoutError, GnbBusyError) as exc:  # busy: a new connection's request timed out
             if attempt + 1 == TIMEOUT_TRIES:
                 raise
             log.info("gNB request timed out (try %d of %d), asking again: %s", attempt + 1, TIMEOUT_TRIES, exc)
