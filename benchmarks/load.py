@@ -11,7 +11,8 @@ meet the same background load from anything else, so the columns compare like wi
 
 Per run, from the `--json` document and the mission log it names:
 
-- users inside their own printed 95 % bound (error_m ≤ error_bound_95_m);
+- users inside their own printed 95 % bound (error_m ≤ error_bound_95_m), among those the run
+  located (a user with no printed bound, e.g. of a mission that did not take off, claims nothing);
 - an honest status: "target_reached" only with every printed bound within the target and every
   error ≤ 1.5 × target (a claim that fails this is counted as `lie`);
 - the range residual against the true distance from the logged UAV position,
@@ -72,6 +73,7 @@ class Run:
     status: str = "-"
     reason: str = ""
     users: int = 0
+    located: int = 0
     inside: int = 0
     lie: bool = False
     residual_p99_m: float = math.nan
@@ -116,8 +118,11 @@ def judge(run: Run, doc: dict, target_m: float) -> None:
     run.users = len(users)
     errors = [u.get("error_m") for u in users]
     bounds = [u.get("error_bound_95_m") for u in users]
-    run.inside = sum(1 for e, b in zip(errors, bounds, strict=True)
-                     if e is not None and b is not None and math.isfinite(b) and e <= b)
+    # a user without a printed bound (not located, an aborted mission's) makes no claim to judge
+    located = [(e, b) for e, b in zip(errors, bounds, strict=True) if e is not None and b is not None
+               and math.isfinite(b)]
+    run.located = len(located)
+    run.inside = sum(1 for e, b in located if e <= b)
     if run.status == "target_reached":
         run.lie = not all(b is not None and b <= target_m + 1e-9 for b in bounds) or not all(
             e is not None and e <= TARGET_ERROR_FACTOR * target_m for e in errors)
@@ -191,7 +196,7 @@ def summary_rows(runs: list[Run]) -> list[str]:
             rs = [r for r in runs if r.scenario == sc and r.speedup == x and r.load == load]
             if not rs:
                 continue
-            users = sum(r.users for r in rs)
+            users = sum(r.located for r in rs)
             inside = sum(r.inside for r in rs)
             p99 = np.nanmax([r.residual_p99_m for r in rs]) if any(math.isfinite(r.residual_p99_m) for r in rs) \
                 else math.nan
@@ -240,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
                             r = fly(sc, x, seed, load, out, args.timeout)
                         runs.append(r)
                         why = f" ({r.reason[:160]})" if r.status == "aborted" else ""
-                        words = (f"{r.status}{why}, inside {r.inside}/{r.users}, res p99 {r.residual_p99_m:.1f} m, "
+                        words = (f"{r.status}{why}, inside {r.inside}/{r.located} located of {r.users}, "
+                                 f"res p99 {r.residual_p99_m:.1f} m, "
                                  f"hover {100 * r.hover_share:.0f} %, ran ×{r.achieved:.1f}, "
                                  f"fell_behind {r.fell_behind}{' LIE' if r.lie else ''}"
                                  f"{' UNSAID' if r.unsaid else ''}") if not r.errors else f"exit {r.exit_code}: " \
@@ -252,12 +258,12 @@ def main(argv: list[str] | None = None) -> int:
     print()
     for load in loads:
         rs = [r for r in runs if r.load == load]
-        users, inside = sum(r.users for r in rs), sum(r.inside for r in rs)
+        users, inside = sum(r.located for r in rs), sum(r.inside for r in rs)
         share = inside / users if users else 0.0
         met = share >= 0.9
         ok &= met
         print(f"  [{'PASS' if met else 'FAIL'}] {load}: {inside}/{users} = {100 * share:.0f} % of users inside their "
-              f"own 95 % bound (≥ 90 %)")
+              f"own 95 % bound among those located (≥ 90 %); {sum(r.status == 'aborted' for r in rs)} runs aborted")
     lies = [r for r in runs if r.lie]
     unsaid = [r for r in runs if r.unsaid]
     failed = [r for r in runs if r.errors]
