@@ -488,12 +488,15 @@ def load_scenario(name_or_path: str | Path, base_dir: Path | None = None) -> Sce
 
 def check_fleet_load(scenario: Scenario, speedup: float) -> None:
     """MissionError unless this machine carries the scenario's built-in fleet at `speedup`:
-    at most MAX_BUILTIN_VEHICLES vehicles and vehicles × speed-up at most MAX_VEHICLE_SPEEDUP."""
+    at most MAX_BUILTIN_VEHICLES vehicles and vehicles × speed-up at most MAX_VEHICLE_SPEEDUP (a
+    fleet of two or more: one vehicle is not bounded)."""
     from uavloc.errors import MissionError
 
     n = scenario.mission.fleet_size
     load = n * speedup
-    if n <= MAX_BUILTIN_VEHICLES and load <= MAX_VEHICLE_SPEEDUP:
+    # one vehicle flies at any speed-up the simulation offers (x200: tests/test_mission_e2e.py); a
+    # fleet's vehicles share the controller's loop, which is what the limit bounds
+    if n == 1 or (n <= MAX_BUILTIN_VEHICLES and load <= MAX_VEHICLE_SPEEDUP):
         return
     why = (f"{n} vehicles, more than the {MAX_BUILTIN_VEHICLES} built-in vehicles it can carry"
            if n > MAX_BUILTIN_VEHICLES else

@@ -439,3 +439,10 @@ def test_fly_refuses_an_option_a_one_vehicle_entry_overrides(tmp_path):
     err = _no_traceback(proc)
     assert proc.returncode == 2, err
     assert "--connect (the file gives vehicles[0].connect) would be ignored" in err and "--gnb (" not in err
+
+
+def test_one_vehicle_is_not_bounded_by_the_fleet_load():
+    """The fleet's limit is vehicles × speed-up; one vehicle flies at x200 (test_sim_at_x200_takes_off)."""
+    from sitl_scenarios.scenario import check_fleet_load, load_scenario
+
+    check_fleet_load(load_scenario("paper"), 200.0)
