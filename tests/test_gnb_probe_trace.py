@@ -14,6 +14,7 @@ import numpy as np
 
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.gnb.probe import probe_address
+from mission.gnb.tracer import TraceStatus, trace_served_why
 from sitl_scenarios.gnb import SimulatedGnb, static_position
 from sitl_scenarios.scenario import scenario_from_dict, user_tables
 from uavloc.errors import GnbBusyError
@@ -152,6 +153,17 @@ def test_auto_with_no_ue_says_the_same_of_the_t_tracer_in_both_lines():
     assert res.recommended == "trace"
 
 
+def test_the_trace_reason_with_ues_listed_does_not_say_none_comes_before_an_attach():
+    """Measured on OAI 2025.w36: `--mode auto` chose trace the moment its T client connected, a UE
+    already attached, and said "none comes before a UE attaches with SRS"; with UEs listed it says
+    the client has just connected."""
+    st = TraceStatus("127.0.0.1:2021", True, 0, (), True, 3, 0, 0, 0.1, "")
+    assert "none comes before a UE attaches" in trace_served_why(st)
+    with_ue = trace_served_why(st, ues=1)
+    assert "just connected" in with_ue and "1 UE(s)" in with_ue and "none comes before" not in with_ue
+    assert "12 SRS events so far" in trace_served_why(TraceStatus("a", True, 0, (), True, 12, 12, 0, 0.1, ""), 1)
+
+
 def test_trace_mode_does_not_hold_the_telnet_server_between_requests():
     """OAI's telnet server serves one client at a time: a user's own telnet session (here one
     request on a fresh connection, with no retry) gets through while the trace-mode client runs,
@@ -180,6 +192,30 @@ def test_trace_mode_does_not_hold_the_telnet_server_between_requests():
     rntis, got, held = run(body())
     assert rntis == got == [0x4601, 0x4602]
     assert held is None
+
+
+def test_the_waiting_trace_probe_asks_again_while_a_user_holds_the_telnet_server():
+    """A user's telnet session holds the gNB's one telnet client slot for 3 s while the trace probe
+    starts (its requests time out after 1 s): the probe's discoveries meet a busy server, it asks
+    again, and gives its ranges once the user leaves (a concurrent `rfsimu setdistance` on a real
+    gNB must not end the probe)."""
+    sc = _scenario()
+
+    async def body():
+        async with SimulatedGnb(sc, static_position(UAV_ENU_M), port=0, t_port=0) as gnb:
+            cfg = GnbConfig(port=gnb.port, t_port=gnb.t_port, mode="trace", fs_hz=sc.radio.fs_hz,
+                            request_timeout_s=1.0, retries=0)
+            async with OaiGnbClient(GnbConfig(port=gnb.port, mode="rtt")) as user:
+                await user.discover()
+                assert user.holds_connection
+                probe = asyncio.create_task(probe_address(cfg, count=2, wait_s=20.0))
+                await asyncio.sleep(3.0)
+                assert not probe.done()
+            return await probe
+
+    res = run(body())
+    assert res.ok, res.lines()
+    assert [u.rnti for u in res.ues] == [0x4601, 0x4602] and all(len(u.samples) == 2 for u in res.ues)
 
 
 def test_uavloc_gnb_probe_says_on_stderr_what_it_waits_for():

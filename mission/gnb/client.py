@@ -244,8 +244,10 @@ class OaiGnbClient:
         gNB: one measurement of a discovered UE), the T tracer with SRS events (a stock gNB run with
         --T_stdout 2), the log file (stock, coarse). Sets `mode` and `mode_reason` (logged)."""
         tried: list[str] = []
+        rntis: list[int] = []
         try:
-            served, why = await self.rtt_command_served(await self.discover())
+            rntis = await self.discover()
+            served, why = await self.rtt_command_served(rntis)
         except GnbError as exc:  # a silent or lost gNB: the command was not seen to answer
             served, why = False, f"`{self.config.rtt_module} {self.config.rtt_command}` did not answer ({exc})"
         if served:
@@ -261,7 +263,7 @@ class OaiGnbClient:
                 assert self.tracer is not None
                 if self.tracer.status().has_srs:
                     self.mode = "trace"
-                    self.mode_reason = trace_served_why(self.tracer.status())
+                    self.mode_reason = trace_served_why(self.tracer.status(), len(rntis))
                 else:
                     tried.append(f"the T tracer at {self.tracer.address}: its T_messages.txt has no SRS event")
                     await self.tracer.__aexit__(None, None, None)

@@ -343,7 +343,8 @@ async def _probe_trace(client: OaiGnbClient, tracer: TTracerClient, res: ProbeRe
     """Trace mode: take `count` round trips of each UE (of `rntis`, else every UE the gNB lists)
     from the T trace, waiting up to max(wait_s, TRACE_WAIT_S) for UEs to attach while the T client
     is connected (their random access carries the absolute TA) and for their round trips. The gNB
-    is asked for its UEs every TRACE_DISCOVER_EVERY_S; `progress` gets a line every
+    is asked for its UEs every TRACE_DISCOVER_EVERY_S (a timeout or busy server, e.g. the user's
+    own telnet session, is asked again; the last UEs stand); `progress` gets a line every
     PROGRESS_EVERY_S. Fills `res`; returns what stopped it (None when nothing did)."""
     t_start = clock()
     wait_s = max(wait_s, TRACE_WAIT_S)
@@ -353,14 +354,19 @@ async def _probe_trace(client: OaiGnbClient, tracer: TTracerClient, res: ProbeRe
     last_discovery = -math.inf
     last_progress = t_start - PROGRESS_EVERY_S + 1.0  # the first line after 1 s: none when all goes at once
     fatal: str | None = None
+    busy = ""  # the last discovery's timeout while the gNB's telnet served someone else
     while True:
         now = clock()
         if now - last_discovery >= TRACE_DISCOVER_EVERY_S:
             last_discovery = now
             try:
                 res.gnb_rntis = await client.discover()
+                busy = ""
             except GnbUnknownCommandError as exc:
                 fatal = f"discovery failed, telnet module missing: {exc}"
+            except (GnbTimeoutError, GnbBusyError) as exc:  # another client on the gNB's telnet: asked again
+                busy = f"discovery failed: {exc}"
+                log.info("trace probe: %s; asking again in %g s", busy, TRACE_DISCOVER_EVERY_S)
             except GnbError as exc:
                 fatal = f"discovery failed: {exc}"
             if fatal:
@@ -390,6 +396,8 @@ async def _probe_trace(client: OaiGnbClient, tracer: TTracerClient, res: ProbeRe
             last_progress = clock()
             progress(_waiting_line(clock() - t_start, wait_s, ues, why, count, tracer))
         await tracer.wait_for_events(min(0.25, max(0.0, deadline - clock())))
+    if busy and res.gnb_rntis is None:
+        res.problems.append(busy)
     res.ues = sorted(ues.values(), key=lambda u: (not u.expected, u.rnti))
     for u in res.ues:
         if len(u.samples) >= count:

@@ -61,11 +61,17 @@ class TraceStatus:
     problem: str
 
 
-def trace_served_why(st: TraceStatus) -> str:
+def trace_served_why(st: TraceStatus, ues: int = 0) -> str:
     """Why the trace mode is served by the T tracer of status `st` (one wording for the mode
     choice and the probe): it answered with a T_messages.txt that has an SRS event, and whether
-    SRS events came yet (none before a UE is attached with SRS configured)."""
-    got = f"{st.srs} SRS events so far" if st.srs else "no SRS event yet: none comes before a UE attaches with SRS"
+    SRS events came yet (none before a UE is attached with SRS configured). ues: how many UEs the
+    gNB lists (with some, no SRS yet is the moment just after the T client connected)."""
+    if st.srs:
+        got = f"{st.srs} SRS events so far"
+    elif ues:
+        got = f"no SRS event yet: the T client has just connected, the gNB lists {ues} UE(s)"
+    else:
+        got = "no SRS event yet: none comes before a UE attaches with SRS"
     return f"the T tracer at {st.address} answered, its T_messages.txt has the SRS event ({got})"
 
 
