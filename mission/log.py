@@ -389,9 +389,13 @@ def _table(obj: dict, key: str) -> dict:
     return v
 
 
+#: the altitudes [m AMSL] a log's positions may hold (the writer's estimate records keep to them too)
+ALT_MIN_M, ALT_MAX_M = -1000.0, 100_000.0
+
+
 def _lla(d: dict, what: str) -> tuple[float, float, float]:
     try:
-        return (_num(d, "lat_deg", -90, 90), _num(d, "lon_deg", -180, 180), _num(d, "alt_m", -1000, 100_000))
+        return (_num(d, "lat_deg", -90, 90), _num(d, "lon_deg", -180, 180), _num(d, "alt_m", ALT_MIN_M, ALT_MAX_M))
     except _LineError as exc:
         raise _LineError(f"{what}: {exc}") from None
 

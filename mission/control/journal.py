@@ -13,7 +13,7 @@ from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from estimator.types import Estimate
 from mission.control.config import MissionUser
-from mission.log import MissionLogWriter
+from mission.log import ALT_MAX_M, ALT_MIN_M, MissionLogWriter
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +81,10 @@ class MissionJournal:
         for k, u in enumerate(self.users):
             cov = est.cov_en_m2(k)
             if not (np.all(np.isfinite(est.users_enu_m[k])) and np.all(np.isfinite(cov))):
+                continue
+            if not (-90.0 <= lat[k] <= 90.0 and -180.0 <= lon[k] <= 180.0 and ALT_MIN_M <= alt[k] <= ALT_MAX_M):
+                # a diverged online estimate (seen: 2e11 m up) locates nobody, and a record the log's
+                # reader refuses would cost the mission its replayed final answer
                 continue
             entry = {"id": u.id, "lat_deg": float(lat[k]), "lon_deg": float(lon[k]),
                      "alt_m": float(alt[k]), "cov_en_m2": cov.tolist(), "ambiguous": bool(est.ambiguous[k])}
