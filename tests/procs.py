@@ -1,8 +1,12 @@
-"""Stopping the subprocesses the tests start (a launcher, a simulator, `uavloc view`)."""
+"""Starting and stopping the subprocesses the tests start (a launcher, a simulator, `uavloc view`)."""
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
 
 
 def stop_process(proc: subprocess.Popen, grace_s: float, kill_wait_s: float | None = None) -> None:
@@ -16,3 +20,21 @@ def stop_process(proc: subprocess.Popen, grace_s: float, kill_wait_s: float | No
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait(timeout=kill_wait_s)
+
+
+@contextlib.contextmanager
+def standalone_trace_gnb(scenario: str, cwd: Path) -> Iterator[tuple[str, str]]:
+    """`python -m sitl_scenarios.gnb --scenario SCENARIO` with a T tracer, on free loopback ports, its
+    UAV held 40 m above the origin: yields (telnet port, T port) as text, read from its start-up line."""
+    srv = subprocess.Popen([sys.executable, "-m", "sitl_scenarios.gnb", "--scenario", scenario, "--host", "127.0.0.1",
+                            "--port", "0", "--t-port", "0", "--static-enu", "0", "0", "40"],
+                           cwd=cwd, stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        while "T tracer on" not in line:
+            line = srv.stderr.readline()
+            assert line, "the simulated gNB did not start"
+        yield line.split(" on 127.0.0.1:")[1].split(",")[0], line.rsplit(":", 1)[1].strip()
+    finally:
+        srv.terminate()
+        srv.wait(10)

@@ -228,23 +228,13 @@ def test_uavloc_gnb_probe_says_on_stderr_what_it_waits_for():
     from pathlib import Path
 
     repo = Path(__file__).resolve().parents[1]
-    srv = subprocess.Popen([sys.executable, "-m", "sitl_scenarios.gnb", "--scenario", "paper", "--host", "127.0.0.1",
-                            "--port", "0", "--t-port", "0", "--static-enu", "0", "0", "40"],
-                           cwd=repo, stderr=subprocess.PIPE, text=True)
-    try:
-        line = ""
-        while "T tracer on" not in line:
-            line = srv.stderr.readline()
-            assert line, "the simulated gNB did not start"
-        port = line.split(" on 127.0.0.1:")[1].split(",")[0]
-        t_port = line.rsplit(":", 1)[1].strip()
+    from tests.procs import standalone_trace_gnb
+
+    with standalone_trace_gnb("paper", repo) as (port, t_port):
         probe = [sys.executable, "-m", "mission", "gnb", "probe", "--gnb", f"127.0.0.1:{port}", "--mode", "trace",
                  "--t-port", t_port, "--count", "1", "--json"]
         first = subprocess.run([*probe, "--wait", "20"], cwd=repo, capture_output=True, text=True, timeout=60)
         second = subprocess.run([*probe, "--wait", "4.5"], cwd=repo, capture_output=True, text=True, timeout=60)
-    finally:
-        srv.terminate()
-        srv.wait(10)
     assert first.returncode == 0, first.stdout + first.stderr
     assert second.returncode == 1, second.stdout + second.stderr
     assert "gnb probe: waiting for UEs" in second.stderr and "attached before the T trace began" in second.stderr

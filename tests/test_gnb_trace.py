@@ -116,22 +116,12 @@ def test_no_t_server_is_a_clear_error():
 
 def test_uavloc_gnb_probe_mode_trace_exits_0(tmp_path):
     """`uavloc gnb probe --mode trace` against `python -m sitl_scenarios.gnb --t-port`."""
-    srv = subprocess.Popen([sys.executable, "-m", "sitl_scenarios.gnb", "--scenario", "three_users_nlos",
-                            "--host", "127.0.0.1", "--port", "0", "--t-port", "0", "--static-enu", "0", "0", "40"],
-                           cwd=REPO, stderr=subprocess.PIPE, text=True)
-    try:
-        line = ""
-        while "T tracer on" not in line:
-            line = srv.stderr.readline()
-            assert line, "the simulated gNB did not start"
-        port = line.split(" on 127.0.0.1:")[1].split(",")[0]
-        t_port = line.rsplit(":", 1)[1].strip()
+    from tests.procs import standalone_trace_gnb
+
+    with standalone_trace_gnb("three_users_nlos", REPO) as (port, t_port):
         proc = subprocess.run([sys.executable, "-m", "mission", "gnb", "probe", "--gnb", f"127.0.0.1:{port}",
                                "--mode", "trace", "--t-port", t_port, "--count", "2", "--json"],
                               cwd=REPO, capture_output=True, text=True, timeout=60)
-    finally:
-        srv.terminate()
-        srv.wait(10)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     doc = json.loads(proc.stdout)
     assert doc["ok"] and doc["mode"] == "trace" and doc["trace"]["srs"] > 0
