@@ -161,9 +161,8 @@ class FlightState:
     clock: SurveyClock = field(default_factory=SurveyClock)
     #: whose state this is in log lines: a fleet's vehicle id (None: the mission's one vehicle)
     name: str | None = None
-    #: the survey was seen falling behind its speed-up (said once: :meth:`check_pace`)
-    pace_warned: bool = False
-    #: what it said then (SurveyPace.reasons)
+    #: why the survey was seen falling behind its speed-up (SurveyPace.reasons, said once:
+    #: :meth:`check_pace`; empty: not seen)
     pace_said: tuple[str, ...] = ()
     #: a requested return whose `return` event waits for the end of the survey (request_return)
     _return_unlogged: bool = False
@@ -172,12 +171,11 @@ class FlightState:
         """While surveying: the moment the survey's pace so far (SurveyClock.pace_now at mission
         time t_s, wall instant wall_s) falls behind its speed-up, say so on the console (a warning)
         and in the log (event `falling_behind`), once. The pace when it was said now, else None."""
-        if self.pace_warned:
+        if self.pace_said:
             return None
         pace = self.clock.pace_now(requested_speedup, t_s, wall_s)
         if pace is None or not pace.fell_behind:
             return None
-        self.pace_warned = True
         self.pace_said = tuple(pace.reasons())
         who = f"{self.name}: " if self.name else ""
         log.warning("falling behind: %s%s", who, pace.message())
