@@ -22,19 +22,37 @@ def _private_folders(tmp_path_factory):
     """Folders of this test session, not the user's (subprocesses inherit them): missions flown
     without --out keep their log under $UAVLOC_RUNS (mission.commands.outdir), not ~/uavloc-runs;
     the planner's compiled kernels go to $UAVLOC_KERNEL_CACHE (mission.kernel_cache), not
-    ~/.cache: the first test that plans compiles them, the rest load them."""
+    ~/.cache: the first test that plans compiles them, the rest load them. Under pytest-xdist
+    (`-n 2`, the README's command) the workers share one kernel cache (mission.kernel_cache
+    writes atomically and verifies what it loads), so a kernel is compiled once per run."""
     import os
 
     folders = {"UAVLOC_RUNS": "uavloc-runs", "UAVLOC_KERNEL_CACHE": "kernel-cache"}
     old = {name: os.environ.get(name) for name in folders}
     for name, folder in folders.items():
         os.environ[name] = str(tmp_path_factory.mktemp(folder))
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = tmp_path_factory.getbasetemp().parent / "kernel-cache-shared"
+        shared.mkdir(exist_ok=True)
+        os.environ["UAVLOC_KERNEL_CACHE"] = str(shared)
     yield
     for name, value in old.items():
         if value is None:
             os.environ.pop(name, None)
         else:
             os.environ[name] = value
+
+
+#: markers of tests that run the user's own peer builds (fixed PX4 ports, one OAI gNB per module):
+#: under pytest-xdist's `--dist loadgroup` they all run on one worker, one after the other
+PEER_MARKERS = ("px4", "ardupilot", "oai")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if any(item.get_closest_marker(m) is not None for m in PEER_MARKERS):
+            item.add_marker(pytest.mark.xdist_group("peers"))
 
 
 @pytest.fixture(autouse=True)
