@@ -16,7 +16,7 @@ def test_a_sim_without_out_keeps_its_log_and_says_where(tmp_path):
     import os
 
     env = dict(os.environ, UAVLOC_RUNS=str(tmp_path / "runs"))
-    proc = subprocess.run([sys.executable, "-m", "mission", "sim", "paper", "--planner", "lawnmower", "--speedup", "40",
+    proc = subprocess.run([sys.executable, "-m", "mission", "sim", "paper", "--planner", "lawnmower", "--speedup", "20",
                            "--json"], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode in (0, 1), proc.stderr[-2000:]
     (run,) = (tmp_path / "runs").iterdir()

@@ -90,14 +90,15 @@ def test_a_starved_simulation_says_it_fell_behind_and_by_how_much(tmp_path, capl
 
 
 def test_a_simulation_that_keeps_up_says_nothing(tmp_path, caplog):
+    """At ×5, which the built-in vehicle keeps beside a second test on 2 cores."""
     log_path = tmp_path / "m.jsonl"
     with caplog.at_level("WARNING"):
-        result, behind_s = _fly(_scenario(1, budget_m=150.0), log_path, 10.0)
+        result, behind_s = _fly(_scenario(1, budget_m=150.0), log_path, 5.0)
     assert behind_s == 0.0
     assert _events(log_path, "fell_behind") == []
     assert not any("asked ×" in r.getMessage() for r in caplog.records)
     assert result.pace is not None and not result.pace.fell_behind
-    assert result.pace.achieved_speedup == pytest.approx(10.0, rel=1.0 - FELL_BEHIND_SHARE)
+    assert result.pace.achieved_speedup == pytest.approx(5.0, rel=1.0 - FELL_BEHIND_SHARE)
     assert mission_document(result)["speedup"]["fell_behind"] is False
 
 
@@ -113,16 +114,17 @@ def _survey_figures_from_log(log_path: Path) -> tuple[dict, int, int]:
     return survey, len(rounds), int(during.sum())
 
 
-@pytest.mark.parametrize("gnb_delay_s", [0.0, 0.06])
-def test_the_survey_reports_the_spacing_its_log_shows(tmp_path, gnb_delay_s):
-    """Four users, Δ = 2 m, at ×20: with a quick gNB every user is measured about every Δ·4; with
-    a gNB that takes 60 ms (1.2 mission seconds, ~10 m flown) per answer, rounds are cut after one
+@pytest.mark.parametrize(("gnb_delay_s", "speedup"), [(0.0, 10.0), (0.06, 20.0)])
+def test_the_survey_reports_the_spacing_its_log_shows(tmp_path, gnb_delay_s, speedup):
+    """Four users, Δ = 2 m: with a quick gNB (×10, which a machine busy with a second test keeps)
+    every user is measured about every Δ·4; at ×20 with a gNB that takes 60 ms (1.2 mission
+    seconds, ~10 m flown) per answer, rounds are cut after one
     user and each user is measured every ~40 m (the old `gnb_rounds` claimed every Δ·4 = 8 m).
     The `survey_time` event's rounds, ranges, spacing and rate are the log's; `gnb_rounds` claims
     no spacing."""
     log_path = tmp_path / "m.jsonl"
     n_users = 4
-    result, _ = _fly(_scenario(n_users, gnb_delay_s), log_path, 20.0)
+    result, _ = _fly(_scenario(n_users, gnb_delay_s), log_path, speedup)
     survey, rounds, ranges = _survey_figures_from_log(log_path)
     assert abs(survey["rounds"] - rounds) <= 1 and abs(survey["ranges"] - ranges) <= n_users
     # the survey's odometer ran over every fix; the result's (replay's) over the logged telemetry

@@ -137,7 +137,7 @@ def test_uavloc_sim_with_view_keeps_the_page_and_exits_on_sigint_with_the_missio
     from tests.fly_rig import REPO
 
     env = dict(os.environ, PYTHONUNBUFFERED="1", UAVLOC_RUNS=str(tmp_path / "runs"))
-    proc = subprocess.Popen([sys.executable, "-m", "mission", "sim", "paper", "--speedup", "40", "--json",
+    proc = subprocess.Popen([sys.executable, "-m", "mission", "sim", "paper", "--speedup", "20", "--json",
                              "--planner", "lawnmower", "--out", str(tmp_path / "out"), "--view", "127.0.0.1:0"],
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines: list[str] = []
