@@ -57,12 +57,14 @@ class SurveyClock:
         self.t0_s, self.wall0_s = t_s, wall_s
 
     def fix(self, t_s: float, speed_mps: float | None) -> None:
-        """A fix during the survey: Δt since the last one counts as hover when slower than the threshold."""
+        """A fix during the survey: Δt since the latest fix so far counts as hover when slower than
+        the threshold. A fix stamped before the latest one (two streams' stamps interleaved, seen
+        under load) adds nothing, so hover time never exceeds the survey's time."""
         if self.t0_s is None or self.t1_s is not None:
             return
         if self._last_fix_s is not None and speed_mps is not None and speed_mps < HOVER_SPEED_MPS:
             self.hover_s += max(0.0, t_s - self._last_fix_s)
-        self._last_fix_s = t_s
+        self._last_fix_s = t_s if self._last_fix_s is None else max(self._last_fix_s, t_s)
 
     def range_at(self, t_s: float, ranges: int = 1) -> None:
         """A round of `ranges` ranges measured at t_s."""
