@@ -101,7 +101,7 @@ class SimulatedMission:
                  speedup: float = 20.0, planner: str | None = None, connect: str | Sequence[str] | None = None,
                  max_stream_wall_hz: float = 100.0, gnb_request_timeout_s: float = 1.0,
                  controller_overrides: dict | None = None, gnb_transport: str = "telnet",
-                 gnb_mode: str | None = None, header_config: dict | None = None):
+                 gnb_mode: str | None = None, header_config: dict | None = None, oai: str | Path | None = None):
         if not (math.isfinite(speedup) and speedup > 0):
             raise MissionError(f"speedup must be a positive number, got {speedup!r}")
         self.scenario = scenario
@@ -145,6 +145,21 @@ class SimulatedMission:
         self._stack: contextlib.AsyncExitStack | None = None
         self._gnb_stack: contextlib.AsyncExitStack | None = None
         self._t0 = time.monotonic()
+        #: a real OAI gNB and nrUE in the loop (`oai`: an OAI build folder; docs/oai-in-the-loop.md)
+        self.oai = None
+        self._channel_pending: list = []
+        if oai is not None:
+            if connect is not None:
+                raise MissionError("an OAI build (--oai) flies the built-in vehicle: the bridge follows its true "
+                                   "position, which only the world knows (--connect is not supported with --oai)")
+            if gnb_transport != "telnet":
+                raise MissionError("a real OAI gNB is reached over telnet (--gnb-transport rest is not supported "
+                                   "with --oai)")
+            from sitl_scenarios.oai.loop import OaiInTheLoop
+
+            self.oai = OaiInTheLoop(oai, self.log_path.parent / "oai", scenario)
+            # a stock OAI gNB has no RTT command: its ranges come from its T trace
+            self.gnb_mode = "auto" if gnb_mode == "auto" else "trace"
 
     # -- positions seen by the simulated gNB (ENU of the scenario frame) ------------------------
 
@@ -224,7 +239,9 @@ class SimulatedMission:
         try:
             self._gnb_stack = contextlib.AsyncExitStack()
             await self._gnb_stack.__aenter__()
-            if self.connect is None:
+            if self.oai is not None:
+                await self._enter_oai(stack)
+            elif self.connect is None:
                 await self._enter_world(stack)
             else:
                 for url in self.connect_urls:
@@ -240,7 +257,8 @@ class SimulatedMission:
             self.vehicle = self.vehicles[0]
             for gnb in self.gnb_sims:
                 self.gnb_clients.append(await self._gnb_stack.enter_async_context(self._gnb_client(gnb)))
-            self.gnb_sim, self.gnb_client = self.gnb_sims[0], self.gnb_clients[0]
+            self.gnb_sim = self.gnb_sims[0] if self.gnb_sims else None
+            self.gnb_client = self.gnb_clients[0]
             overrides = dict(self.controller_overrides)
             # the controller's gNB timeout covers the adapter's own timeout and one reconnect
             overrides.setdefault("gnb_timeout_s", 3.0 * self.gnb_request_timeout_s + 0.5)
@@ -261,13 +279,59 @@ class SimulatedMission:
         self._stack = stack
         return self
 
+    async def _enter_oai(self, stack: contextlib.AsyncExitStack) -> None:
+        """A real OAI gNB and nrUE (sitl_scenarios.oai.loop): the gNB, the adapter's T client, the
+        UE's attach, rfsim's pace (the world's speed-up follows it), the world without simulated
+        gNBs, then the bridge that puts the vehicle's true distance on the UE's channel."""
+        oai = self.oai
+
+        async def enter_client(port: int, t_port: int) -> None:
+            sc = self.scenario
+            client = OaiGnbClient(GnbConfig.of(
+                sc.mission.gnb, "127.0.0.1", port, transport="telnet", seed=self.seed, mu=sc.radio.mu,
+                fs_hz=sc.radio.fs_hz, mode=self.gnb_mode, t_port=t_port,
+                trace_jump_tolerance_m=max(sc.mission.gnb.trace_jump_tolerance_m, 3.0 * sc.mission.noise.range_s0_m),
+                request_timeout_s=max(self.gnb_request_timeout_s, 3.0), connect_timeout_s=5.0, retries=1,
+                backoff_max_s=0.5))
+            self.gnb_clients.append(await self._gnb_stack.enter_async_context(client))
+
+        stack.push_async_callback(self._close_gnb)  # the adapter closes before OAI
+        await oai.start_radio(stack, enter_client)
+        from sitl_scenarios.oai.loop import scenario_with_rntis
+
+        self.scenario = scenario_with_rntis(self.scenario, oai.rntis)
+        requested = self.speedup
+        self.speedup = oai.speedup(requested)
+        if self.speedup < requested:
+            log.warning("rfsim runs at %.2f × real time: the world runs at %g × (not %g ×)", oai.pace_at_start,
+                        self.speedup, requested)
+        self.header_config["oai"] = oai.header(self.speedup)
+        await self._enter_world(stack)
+        world = self.world
+
+        async def position() -> np.ndarray:
+            return np.asarray(await world.acall("positions"), float)[0]
+
+        await oai.start_bridge(stack, position, self._channel_setting)
+
+    def _channel_setting(self, setting) -> None:
+        """The bridge's sink: each rfsim distance set becomes a `channel` record once the log is open
+        (the settings before, kept, then; their time clamped to the log's start)."""
+        self._channel_pending.append(setting)
+        c = self.controller
+        if c is None or not c.log_writer.is_open:
+            return
+        for s in self._channel_pending:
+            c.log_writer.write("channel", max(0.0, c.mission_t(s.t_mono_s)), **s.record())
+        self._channel_pending.clear()
+
     async def _enter_world(self, stack: contextlib.AsyncExitStack) -> None:
         """Start the world's process (the built-in vehicles, the gNBs, the fleet's cells) and the
         MAVSDK adapters that listen to its vehicles; the gNB adapters close before the world."""
         ports = tuple(free_udp_port() for _ in range(self.fleet_size))
         self.world = await stack.enter_async_context(WorldProcess(WorldSpec(
             self.scenario, self.seed, self.speedup, ports, max_stream_wall_hz=self.max_stream_wall_hz,
-            gnb_transport=self.gnb_transport, gnb_mode=self.gnb_mode)))
+            gnb_transport=self.gnb_transport, gnb_mode=self.gnb_mode, gnbs=self.oai is None)))
         for i, port in enumerate(ports):
             self.vehicle_sims.append(VehicleProxy(self.world, i))
             self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(f"udpin://127.0.0.1:{port}")))

@@ -1,0 +1,183 @@
+"""The bridge between the simulated world and a real OAI pair's rfsim channel (docs/oai-in-the-loop.md).
+
+Every `period_s` the bridge asks the world for the built-in vehicle's TRUE position p (the world
+process knows it), and for each user u at position x_u sets that UE's rfsim channel so that its
+round trip follows
+
+    2 d_u = 2 ‖p − x_u‖,   target offset k* = round(2 d_u · fs / c)   [whole samples]
+
+all of it on the nrUE's downlink (`rfsimu setdistance rfsimu_channel_enB0 <m>` on the nrUE's own
+telnet; the gNB's uplink stays at 0, so the gNB's telnet stays free for uavloc's discovery). An
+offset set on one side alone is the whole round trip (tests/test_oai_live_trace.py). Each setting
+moves the offset at most `max_step` samples (1: a sample is 6.506 m of round trip, 3.253 m of
+range at 46.08 Msps; jumps of many samples crashed a gNB); a 10 Hz bridge keeps up with a range
+changing 32 m/s. Every setting is handed to `sink` as a :class:`ChannelSetting` (the mission log's
+`channel` record). Every `pace_every_s` it reads rfsim's virtual time on UE 0 (`rfsimu vtime`) into
+a :class:`PaceMeter`.
+
+:func:`plan_offsets` is the pure part (tested everywhere); :class:`ChannelBridge` is the loop, an
+async context manager owning its task.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from sitl_scenarios.oai.channel import (
+    PaceMeter,
+    metres_for_offset,
+    next_offset,
+    offset_for_round_trip,
+    sample_m,
+)
+from uavloc.errors import SimulatorError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ChannelSetting:
+    """One rfsim distance the bridge set: when (monotonic and UNIX [s]), for which user, the offset
+    OAI set [samples of round trip], the fs it counts at [Hz], and the true distance it followed [m]."""
+
+    t_mono_s: float
+    t_wall_s: float
+    user: str
+    offset: int
+    fs_hz: float
+    true_range_m: float
+    pace: float | None = None
+
+    @property
+    def round_trip_m(self) -> float:
+        return self.offset * sample_m(self.fs_hz)
+
+    @property
+    def range_m(self) -> float:
+        """The one-way range this channel gives: half the round trip."""
+        return 0.5 * self.round_trip_m
+
+    def record(self) -> dict:
+        """The fields of the mission log's `channel` record (mission.channel)."""
+        out = {"user": self.user, "offset": self.offset, "side": "downlink", "fs_hz": self.fs_hz,
+               "round_trip_m": round(self.round_trip_m, 4), "range_m": round(self.range_m, 4),
+               "true_range_m": round(self.true_range_m, 4), "t_wall": round(self.t_wall_s, 6)}
+        if self.pace is not None:
+            out["pace"] = round(self.pace, 4)
+        return out
+
+
+def plan_offsets(uav_enu_m: np.ndarray, users_enu_m: np.ndarray, current: Sequence[int], fs_hz: float,
+                 max_step: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(true distances d (K,) [m], target offsets k* (K,), next offsets (K,)) for a UAV at (3,)
+    uav_enu_m and K users at (K, 3) users_enu_m, from the (K,) offsets set now."""
+    d = np.linalg.norm(np.asarray(users_enu_m, float).reshape(-1, 3) - np.asarray(uav_enu_m, float).reshape(1, 3),
+                       axis=1)
+    target = np.array([offset_for_round_trip(2.0 * x, fs_hz) for x in d], int)
+    nxt = np.array([next_offset(int(c), int(t), max_step) for c, t in zip(current, target, strict=True)], int)
+    return d, target, nxt
+
+
+class ChannelBridge:
+    """See the module docstring. ues: one object per user with `set_distance(metres) -> offset` and
+    `vtime_s()` (sitl_scenarios.oai.pair.UeTelnet); user_ids, users_enu_m (K, 3): the users in the
+    world's frame; position: the vehicle's true position (3,) in that frame, awaited."""
+
+    def __init__(self, ues: Sequence, user_ids: Sequence[str], users_enu_m: np.ndarray,
+                 position: Callable[[], Awaitable[np.ndarray]], fs_hz: float, *, period_s: float = 0.1,
+                 max_step: int = 1, pace_every_s: float = 1.0, sink: Callable[[ChannelSetting], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> None:
+        self.ues = list(ues)
+        self.user_ids = list(user_ids)
+        self.users_enu_m = np.asarray(users_enu_m, float).reshape(-1, 3)
+        self.position = position
+        self.fs_hz = float(fs_hz)
+        self.period_s = period_s
+        self.max_step = max_step
+        self.pace_every_s = pace_every_s
+        self.sink = sink
+        self.clock = clock
+        self.wall = wall
+        #: the offset set on each UE's downlink now [samples] (each UE attaches at 0)
+        self.offsets = [0] * len(self.ues)
+        self.settings: list[ChannelSetting] = []
+        self.pace = PaceMeter()
+        #: the largest gap between a channel and its target while following (after the walk-out) [samples]
+        self.lag_max = 0
+        self._following = False
+        self._task: asyncio.Task | None = None
+        self._last_pace_s = -float("inf")
+
+    async def step(self) -> bool:
+        """One round: every UE's channel one step toward its target; True when all are there."""
+        pos = np.asarray(await self.position(), float).reshape(3)
+        d, target, nxt = plan_offsets(pos, self.users_enu_m, self.offsets, self.fs_hz, self.max_step)
+        for i, ue in enumerate(self.ues):
+            if self._following:
+                self.lag_max = max(self.lag_max, abs(int(target[i]) - int(nxt[i])))
+            if nxt[i] == self.offsets[i]:
+                continue
+            set_k = await ue.set_distance(metres_for_offset(int(nxt[i]), self.fs_hz))
+            if set_k != nxt[i]:
+                raise SimulatorError(f"OAI set offset {set_k} on UE {self.user_ids[i]}'s downlink, not {nxt[i]}")
+            self.offsets[i] = set_k
+            s = ChannelSetting(self.clock(), self.wall(), self.user_ids[i], set_k, self.fs_hz, float(d[i]),
+                               self.pace.pace())
+            self.settings.append(s)
+            if self.sink is not None:
+                self.sink(s)
+        return bool(np.all(np.asarray(self.offsets) == target))
+
+    async def measure_pace(self) -> float | None:
+        """Read rfsim's virtual time on UE 0 into the pace meter; the pace so far."""
+        self.pace.add(self.wall(), await self.ues[0].vtime_s())
+        self._last_pace_s = self.clock()
+        return self.pace.pace()
+
+    async def walk_out(self, timeout_s: float = 120.0) -> None:
+        """Step until every channel is at its target (the UEs attached at 0)."""
+        deadline = self.clock() + timeout_s
+        while not await self.step():
+            if self.clock() > deadline:
+                raise SimulatorError(f"the rfsim channel did not reach the vehicle's distance within {timeout_s:g} s")
+            await asyncio.sleep(self.period_s)
+
+    async def _run(self) -> None:
+        while True:
+            t0 = self.clock()
+            await self.step()
+            if self.clock() - self._last_pace_s >= self.pace_every_s:
+                await self.measure_pace()
+            await asyncio.sleep(max(0.0, self.period_s - (self.clock() - t0)))
+
+    async def __aenter__(self) -> ChannelBridge:
+        await self.walk_out()
+        self._following = True
+        self._task = asyncio.create_task(self._run(), name="uavloc-oai-bridge")
+        self._task.add_done_callback(self._ended)
+        return self
+
+    def _ended(self, task: asyncio.Task) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            log.error("the rfsim bridge stopped: the channel no longer follows the vehicle (%s)", task.exception())
+
+    async def __aexit__(self, *exc: object) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            # an error of the loop was logged when it ended (_ended); the mission's end is not its
+            await asyncio.gather(task, return_exceptions=True)
+            log.info("rfsim bridge: %d settings, largest lag %d sample(s)", len(self.settings), self.lag_max)
+
+    def failed(self) -> BaseException | None:
+        """The loop's error when it ended on one (an nrUE gone, OAI refusing an offset)."""
+        task = self._task
+        if task is not None and task.done() and not task.cancelled():
+            return task.exception()
+        return None

@@ -1,0 +1,111 @@
+"""A real OAI gNB and nrUE in the loop of `uavloc sim --oai` (docs/oai-in-the-loop.md).
+
+:class:`OaiInTheLoop` is what :class:`sitl_scenarios.sim_runner.SimulatedMission` enters before the
+world when it is given an OAI build, in this order (each step needs the one before):
+
+1. the gNB (sitl_scenarios.oai.pair.OaiPair.start_gnb), its confs written, its T server on a free port;
+2. uavloc's gNB adapter in trace mode, whose T client connects on entering (a UE attached before it
+   has no absolute TA in the trace);
+3. each nrUE at rfsim offset 0 (in `--do-ra` mode a UE started 57 samples or more away did not
+   attach), its C-RNTI read from the gNB's log: the scenario's users get those RNTIs;
+4. rfsim's pace (`rfsimu vtime` on the nrUE over PACE_PROBE_S wall seconds): the world runs at
+   `min(--speedup, pace)` (sitl_scenarios.oai.channel.world_speedup);
+5. (after the world started) the bridge (sitl_scenarios.oai.bridge), which walks each channel out to
+   the vehicle's true distance one sample at a time and then follows it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import numpy as np
+
+from sitl_scenarios.oai.bridge import ChannelBridge, ChannelSetting
+from sitl_scenarios.oai.channel import PaceMeter, world_speedup
+from sitl_scenarios.oai.conf import build_missing, check_scenario
+from sitl_scenarios.oai.pair import OaiPair, UeTelnet
+from sitl_scenarios.scenario import Scenario
+from uavloc.errors import SimulatorError
+
+log = logging.getLogger(__name__)
+
+#: how long rfsim's pace is measured before the world starts [wall s]
+PACE_PROBE_S = 4.0
+
+
+def scenario_with_rntis(scenario: Scenario, rntis: list[int]) -> Scenario:
+    """The scenario whose users (in order) have the C-RNTIs the real gNB gave them."""
+    users = tuple(dataclasses.replace(u, rnti=int(r)) for u, r in zip(scenario.mission.users, rntis, strict=True))
+    return dataclasses.replace(scenario, mission=dataclasses.replace(scenario.mission, users=users))
+
+
+class OaiInTheLoop:
+    """See the module docstring. build: the OAI build folder; run_dir: where the confs and OAI's
+    logs go; scenario: the scenario (refused unless OAI can fly it: conf.check_scenario)."""
+
+    def __init__(self, build: str | Path, run_dir: Path, scenario: Scenario) -> None:
+        self.build = Path(build).expanduser()
+        why = build_missing(self.build)
+        if why is not None:
+            raise SimulatorError(why)
+        check_scenario(scenario)
+        self.scenario = scenario
+        self.pair = OaiPair(self.build, Path(run_dir), n_ues=len(scenario.users))
+        self.ues: list[UeTelnet] = []
+        self.rntis: list[int] = []
+        self.pace_at_start: float | None = None
+        self.bridge: ChannelBridge | None = None
+
+    async def start_radio(self, stack: contextlib.AsyncExitStack,
+                          enter_client: Callable[[int, int], Awaitable[object]]) -> None:
+        """Steps 1–4. enter_client(telnet port, T port): enter uavloc's gNB adapter (its T client
+        connects) in the caller's stack. The pair is closed when `stack` unwinds."""
+        stack.callback(self.pair.close)
+        await asyncio.to_thread(self.pair.start_gnb)
+        ports = self.pair.ports
+        await enter_client(ports.gnb_telnet, ports.t)
+        for i in range(self.pair.n_ues):
+            self.pair.start_ue(i)
+            rnti = await self.pair.wait_attached(set(self.rntis))
+            self.rntis.append(rnti)
+            log.info("OAI nrUE %d attached as C-RNTI %04x at rfsim offset 0", i, rnti)
+            self.ues.append(await stack.enter_async_context(UeTelnet(ports.ue_telnet[i])))
+        meter = PaceMeter(min_span_s=0.5 * PACE_PROBE_S)
+        t_end = time.monotonic() + PACE_PROBE_S
+        while True:
+            meter.add(time.time(), await self.ues[0].vtime_s())
+            if time.monotonic() >= t_end:
+                break
+            await asyncio.sleep(0.5)
+        self.pace_at_start = meter.pace()
+        if self.pace_at_start is None:
+            raise SimulatorError("rfsim's pace could not be measured (rfsimu vtime gave no span)")
+        log.info("rfsim runs at %.2f × real time", self.pace_at_start)
+
+    def speedup(self, requested: float) -> float:
+        """The world's speed-up: never faster than rfsim (channel.world_speedup)."""
+        assert self.pace_at_start is not None
+        return world_speedup(requested, self.pace_at_start)
+
+    async def start_bridge(self, stack: contextlib.AsyncExitStack, position: Callable[[], Awaitable[np.ndarray]],
+                           sink: Callable[[ChannelSetting], None]) -> ChannelBridge:
+        """Step 5: the bridge, walked out to the vehicle's distance, running until `stack` unwinds."""
+        users = np.array([[u.east_m, u.north_m, u.up_m] for u in self.scenario.users], float)
+        self.bridge = ChannelBridge(self.ues, [u.id for u in self.scenario.users], users, position,
+                                    self.scenario.radio.fs_hz, sink=sink)
+        return await stack.enter_async_context(self.bridge)
+
+    def header(self, speedup: float) -> dict:
+        """The log header's `oai` section: the gNB is a real OAI (its version, binaries, command
+        lines), the run folder, rfsim's pace at the start and the world's speed-up."""
+        return {"real_gnb": True, **self.pair.version(), "run_dir": str(self.pair.run_dir),
+                "command_lines": [" ".join(c) for c in self.pair.command_lines],
+                "rntis": [f"{r:04x}" for r in self.rntis], "channel": "nrUE downlink (rfsimu_channel_enB0) = 2 d",
+                "pace_at_start": round(float(self.pace_at_start or 0.0), 4), "speedup": speedup}
+
