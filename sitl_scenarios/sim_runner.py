@@ -312,7 +312,7 @@ class SimulatedMission:
         async def position() -> np.ndarray:
             return np.asarray(await world.acall("positions"), float)[0]
 
-        await oai.start_bridge(stack, position, self._channel_setting)
+        await oai.start_bridge(stack, position, self._channel_setting, self.speedup)
 
     def _channel_setting(self, setting) -> None:
         """The bridge's sink: each rfsim distance set becomes a `channel` record once the log is open

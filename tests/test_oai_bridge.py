@@ -319,3 +319,22 @@ def test_residuals_take_the_channel_in_force_at_each_stamp():
     assert doc["within_one_sample"] == pytest.approx(2 / 3, abs=1e-4) and doc["mean_m"] == pytest.approx(-half / 3,
                                                                                                          abs=1e-3)
     assert channel_residuals(np.zeros(0), np.zeros(0, int), np.zeros(0), [], {"ue1": 0}) is None
+
+
+def test_closing_the_pair_ends_each_process_group_and_counts_its_cpu(tmp_path):
+    """OaiPair.close ends what each OAI process forked too (nr-softmodem's T process outlives it):
+    here a shell whose child ignores SIGTERM and outlives it, in a session of its own as OAI is started."""
+    import subprocess
+    import time
+
+    from sitl_scenarios.oai.pair import OaiPair
+
+    pair = OaiPair(tmp_path, tmp_path)
+    proc = subprocess.Popen(["sh", "-c", "(trap '' TERM; exec sleep 30) & wait"], start_new_session=True)
+    pair.procs["gnb"], pair._t_start = proc, time.monotonic()
+    time.sleep(0.1)
+    assert set(pair.cpu_s()) == {"gnb"} and pair.cpu_s()["gnb"] >= 0.0
+    pair.close()
+    time.sleep(0.1)
+    states = subprocess.run(["ps", "-o", "stat=", "-g", str(proc.pid)], capture_output=True, text=True).stdout
+    assert all(s.startswith("Z") for s in states.split()) and pair.exited() == ["gnb"]  # dead, maybe not reaped

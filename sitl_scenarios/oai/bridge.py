@@ -41,6 +41,10 @@ from uavloc.errors import SimulatorError
 log = logging.getLogger(__name__)
 
 
+#: rfsim slower than this fraction of the world's speed-up is said (a warning)
+SLOW_FRACTION = 0.8
+
+
 @dataclass(frozen=True)
 class ChannelSetting:
     """One rfsim distance the bridge set: when (monotonic and UNIX [s]), for which user, the offset
@@ -92,6 +96,7 @@ class ChannelBridge:
     def __init__(self, ues: Sequence, user_ids: Sequence[str], users_enu_m: np.ndarray,
                  position: Callable[[], Awaitable[np.ndarray]], fs_hz: float, *, period_s: float = 0.1,
                  max_step: int = 1, pace_every_s: float = 1.0, sink: Callable[[ChannelSetting], None] | None = None,
+                 world_speedup: float | None = None,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> None:
         self.ues = list(ues)
         self.user_ids = list(user_ids)
@@ -102,6 +107,9 @@ class ChannelBridge:
         self.max_step = max_step
         self.pace_every_s = pace_every_s
         self.sink = sink
+        #: the world's speed-up: rfsim falling below it (SLOW_FRACTION of it) is said, once a minute
+        self.world_speedup = world_speedup
+        self._slow_said_s = -float("inf")
         self.clock = clock
         self.wall = wall
         #: the offset set on each UE's downlink now [samples] (each UE attaches at 0)
@@ -137,8 +145,15 @@ class ChannelBridge:
     async def measure_pace(self) -> float | None:
         """Read rfsim's virtual time on UE 0 into the pace meter; the pace so far."""
         self.pace.add(self.wall(), await self.ues[0].vtime_s())
-        self._last_pace_s = self.clock()
-        return self.pace.pace()
+        self._last_pace_s = now = self.clock()
+        pace = self.pace.pace()
+        if (pace is not None and self.world_speedup is not None and pace < SLOW_FRACTION * self.world_speedup
+                and now - self._slow_said_s >= 60.0):
+            self._slow_said_s = now
+            log.warning("rfsim now runs at %.2f × real time, slower than the world's %g ×: the gNB sees the vehicle "
+                        "move %.1f × faster per second of its air time", pace, self.world_speedup,
+                        self.world_speedup / pace)
+        return pace
 
     async def walk_out(self, timeout_s: float = 120.0) -> None:
         """Step until every channel is at its target (the UEs attached at 0)."""

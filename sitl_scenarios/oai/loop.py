@@ -94,11 +94,12 @@ class OaiInTheLoop:
         return world_speedup(requested, self.pace_at_start)
 
     async def start_bridge(self, stack: contextlib.AsyncExitStack, position: Callable[[], Awaitable[np.ndarray]],
-                           sink: Callable[[ChannelSetting], None]) -> ChannelBridge:
-        """Step 5: the bridge, walked out to the vehicle's distance, running until `stack` unwinds."""
+                           sink: Callable[[ChannelSetting], None], speedup: float) -> ChannelBridge:
+        """Step 5: the bridge, walked out to the vehicle's distance, running until `stack` unwinds
+        (it says when rfsim falls behind the world's `speedup`)."""
         users = np.array([[u.east_m, u.north_m, u.up_m] for u in self.scenario.users], float)
         self.bridge = ChannelBridge(self.ues, [u.id for u in self.scenario.users], users, position,
-                                    self.scenario.radio.fs_hz, sink=sink)
+                                    self.scenario.radio.fs_hz, sink=sink, world_speedup=speedup)
         return await stack.enter_async_context(self.bridge)
 
     def header(self, speedup: float) -> dict:

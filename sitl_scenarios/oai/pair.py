@@ -77,6 +77,7 @@ class OaiPair:
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     #: every command line started, in order (the mission log's header names them)
     command_lines: list[list[str]] = field(default_factory=list)
+    _t_start: float | None = None
 
     @property
     def gnb_log(self) -> Path:
@@ -141,6 +142,8 @@ class OaiPair:
             self.procs[name] = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                                 cwd=self.run_dir, env=env, start_new_session=True)
         self.command_lines.append(cmd)
+        if self._t_start is None:
+            self._t_start = time.monotonic()
         log.info("OAI %s started (pid %d): %s", name, self.procs[name].pid, " ".join(cmd))
 
     def _check_alive(self, name: str) -> None:
@@ -152,8 +155,28 @@ class OaiPair:
         """The OAI processes that have exited."""
         return [n for n, p in self.procs.items() if p.poll() is not None]
 
+    def cpu_s(self) -> dict[str, float]:
+        """CPU seconds (user + system) used so far by each OAI process group ("gnb", "ue0", ...: the
+        process and what it forked, e.g. the gNB's T process), from /proc."""
+        tick = os.sysconf("SC_CLK_TCK")
+        out = dict.fromkeys(self.procs, 0.0)
+        groups = {p.pid: n for n, p in self.procs.items()}
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            name = groups.get(int(fields[2]))  # field 5: the process group
+            if name is not None:
+                out[name] += (int(fields[11]) + int(fields[12])) / tick  # fields 14, 15: utime, stime
+        return out
+
     def close(self) -> None:
         """SIGTERM to the UEs, then the gNB (SIGKILL after 10 s), then SIGKILL to each process group."""
+        if self.procs and self._t_start is not None:
+            cpu, wall = self.cpu_s(), time.monotonic() - self._t_start
+            log.info("OAI used %.0f CPU-s in %.0f s of wall time: %.2f cores (%s)", sum(cpu.values()), wall,
+                     sum(cpu.values()) / max(wall, 1e-9), ", ".join(f"{n} {c:.0f} s" for n, c in cpu.items()))
         order = [n for n in self.procs if n != "gnb"] + (["gnb"] if "gnb" in self.procs else [])
         for name in order:
             proc = self.procs[name]
