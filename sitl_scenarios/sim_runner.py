@@ -273,6 +273,8 @@ class SimulatedMission:
                                "gnb_transport": self.gnb_transport, "gnb_mode": self.gnb_client.mode,
                                **self.header_config},
                 **overrides)
+            if self.oai is not None:
+                self.controller.log_writer.subscribe(self._flush_channel)
         except BaseException:
             await stack.aclose()
             raise
@@ -316,14 +318,20 @@ class SimulatedMission:
 
     def _channel_setting(self, setting) -> None:
         """The bridge's sink: each rfsim distance set becomes a `channel` record once the log is open
-        (the settings before, kept, then; their time clamped to the log's start)."""
+        (the settings before it are kept and written after the header, their time clamped to the
+        log's start: :meth:`_flush_channel`)."""
         self._channel_pending.append(setting)
+        self._flush_channel()
+
+    def _flush_channel(self, _record: dict | None = None) -> None:
+        """Write the pending channel settings when the log is open (also a log listener: the header
+        opens it)."""
         c = self.controller
-        if c is None or not c.log_writer.is_open:
+        if c is None or not c.log_writer.is_open or not self._channel_pending:
             return
-        for s in self._channel_pending:
+        pending, self._channel_pending = self._channel_pending, []
+        for s in pending:
             c.log_writer.write("channel", max(0.0, c.mission_t(s.t_mono_s)), **s.record())
-        self._channel_pending.clear()
 
     async def _enter_world(self, stack: contextlib.AsyncExitStack) -> None:
         """Start the world's process (the built-in vehicles, the gNBs, the fleet's cells) and the
