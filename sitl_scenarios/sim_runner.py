@@ -149,9 +149,6 @@ class SimulatedMission:
         self.oai = None
         self._channel_pending: list = []
         if oai is not None:
-            if connect is not None:
-                raise MissionError("an OAI build (--oai) flies the built-in vehicle: the bridge follows its true "
-                                   "position, which only the world knows (--connect is not supported with --oai)")
             if gnb_transport != "telnet":
                 raise MissionError("a real OAI gNB is reached over telnet (--gnb-transport rest is not supported "
                                    "with --oai)")
@@ -284,37 +281,47 @@ class SimulatedMission:
     async def _enter_oai(self, stack: contextlib.AsyncExitStack) -> None:
         """A real OAI gNB and nrUE (sitl_scenarios.oai.loop): the gNB, the adapter's T client, the
         UE's attach, rfsim's pace (the world's speed-up follows it), the world without simulated
-        gNBs, then the bridge that puts the vehicle's true distance on the UE's channel."""
+        gNBs (with `connect`: the external autopilot), then the bridge that puts the vehicle's true
+        distance (an autopilot's: its reported position) on the UE's channel."""
         oai = self.oai
 
-        async def enter_client(port: int, t_port: int) -> None:
+        def make_client(port: int, t_port: int) -> OaiGnbClient:
             sc = self.scenario
-            client = OaiGnbClient(GnbConfig.of(
+            return OaiGnbClient(GnbConfig.of(
                 sc.mission.gnb, "127.0.0.1", port, transport="telnet", seed=self.seed, mu=sc.radio.mu,
                 fs_hz=sc.radio.fs_hz, mode=self.gnb_mode, t_port=t_port,
                 trace_jump_tolerance_m=max(sc.mission.gnb.trace_jump_tolerance_m, 3.0 * sc.mission.noise.range_s0_m),
                 request_timeout_s=max(self.gnb_request_timeout_s, 3.0), connect_timeout_s=5.0, retries=1,
                 backoff_max_s=0.5))
-            self.gnb_clients.append(await self._gnb_stack.enter_async_context(client))
 
-        stack.push_async_callback(self._close_gnb)  # the adapter closes before OAI
-        await oai.start_radio(stack, enter_client)
+        # the adapter closes before OAI (start_radio's stack)
+        self.gnb_clients.append(await oai.start_radio(stack, make_client))
         from sitl_scenarios.oai.loop import scenario_with_rntis
 
         self.scenario = scenario_with_rntis(self.scenario, oai.rntis)
         requested = self.speedup
-        self.speedup = oai.speedup(requested)
+        self.speedup = oai.speedup(requested) if self.connect is None else 1.0  # an autopilot keeps its own pace
         if self.speedup < requested:
             log.warning("rfsim runs at %.2f × real time: the world runs at %g × (not %g ×)", oai.pace_at_start,
                         self.speedup, requested)
         self.header_config["oai"] = oai.header(self.speedup)
-        await self._enter_world(stack)
-        world = self.world
+        if self.connect is None:
+            await self._enter_world(stack)
+            world = self.world
 
-        async def position() -> np.ndarray:
-            return np.asarray(await world.acall("positions"), float)[0]
+            async def position() -> np.ndarray:
+                return np.asarray(await world.acall("positions"), float)[0]
+        else:
+            # an external autopilot: the bridge follows the position it reports (its estimate; the
+            # simulator's truth is not on its MAVLink link), in the ENU frame of its home
+            self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(self.connect_urls[0])))
+            self.vehicle = self.vehicles[0]
 
-        await oai.start_bridge(stack, position, self._channel_setting, self.speedup)
+            async def position() -> np.ndarray | None:
+                return self._position_followed()
+
+        # an autopilot reports its position once the mission connected it: the bridge walks out then
+        await oai.start_bridge(stack, position, self._channel_setting, self.speedup, walk_first=self.connect is None)
 
     def _channel_setting(self, setting) -> None:
         """The bridge's sink: each rfsim distance set becomes a `channel` record once the log is open

@@ -189,6 +189,21 @@ def test_the_bridge_walks_out_one_sample_at_a_time_and_follows():
     assert [s.t_mono_s for s in sunk] == sorted(s.t_mono_s for s in sunk)
 
 
+def test_the_bridge_waits_for_an_autopilots_first_position():
+    """With --connect the position is the autopilot's report: None (or NaN) until it has one."""
+    ue, reports = OaiLikeUe(), [None, np.full(3, np.nan), np.array([0.0, 0.0, 20.0])]
+
+    async def position():
+        return reports.pop(0) if len(reports) > 1 else reports[0]
+
+    async def body():
+        bridge = ChannelBridge([ue], ["ue1"], np.zeros((1, 3)), position, FS)
+        return [await bridge.step() for _ in range(3)] + [await bridge.step() for _ in range(10)]
+
+    done = asyncio.run(body())
+    assert done[:2] == [False, False] and ue.offsets[0] == 1 and done[-1] and ue.offsets[-1] == 6  # 40 m
+
+
 def test_a_setting_oai_did_not_take_stops_the_bridge():
     class Refusing(OaiLikeUe):
         async def set_distance(self, metres: int) -> int:
@@ -338,3 +353,26 @@ def test_closing_the_pair_ends_each_process_group_and_counts_its_cpu(tmp_path):
     time.sleep(0.1)
     states = subprocess.run(["ps", "-o", "stat=", "-g", str(proc.pid)], capture_output=True, text=True).stdout
     assert all(s.startswith("Z") for s in states.split()) and pair.exited() == ["gnb"]  # dead, maybe not reaped
+
+
+#: the gNB's lines of an attach (a live run, 2026-12-07) and of one lost under load (the same day)
+ATTACHED_LOG = """1796673410.357218 [NR_MAC] I Added new CFRA process for UE RNTI e4a0 with initial CellGroup
+1796673417.172256 [NR_PHY] A [RAPROC] 237.19 Initiating RA procedure with preamble 63, energy 44.0 dB
+1796673417.183216 [NR_MAC] A (rnti 0xe4a0) CFRA procedure succeeded!
+"""
+LOST_LOG = """1796674234.391581 [NR_MAC] I Added new CFRA process for UE RNTI bb38 with initial CellGroup
+1796674237.177836 [NR_MAC] A 201.19 UE RA-RNTI 010f TC-RNTI bb38: initiating RA procedure
+1796674237.182786 [NR_MAC] W exceeded RA window: preamble at 201.19 now 203.0 (diff 21), ra_ResponseWindow 5/20 slots
+1796674237.182799 [NR_MAC] E UE RA-RNTI 010f TC-RNTI bb38: exceeded RA window, cannot schedule Msg2
+1796674237.182903 [NR_MAC] I Remove NR rnti 0xbb38
+1796674237.198613 [NR_MAC] W random access with preamble 63: no pre-configured RA process found
+"""
+
+
+def test_the_attach_is_read_from_the_gnbs_log():
+    from sitl_scenarios.oai.pair import attach_state
+
+    assert attach_state(ATTACHED_LOG, set()) == (0xE4A0, None)
+    assert attach_state(ATTACHED_LOG.splitlines(True)[0], set()) == (None, None)  # still waiting
+    rnti, lost = attach_state(LOST_LOG, set())
+    assert rnti is None and "removed its pre-configured UE bb38" in lost and "missed the RA window" in lost

@@ -91,12 +91,13 @@ def plan_offsets(uav_enu_m: np.ndarray, users_enu_m: np.ndarray, current: Sequen
 class ChannelBridge:
     """See the module docstring. ues: one object per user with `set_distance(metres) -> offset` and
     `vtime_s()` (sitl_scenarios.oai.pair.UeTelnet); user_ids, users_enu_m (K, 3): the users in the
-    world's frame; position: the vehicle's true position (3,) in that frame, awaited."""
+    world's frame; position: the vehicle's true position (3,) in that frame, awaited (None while
+    unknown: an external autopilot before its first report)."""
 
     def __init__(self, ues: Sequence, user_ids: Sequence[str], users_enu_m: np.ndarray,
-                 position: Callable[[], Awaitable[np.ndarray]], fs_hz: float, *, period_s: float = 0.1,
+                 position: Callable[[], Awaitable[np.ndarray | None]], fs_hz: float, *, period_s: float = 0.1,
                  max_step: int = 1, pace_every_s: float = 1.0, sink: Callable[[ChannelSetting], None] | None = None,
-                 world_speedup: float | None = None,
+                 world_speedup: float | None = None, walk_first: bool = True,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> None:
         self.ues = list(ues)
         self.user_ids = list(user_ids)
@@ -109,6 +110,9 @@ class ChannelBridge:
         self.sink = sink
         #: the world's speed-up: rfsim falling below it (SLOW_FRACTION of it) is said, once a minute
         self.world_speedup = world_speedup
+        #: walk the channels out before entering returns (False: the loop does, as soon as the
+        #: position is known: an autopilot reports it only once the mission connected)
+        self.walk_first = walk_first
         self._slow_said_s = -float("inf")
         self.clock = clock
         self.wall = wall
@@ -124,7 +128,10 @@ class ChannelBridge:
 
     async def step(self) -> bool:
         """One round: every UE's channel one step toward its target; True when all are there."""
-        pos = np.asarray(await self.position(), float).reshape(3)
+        got = await self.position()
+        if got is None or not np.all(np.isfinite(got)):
+            return False  # an autopilot that has not reported its position yet
+        pos = np.asarray(got, float).reshape(3)
         d, target, nxt = plan_offsets(pos, self.users_enu_m, self.offsets, self.fs_hz, self.max_step)
         for i, ue in enumerate(self.ues):
             if self._following:
@@ -166,14 +173,16 @@ class ChannelBridge:
     async def _run(self) -> None:
         while True:
             t0 = self.clock()
-            await self.step()
+            if await self.step():
+                self._following = True
             if self.clock() - self._last_pace_s >= self.pace_every_s:
                 await self.measure_pace()
             await asyncio.sleep(max(0.0, self.period_s - (self.clock() - t0)))
 
     async def __aenter__(self) -> ChannelBridge:
-        await self.walk_out()
-        self._following = True
+        if self.walk_first:
+            await self.walk_out()
+        self._following = self.walk_first  # else: the loop walks out first, the lag counts after
         self._task = asyncio.create_task(self._run(), name="uavloc-oai-bridge")
         self._task.add_done_callback(self._ended)
         return self

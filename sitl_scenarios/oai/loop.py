@@ -6,7 +6,7 @@ world when it is given an OAI build, in this order (each step needs the one befo
 1. the gNB (sitl_scenarios.oai.pair.OaiPair.start_gnb), its confs written, its T server on a free port;
 2. uavloc's gNB adapter in trace mode, whose T client connects on entering (a UE attached before it
    has no absolute TA in the trace);
-3. each nrUE at rfsim offset 0 (in `--do-ra` mode a UE started 57 samples or more away did not
+3. the nrUE at rfsim offset 0 (in `--do-ra` mode a UE started 57 samples or more away did not
    attach), its C-RNTI read from the gNB's log: the scenario's users get those RNTIs;
 4. rfsim's pace (`rfsimu vtime` on the nrUE over PACE_PROBE_S wall seconds): the world runs at
    `min(--speedup, pace)` (sitl_scenarios.oai.channel.world_speedup);
@@ -29,7 +29,7 @@ import numpy as np
 from sitl_scenarios.oai.bridge import ChannelBridge, ChannelSetting
 from sitl_scenarios.oai.channel import PaceMeter, world_speedup
 from sitl_scenarios.oai.conf import build_missing, check_scenario
-from sitl_scenarios.oai.pair import OaiPair, UeTelnet
+from sitl_scenarios.oai.pair import AttachLost, OaiPair, UeTelnet
 from sitl_scenarios.scenario import Scenario
 from uavloc.errors import SimulatorError
 
@@ -37,6 +37,8 @@ log = logging.getLogger(__name__)
 
 #: how long rfsim's pace is measured before the world starts [wall s]
 PACE_PROBE_S = 4.0
+#: how many times the gNB and nrUE are started when the gNB drops its pre-configured UE
+ATTACH_ATTEMPTS = 3
 
 
 def scenario_with_rntis(scenario: Scenario, rntis: list[int]) -> Scenario:
@@ -56,26 +58,49 @@ class OaiInTheLoop:
             raise SimulatorError(why)
         check_scenario(scenario)
         self.scenario = scenario
-        self.pair = OaiPair(self.build, Path(run_dir), n_ues=len(scenario.users))
+        self.run_dir = Path(run_dir)
+        self.pair = OaiPair(self.build, self.run_dir, n_ues=len(scenario.users))
         self.ues: list[UeTelnet] = []
         self.rntis: list[int] = []
         self.pace_at_start: float | None = None
         self.bridge: ChannelBridge | None = None
 
     async def start_radio(self, stack: contextlib.AsyncExitStack,
-                          enter_client: Callable[[int, int], Awaitable[object]]) -> None:
-        """Steps 1–4. enter_client(telnet port, T port): enter uavloc's gNB adapter (its T client
-        connects) in the caller's stack. The pair is closed when `stack` unwinds."""
-        stack.callback(self.pair.close)
-        await asyncio.to_thread(self.pair.start_gnb)
-        ports = self.pair.ports
-        await enter_client(ports.gnb_telnet, ports.t)
-        for i in range(self.pair.n_ues):
-            self.pair.start_ue(i)
-            rnti = await self.pair.wait_attached(set(self.rntis))
-            self.rntis.append(rnti)
-            log.info("OAI nrUE %d attached as C-RNTI %04x at rfsim offset 0", i, rnti)
-            self.ues.append(await stack.enter_async_context(UeTelnet(ports.ue_telnet[i])))
+                          make_client: Callable[[int, int], contextlib.AbstractAsyncContextManager]) -> object:
+        """Steps 1–4; the gNB adapter entered (returned). make_client(telnet port, T port): uavloc's
+        gNB adapter, not entered (entering connects its T client). The adapter closes, then the
+        pair, when `stack` unwinds.
+
+        A gNB that dropped its one pre-configured UE before the attach (AttachLost: a loaded
+        machine's MAC missed the RA window) is started again with the adapter and the UE, at most
+        ATTACH_ATTEMPTS times in all, each in a run folder of its own (`attempt2/`, ...)."""
+        stack.callback(lambda: self.pair.close())
+        for attempt in range(1, ATTACH_ATTEMPTS + 1):
+            client_stack = contextlib.AsyncExitStack()
+            try:
+                await asyncio.to_thread(self.pair.start_gnb)
+                ports = self.pair.ports
+                client = await client_stack.enter_async_context(make_client(ports.gnb_telnet, ports.t))
+                self.pair.start_ue(0)
+                rnti = await self.pair.wait_attached(set())
+            except AttachLost as exc:
+                await client_stack.aclose()
+                self.pair.close()
+                if attempt == ATTACH_ATTEMPTS:
+                    raise SimulatorError(f"{exc}, {attempt} times: this machine is too loaded for OAI's no-core "
+                                         "mode now") from None
+                log.warning("%s: starting the OAI gNB and nrUE again (attempt %d of %d)", exc, attempt + 1,
+                            ATTACH_ATTEMPTS)
+                self.pair = OaiPair(self.build, self.run_dir / f"attempt{attempt + 1}", n_ues=self.pair.n_ues)
+                continue
+            except BaseException:
+                await client_stack.aclose()
+                raise
+            stack.push_async_callback(client_stack.aclose)
+            break
+        self.rntis.append(rnti)
+        log.info("OAI nrUE attached as C-RNTI %04x at rfsim offset 0", rnti)
+        self.ues.append(await stack.enter_async_context(UeTelnet(ports.ue_telnet[0])))
         meter = PaceMeter(min_span_s=0.5 * PACE_PROBE_S)
         t_end = time.monotonic() + PACE_PROBE_S
         while True:
@@ -87,19 +112,23 @@ class OaiInTheLoop:
         if self.pace_at_start is None:
             raise SimulatorError("rfsim's pace could not be measured (rfsimu vtime gave no span)")
         log.info("rfsim runs at %.2f × real time", self.pace_at_start)
+        return client
 
     def speedup(self, requested: float) -> float:
         """The world's speed-up: never faster than rfsim (channel.world_speedup)."""
         assert self.pace_at_start is not None
         return world_speedup(requested, self.pace_at_start)
 
-    async def start_bridge(self, stack: contextlib.AsyncExitStack, position: Callable[[], Awaitable[np.ndarray]],
-                           sink: Callable[[ChannelSetting], None], speedup: float) -> ChannelBridge:
-        """Step 5: the bridge, walked out to the vehicle's distance, running until `stack` unwinds
-        (it says when rfsim falls behind the world's `speedup`)."""
+    async def start_bridge(self, stack: contextlib.AsyncExitStack, position: Callable[[], Awaitable[np.ndarray | None]],
+                           sink: Callable[[ChannelSetting], None], speedup: float,
+                           walk_first: bool = True) -> ChannelBridge:
+        """Step 5: the bridge, walked out to the vehicle's distance (walk_first; else as soon as the
+        position is known), running until `stack` unwinds (it says when rfsim falls behind the
+        world's `speedup`)."""
         users = np.array([[u.east_m, u.north_m, u.up_m] for u in self.scenario.users], float)
         self.bridge = ChannelBridge(self.ues, [u.id for u in self.scenario.users], users, position,
-                                    self.scenario.radio.fs_hz, sink=sink, world_speedup=speedup)
+                                    self.scenario.radio.fs_hz, sink=sink, world_speedup=speedup,
+                                    walk_first=walk_first)
         return await stack.enter_async_context(self.bridge)
 
     def header(self, speedup: float) -> dict:

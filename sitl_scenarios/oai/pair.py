@@ -38,10 +38,35 @@ log = logging.getLogger(__name__)
 UE_CHANNEL = "rfsimu_channel_enB0"
 #: the gNB's line when a --do-ra UE is attached ("(rnti 0x6940) CFRA procedure succeeded!")
 CFRA_DONE = re.compile(r"\(rnti 0x([0-9a-f]{4})\) CFRA procedure succeeded")
+#: the gNB's pre-configured UE (--do-ra: the only one it will take), and its removal
+CFRA_ADDED = re.compile(r"Added new CFRA process for UE RNTI ([0-9a-f]{4})")
+RNTI_REMOVED = "Remove NR rnti 0x{rnti}"
 SET_ANSWER = re.compile(r"new_offset \d+, new \(exact\) distance [0-9.]+ m, new delay")
 VERSION_LINE = re.compile(r"\[HW\] I (Version: [^\n]*)")
 GNB_START_TIMEOUT_S = 180.0
 ATTACH_TIMEOUT_S = 240.0
+
+
+class AttachLost(SimulatorError):
+    """The gNB removed its one pre-configured UE before it attached (a loaded machine's MAC missed
+    the RA window: "exceeded RA window ... cannot schedule Msg2"); in --do-ra mode no other UE is
+    taken, so only a new gNB can attach one."""
+
+
+def attach_state(gnb_log: str, known: set[int]) -> tuple[int | None, str | None]:
+    """(the C-RNTI of a UE the gNB says is attached and not in `known`, or None; why the attach can
+    no longer happen, or None) from the gNB's log text."""
+    for m in CFRA_DONE.finditer(gnb_log):
+        rnti = int(m.group(1), 16)
+        if rnti not in known:
+            return rnti, None
+    for m in CFRA_ADDED.finditer(gnb_log):
+        removed = gnb_log.find(RNTI_REMOVED.format(rnti=m.group(1)), m.end())
+        if removed >= 0:
+            late = "exceeded RA window" in gnb_log[m.end():removed]
+            return None, (f"the OAI gNB removed its pre-configured UE {m.group(1)} before it attached"
+                          + (" (its MAC missed the RA window: the machine is loaded)" if late else ""))
+    return None, None
 
 
 def free_tcp_port() -> int:
@@ -107,16 +132,19 @@ class OaiPair:
         self._start(f"ue{index}", ue_command(self.build, self.run_dir / f"ue{index}.conf"))
 
     async def wait_attached(self, known: set[int], timeout_s: float = ATTACH_TIMEOUT_S) -> int:
-        """The C-RNTI of the next UE the gNB says is attached (not in `known`)."""
+        """The C-RNTI of the next UE the gNB says is attached (not in `known`); AttachLost when the
+        gNB dropped its pre-configured UE first, SimulatorError when an OAI process exits or
+        timeout_s passes."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             for name in self.procs:
                 self._check_alive(name)
             text = self.gnb_log.read_text(errors="replace") if self.gnb_log.is_file() else ""
-            for m in CFRA_DONE.finditer(text):
-                rnti = int(m.group(1), 16)
-                if rnti not in known:
-                    return rnti
+            rnti, lost = attach_state(text, known)
+            if rnti is not None:
+                return rnti
+            if lost is not None:
+                raise AttachLost(lost)
             await asyncio.sleep(0.5)
         raise SimulatorError(f"no nrUE attached to the OAI gNB within {timeout_s:g} s ({self.gnb_log})")
 
