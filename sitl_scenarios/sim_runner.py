@@ -321,7 +321,8 @@ class SimulatedMission:
                 return self._position_followed()
 
         # an autopilot reports its position once the mission connected it: the bridge walks out then
-        await oai.start_bridge(stack, position, self._channel_setting, self.speedup, walk_first=self.connect is None)
+        await oai.start_bridge(stack, position, self._channel_setting, self.speedup, walk_first=self.connect is None,
+                               seed=self.seed)
 
     def _channel_setting(self, setting) -> None:
         """The bridge's sink: each rfsim distance set becomes a `channel` record once the log is open

@@ -271,8 +271,9 @@ def test_command_lines_run_oai_unprivileged_with_its_t_server_on_this_runs_port(
 
 def test_what_oai_cannot_fly_is_refused(tmp_path):
     check_scenario(load_scenario("paper"))
-    with pytest.raises(ScenarioError, match="pre-configures one UE"):
-        check_scenario(load_scenario("three_users_nlos"))
+    check_scenario(load_scenario("three_users_nlos"))  # a gNB + nrUE pair per user
+    with pytest.raises(ScenarioError, match="one UE per gNB"):
+        check_scenario(load_scenario("five_commercial_ues"))
     paper = load_scenario("paper")
     mu2 = dataclasses.replace(paper, world=dataclasses.replace(paper.world, radio=dataclasses.replace(
         paper.radio, mu=2)))
@@ -376,3 +377,53 @@ def test_the_attach_is_read_from_the_gnbs_log():
     assert attach_state(ATTACHED_LOG.splitlines(True)[0], set()) == (None, None)  # still waiting
     rnti, lost = attach_state(LOST_LOG, set())
     assert rnti is None and "removed its pre-configured UE bb38" in lost and "missed the RA window" in lost
+
+
+def test_the_nlos_excess_is_held_while_a_building_blocks_the_view():
+    from sitl_scenarios.oai.bridge import HeldNlosExcess
+
+    sc = load_scenario("three_users_nlos")
+    users = np.array([[u.east_m, u.north_m, u.up_m] for u in sc.users])
+    ex = HeldNlosExcess(users, sc.buildings, 10.0, seed=7)
+    behind = np.array([150.0, 62.0, 20.0])  # east of ue1's building, low
+    first = ex(behind)
+    assert first[0] > 0 and np.all(ex(behind + np.array([1.0, 0.0, 0.0])) == first)  # held
+    assert ex(np.array([80.0, 60.0, 40.0]))[0] == 0.0  # over ue1: LoS
+    again = ex(behind)
+    assert again[0] > 0 and again[0] != first[0]  # a new episode, a new draw
+    d, target, _ = plan_offsets(behind, users[:1], [0], FS, excess_m=again[:1])
+    assert target[0] == offset_for_round_trip(2 * (d[0] + again[0]), FS)
+
+
+def test_a_group_of_gnbs_measures_each_ue_at_its_own_gnb():
+    """GnbGroup routes a UE to the adapter of its gNB (each gNB of --do-ra serves one UE)."""
+    from sitl_scenarios.oai.group import GnbGroup
+    from uavloc.errors import GnbError, GnbNoMeasurementError
+
+    class OneUeGnb:  # what the group uses of an OaiGnbClient in trace mode
+        mode, mode_reason, clock_refused = "trace", "configured", 1
+
+        def __init__(self, rnti):
+            self.rnti = rnti
+
+        async def discover(self):
+            return [self.rnti]
+
+        async def measure(self, rnti):
+            assert rnti == self.rnti
+            return ("range of", rnti)
+
+        def clock_offset(self):
+            return None
+
+    group = GnbGroup([OneUeGnb(0x11), OneUeGnb(0x22)], [0x11, 0x22])
+
+    async def body():
+        return await group.discover(), await group.measure(0x22)
+
+    assert asyncio.run(body()) == ([0x11, 0x22], ("range of", 0x22))
+    assert group.mode == "trace" and group.clock_refused == 2
+    with pytest.raises(GnbNoMeasurementError, match="no gNB of the group serves UE 0033"):
+        asyncio.run(group.measure(0x33))
+    with pytest.raises(GnbError, match="distinct RNTI"):
+        GnbGroup([OneUeGnb(1), OneUeGnb(1)], [1, 1])

@@ -48,7 +48,8 @@ SLOW_FRACTION = 0.8
 @dataclass(frozen=True)
 class ChannelSetting:
     """One rfsim distance the bridge set: when (monotonic and UNIX [s]), for which user, the offset
-    OAI set [samples of round trip], the fs it counts at [Hz], and the true distance it followed [m]."""
+    OAI set [samples of round trip], the fs it counts at [Hz], the true distance it followed [m],
+    rfsim's pace then, and the NLoS excess path it added [m, one way]."""
 
     t_mono_s: float
     t_wall_s: float
@@ -57,6 +58,8 @@ class ChannelSetting:
     fs_hz: float
     true_range_m: float
     pace: float | None = None
+    #: the NLoS excess path the channel carries on top of the distance [m, one way]
+    excess_m: float = 0.0
 
     @property
     def round_trip_m(self) -> float:
@@ -74,18 +77,50 @@ class ChannelSetting:
                "true_range_m": round(self.true_range_m, 4), "t_wall": round(self.t_wall_s, 6)}
         if self.pace is not None:
             out["pace"] = round(self.pace, 4)
+        if self.excess_m > 0:
+            out["excess_m"] = round(self.excess_m, 4)
         return out
 
 
 def plan_offsets(uav_enu_m: np.ndarray, users_enu_m: np.ndarray, current: Sequence[int], fs_hz: float,
-                 max_step: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 max_step: int = 1, excess_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(true distances d (K,) [m], target offsets k* (K,), next offsets (K,)) for a UAV at (3,)
-    uav_enu_m and K users at (K, 3) users_enu_m, from the (K,) offsets set now."""
+    uav_enu_m and K users at (K, 3) users_enu_m, from the (K,) offsets set now; excess_m (K,): a
+    one-way excess path (NLoS) each user's round trip carries too: k* = round(2 (d + e) fs / c)."""
     d = np.linalg.norm(np.asarray(users_enu_m, float).reshape(-1, 3) - np.asarray(uav_enu_m, float).reshape(1, 3),
                        axis=1)
-    target = np.array([offset_for_round_trip(2.0 * x, fs_hz) for x in d], int)
+    e = np.zeros_like(d) if excess_m is None else np.asarray(excess_m, float).reshape(d.shape)
+    target = np.array([offset_for_round_trip(2.0 * (x + y), fs_hz) for x, y in zip(d, e, strict=True)], int)
     nxt = np.array([next_offset(int(c), int(t), max_step) for c, t in zip(current, target, strict=True)], int)
     return d, target, nxt
+
+
+class HeldNlosExcess:
+    """The NLoS excess path of each user's channel [m, one way], as the simulated gNB's radio truth
+    has it (sitl_scenarios.radio: e ~ Exp(mean) while the line of sight from the UAV to the user
+    is blocked by a building, 0 in LoS), but held: one draw per blocked episode (a channel that
+    jumped every setting would be a noise the bridge cannot walk). Seeded."""
+
+    def __init__(self, users_enu_m: np.ndarray, buildings: Sequence, mean_m: float, seed: int) -> None:
+        self.users_enu_m = np.asarray(users_enu_m, float).reshape(-1, 3)
+        self.buildings = list(buildings)
+        self.mean_m = float(mean_m)
+        self.rng = np.random.default_rng(seed)
+        self.held: list[float | None] = [None] * len(self.users_enu_m)
+
+    def __call__(self, uav_enu_m: np.ndarray) -> np.ndarray:
+        """(K,) the excess of each user now [m]."""
+        from sitl_scenarios.radio import line_of_sight_blocked
+
+        out = np.zeros(len(self.users_enu_m))
+        for k, user in enumerate(self.users_enu_m):
+            if self.mean_m > 0 and self.buildings and line_of_sight_blocked(uav_enu_m, user, self.buildings):
+                if self.held[k] is None:
+                    self.held[k] = float(self.rng.exponential(self.mean_m))
+                out[k] = self.held[k]
+            else:
+                self.held[k] = None
+        return out
 
 
 class ChannelBridge:
@@ -98,6 +133,7 @@ class ChannelBridge:
                  position: Callable[[], Awaitable[np.ndarray | None]], fs_hz: float, *, period_s: float = 0.1,
                  max_step: int = 1, pace_every_s: float = 1.0, sink: Callable[[ChannelSetting], None] | None = None,
                  world_speedup: float | None = None, walk_first: bool = True,
+                 excess: Callable[[np.ndarray], np.ndarray] | None = None,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> None:
         self.ues = list(ues)
         self.user_ids = list(user_ids)
@@ -113,6 +149,8 @@ class ChannelBridge:
         #: walk the channels out before entering returns (False: the loop does, as soon as the
         #: position is known: an autopilot reports it only once the mission connected)
         self.walk_first = walk_first
+        #: each user's one-way excess path now (HeldNlosExcess), or None: LoS
+        self.excess = excess
         self._slow_said_s = -float("inf")
         self.clock = clock
         self.wall = wall
@@ -132,7 +170,8 @@ class ChannelBridge:
         if got is None or not np.all(np.isfinite(got)):
             return False  # an autopilot that has not reported its position yet
         pos = np.asarray(got, float).reshape(3)
-        d, target, nxt = plan_offsets(pos, self.users_enu_m, self.offsets, self.fs_hz, self.max_step)
+        e = None if self.excess is None else self.excess(pos)
+        d, target, nxt = plan_offsets(pos, self.users_enu_m, self.offsets, self.fs_hz, self.max_step, e)
         for i, ue in enumerate(self.ues):
             if self._following:
                 self.lag_max = max(self.lag_max, abs(int(target[i]) - int(nxt[i])))
@@ -143,7 +182,7 @@ class ChannelBridge:
                 raise SimulatorError(f"OAI set offset {set_k} on UE {self.user_ids[i]}'s downlink, not {nxt[i]}")
             self.offsets[i] = set_k
             s = ChannelSetting(self.clock(), self.wall(), self.user_ids[i], set_k, self.fs_hz, float(d[i]),
-                               self.pace.pace())
+                               self.pace.pace(), 0.0 if e is None else float(e[i]))
             self.settings.append(s)
             if self.sink is not None:
                 self.sink(s)
