@@ -65,9 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--autopilot", choices=("px4", "ardupilot"),
                    help="the built-in vehicle's personality (default: the scenario's [vehicle] autopilot, px4)")
     p.add_argument("--oai", nargs="?", const="", metavar="BUILD",
-                   help="the world's gNB is a real OAI nr-softmodem and the user a real nr-uesoftmodem over rfsim, "
-                        "from this OAI build folder (bare --oai: $UAVLOC_OAI); ranges from its T trace, the world at "
-                        "rfsim's pace (docs/oai-in-the-loop.md)")
+                   help="the world's gNB is a real OAI nr-softmodem and each user a real nr-uesoftmodem (a pair "
+                        "per user) over rfsim, from this OAI build folder (bare --oai: $UAVLOC_OAI); ranges from its "
+                        "T trace, the world at rfsim's pace (docs/oai-in-the-loop.md)")
     add_view_arguments(p)
 
 
