@@ -427,3 +427,36 @@ def test_a_group_of_gnbs_measures_each_ue_at_its_own_gnb():
         asyncio.run(group.measure(0x33))
     with pytest.raises(GnbError, match="distinct RNTI"):
         GnbGroup([OneUeGnb(1), OneUeGnb(1)], [1, 1])
+
+
+def test_the_bridge_takes_the_slowest_rfsim_and_says_when_it_falls_behind_the_world(caplog):
+    """Each gNB + nrUE pair is an rfsim of its own: the pace is the slowest; below 0.8 × the
+    world's speed-up it is said."""
+    fast, slow = OaiLikeUe(), OaiLikeUe()
+    slow.vtime_s = None  # replaced below: 0.25 simulated s per wall s
+
+    wall = [1000.0]
+
+    async def slow_vtime():
+        return 0.25 * (wall[0] - 1000.0)
+
+    async def fast_vtime():
+        return 1.0 * (wall[0] - 1000.0)
+
+    slow.vtime_s, fast.vtime_s = slow_vtime, fast_vtime
+
+    async def position():
+        return np.zeros(3)
+
+    async def body():
+        bridge = ChannelBridge([fast, slow], ["ue1", "ue2"], np.zeros((2, 3)), position, FS, world_speedup=0.4,
+                               wall=lambda: wall[0])
+        for _ in range(4):
+            await bridge.measure_pace()
+            wall[0] += 1.0
+        return bridge.pace()
+
+    with caplog.at_level("WARNING", logger="sitl_scenarios.oai.bridge"):
+        pace = asyncio.run(body())
+    assert pace == pytest.approx(0.25)
+    assert "rfsim now runs at 0.25 × real time, slower than the world's 0.4 ×" in caplog.text

@@ -12,8 +12,9 @@ offset set on one side alone is the whole round trip (tests/test_oai_live_trace.
 moves the offset at most `max_step` samples (1: a sample is 6.506 m of round trip, 3.253 m of
 range at 46.08 Msps; jumps of many samples crashed a gNB); a 10 Hz bridge keeps up with a range
 changing 32 m/s. Every setting is handed to `sink` as a :class:`ChannelSetting` (the mission log's
-`channel` record). Every `pace_every_s` it reads rfsim's virtual time on UE 0 (`rfsimu vtime`) into
-a :class:`PaceMeter`.
+`channel` record). Every `pace_every_s` it reads rfsim's virtual time on every UE (`rfsimu vtime`;
+each gNB + nrUE pair is an rfsim of its own) into a :class:`PaceMeter` each; the pace is the
+slowest.
 
 :func:`plan_offsets` is the pure part (tested everywhere); :class:`ChannelBridge` is the loop, an
 async context manager owning its task.
@@ -157,7 +158,8 @@ class ChannelBridge:
         #: the offset set on each UE's downlink now [samples] (each UE attaches at 0)
         self.offsets = [0] * len(self.ues)
         self.settings: list[ChannelSetting] = []
-        self.pace = PaceMeter()
+        #: rfsim's pace on each UE's link (one rfsim per gNB + nrUE pair)
+        self.paces = [PaceMeter() for _ in self.ues]
         #: the largest gap between a channel and its target while following (after the walk-out) [samples]
         self.lag_max = 0
         self._following = False
@@ -182,17 +184,23 @@ class ChannelBridge:
                 raise SimulatorError(f"OAI set offset {set_k} on UE {self.user_ids[i]}'s downlink, not {nxt[i]}")
             self.offsets[i] = set_k
             s = ChannelSetting(self.clock(), self.wall(), self.user_ids[i], set_k, self.fs_hz, float(d[i]),
-                               self.pace.pace(), 0.0 if e is None else float(e[i]))
+                               self.pace(), 0.0 if e is None else float(e[i]))
             self.settings.append(s)
             if self.sink is not None:
                 self.sink(s)
         return bool(np.all(np.asarray(self.offsets) == target))
 
+    def pace(self) -> float | None:
+        """The slowest rfsim's pace over the meters' window (None until measured)."""
+        got = [p for p in (m.pace() for m in self.paces) if p is not None]
+        return min(got) if got else None
+
     async def measure_pace(self) -> float | None:
-        """Read rfsim's virtual time on UE 0 into the pace meter; the pace so far."""
-        self.pace.add(self.wall(), await self.ues[0].vtime_s())
+        """Read rfsim's virtual time on every UE into its pace meter; the slowest pace so far."""
+        for meter, ue in zip(self.paces, self.ues, strict=True):
+            meter.add(self.wall(), await ue.vtime_s())
         self._last_pace_s = now = self.clock()
-        pace = self.pace.pace()
+        pace = self.pace()
         if (pace is not None and self.world_speedup is not None and pace < SLOW_FRACTION * self.world_speedup
                 and now - self._slow_said_s >= 60.0):
             self._slow_said_s = now
