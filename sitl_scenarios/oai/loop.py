@@ -111,7 +111,8 @@ class OaiInTheLoop:
             pair = self.pairs[k]
             client_stack = contextlib.AsyncExitStack()
             try:
-                await asyncio.to_thread(pair.start_gnb)
+                pair.spawn_gnb()  # from the loop's thread, which outlives it (PR_SET_PDEATHSIG)
+                await asyncio.to_thread(pair.wait_gnb)
                 ports = pair.ports
                 client = await client_stack.enter_async_context(make_client(ports.gnb_telnet, ports.t))
                 pair.start_ue(0)

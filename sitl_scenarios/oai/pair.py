@@ -1,5 +1,6 @@
 """A real OAI gNB (`nr-softmodem`) and its nrUE(s) (`nr-uesoftmodem`) over rfsim, started and stopped
-by `uavloc sim --oai` (docs/oai-in-the-loop.md).
+by `uavloc sim --oai` (docs/oai-in-the-loop.md). Each gets SIGTERM when the thread that started it
+ends, however the Python process died (PR_SET_PDEATHSIG).
 
 :class:`OaiPair` writes the configuration files (sitl_scenarios.oai.conf) into its run folder,
 starts the gNB (its T server on a free port), and — when asked, after uavloc's T client is
@@ -30,6 +31,7 @@ from pathlib import Path
 
 from sitl_scenarios.oai.channel import parse_set_offset, parse_vtime
 from sitl_scenarios.oai.conf import OaiPorts, gnb_command, gnb_conf, ue_command, ue_conf
+from sitl_scenarios.px4_sitl import terminate_with_parent
 from uavloc.errors import SimulatorError
 
 log = logging.getLogger(__name__)
@@ -109,8 +111,13 @@ class OaiPair:
         return self.run_dir / "gnb.log"
 
     def start_gnb(self) -> None:
-        """Write the confs, start nr-softmodem, wait until its telnet listens and it wrote the UE's
-        rbconfig.raw (SimulatorError, naming the log, when it exits or takes GNB_START_TIMEOUT_S)."""
+        """:meth:`spawn_gnb` then :meth:`wait_gnb`."""
+        self.spawn_gnb()
+        self.wait_gnb()
+
+    def spawn_gnb(self) -> None:
+        """Write the confs and start nr-softmodem (from the thread that lives as long as it: it gets
+        SIGTERM when that thread ends)."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.ports = OaiPorts(free_tcp_port(), free_tcp_port(), free_tcp_port(),
                               tuple(free_tcp_port() for _ in range(self.n_ues)))
@@ -118,6 +125,10 @@ class OaiPair:
         for i in range(self.n_ues):
             (self.run_dir / f"ue{i}.conf").write_text(ue_conf(self.ports, i))
         self._start("gnb", gnb_command(self.build, self.run_dir / "gnb.conf", self.ports))
+
+    def wait_gnb(self) -> None:
+        """Wait until the gNB's telnet listens and it wrote the UE's rbconfig.raw (SimulatorError,
+        naming the log, when it exits or takes GNB_START_TIMEOUT_S). Blocking: run it in a thread."""
         deadline = time.monotonic() + GNB_START_TIMEOUT_S
         # never probe the T port with a bare connect: OAI's T server takes a client that leaves
         # without its event mask as fatal
@@ -168,7 +179,8 @@ class OaiPair:
             time.sleep(0.5)
         with (self.run_dir / f"{name}.log").open("w") as fh:
             self.procs[name] = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                                cwd=self.run_dir, env=env, start_new_session=True)
+                                                cwd=self.run_dir, env=env, start_new_session=True,
+                                                preexec_fn=terminate_with_parent)
         self.command_lines.append(cmd)
         if self._t_start is None:
             self._t_start = time.monotonic()
