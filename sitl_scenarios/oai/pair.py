@@ -201,11 +201,7 @@ class OaiPair:
         tick = os.sysconf("SC_CLK_TCK")
         out = dict.fromkeys(self.procs, 0.0)
         groups = {p.pid: n for n, p in self.procs.items()}
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                fields = stat.read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
+        for _pid, fields in _proc_stats():
             name = groups.get(int(fields[2]))  # field 5: the process group
             if name is not None:
                 out[name] += (int(fields[11]) + int(fields[12])) / tick  # fields 14, 15: utime, stime
@@ -231,6 +227,27 @@ class OaiPair:
         for proc in self.procs.values():
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(proc.pid, signal.SIGKILL)  # each in a session of its own: its T fork too
+        # SIGKILL is not instant (a gNB frees some GB): return when no member is left but zombies
+        deadline = time.monotonic() + 10.0
+        while self._group_members() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        left = self._group_members()
+        if left:
+            log.warning("OAI processes %s did not end within 10 s of SIGKILL", left)
+
+    def _group_members(self) -> list[int]:
+        """The live (not zombie) processes of the pairs' process groups, from /proc."""
+        groups = {p.pid for p in self.procs.values()}
+        return [pid for pid, fields in _proc_stats() if int(fields[2]) in groups and fields[0] not in ("Z", "X")]
+
+
+def _proc_stats():
+    """(pid, the fields of /proc/<pid>/stat after the command name: state first) of every process."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            yield int(stat.parent.name), stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
 
 
 class UeTelnet:
