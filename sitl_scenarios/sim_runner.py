@@ -11,6 +11,9 @@
   fleet's: one URL per vehicle, a list), and then the simulated gNB(s) in this process, following
   the vehicle's *reported* position as the controller's MAVSDK adapter receives it (only this
   process has it) on the controller's mission clock;
+- or — with `oai` (an OAI build folder) — a real OAI gNB and nrUE per user over rfsim instead of
+  the simulated gNB (`sitl_scenarios.oai`, docs/oai-in-the-loop.md): the world then runs its vehicle
+  only, at the pace rfsim keeps, and a bridge puts the vehicle's true distance on each UE's channel;
 - the gNB adapter(s) (`mission.gnb.OaiGnbClient`) and the MAVSDK vehicle adapter(s), which reach
   the world only over its sockets, as they reach PX4 and a gNB;
 - the :class:`MissionController`, which :meth:`run` runs.
@@ -94,7 +97,8 @@ class SimulatedMission:
     one per `[[vehicles]]` entry in its order; max_stream_wall_hz: cap of
     the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields or
     mission settings by their key alone (mission.controller.controller_from_mission); header_config:
-    more fields of the log header's `config` (the CLI's `command_line`).
+    more fields of the log header's `config` (the CLI's `command_line`); oai: an OAI build folder
+    (None: the simulated gNB), whose real gNB and nrUE(s) serve the mission in trace mode.
     """
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
