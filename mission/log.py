@@ -32,6 +32,7 @@ import numpy as np
 from estimator.geodesy import Origin
 from estimator.noise import NoiseModel
 from estimator.ranging import toa_s_from_raw
+from mission.channel import check_channel_record
 from mission.log_checks import LineError as _LineError
 from mission.log_checks import RangeRecords
 from mission.vehicle.telemetry import VehicleStatus
@@ -40,7 +41,7 @@ from uavloc.errors import MissionLogError, UavlocError
 log = logging.getLogger(__name__)
 
 FORMAT = "uavloc-mission/1"
-RECORD_TYPES = ("header", "telemetry", "rtt", "estimate", "waypoint", "event", "truth")
+RECORD_TYPES = ("header", "telemetry", "rtt", "estimate", "waypoint", "event", "truth", "channel")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -344,6 +345,9 @@ class MissionLog:
     #: and the line of the first one dropped (None: none)
     duplicate_rtt: int = 0
     duplicate_rtt_line: int | None = None
+    #: `channel` records (`uavloc sim --oai`: each rfsim distance the bridge set, docs/design.md §10),
+    #: in file order, checked by mission.channel.check_channel_record
+    channel: list[dict] = field(default_factory=list)
 
     @property
     def n_vehicles(self) -> int:
@@ -635,7 +639,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
     rtt_t, rtt_user, rtt_lla, rtt_toa, rtt_raw, rtt_veh = [], [], [], [], [], []
     tel_t, tel_lla, tel_vel, tel_status, tel_veh = [], [], [], [], []
     truth: np.ndarray | None = None
-    estimates, waypoints, events = [], [], []
+    estimates, waypoints, events, channel = [], [], [], []
     torn: int | None = None
     t_start = t_last = 0.0
     # (record type, vehicle) -> (time, line) of the latest one
@@ -710,6 +714,8 @@ def read_mission_log(path: str | Path) -> MissionLog:
                         estimates.append(obj)
                     elif rtype == "waypoint":
                         waypoints.append(obj)
+                    elif rtype == "channel":
+                        channel.append(check_channel_record(obj, user_ix))
                     elif rtype == "event":
                         if not isinstance(obj.get("message", ""), str):
                             raise _LineError(f"event message must be a string, got {obj.get('message')!r}")
@@ -748,6 +754,7 @@ def read_mission_log(path: str | Path) -> MissionLog:
         gps_tau_s=gps_tau,
         duplicate_rtt=ranges.dropped,
         duplicate_rtt_line=ranges.first_dropped_line,
+        channel=channel,
     )
 
 

@@ -174,7 +174,7 @@ class Px4Sitl:
         log.info("starting PX4 SITL: %s %s", " ".join(f"{k}={v}" for k, v in extra.items()), " ".join(argv))
         self._proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                       env=dict(os.environ, **extra), cwd=self.workdir, start_new_session=True,
-                                      preexec_fn=_terminate_with_parent)
+                                      preexec_fn=terminate_with_parent)
         self._reader = threading.Thread(target=self._read, name=f"px4-{self.instance}-out", daemon=True)
         self._reader.start()
 
@@ -242,10 +242,11 @@ class Px4Sitl:
         self.stop()
 
 
-def _terminate_with_parent() -> None:
-    """In PX4's process (Linux): SIGTERM when the Python process that started it dies, even
-    without running its cleanup (PX4 then shuts down), so an aborted test run
-    leaves no PX4 behind."""
+def terminate_with_parent() -> None:
+    """In a simulator's process (Linux; Popen's preexec_fn): SIGTERM when the Python thread that
+    started it dies, even without running its cleanup (PX4 and OAI then shut down), so an aborted
+    run leaves no simulator behind. Start it from a thread that lives as long as it (the event
+    loop's, not a worker's)."""
     with contextlib.suppress(Exception):
         import ctypes
 

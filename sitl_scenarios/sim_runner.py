@@ -11,6 +11,9 @@
   fleet's: one URL per vehicle, a list), and then the simulated gNB(s) in this process, following
   the vehicle's *reported* position as the controller's MAVSDK adapter receives it (only this
   process has it) on the controller's mission clock;
+- or — with `oai` (an OAI build folder) — a real OAI gNB and nrUE per user over rfsim instead of
+  the simulated gNB (`sitl_scenarios.oai`, docs/oai-in-the-loop.md): the world then runs its vehicle
+  only, at the pace rfsim keeps, and a bridge puts the vehicle's true distance on each UE's channel;
 - the gNB adapter(s) (`mission.gnb.OaiGnbClient`) and the MAVSDK vehicle adapter(s), which reach
   the world only over its sockets, as they reach PX4 and a gNB;
 - the :class:`MissionController`, which :meth:`run` runs.
@@ -94,14 +97,15 @@ class SimulatedMission:
     one per `[[vehicles]]` entry in its order; max_stream_wall_hz: cap of
     the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields or
     mission settings by their key alone (mission.controller.controller_from_mission); header_config:
-    more fields of the log header's `config` (the CLI's `command_line`).
+    more fields of the log header's `config` (the CLI's `command_line`); oai: an OAI build folder
+    (None: the simulated gNB), whose real gNB and nrUE(s) serve the mission in trace mode.
     """
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
                  speedup: float = 20.0, planner: str | None = None, connect: str | Sequence[str] | None = None,
                  max_stream_wall_hz: float = 100.0, gnb_request_timeout_s: float = 1.0,
                  controller_overrides: dict | None = None, gnb_transport: str = "telnet",
-                 gnb_mode: str | None = None, header_config: dict | None = None):
+                 gnb_mode: str | None = None, header_config: dict | None = None, oai: str | Path | None = None):
         if not (math.isfinite(speedup) and speedup > 0):
             raise MissionError(f"speedup must be a positive number, got {speedup!r}")
         self.scenario = scenario
@@ -145,6 +149,18 @@ class SimulatedMission:
         self._stack: contextlib.AsyncExitStack | None = None
         self._gnb_stack: contextlib.AsyncExitStack | None = None
         self._t0 = time.monotonic()
+        #: a real OAI gNB and nrUE in the loop (`oai`: an OAI build folder; docs/oai-in-the-loop.md)
+        self.oai = None
+        self._channel_pending: list = []
+        if oai is not None:
+            if gnb_transport != "telnet":
+                raise MissionError("a real OAI gNB is reached over telnet (--gnb-transport rest is not supported "
+                                   "with --oai)")
+            from sitl_scenarios.oai.loop import OaiInTheLoop
+
+            self.oai = OaiInTheLoop(oai, self.log_path.parent / "oai", scenario)
+            # a stock OAI gNB has no RTT command: its ranges come from its T trace
+            self.gnb_mode = "auto" if gnb_mode == "auto" else "trace"
 
     # -- positions seen by the simulated gNB (ENU of the scenario frame) ------------------------
 
@@ -224,7 +240,9 @@ class SimulatedMission:
         try:
             self._gnb_stack = contextlib.AsyncExitStack()
             await self._gnb_stack.__aenter__()
-            if self.connect is None:
+            if self.oai is not None:
+                await self._enter_oai(stack)
+            elif self.connect is None:
                 await self._enter_world(stack)
             else:
                 for url in self.connect_urls:
@@ -240,7 +258,8 @@ class SimulatedMission:
             self.vehicle = self.vehicles[0]
             for gnb in self.gnb_sims:
                 self.gnb_clients.append(await self._gnb_stack.enter_async_context(self._gnb_client(gnb)))
-            self.gnb_sim, self.gnb_client = self.gnb_sims[0], self.gnb_clients[0]
+            self.gnb_sim = self.gnb_sims[0] if self.gnb_sims else None
+            self.gnb_client = self.gnb_clients[0]
             overrides = dict(self.controller_overrides)
             # the controller's gNB timeout covers the adapter's own timeout and one reconnect
             overrides.setdefault("gnb_timeout_s", 3.0 * self.gnb_request_timeout_s + 0.5)
@@ -255,11 +274,76 @@ class SimulatedMission:
                                "gnb_transport": self.gnb_transport, "gnb_mode": self.gnb_client.mode,
                                **self.header_config},
                 **overrides)
+            if self.oai is not None:
+                self.controller.log_writer.subscribe(self._flush_channel)
         except BaseException:
             await stack.aclose()
             raise
         self._stack = stack
         return self
+
+    async def _enter_oai(self, stack: contextlib.AsyncExitStack) -> None:
+        """A real OAI gNB and nrUE (sitl_scenarios.oai.loop): the gNB, the adapter's T client, the
+        UE's attach, rfsim's pace (the world's speed-up follows it), the world without simulated
+        gNBs (with `connect`: the external autopilot), then the bridge that puts the vehicle's true
+        distance (an autopilot's: its reported position) on the UE's channel."""
+        oai = self.oai
+
+        def make_client(port: int, t_port: int) -> OaiGnbClient:
+            sc = self.scenario
+            return OaiGnbClient(GnbConfig.of(
+                sc.mission.gnb, "127.0.0.1", port, transport="telnet", seed=self.seed, mu=sc.radio.mu,
+                fs_hz=sc.radio.fs_hz, mode=self.gnb_mode, t_port=t_port,
+                trace_jump_tolerance_m=max(sc.mission.gnb.trace_jump_tolerance_m, 3.0 * sc.mission.noise.range_s0_m),
+                request_timeout_s=max(self.gnb_request_timeout_s, 3.0), connect_timeout_s=5.0, retries=1,
+                backoff_max_s=0.5))
+
+        # the adapter closes before OAI (start_radio's stack)
+        self.gnb_clients.append(await oai.start_radio(stack, make_client))
+        from sitl_scenarios.oai.loop import scenario_with_rntis
+
+        self.scenario = scenario_with_rntis(self.scenario, oai.rntis)
+        requested = self.speedup
+        self.speedup = oai.speedup(requested) if self.connect is None else 1.0  # an autopilot keeps its own pace
+        if self.speedup < requested:
+            log.warning("rfsim runs at %.2f × real time: the world runs at %g × (not %g ×)", oai.pace_at_start,
+                        self.speedup, requested)
+        self.header_config["oai"] = oai.header(self.speedup)
+        if self.connect is None:
+            await self._enter_world(stack)
+            world = self.world
+
+            async def position() -> np.ndarray:
+                return np.asarray(await world.acall("positions"), float)[0]
+        else:
+            # an external autopilot: the bridge follows the position it reports (its estimate; the
+            # simulator's truth is not on its MAVLink link), in the ENU frame of its home
+            self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(self.connect_urls[0])))
+            self.vehicle = self.vehicles[0]
+
+            async def position() -> np.ndarray | None:
+                return self._position_followed()
+
+        # an autopilot reports its position once the mission connected it: the bridge walks out then
+        await oai.start_bridge(stack, position, self._channel_setting, self.speedup, walk_first=self.connect is None,
+                               seed=self.seed)
+
+    def _channel_setting(self, setting) -> None:
+        """The bridge's sink: each rfsim distance set becomes a `channel` record once the log is open
+        (the settings before it are kept and written after the header, their time clamped to the
+        log's start: :meth:`_flush_channel`)."""
+        self._channel_pending.append(setting)
+        self._flush_channel()
+
+    def _flush_channel(self, _record: dict | None = None) -> None:
+        """Write the pending channel settings when the log is open (also a log listener: the header
+        opens it)."""
+        c = self.controller
+        if c is None or not c.log_writer.is_open or not self._channel_pending:
+            return
+        pending, self._channel_pending = self._channel_pending, []
+        for s in pending:
+            c.log_writer.write("channel", max(0.0, c.mission_t(s.t_mono_s)), **s.record())
 
     async def _enter_world(self, stack: contextlib.AsyncExitStack) -> None:
         """Start the world's process (the built-in vehicles, the gNBs, the fleet's cells) and the
@@ -267,7 +351,7 @@ class SimulatedMission:
         ports = tuple(free_udp_port() for _ in range(self.fleet_size))
         self.world = await stack.enter_async_context(WorldProcess(WorldSpec(
             self.scenario, self.seed, self.speedup, ports, max_stream_wall_hz=self.max_stream_wall_hz,
-            gnb_transport=self.gnb_transport, gnb_mode=self.gnb_mode)))
+            gnb_transport=self.gnb_transport, gnb_mode=self.gnb_mode, gnbs=self.oai is None)))
         for i, port in enumerate(ports):
             self.vehicle_sims.append(VehicleProxy(self.world, i))
             self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(f"udpin://127.0.0.1:{port}")))

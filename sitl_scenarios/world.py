@@ -72,7 +72,8 @@ class WorldSpec:
     speedup (simulated seconds per wall second), the UDP ports the controller's MAVSDK listens on
     (one per vehicle: each vehicle sends there, as PX4 to 14540), the wire cap of the telemetry
     streams [Hz], and what the gNBs serve: `gnb_transport` "telnet" | "rest" (a REST port too),
-    `gnb_mode` "rtt" | "trace" | "auto" (a T-tracer port with the latter two)."""
+    `gnb_mode` "rtt" | "trace" | "auto" (a T-tracer port with the latter two); `gnbs`: False when a
+    real gNB serves the mission (`uavloc sim --oai`: the world then runs only its vehicles)."""
 
     scenario: Scenario
     seed: int
@@ -81,6 +82,7 @@ class WorldSpec:
     max_stream_wall_hz: float = 100.0
     gnb_transport: str = "telnet"
     gnb_mode: str = "rtt"
+    gnbs: bool = True
 
 
 @dataclass(frozen=True)
@@ -190,7 +192,7 @@ class _World:
         n = len(self.vehicles)
         if n > 1:
             self.cells = SharedCells.of_scenario(sc, truth.positions, n)
-        for i in range(n):
+        for i in range(n if spec.gnbs else 0):
             gnb = SimulatedGnb(
                 sc, functools.partial(truth.position, i), host="127.0.0.1", port=0,
                 clock=functools.partial(truth.clock, i), seed=gnb_seed(spec.seed, i),

@@ -37,6 +37,7 @@ from estimator.ranging import one_way_m_per_ta_step
 from mission.gnb import GnbConfig, OaiGnbClient
 from mission.gnb.oai import PROMPT_UE, parse_rfsim_distance
 from mission.gnb.oai_ra import RandomAccess, log_time_format
+from sitl_scenarios.oai.conf import BUILD_FILES  # what the build folder must hold (one list for uavloc and tests)
 from tests.conftest import SHARED_DATA
 from tests.procs import stop_process
 from uavloc.errors import (
@@ -52,9 +53,6 @@ from uavloc.errors import (
 pytestmark = pytest.mark.oai
 
 BUILD_ENV = "UAVLOC_OAI"
-#: what the build folder must hold (build_oai --gNB --nrUE -w SIMU --build-lib telnetsrv)
-BUILD_FILES = ("nr-softmodem", "nr-uesoftmodem", "librfsimulator.so", "libtelnetsrv.so", "libtelnetsrv_ci.so",
-               "libtelnetsrv_o1.so", "libtelnetsrv_ciUE.so")
 #: the configuration files of the recorded transcripts (the shared data, else the test fixtures' copy)
 CONF = next((d for d in (SHARED_DATA / "oai-2025.w36" / "conf",
                          Path(__file__).parent / "fixtures" / "oai-2025.w36" / "conf") if (d / "gnb.conf").is_file()),

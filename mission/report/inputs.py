@@ -337,6 +337,13 @@ def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
     hist = getattr(result, "history", None)
     facts = facts_from_header(mlog.header.config, mlog.header.start_utc, Path(str(mlog.path)).name,
                               uavloc_version())
+    extra = {}
+    if getattr(mlog, "channel", None):
+        from mission.channel import channel_residuals
+
+        # a real gNB behind a bridge (uavloc sim --oai): its ranges against the channel's distance
+        res = channel_residuals(mlog.rtt_t_s, mlog.rtt_user, mlog.rtt_toa_s, mlog.channel, mlog.header.user_index())
+        extra["channel_residuals"] = res.to_dict()
     return ReportInputs(
         result=result_of_replay(result),
         noise=result.noise,
@@ -355,6 +362,7 @@ def inputs_from_replay(result: Any, title: str | None = None) -> ReportInputs:
         shapes=shapes_from_log(mlog),
         title=title or facts.title(),
         facts=facts,
+        extra=extra,
     )
 
 

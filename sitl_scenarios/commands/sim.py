@@ -1,5 +1,5 @@
 """`uavloc sim SCENARIO [--seed N] [--speedup X] [--planner NAME] [--out DIR] [--json] [--connect URL[,URL...]]
-[--gnb-transport telnet|rest] [--autopilot px4|ardupilot]`:
+[--gnb-transport telnet|rest] [--autopilot px4|ardupilot] [--oai [BUILD]]`:
 a whole mission against the built-in vehicle and the simulated gNB (or a running PX4 or ArduPilot SITL;
 a fleet scenario's: one URL per vehicle, comma-separated)."""
 
@@ -64,6 +64,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "positions are offsets from the first vehicle's home")
     p.add_argument("--autopilot", choices=("px4", "ardupilot"),
                    help="the built-in vehicle's personality (default: the scenario's [vehicle] autopilot, px4)")
+    p.add_argument("--oai", nargs="?", const="", metavar="BUILD",
+                   help="the world's gNB is a real OAI nr-softmodem and each user a real nr-uesoftmodem (a pair "
+                        "per user) over rfsim, from this OAI build folder (bare --oai: $UAVLOC_OAI); ranges from its "
+                        "T trace, the world at rfsim's pace (docs/oai-in-the-loop.md)")
     add_view_arguments(p)
 
 
@@ -76,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from sitl_scenarios.scenario import check_fleet_load, load_scenario, with_autopilot
     from sitl_scenarios.sim_runner import SimulatedMission
 
+    oai = oai_argument(args.oai)  # a bad --oai is said before anything starts
     if args.connect is None:
         from sitl_scenarios.world import start_world_server
 
@@ -119,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         async with live_view(args, title=f"uavloc sim {scenario.name}") as view:
             async with SimulatedMission(scenario, log_path=log_path, seed=args.seed, speedup=args.speedup,
                                         planner=args.planner, connect=connect,
-                                        gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode,
+                                        gnb_transport=args.gnb_transport, gnb_mode=args.gnb_mode, oai=oai,
                                         header_config={"command_line": getattr(args, "command_line", None)}) as sim:
                 held.sim = sim
                 runner.last_resort = sim.controller.last_resort
@@ -146,6 +151,27 @@ def run(args: argparse.Namespace) -> int:
             code = finish(result, interrupted=True)
     runner.exit_if_stuck(code)
     return code
+
+
+def oai_argument(value: str | None) -> str | None:
+    """`--oai [BUILD]`: the build folder (bare: $UAVLOC_OAI); ScenarioError (exit 1) when bare and
+    UAVLOC_OAI is unset, or the folder is not an OAI build uavloc can run. None: no --oai."""
+    import os
+
+    from uavloc.errors import ScenarioError
+
+    if value is None:
+        return None
+    build = value.strip() or os.environ.get("UAVLOC_OAI", "").strip()
+    if not build:
+        raise ScenarioError("--oai without a folder takes the OAI build folder from UAVLOC_OAI, which is not set "
+                            "(openairinterface5g/cmake_targets/ran_build/build)")
+    from sitl_scenarios.oai.conf import build_missing
+
+    why = build_missing(Path(build).expanduser())
+    if why is not None:
+        raise ScenarioError(why)
+    return build
 
 
 def check_gps_floor(scenario, where: str) -> None:
