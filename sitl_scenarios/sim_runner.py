@@ -98,14 +98,17 @@ class SimulatedMission:
     the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields or
     mission settings by their key alone (mission.controller.controller_from_mission); header_config:
     more fields of the log header's `config` (the CLI's `command_line`); oai: an OAI build folder
-    (None: the simulated gNB), whose real gNB and nrUE(s) serve the mission in trace mode.
+    (None: the simulated gNB), whose real gNB and nrUE(s) serve the mission in trace mode;
+    t_relay: with `oai`, the T client reaches each gNB's T port through a sitl_scenarios.oai.t_relay
+    TRelay that :meth:`cut_trace` cuts (fault injection: the gNB keeps running).
     """
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
                  speedup: float = 20.0, planner: str | None = None, connect: str | Sequence[str] | None = None,
                  max_stream_wall_hz: float = 100.0, gnb_request_timeout_s: float = 1.0,
                  controller_overrides: dict | None = None, gnb_transport: str = "telnet",
-                 gnb_mode: str | None = None, header_config: dict | None = None, oai: str | Path | None = None):
+                 gnb_mode: str | None = None, header_config: dict | None = None, oai: str | Path | None = None,
+                 t_relay: bool = False):
         if not (math.isfinite(speedup) and speedup > 0):
             raise MissionError(f"speedup must be a positive number, got {speedup!r}")
         self.scenario = scenario
@@ -152,6 +155,9 @@ class SimulatedMission:
         #: a real OAI gNB and nrUE in the loop (`oai`: an OAI build folder; docs/oai-in-the-loop.md)
         self.oai = None
         self._channel_pending: list = []
+        self.t_relay = bool(t_relay)
+        #: with t_relay: each user's T relay (the latest attach attempt's)
+        self.t_relays: list = []
         if oai is not None:
             if gnb_transport != "telnet":
                 raise MissionError("a real OAI gNB is reached over telnet (--gnb-transport rest is not supported "
@@ -289,7 +295,18 @@ class SimulatedMission:
         distance (an autopilot's: its reported position) on the UE's channel."""
         oai = self.oai
 
-        def make_client(port: int, t_port: int) -> OaiGnbClient:
+        def make_client(port: int, t_port: int) -> contextlib.AbstractAsyncContextManager:
+            return relayed_client(port, t_port) if self.t_relay else adapter(port, t_port)
+
+        @contextlib.asynccontextmanager
+        async def relayed_client(port: int, t_port: int):
+            from sitl_scenarios.oai.t_relay import TRelay
+
+            async with TRelay(t_port) as relay, adapter(port, relay.port) as client:
+                self.t_relays.append(relay)
+                yield client
+
+        def adapter(port: int, t_port: int) -> OaiGnbClient:
             sc = self.scenario
             return OaiGnbClient(GnbConfig.of(
                 sc.mission.gnb, "127.0.0.1", port, transport="telnet", seed=self.seed, mu=sc.radio.mu,
@@ -412,6 +429,13 @@ class SimulatedMission:
         else:
             await sim.__aexit__(None, None, None)
             log.warning("simulated gNB %d killed", index)
+
+    def cut_trace(self, hold_s: float = 0.0) -> None:
+        """Fault injection (`oai` with `t_relay`): cut the T client's connection to the newest gNB's T
+        port and refuse reconnects for hold_s wall seconds; the gNB and nrUE keep running."""
+        if not self.t_relays:
+            raise MissionError("cut_trace needs SimulatedMission(..., oai=BUILD, t_relay=True)")
+        self.t_relays[-1].cut(hold_s)
 
     async def run(self) -> MissionResult:
         """Run the mission; the simulators keep running until the context exits."""

@@ -250,6 +250,7 @@ class MeasurementPipeline:
         else:
             self.flight.gnb_answered(now)
         self._note_clock_offset()
+        self._note_trace_gaps()
         if samples:
             self.place_queue.put_nowait(samples)
 
@@ -273,6 +274,14 @@ class MeasurementPipeline:
             self.flight.event(f"the gNB host's clock is {est.offset_s:+.3f} s behind ours (±{est.spread_s:.3f} s, "
                               f"{est.samples} stamps): its stamps are corrected by it", kind="gnb_clock_offset",
                               **est.to_dict())
+
+    def _note_trace_gaps(self) -> None:
+        """Log what each UE's first SRS after a dropped T connection proved (trace mode:
+        mission.gnb.trace_rtt.GapOutcome): its TA checked (and re-based by the missed steps), or
+        unknown and its ranges withheld."""
+        drain = getattr(self.gnb, "trace_gaps", None)
+        for g in (drain() if callable(drain) else []):
+            self.flight.event(g.message, kind="gnb_trace_gap", **g.fields())
 
     def _report_rounds(self, served: int, start: tuple[float, np.ndarray] | None) -> None:
         """Once per mission: the first round cut short says how many users the gNB served while the

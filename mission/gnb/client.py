@@ -127,6 +127,11 @@ class GnbClient(Protocol):
 
     async def discover(self) -> list[int]: ...
 
+    def trace_gaps(self) -> list:
+        """Trace mode: what each UE's first SRS after a dropped T connection proved, not yet taken
+        (mission.gnb.trace_rtt.GapOutcome, oldest first); [] otherwise."""
+        return self.tracer.tracker.drain_gaps() if self.tracer is not None else []
+
     async def measure(self, rnti: int) -> RttSample: ...
 
 

@@ -21,7 +21,14 @@ The gNB never prints a UE's round trip, but its T tracer carries what rebuilds i
   reported only once it has held long enough for that change to be physical. A drop up to
   `clock_step_m` is taken at once: a commercial UE corrects its clock in steps, so its round
   trip rises slowly and then drops (docs/design.md §4); holding the drops would keep only the
-  sawtooth's upper part. Time here is the gNB's air
+  sawtooth's upper part.
+- a dropped T connection (:meth:`TraceRttTracker.connection_gap`) hides the TA commands sent
+  meanwhile. At each UE's first valid SRS after it, the missed steps k are found from continuity:
+  the round trip cannot have moved more than B = tolerance + v_max·Δt since the UE's last valid
+  SRS before the gap (Δt: the larger of its air and wall time), so k is the one integer with
+  |S·k + p₁ − p₀| ≤ B < S − |S·k + p₁ − p₀| (p₀, p₁: the peaks before and after). Without such
+  a k (a gap too long for the peak to tell) the UE's absolute TA is unknown: no RTT until its next
+  random access. Each outcome is a :class:`GapOutcome`. Time here is the gNB's air
   time (its frame counter), not the wall clock (an rfsimulator runs faster or slower than real
   time).
 
@@ -61,6 +68,10 @@ REATTACH_HINT = ("re-attach it while uavloc's T client is connected: `ciUE force
 #: SFN period [frames]; frames are 10 ms
 SFN_PERIOD = 1024
 FRAME_S = 0.01
+#: a wall-clock step between events after which the frame count is unwrapped by rfsim's pace [s]
+PACE_GAP_S = 1.0
+#: the wall time over which rfsim's pace is measured [s]
+PACE_WINDOW_S = 2.0
 
 
 #: the thresholds' one definition: a mission file's [gnb] defaults (mission.config.GnbSettings),
@@ -147,6 +158,30 @@ class TraceRtt:
     peak_to_mean_db: float
 
 
+@dataclass(frozen=True)
+class GapOutcome:
+    """What a UE's first valid SRS after a dropped T connection proved (module docstring).
+
+    rnti; proven: the TA is known again (TA += missed_steps) or else unknown until a new access;
+    missed_steps: k [TA steps] (0: no command was missed); gap_s: Δt since the UE's last valid SRS
+    before the gap [s]; budget_samples: B; moved_samples: S·k + p₁ − p₀ [RTT samples]; message: one
+    sentence for the mission log."""
+
+    rnti: int
+    proven: bool
+    missed_steps: int
+    gap_s: float
+    budget_samples: float
+    moved_samples: float
+    message: str
+
+    def fields(self) -> dict:
+        """The event record's fields."""
+        return {"rnti": f"{self.rnti:04x}", "proven": self.proven, "missed_steps": self.missed_steps,
+                "gap_s": round(self.gap_s, 3), "budget_samples": round(self.budget_samples, 2),
+                "moved_samples": round(self.moved_samples, 2)}
+
+
 @dataclass
 class _Pending:
     cmd: int
@@ -158,6 +193,10 @@ class _Ue:
     ta: int
     pending: _Pending | None = None  # the TA command not yet seen applied or dropped (the gNB sends one at a time)
     ref_peak: float | None = None  # the latest valid peak
+    ref_air_s: float = 0.0  # ... its air time [s]
+    ref_wall_s: float = 0.0  # ... its gNB wall stamp [s]
+    gap: bool = False  # a T connection dropped since ref_peak: the next valid SRS checks the TA
+    lost: str = ""  # why the absolute TA is unknown (until the next random access)
     streak: list[float] = field(default_factory=list)  # RTTs of the first occasions, to confirm
     accepted: TraceRtt | None = None
     held: str = ""  # why the latest valid occasion gave no RTT
@@ -181,6 +220,9 @@ class TraceCounts:
     held_rate: int = 0
     malformed: int = 0
     last_malformed: str = ""
+    gaps: int = 0
+    gap_proven: int = 0
+    gap_lost: int = 0
 
 
 class TraceRttTracker:
@@ -197,36 +239,104 @@ class TraceRttTracker:
         self._last_frame: int | None = None
         self._last_wall_s: float | None = None
         self._air_frames = 0
+        self._pace_ref: tuple[float, float] | None = None  # (air, wall) [s] where the pace window began
+        #: rfsim's pace: the gNB's air seconds per wall second (None before PACE_WINDOW_S of events)
+        self.pace: float | None = None
         self.counts = TraceCounts()
         #: RNTIs whose SRS or TA came without a random access seen (attached before the trace began)
         self.unknown_rntis: set[int] = set()
+        #: what each UE's first valid SRS after a dropped connection proved, not yet taken (drain_gaps)
+        self.gap_outcomes: collections.deque[GapOutcome] = collections.deque(maxlen=256)
 
     # -- time ---------------------------------------------------------------------------------
     def _air_s(self, frame: int, slot: int, t_wall_s: float) -> float:
         """The gNB's air time [s] from its frame counter, unwrapped.
 
         Events of one gNB arrive in frame order give or take a few frames (MAC and PHY trace from
-        different threads): the nearest unwrapping, d ∈ (−512, 512] frames. A wall-clock gap
-        longer than half an SFN period makes the unwrapping ambiguous: every UE's rate reference
-        restarts."""
+        different threads): the nearest unwrapping, d ∈ (−512, 512] frames. After a wall-clock
+        step of more than PACE_GAP_S (a dropped T connection) d is the one nearest what rfsim's pace
+        (air seconds per wall second, measured over PACE_WINDOW_S) predicts. A wall-clock gap longer
+        than half an SFN period makes the unwrapping ambiguous: every UE's rate reference restarts."""
         f = int(frame) % SFN_PERIOD
         d = 0
+        gap = False
         if self._last_frame is not None and self._last_wall_s is not None:
-            if abs(t_wall_s - self._last_wall_s) > 5.0:
+            dw = t_wall_s - self._last_wall_s
+            d = (f - self._last_frame) % SFN_PERIOD
+            if abs(dw) > 5.0:
                 # a gap: keep air time monotonic, and trust no earlier level or streak
-                d = 2 * SFN_PERIOD
+                d, gap = 2 * SFN_PERIOD, True
                 for ue in self._ues.values():
                     ue.streak.clear()
                     ue.accepted = None
-            else:
-                d = (f - self._last_frame) % SFN_PERIOD
-                if d > SFN_PERIOD // 2:
-                    d -= SFN_PERIOD
+            elif dw > PACE_GAP_S and self.pace is not None:
+                predicted = dw * self.pace / FRAME_S
+                d += SFN_PERIOD * round((predicted - d) / SFN_PERIOD)
+            elif d > SFN_PERIOD // 2:
+                d -= SFN_PERIOD
         self._air_frames += d
         self._last_frame = f
         self._last_wall_s = t_wall_s
         slot_s = 1e-3 / 2**self.settings.mu
-        return self._air_frames * FRAME_S + int(slot) * slot_s
+        air_s = self._air_frames * FRAME_S + int(slot) * slot_s
+        ref = self._pace_ref
+        if gap or ref is None:
+            self._pace_ref = (air_s, t_wall_s)
+        elif t_wall_s - ref[1] >= PACE_WINDOW_S:
+            self.pace = (air_s - ref[0]) / (t_wall_s - ref[1])
+            self._pace_ref = (air_s, t_wall_s)
+        return air_s
+
+    def connection_gap(self) -> None:
+        """The T connection dropped and is back: events (TA commands among them) were missed. Each
+        known UE's TA is checked at its next valid SRS (module docstring); until then a pending
+        command's fate is unknown (the check covers it) and no RTT comes out."""
+        self.counts.gaps += 1
+        for ue in self._ues.values():
+            if ue.lost:
+                continue
+            ue.gap = True
+            ue.pending = None
+            ue.streak.clear()
+            ue.held = "a T connection dropped: its TA is checked at its next SRS"
+
+    def drain_gaps(self) -> list[GapOutcome]:
+        """The gap outcomes not yet taken, oldest first."""
+        out = list(self.gap_outcomes)
+        self.gap_outcomes.clear()
+        return out
+
+    def _check_gap(self, rnti: int, ue: _Ue, peak: float, t_air_s: float, t_wall_s: float) -> None:
+        """The first valid SRS after a gap: k from continuity, or the TA unknown."""
+        s = self.settings
+        ue.gap = False
+        step = s.step_samples
+        if ue.ref_peak is None:
+            k, moved, gap_s, budget = 0, math.nan, math.nan, math.nan
+            proven = False
+            why = "no valid SRS of it before the gap to compare with"
+        else:
+            gap_s = max(t_air_s - ue.ref_air_s, t_wall_s - ue.ref_wall_s, 0.0)
+            budget = s.rate_tolerance_samples + s.rate_samples_per_s * gap_s
+            k = round((ue.ref_peak - peak) / step)
+            moved = step * k + peak - ue.ref_peak
+            proven = abs(moved) <= budget < step - abs(moved)
+            why = (f"in {gap_s:.2f} s its round trip may have moved ±{budget:.1f} samples, and TA steps are "
+                   f"{step:g}: the SRS peak ({ue.ref_peak:+.2f} -> {peak:+.2f}) cannot tell how many were missed")
+        if proven:
+            ue.ta += k
+            self.counts.gap_proven += 1
+            what = ("no TA command was missed" if k == 0 else
+                    f"{k:+d} TA step(s) were applied while it was not seen: TA {ue.ta - k} -> {ue.ta}")
+            msg = (f"UE {rnti:04x} after the T connection dropped: {what} (its round trip moved {moved:+.2f} "
+                   f"samples in {gap_s:.2f} s, within ±{budget:.1f}; a missed step would be {step:g})")
+        else:
+            ue.lost = why
+            ue.accepted = None
+            self.counts.gap_lost += 1
+            msg = (f"UE {rnti:04x} after the T connection dropped: its absolute TA is unknown ({why}); no range "
+                   "from it until it re-attaches")
+        self.gap_outcomes.append(GapOutcome(rnti, proven, int(k), float(gap_s), float(budget), float(moved), msg))
 
     # -- events ---------------------------------------------------------------------------------
     def feed(self, ev: TEvent) -> TraceRtt | None:
@@ -315,8 +425,13 @@ class TraceRttTracker:
             self.counts.srs_stale += 1
             ue.held = f"stale SRS estimate (peak {ratio_db:.1f} dB over the mean)"
             return None
+        if ue.gap:
+            self._check_gap(rnti, ue, peak, t_air, ev.t_wall_s)
+        if ue.lost:
+            ue.held = f"its absolute TA is unknown since the T connection dropped ({ue.lost}): {REATTACH_HINT}"
+            return None
         self._resolve(ue, peak)
-        ue.ref_peak = peak
+        ue.ref_peak, ue.ref_air_s, ue.ref_wall_s = peak, t_air, ev.t_wall_s
         if ue.pending is not None:
             self.counts.held_pending += 1
             ue.held = f"TA command {ue.pending.cmd} not yet seen applied or dropped"

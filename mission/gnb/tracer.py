@@ -4,8 +4,10 @@
 reads the server's own T_messages.txt (events −1, −2: the ids of this build), turns on the ranging
 events (:data:`mission.gnb.ttrace.RANGING_EVENTS`) and starts its reader task; every event goes to
 a :class:`mission.gnb.trace_rtt.TraceRttTracker`. A lost connection is re-opened with jittered
-exponential backoff (seeded rng) and the tracker goes on (its air-time gap rule restarts the rate
-gates). Leaving cancels the reader and closes the socket. Nothing is ever sent but the event mask:
+exponential backoff (seeded rng) and the tracker goes on: it is told of the gap
+(:meth:`mission.gnb.trace_rtt.TraceRttTracker.connection_gap`), since the TA commands the gNB sent
+meanwhile were missed, and checks each UE's TA at its next SRS (its air-time gap rule restarts the
+rate gates). Leaving cancels the reader and closes the socket. Nothing is ever sent but the event mask:
 the trace is passive and cannot disturb the gNB.
 
 Parsing is in the pure :mod:`mission.gnb.ttrace` and :mod:`mission.gnb.trace_rtt`.
@@ -141,8 +143,9 @@ class TTracerClient:
         if w is not None:
             w.close()
 
-    async def _connect(self) -> None:
-        """Open the connection, read the server's T_messages.txt, send the event mask."""
+    async def _connect(self, gap: bool = False) -> None:
+        """Open the connection, read the server's T_messages.txt, send the event mask; gap: a
+        connection dropped before this one (the tracker is told before the new events)."""
         try:
             async with asyncio.timeout(self.connect_timeout_s):
                 self._reader, self._writer = await asyncio.open_connection(self.host, self.port)
@@ -167,6 +170,8 @@ class TTracerClient:
         self._writer.write(db.mask(RANGING_EVENTS))
         await self._writer.drain()
         self.problem = ""
+        if gap:
+            self.tracker.connection_gap()
         self._drain_buffer()  # what came with the preamble
 
     async def _read_preamble(self) -> TMessages:
@@ -209,7 +214,7 @@ class TTracerClient:
         while True:
             if not self.connected:
                 try:
-                    await self._connect()
+                    await self._connect(gap=True)
                     self.reconnects += 1
                     attempt = 0
                     log.info("T tracer at %s reconnected", self.address)

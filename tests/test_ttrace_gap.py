@@ -1,0 +1,97 @@
+"""A dropped T connection (issue 50): the TA commands the gNB sent meanwhile are missed. Replayed
+from OAI 2025.w36's ramp recording (../shared/data/oai-2025.w36-ttrace/dora_ramp_0_300: 0 → 300 m
+in 26 steps, 8 TA commands applied) with a window of events cut out: the tracker told of the gap
+re-bases the UE's TA by the steps its SRS peak proves were missed, and gives no range when the
+peak cannot tell."""
+
+from __future__ import annotations
+
+import functools
+import gzip
+from pathlib import Path
+
+import pytest
+
+from mission.gnb.trace_rtt import TraceRtt, TraceRttTracker, TraceSettings
+from mission.gnb.ttrace import iter_recording
+
+RUN = "oai-2025.w36-ttrace/dora_ramp_0_300"
+
+
+@functools.cache
+def _events(path: Path) -> tuple:
+    return tuple(iter_recording(gzip.decompress(path.read_bytes())))
+
+
+@pytest.fixture
+def events(shared_data: Path) -> tuple:
+    return _events(shared_data / RUN / "rec.raw.gz")
+
+
+def _replay(events, cut_s: tuple[float, float] | None = None, told: bool = True):
+    """(tracker, {(frame, slot, t_wall_s): TraceRtt}) of the recording, the events stamped within
+    cut_s (wall seconds from its first event) dropped; told: the tracker hears of the gap."""
+    tr = TraceRttTracker(TraceSettings())
+    t0 = events[0].t_wall_s
+    out: dict[tuple, TraceRtt] = {}
+    in_gap = False
+    for ev in events:
+        dt = ev.t_wall_s - t0
+        if cut_s is not None and cut_s[0] <= dt < cut_s[1]:
+            in_gap = True
+            continue
+        if in_gap:
+            in_gap = False
+            if told:
+                tr.connection_gap()
+        r = tr.feed(ev)
+        if r is not None:
+            out[(r.frame, r.slot, r.t_wall_s)] = r
+    return tr, out
+
+
+def _after(out: dict, events, t_s: float) -> list[TraceRtt]:
+    return [r for k, r in out.items() if k[2] - events[0].t_wall_s >= t_s]
+
+
+def test_a_short_gap_that_hid_an_applied_ta_command_is_re_based(events):
+    """The command at 7.57 s (TA 1 -> 2) falls in a 0.3 s cut: the peak's step proves it."""
+    _, full = _replay(events)
+    tr, cut = _replay(events, (7.45, 7.75))
+    (g,) = tr.drain_gaps()
+    assert g.proven and g.missed_steps == 1 and "+1 TA step" in g.message, g
+    after = _after(cut, events, 7.75)
+    assert len(after) > 1000
+    # every range after the gap is the uncut replay's own
+    assert all(r.rtt_samples == full[k].rtt_samples for k, r in cut.items() if k in full)
+    assert set(cut) <= set(full) and round(after[-1].rtt_samples) == 92
+
+
+def test_a_short_gap_without_a_command_is_proven_consistent(events):
+    _, full = _replay(events)
+    tr, cut = _replay(events, (10.0, 10.3))
+    (g,) = tr.drain_gaps()
+    assert g.proven and g.missed_steps == 0 and "no TA command was missed" in g.message
+    assert abs(g.moved_samples) < 1.0 and g.budget_samples < 6.0
+    assert all(r.rtt_samples == full[k].rtt_samples for k, r in cut.items() if k in full)
+    assert tr.counts.gaps == tr.counts.gap_proven == 1
+
+
+def test_untold_the_missed_command_makes_every_later_range_a_step_short(events):
+    """What the tracker did before it was told of gaps: TA 1 kept, ranges 12 samples (39 m) short."""
+    _, full = _replay(events)
+    _, cut = _replay(events, (7.45, 7.75), told=False)
+    wrong = [full[k].rtt_samples - r.rtt_samples for k, r in cut.items() if k in full and k[2] - events[0].t_wall_s > 9]
+    assert wrong and set(wrong) == {12.0}
+
+
+def test_a_gap_too_long_for_the_peak_to_tell_gives_no_range(events):
+    """A 2 s cut (6 s of air time here: rfsim ran 3 × real time): the round trip may have moved more
+    than half a TA step, so the TA is unknown and the UE gives no range (until it re-attaches)."""
+    tr, cut = _replay(events, (7.0, 9.0))
+    (g,) = tr.drain_gaps()
+    assert not g.proven and g.budget_samples >= 6.0 and "unknown" in g.message
+    assert _after(cut, events, 9.0) == []
+    (ue,) = tr.ues()
+    assert tr.latest(ue) is None and "absolute TA is unknown" in tr.why_none(ue)
+    assert tr.counts.gap_lost == 1
