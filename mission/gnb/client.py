@@ -127,11 +127,6 @@ class GnbClient(Protocol):
 
     async def discover(self) -> list[int]: ...
 
-    def trace_gaps(self) -> list:
-        """Trace mode: what each UE's first SRS after a dropped T connection proved, not yet taken
-        (mission.gnb.trace_rtt.GapOutcome, oldest first); [] otherwise."""
-        return self.tracer.tracker.drain_gaps() if self.tracer is not None else []
-
     async def measure(self, rnti: int) -> RttSample: ...
 
 
@@ -626,6 +621,11 @@ class OaiGnbClient:
         """Stamped ranges refused so far because the gNB host's clock offset was not bounded."""
         return ((self.tracer.offset.refused if self.tracer is not None else 0)
                 + (self.stock_log.offset.refused if self.stock_log is not None else 0))
+
+    def trace_gaps(self) -> list:
+        """Trace mode: what each UE's first SRS after a dropped T connection proved, not yet taken
+        (mission.gnb.trace_rtt.GapOutcome, oldest first); [] otherwise."""
+        return self.tracer.tracker.drain_gaps() if self.tracer is not None else []
 
     async def measure(self, rnti: int) -> RttSample:
         """One range measurement of the UE `rnti` (see GnbClient)."""

@@ -50,3 +50,7 @@ class GnbGroup:
     @property
     def clock_refused(self) -> int:
         return sum(int(getattr(c, "clock_refused", 0) or 0) for c in self.clients)
+
+    def trace_gaps(self) -> list:
+        """Every adapter's outcomes of a dropped T connection not yet taken (OaiGnbClient.trace_gaps)."""
+        return [g for c in self.clients for g in c.trace_gaps()]
