@@ -95,3 +95,53 @@ def test_a_gap_too_long_for_the_peak_to_tell_gives_no_range(events):
     (ue,) = tr.ues()
     assert tr.latest(ue) is None and "absolute TA is unknown" in tr.why_none(ue)
     assert tr.counts.gap_lost == 1
+
+
+def test_the_adapter_says_what_each_ues_first_srs_after_a_reconnect_proved():
+    """OaiGnbClient in trace mode against the simulated gNB's T server: its T connection closed by
+    the server, the client reconnects, and each UE's TA is proven (no command missed in 0.1 s) with
+    its range still within a sample."""
+    import asyncio
+    import contextlib
+
+    from mission.gnb import GnbConfig, OaiGnbClient
+    from sitl_scenarios.gnb import SimulatedGnb, static_position
+    from tests.test_gnb_trace import UAV_ENU_M, _scenario, _true_range_m
+    from uavloc.errors import GnbNoMeasurementError
+
+    sc = _scenario()
+    one_sample_m = 299_792_458.0 / (2 * sc.radio.fs_hz)
+
+    async def measured(client) -> dict:
+        out: dict = {}
+        for _ in range(100):
+            await asyncio.sleep(0.05)
+            for r in (0x4601, 0x4602, 0x4603):
+                with contextlib.suppress(GnbNoMeasurementError):
+                    out[r] = await client.measure(r)
+            if len(out) == 3:
+                return out
+        return out
+
+    async def main():
+        async with SimulatedGnb(sc, static_position(UAV_ENU_M), port=0, t_port=0) as gnb:
+            cfg = GnbConfig.of(sc.mission.gnb, "127.0.0.1", gnb.port, transport="telnet", mode="trace",
+                               t_port=gnb.t_port, backoff_initial_s=0.01)
+            async with OaiGnbClient(cfg) as client:
+                assert len(await measured(client)) == 3
+                for w in list(gnb.t_server._writers):
+                    w.close()
+                gaps: list = []
+                for _ in range(100):
+                    await asyncio.sleep(0.05)
+                    gaps += client.trace_gaps()
+                    if len(gaps) == 3:
+                        break
+                return client.tracer.reconnects, gaps, await measured(client)
+
+    reconnects, gaps, after = asyncio.run(main())
+    assert reconnects == 1 and sorted(g.rnti for g in gaps) == [0x4601, 0x4602, 0x4603]
+    assert all(g.proven and g.missed_steps == 0 and g.gap_s < 1.0 for g in gaps), gaps
+    assert len(after) == 3
+    for k in range(3):
+        assert abs(after[0x4601 + k].range_m - _true_range_m(sc, k)) <= one_sample_m
