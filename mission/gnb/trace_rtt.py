@@ -163,7 +163,7 @@ class GapOutcome:
     """What a UE's first valid SRS after a dropped T connection proved (module docstring).
 
     rnti; proven: the TA is known again (TA += missed_steps) or else unknown until a new access;
-    missed_steps: k [TA steps] (0: no command was missed); gap_s: Δt since the UE's last valid SRS
+    missed_steps: k [TA steps] (0: no command was missed; unproven: the nearest, not taken); gap_s: Δt since the UE's last valid SRS
     before the gap [s]; budget_samples: B; moved_samples: S·k + p₁ − p₀ [RTT samples]; message: one
     sentence for the mission log."""
 
@@ -177,7 +177,8 @@ class GapOutcome:
 
     def fields(self) -> dict:
         """The event record's fields."""
-        return {"rnti": f"{self.rnti:04x}", "proven": self.proven, "missed_steps": self.missed_steps,
+        return {"rnti": f"{self.rnti:04x}", "proven": self.proven,
+                "missed_steps": self.missed_steps if self.proven else None,
                 "gap_s": round(self.gap_s, 3), "budget_samples": round(self.budget_samples, 2),
                 "moved_samples": round(self.moved_samples, 2)}
 
