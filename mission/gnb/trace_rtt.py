@@ -164,8 +164,8 @@ class GapOutcome:
 
     rnti; proven: the TA is known again (TA += missed_steps) or else unknown until a new access;
     missed_steps: k [TA steps] (0: no command was missed; unproven: the nearest, not taken); gap_s:
-    Δt since the UE's last valid SRS before the gap [s]; budget_samples: B; moved_samples: S·k + p₁ − p₀ [RTT samples]; message: one
-    sentence for the mission log."""
+    Δt since the UE's last valid SRS before the gap [s]; budget_samples: B; moved_samples:
+    S·k + p₁ − p₀ [RTT samples]; message: one sentence for the mission log."""
 
     rnti: int
     proven: bool
