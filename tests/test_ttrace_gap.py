@@ -98,14 +98,15 @@ def test_a_gap_too_long_for_the_peak_to_tell_gives_no_range(events):
 
 
 def test_the_adapter_says_what_each_ues_first_srs_after_a_reconnect_proved():
-    """OaiGnbClient in trace mode against the simulated gNB's T server: its T connection closed by
-    the server, the client reconnects, and each UE's TA is proven (no command missed in 0.1 s) with
-    its range still within a sample."""
+    """OaiGnbClient in trace mode against the simulated gNB's T server through the cuttable relay of
+    `sim --oai` (sitl_scenarios.oai.t_relay): cut, reconnects refused for 0.2 s, the client comes
+    back, and each UE's TA is proven (no command missed) with its range still within a sample."""
     import asyncio
     import contextlib
 
     from mission.gnb import GnbConfig, OaiGnbClient
     from sitl_scenarios.gnb import SimulatedGnb, static_position
+    from sitl_scenarios.oai.t_relay import TRelay
     from tests.test_gnb_trace import UAV_ENU_M, _scenario, _true_range_m
     from uavloc.errors import GnbNoMeasurementError
 
@@ -124,23 +125,23 @@ def test_the_adapter_says_what_each_ues_first_srs_after_a_reconnect_proved():
         return out
 
     async def main():
-        async with SimulatedGnb(sc, static_position(UAV_ENU_M), port=0, t_port=0) as gnb:
+        async with SimulatedGnb(sc, static_position(UAV_ENU_M), port=0, t_port=0) as gnb, \
+                TRelay(gnb.t_port) as relay:
             cfg = GnbConfig.of(sc.mission.gnb, "127.0.0.1", gnb.port, transport="telnet", mode="trace",
-                               t_port=gnb.t_port, backoff_initial_s=0.01)
+                               t_port=relay.port, backoff_initial_s=0.01, backoff_max_s=0.1)
             async with OaiGnbClient(cfg) as client:
                 assert len(await measured(client)) == 3
-                for w in list(gnb.t_server._writers):
-                    w.close()
+                relay.cut(0.2)
                 gaps: list = []
                 for _ in range(100):
                     await asyncio.sleep(0.05)
                     gaps += client.trace_gaps()
                     if len(gaps) == 3:
                         break
-                return client.tracer.reconnects, gaps, await measured(client)
+                return client.tracer.reconnects, gaps, await measured(client), relay.connections
 
-    reconnects, gaps, after = asyncio.run(main())
-    assert reconnects == 1 and sorted(g.rnti for g in gaps) == [0x4601, 0x4602, 0x4603]
+    reconnects, gaps, after, connections = asyncio.run(main())
+    assert reconnects == 1 and connections == 2 and sorted(g.rnti for g in gaps) == [0x4601, 0x4602, 0x4603]
     assert all(g.proven and g.missed_steps == 0 and g.gap_s < 1.0 for g in gaps), gaps
     assert len(after) == 3
     for k in range(3):
