@@ -50,6 +50,8 @@ sys.path[:] = [str(REPO)] + [p for p in sys.path if Path(p or ".").resolve() != 
 import numpy as np  # noqa: E402
 import pymap3d  # noqa: E402
 
+from sitl_scenarios.px4_sitl import terminate_with_parent  # noqa: E402
+
 C_MPS = 299_792_458.0
 SCENARIOS = ("paper", "three_users_nlos", "five_commercial_ues", "two_uavs")
 #: the benchmark's own "the speed-up was kept": achieved at least this share of the asked one ...
@@ -145,7 +147,8 @@ def fly(scenario: str, speedup: float, seed: int, load: str, out: Path, timeout_
            "--json", "--out", str(out)]
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=timeout_s)
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=timeout_s,
+                              preexec_fn=terminate_with_parent)
         code, stdout, stderr = proc.returncode, proc.stdout, proc.stderr
     except subprocess.TimeoutExpired as exc:
         code, stdout = -1, ""
@@ -168,7 +171,9 @@ def fly(scenario: str, speedup: float, seed: int, load: str, out: Path, timeout_
 @contextlib.contextmanager
 def busy_loops(n: int):
     """n processes spinning at nice 0 (the other work of a companion computer)."""
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    # they die with the benchmark, even when it is killed without running this block's cleanup
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], preexec_fn=terminate_with_parent)
+             for _ in range(n)]
     try:
         yield
     finally:
