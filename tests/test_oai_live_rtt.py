@@ -8,6 +8,7 @@ a sentence naming UAVLOC_OAI when it is unset, and with one naming the patch whe
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -52,10 +53,16 @@ def telnet(port: int, *lines: str, timeout_s: float = 30.0) -> list[bytes]:
         for line in lines:
             sock.sendall(line.encode() + b"\n")
             buf = b""
-            while not buf.endswith((GNB_PROMPT, b"softmodem_5Gue> ")):
+            while GNB_PROMPT not in buf and b"softmodem_5Gue> " not in buf:
                 got = sock.recv(65536)
                 assert got, f"connection closed after {line!r}: {buf!r}"
                 buf += got
+            if line.startswith("rfsimu"):  # the rfsimulator's line comes after the prompt
+                sock.settimeout(0.5)
+                with contextlib.suppress(TimeoutError):
+                    while got := sock.recv(65536):
+                        buf += got
+                sock.settimeout(timeout_s)
             out.append(buf)
     return out
 
@@ -107,21 +114,27 @@ def _alive(bundle: OaiRun) -> None:
     assert int(bundle.info["UE_RNTI"], 16) in json.loads(stats[: stats.index(b"\nOK\n")])["O1-Operational"]["ues"]
 
 
-def _set_distance(bundle: OaiRun, metres: float) -> None:
-    telnet(bundle.gnb_port, f"rfsimu setdistance rfsimu_channel_ue0 {metres:g}")
-    telnet(bundle.ue_port, f"rfsimu setdistance rfsimu_channel_enB0 {metres:g}")
+def _set_distance(bundle: OaiRun, samples: int) -> float:
+    """Both sides to `samples` rfsim samples (0.5 m more: the rfsimulator floors); the distance
+    the gNB's rfsimulator says it set [m]."""
+    metres = samples * SAMPLE_M + 0.5
+    got = telnet(bundle.gnb_port, f"rfsimu setdistance rfsimu_channel_ue0 {metres:.3f}")[0]
+    telnet(bundle.ue_port, f"rfsimu setdistance rfsimu_channel_enB0 {metres:.3f}")
+    m = re.search(rb"new \(exact\) distance ([0-9.]+) m", got)
+    assert m, got
+    return float(m.group(1))
 
 
 def test_the_order_ranges_the_ue_to_the_sample_at_three_distances(patched):
     """`uavloc gnb probe --mode rtt --count 5` at 45.5, 97.6 and 136.6 m (7, 15 and 21 samples,
-    reached in steps of at most 6.5 m... 39 m): every range within one sample of the rfsim
-    distance; the gNB and the UE still attached."""
+    reached in steps of at most 4 samples, 26 m, on both sides): every range within half a sample
+    of the distance the rfsimulator set; the gNB and the UE still attached."""
     rnti = patched.info["UE_RNTI"]
-    here = 0.0
-    for target in (7 * SAMPLE_M, 15 * SAMPLE_M, 21 * SAMPLE_M):
-        while here < target - 0.01:
-            here = min(target, here + 6 * SAMPLE_M)
-            _set_distance(patched, here)
+    samples = 0
+    for target in (7, 15, 21):
+        while samples < target:
+            samples = min(target, samples + 4)
+            here = _set_distance(patched, samples)
             time.sleep(1.0)
         proc = subprocess.run([sys.executable, "-m", "mission", "gnb", "probe", "--gnb",
                                f"127.0.0.1:{patched.gnb_port}", "--mode", "rtt", "--rnti", rnti, "--count", "5",
