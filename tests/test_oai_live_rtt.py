@@ -159,3 +159,13 @@ def test_unknown_bad_and_missing_rnti_are_error_lines_and_the_gnb_lives(patched)
     assert re.fullmatch(rf"rnti {rnti:04x} ta \d+ mu 1 srs_peak \d+\.0000 fs 46080000", lines[0]), lines
     assert lines[1] == f"error rnti {other:04x} not connected"
     _alive(patched)
+
+
+def test_auto_finds_the_order_served_and_prefers_it(patched):
+    """`uavloc gnb probe --mode auto` on the patched gNB: rtt served (it answered), recommended."""
+    proc = subprocess.run([sys.executable, "-m", "mission", "gnb", "probe", "--gnb", f"127.0.0.1:{patched.gnb_port}",
+                           "--mode", "auto", "--count", "2", "--json"], capture_output=True, text=True, timeout=300)
+    doc = json.loads(proc.stdout)
+    assert doc["modes"]["rtt"]["served"] and doc["recommended"] == "rtt", proc.stdout + proc.stderr
+    assert doc["mode"] == "rtt" and proc.returncode == 0, proc.stdout + proc.stderr
+    _alive(patched)
