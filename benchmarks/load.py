@@ -241,22 +241,22 @@ def main(argv: list[str] | None = None) -> int:
     runs: list[Run] = []
     with tempfile.TemporaryDirectory(prefix="uavloc-load-") as tmp:
         base = args.out or Path(tmp)
-        for sc in scenarios:
-            for x in speedups:
-                for seed in seeds:
-                    for load in loads:
-                        out = base / f"{sc}-x{x:g}-s{seed}-{load}"
-                        with busy_loops(args.busy if load == "loaded" else 0):
-                            r = fly(sc, x, seed, load, out, args.timeout)
-                        runs.append(r)
-                        why = f" ({r.reason[:160]})" if r.status == "aborted" else ""
-                        words = (f"{r.status}{why}, inside {r.inside}/{r.located} located of {r.users}, "
-                                 f"res p99 {r.residual_p99_m:.1f} m, "
-                                 f"hover {100 * r.hover_share:.0f} %, ran ×{r.achieved:.1f}, "
-                                 f"fell_behind {r.fell_behind}{' LIE' if r.lie else ''}"
-                                 f"{' UNSAID' if r.unsaid else ''}") if not r.errors else f"exit {r.exit_code}: " \
-                            f"{r.errors[0]}"
-                        print(f"  {sc} ×{x:g} seed {seed} {load:<6} ({r.wall_s:.0f} s): {words}", flush=True)
+        # seed by seed over every cell: a run cut short still fills the whole table, with fewer seeds
+        cells = [(seed, x, sc) for seed in seeds for x in speedups for sc in scenarios]
+        for seed, x, sc in cells:
+            for load in loads:
+                out = base / f"{sc}-x{x:g}-s{seed}-{load}"
+                with busy_loops(args.busy if load == "loaded" else 0):
+                    r = fly(sc, x, seed, load, out, args.timeout)
+                runs.append(r)
+                why = f" ({r.reason[:160]})" if r.status == "aborted" else ""
+                words = (f"{r.status}{why}, inside {r.inside}/{r.located} located of {r.users}, "
+                         f"res p99 {r.residual_p99_m:.1f} m, "
+                         f"hover {100 * r.hover_share:.0f} %, ran ×{r.achieved:.1f}, "
+                         f"fell_behind {r.fell_behind}{' LIE' if r.lie else ''}"
+                         f"{' UNSAID' if r.unsaid else ''}") if not r.errors else f"exit {r.exit_code}: " \
+                    f"{r.errors[0]}"
+                print(f"  {sc} ×{x:g} seed {seed} {load:<6} ({r.wall_s:.0f} s): {words}", flush=True)
     print()
     print("\n".join(summary_rows(runs)))
     ok = True
