@@ -34,6 +34,7 @@ import contextlib
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -183,6 +184,25 @@ def busy_loops(n: int):
             p.wait()
 
 
+def _fly_cells(cells, loads, base: Path, args, runs: list[Run]) -> None:
+    """Fly every (seed, speed-up, scenario) cell under each load, appending to `runs` and printing
+    a line per run."""
+    for seed, x, sc in cells:
+        for load in loads:
+            out = base / f"{sc}-x{x:g}-s{seed}-{load}"
+            with busy_loops(args.busy if load == "loaded" else 0):
+                r = fly(sc, x, seed, load, out, args.timeout)
+            runs.append(r)
+            why = f" ({r.reason[:160]})" if r.status == "aborted" else ""
+            words = (f"{r.status}{why}, inside {r.inside}/{r.located} located of {r.users}, "
+                     f"res p99 {r.residual_p99_m:.1f} m, "
+                     f"hover {100 * r.hover_share:.0f} %, ran ×{r.achieved:.1f}, "
+                     f"fell_behind {r.fell_behind}{' LIE' if r.lie else ''}"
+                     f"{' UNSAID' if r.unsaid else ''}") if not r.errors else f"exit {r.exit_code}: " \
+                f"{r.errors[0]}"
+            print(f"  {sc} ×{x:g} seed {seed} {load:<6} ({r.wall_s:.0f} s): {words}", flush=True)
+
+
 def parse_seeds(text: str) -> list[int]:
     if "-" in text:
         a, b = text.split("-", 1)
@@ -243,20 +263,12 @@ def main(argv: list[str] | None = None) -> int:
         base = args.out or Path(tmp)
         # seed by seed over every cell: a run cut short still fills the whole table, with fewer seeds
         cells = [(seed, x, sc) for seed in seeds for x in speedups for sc in scenarios]
-        for seed, x, sc in cells:
-            for load in loads:
-                out = base / f"{sc}-x{x:g}-s{seed}-{load}"
-                with busy_loops(args.busy if load == "loaded" else 0):
-                    r = fly(sc, x, seed, load, out, args.timeout)
-                runs.append(r)
-                why = f" ({r.reason[:160]})" if r.status == "aborted" else ""
-                words = (f"{r.status}{why}, inside {r.inside}/{r.located} located of {r.users}, "
-                         f"res p99 {r.residual_p99_m:.1f} m, "
-                         f"hover {100 * r.hover_share:.0f} %, ran ×{r.achieved:.1f}, "
-                         f"fell_behind {r.fell_behind}{' LIE' if r.lie else ''}"
-                         f"{' UNSAID' if r.unsaid else ''}") if not r.errors else f"exit {r.exit_code}: " \
-                    f"{r.errors[0]}"
-                print(f"  {sc} ×{x:g} seed {seed} {load:<6} ({r.wall_s:.0f} s): {words}", flush=True)
+        # SIGTERM (or Ctrl-C) ends the runs and still prints the table of those done
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+        try:
+            _fly_cells(cells, loads, base, args, runs)
+        except KeyboardInterrupt:
+            print(f"\n(stopped after {len(runs)} runs)", flush=True)
     print()
     print("\n".join(summary_rows(runs)))
     ok = True
