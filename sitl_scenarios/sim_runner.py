@@ -98,7 +98,8 @@ class SimulatedMission:
     the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields or
     mission settings by their key alone (mission.controller.controller_from_mission); header_config:
     more fields of the log header's `config` (the CLI's `command_line`); oai: an OAI build folder
-    (None: the simulated gNB), whose real gNB and nrUE(s) serve the mission in trace mode.
+    (None: the simulated gNB), whose real gNB and nrUE(s) serve the mission in trace mode (rtt when
+    gnb_mode says so, on a build patched with patches/oai-2025.w36; auto when it says so).
     """
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
@@ -158,9 +159,10 @@ class SimulatedMission:
                                    "with --oai)")
             from sitl_scenarios.oai.loop import OaiInTheLoop
 
-            self.oai = OaiInTheLoop(oai, self.log_path.parent / "oai", scenario)
-            # a stock OAI gNB has no RTT command: its ranges come from its T trace
-            self.gnb_mode = "auto" if gnb_mode == "auto" else "trace"
+            # a stock OAI gNB has no RTT command: its ranges come from its T trace unless rtt is asked
+            # for (of a build patched with patches/oai-2025.w36: OaiInTheLoop refuses another)
+            self.gnb_mode = gnb_mode if gnb_mode in ("auto", "rtt") else "trace"
+            self.oai = OaiInTheLoop(oai, self.log_path.parent / "oai", scenario, rtt=self.gnb_mode == "rtt")
 
     # -- positions seen by the simulated gNB (ENU of the scenario frame) ------------------------
 
