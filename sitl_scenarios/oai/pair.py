@@ -188,7 +188,7 @@ class OaiPair:
         self.command_lines.append([f"{k}={v}" for k, v in (extra_env or {}).items()] + cmd)
         if self._t_start is None:
             self._t_start = time.monotonic()
-        log.info("OAI %s started (pid %d): %s", name, self.procs[name].pid, " ".join(cmd))
+        log.info("OAI %s started (pid %d): %s", name, self.procs[name].pid, " ".join(self.command_lines[-1]))
 
     def _check_alive(self, name: str) -> None:
         proc = self.procs[name]
