@@ -50,3 +50,7 @@ class GnbGroup:
     @property
     def clock_refused(self) -> int:
         return sum(int(getattr(c, "clock_refused", 0) or 0) for c in self.clients)
+
+    def drain_trace_orders(self) -> list:
+        """What each adapter's trace-mode PDCCH orders did, not yet taken (mission.gnb.trace_order)."""
+        return [o for c in self.clients for o in c.drain_trace_orders()]
