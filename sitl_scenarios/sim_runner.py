@@ -98,8 +98,7 @@ class SimulatedMission:
     the built-in vehicle's telemetry rate on the wire; controller_overrides: ControllerConfig fields or
     mission settings by their key alone (mission.controller.controller_from_mission); header_config:
     more fields of the log header's `config` (the CLI's `command_line`); oai: an OAI build folder
-    (None: the simulated gNB), whose real gNB and nrUE(s) serve the mission in trace mode (rtt when
-    gnb_mode says so, on a build patched with patches/oai-2025.w36; auto when it says so).
+    (None: the simulated gNB), whose real gNB and nrUE(s) serve the mission in trace mode.
     """
 
     def __init__(self, scenario: Scenario, log_path: str | Path, *, seed: int | None = None,
