@@ -76,16 +76,18 @@ def patched(tmp_path_factory):
     bundle = OaiRun(build=Path(os.environ[BUILD_ENV]).expanduser(), workdir=work)
     run_dir = work / "run"
     run_dir.mkdir()
-    gnb_port, ue_port, rfsim_port = _free_tcp_port(), _free_tcp_port(), _free_tcp_port()
+    gnb_port, ue_port, rfsim_port, t_port = _free_tcp_port(), _free_tcp_port(), _free_tcp_port(), _free_tcp_port()
     gnb_conf = _conf_with_ports((CONF / "gnb.conf").read_text(), gnb_port, rfsim_port)
     (run_dir / "gnb.conf").write_text(re.sub(r"(gNBs\s*=\s*\(\s*\{)", r"\1\n    do_SRS = 1;", gnb_conf, count=1))
     (run_dir / "ue.conf").write_text(_conf_with_ports((CONF / "ue.conf").read_text(), ue_port, rfsim_port))
     bundle.info.update(GNB_LOG=str(run_dir / "gnb.log"), UE_LOG=str(run_dir / "ue.log"),
-                       GNB_TELNET_PORT=str(gnb_port), UE_TELNET_PORT=str(ue_port))
+                       GNB_TELNET_PORT=str(gnb_port), UE_TELNET_PORT=str(ue_port), T_PORT=str(t_port))
     old = os.environ.get("NRUE_PDCCH_ORDER_CSS")
     os.environ["NRUE_PDCCH_ORDER_CSS"] = "1"
     try:
-        bundle._start("gnb", "nr-softmodem", run_dir / "gnb.conf", RTT_GNB_ARGS, run_dir / "gnb.log")
+        # its T server too (nobody connects before the UE attached: the trace test's late UE)
+        bundle._start("gnb", "nr-softmodem", run_dir / "gnb.conf",
+                      (*RTT_GNB_ARGS, "--T_stdout", "2", "--T_nowait", "--T_port", str(t_port)), run_dir / "gnb.log")
         deadline = time.monotonic() + 180
         while not ((run_dir / "rbconfig.raw").is_file() and _port_open(gnb_port)):
             assert time.monotonic() < deadline and not bundle.exited, f"the gNB did not start: {bundle.exited}"
@@ -168,4 +170,24 @@ def test_auto_finds_the_order_served_and_prefers_it(patched):
     doc = json.loads(proc.stdout)
     assert doc["modes"]["rtt"]["served"] and doc["recommended"] == "rtt", proc.stdout + proc.stderr
     assert doc["mode"] == "rtt" and proc.returncode == 0, proc.stdout + proc.stderr
+    _alive(patched)
+
+
+def test_trace_mode_orders_a_ue_that_attached_before_its_t_client(patched):
+    """`uavloc gnb probe --mode trace` on the patched gNB whose UE attached before any T client:
+    the probe sends it one PDCCH order, the ordered access's RAR comes on the T trace with its
+    absolute TA, and the trace ranges the UE within one sample of the rfsim distance."""
+    here = _set_distance(patched, 21)  # where the first test left it (136.62 m), or set now
+    time.sleep(1.0)
+    gnb_log = Path(patched.info["GNB_LOG"])
+    orders_before = gnb_log.read_text(errors="replace").count(PATCH_MARK.decode())
+    proc = subprocess.run([sys.executable, "-m", "mission", "gnb", "probe", "--gnb", f"127.0.0.1:{patched.gnb_port}",
+                           "--mode", "trace", "--t-port", patched.info["T_PORT"], "--rnti", patched.info["UE_RNTI"],
+                           "--count", "3", "--wait", "20", "--json"], capture_output=True, text=True, timeout=300)
+    doc = json.loads(proc.stdout)
+    ranges = [s["range_m"] for u in doc["ues"] for s in u["samples"]]
+    assert proc.returncode == 0 and len(ranges) == 3, proc.stdout + proc.stderr
+    assert all(abs(r - here) <= SAMPLE_M + 1e-6 for r in ranges), (here, ranges)
+    assert gnb_log.read_text(errors="replace").count(PATCH_MARK.decode()) > orders_before  # the probe ordered it
+    print(f"trace mode after a PDCCH order: rfsim {here:.2f} m, ranges {ranges}")
     _alive(patched)
