@@ -34,6 +34,7 @@ import contextlib
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -49,6 +50,8 @@ sys.path[:] = [str(REPO)] + [p for p in sys.path if Path(p or ".").resolve() != 
 
 import numpy as np  # noqa: E402
 import pymap3d  # noqa: E402
+
+from sitl_scenarios.px4_sitl import terminate_with_parent  # noqa: E402
 
 C_MPS = 299_792_458.0
 SCENARIOS = ("paper", "three_users_nlos", "five_commercial_ues", "two_uavs")
@@ -145,7 +148,8 @@ def fly(scenario: str, speedup: float, seed: int, load: str, out: Path, timeout_
            "--json", "--out", str(out)]
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=timeout_s)
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=timeout_s,
+                              preexec_fn=terminate_with_parent)
         code, stdout, stderr = proc.returncode, proc.stdout, proc.stderr
     except subprocess.TimeoutExpired as exc:
         code, stdout = -1, ""
@@ -168,7 +172,9 @@ def fly(scenario: str, speedup: float, seed: int, load: str, out: Path, timeout_
 @contextlib.contextmanager
 def busy_loops(n: int):
     """n processes spinning at nice 0 (the other work of a companion computer)."""
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    # they die with the benchmark, even when it is killed without running this block's cleanup
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], preexec_fn=terminate_with_parent)
+             for _ in range(n)]
     try:
         yield
     finally:
@@ -176,6 +182,25 @@ def busy_loops(n: int):
             p.kill()
         for p in procs:
             p.wait()
+
+
+def _fly_cells(cells, loads, base: Path, args, runs: list[Run]) -> None:
+    """Fly every (seed, speed-up, scenario) cell under each load, appending to `runs` and printing
+    a line per run."""
+    for seed, x, sc in cells:
+        for load in loads:
+            out = base / f"{sc}-x{x:g}-s{seed}-{load}"
+            with busy_loops(args.busy if load == "loaded" else 0):
+                r = fly(sc, x, seed, load, out, args.timeout)
+            runs.append(r)
+            why = f" ({r.reason[:160]})" if r.status == "aborted" else ""
+            words = (f"{r.status}{why}, inside {r.inside}/{r.located} located of {r.users}, "
+                     f"res p99 {r.residual_p99_m:.1f} m, "
+                     f"hover {100 * r.hover_share:.0f} %, ran ×{r.achieved:.1f}, "
+                     f"fell_behind {r.fell_behind}{' LIE' if r.lie else ''}"
+                     f"{' UNSAID' if r.unsaid else ''}") if not r.errors else f"exit {r.exit_code}: " \
+                f"{r.errors[0]}"
+            print(f"  {sc} ×{x:g} seed {seed} {load:<6} ({r.wall_s:.0f} s): {words}", flush=True)
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -236,22 +261,14 @@ def main(argv: list[str] | None = None) -> int:
     runs: list[Run] = []
     with tempfile.TemporaryDirectory(prefix="uavloc-load-") as tmp:
         base = args.out or Path(tmp)
-        for sc in scenarios:
-            for x in speedups:
-                for seed in seeds:
-                    for load in loads:
-                        out = base / f"{sc}-x{x:g}-s{seed}-{load}"
-                        with busy_loops(args.busy if load == "loaded" else 0):
-                            r = fly(sc, x, seed, load, out, args.timeout)
-                        runs.append(r)
-                        why = f" ({r.reason[:160]})" if r.status == "aborted" else ""
-                        words = (f"{r.status}{why}, inside {r.inside}/{r.located} located of {r.users}, "
-                                 f"res p99 {r.residual_p99_m:.1f} m, "
-                                 f"hover {100 * r.hover_share:.0f} %, ran ×{r.achieved:.1f}, "
-                                 f"fell_behind {r.fell_behind}{' LIE' if r.lie else ''}"
-                                 f"{' UNSAID' if r.unsaid else ''}") if not r.errors else f"exit {r.exit_code}: " \
-                            f"{r.errors[0]}"
-                        print(f"  {sc} ×{x:g} seed {seed} {load:<6} ({r.wall_s:.0f} s): {words}", flush=True)
+        # seed by seed over every cell: a run cut short still fills the whole table, with fewer seeds
+        cells = [(seed, x, sc) for seed in seeds for x in speedups for sc in scenarios]
+        # SIGTERM (or Ctrl-C) ends the runs and still prints the table of those done
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+        try:
+            _fly_cells(cells, loads, base, args, runs)
+        except KeyboardInterrupt:
+            print(f"\n(stopped after {len(runs)} runs)", flush=True)
     print()
     print("\n".join(summary_rows(runs)))
     ok = True

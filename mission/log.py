@@ -6,11 +6,10 @@ table in docs/design.md §10; a torn last line (no newline, not JSON) is skipped
 else malformed raises :class:`MissionLogError` naming the line number and the reason, also
 telemetry records out of time order (a shuffled or spliced log: refused, not sorted).
 
-A fleet's log (docs/fleet.md) lists its vehicles in the header (`vehicles`, index = vehicle
-number) and names the vehicle of each `telemetry`, `rtt`, `waypoint` and `event` record
-(`"vehicle": <index>`; absent: vehicle 0, so a one-vehicle log is as before). The reader keeps
-each rtt and telemetry record's vehicle (:attr:`MissionLog.rtt_vehicle`, :attr:`MissionLog.tel_vehicle`)
-and checks every time order per vehicle: each vehicle's records are a track of their own.
+A fleet's log (docs/fleet.md) lists its vehicles in the header (`vehicles`, index = vehicle number)
+and names the vehicle of each `telemetry`, `rtt`, `waypoint` and `event` record (`"vehicle"`; absent:
+vehicle 0). The reader keeps each rtt and telemetry record's vehicle (:attr:`MissionLog.rtt_vehicle`,
+:attr:`MissionLog.tel_vehicle`) and checks every time order per vehicle.
 """
 
 from __future__ import annotations
@@ -42,10 +41,6 @@ log = logging.getLogger(__name__)
 
 FORMAT = "uavloc-mission/1"
 RECORD_TYPES = ("header", "telemetry", "rtt", "estimate", "waypoint", "event", "truth", "channel")
-
-
-# ---------------------------------------------------------------------------------------------
-# writer
 
 
 class MissionLogWriter:
@@ -345,8 +340,7 @@ class MissionLog:
     #: and the line of the first one dropped (None: none)
     duplicate_rtt: int = 0
     duplicate_rtt_line: int | None = None
-    #: `channel` records (`uavloc sim --oai`: each rfsim distance the bridge set, docs/design.md §10),
-    #: in file order, checked by mission.channel.check_channel_record
+    #: `channel` records (`sim --oai`: each rfsim distance set; mission.channel.check_channel_record)
     channel: list[dict] = field(default_factory=list)
 
     @property

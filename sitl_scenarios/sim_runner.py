@@ -164,9 +164,10 @@ class SimulatedMission:
                                    "with --oai)")
             from sitl_scenarios.oai.loop import OaiInTheLoop
 
-            self.oai = OaiInTheLoop(oai, self.log_path.parent / "oai", scenario)
-            # a stock OAI gNB has no RTT command: its ranges come from its T trace
-            self.gnb_mode = "auto" if gnb_mode == "auto" else "trace"
+            # a stock OAI gNB has no RTT command: its ranges come from its T trace unless rtt is asked
+            # for (of a build patched with patches/oai-2025.w36: OaiInTheLoop refuses another)
+            self.gnb_mode = gnb_mode if gnb_mode in ("auto", "rtt") else "trace"
+            self.oai = OaiInTheLoop(oai, self.log_path.parent / "oai", scenario, rtt=self.gnb_mode == "rtt")
 
     # -- positions seen by the simulated gNB (ENU of the scenario frame) ------------------------
 

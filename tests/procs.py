@@ -23,11 +23,12 @@ def stop_process(proc: subprocess.Popen, grace_s: float, kill_wait_s: float | No
 
 
 @contextlib.contextmanager
-def standalone_trace_gnb(scenario: str, cwd: Path) -> Iterator[tuple[str, str]]:
+def standalone_trace_gnb(scenario: str, cwd: Path, *extra: str) -> Iterator[tuple[str, str]]:
     """`python -m sitl_scenarios.gnb --scenario SCENARIO` with a T tracer, on free loopback ports, its
-    UAV held 40 m above the origin: yields (telnet port, T port) as text, read from its start-up line."""
+    UAV held 40 m above the origin (and `extra` arguments): yields (telnet port, T port) as text,
+    read from its start-up line."""
     srv = subprocess.Popen([sys.executable, "-m", "sitl_scenarios.gnb", "--scenario", scenario, "--host", "127.0.0.1",
-                            "--port", "0", "--t-port", "0", "--static-enu", "0", "0", "40"],
+                            "--port", "0", "--t-port", "0", "--static-enu", "0", "0", "40", *extra],
                            cwd=cwd, stderr=subprocess.PIPE, text=True)
     try:
         line = ""

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from mission.gnb import GnbConfig, OaiGnbClient
-from mission.gnb.probe import probe_address
+from mission.gnb.probe import probe_address, probe_gnb
 from mission.gnb.tracer import TraceStatus, trace_served_why
 from sitl_scenarios.gnb import SimulatedGnb, static_position
 from sitl_scenarios.scenario import scenario_from_dict, user_tables
@@ -82,13 +82,14 @@ def test_no_ue_within_the_wait_says_it_waited_and_how_long():
 
 
 def test_a_ue_attached_before_the_trace_began_is_named_with_how_to_reattach_it():
-    """The second probe of one gNB: its UEs attached while the first one's T client was connected,
-    so the second sees their SRS but not their random access."""
+    """The second probe of one stock gNB (no PDCCH order: its RTT command named otherwise): its UEs
+    attached while the first one's T client was connected, so the second sees their SRS but not
+    their random access."""
     sc = _scenario()
     lines: list[str] = []
 
     async def body():
-        async with SimulatedGnb(sc, static_position(UAV_ENU_M), port=0, t_port=0) as gnb:
+        async with SimulatedGnb(sc, static_position(UAV_ENU_M), port=0, t_port=0, rtt_command="stock") as gnb:
             cfg = GnbConfig(port=gnb.port, t_port=gnb.t_port, mode="trace", fs_hz=sc.radio.fs_hz)
             first = await probe_address(cfg, count=1, wait_s=10.0)
             second = await probe_address(cfg, rntis=[0x4601], count=1, wait_s=4.5, progress=lines.append)
@@ -104,6 +105,29 @@ def test_a_ue_attached_before_the_trace_began_is_named_with_how_to_reattach_it()
     assert "restart the nrUE" in said and "after waiting" in said
     assert any("attached before the T trace began" in line for line in lines), lines
     assert "UE 4601: no measurement" in second.message()
+
+
+def test_a_ue_attached_before_the_trace_began_gets_a_pdcch_order_when_the_gnb_serves_it():
+    """The same on a gNB that serves `rtt pdcch_order` (patches/oai-2025.w36; here the simulated
+    one): the second probe orders the UE once, the ordered access's RAR comes on the T trace, and
+    the UE is ranged from the trace, its first range checked against the order's answer."""
+    sc = _scenario()
+
+    async def body():
+        async with SimulatedGnb(sc, static_position(UAV_ENU_M), port=0, t_port=0) as gnb:
+            cfg = GnbConfig(port=gnb.port, t_port=gnb.t_port, mode="trace", fs_hz=sc.radio.fs_hz)
+            first = await probe_address(cfg, count=1, wait_s=10.0)
+            async with OaiGnbClient(cfg) as client:
+                second = await probe_gnb(client, rntis=[0x4601], count=2, wait_s=10.0)
+                return first, second, client.drain_trace_orders(), client.tracer.tracker.counts.rars
+
+    first, second, orders, rars = run(body())
+    assert first.ok and second.ok, second.lines()
+    assert [o.what for o in orders] == ["ordered", "agree"] and rars == 1, orders
+    assert "attached before the T trace began" in orders[0].message and "PDCCH order" in orders[0].message
+    (u,) = second.ues
+    true_m = float(np.linalg.norm(np.array(UAV_ENU_M) - np.array([120.0, 80.0, 0.0])))
+    assert all(abs(s.range_m - true_m) < 10.0 for s in u.samples) and all(s.source == "trace" for s in u.samples)
 
 
 def test_a_t_tracer_failure_is_not_called_no_telnet_server():
@@ -219,9 +243,10 @@ def test_the_waiting_trace_probe_asks_again_while_a_user_holds_the_telnet_server
 
 
 def test_uavloc_gnb_probe_says_on_stderr_what_it_waits_for():
-    """`uavloc gnb probe --mode trace` against `python -m sitl_scenarios.gnb --t-port 0`: the first
-    probe sees the UEs attach (exit 0); the second, started after, prints its waiting line on stderr
-    and exits 1 naming the UE that attached before the T trace began and how to re-attach it."""
+    """`uavloc gnb probe --mode trace` against `python -m sitl_scenarios.gnb --t-port 0` (a stock
+    gNB: no `rtt pdcch_order`): the first probe sees the UEs attach (exit 0); the second, started
+    after, prints its waiting line on stderr and exits 1 naming the UE that attached before the T
+    trace began and how to re-attach it."""
     import json
     import subprocess
     import sys
@@ -230,7 +255,7 @@ def test_uavloc_gnb_probe_says_on_stderr_what_it_waits_for():
     repo = Path(__file__).resolve().parents[1]
     from tests.procs import standalone_trace_gnb
 
-    with standalone_trace_gnb("paper", repo) as (port, t_port):
+    with standalone_trace_gnb("paper", repo, "--rtt-command", "stock") as (port, t_port):
         probe = [sys.executable, "-m", "mission", "gnb", "probe", "--gnb", f"127.0.0.1:{port}", "--mode", "trace",
                  "--t-port", t_port, "--count", "1", "--json"]
         first = subprocess.run([*probe, "--wait", "20"], cwd=repo, capture_output=True, text=True, timeout=60)

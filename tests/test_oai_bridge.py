@@ -416,7 +416,11 @@ def test_a_group_of_gnbs_measures_each_ue_at_its_own_gnb():
         def clock_offset(self):
             return None
 
+        def drain_trace_orders(self):
+            return [f"order of {self.rnti:04x}"]
+
     group = GnbGroup([OneUeGnb(0x11), OneUeGnb(0x22)], [0x11, 0x22])
+    assert group.drain_trace_orders() == ["order of 0011", "order of 0022"]
 
     async def body():
         return await group.discover(), await group.measure(0x22)

@@ -220,3 +220,30 @@ def test_an_unacknowledged_idempotent_command_is_sent_again(timeouts, ok):
     with pytest.raises(VehicleCommandError, match="COMMAND_DENIED"):
         asyncio.run(v._request_again_on_timeout("arm", denied))
     assert sent == [2]
+
+
+def test_the_take_off_height_is_set_again_when_its_parameter_set_goes_unanswered():
+    """benchmarks/load.py, paper ×4 beside four busy loops: "set takeoff altitude 40 m failed:
+    PARAMETER_ERROR" aborted the mission before take-off. The height is a parameter
+    (MIS_TAKEOFF_ALT) and MAVSDK reports its unanswered set so: it is set again, then take-off."""
+    from types import SimpleNamespace
+
+    from mavsdk.asyncio.plugins.action import ActionError, ActionResult
+
+    from mission.vehicle.mavsdk_vehicle import MavsdkVehicle
+
+    calls = []
+
+    async def set_takeoff_altitude(height_m):
+        calls.append(("height", height_m))
+        if len(calls) == 1:
+            raise ActionError(ActionResult.PARAMETER_ERROR, "set_takeoff_altitude()")
+
+    async def takeoff():
+        calls.append(("takeoff",))
+
+    v = MavsdkVehicle("udpin://127.0.0.1:0", request_timeout_s=1.0)
+    v._system = object()
+    v._action = SimpleNamespace(set_takeoff_altitude=set_takeoff_altitude, takeoff=takeoff)
+    asyncio.run(v.takeoff(40.0))
+    assert calls == [("height", 40.0), ("height", 40.0), ("takeoff",)]

@@ -213,13 +213,13 @@ class VehicleCrew:
 
     async def probe_gnb(self):
         """(probe, ok): the gNB's preflight probe of the mission's users, logged as a `preflight_gnb` event."""
-        from mission.gnb.probe import TIMEOUT_TRIES, probe_gnb
+        from mission.gnb.probe import RETRY_PAUSES_S, TIMEOUT_TRIES, probe_gnb
 
         rntis = [u.rnti for u in self.users]
         gcfg = getattr(self.gnb, "config", None)
         passive = getattr(gcfg, "mode", None) == "stock" and getattr(gcfg, "stock_mode", None) == "passive"
         # a timed-out request is asked again (mission.gnb.probe.TIMEOUT_TRIES): the discovery and each user's
-        bound_s = self.config.gnb_timeout_s * TIMEOUT_TRIES * (1 + len(rntis))
+        bound_s = (self.config.gnb_timeout_s * TIMEOUT_TRIES + sum(RETRY_PAUSES_S)) * (1 + len(rntis))
         try:
             async with asyncio.timeout(bound_s):
                 probe = await probe_gnb(self.gnb, rntis=rntis, count=1)

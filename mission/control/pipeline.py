@@ -220,6 +220,7 @@ class MeasurementPipeline:
             except GnbNoMeasurementError as exc:
                 self.user_misses[k] += 1
                 log.debug("no measurement for %s: %s", u.id, exc)
+                self._note_trace_orders()
                 if self.serving[k] == self.vehicle:
                     self.serving[k] = -1  # not (or no longer) on this cell: every gNB may try it
                 continue
@@ -239,6 +240,7 @@ class MeasurementPipeline:
                 t_mono, t_unc = 0.5 * (t_req + t_end), 0.5 * (t_end - t_req)
             samples.append((k, s, t_mono, t_unc))
             self.serving[k] = self.vehicle
+            self._note_trace_orders()
         now = self.now()
         # answers nobody can read, round after round, are a lost gNB too
         self.protocol_streak = self.protocol_streak + 1 if protocol_errors and not samples else 0
@@ -312,6 +314,13 @@ class MeasurementPipeline:
         while not self.buffer.covers(t_s) and time.monotonic() < deadline:
             await self.flight.wake.wait(0.2)
         return self.buffer.at(t_s, max_extrapolate_s=0.5)
+
+    def _note_trace_orders(self) -> None:
+        """Log what the trace mode's PDCCH orders did (a UE that attached before the T client
+        connected: mission.gnb.trace_order), as `gnb_trace_order` events."""
+        drain = getattr(self.gnb, "drain_trace_orders", None)
+        for o in (drain() if callable(drain) else []):
+            self.flight.event(o.message, kind="gnb_trace_order", **o.fields())
 
     def _speed_mps(self, t0_s: float, t1_s: float) -> float:
         """The UAV's speed [m/s] around [t0_s, t1_s] (mission s): the logged velocity's

@@ -65,6 +65,7 @@ from mission.gnb.oai import (
     split_async_lines,
 )
 from mission.gnb.oai_ra import RandomAccess, RntiChange
+from mission.gnb.trace_order import TraceOrder, TraceOrders
 from mission.gnb.trace_rtt import TraceRtt
 from mission.gnb.tracer import TTracerClient, trace_served_why
 from mission.gnb.transport import GnbAddress, GnbTransport, TransportLost, make_transport, parse_gnb_address
@@ -172,6 +173,9 @@ class OaiGnbClient:
         #: trace mode: the T-tracer client (mission.gnb.tracer), entered with this client
         self.tracer: TTracerClient | None = None
         self._trace_last: dict[int, TraceRtt] = {}
+        #: trace mode: the PDCCH orders for UEs the trace has no absolute TA of (mission.gnb.trace_order)
+        ts = cfg.trace_settings()
+        self.trace_orders = TraceOrders(ts.jump_tolerance_m, ts.max_range_rate_mps)
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def __aenter__(self) -> OaiGnbClient:
@@ -636,8 +640,39 @@ class OaiGnbClient:
                 return self._measure_passive(rnti)
             return await self._measure_active(rnti)
         if self.mode == "trace":
-            return self._measure_trace(rnti)
+            try:
+                sample = self._measure_trace(rnti)
+            except GnbNoMeasurementError as exc:
+                await self._order_for_trace(rnti)
+                raise GnbNoMeasurementError(f"{exc}{self.trace_orders.status(rnti)}") from None
+            withheld = self.trace_orders.check(rnti, sample.range_m, sample.t_mono_s)
+            if withheld is not None:
+                raise GnbNoMeasurementError(withheld)
+            return sample
         return await self._measure_rtt(rnti)
+
+    def drain_trace_orders(self) -> list[TraceOrder]:
+        """Trace mode: what the PDCCH orders did, not yet taken (oldest first)."""
+        return self.trace_orders.drain()
+
+    async def _order_for_trace(self, rnti: int) -> None:
+        """Trace mode: one `rtt pdcch_order` for a UE the trace has no absolute TA of (or whose TA
+        disagreed with an earlier order), when the gNB serves it (mission.gnb.trace_order)."""
+        orders, tracer = self.trace_orders, self.tracer
+        if tracer is None or not orders.wanted(rnti, rnti in tracer.tracker.unknown_rntis, self.clock()):
+            return
+        orders.sending(rnti, self.clock())
+        try:
+            s = await self._measure_rtt(rnti)
+        except GnbUnknownCommandError as exc:
+            orders.not_served(str(exc))
+            log.info("no PDCCH order on this gNB for UE %04x's absolute TA: %s", rnti, exc)
+            return
+        except (GnbNoMeasurementError, GnbTimeoutError, GnbBusyError, GnbProtocolError) as exc:
+            orders.failed(rnti, str(exc))
+            return
+        orders.answered(rnti, s.range_m, s.t_mono_s)
+        log.info("UE %04x had no absolute TA in the T trace: PDCCH order sent (answered %.2f m)", rnti, s.range_m)
 
     def _measure_trace(self, rnti: int) -> RttSample:
         """The UE's newest round trip from the T trace (nothing is sent to the gNB): RAR TA plus the

@@ -19,6 +19,7 @@ error of one UE (no measurement, no random access seen), in the gNB's own words.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import time
@@ -50,8 +51,11 @@ T = TypeVar("T")
 #: how much of the end of a gNB log the time-stamp check reads [bytes]
 LOG_TAIL_BYTES = 1 << 20
 #: tries of one request that timed out (a slow answer on a busy machine is a timeout, asked again;
-#: a gNB that stays silent fails the probe after these)
-TIMEOUT_TRIES = 3
+#: a gNB that stays silent fails the probe after these), with a pause before each new try [s]: a
+#: starved gNB is starved for seconds at a time (benchmarks/load.py beside four busy loops: three
+#: back-to-back 1 s timeouts aborted 4 of the first 8 loaded missions before take-off)
+TIMEOUT_TRIES = 4
+RETRY_PAUSES_S = (0.5, 1.0, 2.0)
 
 
 @dataclass
@@ -325,6 +329,7 @@ async def _asked_again(request: Callable[[], Awaitable[T]]) -> T:
             if attempt + 1 == TIMEOUT_TRIES:
                 raise
             log.info("gNB request timed out (try %d of %d), asking again: %s", attempt + 1, TIMEOUT_TRIES, exc)
+            await asyncio.sleep(RETRY_PAUSES_S[attempt])
     raise AssertionError("unreachable")
 
 

@@ -449,18 +449,19 @@ class MavsdkVehicle:
                 return None
             raise VehicleCommandError(f"vehicle: {what} failed: {result}", result) from exc
 
-    async def _request_again_on_timeout(self, what: str, make_call: Callable[[], Awaitable]):
+    async def _request_again_on_timeout(self, what: str, make_call: Callable[[], Awaitable],
+                                        timeouts: tuple[str, ...] = ("TIMEOUT",)):
         """An idempotent command (arm, the take-off height, take-off) sent again when MAVSDK gave up
-        waiting for its acknowledgement (result TIMEOUT: on a loaded machine the answer can come
-        after MAVSDK's own retransmissions), COMMAND_TIMEOUT_TRIES times in all."""
+        waiting for its acknowledgement (a result in `timeouts`: on a loaded machine the answer can
+        come after MAVSDK's own retransmissions), COMMAND_TIMEOUT_TRIES times in all."""
         for attempt in range(COMMAND_TIMEOUT_TRIES):
             try:
                 return await self._request(what, make_call())
             except VehicleCommandError as exc:
-                if exc.result != "TIMEOUT" or attempt + 1 == COMMAND_TIMEOUT_TRIES:
+                if exc.result not in timeouts or attempt + 1 == COMMAND_TIMEOUT_TRIES:
                     raise
-                log.warning("vehicle: %s: no acknowledgement (MAVSDK TIMEOUT), sending it again (try %d of %d)",
-                            what, attempt + 2, COMMAND_TIMEOUT_TRIES)
+                log.warning("vehicle: %s: no acknowledgement (MAVSDK %s), sending it again (try %d of %d)",
+                            what, exc.result, attempt + 2, COMMAND_TIMEOUT_TRIES)
         raise AssertionError("unreachable")
 
     async def arm(self) -> None:
@@ -474,8 +475,12 @@ class MavsdkVehicle:
         self._need()
         if self._ardupilot is not None:
             return await self._ardupilot.takeoff(float(height_m))
+        # the take-off height is a parameter (MIS_TAKEOFF_ALT): MAVSDK's parameter set reports an
+        # unanswered request as PARAMETER_ERROR, seen under load (benchmarks/load.py, paper ×4 beside
+        # four busy loops), so that result is a timeout here too
         await self._request_again_on_timeout(f"set takeoff altitude {height_m:g} m",
-                                             lambda: self._action.set_takeoff_altitude(float(height_m)))
+                                             lambda: self._action.set_takeoff_altitude(float(height_m)),
+                                             timeouts=("TIMEOUT", "PARAMETER_ERROR"))
         await self._request_again_on_timeout("takeoff", self._action.takeoff)
 
     async def goto_location(self, lat_deg: float, lon_deg: float, alt_amsl_m: float,

@@ -67,7 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--oai", nargs="?", const="", metavar="BUILD",
                    help="the world's gNB is a real OAI nr-softmodem and each user a real nr-uesoftmodem (a pair "
                         "per user) over rfsim, from this OAI build folder (bare --oai: $UAVLOC_OAI); ranges from its "
-                        "T trace, the world at rfsim's pace (docs/oai-in-the-loop.md)")
+                        "T trace (with --gnb-mode rtt: its PDCCH order, on a build patched with patches/oai-2025.w36), "
+                        "the world at rfsim's pace (docs/oai-in-the-loop.md)")
     add_view_arguments(p)
 
 
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     from sitl_scenarios.scenario import check_fleet_load, load_scenario, with_autopilot
     from sitl_scenarios.sim_runner import SimulatedMission
 
-    oai = oai_argument(args.oai)  # a bad --oai is said before anything starts
+    oai = oai_argument(args.oai, args.gnb_mode)  # a bad --oai is said before anything starts
     if args.connect is None:
         from sitl_scenarios.world import start_world_server
 
@@ -153,9 +154,10 @@ def run(args: argparse.Namespace) -> int:
     return code
 
 
-def oai_argument(value: str | None) -> str | None:
+def oai_argument(value: str | None, gnb_mode: str | None = None) -> str | None:
     """`--oai [BUILD]`: the build folder (bare: $UAVLOC_OAI); ScenarioError (exit 1) when bare and
-    UAVLOC_OAI is unset, or the folder is not an OAI build uavloc can run. None: no --oai."""
+    UAVLOC_OAI is unset, or the folder is not an OAI build uavloc can run (with `--gnb-mode rtt`:
+    one patched with patches/oai-2025.w36). None: no --oai."""
     import os
 
     from uavloc.errors import ScenarioError
@@ -166,9 +168,11 @@ def oai_argument(value: str | None) -> str | None:
     if not build:
         raise ScenarioError("--oai without a folder takes the OAI build folder from UAVLOC_OAI, which is not set "
                             "(openairinterface5g/cmake_targets/ran_build/build)")
-    from sitl_scenarios.oai.conf import build_missing
+    from sitl_scenarios.oai.conf import build_missing, rtt_missing
 
     why = build_missing(Path(build).expanduser())
+    if why is None and gnb_mode == "rtt":
+        why = rtt_missing(Path(build).expanduser())
     if why is not None:
         raise ScenarioError(why)
     return build

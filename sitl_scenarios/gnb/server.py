@@ -615,6 +615,8 @@ class SimulatedGnb:
                 out.append(f"error rnti {rnti:04x} {res}")
             else:
                 out.append(format_rtt_line(rnti, res.ta, res.mu, res.srs_peak, res.fs_hz, res.snr_db))
+                if self.t_server is not None:  # the order's random access, on the T trace too
+                    self.t_server.ordered(self._user_of(rnti))
         return "\n".join(out) + "\n"
 
     def _ci_with_rnti(self, cmd: str, args: str) -> str:

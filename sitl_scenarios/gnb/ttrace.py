@@ -10,7 +10,8 @@ emits, in an order of its own (ids differ from OAI's, as between OAI versions).
 Habits, in the gNB's air time (the simulation clock: frames of 10 ms):
 
 - a UE's random access when it first comes into coverage (a fleet's gNB: each time the UE attaches
-  to its cell): a PRACH event and a RAR whose TA is the round trip floored to a TA step;
+  to its cell), and at the SRS occasion after a PDCCH order (`rtt pdcch_order`, as the gNB patched
+  with patches/oai-2025.w36): a PRACH event and a RAR whose TA is the round trip floored to a TA step;
 - an SRS impulse response every 8 frames per UE (1 536 taps, int16 I/Q, zero delay at index 768,
   peak ~31 dB over the mean): the round trip (sitl_scenarios.radio: distance, noise, the UE clock
   sawtooth, NLoS) less the UE's timing advance; out of coverage, and at `stale_prob` per occasion,
@@ -258,6 +259,12 @@ class SimulatedTServer:
             out.append(frame_bytes(t_wall_s, ID["GNB_PHY_UL_TIME_CHANNEL_ESTIMATE"],
                                    fields_bytes(0, ue.rnti, f % 1024, 0, 0) + buffer_bytes(chest)))
         return out
+
+    def ordered(self, k: int | None) -> None:
+        """A PDCCH order (`rtt pdcch_order`) made UE k do a random access: at its next SRS occasion a
+        RAR with its absolute TA, the UE's TA starting over from it (as the patched OAI's)."""
+        if k is not None:
+            self.ues.pop(k, None)
 
     def _random_access(self, k: int, f: int, rtt: float, t_wall_s: float, on: set[int]) -> list[bytes]:
         rnti = self.gnb.current_rnti[k]

@@ -10,10 +10,15 @@ Without a core the UE's capabilities never reach the gNB and SRS is never config
 OAI's no-core test mode `--do-ra` (the nrUE reads the gNB's `reconfig.raw` / `rbconfig.raw`).
 That mode pre-configures ONE UE per gNB (its RRC adds one default UE, its MAC ignores any other
 random access): several users get a gNB + nrUE pair each (docs/oai-in-the-loop.md).
+
+A build patched with patches/oai-2025.w36 (:func:`rtt_missing` says whether it is) serves the
+`rtt` mode too: the gNB loads the telnet module `rtt` (`rtt pdcch_order <rnti>`) and the nrUE runs
+with NRUE_PDCCH_ORDER_CSS=1 (it then hears the order, a DCI 1_0 in its common search space).
 """
 
 from __future__ import annotations
 
+import mmap
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +30,13 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "data" / "oai-2025.w36"
 #: what the build folder must hold (build_oai --gNB --nrUE -w SIMU --build-lib telnetsrv)
 BUILD_FILES = ("nr-softmodem", "nr-uesoftmodem", "librfsimulator.so", "libtelnetsrv.so", "libtelnetsrv_ci.so",
                "libtelnetsrv_o1.so", "libtelnetsrv_ciUE.so")
+#: what a build patched with patches/oai-2025.w36 has besides: the telnet module `rtt`, and the
+#: string nr-softmodem carries when its MAC has the PDCCH order (the live tests look for the same)
+RTT_MODULE_FILE = "libtelnetsrv_rtt.so"
+RTT_PATCH_MARK = b"rtt: PDCCH order for UE"
+RTT_PATCH_README = "patches/oai-2025.w36/README.md"
+#: the patched nrUE monitors its common search space for a PDCCH order only with this set
+NRUE_ORDER_ENV = {"NRUE_PDCCH_ORDER_CSS": "1"}
 #: the only carrier the recorded files describe
 FS_HZ = 46.08e6
 MU = 1
@@ -52,6 +64,28 @@ def build_missing(build: Path) -> str | None:
         return (f"--oai {build} lacks {', '.join(missing)} (build it with `./build_oai --gNB --nrUE -w SIMU "
                 "--build-lib telnetsrv`)")
     return None
+
+
+def rtt_missing(build: Path) -> str | None:
+    """Why `build` cannot serve the `rtt` mode (a sentence naming the patch's README), or None: it
+    lacks the telnet module libtelnetsrv_rtt.so, or its nr-softmodem lacks the PDCCH order."""
+    module = build / RTT_MODULE_FILE
+    if not module.is_file():
+        return (f"--oai {build} has no {RTT_MODULE_FILE}: --gnb-mode rtt needs OAI patched with "
+                f"patches/oai-2025.w36/uavloc-rtt-pdcch-order.patch (how to apply and build it: {RTT_PATCH_README}); "
+                "without it use --gnb-mode trace")
+    if not _holds(build / "nr-softmodem", RTT_PATCH_MARK):
+        return (f"--oai {build} has {RTT_MODULE_FILE} but its nr-softmodem has no PDCCH order (built before the "
+                f"patch?): rebuild it as {RTT_PATCH_README} says, or use --gnb-mode trace")
+    return None
+
+
+def _holds(path: Path, mark: bytes) -> bool:
+    """Whether the file holds the bytes `mark` (mapped, not read: nr-softmodem is some 30 MB)."""
+    if path.stat().st_size < len(mark):
+        return False
+    with path.open("rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+        return mm.find(mark) >= 0
 
 
 def check_scenario(scenario) -> None:
@@ -110,10 +144,11 @@ def ue_conf(ports: OaiPorts, index: int, recorded: str | None = None) -> str:
 UNPRIVILEGED = ("setpriv", "--bounding-set", "-sys_nice", "--inh-caps", "-sys_nice", "nice", "-n", "19")
 
 
-def gnb_command(build: Path, conf: Path, ports: OaiPorts) -> list[str]:
-    """nr-softmodem: rfsim server, telnet (ci, o1), no-core `--do-ra`, its T server on ports.t."""
+def gnb_command(build: Path, conf: Path, ports: OaiPorts, rtt: bool = False) -> list[str]:
+    """nr-softmodem: rfsim server, telnet (ci, o1, and with `rtt` the patch's module rtt), no-core
+    `--do-ra`, its T server on ports.t."""
     return [*UNPRIVILEGED, str(build / "nr-softmodem"), "-O", str(conf), "-E", "--rfsim",
-            "--rfsimulator.serveraddr", "server", "--telnetsrv", "--telnetsrv.shrmod", "ci,o1",
+            "--rfsimulator.serveraddr", "server", "--telnetsrv", "--telnetsrv.shrmod", "ci,o1,rtt" if rtt else "ci,o1",
             "--log_config.global_log_options", "level,nocolor,wall_clock", "--do-ra",
             "--T_stdout", "2", "--T_nowait", "--T_port", str(ports.t)]
 

@@ -43,6 +43,10 @@ class GnbGroup:
                                         f"{', '.join(f'{r:04x}' for r in self.by_rnti)})")
         return await client.measure(rnti)
 
+    def drain_trace_orders(self) -> list:
+        """What each adapter's trace-mode PDCCH orders did, not yet taken (mission.gnb.trace_order)."""
+        return [o for c in self.clients for o in c.drain_trace_orders()]
+
     def clock_offset(self):
         """The gNB host's clock offset (the gNBs run on one host: the first adapter's estimate)."""
         return self.clients[0].clock_offset()

@@ -5,7 +5,8 @@ world when it is given an OAI build, in this order (each step needs the one befo
 
 1. the gNB (sitl_scenarios.oai.pair.OaiPair.start_gnb), its confs written, its T server on a free port;
 2. uavloc's gNB adapter in trace mode, whose T client connects on entering (a UE attached before it
-   has no absolute TA in the trace);
+   has no absolute TA in the trace); or, on a build patched with patches/oai-2025.w36, in rtt mode
+   (each range a `rtt pdcch_order`: the gNB loads the telnet module rtt, the nrUE hears the order);
 3. the nrUE at rfsim offset 0 (in `--do-ra` mode a UE started 57 samples or more away did not
    attach), its C-RNTI read from the gNB's log: the scenario's users get those RNTIs;
 4. rfsim's pace (`rfsimu vtime` on the nrUE over PACE_PROBE_S wall seconds): the world runs at
@@ -28,11 +29,11 @@ import numpy as np
 
 from sitl_scenarios.oai.bridge import ChannelBridge, ChannelSetting, HeldNlosExcess
 from sitl_scenarios.oai.channel import PaceMeter, world_speedup
-from sitl_scenarios.oai.conf import build_missing, check_scenario
+from sitl_scenarios.oai.conf import build_missing, check_scenario, rtt_missing
 from sitl_scenarios.oai.group import GnbGroup
 from sitl_scenarios.oai.pair import AttachLost, OaiPair, UeTelnet
 from sitl_scenarios.scenario import Scenario
-from uavloc.errors import SimulatorError
+from uavloc.errors import ScenarioError, SimulatorError
 
 log = logging.getLogger(__name__)
 
@@ -50,19 +51,24 @@ def scenario_with_rntis(scenario: Scenario, rntis: list[int]) -> Scenario:
 
 class OaiInTheLoop:
     """See the module docstring. build: the OAI build folder; run_dir: where the confs and OAI's
-    logs go; scenario: the scenario (refused unless OAI can fly it: conf.check_scenario)."""
+    logs go; scenario: the scenario (refused unless OAI can fly it: conf.check_scenario); rtt: the
+    adapter measures in rtt mode (ScenarioError naming the patch's README when the build is not
+    patched: conf.rtt_missing)."""
 
-    def __init__(self, build: str | Path, run_dir: Path, scenario: Scenario) -> None:
+    def __init__(self, build: str | Path, run_dir: Path, scenario: Scenario, rtt: bool = False) -> None:
         self.build = Path(build).expanduser()
         why = build_missing(self.build)
         if why is not None:
             raise SimulatorError(why)
         check_scenario(scenario)
+        if rtt and (why := rtt_missing(self.build)) is not None:
+            raise ScenarioError(why)
+        self.rtt = rtt
         self.scenario = scenario
         self.run_dir = Path(run_dir)
         n = len(scenario.users)
         #: one gNB + nrUE pair per user (--do-ra takes one UE per gNB); one user's in run_dir itself
-        self.pairs = [OaiPair(self.build, self.run_dir if n == 1 else self.run_dir / f"user{k + 1}")
+        self.pairs = [OaiPair(self.build, self.run_dir if n == 1 else self.run_dir / f"user{k + 1}", rtt=rtt)
                       for k in range(n)]
         self.ues: list[UeTelnet] = []
         self.rntis: list[int] = []
@@ -125,7 +131,7 @@ class OaiInTheLoop:
                                          "mode now") from None
                 log.warning("%s: starting the OAI gNB and nrUE again (attempt %d of %d)", exc, attempt + 1,
                             ATTACH_ATTEMPTS)
-                self.pairs[k] = OaiPair(self.build, pair.run_dir / f"attempt{attempt + 1}")
+                self.pairs[k] = OaiPair(self.build, pair.run_dir / f"attempt{attempt + 1}", rtt=self.rtt)
                 continue
             except BaseException:
                 await client_stack.aclose()
@@ -161,8 +167,10 @@ class OaiInTheLoop:
     def header(self, speedup: float) -> dict:
         """The log header's `oai` section: the gNB is a real OAI (its version, binaries, command
         lines: each pair's), the run folder, how many gNB + nrUE pairs, the UEs' RNTIs, rfsim's pace
-        at the start (the slowest pair's) and the world's speed-up."""
-        return {"real_gnb": True, **self.pair.version(), "run_dir": str(self.run_dir), "pairs": len(self.pairs),
+        at the start (the slowest pair's), the world's speed-up, and whether the gNB serves the
+        patch's PDCCH order (`rtt_order`: the rtt mode)."""
+        return {"real_gnb": True, **self.pair.version(), "rtt_order": self.rtt, "run_dir": str(self.run_dir),
+                "pairs": len(self.pairs),
                 "command_lines": [" ".join(c) for p in self.pairs for c in p.command_lines],
                 "rntis": [f"{r:04x}" for r in self.rntis], "channel": "nrUE downlink (rfsimu_channel_enB0) = 2 d",
                 "pace_at_start": round(float(self.pace_at_start or 0.0), 4), "speedup": speedup}

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sitl_scenarios.oai.channel import parse_set_offset, parse_vtime
-from sitl_scenarios.oai.conf import OaiPorts, gnb_command, gnb_conf, ue_command, ue_conf
+from sitl_scenarios.oai.conf import NRUE_ORDER_ENV, OaiPorts, gnb_command, gnb_conf, ue_command, ue_conf
 from sitl_scenarios.px4_sitl import terminate_with_parent
 from uavloc.errors import SimulatorError
 
@@ -95,11 +95,14 @@ def _port_open(port: int) -> bool:
 @dataclass
 class OaiPair:
     """See the module docstring. build: the OAI build folder; run_dir: this run's folder (confs,
-    logs, the gNB's raw files); n_ues: how many nrUEs."""
+    logs, the gNB's raw files); n_ues: how many nrUEs; rtt: the build is patched
+    (conf.rtt_missing) and the `rtt` mode measures: the gNB loads the telnet module rtt, the nrUEs
+    run with NRUE_PDCCH_ORDER_CSS=1."""
 
     build: Path
     run_dir: Path
     n_ues: int = 1
+    rtt: bool = False
     ports: OaiPorts | None = None
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     #: every command line started, in order (the mission log's header names them)
@@ -124,7 +127,7 @@ class OaiPair:
         (self.run_dir / "gnb.conf").write_text(gnb_conf(self.ports))
         for i in range(self.n_ues):
             (self.run_dir / f"ue{i}.conf").write_text(ue_conf(self.ports, i))
-        self._start("gnb", gnb_command(self.build, self.run_dir / "gnb.conf", self.ports))
+        self._start("gnb", gnb_command(self.build, self.run_dir / "gnb.conf", self.ports, rtt=self.rtt))
 
     def wait_gnb(self) -> None:
         """Wait until the gNB's telnet listens and it wrote the UE's rbconfig.raw (SimulatorError,
@@ -140,7 +143,8 @@ class OaiPair:
 
     def start_ue(self, index: int) -> None:
         """Start nrUE `index` at rfsim offset 0 (attach near; the bridge walks it out)."""
-        self._start(f"ue{index}", ue_command(self.build, self.run_dir / f"ue{index}.conf"))
+        self._start(f"ue{index}", ue_command(self.build, self.run_dir / f"ue{index}.conf"),
+                    NRUE_ORDER_ENV if self.rtt else {})
 
     async def wait_attached(self, known: set[int], timeout_s: float = ATTACH_TIMEOUT_S) -> int:
         """The C-RNTI of the next UE the gNB says is attached (not in `known`); AttachLost when the
@@ -170,8 +174,8 @@ class OaiPair:
                 "nr_softmodem_sha256": binary_id(self.build / "nr-softmodem"),
                 "nr_uesoftmodem_sha256": binary_id(self.build / "nr-uesoftmodem")}
 
-    def _start(self, name: str, cmd: list[str]) -> None:
-        env = dict(os.environ, LD_LIBRARY_PATH=os.pathsep.join(
+    def _start(self, name: str, cmd: list[str], extra_env: dict[str, str] | None = None) -> None:
+        env = dict(os.environ, **(extra_env or {}), LD_LIBRARY_PATH=os.pathsep.join(
             p for p in (str(self.build), os.environ.get("LD_LIBRARY_PATH", "")) if p))
         for _ in range(20):  # another build may relink a binary in place: briefly missing
             if Path(cmd[cmd.index("-O") - 1]).is_file():
@@ -181,10 +185,10 @@ class OaiPair:
             self.procs[name] = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                                 cwd=self.run_dir, env=env, start_new_session=True,
                                                 preexec_fn=terminate_with_parent)
-        self.command_lines.append(cmd)
+        self.command_lines.append([f"{k}={v}" for k, v in (extra_env or {}).items()] + cmd)
         if self._t_start is None:
             self._t_start = time.monotonic()
-        log.info("OAI %s started (pid %d): %s", name, self.procs[name].pid, " ".join(cmd))
+        log.info("OAI %s started (pid %d): %s", name, self.procs[name].pid, " ".join(self.command_lines[-1]))
 
     def _check_alive(self, name: str) -> None:
         proc = self.procs[name]
