@@ -9,12 +9,12 @@ The gNB never prints a UE's round trip, but its T tracer carries what rebuilds i
 - the RAR's TA is the UE's absolute timing advance at its random access, **if the UE applied
   it**: OAI's nrUE sometimes misses the slot it should apply it in (seen after a PDCCH order,
   tests/data/oai-2025.w36-rtt/orders_7_11_15) and keeps N_TA = 0, and then its SRS peak is the
-  whole round trip. The RAR's TA is the round trip rounded (OAI) or floored (the simulated gNB)
-  to TA steps, so an applied TA leaves a peak below S; the first valid SRS after the RAR with a
-  peak within `_RAR_TOL_STEPS` TA steps of S·TA_RAR, TA_RAR ≥ 2, means not applied (TA 0 from
-  there; an SRS within `RAR_SETTLE_FRAMES` of the RAR is held: the UE applies the TA from its Msg3
-  on). With TA_RAR = 1 the two cannot be told apart (a floored RAR TA leaves a peak up to S) and the
-  TA is taken as applied: one TA step too far if it was not;
+  whole round trip. The RAR's TA is the round trip rounded or floored (OAI has done both; the
+  simulated gNB floors) to TA steps, so an applied TA leaves a peak in [−S/2, S); the first valid
+  SRS after a RAR of TA_RAR ≥ 2 with a peak in [S·(TA_RAR − `_RAR_TOL_STEPS`), S·(TA_RAR + 1))
+  means not applied (TA 0 from there; an SRS within `RAR_SETTLE_FRAMES` of the RAR is held: the
+  UE applies the TA from its Msg3 on). With TA_RAR = 1 the two cannot be told apart (a floored
+  RAR TA leaves a peak up to S) and the TA is taken as applied: one TA step too far if it was not;
 - a Timing Advance Command MAC CE (every 100 frames; 31 = no change) moves it, **but only if the
   UE applied it**: OAI's UE drops a command that arrives after it prepared the target slot and the
   gNB re-sends it 100 frames later. An applied command shows in the trace itself: the SRS peak
@@ -71,7 +71,7 @@ SFN_PERIOD = 1024
 #: frames after a RAR before an SRS shows whether its TA took effect (the UE applies it from its
 #: Msg3 slot on, a few slots after the RAR)
 RAR_SETTLE_FRAMES = 2
-#: how near 0 (applied) or S·TA_RAR (not applied) the first SRS peak after a RAR must be [TA steps]
+#: how far below S·TA_RAR the first SRS peak after a RAR may be and still mean not applied [TA steps]
 _RAR_TOL_STEPS = 0.6
 FRAME_S = 0.01
 
@@ -380,7 +380,7 @@ class TraceRttTracker:
         docstring): True once decided (ue.ta 0 when the UE did not apply the RAR's TA), False while
         an SRS too soon after the RAR looks not applied (held)."""
         s = self.settings
-        if ue.ta >= 2 and abs(peak - s.step_samples * ue.ta) <= _RAR_TOL_STEPS * s.step_samples:
+        if ue.ta >= 2 and s.step_samples * (ue.ta - _RAR_TOL_STEPS) <= peak < s.step_samples * (ue.ta + 1):
             if t_air - ue.rar_t_air_s < RAR_SETTLE_FRAMES * FRAME_S:
                 ue.held = "SRS before the RAR's TA took effect"
                 return False
