@@ -64,3 +64,18 @@ def test_the_traces_first_range_after_the_order_is_checked_against_its_answer(tr
         o.sending(0x4601, 15.0)
         o.answered(0x4601, 97.59, 15.2)
         assert o.check(0x4601, 97.59, 16.0) is None
+
+
+def test_a_ue_whose_ta_a_t_gap_made_unknown_is_ordered_like_one_that_attached_early():
+    """After a T connection gap the continuity check cannot prove (mission.gnb.trace_rtt), the UE
+    has no absolute TA: on a patched gNB an ordered access gives it again, as for a UE that attached
+    before the trace began; a UE whose TA is known is not ordered."""
+    from mission.gnb.trace_rtt import TraceRttTracker, _Ue
+
+    tr = TraceRttTracker()
+    tr.unknown_rntis.add(0x4601)
+    tr._ues[0x4602] = _Ue(ta=3, rar_t_air_s=0.0)
+    assert tr.without_absolute_ta(0x4601) and not tr.without_absolute_ta(0x4602)
+    tr._ues[0x4602].lost = "in 7.28 s its round trip may have moved ±29.6 samples"
+    assert tr.without_absolute_ta(0x4602)
+    assert not tr.without_absolute_ta(0x4603)  # never seen: nothing to order

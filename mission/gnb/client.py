@@ -659,7 +659,7 @@ class OaiGnbClient:
         """Trace mode: one `rtt pdcch_order` for a UE the trace has no absolute TA of (or whose TA
         disagreed with an earlier order), when the gNB serves it (mission.gnb.trace_order)."""
         orders, tracer = self.trace_orders, self.tracer
-        if tracer is None or not orders.wanted(rnti, rnti in tracer.tracker.unknown_rntis, self.clock()):
+        if tracer is None or not orders.wanted(rnti, tracer.tracker.without_absolute_ta(rnti), self.clock()):
             return
         orders.sending(rnti, self.clock())
         try:

@@ -6,7 +6,15 @@ The gNB never prints a UE's round trip, but its T tracer carries what rebuilds i
     RTT [samples] = S · (TA_RAR + Σ_applied (TA_cmd − 31)) + (SRS peak − N/2),   S = TA step · fs
                                                                                  (N_FFT/128: 12 at μ=1)
 
-- the RAR's TA is the UE's absolute timing advance at its random access;
+- the RAR's TA is the UE's absolute timing advance at its random access, **if the UE applied
+  it**: OAI's nrUE sometimes misses the slot it should apply it in (seen after a PDCCH order,
+  tests/data/oai-2025.w36-rtt/orders_7_11_15) and keeps N_TA = 0, and then its SRS peak is the
+  whole round trip. The RAR's TA is the round trip rounded or floored (OAI has done both; the
+  simulated gNB floors) to TA steps, so an applied TA leaves a peak in [−S/2, S); the first valid
+  SRS after a RAR of TA_RAR ≥ 2 with a peak in [S·(TA_RAR − `_RAR_TOL_STEPS`), S·(TA_RAR + 1))
+  means not applied (TA 0 from there; an SRS within `RAR_SETTLE_FRAMES` of the RAR is held: the
+  UE applies the TA from its Msg3 on). With TA_RAR = 1 the two cannot be told apart (a floored
+  RAR TA leaves a peak up to S) and the TA is taken as applied: one TA step too far if it was not;
 - a Timing Advance Command MAC CE (every 100 frames; 31 = no change) moves it, **but only if the
   UE applied it**: OAI's UE drops a command that arrives after it prepared the target slot and the
   gNB re-sends it 100 frames later. An applied command shows in the trace itself: the SRS peak
@@ -67,6 +75,11 @@ REATTACH_HINT = ("re-attach it while uavloc's T client is connected: `ciUE force
                  "server (the UE re-attaches in SA; in --do-ra mode it exits instead), or restart the nrUE")
 #: SFN period [frames]; frames are 10 ms
 SFN_PERIOD = 1024
+#: frames after a RAR before an SRS shows whether its TA took effect (the UE applies it from its
+#: Msg3 slot on, a few slots after the RAR)
+RAR_SETTLE_FRAMES = 2
+#: how far below S·TA_RAR the first SRS peak after a RAR may be and still mean not applied [TA steps]
+_RAR_TOL_STEPS = 0.6
 FRAME_S = 0.01
 #: a wall-clock step between events after which the frame count is unwrapped by rfsim's pace [s]
 PACE_GAP_S = 1.0
@@ -201,6 +214,7 @@ class _Ue:
     streak: list[float] = field(default_factory=list)  # RTTs of the first occasions, to confirm
     accepted: TraceRtt | None = None
     held: str = ""  # why the latest valid occasion gave no RTT
+    rar_t_air_s: float | None = None  # air time of the RAR whose TA's effect no SRS has shown yet
 
 
 @dataclass
@@ -213,6 +227,7 @@ class TraceCounts:
     ta_commands: int = 0
     ta_applied: int = 0
     ta_dropped: int = 0
+    rar_ta_not_applied: int = 0
     srs: int = 0
     srs_stale: int = 0
     srs_unknown_ue: int = 0
@@ -361,12 +376,12 @@ class TraceRttTracker:
 
     def _rar(self, ev: TEvent) -> None:
         v = ev.values
-        self._air_s(int(v["frame"]), int(v["slot"]), ev.t_wall_s)  # every event keeps the frame count unwrapped
+        t_air = self._air_s(int(v["frame"]), int(v["slot"]), ev.t_wall_s)  # keeps the frame count unwrapped
         for g in rar_grants(bytes(v["data"])):
             self.counts.rars += 1
             # a fresh access: its RAR TA is absolute; whatever this RNTI had before is history
             self._ues.pop(g.tc_rnti, None)
-            self._ues[g.tc_rnti] = _Ue(ta=g.ta)
+            self._ues[g.tc_rnti] = _Ue(ta=g.ta, rar_t_air_s=t_air)
             self.unknown_rntis.discard(g.tc_rnti)
             while len(self._ues) > self.settings.max_rntis:
                 self._ues.popitem(last=False)
@@ -431,6 +446,8 @@ class TraceRttTracker:
         if ue.lost:
             ue.held = f"its absolute TA is unknown since the T connection dropped ({ue.lost}): {REATTACH_HINT}"
             return None
+        if ue.rar_t_air_s is not None and not self._rar_taken(ue, peak, t_air):
+            return None
         self._resolve(ue, peak)
         ue.ref_peak, ue.ref_air_s, ue.ref_wall_s = peak, t_air, ev.t_wall_s
         if ue.pending is not None:
@@ -474,6 +491,20 @@ class TraceRttTracker:
         self.counts.rtts += 1
         return cand
 
+    def _rar_taken(self, ue: _Ue, peak: float, t_air: float) -> bool:
+        """Whether the UE's TA is known after its RAR, from the first valid SRS peak after it (module
+        docstring): True once decided (ue.ta 0 when the UE did not apply the RAR's TA), False while
+        an SRS too soon after the RAR looks not applied (held)."""
+        s = self.settings
+        if ue.ta >= 2 and s.step_samples * (ue.ta - _RAR_TOL_STEPS) <= peak < s.step_samples * (ue.ta + 1):
+            if t_air - ue.rar_t_air_s < RAR_SETTLE_FRAMES * FRAME_S:
+                ue.held = "SRS before the RAR's TA took effect"
+                return False
+            self.counts.rar_ta_not_applied += 1
+            ue.ta = 0
+        ue.rar_t_air_s = None
+        return True
+
     def _resolve(self, ue: _Ue, peak: float) -> None:
         """Decide the pending TA command against this valid SRS peak.
 
@@ -509,6 +540,12 @@ class TraceRttTracker:
                         f"TA) was not seen, so its round trip is unknown; {reattach}")
             return f"UE {rnti:04x} has made no random access and sent no SRS in {where}"
         return ue.held or f"UE {rnti:04x} has sent no SRS since its random access"
+
+    def without_absolute_ta(self, rnti: int) -> bool:
+        """The trace has no absolute TA of this UE: it attached before the trace began, or a T
+        connection gap made its TA unknown (an ordered random access gives it again)."""
+        ue = self._ues.get(rnti)
+        return rnti in self.unknown_rntis if ue is None else bool(ue.lost)
 
     def ues(self) -> list[int]:
         return list(self._ues)
