@@ -395,6 +395,35 @@ def test_the_nlos_excess_is_held_while_a_building_blocks_the_view():
     assert target[0] == offset_for_round_trip(2 * (d[0] + again[0]), FS)
 
 
+def test_a_commercial_ues_clock_sawtooth_rides_on_its_channel_as_the_radio_truth_has_it():
+    """five_commercial_ues' ue1 (12 m every 15 s) through the bridge's excess: saw(t) =
+    A · frac(t / P + φ) at the world's time (wall × speed-up), the same function as the simulated
+    gNB's RadioModel.sawtooth_m for the same phase; an ideal UE gets none; the NLoS excess adds."""
+    from sitl_scenarios.oai.bridge import ClockSawtooth, channel_excess
+    from sitl_scenarios.radio import RadioModel
+
+    sc = load_scenario("five_commercial_ues")
+    now = [100.0]
+    amps = [sc.users[0].sawtooth_amplitude_m, 0.0]
+    periods = [sc.users[0].sawtooth_period_s, 15.0]
+    saw = ClockSawtooth(amps, periods, speedup=4.0, seed=3, clock=lambda: now[0])
+    radio = RadioModel(sc, np.random.default_rng(0))
+    radio.sawtooth_phase[0] = saw.phases[0]
+    for wall_s in (0.0, 1.3, 2.0, 3.74, 9.9):
+        now[0] = 100.0 + wall_s
+        got = saw()
+        assert got[0] == pytest.approx(radio.sawtooth_m(0, 4.0 * wall_s), abs=1e-12) and got[1] == 0.0
+        assert 0.0 <= got[0] < amps[0] == 12.0
+    # a period of the world's time is P / speed-up of wall time: the same value again
+    now[0] = 100.0 + 1.0
+    first = saw()[0]
+    now[0] = 100.0 + 1.0 + periods[0] / 4.0
+    assert saw()[0] == pytest.approx(first, abs=1e-9)
+    assert channel_excess(None, None) is None
+    both = channel_excess(lambda pos: np.array([5.0, 0.0]), saw)
+    assert both(np.zeros(3)) == pytest.approx(np.array([5.0 + first, 0.0]))
+
+
 def test_a_group_of_gnbs_measures_each_ue_at_its_own_gnb():
     """GnbGroup routes a UE to the adapter of its gNB (each gNB of --do-ra serves one UE)."""
     from sitl_scenarios.oai.group import GnbGroup

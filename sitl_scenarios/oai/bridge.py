@@ -50,7 +50,8 @@ SLOW_FRACTION = 0.8
 class ChannelSetting:
     """One rfsim distance the bridge set: when (monotonic and UNIX [s]), for which user, the offset
     OAI set [samples of round trip], the fs it counts at [Hz], the true distance it followed [m],
-    rfsim's pace then, and the NLoS excess path it added [m, one way]."""
+    rfsim's pace then, and what it added beyond the distance [m, one way]: the NLoS excess path and
+    a UE clock sawtooth (channel_excess)."""
 
     t_mono_s: float
     t_wall_s: float
@@ -59,7 +60,7 @@ class ChannelSetting:
     fs_hz: float
     true_range_m: float
     pace: float | None = None
-    #: the NLoS excess path the channel carries on top of the distance [m, one way]
+    #: what the channel carries on top of the distance [m, one way] (NLoS excess, clock sawtooth)
     excess_m: float = 0.0
 
     @property
@@ -124,6 +125,47 @@ class HeldNlosExcess:
         return out
 
 
+class ClockSawtooth:
+    """Each user's UE clock sawtooth on its channel [m, one way], as the simulated gNB's radio truth
+    has it (sitl_scenarios.radio.RadioModel.sawtooth_m: saw(t) = A_k · frac(t / P_k + φ_k), a
+    commercial UE's 12 m every 15 s), at the world's time t = (now − start) · speedup [s]. The
+    phases φ_k are drawn from a generator seeded by `seed`, in user order. A reset (A_k back to 0) is
+    walked by the bridge one sample per setting, as any other move."""
+
+    def __init__(self, amplitudes_m: Sequence[float], periods_s: Sequence[float], speedup: float, seed: int,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.amplitudes_m = np.asarray(amplitudes_m, float)
+        self.periods_s = np.asarray(periods_s, float)
+        self.phases = np.random.default_rng(seed).random(len(self.amplitudes_m))
+        self.speedup = float(speedup)
+        self.clock = clock
+        self.start_s = clock()
+
+    def at(self, t_s: float) -> np.ndarray:
+        """(K,) saw(t) of each user at world time t_s [m]."""
+        periods = np.where(self.periods_s > 0, self.periods_s, 1.0)
+        phase = t_s / periods + self.phases
+        return np.where(self.amplitudes_m > 0, self.amplitudes_m * (phase - np.floor(phase)), 0.0)
+
+    def __call__(self) -> np.ndarray:
+        """(K,) each user's sawtooth now [m]."""
+        return self.at((self.clock() - self.start_s) * self.speedup)
+
+
+def channel_excess(nlos: Callable[[np.ndarray], np.ndarray] | None,
+                   saw: Callable[[], np.ndarray] | None) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The bridge's `excess` (K,) [m, one way] at a vehicle position: the NLoS excess path plus the
+    UE clock sawtooth, either absent (None: neither)."""
+    if nlos is None and saw is None:
+        return None
+
+    def excess(uav_enu_m: np.ndarray) -> np.ndarray:
+        e = 0.0 if nlos is None else nlos(uav_enu_m)
+        return np.asarray(e + (0.0 if saw is None else saw()), float)
+
+    return excess
+
+
 class ChannelBridge:
     """See the module docstring. ues: one object per user with `set_distance(metres) -> offset` and
     `vtime_s()` (sitl_scenarios.oai.pair.UeTelnet); user_ids, users_enu_m (K, 3): the users in the
@@ -150,7 +192,7 @@ class ChannelBridge:
         #: walk the channels out before entering returns (False: the loop does, as soon as the
         #: position is known: an autopilot reports it only once the mission connected)
         self.walk_first = walk_first
-        #: each user's one-way excess path now (HeldNlosExcess), or None: LoS
+        #: each user's one-way excess now (channel_excess: NLoS path, clock sawtooth), or None
         self.excess = excess
         self._slow_said_s = -float("inf")
         self.clock = clock

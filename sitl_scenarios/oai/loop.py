@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl_scenarios.oai.bridge import ChannelBridge, ChannelSetting, HeldNlosExcess
+from sitl_scenarios.oai.bridge import ChannelBridge, ChannelSetting, ClockSawtooth, HeldNlosExcess, channel_excess
 from sitl_scenarios.oai.channel import PaceMeter, world_speedup
 from sitl_scenarios.oai.conf import build_missing, check_scenario, rtt_missing
 from sitl_scenarios.oai.group import GnbGroup
@@ -155,11 +155,16 @@ class OaiInTheLoop:
         """Step 5: the bridge, walked out to the vehicle's distance (walk_first; else as soon as the
         position is known), running until `stack` unwinds (it says when rfsim falls behind the
         world's `speedup`); behind the scenario's buildings the channel carries an NLoS excess
-        path (HeldNlosExcess, seeded by `seed`)."""
+        path (HeldNlosExcess, seeded by `seed`), and a user with a UE clock sawtooth (a commercial UE)
+        carries it (ClockSawtooth, at the world's time), both added to the one-way distance."""
         users = np.array([[u.east_m, u.north_m, u.up_m] for u in self.scenario.users], float)
         sc = self.scenario
-        excess = (HeldNlosExcess(users, sc.buildings, sc.radio.nlos_excess_mean_m, seed)
-                  if sc.buildings and sc.radio.nlos_excess_mean_m > 0 else None)
+        nlos = (HeldNlosExcess(users, sc.buildings, sc.radio.nlos_excess_mean_m, seed)
+                if sc.buildings and sc.radio.nlos_excess_mean_m > 0 else None)
+        amps = [float(u.sawtooth_amplitude_m) for u in sc.users]
+        saw = (ClockSawtooth(amps, [float(u.sawtooth_period_s) for u in sc.users], speedup, seed + 1)
+               if any(a > 0 for a in amps) else None)
+        excess = channel_excess(nlos, saw)
         self.bridge = ChannelBridge(self.ues, [u.id for u in sc.users], users, position, sc.radio.fs_hz, sink=sink,
                                     world_speedup=speedup, walk_first=walk_first, excess=excess)
         return await stack.enter_async_context(self.bridge)
