@@ -206,9 +206,12 @@ def test_user_marker_and_ellipse_update_during_the_mission(live_mission):
 
 
 def test_ellipse_radius_shown_at_the_end_is_the_json_results_bound(live_mission):
+    from mission.result import NORMAL_END
+
     doc = live_mission["doc"]
     final = live_mission["final"]
-    assert doc["status"] == "target_reached"
+    # any normal end draws its bounds (a busy machine may end the survey at the GPS floor instead)
+    assert doc["status"] in NORMAL_END and all(u["error_bound_95_m"] is not None for u in doc["users"])
     for u in doc["users"]:
         shown = [e for e in final["ellipses"] if e["id"] == u["id"]]
         assert len(shown) == 1
