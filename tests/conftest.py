@@ -27,14 +27,15 @@ def _private_folders(tmp_path_factory):
     writes atomically and verifies what it loads), so a kernel is compiled once per run."""
     import os
 
-    folders = {"UAVLOC_RUNS": "uavloc-runs", "UAVLOC_KERNEL_CACHE": "kernel-cache"}
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        kernels = tmp_path_factory.getbasetemp().parent / "kernel-cache-shared"
+        kernels.mkdir(exist_ok=True)
+    else:
+        kernels = tmp_path_factory.mktemp("kernel-cache")
+    folders = {"UAVLOC_RUNS": tmp_path_factory.mktemp("uavloc-runs"), "UAVLOC_KERNEL_CACHE": kernels}
     old = {name: os.environ.get(name) for name in folders}
     for name, folder in folders.items():
-        os.environ[name] = str(tmp_path_factory.mktemp(folder))
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        shared = tmp_path_factory.getbasetemp().parent / "kernel-cache-shared"
-        shared.mkdir(exist_ok=True)
-        os.environ["UAVLOC_KERNEL_CACHE"] = str(shared)
+        os.environ[name] = str(folder)
     yield
     for name, value in old.items():
         if value is None:
