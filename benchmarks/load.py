@@ -3,6 +3,7 @@
     python benchmarks/load.py                      # the whole table (issue 48): long, hours at ×1
     python benchmarks/load.py --quick              # seeds 1-2 at ×4 and ×10
     python benchmarks/load.py --scenarios paper --seeds 1-3 --speedups 10,20
+    python benchmarks/load.py --out runs/        # keeps every run; run again to go on where it stopped
 
 For every scenario × speed-up × seed, `uavloc sim SCENARIO --seed S --speedup X --json --out DIR`
 runs twice, one run after the other: on the machine as it is ("idle") and beside 2 × cores busy
@@ -39,7 +40,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 # benchmarks/ holds scripts named like packages (planner.py): the repository root replaces this
@@ -184,14 +185,46 @@ def busy_loops(n: int):
             p.wait()
 
 
-def _fly_cells(cells, loads, base: Path, args, runs: list[Run]) -> None:
+#: with --out, every finished run's figures, one JSON line each: a later run with the same --out
+#: takes them as done and flies only the rest (the whole table takes hours at ×1)
+RESULTS_FILE = "results.jsonl"
+
+
+def _key(r: Run) -> tuple[str, float, int, str]:
+    return r.scenario, r.speedup, r.seed, r.load
+
+
+def load_results(path: Path) -> dict[tuple[str, float, int, str], Run]:
+    """The runs a results file holds, by (scenario, speed-up, seed, load); a damaged line (a run
+    killed while writing) is skipped with a word on stderr, and that run is flown again."""
+    done: dict[tuple[str, float, int, str], Run] = {}
+    if not path.exists():
+        return done
+    names = {f.name for f in fields(Run)}
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        try:
+            rec = json.loads(line)
+            r = Run(**{k: v for k, v in rec.items() if k in names})
+        except (json.JSONDecodeError, TypeError) as exc:
+            print(f"{path}:{n}: skipped, not a run's figures ({exc})", file=sys.stderr)
+            continue
+        done[_key(r)] = r
+    return done
+
+
+def _fly_cells(cells, loads, base: Path, args, runs: list[Run], done: dict, results: Path | None) -> None:
     """Fly every (seed, speed-up, scenario) cell under each load, appending to `runs` and printing
-    a line per run."""
+    a line per run; a cell in `done` is taken as it is, a flown one appended to `results`."""
     for seed, x, sc in cells:
         for load in loads:
             out = base / f"{sc}-x{x:g}-s{seed}-{load}"
-            with busy_loops(args.busy if load == "loaded" else 0):
-                r = fly(sc, x, seed, load, out, args.timeout)
+            r = done.get((sc, x, seed, load))
+            if r is None:
+                with busy_loops(args.busy if load == "loaded" else 0):
+                    r = fly(sc, x, seed, load, out, args.timeout)
+                if results is not None:
+                    with open(results, "a") as fh:
+                        fh.write(json.dumps(asdict(r)) + "\n")
             runs.append(r)
             why = f" ({r.reason[:160]})" if r.status == "aborted" else ""
             words = (f"{r.status}{why}, inside {r.inside}/{r.located} located of {r.users}, "
@@ -245,7 +278,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--busy", type=int, default=2 * (os.cpu_count() or 2), help="busy loops when loaded (2 × cores)")
     ap.add_argument("--loads", default="idle,loaded", help="which conditions (default both, side by side)")
     ap.add_argument("--timeout", type=float, default=3600.0, help="wall seconds one mission may take")
-    ap.add_argument("--out", type=Path, help="keep the missions' folders here (default: a temporary folder)")
+    ap.add_argument("--out", type=Path, help="keep the missions' folders and results.jsonl here; runs already "
+                    "there are not flown again (default: a temporary folder)")
     args = ap.parse_args(argv)
     if args.quick:
         args.seeds, args.speedups = "1-2", "4,10"
@@ -261,12 +295,17 @@ def main(argv: list[str] | None = None) -> int:
     runs: list[Run] = []
     with tempfile.TemporaryDirectory(prefix="uavloc-load-") as tmp:
         base = args.out or Path(tmp)
+        base.mkdir(parents=True, exist_ok=True)
+        results = base / RESULTS_FILE if args.out else None
+        done = load_results(results) if results else {}
+        if done:
+            print(f"{len(done)} runs already in {results}: not flown again", flush=True)
         # seed by seed over every cell: a run cut short still fills the whole table, with fewer seeds
         cells = [(seed, x, sc) for seed in seeds for x in speedups for sc in scenarios]
         # SIGTERM (or Ctrl-C) ends the runs and still prints the table of those done
         signal.signal(signal.SIGTERM, signal.default_int_handler)
         try:
-            _fly_cells(cells, loads, base, args, runs)
+            _fly_cells(cells, loads, base, args, runs, done, results)
         except KeyboardInterrupt:
             print(f"\n(stopped after {len(runs)} runs)", flush=True)
     print()
