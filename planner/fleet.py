@@ -19,8 +19,11 @@ Separation. Two vehicles are apart when their horizontal distance is at least `h
 their altitudes differ by at least `vertical_m` (altitude layers). A leg is checked against the
 whole remaining leg of every other vehicle in space, not in time: a leg flown late or early (wind,
 a slow climb, an autopilot's own speed) is still apart. A vehicle with nowhere left to go for its
-own users while users remain that no cell serves searches the ground no vehicle's track has
-covered nor will where the others are going, so that the fleet covers the ground; once every user
+own users while users remain that no cell serves searches for them: a user some cell served and
+lost (its vehicle went home, or flew out of reach) was within reach of where that vehicle last
+planned from while it served it, so the searcher flies there first; for users no cell has heard, it
+searches the ground no vehicle's track has covered nor will where the others are going, so that the
+fleet covers the ground; once every user
 is located and served, a vehicle whose users are within the target has nothing it can measure
 (another cell serves the rest) and its part is done.
 """
@@ -44,6 +47,9 @@ log = logging.getLogger(__name__)
 
 #: PlanResult.reason of a vehicle whose users are all within the target while other cells serve the rest
 REASON_USERS_DONE = "its users done"
+#: a vehicle that plans from within this distance [m] (or half the cell's reach, if less) of where a
+#: lost user was last served, and still finds no cell serving it, stops looking for it there
+SEARCH_NEAR_M = 40.0
 
 
 @dataclass(frozen=True)
@@ -153,6 +159,10 @@ class FleetPlanner:
         self.name = self.planners[0].name
         #: each vehicle's positions at its plans (V lists of (3,)): the ground the fleet has covered
         self.tracks: list[list[np.ndarray]] = [[] for _ in self.planners]
+        #: user → (2,) east-north [m] of the serving vehicle's latest plan while a cell served it:
+        #: a served user was within that cell's reach there, so a user lost by its cell is looked
+        #: for there before anywhere else (forgotten once a vehicle has planned from near it)
+        self.heard_en_m: dict[int, np.ndarray] = {}
 
     @property
     def n_vehicles(self) -> int:
@@ -169,6 +179,7 @@ class FleetPlanner:
         serving = np.asarray(serving)
         planner = self.planners[vehicle]
         self.tracks[vehicle].append(state.uav_enu_m.copy())
+        self._note_heard(serving)
         if self.n_vehicles > 1 and not has_work(vehicle, serving, state.estimate,
                                                 planner.constraints.target_radius_m):
             log.info("vehicle %d: its users are within the target, other cells serve the rest", vehicle)
@@ -177,11 +188,14 @@ class FleetPlanner:
         users = users_to_plan_for(vehicle, serving)
         res = planner.plan(dataclasses.replace(state, users=None if users.all() else users))
         others = [np.asarray(leg, dtype=float) for w, leg in enumerate(committed) if w != vehicle and leg is not None]
-        if res.done or not others:
+        if res.done:
             return res
         x = state.uav_enu_m
+        # also when no other vehicle flies any more: the users it lost are still to be found
         if res.status.startswith("explore") and np.any(serving < 0):
-            res = self._spread(planner, state, others, res)
+            res = self._spread(planner, state, others, res, serving)
+        if not others:
+            return res
         if all(legs_separated(np.array([x, res.waypoint_enu_m]), o, self.separation) for o in others):
             return res
         ring = planner.feasible_ring(state) if hasattr(planner, "feasible_ring") else np.zeros((0, 3))
@@ -192,18 +206,51 @@ class FleetPlanner:
         wp = min(ok, key=lambda p: float(np.linalg.norm(p - res.waypoint_enu_m)))
         return PlanResult(wp.copy(), wp[None].copy(), done=False, status=f"{res.status}+separated")
 
-    def _spread(self, planner, state: PlanningState, others: list[np.ndarray], res: PlanResult) -> PlanResult:
-        """An exploring vehicle's leg while users remain that no cell serves: toward the ground no
-        vehicle's track has covered, nor will where the others are going (a UE there would have
-        attached to a cell passing within reach: planner.information.unsearched_point), so that
-        the fleet searches different ground; the planner's own exploration when all is covered."""
+    def _note_heard(self, serving: np.ndarray) -> None:
+        """Remember, for each served user, where its serving vehicle last planned from."""
+        for k in np.flatnonzero(serving >= 0):
+            track = self.tracks[int(serving[k])]
+            if track:
+                self.heard_en_m[int(k)] = track[-1][:2].copy()
+
+    def _lost_user_point(self, state: PlanningState, serving: np.ndarray, reach_m: float) -> np.ndarray | None:
+        """(2,) [m] the nearest point where a user that no cell serves now was last served, or None.
+        A point a vehicle has planned from within half the cell's reach (or SEARCH_NEAR_M) is
+        forgotten: the user would have attached there, so it is searched for like one never heard."""
+        here = state.uav_enu_m[:2]
+        near_m = min(0.5 * reach_m, SEARCH_NEAR_M) if np.isfinite(reach_m) else SEARCH_NEAR_M
+        lost = []
+        for k in np.flatnonzero(serving < 0):
+            p = self.heard_en_m.get(int(k))
+            if p is None:
+                continue
+            if float(np.linalg.norm(here - p)) <= near_m:
+                del self.heard_en_m[int(k)]
+                continue
+            lost.append(p)
+        if not lost:
+            return None
+        return min(lost, key=lambda p: float(np.linalg.norm(p - here)))
+
+    def _spread(self, planner, state: PlanningState, others: list[np.ndarray], res: PlanResult,
+                serving: np.ndarray) -> PlanResult:
+        """An exploring vehicle's leg while users remain that no cell serves: toward where a cell
+        last served such a user (it lost it: the user is within reach of there), else toward the
+        ground no vehicle's track has covered, nor will where the others are going (a UE there
+        would have attached to a cell passing within reach: planner.information.unsearched_point),
+        so that the fleet searches different ground; the planner's own exploration when all is
+        covered."""
         ring = planner.feasible_ring(state) if hasattr(planner, "feasible_ring") else np.zeros((0, 3))
         if len(ring) == 0:
             return res
         c = planner.constraints
-        pts = [track_points_en_m(np.array(t)) for t in self.tracks if t] + [track_points_en_m(o) for o in others]
-        target = unsearched_point(c, np.concatenate(pts), state.uav_enu_m[:2])
+        target = self._lost_user_point(state, serving, c.reach_m)
+        status = "explore+lost"
+        if target is None:
+            pts = [track_points_en_m(np.array(t)) for t in self.tracks if t] + [track_points_en_m(o) for o in others]
+            target = unsearched_point(c, np.concatenate(pts), state.uav_enu_m[:2])
+            status = "explore+spread"
         if target is None:
             return res
         wp = ring[int(np.argmin(np.linalg.norm(ring[:, :2] - target, axis=1)))]
-        return PlanResult(wp.copy(), wp[None].copy(), done=False, status="explore+spread")
+        return PlanResult(wp.copy(), wp[None].copy(), done=False, status=status)

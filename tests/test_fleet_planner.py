@@ -119,6 +119,26 @@ def test_a_vehicle_with_nothing_left_in_reach_searches_the_ground_no_cell_covere
     assert unsearched_point(dataclasses.replace(c, coverage_m=np.inf), track, here) is None
 
 
+def test_a_user_its_cell_lost_is_looked_for_where_that_cell_last_served_it():
+    """uav2 served user 0 at (-250, 0) and went home; the user's UE lost its cell. uav1, with
+    nothing of its own left to measure, flies toward (-250, 0), not to ground no track covered,
+    and forgets the point once it has planned from near it without the user attaching."""
+    c = _constraints(coverage_m=150.0)
+    # user 1 ranged too little to be placed (no position yet): nothing to plan for
+    est = fake_estimate([[200.0, 0.0, 0.0], [np.nan, np.nan, 0.0]], np.array([np.eye(2) * 0.1, np.eye(2) * np.nan]))
+    fleet = FleetPlanner([make_planner("casadi", c, NOISE, rng_seed=v) for v in range(2)], Separation(15.0, 10.0))
+    x0, west = np.array([200.0, 100.0, 30.0]), np.array([-250.0, 0.0, 30.0])
+    fleet.plan(1, PlanningState(west, est), np.array([0, 1]), [np.array([x0, x0]), None])
+    assert fleet.heard_en_m[1] == pytest.approx(west[:2])
+    # user 1 unserved now; user 0, uav1's, within the target: uav1 explores toward the west point
+    res = fleet.plan(0, PlanningState(x0, est), np.array([0, -1]), [None, None])
+    assert res.status.startswith("explore+lost"), res.status
+    assert np.linalg.norm(res.waypoint_enu_m[:2] - west[:2]) < np.linalg.norm(x0[:2] - west[:2]) - 0.5 * c.leg_max_m
+    near = west + np.array([20.0, 0.0, 0.0])
+    after = fleet.plan(0, PlanningState(near, est), np.array([0, -1]), [None, None])
+    assert 1 not in fleet.heard_en_m and not after.status.startswith("explore+lost"), after.status
+
+
 def test_a_user_beyond_every_legs_reach_is_flown_to():
     c = _constraints(coverage_m=120.0)
     planner = make_planner("casadi", c, NOISE)
