@@ -49,16 +49,16 @@ def _private_folders(tmp_path_factory):
 PEER_MARKERS = ("px4", "ardupilot", "oai")
 
 
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config, items):
+def pytest_itemcollected(item):
     """xdist groups: the peer tests on one worker (above); and the tests of a module that share a
     module- or class-scoped fixture (a flight, a browser) on one worker, which builds it once —
-    spread over both, each worker built it again (about 150 worker-seconds of the README's run)."""
-    for item in items:
-        if any(item.get_closest_marker(m) is not None for m in PEER_MARKERS):
-            item.add_marker(pytest.mark.xdist_group("peers"))
-        elif _shares_a_module_fixture(item):
-            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
+    spread over both, each worker built it again (about 150 worker-seconds of the README's run).
+    Marked as each item is collected: pytest-xdist's worker reads the marks in its own
+    pytest_collection_modifyitems, which runs before a conftest's."""
+    if any(item.get_closest_marker(m) is not None for m in PEER_MARKERS):
+        item.add_marker(pytest.mark.xdist_group("peers"))
+    elif _shares_a_module_fixture(item):
+        item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
 
 
 def _shares_a_module_fixture(item) -> bool:

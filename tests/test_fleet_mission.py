@@ -21,6 +21,10 @@ from sitl_scenarios.scenario import load_scenario
 from sitl_scenarios.sim_runner import SimulatedMission
 from tests.test_mission_e2e import _wait, assert_log_replays_to_the_result
 
+#: one fleet flight at a time (the README's run has two workers): two at once are four vehicles,
+#: four gNBs and two controllers on 2 cores, and in a clean-clone run both missed their target
+pytestmark = pytest.mark.xdist_group("fleet-flights")
+
 #: the built-in vehicles' speed factor (two vehicles, two gNBs and the controller share 2 cores)
 SPEEDUP = 20.0
 #: … with a link cut: MAVSDK and the monitor notice a lost link after link_timeout_s wall seconds,
