@@ -31,6 +31,7 @@ class MissionJournal:
         #: the end record is written (the controller's close, or mission.control.last_resort)
         self.ended = False
         self._pending: list[tuple[float, dict]] = []
+        self._last_event_t = -float("inf")
 
     @property
     def is_open(self) -> bool:
@@ -38,7 +39,11 @@ class MissionJournal:
 
     def event(self, message: str, **fields: Any) -> None:
         """An `event` record (kept until the header is written)."""
-        t = self.now()
+        # mission time comes from the vehicle clock's mapping of the monotonic clock, refitted as
+        # fixes arrive: a refit can put "now" a few ms before the previous event's time. Events are
+        # written in the order they happened, so none is stamped before the one written before it
+        t = max(self.now(), self._last_event_t)
+        self._last_event_t = t
         rec = {"message": message, "state": self.phase(), **fields}
         self.messages.append(message)
         self.ended = self.ended or fields.get("kind") == "end"
