@@ -21,6 +21,7 @@ from sitl_scenarios.campaign import (
 )
 from sitl_scenarios.campaign.families import FamilySpec, generate_scenario
 from sitl_scenarios.campaign.summary import format_table, summary_rows
+from tests.bench_module import load_benchmark
 from uavloc.errors import CampaignError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -260,12 +261,7 @@ def test_the_benchmarks_campaign_takes_any_planners_of_it(planners):
 
 
 def _planner_bench():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("planner_bench", REPO / "benchmarks" / "planner.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
+    return load_benchmark("planner")
 
 
 def test_the_worlds_benchmark_changes_one_effect_of_the_same_scenarios():

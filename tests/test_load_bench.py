@@ -4,21 +4,17 @@ and a session may end before it does)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from dataclasses import asdict
 from pathlib import Path
+
+from tests.bench_module import load_benchmark
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("load_bench", REPO / "benchmarks" / "load.py")
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = bench  # its dataclasses look their module up
-    spec.loader.exec_module(bench)
-    return bench
+    return load_benchmark("load")
 
 
 def test_runs_already_in_the_results_file_are_not_flown_again_and_fill_the_table(tmp_path, capsys):

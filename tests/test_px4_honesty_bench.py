@@ -4,9 +4,7 @@ carry the position the UAV had Δt before the range)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,16 +12,13 @@ import pytest
 
 from sitl_scenarios.example_log import generate
 from sitl_scenarios.scenario import load_scenario
+from tests.bench_module import load_benchmark
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("px4_honesty_bench", REPO / "benchmarks" / "px4_honesty.py")
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = bench  # its dataclasses look their module up
-    spec.loader.exec_module(bench)
-    return bench
+    return load_benchmark("px4_honesty")
 
 
 def test_without_a_px4_build_it_says_which_variable_and_exits_0(monkeypatch, capsys):
