@@ -117,3 +117,41 @@ def test_the_trigger_measures_at_a_turn_where_the_uav_moves_less_than_delta(tmp_
     assert rounds_at(0.0, on_leg=False) == []
     moving = rounds_at(8.0, on_leg=True)  # 80 m at 8 m/s in 0.4 m steps: every Δ = 2 m (5 or 6 steps)
     assert 33 <= len(moving) <= 41 and np.max(np.diff(moving)) < MAX_RANGE_GAP_S
+
+
+def test_a_round_under_way_when_the_survey_ends_claims_no_user_back(tmp_path):
+    """A fleet vehicle's round that is still asking its gNB when the vehicle's survey ends (its
+    link lost: a return requested) stops there, and the answer it was waiting for does not make the
+    user its own again: the mission released its users for the vehicles still surveying, and a
+    claim then kept every other gNB from asking for them until the end (uav1 spent its budget
+    exploring, never ranging the west group: the fleet link-loss test, under load)."""
+    users = [{"id": f"ue{k}", "rnti": 0x4601 + k, "east_m": 30.0 + 5.0 * k, "north_m": 0.0} for k in range(3)]
+    sc = scenario_from_dict({"name": "ending", "seed": 4, **user_tables(users), "flight": {"delta_m": DELTA_M}})
+    buf = TelemetryBuffer(4096)
+    buf.append(0.0, np.array([0.0, 0.0, 30.0]))
+    flight = FlightState(event=lambda message, **fields: None)
+    serving = np.array([1, 1, -1])  # vehicle 1's gNB serves ue0 and ue1; ue2 is nobody's
+    looked_up = []
+    pipe: MeasurementPipeline | None = None
+
+    def position() -> np.ndarray:
+        # the gNB looks the UAV up for each answer: the survey ends while the first is on its way
+        looked_up.append(len(looked_up))
+        if len(looked_up) == 1:
+            flight.request_return("vehicle link lost for more than 5 s")
+            pipe.release_users()
+        return np.array([0.0, 0.0, 30.0])
+
+    async def main():
+        nonlocal pipe
+        async with SimulatedGnb(sc, position, port=0, clock=lambda: 0.0, seed=4) as gnb, \
+                OaiGnbClient(GnbConfig(host="127.0.0.1", port=gnb.port, seed=4, mu=1, request_timeout_s=2.0,
+                                       connect_timeout_s=2.0, retries=1, backoff_max_s=0.2)) as client:
+            pipe = MeasurementPipeline(client, [MissionUser(u["id"], u["rnti"]) for u in users], DELTA_M, 5.0,
+                                       flight, buf, lambda: None, MissionLogWriter(tmp_path / "m.jsonl"),
+                                       now=lambda: 0.0, mission_t=lambda t: t, vehicle=1, serving=serving)
+            await pipe.measure_round()
+
+    asyncio.run(main())
+    assert len(looked_up) == 1, looked_up  # ue1 and ue2 were not asked for after the survey ended
+    assert serving.tolist() == [-1, -1, -1]

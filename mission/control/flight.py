@@ -420,9 +420,7 @@ class MissionController(FinalAnswer):
                 f.log_return()  # a return requested during the survey: after its survey_time
                 if crew.index == 0:
                     self._note_pace(crew)
-                # its users are nobody's now: the vehicles still surveying plan for them, and
-                # every gNB tries them (its cell may still serve them until it is out of reach)
-                self.serving[self.serving == crew.index] = -1
+                crew.pipeline.release_users()
         f.set_phase(RETURN)
         if not await crew.send_rtl(f.return_reason or (f.stop or ("", "survey done"))[1]):
             raise VehicleError("the vehicle did not accept RTL")

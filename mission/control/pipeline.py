@@ -104,6 +104,8 @@ class MeasurementPipeline:
         self.keyframes: list[Keyframe] = [] if keyframes is None else keyframes
         self.serving = np.full(len(users), -1, int) if serving is None else serving
         self.user_misses = np.zeros(len(users), int)
+        #: the survey is over (release_users): this vehicle's gNB claims no user any more
+        self.released = False
         self.protocol_streak = 0
         self._next_user = 0  # whom the next round measures first (rounds take the users in turn)
         self._rounds_reported = False
@@ -179,6 +181,13 @@ class MeasurementPipeline:
                 continue  # check the newest fix at once: fixes arrived while measuring
             await f.wake.wait(1.0)
 
+    def release_users(self) -> None:
+        """The survey is over: the users this vehicle's gNB served are nobody's now, for the
+        vehicles still surveying to plan for and every gNB to try (its cell may still serve them
+        until it is out of reach); a round still under way claims none of them back."""
+        self.released = True
+        self.serving[self.serving == self.vehicle] = -1
+
     def _moved_since_m(self, start: tuple[float, np.ndarray] | None) -> float:
         """How far [m] the UAV's newest fix is from `start` (buffer.latest() when the round began)."""
         latest = self.buffer.latest()
@@ -196,6 +205,8 @@ class MeasurementPipeline:
         start = self.buffer.latest()
         first, tried = self._next_user, 0
         for k in [(first + i) % n_users for i in range(n_users)]:
+            if self.flight.ending or self.released:
+                break  # the survey is over: its users are for the vehicles still surveying
             if self.serving[k] not in (-1, self.vehicle):
                 continue  # another vehicle's gNB serves this user
             if tried and self._moved_since_m(start) >= self.delta_m:
@@ -239,7 +250,11 @@ class MeasurementPipeline:
                 t_end = time.monotonic()
                 t_mono, t_unc = 0.5 * (t_req + t_end), 0.5 * (t_end - t_req)
             samples.append((k, s, t_mono, t_unc))
-            self.serving[k] = self.vehicle
+            # an answer that arrives after the survey ended claims nobody: its users were released
+            # (release_users), and a claim now would keep every other vehicle's gNB from asking for
+            # them for the rest of the mission
+            if not (self.flight.ending or self.released):
+                self.serving[k] = self.vehicle
             self._note_trace_orders()
         now = self.now()
         # answers nobody can read, round after round, are a lost gNB too
