@@ -251,7 +251,11 @@ class VehicleSimulator:
 
     def lose_gps_when(self, predicate: Callable[[VehicleState], bool]) -> None:
         """No GPS fix from the first simulation step after which predicate(true state) holds: the
-        simulation thread judges it at each step, however late a ground station would notice."""
+        simulation thread judges it at each step, however late a ground station would notice. The
+        loss is reported in that step (a GPS_RAW_INT off its 5 Hz beat), so that the first report
+        without a fix shows the state the loss was judged on: between two reports it would be seen
+        up to 0.2 s later, the vehicle slower by then, and what the figures measure from the report
+        would vary with the phase of the beat."""
         with self._lock:
             self._gps_loss_when = predicate
 
@@ -339,6 +343,7 @@ class VehicleSimulator:
         if self._gps_loss_when is not None and self._gps_loss_when(ap.snapshot(link_up=not self._link_down())):
             self._gps_loss_when = None
             self._faults.lose_gps(ap, None)
+            self._schedule.send_next(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT)
         self._faults.apply(ap)
         if self._link_down():
             ap.messages.clear()

@@ -97,6 +97,10 @@ class StreamSchedule:
         iv = self.intervals_s[msg_id]
         return -1 if iv is None else round(iv * 1e6)
 
+    def send_next(self, msg_id: int) -> None:
+        """Stream msg_id goes out at the next :meth:`due`, off its beat (its period runs from there)."""
+        self._next_s[msg_id] = -math.inf
+
     def due(self, t_s: float, wall_s: float) -> list[int]:
         """The streams to send at vehicle time t_s [s] (wall time wall_s [s]), their next send
         times moved on: by one period, or to a period from now when they fell further behind."""
