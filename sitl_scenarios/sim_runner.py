@@ -81,10 +81,23 @@ def connect_urls(connect: str | Sequence[str] | None, scenario: Scenario) -> lis
     return urls
 
 
-def free_udp_port(host: str = "127.0.0.1") -> int:
-    """A UDP port nobody listens on right now (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+def reserve_udp_port(host: str = "127.0.0.1") -> socket.socket:
+    """A UDP socket bound to a port the OS picks, held until closed: while it is open no other
+    socket of any process is given that port, so a port named to a peer before its listener binds
+    stays free for that listener (close it just before)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
         s.bind((host, 0))
+    except OSError:
+        s.close()
+        raise
+    return s
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port nobody listens on right now (the OS picks it; another socket may take it at once:
+    hold it with :func:`reserve_udp_port` where that matters)."""
+    with reserve_udp_port(host) as s:
         return s.getsockname()[1]
 
 
@@ -366,12 +379,17 @@ class SimulatedMission:
     async def _enter_world(self, stack: contextlib.AsyncExitStack) -> None:
         """Start the world's process (the built-in vehicles, the gNBs, the fleet's cells) and the
         MAVSDK adapters that listen to its vehicles; the gNB adapters close before the world."""
-        ports = tuple(free_udp_port() for _ in range(self.fleet_size))
+        # the MAVSDK adapters' ports are held while the world starts: its own sockets (bound to
+        # ports the OS picks) were once given one of them, and the adapter could not bind it
+        held = [reserve_udp_port() for _ in range(self.fleet_size)]
+        stack.callback(lambda: [s.close() for s in held])
+        ports = tuple(s.getsockname()[1] for s in held)
         self.world = await stack.enter_async_context(WorldProcess(WorldSpec(
             self.scenario, self.seed, self.speedup, ports, max_stream_wall_hz=self.max_stream_wall_hz,
             gnb_transport=self.gnb_transport, gnb_mode=self.gnb_mode, gnbs=self.oai is None)))
         for i, port in enumerate(ports):
             self.vehicle_sims.append(VehicleProxy(self.world, i))
+            held[i].close()
             self.vehicles.append(await stack.enter_async_context(MavsdkVehicle(f"udpin://127.0.0.1:{port}")))
         stack.push_async_callback(self._close_gnb)
         self.gnb_sims.extend(GnbProxy(self.world, i) for i in range(len(self.world.info.gnbs)))
